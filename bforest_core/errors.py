@@ -1,0 +1,63 @@
+"""Typed exceptions of Bayes Forest.
+
+Every error a user can cause derives from :class:`BayesForestError`; the CLI turns
+those into one readable line and exit code 2.
+"""
+from __future__ import annotations
+
+
+class BayesForestError(Exception):
+    """Base class of every error a user can cause (bad file, bad config, ...)."""
+
+
+class TreeError(BayesForestError, ValueError):
+    """A cylinder table violates an invariant of :class:`bforest_core.Tree`.
+
+    Attributes
+    ----------
+    problem : str
+        What is wrong, in words.
+    rows : list of int
+        0-based rows of the offending cylinders (may be empty).
+    """
+
+    def __init__(self, problem: str, rows=()):
+        self.problem = problem
+        self.rows = [int(r) for r in rows]
+        super().__init__(problem)
+
+
+class QSMFormatError(BayesForestError, ValueError):
+    """A QSM file cannot be read: names the file and the problem."""
+
+    def __init__(self, path, problem: str, rows=()):
+        self.path = str(path)
+        self.problem = problem
+        self.rows = [int(r) for r in rows]
+        super().__init__(f"{self.path}: {problem}")
+
+
+class ConfigError(BayesForestError, ValueError):
+    """A run configuration or component setting is invalid (names the key path)."""
+
+
+class PluginError(BayesForestError):
+    """A plugin failed to load, registered a conflicting name, or was not found."""
+
+
+class SimulationFailed(BayesForestError):
+    """A growth model run ended with a non-ok status.
+
+    Attributes
+    ----------
+    status : str
+        Machine-readable status, e.g. ``"collapsed"``, ``"too_many_segments"``,
+        ``"negative_balance"``, ``"timeout"``.
+    tree : Tree or None
+        The partial tree when the model has one.
+    """
+
+    def __init__(self, status: str, message: str = "", tree=None):
+        self.status = status
+        self.tree = tree
+        super().__init__(f"simulation failed ({status})" + (f": {message}" if message else ""))

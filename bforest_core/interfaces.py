@@ -1,0 +1,354 @@
+"""Abstract interfaces of the five parts of the method, plus executors.
+
+Every component class has a class attribute ``kind`` (one of :data:`KINDS`), a ``name`` (what a
+config's ``kind = "..."`` selects) and a pydantic ``Settings`` model (``extra="forbid"``) holding
+its own options. ``bf.component(kind, name, **settings)`` validates the settings and returns an
+instance; the instance keeps them in ``self.settings``.
+"""
+from __future__ import annotations
+
+import abc
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, ClassVar, Iterable, Iterator, Mapping, Sequence
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+KINDS = ("qsm_reader", "qsm_writer", "ssm", "features", "distance", "optimizer", "executor")
+
+
+class ComponentSettings(BaseModel):
+    """Base of every component's settings model: unknown keys are errors."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class Component(abc.ABC):
+    """Base of every pluggable component."""
+
+    kind: ClassVar[str]
+    name: ClassVar[str]
+    Settings: ClassVar[type[ComponentSettings]] = ComponentSettings
+    #: one-line description shown by ``bforest plugins``
+    summary: ClassVar[str] = ""
+
+    def __init__(self, settings: ComponentSettings | Mapping[str, Any] | None = None, **kwargs):
+        if isinstance(settings, ComponentSettings):
+            if kwargs:
+                settings = settings.model_copy(update=kwargs)
+        else:
+            settings = self.Settings(**{**dict(settings or {}), **kwargs})
+        self.settings = settings
+
+    def __repr__(self) -> str:
+        opts = ", ".join(f"{k}={v!r}" for k, v in self.settings.model_dump().items())
+        return f"{type(self).__name__}({opts})"
+
+
+# ------------------------------------------------------------------------------------ readers
+class QSMReader(Component):
+    """Reads one QSM file layout into a :class:`~bforest_core.Tree`.
+
+    Readers are tried in turn by :func:`bforest_core.read_qsm`; ``sniff`` looks at the file's
+    content (the suffix only narrows the candidates).
+    """
+
+    kind = "qsm_reader"
+    #: file suffixes this reader may handle, lower case with the dot (".mat", ".txt", ...)
+    suffixes: ClassVar[tuple[str, ...]] = ()
+
+    @abc.abstractmethod
+    def sniff(self, path: Path, head: bytes) -> bool:
+        """True when the file (whose first 4096 bytes are ``head``) is in this layout."""
+
+    @abc.abstractmethod
+    def read(self, path: Path, **options) -> "Tree | list[Tree]":
+        """Read the file; options of :func:`read_qsm` (``select``, ``topology``, ``fragments``,
+        ``drop_degenerate``) are passed through. Raises ``QSMFormatError``."""
+
+
+class QSMWriter(Component):
+    """Writes a tree to one file format (chosen by suffix or ``format=`` name)."""
+
+    kind = "qsm_writer"
+    suffixes: ClassVar[tuple[str, ...]] = ()
+
+    @abc.abstractmethod
+    def write(self, tree, path: Path, **options) -> Path:
+        """Write ``tree`` to ``path``; returns the path written."""
+
+
+# ------------------------------------------------------------------------------------ SSM
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One growth-model parameter.
+
+    ``lower``/``upper`` are the plausible range a fit may explore (and the default bounds of a
+    ``free`` entry); ``integer`` parameters take whole values.
+    """
+
+    name: str
+    default: float
+    lower: float
+    upper: float
+    integer: bool = False
+    unit: str = ""
+    description: str = ""
+    group: str = ""
+
+
+class SSM(Component):
+    """A stochastic structure (growth) model."""
+
+    kind = "ssm"
+
+    @property
+    @abc.abstractmethod
+    def parameters(self) -> list[ParameterSpec]:
+        """The model's parameter specs (for the current preset, if any)."""
+
+    @abc.abstractmethod
+    def simulate(self, params: Mapping[str, float], seed: int) -> "Tree":
+        """Grow one tree.
+
+        Parameters
+        ----------
+        params : mapping
+            Values by parameter name; missing names take their defaults, unknown names raise
+            ``ValueError`` naming them.
+        seed : int
+            Seeds the model's single ``numpy.random.Generator``: the same params and seed give a
+            bit-identical tree.
+
+        Returns
+        -------
+        Tree
+            With its growth topology (``source``) and metadata (``model``, ``params``, ``seed``,
+            ``status``).
+
+        Raises
+        ------
+        SimulationFailed
+            For any non-ok status.
+        """
+
+    def parameter_spec(self, name: str) -> ParameterSpec:
+        for p in self.parameters:
+            if p.name == name:
+                return p
+        raise KeyError(f"{self.name} has no parameter {name!r} (known: {', '.join(p.name for p in self.parameters)})")
+
+    def defaults(self) -> dict[str, float]:
+        return {p.name: p.default for p in self.parameters}
+
+    def resolve_params(self, params: Mapping[str, float]) -> dict[str, float]:
+        """Defaults overridden by ``params``; unknown names raise ``ValueError``."""
+        known = self.defaults()
+        unknown = sorted(set(params) - set(known))
+        if unknown:
+            raise ValueError(f"unknown parameter(s) for SSM '{self.name}': {', '.join(unknown)} "
+                             f"(known: {', '.join(known)})")
+        out = dict(known)
+        out.update(params)
+        for p in self.parameters:
+            if p.integer:
+                out[p.name] = int(round(out[p.name]))
+        return out
+
+
+# ------------------------------------------------------------------------------------ features
+class FeatureSet(Component):
+    """Turns a tree into named tables of multi-dimensional points (structural data sets U)."""
+
+    kind = "features"
+
+    @property
+    @abc.abstractmethod
+    def set_names(self) -> list[str]:
+        """Names of the data sets this feature set produces, in order."""
+
+    def prepare(self, data_trees: "Sequence[Tree]") -> None:
+        """Resolve data-dependent choices (e.g. ``"2+"`` orders) and check minimum sizes on the
+        data tree(s), once at set-up. Default: nothing to do."""
+
+    @abc.abstractmethod
+    def extract(self, tree) -> dict[str, np.ndarray]:
+        """Set name -> ``(n_i, d_i)`` float64 array (rows with NaN dropped per ``nan_policy``)."""
+
+    def extract_pooled(self, trees: "Sequence[Tree]") -> dict[str, np.ndarray]:
+        """Rows of several trees pooled per set (repeated reconstructions)."""
+        parts = [self.extract(t) for t in trees]
+        return {k: np.concatenate([p[k] for p in parts], axis=0) for k in self.set_names}
+
+    @abc.abstractmethod
+    def columns(self, set_name: str) -> list[str]:
+        """Column names of one set. Circular pairs are named ``"sin(x)"``, ``"cos(x)"`` so a
+        distance can scale each pair jointly."""
+
+
+# ------------------------------------------------------------------------------------ distance
+class Distance(Component):
+    """A structural distance between model and data tables."""
+
+    kind = "distance"
+
+    def prepare(self, U_data: Mapping[str, np.ndarray], columns: Mapping[str, list[str]] | None = None) -> None:
+        """Fit normalisation on the data side and cache data-side work once per run."""
+
+    @abc.abstractmethod
+    def compute(self, u_model: np.ndarray, u_data: np.ndarray) -> float:
+        """Distance of one pair of ``(n, d)`` tables (data side named second)."""
+
+    def compute_per_set(self, U_model: Mapping[str, np.ndarray], U_data: Mapping[str, np.ndarray]) -> dict[str, float | None]:
+        """Per-set distances; ``None`` for a pair that is skipped (both sides empty)."""
+        if set(U_model) != set(U_data):
+            raise ValueError(f"model sets {sorted(U_model)} differ from data sets {sorted(U_data)}")
+        return {k: self.compute_pair(k, U_model[k], U_data[k]) for k in U_data}
+
+    def compute_pair(self, set_name: str, u_model: np.ndarray, u_data: np.ndarray) -> float | None:
+        """One named pair (lets implementations use per-set prepared state)."""
+        return self.compute(u_model, u_data)
+
+    @staticmethod
+    def combine(per_set: Mapping[str, float | None], weights: Mapping[str, float] | None = None) -> float:
+        """Weighted mean over the pairs that take part (skipped pairs leave the normalisation;
+        0.0 when every pair is skipped)."""
+        num = den = 0.0
+        for k, v in per_set.items():
+            if v is None:
+                continue
+            w = 1.0 if weights is None else float(weights.get(k, 1.0))
+            num += w * v
+            den += w
+        return num / den if den > 0 else 0.0
+
+    def compute_sets(self, U_model, U_data, weights=None) -> float:
+        """Weighted mean distance over sets (spec §4.5)."""
+        return self.combine(self.compute_per_set(U_model, U_data), weights)
+
+    def directions(self, d: int) -> np.ndarray:
+        """The ``(lines, d)`` unit vectors a sliced distance projects on (if it has any)."""
+        raise NotImplementedError(f"distance '{self.name}' does not project on directions")
+
+
+# ------------------------------------------------------------------------------------ optimiser
+@dataclass
+class Problem:
+    """What an optimiser sees: a bounded box, integer flags and a batch objective.
+
+    ``evaluate(X)`` takes a ``(k, p)`` array of points (in parameter order ``names``), evaluates
+    them (in parallel through the run's executor, logging each to the run store) and returns
+    ``k`` objective values. Once a stop criterion (budget, wall time, target) is met,
+    ``evaluate`` evaluates what still fits in the budget, sets ``stopped`` and returns; the
+    optimiser must then return its best point. Integer parameters are rounded by ``evaluate``.
+    """
+
+    names: list[str]
+    lower: np.ndarray
+    upper: np.ndarray
+    integer: np.ndarray
+    evaluate: Callable[[np.ndarray], np.ndarray]
+    init_lower: np.ndarray | None = None
+    init_upper: np.ndarray | None = None
+    seed: int = 0
+    budget: int | None = None
+    # progress state, maintained by the caller's evaluate
+    stopped: bool = False
+    n_evaluations: int = 0
+    best_x: np.ndarray | None = None
+    best_f: float = math.inf
+    stop_reason: str = ""
+    #: diagnostics callback; optimisers call ``problem.log(dict)`` once per generation/iteration
+    log: Callable[[dict], None] = field(default=lambda rec: None)
+
+    @property
+    def dim(self) -> int:
+        return len(self.names)
+
+    def init_box(self):
+        lo = self.lower if self.init_lower is None else self.init_lower
+        hi = self.upper if self.init_upper is None else self.init_upper
+        return np.asarray(lo, float), np.asarray(hi, float)
+
+    def remaining(self) -> int | None:
+        return None if self.budget is None else max(0, self.budget - self.n_evaluations)
+
+
+@dataclass
+class OptimizeResult:
+    """Outcome of one optimisation."""
+
+    x: np.ndarray
+    fun: float
+    n_evaluations: int
+    stop_reason: str = ""
+    history: list[dict] = field(default_factory=list)
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+
+
+class Optimizer(Component):
+    """Minimises a :class:`Problem`."""
+
+    kind = "optimizer"
+
+    @abc.abstractmethod
+    def minimize(self, problem: Problem) -> OptimizeResult:
+        """Search the box for the minimum. Must be deterministic given ``problem.seed`` and the
+        values returned by ``problem.evaluate`` (the run store replays evaluations on resume)."""
+
+
+# ------------------------------------------------------------------------------------ executor
+class Executor(Component):
+    """Runs evaluations, possibly in parallel.
+
+    Usage::
+
+        with executor.started(initializer, initargs):
+            for index, result in executor.map_unordered(fn, items):
+                ...
+    """
+
+    kind = "executor"
+
+    @property
+    def workers(self) -> int:
+        return 1
+
+    @abc.abstractmethod
+    def start(self, initializer: Callable | None = None, initargs: tuple = ()) -> None:
+        """Start workers; ``initializer(*initargs)`` runs once in each (loads the target)."""
+
+    @abc.abstractmethod
+    def map_unordered(self, fn: Callable, items: Sequence) -> Iterator[tuple[int, Any]]:
+        """Yield ``(index, fn(items[index]))`` as each finishes."""
+
+    def map(self, fn: Callable, items: Sequence) -> list:
+        out = [None] * len(items)
+        for i, r in self.map_unordered(fn, items):
+            out[i] = r
+        return out
+
+    def shutdown(self) -> None:
+        """Stop workers."""
+
+    def started(self, initializer: Callable | None = None, initargs: tuple = ()):
+        return _Started(self, initializer, initargs)
+
+
+class _Started:
+    def __init__(self, ex, init, args):
+        self.ex, self.init, self.args = ex, init, args
+
+    def __enter__(self):
+        self.ex.start(self.init, self.args)
+        return self.ex
+
+    def __exit__(self, *exc):
+        self.ex.shutdown()
+        return False
+
+
+INTERFACES = {"qsm_reader": QSMReader, "qsm_writer": QSMWriter, "ssm": SSM, "features": FeatureSet,
+              "distance": Distance, "optimizer": Optimizer, "executor": Executor}

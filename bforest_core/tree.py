@@ -1,0 +1,477 @@
+"""The cylinder tree: the one structure every QSM reader and every growth model returns.
+
+Columns follow ``shared/spec/features-distance.md`` §1: numpy arrays, metres, 0-based ids,
+``-1`` for "none". ``branch``, ``order`` and ``position_in_branch`` are always recomputed
+from ``parent`` + ``extension`` by :func:`derive_branches`; a *topology rule* only chooses
+``extension`` (:func:`choose_extension`).
+
+All derivations are vectorised (pointer jumping, level-synchronous accumulation); there is no
+Python loop over cylinders.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+
+from .errors import TreeError
+
+TOPOLOGY_RULES = ("source", "subtree", "thickest")
+_AXIS_TOL = 1e-6  # silently renormalised below this deviation; readers renormalise larger ones
+
+
+def _rows_text(rows, limit: int = 10) -> str:
+    rows = [int(r) for r in rows]
+    shown = ", ".join(str(r) for r in rows[:limit])
+    more = f", ... ({len(rows)} rows)" if len(rows) > limit else (f" ({len(rows)} rows)" if len(rows) > 1 else "")
+    return shown + more
+
+
+# ----------------------------------------------------------------------------------------------
+# vectorised topology kernels
+# ----------------------------------------------------------------------------------------------
+
+def _jump_to_head(link: np.ndarray, is_head: np.ndarray):
+    """Pointer jumping: for each node, the head of its chain and the number of links to it.
+
+    ``link[i]`` is the predecessor of i (ignored where ``is_head``). Returns ``(head, dist)``.
+    O(n log L) for chains of length L.
+    """
+    n = link.shape[0]
+    idx = np.arange(n)
+    anc = np.where(is_head, idx, link)
+    dist = (~is_head).astype(np.int64)
+    active = np.flatnonzero(~is_head & ~is_head[np.where(is_head, idx, link)])
+    # invariant: dist[i] = links from i to anc[i]; a head has anc = itself and dist 0
+    while active.size:
+        a = anc[active]
+        dist[active] += dist[a]
+        anc[active] = anc[a]
+        active = active[~is_head[anc[active]]]
+    return anc, dist
+
+
+def depth_of(parent: np.ndarray) -> np.ndarray:
+    """Number of links from each cylinder to the root (root 0)."""
+    _, d = _jump_to_head(parent, parent < 0)
+    return d
+
+
+def levels(parent: np.ndarray):
+    """Rows grouped by depth: ``(order, bounds)`` with rows of depth k at ``order[bounds[k]:bounds[k+1]]``."""
+    d = depth_of(parent)
+    order = np.argsort(d, kind="stable")
+    counts = np.bincount(d)
+    bounds = np.concatenate(([0], np.cumsum(counts)))
+    return order, bounds
+
+
+def subtree_sum(parent: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Sum of ``values`` over each node and all its descendants (O(n), level by level)."""
+    out = np.array(values, dtype=np.float64, copy=True)
+    order, bounds = levels(parent)
+    for k in range(len(bounds) - 1, 1, -1):
+        rows = order[bounds[k - 1]:bounds[k]]
+        np.add.at(out, parent[rows], out[rows])
+    return out
+
+
+def children_csr(parent: np.ndarray):
+    """Children lists as CSR arrays ``(ptr, idx)``: children of i are ``idx[ptr[i]:ptr[i+1]]``
+    in increasing row order."""
+    n = parent.shape[0]
+    nonroot = np.flatnonzero(parent >= 0)
+    p = parent[nonroot]
+    srt = np.argsort(p, kind="stable")
+    idx = nonroot[srt]
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(p, minlength=n), out=ptr[1:])
+    return ptr, idx
+
+
+def choose_extension(parent, extension, radius, length, rule: str) -> np.ndarray:
+    """Pick the continuing child of every cylinder under a topology rule (spec §1.1).
+
+    ``source`` returns ``extension`` unchanged. ``thickest`` takes the child with the largest
+    radius, ``subtree`` the child whose subtree holds the most wood (sum of pi r^2 L); ties go
+    to the current extension, then to the earlier row.
+    """
+    if rule not in TOPOLOGY_RULES:
+        raise TreeError(f"unknown topology rule {rule!r} (choose from {', '.join(TOPOLOGY_RULES)})")
+    if rule == "source":
+        return np.asarray(extension, dtype=np.int64).copy()
+    n = parent.shape[0]
+    if rule == "thickest":
+        key = np.asarray(radius, dtype=np.float64)
+    else:
+        key = subtree_sum(parent, np.pi * np.asarray(radius, float) ** 2 * np.asarray(length, float))
+    rows = np.flatnonzero(parent >= 0)
+    p = parent[rows]
+    not_ext = extension[p] != rows
+    # lexsort: last key is primary -> parent, then -key, then not-extension, then row
+    srt = np.lexsort((rows, not_ext, -key[rows], p))
+    ps = p[srt]
+    first = np.ones(ps.shape[0], dtype=bool)
+    first[1:] = ps[1:] != ps[:-1]
+    new_ext = np.full(n, -1, dtype=np.int64)
+    new_ext[ps[first]] = rows[srt][first]
+    return new_ext
+
+
+def derive_branches(parent: np.ndarray, extension: np.ndarray):
+    """Branch id, Gravelius order and position of every cylinder from ``parent`` + ``extension``.
+
+    Branches are the maximal extension chains, numbered in increasing row order of their first
+    cylinder; the trunk (the root's branch) is 0 and has order 0; a lateral branch has its parent
+    branch's order + 1.
+    """
+    n = parent.shape[0]
+    rows = np.arange(n)
+    has_parent = parent >= 0
+    is_first = np.ones(n, dtype=bool)
+    is_first[has_parent] = extension[parent[has_parent]] != rows[has_parent]
+    head, position = _jump_to_head(parent, is_first)
+    firsts = np.flatnonzero(is_first)  # increasing rows: branch ids by first row
+    bid_of_first = np.full(n, -1, dtype=np.int64)
+    bid_of_first[firsts] = np.arange(firsts.size)
+    branch = bid_of_first[head]
+    parent_cyl = parent[firsts]
+    parent_branch = np.where(parent_cyl >= 0, branch[np.maximum(parent_cyl, 0)], -1)
+    _, border = _jump_to_head(parent_branch, parent_branch < 0)
+    order = border[branch]
+    return branch, order.astype(np.int64), position.astype(np.int64), firsts, parent_cyl, parent_branch, border
+
+
+def parent_first_order(parent: np.ndarray):
+    """A topological order (parents before children) that always takes the smallest available
+    row, so an already sorted table keeps its order. Raises :class:`TreeError` for several
+    roots, no root, out-of-range parents or cycles."""
+    n = parent.shape[0]
+    bad = np.flatnonzero((parent < -1) | (parent >= n))
+    if bad.size:
+        raise TreeError(f"parent out of range at rows {_rows_text(bad)} (values {parent[bad][:5].tolist()}; "
+                        f"valid 0..{n - 1} or -1)", bad)
+    selfp = np.flatnonzero(parent == np.arange(n))
+    if selfp.size:
+        raise TreeError(f"cylinder is its own parent at rows {_rows_text(selfp)}", selfp)
+    roots = np.flatnonzero(parent < 0)
+    if roots.size == 0:
+        raise TreeError("no root: every cylinder has a parent (the parent links form a cycle)")
+    if roots.size > 1:
+        raise TreeError(f"{roots.size} cylinders have no parent (rows {_rows_text(roots)}); "
+                        "a tree has exactly one root", roots)
+    if roots[0] == 0 and np.all(parent[1:] < np.arange(1, n)):
+        return None  # already in order
+    # cycle detection: nodes not reachable from the root
+    d_ok = np.zeros(n, dtype=bool)
+    d_ok[roots[0]] = True
+    ptr, idx = children_csr(parent)
+    frontier = roots
+    depth = np.zeros(n, dtype=np.int64)
+    k = 0
+    while frontier.size:
+        counts = ptr[frontier + 1] - ptr[frontier]
+        starts = np.repeat(ptr[frontier], counts)
+        offs = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+        ch = idx[starts + offs]
+        k += 1
+        depth[ch] = k
+        d_ok[ch] = True
+        frontier = ch
+    if not d_ok.all():
+        bad = np.flatnonzero(~d_ok)
+        # walk one cycle for the message
+        i = int(bad[0])
+        seen = []
+        while i not in seen and len(seen) < 20:
+            seen.append(i)
+            i = int(parent[i])
+        cyc = seen[seen.index(i):] + [i] if i in seen else seen
+        raise TreeError("cylinders " + " -> ".join(str(c) for c in cyc) +
+                        f" form a cycle ({bad.size} cylinders not connected to the root)", bad)
+    # smallest-row-first topological order: sort by (depth?) no -- a stable order that keeps
+    # sorted files intact: order rows by (max depth constraint) using iterative relabel.
+    # Kahn's algorithm with a min-heap is O(n log n) but Python-level; use depth-stable sort,
+    # which is a valid topological order and keeps already-sorted prefixes when possible.
+    return np.lexsort((np.arange(n), depth))
+
+
+# ----------------------------------------------------------------------------------------------
+# the Tree
+# ----------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class BranchTable:
+    """One row per branch (spec §1; ``gen_scatter2.m``).
+
+    ``cylinders[ptr[b]:ptr[b+1]]`` are the cylinders of branch b from base to tip.
+    """
+
+    first: np.ndarray          # first cylinder
+    parent_cyl: np.ndarray     # parent cylinder of the first cylinder, -1 for the trunk
+    parent_branch: np.ndarray  # -1 for the trunk
+    order: np.ndarray
+    n_cyl: np.ndarray
+    ptr: np.ndarray
+    cylinders: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.first.shape[0])
+
+
+class Tree:
+    """A tree as a table of cylinders with parent links (spec §1).
+
+    Parameters
+    ----------
+    start, axis : (n, 3) array_like
+        Start points (m) and axis directions (unit vectors; deviations up to 1e-6 are
+        renormalised, larger ones and zero axes are errors -- readers renormalise and warn).
+    length, radius : (n,) array_like
+        Cylinder length and radius, m, both > 0.
+    parent : (n,) array_like of int
+        Row of the parent cylinder, -1 for the root. Rows not in parent-before-child order are
+        re-sorted (stably); ``source_row`` keeps the original row.
+    extension : (n,) array_like of int, optional
+        The child continuing the same branch, -1 for none. Required for ``topology="source"``
+        unless absent, in which case every child starts a new branch (use another rule then).
+    topology : {"source", "subtree", "thickest"}
+        Rule choosing ``extension`` (spec §1.1).
+    added : (n,) bool, optional
+        QSM gap-filling cylinders.
+    extras : dict of (n,) arrays, optional
+        Extra per-cylinder columns (never read by features).
+    metadata : dict, optional
+        Source path, format, version, model index, units, parameters, seed, ...
+
+    Raises
+    ------
+    TreeError
+        With the problem and the offending rows.
+    """
+
+    __slots__ = ("start", "axis", "length", "radius", "parent", "extension", "branch", "order",
+                 "position_in_branch", "added", "source_row", "extras", "metadata", "topology",
+                 "_cache")
+
+    def __init__(self, start, axis, length, radius, parent, extension=None, *, topology="source",
+                 added=None, source_row=None, extras=None, metadata=None):
+        start = np.asarray(start, dtype=np.float64)
+        axis = np.asarray(axis, dtype=np.float64)
+        length = np.asarray(length, dtype=np.float64).reshape(-1)
+        radius = np.asarray(radius, dtype=np.float64).reshape(-1)
+        parent = np.asarray(parent)
+        n = length.shape[0]
+        if n == 0:
+            raise TreeError("the tree has no cylinders")
+        start = start.reshape(-1, 3) if start.size == 3 * n else start
+        axis = axis.reshape(-1, 3) if axis.size == 3 * n else axis
+        for name, arr, shape in (("start", start, (n, 3)), ("axis", axis, (n, 3)),
+                                 ("radius", radius, (n,)), ("parent", parent, (n,))):
+            if arr.shape != shape:
+                raise TreeError(f"'{name}' has shape {arr.shape}, expected {shape} (n = {n} cylinders from 'length')")
+        if not np.issubdtype(parent.dtype, np.integer):
+            if not np.all(np.isfinite(parent)) or np.any(parent != np.round(parent)):
+                bad = np.flatnonzero(~np.isfinite(parent) | (parent != np.round(np.nan_to_num(parent))))
+                raise TreeError(f"'parent' holds non-integer values at rows {_rows_text(bad)}", bad)
+        parent = parent.astype(np.int64)
+        if extension is None:
+            extension = np.full(n, -1, dtype=np.int64)
+        extension = np.asarray(extension)
+        if extension.shape != (n,):
+            raise TreeError(f"'extension' has shape {extension.shape}, expected {(n,)}")
+        extension = extension.astype(np.int64)
+        for name, arr in (("start", start), ("axis", axis), ("length", length), ("radius", radius)):
+            ok = np.isfinite(arr) if arr.ndim == 1 else np.isfinite(arr).all(axis=1)
+            if not ok.all():
+                bad = np.flatnonzero(~ok)
+                raise TreeError(f"non-finite values in '{name}' at rows {_rows_text(bad)}", bad)
+        for name, arr in (("length", length), ("radius", radius)):
+            bad = np.flatnonzero(arr <= 0)
+            if bad.size:
+                raise TreeError(f"{name} <= 0 at rows {_rows_text(bad)} (value {arr[bad[0]]:g})", bad)
+        norm = np.linalg.norm(axis, axis=1)
+        bad = np.flatnonzero(norm == 0)
+        if bad.size:
+            raise TreeError(f"axis has zero length at rows {_rows_text(bad)}", bad)
+        bad = np.flatnonzero(np.abs(norm - 1.0) > _AXIS_TOL)
+        if bad.size:
+            raise TreeError(f"axis is not a unit vector at rows {_rows_text(bad)} (norm {norm[bad[0]]:.6g}); "
+                            "renormalise it before building the tree", bad)
+        axis = axis / norm[:, None]
+        if topology not in TOPOLOGY_RULES:
+            raise TreeError(f"unknown topology rule {topology!r} (choose from {', '.join(TOPOLOGY_RULES)})")
+        if added is None:
+            added = np.zeros(n, dtype=bool)
+        added = np.asarray(added).astype(bool).reshape(-1)
+        if added.shape != (n,):
+            raise TreeError(f"'added' has shape {added.shape}, expected {(n,)}")
+        source_row = np.arange(n, dtype=np.int64) if source_row is None else np.asarray(source_row, dtype=np.int64)
+        extras = {k: np.asarray(v) for k, v in (extras or {}).items()}
+        for k, v in extras.items():
+            if v.shape[:1] != (n,):
+                raise TreeError(f"extra column '{k}' has shape {v.shape}, expected ({n}, ...)")
+
+        bad = np.flatnonzero((extension < -1) | (extension >= n))
+        if bad.size:
+            raise TreeError(f"extension out of range at rows {_rows_text(bad)}", bad)
+        perm = parent_first_order(parent)
+        if perm is not None:
+            inv = np.empty(n, dtype=np.int64)
+            inv[perm] = np.arange(n)
+            remap = lambda a: np.where(a >= 0, inv[np.maximum(a, 0)], -1)
+            start, axis, length, radius, added, source_row = (
+                start[perm], axis[perm], length[perm], radius[perm], added[perm], source_row[perm])
+            parent = remap(parent[perm])
+            extension = remap(extension[perm])
+            extras = {k: v[perm] for k, v in extras.items()}
+        has_ext = np.flatnonzero(extension >= 0)
+        bad = has_ext[parent[extension[has_ext]] != has_ext]
+        if bad.size:
+            i = int(bad[0])
+            j = int(extension[i])
+            raise TreeError(f"extension of row {i} is row {j}, whose parent is row {int(parent[j])}", bad)
+
+        self.start = start
+        self.axis = axis
+        self.length = length
+        self.radius = radius
+        self.parent = parent
+        self.added = added
+        self.source_row = source_row
+        self.extras = extras
+        self.metadata = dict(metadata or {})
+        self.topology = topology
+        self._cache = {}
+        self.extension = choose_extension(parent, extension, radius, length, topology)
+        self._set_branches()
+        self.metadata["topology"] = topology
+        for a in (self.start, self.axis, self.length, self.radius, self.parent, self.extension,
+                  self.branch, self.order, self.position_in_branch, self.added, self.source_row):
+            a.flags.writeable = False
+
+    def _set_branches(self):
+        (self.branch, self.order, self.position_in_branch, firsts, parent_cyl, parent_branch,
+         border) = derive_branches(self.parent, self.extension)
+        self._cache["_branch_parts"] = (firsts, parent_cyl, parent_branch, border)
+
+    # ------------------------------------------------------------------ basic properties
+    @property
+    def n(self) -> int:
+        """Number of cylinders."""
+        return int(self.length.shape[0])
+
+    def __len__(self) -> int:
+        return self.n
+
+    @property
+    def end(self) -> np.ndarray:
+        """End points ``start + length * axis`` (m)."""
+        e = self._cache.get("end")
+        if e is None:
+            e = self.start + self.length[:, None] * self.axis
+            e.flags.writeable = False
+            self._cache["end"] = e
+        return e
+
+    @property
+    def n_branches(self) -> int:
+        return int(self._cache["_branch_parts"][0].shape[0])
+
+    @property
+    def max_order(self) -> int:
+        return int(self.order.max())
+
+    @property
+    def volume(self) -> float:
+        """Total wood volume (m^3)."""
+        return float(np.sum(np.pi * self.radius ** 2 * self.length))
+
+    def children(self):
+        """Children as CSR arrays ``(ptr, idx)`` (children of i: ``idx[ptr[i]:ptr[i+1]]``)."""
+        c = self._cache.get("children")
+        if c is None:
+            c = children_csr(self.parent)
+            self._cache["children"] = c
+        return c
+
+    @property
+    def branches(self) -> BranchTable:
+        """The branch table (first cylinder, parent branch/cylinder, order, cylinders base-to-tip)."""
+        bt = self._cache.get("branches")
+        if bt is None:
+            firsts, parent_cyl, parent_branch, border = self._cache["_branch_parts"]
+            nb = firsts.shape[0]
+            cyl = np.lexsort((self.position_in_branch, self.branch))
+            n_cyl = np.bincount(self.branch, minlength=nb)
+            ptr = np.zeros(nb + 1, dtype=np.int64)
+            np.cumsum(n_cyl, out=ptr[1:])
+            bt = BranchTable(first=firsts, parent_cyl=parent_cyl, parent_branch=parent_branch,
+                             order=border.astype(np.int64), n_cyl=n_cyl, ptr=ptr, cylinders=cyl)
+            self._cache["branches"] = bt
+        return bt
+
+    # ------------------------------------------------------------------ derived trees
+    def with_topology(self, rule: str) -> "Tree":
+        """The same cylinders with branches chosen by another topology rule.
+
+        ``source`` restores the tree's own stored branching when this tree was built from it.
+        """
+        if rule == self.topology:
+            return self
+        src_ext = self.extras.get("_source_extension")
+        base_ext = src_ext if src_ext is not None else self.extension
+        extras = dict(self.extras)
+        extras.setdefault("_source_extension", np.asarray(self.extension if self.topology == "source" else base_ext))
+        return Tree(self.start, self.axis, self.length, self.radius, self.parent,
+                    extras["_source_extension"], topology=rule, added=self.added,
+                    source_row=self.source_row, extras=extras, metadata=self.metadata)
+
+    def subset(self, keep) -> "Tree":
+        """The tree restricted to rows ``keep`` (a bool mask or indices) that must be closed under
+        ``parent`` (every kept row's parent is kept)."""
+        keep = np.asarray(keep)
+        mask = np.zeros(self.n, dtype=bool)
+        mask[keep] = True
+        rows = np.flatnonzero(mask)
+        p = self.parent[rows]
+        if np.any((p >= 0) & ~mask[np.maximum(p, 0)]):
+            raise TreeError("subset is not closed under parent links")
+        new = np.full(self.n, -1, dtype=np.int64)
+        new[rows] = np.arange(rows.size)
+        remap = lambda a: np.where(a >= 0, new[np.maximum(a, 0)], -1)
+        return Tree(self.start[rows], self.axis[rows], self.length[rows], self.radius[rows],
+                    remap(self.parent[rows]), remap(self.extension[rows]), topology=self.topology,
+                    added=self.added[rows], source_row=self.source_row[rows],
+                    extras={k: v[rows] for k, v in self.extras.items()}, metadata=self.metadata)
+
+    def translated(self, offset) -> "Tree":
+        """A copy moved by ``offset`` (m)."""
+        return Tree(self.start + np.asarray(offset, float), self.axis, self.length, self.radius,
+                    self.parent, self.extension, topology=self.topology, added=self.added,
+                    source_row=self.source_row, extras=self.extras, metadata=self.metadata)
+
+    def __getstate__(self):
+        return {k: getattr(self, k) for k in self.__slots__ if k != "_cache"}
+
+    def __setstate__(self, state):
+        for k, v in state.items():
+            object.__setattr__(self, k, v)
+        self._cache = {}
+        self._set_branches()
+
+    def __repr__(self) -> str:
+        src = self.metadata.get("source") or self.metadata.get("model") or ""
+        return (f"Tree({self.n} cylinders, {self.n_branches} branches, max order {self.max_order}, "
+                f"topology={self.topology!r}{', ' + str(src) if src else ''})")
+
+    def equals(self, other: "Tree", atol: float = 0.0) -> bool:
+        """True when both trees have the same columns (geometry within ``atol``)."""
+        if self.n != other.n:
+            return False
+        same_int = all(np.array_equal(getattr(self, k), getattr(other, k))
+                       for k in ("parent", "extension", "branch", "order", "position_in_branch", "added"))
+        same_f = all(np.allclose(getattr(self, k), getattr(other, k), rtol=0, atol=atol)
+                     for k in ("start", "axis", "length", "radius"))
+        return same_int and same_f

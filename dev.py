@@ -1,0 +1,70 @@
+#!/usr/bin/env python3
+"""Set-up and entry commands of Bayes Forest: needs only Python >= 3.11 and pip.
+
+    python3 dev.py demo     fit a growth model to the embedded default target (writes ./demo-run)
+    python3 dev.py test     run the whole test suite
+
+Each creates (or reuses) the virtual environment ``.venv`` beside this file and installs the
+project into it (editable, with the test and Dask extras and the example third-party plugin).
+The install is redone only when a packaging file changed.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent
+VENV = ROOT / ".venv"
+STAMP = VENV / ".install-stamp"
+EXAMPLE = ROOT / "docs" / "examples" / "bforest-example-ssm"
+BIN = VENV / ("Scripts" if os.name == "nt" else "bin")
+
+
+def _fingerprint() -> str:
+    h = hashlib.sha256()
+    for f in [ROOT / "pyproject.toml", Path(__file__), EXAMPLE / "pyproject.toml"]:
+        if f.exists():
+            h.update(f.read_bytes())
+    h.update(sys.version.encode())
+    return h.hexdigest()
+
+
+def ensure_env() -> Path:
+    if sys.version_info < (3, 11):
+        sys.exit(f"Bayes Forest needs Python >= 3.11 (this is {sys.version.split()[0]})")
+    py = BIN / ("python.exe" if os.name == "nt" else "python")
+    if not py.exists():
+        print(f"creating virtual environment {VENV} ...", flush=True)
+        venv.EnvBuilder(with_pip=True).create(VENV)
+    fp = _fingerprint()
+    if not STAMP.exists() or STAMP.read_text() != fp:
+        print("installing Bayes Forest and its dependencies into .venv ...", flush=True)
+        pip = [str(py), "-m", "pip", "install", "--disable-pip-version-check", "-q"]
+        subprocess.check_call(pip + ["-e", f"{ROOT}[dev,dask]"])
+        if (EXAMPLE / "pyproject.toml").exists():
+            subprocess.check_call(pip + ["-e", str(EXAMPLE)])
+        STAMP.write_text(fp)
+    return py
+
+
+def main(argv: list[str]) -> int:
+    if not argv or argv[0] not in ("demo", "test", "env"):
+        print(__doc__)
+        return 2
+    py = ensure_env()
+    cmd, rest = argv[0], argv[1:]
+    if cmd == "env":
+        return 0
+    if cmd == "demo":
+        return subprocess.call([str(BIN / "bforest"), "demo", *rest])
+    # tests: pytest exit code 5 (no tests collected) is a failure here too
+    rc = subprocess.call([str(py), "-m", "pytest", *rest], cwd=ROOT)
+    return 1 if rc == 5 else rc
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -42,3 +42,85 @@ def hand_tree(topology: str = "source"):
     parent = [-1, 0, 1, 0, 3, 1, 2]
     extension = [1, 2, -1, 4, -1, -1, -1]
     return Tree(start, axis, length, radius, parent, extension, topology=topology)
+
+
+TOY_DIR = Path(__file__).resolve().parent / "toy_plugin"
+
+
+def install_toy_plugin(tmp_dir: Path, broken: bool = True) -> Path:
+    """Make the toy plugin discoverable through a real entry point: a ``.dist-info`` folder with
+    ``entry_points.txt`` on ``sys.path`` (what ``pip install`` of a plugin creates)."""
+    import sys
+    from bforest_core import registry
+
+    dist = tmp_dir / "bforest_toy-1.2.3.dist-info"
+    dist.mkdir(parents=True, exist_ok=True)
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: bforest-toy\nVersion: 1.2.3\n")
+    eps = "[bforest]\ntoy = bforest_toy\n" + ("broken = bforest_toy_broken\n" if broken else "")
+    (dist / "entry_points.txt").write_text(eps)
+    for p in (str(tmp_dir), str(TOY_DIR)):
+        if p not in sys.path:
+            sys.path.insert(0, p)
+    registry.discover(refresh=True)
+    from bforest_core import config
+    config._run_config_model.cache_clear()
+    return tmp_dir
+
+
+def uninstall_toy_plugin(tmp_dir: Path) -> None:
+    import sys
+    from bforest_core import registry, config
+    for p in (str(tmp_dir), str(TOY_DIR)):
+        while p in sys.path:
+            sys.path.remove(p)
+    registry.discover(refresh=True)
+    config._run_config_model.cache_clear()
+
+
+@pytest.fixture(scope="session")
+def toy_plugin(tmp_path_factory):
+    """The toy plugin installed for the whole session (SSM ``toy``, features ``toy-features``,
+    distance ``toy-distance``) plus a broken plugin that fails to import."""
+    import warnings
+    d = tmp_path_factory.mktemp("toy_site")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        install_toy_plugin(d)
+    yield d
+    uninstall_toy_plugin(d)
+
+
+TOY_CONFIG = """
+seed = 3
+[target.generate]
+ssm = "toy"
+seed = 11
+params = {{ angle = 30.0, segments = 12 }}
+[ssm]
+kind = "toy"
+fixed = {{ noise = 2.0 }}
+free.angle = {{ lower = 5.0, upper = 80.0 }}
+free.segments = {{ lower = 4, upper = 30 }}
+[features]
+kind = "toy-features"
+[distance]
+kind = "toy-distance"
+[optimizer]
+kind = "{optimizer}"
+{optimizer_settings}
+[executor]
+kind = "{executor}"
+{executor_settings}
+[stop]
+max_evaluations = {budget}
+[clones]
+count = 4
+"""
+
+
+def toy_config(tmp_path: Path, optimizer="toy-random", optimizer_settings="", executor="serial",
+               executor_settings="", budget=40) -> Path:
+    p = tmp_path / "run.toml"
+    p.write_text(TOY_CONFIG.format(optimizer=optimizer, optimizer_settings=optimizer_settings,
+                                   executor=executor, executor_settings=executor_settings, budget=budget))
+    return p

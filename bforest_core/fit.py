@@ -1,0 +1,286 @@
+"""The fit pipeline (paper stages A1-A2, B1-B4): target -> data sets -> optimiser -> best fit.
+
+Resume: the optimiser is re-run from the start with the same seed; evaluations already in the
+run's ``evaluations.sqlite`` are replayed from the log instead of being simulated again, so a
+resumed run repeats no simulation, loses nothing and reaches the same result as an
+uninterrupted one.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .config import config_to_dict, dump_config, load_config, parse_config, section_settings, ssm_settings
+from .errors import BayesForestError, ConfigError
+from .interfaces import Problem
+from .objective import Target, build_target, evaluate_task, init_worker, model_seeds
+from .registry import component
+from .store import Evaluation, RunDirError, RunStore
+
+
+@dataclass
+class FitResult:
+    """Outcome of :func:`fit`."""
+
+    params: dict[str, float]
+    distance: float
+    per_set: dict[str, float | None]
+    n_evaluations: int
+    stop_reason: str
+    run_dir: Path
+    history: list[dict] = field(default_factory=list)
+    diagnostics: dict[str, Any] = field(default_factory=dict)
+
+
+class Evaluator:
+    """``Problem.evaluate`` of a run: replay from the store, cache, executor, stop criteria."""
+
+    def __init__(self, cfg, store: RunStore, executor, names, problem: Problem, progress=None):
+        self.cfg = cfg
+        self.store = store
+        self.executor = executor
+        self.names = names
+        self.problem = problem
+        self.fixed = dict(cfg.ssm.fixed)
+        self.integer = problem.integer
+        self.replay = store.replay()
+        self.cache: dict[tuple, float] = {}
+        self.next_index = 0
+        self.t0 = time.monotonic()
+        self.elapsed_before = float(store.get_meta("elapsed", 0.0) or 0.0)
+        self.progress = progress
+        self.stop = cfg.stop
+        self.k = cfg.objective.seeds
+        self.mode = cfg.objective.seed_mode
+
+    def _params(self, x) -> dict:
+        p = dict(self.fixed)
+        for name, v, is_int in zip(self.names, x, self.integer):
+            p[name] = int(round(v)) if is_int else float(v)
+        return p
+
+    def _key(self, params, seeds):
+        return (tuple(sorted(params.items())), tuple(seeds))
+
+    def _check_stop(self):
+        pr, st = self.problem, self.stop
+        if st.max_evaluations is not None and pr.n_evaluations >= st.max_evaluations:
+            pr.stopped, pr.stop_reason = True, f"evaluation budget ({st.max_evaluations}) reached"
+        elif st.wall_time is not None and self.elapsed() >= st.wall_time:
+            pr.stopped, pr.stop_reason = True, f"wall time ({st.wall_time:g} s) reached"
+        elif st.target_distance is not None and pr.best_f <= st.target_distance:
+            pr.stopped, pr.stop_reason = True, f"target distance {st.target_distance:g} reached"
+
+    def elapsed(self) -> float:
+        return self.elapsed_before + time.monotonic() - self.t0
+
+    def _record(self, x, f):
+        pr = self.problem
+        if f < pr.best_f:
+            pr.best_f, pr.best_x = float(f), np.array(x, float)
+
+    def __call__(self, X) -> np.ndarray:
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        pr = self.problem
+        X = np.clip(X, pr.lower, pr.upper)
+        out = np.full(X.shape[0], np.inf)
+        todo, pending = [], {}  # new evaluations; key -> rows waiting for the same point
+        for r, x in enumerate(X):
+            if pr.stopped:
+                continue
+            params = self._params(x)
+            seeds = model_seeds(self.cfg.seed, self.k, self.mode, self.next_index)
+            key = self._key(params, seeds)
+            if self.cfg.objective.cache and key in self.cache:
+                out[r] = self.cache[key]
+                self._record(x, out[r])
+                continue
+            if self.cfg.objective.cache and key in pending:
+                pending[key].append(r)  # identical point twice in one batch: evaluate once
+                continue
+            if self.stop.max_evaluations is not None and \
+                    pr.n_evaluations + len(todo) >= self.stop.max_evaluations:
+                pr.stopped, pr.stop_reason = True, f"evaluation budget ({self.stop.max_evaluations}) reached"
+                continue
+            idx = self.next_index
+            self.next_index += 1
+            ev = self.replay.get(idx)
+            if ev is not None:
+                if ev.params != json.loads(json.dumps(params)) or ev.seeds != seeds:
+                    raise RunDirError(f"{self.store.path}: evaluation {idx} in the log has other parameters "
+                                      "than this run asks for (config or code changed?); start a new run")
+                out[r] = ev.distance
+                self.cache[key] = ev.distance
+                pr.n_evaluations += 1
+                self._record(x, ev.distance)
+                if self.progress:
+                    self.progress(pr, replayed=True)
+                continue
+            pending[key] = []
+            todo.append((r, idx, params, seeds, key))
+        if todo:
+            tasks = [(t[2], t[3]) for t in todo]
+            for j, res in self.executor.map_unordered(evaluate_task, tasks):
+                r, idx, params, seeds, key = todo[j]
+                ev = Evaluation(idx, params, seeds, res["distance"], res["per_set"], res["status"],
+                                res["message"], res["seconds"], res["worker"], res["n_rows"])
+                self.store.add(ev)
+                out[r] = ev.distance
+                for r2 in pending[key]:
+                    out[r2] = ev.distance
+                self.cache[key] = ev.distance
+                pr.n_evaluations += 1
+                self._record(X[r], ev.distance)
+                if self.progress:
+                    self.progress(pr, replayed=False)
+            self.store.set_meta("elapsed", self.elapsed())
+        if not pr.stopped:
+            self._check_stop()
+        return out
+
+
+class _Progress:
+    """tqdm bar: evaluations done, best distance, ETA (to the budget when there is one)."""
+
+    def __init__(self, total, enabled=True):
+        self.bar = None
+        if enabled:
+            from tqdm.auto import tqdm
+            self.bar = tqdm(total=total, unit="eval", dynamic_ncols=True, desc="fit", leave=True)
+
+    def __call__(self, pr, replayed):
+        if self.bar is not None:
+            self.bar.update(1)
+            self.bar.set_postfix_str(f"best={pr.best_f:.4f}" + (" (replay)" if replayed else ""), refresh=False)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _free_specs(cfg, ssm):
+    names, lo, hi, ilo, ihi, integer = [], [], [], [], [], []
+    for name, fp in cfg.ssm.free.items():
+        spec = ssm.parameter_spec(name)
+        names.append(name)
+        lo.append(fp.lower)
+        hi.append(fp.upper)
+        ilo.append(fp.lower if fp.init_lower is None else fp.init_lower)
+        ihi.append(fp.upper if fp.init_upper is None else fp.init_upper)
+        integer.append(spec.integer if fp.integer is None else fp.integer)
+    if not names:
+        raise ConfigError("ssm.free: no free parameters to fit (add e.g. free.NAME = { lower = ..., upper = ... })")
+    return names, np.array(lo), np.array(hi), np.array(ilo), np.array(ihi), np.array(integer, bool)
+
+
+def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bool = False,
+        target=None) -> FitResult:
+    """Fit the SSM of ``cfg`` to its target; everything is written to ``run_dir``.
+
+    Parameters
+    ----------
+    cfg : RunConfig or path
+        A validated config (:func:`load_config`) or the path of a TOML file.
+    run_dir : path
+        The run directory (created; with ``resume`` an existing one is continued).
+    resume : bool
+        Continue a run that was stopped or killed.
+    """
+    import tomli_w
+    if not hasattr(cfg, "ssm"):
+        cfg = load_config(cfg)
+    run_dir = Path(run_dir)
+    text = tomli_w.dumps(config_to_dict(cfg))
+    if resume:
+        store = RunStore.open(run_dir)
+        old = store.config_path.read_text(encoding="utf-8")
+        if old != text:
+            raise RunDirError(f"{run_dir}: the config differs from the run's config.toml; "
+                              "resume with the run's own config (bforest fit RUN/config.toml -o RUN --resume)")
+        store.clear_log()
+    else:
+        store = RunStore.create(run_dir, text, overwrite=overwrite)
+    tgt = target if target is not None else build_target(cfg)
+    _save_target(store, tgt)
+    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+    names, lo, hi, ilo, ihi, integer = _free_specs(cfg, ssm)
+    optimizer = component("optimizer", cfg.optimizer.kind, **section_settings(cfg, "optimizer"))
+    executor = component("executor", cfg.executor.kind, **section_settings(cfg, "executor"))
+    problem = Problem(names=names, lower=lo, upper=hi, integer=integer, evaluate=None, init_lower=ilo,
+                      init_upper=ihi, seed=int(cfg.seed), budget=cfg.stop.max_evaluations,
+                      log=store.log)
+    bar = _Progress(cfg.stop.max_evaluations, enabled=progress)
+    evaluator = Evaluator(cfg, store, executor, names, problem, progress=bar)
+    problem.evaluate = evaluator
+    cfg_dict = config_to_dict(cfg)
+    t0 = time.monotonic()
+    try:
+        with executor.started(init_worker, (cfg_dict, tgt.U, tgt.columns, tgt.feature_settings)):
+            result = optimizer.minimize(problem)
+    finally:
+        bar.close()
+        store.set_meta("elapsed", evaluator.elapsed())
+    stop_reason = problem.stop_reason or result.stop_reason or "optimiser finished"
+    if problem.best_x is None:
+        raise BayesForestError(f"{run_dir}: the optimiser evaluated nothing ({stop_reason})")
+    best_params = evaluator._params(problem.best_x)
+    out = finish_fit(cfg, store, tgt, best_params, stop_reason, evaluator.elapsed(), result)
+    return FitResult(params=best_params, distance=out["distance"], per_set=out["per_set"],
+                     n_evaluations=store.count(), stop_reason=stop_reason, run_dir=run_dir,
+                     history=store.log_records(), diagnostics=result.diagnostics)
+
+
+def _save_target(store: RunStore, tgt: Target) -> None:
+    import numpy as np
+    np.savez_compressed(store.path / "target_sets.npz", **tgt.U)
+    try:
+        from .io import write_tree
+        write_tree(tgt.trees[0], store.path / "target.txt")
+    except Exception:  # writing a copy of the target is a convenience, never fatal
+        pass
+
+
+def finish_fit(cfg, store: RunStore, tgt: Target, best_params: dict, stop_reason: str, seconds: float,
+               result) -> dict:
+    """Re-grow the best tree, write ``best.json`` and ``best_tree.txt``."""
+    from .metrics import classical_metrics, relative_errors
+    from .io import write_tree
+    seeds = model_seeds(cfg.seed, cfg.objective.seeds, "fixed")
+    init_worker(config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings)
+    res = evaluate_task((best_params, seeds))
+    target_metrics = classical_metrics(tgt.trees[0])
+    best = {"params": best_params, "distance": res["distance"], "per_set": res["per_set"],
+            "status": res["status"], "seeds": seeds, "stop_reason": stop_reason,
+            "n_evaluations": store.count(), "seconds": seconds,
+            "target_metrics": target_metrics, "optimizer": cfg.optimizer.kind,
+            "diagnostics": _jsonable(getattr(result, "diagnostics", {}) or {})}
+    try:
+        from .registry import component as comp
+        ssm = comp("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+        tree = ssm.simulate(best_params, seeds[0])
+        m = classical_metrics(tree)
+        best["model_metrics"] = m
+        best["relative_errors"] = relative_errors(target_metrics, m)
+        write_tree(tree, store.path / "best_tree.txt")
+    except BayesForestError as exc:
+        best["model_metrics"] = None
+        best["note"] = f"best tree could not be regrown: {exc}"
+    store.write_json("best.json", best)
+    return best
+
+
+def _jsonable(d):
+    out = {}
+    for k, v in d.items():
+        try:
+            json.dumps(v, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+            out[k] = v
+        except Exception:
+            out[k] = str(v)
+    return json.loads(json.dumps(out, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))

@@ -1,0 +1,179 @@
+"""The objective: params -> simulate -> data sets -> weighted distance.
+
+Set-up happens once per run in the main process (:func:`build_target`) and once per worker
+(:func:`init_worker`, the executor's initializer): the worker builds the SSM, feature sets and
+the distance from the resolved config and prepares the distance on the data tables it receives,
+so the target is loaded once per worker, never per evaluation.
+
+Seeds: with ``seed_mode = "fixed"`` (the paper: the SSM seed is held fixed while optimising)
+every evaluation uses the same K model seeds; with ``"per_evaluation"`` they come from the run
+seed and the evaluation index. Either way they derive from :class:`numpy.random.SeedSequence`,
+never from worker state, so results do not depend on the executor or the number of workers.
+"""
+from __future__ import annotations
+
+import math
+import os
+import signal
+import socket
+import threading
+import time
+import traceback
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from .errors import BayesForestError, SimulationFailed, TreeError
+from .registry import component
+
+
+# ---------------------------------------------------------------------------------- seeds
+def model_seeds(run_seed: int, k: int, mode: str = "fixed", index: int = 0) -> list[int]:
+    """The K model seeds of one evaluation."""
+    key = [int(run_seed), 1] if mode == "fixed" else [int(run_seed), 2, int(index)]
+    return [int(s.generate_state(1, np.uint32)[0]) for s in np.random.SeedSequence(key).spawn(k)]
+
+
+def clone_seeds(run_seed: int, n: int, base: int | None = None) -> list[int]:
+    """Fresh seeds for clones (distinct from the fitting seeds)."""
+    key = [int(run_seed), 3] if base is None else [int(base), 3]
+    return [int(s.generate_state(1, np.uint32)[0]) for s in np.random.SeedSequence(key).spawn(n)]
+
+
+# ---------------------------------------------------------------------------------- target
+def feature_set_for(cfg, side: str):
+    """The feature set of one side (``"target"`` or ``"model"``), honouring per-side topology."""
+    from .config import section_settings
+    settings = section_settings(cfg, "features")
+    rule = cfg.target.topology if side == "target" else getattr(cfg.ssm, "topology", None)
+    if rule is not None and "topology" in type(getattr(cfg, "features")).model_fields:
+        settings["topology"] = rule
+    return component("features", cfg.features.kind, **settings)
+
+
+def load_target_trees(cfg) -> list:
+    """The data tree(s) of the run: read from the QSM file or grown by the named SSM."""
+    from .io import read_qsm
+    t = cfg.target
+    if t.generate is not None:
+        ssm = component("ssm", t.generate.ssm, **t.generate.settings)
+        return [ssm.simulate(dict(t.generate.params), int(t.generate.seed))]
+    opts = {}
+    if t.select is not None:
+        opts["select"] = t.select
+    trees = read_qsm(t.qsm, reader=t.reader, **opts)
+    return list(trees) if isinstance(trees, (list, tuple)) else [trees]
+
+
+@dataclass
+class Target:
+    trees: list
+    U: dict[str, np.ndarray]
+    columns: dict[str, list[str]]
+    feature_settings: dict          # the data-side feature set after prepare (resolved sets)
+
+
+def build_target(cfg, trees=None) -> Target:
+    trees = load_target_trees(cfg) if trees is None else trees
+    fs = feature_set_for(cfg, "target")
+    fs.prepare(trees)
+    U = fs.extract_pooled(trees)
+    cols = {k: fs.columns(k) for k in fs.set_names}
+    return Target(trees, U, cols, resolved_feature_settings(fs))
+
+
+def resolved_feature_settings(fs) -> dict:
+    """Settings of a prepared feature set with data-dependent choices resolved (so the model
+    side extracts exactly the same sets)."""
+    s = fs.settings.model_dump()
+    resolved = getattr(fs, "resolved_sets", None)
+    if resolved is not None:
+        s["sets"] = list(resolved)
+    return s
+
+
+# ---------------------------------------------------------------------------------- worker side
+_CTX: dict[str, Any] = {}
+
+
+class _Timeout(Exception):
+    pass
+
+
+def init_worker(cfg_dict: dict, U_data: dict, columns: dict, feature_settings: dict) -> None:
+    """Executor initializer: build the components once in this process."""
+    from .config import parse_config, ssm_settings
+    cfg = parse_config(cfg_dict)
+    fs_settings = dict(feature_settings)
+    rule = getattr(cfg.ssm, "topology", None)
+    if rule is not None and "topology" in fs_settings:
+        fs_settings["topology"] = rule
+    dist = component("distance", cfg.distance.kind, **{k: v for k, v in cfg.distance.model_dump().items() if k != "kind"})
+    dist.prepare(U_data, columns)
+    _CTX.clear()
+    _CTX.update(
+        ssm=component("ssm", cfg.ssm.kind, **ssm_settings(cfg)),
+        features=component("features", cfg.features.kind, **fs_settings),
+        distance=dist, U_data=U_data, weights=cfg.objective.weights, penalty=cfg.objective.penalty,
+        timeout=cfg.objective.timeout, worker=f"{socket.gethostname()}:{os.getpid()}")
+
+
+def _alarm(signum, frame):
+    raise _Timeout()
+
+
+def _simulate_with_timeout(ssm, params, seed, timeout):
+    use_alarm = (timeout is not None and hasattr(signal, "setitimer")
+                 and threading.current_thread() is threading.main_thread())
+    if not use_alarm:
+        return ssm.simulate(params, seed)
+    old = signal.signal(signal.SIGALRM, _alarm)
+    signal.setitimer(signal.ITIMER_REAL, float(timeout))
+    try:
+        return ssm.simulate(params, seed)
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def evaluate_task(task: tuple[dict, list[int]]) -> dict:
+    """Score one parameter vector with K seeds in this worker. Never raises: failures come
+    back with a status and the penalty distance."""
+    params, seeds = task
+    c = _CTX
+    if not c:
+        raise RuntimeError("worker not initialised (init_worker was not run)")
+    t0 = time.perf_counter()
+    per_seed, n_rows = [], {}
+    status, message = "ok", ""
+    for seed in seeds:
+        try:
+            tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
+            U = c["features"].extract(tree)
+            per_seed.append(c["distance"].compute_per_set(U, c["U_data"]))
+            for k, v in U.items():
+                n_rows[k] = n_rows.get(k, 0) + int(v.shape[0])
+        except SimulationFailed as exc:
+            status, message = exc.status, str(exc)
+            break
+        except _Timeout:
+            status, message = "timeout", f"simulation exceeded {c['timeout']} s"
+            break
+        except (TreeError, BayesForestError, ValueError, FloatingPointError, ArithmeticError,
+                MemoryError, RuntimeError, IndexError, KeyError, TypeError) as exc:
+            status = "error"
+            message = f"{type(exc).__name__}: {exc}"[:500]
+            break
+    seconds = time.perf_counter() - t0
+    if status != "ok":
+        names = list(c["U_data"])
+        return dict(distance=float(c["penalty"]), per_set={k: None for k in names}, status=status,
+                    message=message, seconds=seconds, worker=c["worker"], n_rows={})
+    per_set = {}
+    for k in per_seed[0]:
+        vals = [p[k] for p in per_seed if p[k] is not None]
+        per_set[k] = float(np.mean(vals)) if vals else None
+    total = c["distance"].combine(per_set, c["weights"])
+    return dict(distance=float(total), per_set=per_set, status="ok", message="", seconds=seconds,
+                worker=c["worker"], n_rows={k: v // len(seeds) for k, v in n_rows.items()})

@@ -1,0 +1,195 @@
+"""Run directory and its SQLite evaluation log.
+
+Layout (DESIGN.md)::
+
+    RUN/config.toml          the resolved configuration
+    RUN/evaluations.sqlite   every evaluation, written as soon as it finishes
+    RUN/best.json            best parameters, per-set distances, classical metrics
+    RUN/target.txt           the target tree (TreeQSM text) when generated or for the report
+    RUN/best_tree.txt        the best-fit tree
+    RUN/clones/              clone trees and their table
+    RUN/figures/             PNG figures
+    RUN/report.md            the summary
+
+Only the main process writes; each row is committed on its own, so a killed run loses nothing
+that finished. :meth:`RunStore.replay` gives the stored evaluations back in index order, which is
+how ``--resume`` continues without repeating work.
+"""
+from __future__ import annotations
+
+import json
+import math
+import sqlite3
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+from .errors import BayesForestError
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS evaluations (
+    idx       INTEGER PRIMARY KEY,  -- evaluation index, 0-based, in the optimiser's order
+    params    TEXT NOT NULL,        -- JSON {name: value}
+    seeds     TEXT NOT NULL,        -- JSON list of model seeds
+    distance  REAL NOT NULL,        -- objective value (penalty for failures)
+    per_set   TEXT NOT NULL,        -- JSON {set: distance or null}
+    status    TEXT NOT NULL,        -- ok | <SimulationFailed status> | timeout | error
+    message   TEXT,
+    seconds   REAL,
+    worker    TEXT,
+    n_rows    TEXT,                 -- JSON {set: model rows}
+    finished  REAL                  -- unix time
+);
+CREATE TABLE IF NOT EXISTS log (
+    seq    INTEGER PRIMARY KEY AUTOINCREMENT,
+    record TEXT NOT NULL            -- JSON: one optimiser generation/iteration record
+);
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT);
+"""
+
+
+class RunDirError(BayesForestError):
+    pass
+
+
+@dataclass
+class Evaluation:
+    idx: int
+    params: dict[str, float]
+    seeds: list[int]
+    distance: float
+    per_set: dict[str, float | None]
+    status: str
+    message: str = ""
+    seconds: float = 0.0
+    worker: str = ""
+    n_rows: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+def _json(x) -> str:
+    return json.dumps(x, sort_keys=True, allow_nan=True)
+
+
+class RunStore:
+    """A run directory with its evaluation log."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.db_path = self.path / "evaluations.sqlite"
+        self._con = sqlite3.connect(self.db_path, isolation_level=None, timeout=30)
+        self._con.execute("PRAGMA journal_mode=WAL")
+        self._con.execute("PRAGMA synchronous=NORMAL")
+        self._con.executescript(SCHEMA)
+
+    # ------------------------------------------------------------------ creation
+    @classmethod
+    def create(cls, path, config_text: str, overwrite: bool = False) -> "RunStore":
+        """A new run directory holding ``config_text`` as ``config.toml``.
+
+        Refuses a directory that already holds evaluations unless ``overwrite``.
+        """
+        path = Path(path)
+        db = path / "evaluations.sqlite"
+        if db.exists() and not overwrite:
+            raise RunDirError(f"{path}: already holds a run (use --resume to continue it, or another -o)")
+        path.mkdir(parents=True, exist_ok=True)
+        if overwrite:
+            for f in (db, path / "evaluations.sqlite-wal", path / "evaluations.sqlite-shm", path / "best.json"):
+                f.unlink(missing_ok=True)
+        for sub in ("clones", "figures"):
+            (path / sub).mkdir(exist_ok=True)
+        (path / "config.toml").write_text(config_text, encoding="utf-8")
+        store = cls(path)
+        store.set_meta("created", time.time())
+        return store
+
+    @classmethod
+    def open(cls, path) -> "RunStore":
+        path = Path(path)
+        if not (path / "config.toml").exists():
+            raise RunDirError(f"{path}: not a run directory (no config.toml)")
+        return cls(path)
+
+    @property
+    def config_path(self) -> Path:
+        return self.path / "config.toml"
+
+    # ------------------------------------------------------------------ evaluations
+    def add(self, ev: Evaluation) -> None:
+        self._con.execute(
+            "INSERT INTO evaluations VALUES (?,?,?,?,?,?,?,?,?,?,?)",
+            (ev.idx, _json(ev.params), _json(ev.seeds), float(ev.distance), _json(ev.per_set), ev.status,
+             ev.message, ev.seconds, ev.worker, _json(ev.n_rows), time.time()))
+
+    def count(self) -> int:
+        return self._con.execute("SELECT COUNT(*) FROM evaluations").fetchone()[0]
+
+    def evaluations(self) -> list[Evaluation]:
+        rows = self._con.execute(
+            "SELECT idx, params, seeds, distance, per_set, status, message, seconds, worker, n_rows "
+            "FROM evaluations ORDER BY idx").fetchall()
+        return [Evaluation(r[0], json.loads(r[1]), json.loads(r[2]), r[3], json.loads(r[4]), r[5], r[6] or "",
+                           r[7] or 0.0, r[8] or "", json.loads(r[9] or "{}")) for r in rows]
+
+    def replay(self) -> dict[int, Evaluation]:
+        return {e.idx: e for e in self.evaluations()}
+
+    def best(self) -> Evaluation | None:
+        r = self._con.execute("SELECT idx FROM evaluations ORDER BY distance, idx LIMIT 1").fetchone()
+        if r is None:
+            return None
+        return next(e for e in self.evaluations() if e.idx == r[0])
+
+    # ------------------------------------------------------------------ optimiser log
+    def log(self, record: dict) -> None:
+        self._con.execute("INSERT INTO log (record) VALUES (?)", (_json(record),))
+
+    def log_records(self) -> list[dict]:
+        return [json.loads(r[0]) for r in self._con.execute("SELECT record FROM log ORDER BY seq")]
+
+    def clear_log(self) -> None:
+        self._con.execute("DELETE FROM log")
+
+    # ------------------------------------------------------------------ meta
+    def set_meta(self, key: str, value: Any) -> None:
+        self._con.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, _json(value)))
+
+    def get_meta(self, key: str, default=None):
+        r = self._con.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone()
+        return default if r is None else json.loads(r[0])
+
+    # ------------------------------------------------------------------ json files
+    def write_json(self, name: str, data) -> Path:
+        p = self.path / name
+        tmp = p.with_suffix(p.suffix + ".tmp")
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=_default), encoding="utf-8")
+        tmp.replace(p)
+        return p
+
+    def read_json(self, name: str):
+        p = self.path / name
+        if not p.exists():
+            raise RunDirError(f"{self.path}: no {name} (has the fit finished?)")
+        return json.loads(p.read_text(encoding="utf-8"))
+
+    def close(self) -> None:
+        self._con.close()
+
+
+def _default(o):
+    try:
+        import numpy as np
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+    except ImportError:
+        pass
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

@@ -15,6 +15,10 @@ from .interfaces import (KINDS, SSM, Component, ComponentSettings, Distance, Exe
                          OptimizeResult, Optimizer, ParameterSpec, Problem, QSMReader, QSMWriter)
 from .registry import component, component_class, discover
 from .io import read_qsm, write_tree
+from .config import load_config
+# binding the functions after importing their modules keeps `bf.fit`/`bf.clones` callable
+from .fit import fit
+from .clones import clones
 
 try:
     __version__ = _version("bayesforest")
@@ -23,17 +27,8 @@ except PackageNotFoundError:  # running from a source tree
 
 
 def __getattr__(name):
-    # heavier parts are imported lazily so `import bforest_core` stays fast
-    if name in ("load_config", "RunConfig"):
-        from . import config
-        return getattr(config, name)
+    # metrics live in their own module, imported on first use
     if name in ("classical_metrics", "relative_errors"):
         from . import metrics
         return getattr(metrics, name)
-    if name == "fit":
-        from .fit import fit
-        return fit
-    if name == "clones":
-        from .clones import clones
-        return clones
     raise AttributeError(f"module 'bforest_core' has no attribute {name!r}")

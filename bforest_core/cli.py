@@ -360,6 +360,7 @@ def main(argv=None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return EXIT_USAGE
+    old_show = warnings.showwarning
     if not args.debug:
         warnings.showwarning = _warning_line
     try:
@@ -377,6 +378,8 @@ def main(argv=None) -> int:
             raise
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_USAGE
+    finally:
+        warnings.showwarning = old_show
 
 
 def _one_line(exc) -> str:

@@ -245,6 +245,12 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
     """Validate a config dict; relative target paths are resolved against ``base_dir``."""
     model = run_config_model()
     raw = _fill_defaults(raw)
+    reg = discover()
+    for section, kind in SECTIONS.items():
+        sec = raw.get(section)
+        if isinstance(sec, dict) and "kind" in sec and sec["kind"] not in reg.names(kind):
+            known = ", ".join(reg.names(kind)) or "none installed"
+            raise ConfigError(f"{source}: {section}.kind: unknown {kind} {sec['kind']!r} (known: {known})")
     tags = {s: raw.get(s, {}).get("kind") for s in SECTIONS if isinstance(raw.get(s), dict)}
     try:
         cfg = model.model_validate(raw)

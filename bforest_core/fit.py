@@ -19,7 +19,8 @@ import numpy as np
 from .config import config_to_dict, dump_config, load_config, parse_config, section_settings, ssm_settings
 from .errors import BayesForestError, ConfigError
 from .interfaces import Problem
-from .objective import Target, build_target, evaluate_task, init_worker, model_seeds
+from .objective import (Target, _simulate_with_timeout, _Timeout, build_target, evaluate_task, init_worker,
+                        model_seeds)
 from .registry import component
 from .store import Evaluation, RunDirError, RunStore
 
@@ -227,11 +228,10 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
         bar.close()
         store.set_meta("elapsed", evaluator.elapsed())
     stop_reason = problem.stop_reason or result.stop_reason or "optimiser finished"
-    if problem.best_x is None:
+    if store.count() == 0:
         raise BayesForestError(f"{run_dir}: the optimiser evaluated nothing ({stop_reason})")
-    best_params = evaluator._params(problem.best_x)
-    out = finish_fit(cfg, store, tgt, best_params, stop_reason, evaluator.elapsed(), result)
-    return FitResult(params=best_params, distance=out["distance"], per_set=out["per_set"],
+    out = finish_fit(cfg, store, tgt, stop_reason, evaluator.elapsed(), result)
+    return FitResult(params=out["params"], distance=out["distance"], per_set=out["per_set"],
                      n_evaluations=store.count(), stop_reason=stop_reason, run_dir=run_dir,
                      history=store.log_records(), diagnostics=result.diagnostics)
 
@@ -246,31 +246,33 @@ def _save_target(store: RunStore, tgt: Target) -> None:
         pass
 
 
-def finish_fit(cfg, store: RunStore, tgt: Target, best_params: dict, stop_reason: str, seconds: float,
-               result) -> dict:
-    """Re-grow the best tree, write ``best.json`` and ``best_tree.txt``."""
+def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: float, result) -> dict:
+    """Write ``best.json`` (the best logged evaluation, classical metrics of target and best
+    tree) and ``best_tree.txt`` (the best parameters regrown with the first model seed)."""
     from .metrics import classical_metrics, relative_errors
     from .io import write_tree
-    seeds = model_seeds(cfg.seed, cfg.objective.seeds, "fixed")
-    init_worker(config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings)
-    res = evaluate_task((best_params, seeds))
+    ev = store.best()
     target_metrics = classical_metrics(tgt.trees[0])
-    best = {"params": best_params, "distance": res["distance"], "per_set": res["per_set"],
-            "status": res["status"], "seeds": seeds, "stop_reason": stop_reason,
+    best = {"params": ev.params, "distance": ev.distance, "per_set": ev.per_set, "status": ev.status,
+            "evaluation": ev.idx, "seeds": ev.seeds, "stop_reason": stop_reason,
             "n_evaluations": store.count(), "seconds": seconds,
             "target_metrics": target_metrics, "optimizer": cfg.optimizer.kind,
             "diagnostics": _jsonable(getattr(result, "diagnostics", {}) or {})}
+    if ev.status != "ok":
+        best["model_metrics"] = None
+        best["note"] = f"no evaluation succeeded (best status: {ev.status})"
+        store.write_json("best.json", best)
+        return best
     try:
-        from .registry import component as comp
-        ssm = comp("ssm", cfg.ssm.kind, **ssm_settings(cfg))
-        tree = ssm.simulate(best_params, seeds[0])
+        ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+        tree = _simulate_with_timeout(ssm, ev.params, ev.seeds[0], cfg.objective.timeout)
         m = classical_metrics(tree)
         best["model_metrics"] = m
         best["relative_errors"] = relative_errors(target_metrics, m)
         write_tree(tree, store.path / "best_tree.txt")
-    except BayesForestError as exc:
+    except (BayesForestError, _Timeout) as exc:
         best["model_metrics"] = None
-        best["note"] = f"best tree could not be regrown: {exc}"
+        best["note"] = f"best tree could not be regrown or written: {exc or 'timeout'}"
     store.write_json("best.json", best)
     return best
 

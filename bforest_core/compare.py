@@ -1,0 +1,100 @@
+"""``bforest compare``: optimisers on equal evaluation budgets, repeated with different seeds."""
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .config import config_to_dict, load_config, parse_config
+from .objective import build_target
+from .registry import component_class
+from .store import RunStore
+
+#: settings that bound an optimiser's own length; raised so the shared budget is what stops it
+_LENGTH_KEYS = {"generations": 10**6, "maxiter": 10**6, "maxeval": None, "steps": None,
+                "stall_generations": 10**6}
+
+
+def _settings_for_budget(name: str, budget: int) -> dict:
+    cls = component_class("optimizer", name)
+    fields = cls.Settings.model_fields
+    out = {}
+    for key, value in _LENGTH_KEYS.items():
+        if key not in fields:
+            continue
+        if key == "maxeval":
+            out[key] = budget
+        elif key == "steps":
+            walkers = fields["walkers"].default if "walkers" in fields else 32
+            out[key] = int(math.ceil(budget / max(1, walkers or 32))) + 1
+        else:
+            out[key] = value
+    return out
+
+
+def best_so_far(run_dir: Path) -> np.ndarray:
+    evs = RunStore.open(run_dir).evaluations()
+    return np.minimum.accumulate(np.array([e.distance for e in evs], float)) if evs else np.array([])
+
+
+def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None, threshold=None,
+            progress: bool = False) -> dict:
+    """Run each optimiser ``repeats`` times with ``budget`` evaluations; returns the table, the
+    curves and the figure path."""
+    from .fit import fit
+    base = load_config(config_path)
+    out_dir = Path(out_dir) if out_dir else Path("runs") / f"compare-{Path(config_path).stem}"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    target = build_target(base)
+    raw = config_to_dict(base)
+    curves, rows = {}, []
+    for name in optimizers:
+        curves[name] = []
+        for r in range(repeats):
+            cfg_raw = dict(raw)
+            cfg_raw["seed"] = int(base.seed) + r
+            cfg_raw["optimizer"] = {"kind": name, **_settings_for_budget(name, budget)}
+            cfg_raw["stop"] = {**raw.get("stop", {}), "max_evaluations": int(budget)}
+            cfg = parse_config(cfg_raw, source=f"compare/{name}")
+            run = out_dir / f"{name}-{r}"
+            t0 = time.monotonic()
+            res = fit(cfg, run, progress=progress, overwrite=True, target=target)
+            wall = time.monotonic() - t0
+            curve = best_so_far(run)
+            curves[name].append(curve)
+            rows.append({"optimizer": name, "repeat": r, "best": res.distance, "evaluations": res.n_evaluations,
+                         "seconds": wall, "stop_reason": res.stop_reason})
+    finals = np.array([row["best"] for row in rows])
+    if threshold is None:
+        threshold = float(np.quantile(finals, 0.25)) * 1.05
+    table = []
+    for name in optimizers:
+        mine = [row for row in rows if row["optimizer"] == name]
+        best = np.array([row["best"] for row in mine])
+        reach = []
+        for c in curves[name]:
+            hit = np.flatnonzero(c <= threshold)
+            reach.append(int(hit[0]) + 1 if hit.size else None)
+        reached = [x for x in reach if x is not None]
+        table.append({"optimizer": name, "median_best": float(np.median(best)), "min_best": float(best.min()),
+                      "max_best": float(best.max()),
+                      "evals_to_threshold": float(np.median(reached)) if reached else None,
+                      "reached": f"{len(reached)}/{len(reach)}",
+                      "median_seconds": float(np.median([row["seconds"] for row in mine]))})
+    lines = [f"budget {budget} evaluations x {repeats} repeats; threshold {threshold:.4f}",
+             f"{'optimizer':<10}{'median best':>12}{'range':>20}{'evals to thr.':>15}{'reached':>9}{'wall s':>9}"]
+    for t in table:
+        e = "-" if t["evals_to_threshold"] is None else f"{t['evals_to_threshold']:.0f}"
+        lines.append(f"{t['optimizer']:<10}{t['median_best']:>12.4f}{'[%.4f, %.4f]' % (t['min_best'], t['max_best']):>20}"
+                     f"{e:>15}{t['reached']:>9}{t['median_seconds']:>9.1f}")
+    text = "\n".join(lines)
+    fig = out_dir / "compare.png"
+    from .plotting import compare_figure
+    compare_figure(curves, fig, threshold=threshold)
+    (out_dir / "compare.json").write_text(json.dumps({"budget": budget, "repeats": repeats, "threshold": threshold,
+                                                      "table": table, "runs": rows}, indent=2))
+    (out_dir / "compare.md").write_text(f"# Optimiser comparison\n\n```\n{text}\n```\n\n![curves](compare.png)\n")
+    return {"table": table, "table_text": text, "figure": fig, "curves": curves, "runs": rows}

@@ -1,0 +1,80 @@
+import json
+
+import pytest
+
+import bforest_core as bf
+from bforest_core.config import config_schema, dump_config, parse_config
+from bforest_core.errors import ConfigError
+from conftest import toy_config
+
+
+def test_toy_config_validates_and_defaults(toy_plugin, tmp_path):
+    cfg = bf.load_config(toy_config(tmp_path))
+    assert cfg.ssm.kind == "toy" and cfg.ssm.fixed == {"noise": 2.0}
+    assert cfg.ssm.free["angle"].lower == 5.0
+    assert cfg.optimizer.kind == "toy-random" and cfg.optimizer.batch == 8
+    assert cfg.objective.penalty == 1.0 and cfg.stop.max_evaluations == 40
+    # resolved config round-trips through TOML
+    dump_config(cfg, tmp_path / "resolved.toml")
+    cfg2 = bf.load_config(tmp_path / "resolved.toml")
+    assert cfg2.model_dump() == cfg.model_dump()
+
+
+def _raw(**over):
+    raw = {"target": {"generate": {"ssm": "toy"}},
+           "ssm": {"kind": "toy", "free": {"angle": {"lower": 5, "upper": 80}}},
+           "features": {"kind": "toy-features"}, "distance": {"kind": "toy-distance"},
+           "optimizer": {"kind": "toy-random"}, "executor": {"kind": "serial"}}
+    for k, v in over.items():
+        raw[k] = v
+    return raw
+
+
+@pytest.mark.parametrize("over, msg", [
+    (dict(ssm={"kind": "tyo"}), r"ssm\.kind: unknown ssm 'tyo' \(known: .*toy"),
+    (dict(optimizer={"kind": "toy-random", "batchs": 3}), r"optimizer\.batchs: unknown key"),
+    (dict(optimizer={"kind": "toy-random", "batch": "many"}), r"optimizer\.batch: .*integer"),
+    (dict(optimizer={"kind": "toy-random", "batch": 0}), r"optimizer\.batch: .*greater than or equal to 1"),
+    (dict(colour="red"), r"colour: unknown key"),
+    (dict(ssm={"kind": "toy", "free": {"angel": {"lower": 1, "upper": 2}}}), r"ssm\.free\.angel: unknown parameter .*known: angle"),
+    (dict(ssm={"kind": "toy", "free": {"angle": {"lower": 5, "upper": 120}}}), r"ssm\.free\.angle: bounds \[5.0, 120.0\] exceed the allowed range \[0.0, 90.0\] deg"),
+    (dict(ssm={"kind": "toy", "free": {"angle": {"lower": 50, "upper": 20}}}), r"ssm\.free\.angle: lower \(50.0\) must be below upper"),
+    (dict(ssm={"kind": "toy", "fixed": {"noise": 50}}), r"ssm\.fixed\.noise: 50.0 is outside the allowed range \[0.0, 20.0\]"),
+    (dict(target={"qsm": "a.mat", "generate": {"ssm": "toy"}}), r"target: give exactly one of 'qsm'"),
+])
+def test_config_errors_name_key_and_allowed_values(toy_plugin, over, msg):
+    with pytest.raises(ConfigError, match=msg):
+        parse_config(_raw(**over), source="run.toml")
+
+
+def test_missing_and_bad_toml_files(tmp_path):
+    with pytest.raises(ConfigError, match="file not found"):
+        bf.load_config(tmp_path / "nope.toml")
+    p = tmp_path / "bad.toml"
+    p.write_text("seed = = 1\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        bf.load_config(p)
+
+
+def test_relative_qsm_path_resolved_against_config(toy_plugin, tmp_path):
+    raw = _raw(target={"qsm": "data/tree.mat"})
+    cfg = parse_config(raw, base_dir=tmp_path)
+    assert cfg.target.qsm == str((tmp_path / "data" / "tree.mat").resolve())
+
+
+def test_schema_has_plugin_unions(toy_plugin):
+    schema = json.dumps(config_schema())
+    assert "toy-random" in schema and "toy-features" in schema and "serial" in schema
+
+
+def test_cli_config_check_and_schema(toy_plugin, tmp_path, capsys):
+    from bforest_core.cli import main
+    assert main(["config", "check", str(toy_config(tmp_path))]) == 0
+    assert "ok (ssm toy" in capsys.readouterr().out
+    bad = tmp_path / "bad.toml"
+    bad.write_text(toy_config(tmp_path).read_text().replace("batch", "x") + "\n[optimizer2]\n")
+    assert main(["config", "check", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert main(["config", "schema"]) == 0
+    assert json.loads(capsys.readouterr().out)["title"] == "RunConfig"

@@ -1,0 +1,182 @@
+"""The fit pipeline on the toy plugin: store, seeds, executors, resume, failures, clones."""
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import bforest_core as bf
+
+import importlib
+from bforest_core.store import RunStore
+from conftest import TOY_DIR, toy_config
+
+fit_mod = importlib.import_module("bforest_core.fit")
+
+
+def _evals(run):
+    return [(e.idx, e.params, e.seeds, e.distance, e.status) for e in RunStore.open(run).evaluations()]
+
+
+def test_fit_writes_run_directory_and_improves(toy_plugin, tmp_path):
+    cfg = bf.load_config(toy_config(tmp_path, budget=48))
+    res = bf.fit(cfg, tmp_path / "run", progress=False)
+    run = tmp_path / "run"
+    assert res.n_evaluations == 48 and "budget" in res.stop_reason
+    evs = RunStore.open(run).evaluations()
+    assert [e.idx for e in evs] == list(range(48))
+    assert all(e.status == "ok" and e.seconds >= 0 and ":" in e.worker for e in evs)
+    # the toy target has angle 30, segments 12: the best of 48 random points is far better than the mean
+    d = np.array([e.distance for e in evs])
+    assert res.distance <= np.quantile(d, 0.1)
+    best = json.loads((run / "best.json").read_text())
+    assert set(best) >= {"params", "distance", "per_set", "target_metrics", "model_metrics", "relative_errors"}
+    assert best["params"]["noise"] == 2.0 and isinstance(best["params"]["segments"], int)
+    assert (run / "config.toml").exists() and (run / "best_tree.txt").exists()
+    assert bf.load_config(run / "config.toml").ssm.free["angle"].upper == 80.0
+    recs = RunStore.open(run).log_records()
+    assert len(recs) == 6 and recs[-1]["best"] == pytest.approx(res.distance)
+
+
+def test_same_seed_same_result_serial_and_process(toy_plugin, tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    a = bf.fit(bf.load_config(toy_config(tmp_path / "a", budget=24)), tmp_path / "a" / "run", progress=False)
+    pb = toy_config(tmp_path / "b", executor="process", executor_settings="workers = 2", budget=24)
+    pb.write_text(pb.read_text().replace('kind = "toy"\n', 'kind = "toy"\nsleep = 0.02\n', 1))
+    cfg_b = bf.load_config(pb)
+    b = bf.fit(cfg_b, tmp_path / "b" / "run", progress=False)
+    ea, eb = _evals(tmp_path / "a" / "run"), _evals(tmp_path / "b" / "run")
+    assert ea == eb and a.params == b.params and a.distance == b.distance
+    workers = {e.worker for e in RunStore.open(tmp_path / "b" / "run").evaluations()}
+    assert len(workers) == 2
+
+
+def test_resume_after_crash_repeats_nothing_and_matches(toy_plugin, tmp_path, monkeypatch):
+    full = bf.fit(bf.load_config(toy_config(tmp_path, budget=40)), tmp_path / "full", progress=False)
+    cfg = bf.load_config(toy_config(tmp_path, budget=40))
+    real_add = RunStore.add
+    calls = {"n": 0}
+
+    def crashing_add(self, ev):
+        if calls["n"] == 19:
+            raise KeyboardInterrupt("simulated crash")
+        calls["n"] += 1
+        real_add(self, ev)
+
+    monkeypatch.setattr(RunStore, "add", crashing_add)
+    with pytest.raises(KeyboardInterrupt):
+        bf.fit(cfg, tmp_path / "crashed", progress=False)
+    monkeypatch.setattr(RunStore, "add", real_add)
+    assert RunStore.open(tmp_path / "crashed").count() == 19
+    simulated = {"n": 0}
+    real_task = fit_mod.evaluate_task
+
+    def counting(task):
+        simulated["n"] += 1
+        return real_task(task)
+
+    monkeypatch.setattr(fit_mod, "evaluate_task", counting)
+    res = bf.fit(bf.load_config(tmp_path / "crashed" / "config.toml"), tmp_path / "crashed", resume=True, progress=False)
+    assert simulated["n"] == 40 - 19
+    assert _evals(tmp_path / "crashed") == _evals(tmp_path / "full")
+    assert res.params == full.params and res.distance == full.distance
+
+
+def test_resume_refuses_other_config(toy_plugin, tmp_path):
+    bf.fit(bf.load_config(toy_config(tmp_path, budget=8)), tmp_path / "run", progress=False)
+    other = bf.load_config(toy_config(tmp_path, budget=9))
+    with pytest.raises(bf.BayesForestError, match="config differs"):
+        bf.fit(other, tmp_path / "run", resume=True, progress=False)
+    with pytest.raises(bf.BayesForestError, match="already holds a run"):
+        bf.fit(other, tmp_path / "run", progress=False)
+
+
+def test_failing_and_hanging_simulations_are_logged(toy_plugin, tmp_path):
+    p = toy_config(tmp_path, budget=16)
+    text = p.read_text().replace('kind = "toy"\n', 'kind = "toy"\nfail_above = 40.0\n', 1)
+    p.write_text(text)
+    res = bf.fit(bf.load_config(p), tmp_path / "fail", progress=False)
+    evs = RunStore.open(tmp_path / "fail").evaluations()
+    failed = [e for e in evs if e.status != "ok"]
+    assert failed and all(e.status == "collapsed" and e.distance == 1.0 and e.params["angle"] > 40 for e in failed)
+    assert res.n_evaluations == 16
+    # a hanging model is stopped by the per-evaluation time limit
+    (tmp_path / "h").mkdir()
+    p2 = toy_config(tmp_path / "h", budget=3)
+    t2 = p2.read_text().replace('kind = "toy"\n', 'kind = "toy"\nsleep = 30.0\n', 1) + "\n[objective]\ntimeout = 0.3\n"
+    t2 = t2.replace("[optimizer]\nkind = \"toy-random\"\n", "[optimizer]\nkind = \"toy-random\"\nbatch = 3\n")
+    p2.write_text(t2.replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = { sleep = 0.0 }'))
+    t0 = time.monotonic()
+    bf.fit(bf.load_config(p2), tmp_path / "hang", progress=False)
+    evs = RunStore.open(tmp_path / "hang").evaluations()
+    assert [e.status for e in evs] == ["timeout"] * 3 and time.monotonic() - t0 < 20
+
+
+def test_clones_table_and_summary(toy_plugin, tmp_path):
+    bf.fit(bf.load_config(toy_config(tmp_path, budget=16)), tmp_path / "run", progress=False)
+    from bforest_core.clones import clones
+    s = clones(tmp_path / "run", n=5, progress=False)
+    assert s["ok"] == 5 and len(list((tmp_path / "run" / "clones").glob("clone_*.txt"))) == 5
+    header = (tmp_path / "run" / "clones" / "clones.csv").read_text().splitlines()[0].split(",")
+    assert header[:5] == ["index", "seed", "status", "file", "distance"] and "d_h" in header and "D[L]" in header
+    seeds = [r["seed"] for r in s["rows"]]
+    assert len(set(seeds)) == 5
+    assert s["height"]["sd"] >= 0 and 0 <= s["d_h"]["mean"]
+
+
+def _cli_env(toy_site):
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(toy_site), str(TOY_DIR), env.get("PYTHONPATH", "")])
+    return env
+
+
+def test_kill_9_then_resume_equals_uninterrupted(toy_plugin, tmp_path):
+    """A real `bforest fit` process killed with SIGKILL mid-run, then `--resume`."""
+    p = toy_config(tmp_path, budget=48)
+    p.write_text(p.read_text().replace('kind = "toy"\n', 'kind = "toy"\nsleep = 0.05\n', 1)
+                 .replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = { sleep = 0.0 }'))
+    exe = [sys.executable, "-m", "bforest_core.cli"]
+    env = _cli_env(toy_plugin)
+    subprocess.run(exe + ["fit", str(p), "-o", str(tmp_path / "full"), "-q", "--no-report"], env=env, check=True,
+                   capture_output=True)
+    proc = subprocess.Popen(exe + ["fit", str(p), "-o", str(tmp_path / "killed"), "-q", "--no-report"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    db = tmp_path / "killed" / "evaluations.sqlite"
+    deadline = time.monotonic() + 60
+    n = 0
+    while time.monotonic() < deadline:
+        if db.exists():
+            try:
+                n = sqlite3.connect(db).execute("SELECT COUNT(*) FROM evaluations").fetchone()[0]
+            except sqlite3.Error:
+                n = 0
+            if n >= 12:
+                break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert 12 <= RunStore.open(tmp_path / "killed").count() < 48
+    r = subprocess.run(exe + ["fit", str(tmp_path / "killed" / "config.toml"), "-o", str(tmp_path / "killed"),
+                              "--resume", "-q", "--no-report"], env=env, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert _evals(tmp_path / "killed") == _evals(tmp_path / "full")
+    assert json.loads((tmp_path / "killed" / "best.json").read_text())["params"] == \
+        json.loads((tmp_path / "full" / "best.json").read_text())["params"]
+
+
+def test_cli_fit_bad_input_one_line(toy_plugin, tmp_path, capsys):
+    from bforest_core.cli import main
+    p = toy_config(tmp_path)
+    p.write_text(p.read_text().replace("free.angle = { lower = 5.0, upper = 80.0 }", "free.angle = { lower = 5.0, upper = 800.0 }"))
+    assert main(["fit", str(p), "-o", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "ssm.free.angle" in err and "\n" not in err
+    assert main(["fit", str(tmp_path / "missing.toml")]) == 2
+    assert "file not found" in capsys.readouterr().err

@@ -1,0 +1,62 @@
+"""The `bforest` command: help, version, readable one-line errors with exit code 2."""
+import subprocess
+import sys
+
+import pytest
+
+from bforest_core.cli import main
+from conftest import qsm_path
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "bforest_core.cli", *args], capture_output=True, text=True)
+
+
+def test_version_and_help():
+    r = run_cli("--version")
+    assert r.returncode == 0 and r.stdout.startswith("bforest ")
+    r = run_cli("--help")
+    assert r.returncode == 0
+    for cmd in ("demo", "fit", "clones", "report", "compare", "distance", "simulate", "info", "plugins", "config"):
+        assert cmd in r.stdout
+    assert run_cli().returncode == 2
+
+
+def test_usage_error_is_one_line_exit_2():
+    r = run_cli("fit")
+    assert r.returncode == 2 and "error:" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("name, content, msg", [
+    ("missing.mat", None, "file not found"),
+    ("tree.xyz", b"1 2 3\n", "unsupported file type '.xyz'"),
+    ("empty.txt", b"", "file is empty"),
+])
+def test_info_bad_files(tmp_path, name, content, msg):
+    p = tmp_path / name
+    if content is not None:
+        p.write_bytes(content)
+    r = run_cli("info", str(p))
+    assert r.returncode == 2
+    assert r.stderr.startswith("error: ") and msg in r.stderr and str(p) in r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_debug_shows_traceback(tmp_path):
+    r = run_cli("--debug", "info", str(tmp_path / "missing.mat"))
+    assert r.returncode != 0 and "Traceback" in r.stderr
+
+
+def test_simulate_unknown_parameter(toy_plugin, capsys):
+    assert main(["simulate", "--ssm", "toy", "--set", "bogus=1"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown parameter(s) for SSM 'toy': bogus" in err
+    assert main(["simulate", "--ssm", "nosuch"]) == 2
+    assert "unknown ssm 'nosuch'" in capsys.readouterr().err
+
+
+def test_info_on_real_pine(capsys):
+    p = qsm_path("pine_ruotsinkyla_3.mat")
+    assert main(["info", str(p)]) == 0
+    out = capsys.readouterr().out
+    assert "cylinders     876" in out and "branches      300" in out and "height        9.94 m" in out

@@ -1,7 +1,9 @@
-"""Entry point of this plugin: registers its components with Bayes Forest."""
+"""Entry point of this plugin: registers the ``branch-segment`` feature set with Bayes Forest."""
 from bforest_core.hookspecs import hookimpl
+
+from .branch_segment import BranchSegmentFeatures
 
 
 @hookimpl
 def bforest_components():
-    return []
+    return [BranchSegmentFeatures]

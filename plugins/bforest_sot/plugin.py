@@ -1,7 +1,147 @@
-"""Entry point of this plugin: registers its components with Bayes Forest."""
+"""Entry point of this plugin: the self-organizing tree (SOT) growth model.
+
+``bf.component("ssm", "sot").simulate(params, seed)`` grows one tree with the SOT model of
+Palubicki et al. (2009) with multiplicative shadow propagation, as used by Potapov et al. (2017),
+following ``shared/spec/ssm-models.md`` part B (calibrated for the 12 m cube of B.4).
+"""
+from __future__ import annotations
+
+from typing import Any, Callable, Literal, Mapping
+
+import numpy as np
+from pydantic import Field
+
+from bforest_core.errors import SimulationFailed
 from bforest_core.hookspecs import hookimpl
+from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
+from bforest_core.tree import Tree
+
+from .model import CHILD, GrowthFailure, SOTGrowth
+from .params import PARAMETERS, check_integers, validate
+
+MODEL_VERSION = "1.0"
+
+
+class SOTSettings(ComponentSettings):
+    """Switches of the SOT model (not fitted)."""
+
+    order_mode: Literal["growth", "thickest"] = Field(
+        "growth", description="branch topology of the output: 'growth' (apical bud continues the "
+        "branch) or 'thickest' (the thickest child continues it, as in QSMs)")
+    light_model: Literal["multiplicative"] = Field(
+        "multiplicative", description="light field: multiplicative shadow propagation (LPFG-SOT)")
+    max_live_segments: int = Field(200_000, ge=1, description="status 'too_many_segments' above this")
+    sympodial: bool = Field(False, description="remove apical buds (sympodial branching)")
+
+
+def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
+    """The output :class:`Tree` of a run's current state, after a width-only basipetal update
+    (applied to a copy of the widths). Raises ``GrowthFailure('no_root')`` if nothing lives."""
+    s = run.s
+    if run.s.n == 0 or not s.alive[0]:
+        raise GrowthFailure("no_root", "the tree has no living segments")
+    ids, width = run.widths()
+    loc = np.full(s.n, -1, dtype=np.int64)
+    loc[ids] = np.arange(ids.size)
+    par = s.parent[ids]
+    parent = np.where(par >= 0, loc[np.maximum(par, 0)], -1)
+    ext = np.where(s.api_state[ids] == CHILD, loc[np.maximum(s.api_child[ids], 0)], -1)
+    settings = getattr(run, "settings", None)
+    order_mode = getattr(settings, "order_mode", "growth")
+    meta = {
+        "model": "sot", "model_version": MODEL_VERSION, "params": dict(run.p), "seed": run.seed,
+        "status": status, "cycles": int(run.cycle), "order_mode": order_mode,
+        "units": {"length": "m", "angle": "deg"}, "frame": "Z up, stem base at the origin",
+        "segments_created": int(s.n),
+    }
+    return Tree(s.start[ids], s.h[ids], s.length[ids], 0.5 * width, parent, ext,
+                topology="thickest" if order_mode == "thickest" else "source",
+                extras={"age": (run.cycle - s.born[ids]).astype(np.int64),
+                        "is_lateral": s.is_lateral[ids].copy()},
+                metadata=meta)
+
+
+class SOT(SSM):
+    """Self-organizing tree model with shadow propagation (Palubicki et al. 2009; GS 2017).
+
+    Each growth cycle: bud exposures are read from a multiplicative voxel light field, light and
+    bud counts accumulate basipetally, vigor is allocated acropetally by the Borchert-Honda model
+    with apical control lambda, under-supplied branches are shed, and buds grow shoots of
+    ``floor(v)`` metamers that turn towards the light gradient and the vertical. Widths follow
+    the pipe model.
+
+    Settings
+    --------
+    order_mode : "growth" | "thickest"
+    light_model : "multiplicative"
+    max_live_segments : int (200 000)
+    sympodial : bool (False)
+    """
+
+    name = "sot"
+    summary = "self-organizing tree growth model with shadow propagation (Palubicki 2009, GS 2017)"
+    Settings = SOTSettings
+
+    @property
+    def parameters(self) -> list[ParameterSpec]:
+        return list(PARAMETERS)
+
+    def simulate(self, params: Mapping[str, float], seed: int,
+                 on_step: Callable[[int, Any], None] | None = None) -> Tree:
+        """Grow one tree.
+
+        Parameters
+        ----------
+        params : mapping
+            Parameter values by name (see :attr:`parameters`); missing names take their
+            calibrated defaults; unknown names, non-integer ``max_iter``/``depth`` and invalid
+            values raise ``ValueError`` naming the parameter, before the run.
+        seed : int
+            Seed of the run's single ``numpy.random.Generator(PCG64(seed))``.
+        on_step : callable, optional
+            ``on_step(cycle, view)`` after every cycle with a read-only
+            :class:`~bforest_sot.model.StepView` (``view.tree()`` is the output at that cycle).
+
+        Returns
+        -------
+        Tree
+            Growth topology (``source``, or ``thickest`` with ``order_mode="thickest"``),
+            radius = width / 2, extras ``age`` (cycles since creation) and ``is_lateral``,
+            metadata ``model``, ``params``, ``seed``, ``status``, ``cycles``.
+
+        Raises
+        ------
+        ValueError
+            Invalid parameters.
+        SimulationFailed
+            Status ``collapsed`` (< 10 live segments at the end of a cycle >= 5),
+            ``too_many_segments`` (a cycle would exceed ``max_live_segments``) or ``no_root``;
+            carries the partial tree (widths updated).
+        """
+        check_integers(params)
+        p = self.resolve_params(params)
+        p = {k: (int(v) if k in ("max_iter", "depth") else float(v)) for k, v in p.items()}
+        validate(p)
+        seed = int(seed)
+        st = self.settings
+        run = SOTGrowth(p, seed, max_live_segments=st.max_live_segments, sympodial=st.sympodial,
+                        on_step=on_step)
+        run.settings = st
+        try:
+            run.run(p["max_iter"])
+        except GrowthFailure as e:
+            partial = None
+            try:
+                partial = build_tree(run, status=e.status)
+            except GrowthFailure:
+                partial = None
+            raise SimulationFailed(e.status, str(e), partial) from None
+        try:
+            return build_tree(run, status="ok")
+        except GrowthFailure as e:  # pragma: no cover - the root is never dropped
+            raise SimulationFailed(e.status, str(e), None) from None
 
 
 @hookimpl
 def bforest_components():
-    return []
+    return [SOT]

@@ -1,0 +1,628 @@
+"""The self-organizing tree (SOT) growth engine (spec ssm-models.md part B).
+
+Structure of arrays, one row per segment (metamer) ever created; rows are never reused, so the
+creation order is a parent-before-child order. Every per-cycle computation is vectorised over
+segments, buds or shoots; Python loops run only over cycles, depth levels (basipetal pass),
+pointer-jumping rounds (acropetal pass) and metamer steps (shoot construction).
+
+Random draws, all from one ``numpy.random.Generator(PCG64(seed))`` (spec B.7):
+
+* init: ``n_vox**3`` uniforms for ``ran`` in C order of (i, j, k) (drawn even when ran = 0);
+* per growth cycle c = 2 .. max_iter, in this order:
+
+  1. one standard normal for lambda (``lambda_sd``);
+  2. one standard normal per growing lateral shoot (``branch_angle_sd``);
+  3. one standard normal per growing shoot (``tropism_sd``);
+  4. at each metamer step k, one standard normal per shoot still active after the wall check
+     (``phyllotaxis_sd``).
+
+  Shoots are ordered by bearing segment, the apical shoot before the lateral one. A block is
+  drawn even when its sd is 0; no draw depends on ``max_iter``, so a run of length t equals the
+  ``on_step`` snapshot at t of any longer run (prefix property).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from .light import LightField
+
+EMPTY, BUD, CHILD, STUB = 0, 1, 2, 3
+SLOT_NAMES = {EMPTY: "EMPTY", BUD: "BUD", CHILD: "CHILD", STUB: "STUB"}
+
+
+class GrowthFailure(Exception):
+    """Internal: a non-ok status (turned into ``bf.SimulationFailed`` by the component)."""
+
+    def __init__(self, status: str, message: str):
+        self.status = status
+        super().__init__(message)
+
+
+# ------------------------------------------------------------------------------------------------
+# small vector helpers
+# ------------------------------------------------------------------------------------------------
+
+def rotate(v: np.ndarray, k: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Right-handed rotation of rows of ``v`` about unit rows ``k`` by ``theta`` (radians)."""
+    c = np.cos(theta)[:, None]
+    s = np.sin(theta)[:, None]
+    kdv = np.einsum("ij,ij->i", k, v)[:, None]
+    return v * c + np.cross(k, v) * s + k * (kdv * (1.0 - c))
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=1)[:, None]
+
+
+def lambda_schedule(age: float, init_lambda: float, targ_lambda: float, delay: float,
+                    transition: float) -> float:
+    """Apical control at schedule age (B.5 step 1): ``init_lambda`` up to ``delay``, then a
+    linear ramp over ``transition`` cycles to ``targ_lambda``."""
+    if age <= delay:
+        return float(init_lambda)
+    return float(((delay + transition - age) * init_lambda + (age - delay) * targ_lambda) / transition)
+
+
+# ------------------------------------------------------------------------------------------------
+# the two passes, on a compact node set (local indices 0..m-1, children given as local ids)
+# ------------------------------------------------------------------------------------------------
+
+def depth_levels(depth: np.ndarray):
+    """``(order, bounds)``: nodes of depth level j are ``order[bounds[j]:bounds[j+1]]``."""
+    order = np.argsort(depth, kind="stable")
+    bounds = np.zeros(int(depth.max()) + 2 if depth.size else 1, dtype=np.int64)
+    np.cumsum(np.bincount(depth), out=bounds[1:])
+    return order, bounds
+
+
+def accumulate(api_state, lat_state, api_child, lat_child, q_api, q_lat, api_stub_w, lat_stub_w,
+               depth, lam, kappa, pipe_exp, init_width, levels=None):
+    """Basipetal pass (B.5 step 3) over a compact set of m living segments.
+
+    Slot contributions (N, Q, width): CHILD c -> (N_c, Q_c, d_c); BUD -> (1, Q_bud, -);
+    STUB -> (0, 0, w); EMPTY -> (0, 0, -). ``N = 1 + N_m + N_l``, ``Q = Q_m + Q_l``,
+    ``D = lam N_m (Q_m/N_m)^kappa + (1 - lam) N_l (Q_l/N_l)^kappa`` (terms with N = 0 omitted;
+    D = 1 when neither slot holds a BUD or CHILD), ``d^n = sum of w^n over CHILD and STUB slots``
+    or ``init_width^n`` if there is none.
+
+    Parameters
+    ----------
+    api_state, lat_state : (m,) int8
+        Slot states (EMPTY, BUD, CHILD, STUB).
+    api_child, lat_child : (m,) int
+        Local index of the child in a CHILD slot (ignored elsewhere).
+    q_api, q_lat : (m,) float
+        Bud exposures (read where the slot is a BUD).
+    api_stub_w, lat_stub_w : (m,) float
+        Stub widths (read where the slot is a STUB).
+    depth : (m,) int
+        Depth of each node (root 0); children have their parent's depth + 1.
+    lam, kappa, pipe_exp, init_width : float
+
+    Returns
+    -------
+    dict
+        ``N``, ``Q``, ``D``, ``W`` (= d^pipe_exp), ``width`` (d) per node, and the slot sums
+        ``Nm``, ``Qm`` (apical) and ``Nl``, ``Ql`` (lateral).
+    """
+    m = api_state.shape[0]
+    sent = m  # sentinel row of zeros for non-CHILD slots
+    a_bud = api_state == BUD
+    l_bud = lat_state == BUD
+    base = np.zeros((m + 1, 3))
+    base[:m, 0] = a_bud.astype(float) + l_bud
+    base[:m, 1] = np.where(a_bud, q_api, 0.0) + np.where(l_bud, q_lat, 0.0)
+    base[:m, 2] = (np.where(api_state == STUB, api_stub_w, 0.0) ** pipe_exp
+                   + np.where(lat_state == STUB, lat_stub_w, 0.0) ** pipe_exp)
+    base[:m, 0] += 1.0
+    ac = np.where(api_state == CHILD, api_child, sent)
+    lc = np.where(lat_state == CHILD, lat_child, sent)
+    d0n = float(init_width) ** pipe_exp
+    V = np.zeros((m + 1, 3))
+    order, bounds = depth_levels(depth) if levels is None else levels
+    for j in range(bounds.shape[0] - 2, -1, -1):
+        L = order[bounds[j]:bounds[j + 1]]
+        x = base[L] + V[ac[L]] + V[lc[L]]
+        w = x[:, 2]
+        w[w <= 0.0] = d0n
+        V[L] = x
+    N = V[:m, 0]
+    Q = V[:m, 1]
+    W = V[:m, 2]
+    Nm = a_bud + V[ac, 0]
+    Qm = np.where(a_bud, q_api, 0.0) + V[ac, 1]
+    Nl = l_bud + V[lc, 0]
+    Ql = np.where(l_bud, q_lat, 0.0) + V[lc, 1]
+    if kappa == 1.0:
+        D = lam * Qm + (1.0 - lam) * Ql
+    else:
+        D = (lam * np.where(Nm > 0, Nm * (Qm / np.maximum(Nm, 1.0)) ** kappa, 0.0)
+             + (1.0 - lam) * np.where(Nl > 0, Nl * (Ql / np.maximum(Nl, 1.0)) ** kappa, 0.0))
+    D = np.where((Nm + Nl) > 0, D, 1.0)
+    woody = (np.isin(api_state, (CHILD, STUB)) | np.isin(lat_state, (CHILD, STUB)))
+    width = np.where(woody, W ** (1.0 / pipe_exp), float(init_width))
+    return {"N": N.copy(), "Q": Q.copy(), "D": D, "W": W.copy(), "width": width,
+            "Nm": Nm, "Qm": Qm, "Nl": Nl, "Ql": Ql}
+
+
+def _pointer_jump_rounds(parent: np.ndarray):
+    """The rounds of Wyllie's pointer jumping: a list of ``(active, ancestor)`` index pairs so
+    that replaying ``x[active] = op(x[active], x[ancestor])`` in order folds every path."""
+    anc = parent.copy()
+    act = np.flatnonzero(anc >= 0)
+    rounds = []
+    while act.size:
+        a = anc[act]
+        rounds.append((act, a))
+        anc[act] = anc[a]
+        act = act[anc[act] >= 0]
+    return rounds
+
+
+def allocate(parent, is_lateral, N, Q, D, lam, kappa, v_base, rounds=None):
+    """Acropetal Borchert-Honda pass (B.5 step 4) over a compact node set.
+
+    ``v_root = v_base``; a child c in slot sigma of s gets
+    ``v_c = v_s w_sigma N_c (Q_c/N_c)^kappa / D_s`` (w_api = lam, w_lat = 1 - lam; 0 if D_s <= 0).
+    Vigor is a product of these ratios along the path, folded by pointer jumping.
+
+    Returns
+    -------
+    v : (m,) float
+        Vigor of every node (including nodes that the caller will drop).
+    rounds : list
+        The pointer-jumping rounds (reusable for path folds over the same parents).
+    """
+    share = N * (Q / N) ** kappa if kappa != 1.0 else Q
+    w = np.where(is_lateral, 1.0 - lam, lam)
+    has_p = parent >= 0
+    Dp = np.where(has_p, D[np.maximum(parent, 0)], 1.0)
+    r = np.where(Dp > 0, w * share / np.where(Dp > 0, Dp, 1.0), 0.0)
+    r[~has_p] = v_base
+    if rounds is None:
+        rounds = _pointer_jump_rounds(parent)
+    v = r.copy()
+    for act, a in rounds:
+        v[act] = v[act] * v[a]
+    return v, rounds
+
+
+def path_any(flag: np.ndarray, rounds) -> np.ndarray:
+    """True where the node or any ancestor is flagged (replays pointer-jumping rounds)."""
+    f = flag.copy()
+    for act, a in rounds:
+        f[act] = f[act] | f[a]
+    return f
+
+
+# ------------------------------------------------------------------------------------------------
+# state
+# ------------------------------------------------------------------------------------------------
+
+_FIELDS = {
+    "start": (np.float64, 3), "h": (np.float64, 3), "u": (np.float64, 3),
+    "length": (np.float64, 0), "width": (np.float64, 0), "parent": (np.int64, 0),
+    "is_lateral": (np.bool_, 0), "order": (np.int64, 0), "depth": (np.int64, 0),
+    "alive": (np.bool_, 0), "born": (np.int64, 0),
+    "api_state": (np.int8, 0), "lat_state": (np.int8, 0),
+    "api_child": (np.int64, 0), "lat_child": (np.int64, 0),
+    "api_stub_w": (np.float64, 0), "lat_stub_w": (np.float64, 0),
+}
+
+
+class SegmentStore:
+    """Growable structure-of-arrays of all segments ever created (``n`` rows in use)."""
+
+    def __init__(self, capacity: int = 1024):
+        self.n = 0
+        self.cap = 0
+        for name, (dt, k) in _FIELDS.items():
+            setattr(self, name, np.zeros((0, k) if k else 0, dtype=dt))
+        self.reserve(capacity)
+
+    def reserve(self, total: int) -> None:
+        if total <= self.cap:
+            return
+        cap = max(total, 2 * self.cap, 1024)
+        for name, (dt, k) in _FIELDS.items():
+            old = getattr(self, name)
+            new = np.zeros((cap, k) if k else cap, dtype=dt)
+            new[:self.n] = old[:self.n]
+            setattr(self, name, new)
+        self.cap = cap
+
+    @property
+    def live(self) -> np.ndarray:
+        """Ids of the living segments in creation (parent-before-child) order."""
+        return np.flatnonzero(self.alive[:self.n])
+
+
+@dataclass
+class AllocationRecord:
+    """Inspection record of one cycle's two passes (ids are global segment ids).
+
+    Arrays are over the segments alive at the start of the cycle (``ids``); slot states and
+    children are as *before* the drops of this cycle. ``vA_raw``/``vL_raw`` are the bud vigors
+    before the ``max_grow`` cap (0 where the slot is not a BUD or D <= 0).
+    """
+
+    cycle: int
+    lam: float
+    ids: np.ndarray
+    parent: np.ndarray
+    is_lateral: np.ndarray
+    api_state: np.ndarray
+    lat_state: np.ndarray
+    api_child: np.ndarray
+    lat_child: np.ndarray
+    q_api: np.ndarray
+    q_lat: np.ndarray
+    N: np.ndarray
+    Q: np.ndarray
+    D: np.ndarray
+    width: np.ndarray
+    v: np.ndarray
+    v_base: float
+    dropped: np.ndarray
+    vA_raw: np.ndarray
+    vL_raw: np.ndarray
+
+
+@dataclass
+class ShootRecord:
+    """Inspection record of one cycle's shoots (one entry per growing shoot, in draw order)."""
+
+    bearing: np.ndarray       # global id of the bearing segment
+    lateral: np.ndarray       # bool
+    vigor: np.ndarray         # capped bud vigor v
+    planned: np.ndarray       # floor(v)
+    built: np.ndarray         # metamers actually built (fewer only at the walls)
+    first: np.ndarray         # global id of the first metamer (-1 if none)
+    metamer_length: np.ndarray
+    branch_angle: np.ndarray  # drawn branch angle (deg; NaN for apical shoots)
+    target: np.ndarray        # (k, 3) unit target direction (0 if |t| = 0)
+    tau: np.ndarray           # turning fraction
+
+
+# ------------------------------------------------------------------------------------------------
+# the growth run
+# ------------------------------------------------------------------------------------------------
+
+class SOTGrowth:
+    """One SOT run. ``run()`` executes cycles 1 .. max_iter; failures raise
+    :class:`GrowthFailure` and leave the state in place for the partial tree."""
+
+    def __init__(self, p: dict, seed: int, *, max_live_segments: int = 200_000,
+                 sympodial: bool = False, on_step: Callable | None = None, record: bool = False):
+        self.p = p
+        self.seed = seed
+        self.max_live = int(max_live_segments)
+        self.sympodial = bool(sympodial)
+        self.on_step = on_step
+        self.record = record or on_step is not None
+        self.rng = np.random.Generator(np.random.PCG64(seed))
+        n_vox = int(round(p["span"] / p["voxel_size"]))
+        uniforms = self.rng.random(n_vox ** 3)
+        self.field = LightField(p["span"], p["voxel_size"], int(p["depth"]), p["spread"],
+                                p["shadow_a"], p["shadow_b"], p["ran"], p["vert"], uniforms)
+        self.s = SegmentStore()
+        self.age = 0.0
+        self.cycle = 0
+        self.lam = float(p["init_lambda"])
+        self.created = 0
+        self.last_alloc: AllocationRecord | None = None
+        self.last_shoots: ShootRecord | None = None
+
+    # -------------------------------------------------------------- cycle 1
+    def _seed(self) -> None:
+        p, s = self.p, self.s
+        s.reserve(1)
+        s.start[0] = (0.0, 0.0, 0.0)
+        s.h[0] = (0.0, 0.0, 1.0)
+        s.u[0] = (0.0, -1.0, 0.0)
+        s.length[0] = p["node_length"]
+        s.width[0] = p["init_width"]
+        s.parent[0] = -1
+        s.alive[0] = True
+        s.born[0] = 1
+        s.api_state[0] = BUD
+        s.lat_state[0] = BUD
+        s.api_child[0] = s.lat_child[0] = -1
+        s.n = 1
+        self.created = 1
+        self.field.cast(s.start[:1])  # falls below ground: no effect
+
+    # -------------------------------------------------------------- passes on the living set
+    def _compact(self):
+        s = self.s
+        ids = s.live
+        loc = np.full(s.n, -1, dtype=np.int64)
+        loc[ids] = np.arange(ids.size)
+        par = s.parent[ids]
+        lpar = np.where(par >= 0, loc[np.maximum(par, 0)], -1)
+        ac = np.where(s.api_state[ids] == CHILD, loc[np.maximum(s.api_child[ids], 0)], -1)
+        lc = np.where(s.lat_state[ids] == CHILD, loc[np.maximum(s.lat_child[ids], 0)], -1)
+        return ids, loc, lpar, ac, lc
+
+    def _bud_light(self, ids):
+        s = self.s
+        a_bud = s.api_state[ids] == BUD
+        l_bud = s.lat_state[ids] == BUD
+        any_bud = np.flatnonzero(a_bud | l_bud)
+        q = np.zeros(ids.size)
+        if any_bud.size:
+            g = ids[any_bud]
+            ends = s.start[g] + s.length[g, None] * s.h[g]
+            q[any_bud] = self.field.exposure(ends)
+        return np.where(a_bud, q, 0.0), np.where(l_bud, q, 0.0)
+
+    def widths(self) -> np.ndarray:
+        """Width-only basipetal update of the living segments on a copy: ``(ids, width)``."""
+        s = self.s
+        ids, loc, lpar, ac, lc = self._compact()
+        p = self.p
+        z = np.zeros(ids.size)
+        acc = accumulate(s.api_state[ids], s.lat_state[ids], ac, lc, z, z, s.api_stub_w[ids],
+                         s.lat_stub_w[ids], s.depth[ids], self.lam, 1.0, p["pipe_exp"], p["init_width"])
+        return ids, acc["width"]
+
+    # -------------------------------------------------------------- one growth cycle
+    def _grow_cycle(self, c: int) -> None:
+        p, s, rng = self.p, self.s, self.rng
+        kappa = float(p["nonlinear"])
+        # 1. lambda
+        self.age = min(self.age + 1.0, p["delay"] + p["transition"])
+        lam = lambda_schedule(self.age, p["init_lambda"], p["targ_lambda"], p["delay"], p["transition"])
+        z_lam = rng.standard_normal()
+        lam = float(np.clip(lam + p["lambda_sd"] * z_lam, 0.0, 1.0))
+        self.lam = lam
+
+        # 2. bud light; 3. basipetal pass
+        ids, loc, lpar, ac, lc = self._compact()
+        q_api, q_lat = self._bud_light(ids)
+        api_state0 = s.api_state[ids].copy()
+        lat_state0 = s.lat_state[ids].copy()
+        acc = accumulate(api_state0, lat_state0, ac, lc, q_api, q_lat, s.api_stub_w[ids],
+                         s.lat_stub_w[ids], s.depth[ids], lam, kappa, p["pipe_exp"], p["init_width"])
+        N, Q, D, width = acc["N"], acc["Q"], acc["D"], acc["width"]
+        s.width[ids] = width
+
+        # 4. acropetal pass and drops
+        v_base = p["alpha0"] + p["alpha1"] * Q[0]
+        is_lat = s.is_lateral[ids]
+        v, rounds = allocate(lpar, is_lat, N, Q, D, lam, kappa, v_base)
+        cand = (v / N <= p["drop_thresh"]) | (s.start[ids, 2] <= 0.0)
+        cand[lpar < 0] = False  # the root is never dropped
+        dead = path_any(cand, rounds)
+        top = np.flatnonzero(dead & ~dead[np.maximum(lpar, 0)])
+        if top.size:
+            pg = ids[lpar[top]]
+            lat_top = is_lat[top]
+            s.lat_state[pg[lat_top]] = STUB
+            s.lat_stub_w[pg[lat_top]] = width[top[lat_top]]
+            s.api_state[pg[~lat_top]] = STUB
+            s.api_stub_w[pg[~lat_top]] = width[top[~lat_top]]
+            gone = ids[dead]
+            s.alive[gone] = False
+            self.field.remove(s.start[gone])
+
+        # 5. bud vigor (uncapped values kept for inspection)
+        Dpos = D > 0
+        Dsafe = np.where(Dpos, D, 1.0)
+        vA_raw = np.where((api_state0 == BUD) & Dpos, v * lam * q_api ** kappa / Dsafe, 0.0)
+        vL_raw = np.where((lat_state0 == BUD) & Dpos, v * (1.0 - lam) * q_lat ** kappa / Dsafe, 0.0)
+        if self.record:
+            self.last_alloc = AllocationRecord(
+                cycle=c, lam=lam, ids=ids, parent=s.parent[ids].copy(), is_lateral=is_lat.copy(),
+                api_state=api_state0, lat_state=lat_state0,
+                api_child=np.where(api_state0 == CHILD, s.api_child[ids], -1),
+                lat_child=np.where(lat_state0 == CHILD, s.lat_child[ids], -1),
+                q_api=q_api, q_lat=q_lat, N=N, Q=Q, D=D, width=width, v=v, v_base=v_base,
+                dropped=dead, vA_raw=vA_raw, vL_raw=vL_raw)
+        keep = ~dead
+        mg = float(p["max_grow"])
+        vA = np.minimum(vA_raw, mg)
+        vL = np.minimum(vL_raw, mg)
+        grow_a = keep & (api_state0 == BUD) & (np.floor(vA) >= 1.0)
+        grow_l = keep & (lat_state0 == BUD) & (vL > 1.0)
+        if self.sympodial:
+            s.api_state[ids[keep & (api_state0 == BUD)]] = EMPTY
+            grow_a[:] = False
+
+        # shoots ordered by bearing segment, apical before lateral
+        ia = np.flatnonzero(grow_a)
+        il = np.flatnonzero(grow_l)
+        key = np.concatenate([2 * ia, 2 * il + 1])
+        srt = np.argsort(key, kind="stable")
+        sl = np.concatenate([ia, il])[srt]               # local ids of bearing segments
+        lateral = np.concatenate([np.zeros(ia.size, bool), np.ones(il.size, bool)])[srt]
+        vig = np.concatenate([vA[ia], vL[il]])[srt]
+        bearing = ids[sl]
+        planned = np.floor(vig).astype(np.int64)
+        n_live = int(ids.size - np.count_nonzero(dead))
+        if n_live + int(planned.sum()) > self.max_live:
+            raise GrowthFailure("too_many_segments",
+                                f"cycle {c} would grow {int(planned.sum())} metamers on {n_live} "
+                                f"live segments (max_live_segments = {self.max_live})")
+        self._build_shoots(c, bearing, lateral, vig, planned)
+
+    def _build_shoots(self, c, bearing, lateral, vig, planned) -> None:
+        p, s, rng = self.p, self.s, self.rng
+        m = bearing.size
+        # draws 2 and 3 (blocks consumed even when the sd is 0)
+        z_ang = rng.standard_normal(int(np.count_nonzero(lateral)))
+        z_trop = rng.standard_normal(m)
+        # 6. target directions from the field after the drops, before the new shadows
+        grad = self.field.gradient(s.start[bearing], p["sample_rad"]) if m else np.zeros((0, 3))
+        t = p["reorient"] * grad
+        t[:, 2] += p["tropism"] + p["tropism_sd"] * z_trop
+        tn = np.linalg.norm(t, axis=1)
+        tau = np.minimum(tn, p["redir_strength"])
+        that = np.where(tn[:, None] > 0, t / np.where(tn > 0, tn, 1.0)[:, None], 0.0)
+        # 7. initial frames
+        h = s.h[bearing].copy()
+        u = s.u[bearing].copy()
+        ang = np.full(m, np.nan)
+        if z_ang.size:
+            li = np.flatnonzero(lateral)
+            ang[li] = p["branch_angle"] + p["branch_angle_sd"] * z_ang
+            hl = _unit(rotate(h[li], u[li], np.radians(ang[li])))
+            ul = rotate(u[li], hl, np.full(li.size, math.radians(p["nonplanar_twist"])))
+            h[li] = hl
+            u[li] = ul
+        pos = s.start[bearing] + s.length[bearing, None] * s.h[bearing]
+        seg_len = np.where(planned > 0, vig / np.maximum(planned, 1), 0.0) * p["node_length"]
+        order = s.order[bearing] + lateral
+        last = np.full(m, -1, dtype=np.int64)
+        built = np.zeros(m, dtype=np.int64)
+        first = np.full(m, -1, dtype=np.int64)
+        stopped = np.zeros(m, dtype=bool)
+        half = 0.5 * p["span"]
+        total = int(planned.sum())
+        s.reserve(s.n + total)
+        new_starts = []
+        for k in range(int(math.floor(p["max_grow"]))):
+            want = (planned > k) & ~stopped
+            if not want.any():
+                break
+            q = pos[want]
+            out = ((q[:, 0] < -half) | (q[:, 0] > half) | (q[:, 1] < -half) | (q[:, 1] > half)
+                   | (q[:, 2] < 0.0) | (q[:, 2] > p["span"]))
+            wi = np.flatnonzero(want)
+            stopped[wi[out]] = True
+            act = wi[~out]
+            z_phy = rng.standard_normal(act.size)  # draw 4: one per active shoot
+            if act.size == 0:
+                continue
+            ha, ua, ta, tu = h[act], u[act], that[act], tau[act]
+            # (ii) partial rotation of the frame towards the target
+            ax = np.cross(ha, ta)
+            sn = np.linalg.norm(ax, axis=1)
+            cs = np.einsum("ij,ij->i", ha, ta)
+            turn = sn > 1e-12
+            if turn.any():
+                ti = np.flatnonzero(turn)
+                axu = ax[ti] / sn[ti, None]
+                th = tu[ti] * np.arctan2(sn[ti], cs[ti])
+                ha[ti] = rotate(ha[ti], axu, th)
+                ua[ti] = rotate(ua[ti], axu, th)
+            ha = _unit(ha)
+            # (iii) phyllotaxis roll of u about h
+            phi = np.radians(p["phyllotaxis"] + p["phyllotaxis_sd"] * z_phy)
+            ua = rotate(ua, ha, phi)
+            ua = _unit(ua - np.einsum("ij,ij->i", ua, ha)[:, None] * ha)
+            h[act] = ha
+            u[act] = ua
+            # (iv) append the metamers
+            nid = s.n + np.arange(act.size)
+            par = bearing[act] if k == 0 else last[act]
+            s.start[nid] = pos[act]
+            s.h[nid] = ha
+            s.u[nid] = ua
+            s.length[nid] = seg_len[act]
+            s.width[nid] = p["init_width"]
+            s.parent[nid] = par
+            s.is_lateral[nid] = lateral[act] & (k == 0)
+            s.order[nid] = order[act]
+            s.depth[nid] = s.depth[par] + 1
+            s.alive[nid] = True
+            s.born[nid] = c
+            s.api_state[nid] = EMPTY
+            s.lat_state[nid] = BUD
+            s.api_child[nid] = -1
+            s.lat_child[nid] = -1
+            s.api_stub_w[nid] = 0.0
+            s.lat_stub_w[nid] = 0.0
+            if k == 0:
+                la = lateral[act]
+                s.lat_state[par[la]] = CHILD
+                s.lat_child[par[la]] = nid[la]
+                s.api_state[par[~la]] = CHILD
+                s.api_child[par[~la]] = nid[~la]
+                first[act] = nid
+            else:
+                s.api_state[par] = CHILD
+                s.api_child[par] = nid
+            new_starts.append(pos[act].copy())
+            pos[act] = pos[act] + seg_len[act, None] * ha
+            last[act] = nid
+            built[act] += 1
+            s.n += act.size
+        tips = last[last >= 0]
+        s.api_state[tips] = BUD
+        self.created = s.n
+        # 8. shadows of all new metamers, from their starts, in one batch
+        if new_starts:
+            self.field.cast(np.concatenate(new_starts))
+        if self.record:
+            self.last_shoots = ShootRecord(bearing=bearing, lateral=lateral, vigor=vig, planned=planned,
+                                           built=built, first=first, metamer_length=seg_len,
+                                           branch_angle=ang, target=that, tau=tau)
+
+    # -------------------------------------------------------------- driver
+    def run(self, max_iter: int) -> None:
+        for c in range(1, int(max_iter) + 1):
+            self.cycle = c
+            if c == 1:
+                self._seed()
+            else:
+                self._grow_cycle(c)
+            n_live = int(np.count_nonzero(self.s.alive[:self.s.n]))
+            if c >= 5 and n_live < 10:
+                raise GrowthFailure("collapsed", f"{n_live} live segments at the end of cycle {c} (< 10)")
+            if self.on_step is not None:
+                self.on_step(c, StepView(self))
+
+
+class StepView:
+    """Read-only view passed to ``on_step(cycle, view)`` after each cycle.
+
+    Valid only during the callback (the run continues afterwards): copy what you keep.
+
+    Attributes
+    ----------
+    cycle : int
+    lam : float
+        Apical control lambda of this cycle.
+    field : LightField
+        The live light field (do not modify).
+    alloc : AllocationRecord or None
+        The passes of this cycle (None in the seed cycle).
+    shoots : ShootRecord or None
+        The shoots built this cycle.
+    """
+
+    def __init__(self, run: SOTGrowth):
+        self._run = run
+        self.cycle = run.cycle
+        self.lam = run.lam
+        self.field = run.field
+        self.alloc = run.last_alloc if run.cycle > 1 else None
+        self.shoots = run.last_shoots if run.cycle > 1 else None
+        self._tree = None
+
+    @property
+    def live_ids(self) -> np.ndarray:
+        return self._run.s.live
+
+    @property
+    def store(self) -> SegmentStore:
+        return self._run.s
+
+    @property
+    def n_live(self) -> int:
+        return int(self.live_ids.size)
+
+    def tree(self):
+        """The output tree at this cycle (final width update applied to a copy)."""
+        if self._tree is None:
+            self._tree = self._run_tree()
+        return self._tree
+
+    def _run_tree(self):
+        from .plugin import build_tree  # local import: plugin imports this module
+        return build_tree(self._run, status="ok")

@@ -1,0 +1,466 @@
+"""Tests of the SOT growth model plugin (spec ssm-models.md part B; sanity properties D 1-5, 15-21)."""
+from __future__ import annotations
+
+import copy
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+import bforest_core as bf
+from bforest_sot.light import LightField, shadow_kernel
+from bforest_sot.model import BUD, CHILD, EMPTY, STUB, accumulate, allocate, path_any
+from bforest_sot.params import PARAMETERS
+from bforest_sot.plugin import SOT
+
+NO_NOISE = {"branch_angle_sd": 0.0, "phyllotaxis_sd": 0.0}
+
+
+@pytest.fixture(scope="module")
+def ssm():
+    return SOT()
+
+
+def height(t):
+    return float(t.end[:, 2].max() - t.start[0, 2])
+
+
+def run_recorded(ssm, params, seed, keep_trees=()):
+    """Run with on_step; collect per-cycle allocation/shoot records, field checks and trees."""
+    rec = {"alloc": {}, "shoots": {}, "trees": {}, "field_err": {}, "heights": {}, "n_live": {}}
+
+    def on_step(c, view):
+        if view.alloc is not None:
+            rec["alloc"][c] = view.alloc
+            rec["shoots"][c] = view.shoots
+        t = view.tree()
+        rec["heights"][c] = height(t)
+        rec["n_live"][c] = view.n_live
+        if c in keep_trees:
+            rec["trees"][c] = t
+            store = view.store
+            rec.setdefault("order", {})[c] = store.order[view.live_ids].copy()
+            rec.setdefault("stubs", {})[c] = {k: getattr(store, k)[view.live_ids].copy() for k in
+                                              ("api_state", "lat_state", "api_stub_w", "lat_stub_w")}
+        # the incrementally maintained field equals one rebuilt from the living segments
+        f2 = copy.copy(view.field)
+        f2.rebuild(view.store.start[view.live_ids])
+        rec["field_err"][c] = float(np.max(np.abs(f2.log_e - view.field.log_e)))
+        e = view.field.voxel_exposure()
+        rec.setdefault("field_range", []).append((float(e.min()), float(e.max()),
+                                                  float(e[view.field.roof].max())))
+
+    tree = ssm.simulate(params, seed, on_step=on_step)
+    return tree, rec
+
+
+@pytest.fixture(scope="module")
+def default_run(ssm):
+    """Calibrated defaults at 14 cycles (fast; drops and branching already active)."""
+    return run_recorded(ssm, {"max_iter": 14}, 7, keep_trees=(14,))
+
+
+# ------------------------------------------------------------------------------ parameters
+def test_parameter_table_complete():
+    names = [p.name for p in PARAMETERS]
+    expected = {"max_iter", "alpha0", "alpha1", "max_grow", "drop_thresh", "init_width", "pipe_exp",
+                "nonlinear", "reorient", "redir_strength", "tropism", "sample_rad", "ran", "vert",
+                "init_lambda", "targ_lambda", "delay", "transition", "depth", "spread", "shadow_a",
+                "shadow_b", "branch_angle", "phyllotaxis", "nonplanar_twist", "node_length",
+                "voxel_size", "span", "branch_angle_sd", "phyllotaxis_sd", "lambda_sd", "tropism_sd"}
+    assert set(names) == expected and len(names) == len(expected)
+    by = {p.name: p for p in PARAMETERS}
+    # calibrated defaults of B.4 and clone noise of E
+    calib = {"max_iter": 18, "alpha0": 1, "alpha1": 1.5, "shadow_a": 0.5, "shadow_b": 2, "max_grow": 3,
+             "drop_thresh": 0.2, "init_width": 0.02, "sample_rad": 0.32, "branch_angle_sd": 5,
+             "phyllotaxis_sd": 10, "lambda_sd": 0, "tropism_sd": 0, "span": 12, "node_length": 0.2}
+    for k, v in calib.items():
+        assert by[k].default == v, k
+    assert {p.name for p in PARAMETERS if p.integer} == {"max_iter", "depth"}
+    for p in PARAMETERS:
+        assert p.lower <= p.default <= p.upper, p.name
+        assert p.group in {"I", "II", "III", "IV", "V", "fixed"}, p.name
+        assert p.description
+    assert by["branch_angle"].unit == "deg" and by["init_width"].unit == "m"
+    assert by["depth"].group == "IV" and by["lambda_sd"].group == "III"
+
+
+def test_component_registered_and_settings_checked():
+    ssm = bf.component("ssm", "sot", order_mode="thickest")
+    assert isinstance(ssm, SOT) and ssm.settings.order_mode == "thickest"
+    with pytest.raises(Exception, match="order_mode"):
+        bf.component("ssm", "sot", order_mode="sideways")
+    with pytest.raises(Exception, match="no_such_switch"):
+        SOT(no_such_switch=1)
+
+
+@pytest.mark.parametrize("params, name", [
+    ({"shadow_b": 1.0}, "shadow_b"),
+    ({"shadow_a": 2.5, "shadow_b": 2.0}, "shadow_a"),
+    ({"shadow_a": -0.1}, "shadow_a"),
+    ({"depth": 1}, "depth"),
+    ({"depth": 2.5}, "depth"),
+    ({"max_iter": 7.5}, "max_iter"),
+    ({"branch_angle_sd": -1.0}, "branch_angle_sd"),
+    ({"lambda_sd": -0.01}, "lambda_sd"),
+    ({"ran": 0.7, "vert": 0.4}, "ran"),
+    ({"node_length": 0.0}, "node_length"),
+    ({"init_width": -0.02}, "init_width"),
+    ({"transition": 0.0}, "transition"),
+    ({"init_lambda": 1.2}, "init_lambda"),
+    ({"alpha1": float("nan")}, "alpha1"),
+    ({"no_such_param": 1.0}, "no_such_param"),
+])
+def test_invalid_parameters_raise_value_error_naming_them(ssm, params, name):
+    with pytest.raises(ValueError, match=name):
+        ssm.simulate(params, 1)
+
+
+# ------------------------------------------------------------------------------ light field (D15)
+def test_shadow_kernel_entries_and_factors():
+    di, dj, dk, log_f = shadow_kernel(6, 1.0, 0.5, 2.0)
+    assert di.size == 285  # 9 + 25 + 49 + 81 + 121
+    assert set(dk.tolist()) == {-1, -2, -3, -4, -5}
+    sel = (di == 2) & (dj == -1) & (dk == -3)
+    assert np.exp(log_f[sel][0]) == pytest.approx(1 - 0.5 * 2.0 ** -math.sqrt(14), rel=1e-14)
+    assert np.all(np.abs(di) <= -dk) and np.all(np.abs(dj) <= -dk)
+
+
+def test_single_shadow_exact_and_trilinear():
+    f = LightField(12.0, 0.2, 6, 1.0, 0.5, 2.0, ran=0.0)
+    n = f.n_vox
+    p = np.array([[0.05, -0.05, 3.01]])  # voxel (30, 29, 15)
+    assert f.voxel_of(p).tolist() == [[30, 29, 15]]
+    f.cast(p)
+    e = f.voxel_exposure().reshape(n, n, n)
+    assert e[30, 29, 15] == 1.0 and e[30, 29, 16] == 1.0          # no self-shading, nothing above
+    assert e[30, 29, 14] == pytest.approx(1 - 0.5 / 2.0, rel=1e-14)
+    assert e[32, 26, 12] == pytest.approx(1 - 0.5 * 2.0 ** -math.sqrt(9 + 4 + 9), rel=1e-14)
+    assert e[30, 29, 9] == 1.0                                     # layer 6 is beyond depth - 1
+    assert e[34, 29, 12] == 1.0                                    # outside the pyramid (|di| > l)
+    # trilinear: at a voxel centre it is the voxel value, half way between two centres the mean
+    c = np.array([[30.5 * 0.2 - 6.0, 29.5 * 0.2 - 6.0, 14.5 * 0.2]])
+    assert f.exposure(c)[0] == pytest.approx(e[30, 29, 14], rel=1e-12)
+    mid = c + [[0.0, 0.0, 0.1]]
+    assert f.exposure(mid)[0] == pytest.approx(0.5 * (e[30, 29, 14] + e[30, 29, 15]), rel=1e-12)
+    # roof is dark
+    assert f.exposure(np.array([[0.0, 0.0, 11.95]]))[0] == 0.0
+
+
+def test_cast_remove_restores_field_exactly():
+    rng = np.random.default_rng(0)
+    f = LightField(12.0, 0.2, 6, 1.0, 0.8, 1.5, ran=0.2,
+                   uniforms=rng.random(60 ** 3))
+    pts = np.column_stack([rng.uniform(-6, 6, 3000), rng.uniform(-6, 6, 3000), rng.uniform(0, 12, 3000)])
+    pts[:500, :2] *= 0.05  # a dense column so voxels get many factors
+    f.cast(pts)
+    e = f.voxel_exposure()
+    assert e.min() >= 0.0 and e.max() <= 1.0 and e[f.roof].max() == 0.0
+    assert e.min() < 1e-3  # heavily shaded somewhere: the check above is not vacuous
+    perm = rng.permutation(3000)
+    f.remove(pts[perm[:1200]])
+    f.cast(pts[perm[:100]])
+    f.remove(pts[perm[:100]])
+    f.remove(pts[perm[1200:]])
+    assert np.max(np.abs(f.log_e - f.log_e0)) < 1e-9
+
+
+def test_field_in_run_equals_rebuilt_and_stays_in_range(default_run):
+    _, rec = default_run
+    assert max(rec["field_err"].values()) < 1e-9
+    for lo, hi, roof in rec["field_range"]:
+        assert 0.0 <= lo <= hi <= 1.0 and roof == 0.0
+    # drops happened, so shadows were removed as well as cast
+    assert sum(int(a.dropped.sum()) for a in rec["alloc"].values()) > 0
+
+
+# ------------------------------------------------------------------------------ passes (D16, D20)
+def _hand_structure():
+    # 0: apical CHILD -> 1, lateral STUB (w 0.05); 1: apical BUD (0.6), lateral CHILD -> 2;
+    # 2: apical BUD (0.2), lateral BUD (0.4); 3 (lateral of nothing, separate check): two stubs
+    api_state = np.array([CHILD, BUD, BUD], np.int8)
+    lat_state = np.array([STUB, CHILD, BUD], np.int8)
+    api_child = np.array([1, -1, -1])
+    lat_child = np.array([-1, 2, -1])
+    q_api = np.array([0.0, 0.6, 0.2])
+    q_lat = np.array([0.0, 0.0, 0.4])
+    api_w = np.zeros(3)
+    lat_w = np.array([0.05, 0.0, 0.0])
+    depth = np.array([0, 1, 2])
+    return api_state, lat_state, api_child, lat_child, q_api, q_lat, api_w, lat_w, depth
+
+
+def test_accumulate_and_allocate_known_answers():
+    acc = accumulate(*_hand_structure(), lam=0.6, kappa=1.0, pipe_exp=2.0, init_width=0.02)
+    np.testing.assert_allclose(acc["N"], [6, 5, 3])
+    np.testing.assert_allclose(acc["Q"], [1.2, 1.2, 0.6])
+    np.testing.assert_allclose(acc["D"], [0.72, 0.6, 0.28], rtol=1e-14)
+    np.testing.assert_allclose(acc["W"], [0.0004 + 0.0025, 0.0004, 0.0004], rtol=1e-14)
+    parent = np.array([-1, 0, 1])
+    is_lat = np.array([False, False, True])
+    v, rounds = allocate(parent, is_lat, acc["N"], acc["Q"], acc["D"], 0.6, 1.0, v_base=2.0)
+    np.testing.assert_allclose(v, [2.0, 2.0, 0.8], rtol=1e-14)
+    assert path_any(np.array([False, True, False]), rounds).tolist() == [False, True, True]
+    acc2 = accumulate(*_hand_structure(), lam=0.6, kappa=2.0, pipe_exp=2.0, init_width=0.02)
+    np.testing.assert_allclose(acc2["D"][1:], [0.6 * 0.36 + 0.4 * 3 * 0.2 ** 2,
+                                               0.6 * 0.04 + 0.4 * 0.16], rtol=1e-14)
+    # a segment with no BUD or CHILD slot: N = 1, Q = 0, D = 1, stubs keep their width
+    acc3 = accumulate(np.array([STUB], np.int8), np.array([STUB], np.int8), np.array([-1]),
+                      np.array([-1]), np.zeros(1), np.zeros(1), np.array([0.03]), np.array([0.04]),
+                      np.array([0]), lam=0.5, kappa=1.0, pipe_exp=2.0, init_width=0.02)
+    assert (acc3["N"][0], acc3["Q"][0], acc3["D"][0]) == (1.0, 0.0, 1.0)
+    assert acc3["width"][0] == pytest.approx(0.05, rel=1e-14)
+
+
+def _check_conservation(alloc, kappa):
+    v = alloc.v
+
+    def child_v(children, states):
+        m = states == CHILD
+        return np.where(m, v[np.searchsorted(alloc.ids, np.where(m, children, 0))], 0.0)
+
+    passed = (child_v(alloc.api_child, alloc.api_state) + child_v(alloc.lat_child, alloc.lat_state)
+              + alloc.vA_raw + alloc.vL_raw)
+    has = np.isin(alloc.api_state, [BUD, CHILD]) | np.isin(alloc.lat_state, [BUD, CHILD])
+    sel = has & (alloc.D > 0)
+    assert sel.sum() > 0
+    rel = np.abs(passed[sel] - v[sel]) / np.abs(v[sel])
+    assert rel.max() < 1e-12
+    return int(sel.sum())
+
+
+@pytest.mark.parametrize("kappa", [1.0, 1.7])
+def test_borchert_honda_conserves_vigor_at_every_branch_point(ssm, kappa, default_run):
+    if kappa == 1.0:
+        _, rec = default_run
+    else:
+        _, rec = run_recorded(ssm, {"max_iter": 11, "nonlinear": kappa}, 3)
+    checked = 0
+    for c, alloc in rec["alloc"].items():
+        checked += _check_conservation(alloc, kappa)
+        root = int(np.flatnonzero(alloc.parent < 0)[0])
+        assert alloc.v[root] == pytest.approx(1.0 + 1.5 * alloc.Q[root], rel=1e-15)
+        assert alloc.v_base == alloc.v[root]
+    assert checked > 500
+
+
+def test_drops_leave_only_supplied_segments(default_run):
+    tree, rec = default_run
+    n_dropped = 0
+    for c, a in rec["alloc"].items():
+        kept = ~a.dropped & (a.parent >= 0)
+        assert np.all(a.v[kept] / a.N[kept] > 0.2)
+        # every dropped subtree has a dropped top whose own v/N fell to the threshold
+        pos = np.searchsorted(a.ids, a.parent[a.dropped])
+        top = np.flatnonzero(a.dropped)[~a.dropped[pos]]
+        assert np.all(a.v[top] / a.N[top] <= 0.2)
+        n_dropped += int(a.dropped.sum())
+        assert a.ids[0] == 0 and not a.dropped[0]
+    assert n_dropped > 50
+    # pruned subtrees leave no segments: the output has no row of a dropped segment
+    ids_last = rec["alloc"][14].ids[~rec["alloc"][14].dropped]
+    assert tree.n == ids_last.size + int(rec["shoots"][14].built.sum())
+
+
+# ------------------------------------------------------------------------------ shoots (D17)
+def test_metamer_counts_lengths_and_cube(default_run):
+    tree, rec = default_run
+    total_shoots = 0
+    for c, sh in rec["shoots"].items():
+        np.testing.assert_array_equal(sh.planned, np.floor(sh.vigor))
+        assert np.all(sh.planned >= 1) and np.all(sh.planned <= 3)
+        np.testing.assert_array_equal(sh.built, sh.planned)  # far from the walls here
+        assert np.all(sh.metamer_length >= 0.2) and np.all(sh.metamer_length < 0.4)
+        np.testing.assert_allclose(sh.metamer_length, sh.vigor / sh.planned * 0.2, rtol=1e-15)
+        total_shoots += sh.bearing.size
+    assert total_shoots > 300
+    L = tree.length[1:]
+    assert L.min() >= 0.2 and L.max() < 0.4 and tree.length[0] == 0.2
+
+
+def test_walls_stop_growth_inside_the_cube(ssm):
+    # a 3.2 m cube: the tree hits the roof and the walls; growth stops there, not an error
+    span = 3.2
+    fewer = []
+
+    def on_step(c, view):
+        if view.shoots is not None:
+            fewer.append(int((view.shoots.built < view.shoots.planned).sum()))
+            assert np.all(view.shoots.built <= view.shoots.planned)
+
+    t = ssm.simulate({"span": span, "max_iter": 16}, 2, on_step=on_step)
+    s = t.start
+    assert np.all(np.abs(s[:, :2]) <= span / 2 + 1e-12)
+    assert np.all((s[:, 2] >= 0) & (s[:, 2] <= span + 1e-12))
+    assert sum(fewer) > 0 and height(t) > span - 0.4
+
+
+# ------------------------------------------------------------------------------ pipe (D18)
+def test_pipe_model_exact_after_final_update(default_run):
+    tree, rec = default_run
+    n_exp = 2.6
+    d = 2 * tree.radius
+    st = rec["stubs"][14]
+    W = np.bincount(tree.parent[1:], weights=d[1:] ** n_exp, minlength=tree.n)
+    W += np.where(st["api_state"] == STUB, st["api_stub_w"], 0) ** n_exp
+    W += np.where(st["lat_state"] == STUB, st["lat_stub_w"], 0) ** n_exp
+    woody = np.bincount(tree.parent[1:], minlength=tree.n) + (st["api_state"] == STUB) + (st["lat_state"] == STUB)
+    assert np.any(st["api_state"] == STUB) or np.any(st["lat_state"] == STUB)
+    np.testing.assert_allclose(d[woody > 0] ** n_exp, W[woody > 0], rtol=1e-12)
+    np.testing.assert_array_equal(d[woody == 0], 0.02)
+    # width never decreases from tip to base
+    assert np.all(d[tree.parent[1:]] >= d[1:])
+    assert d[0] == d.max() and d[0] > 0.1
+
+
+# ------------------------------------------------------------------------------ angles and frames
+def test_branch_angle_phyllotaxis_and_vertical_trunk_without_turning(ssm):
+    t = ssm.simulate({"max_iter": 9, "reorient": 0.0, "tropism": 0.0, **NO_NOISE,
+                      "branch_angle": 50.0}, 1)
+    lat = np.flatnonzero(t.extras["is_lateral"])
+    cosang = np.einsum("ij,ij->i", t.axis[lat], t.axis[t.parent[lat]])
+    np.testing.assert_allclose(np.degrees(np.arccos(np.clip(cosang, -1, 1))), 50.0, atol=1e-9)
+    trunk = t.branch == 0
+    np.testing.assert_allclose(t.axis[trunk], np.tile([0, 0, 1.0], (trunk.sum(), 1)), atol=1e-12)
+    # laterals on consecutive trunk segments differ by the phyllotaxis angle in azimuth
+    lt = lat[trunk[t.parent[lat]]]
+    pos = t.position_in_branch[t.parent[lt]]
+    az = np.full(trunk.sum(), np.nan)
+    az[pos] = np.degrees(np.arctan2(t.axis[lt, 1], t.axis[lt, 0]))
+    turn = np.mod(np.diff(az), 360.0)
+    turn = turn[np.isfinite(turn)]
+    assert turn.size >= 3
+    np.testing.assert_allclose(turn, 137.52, atol=1e-7)
+
+
+def test_tropism_turns_branches_up(ssm):
+    base = {"max_iter": 10, "reorient": 0.0, **NO_NOISE}
+    lo = ssm.simulate({**base, "tropism": 0.0}, 1)
+    hi = ssm.simulate({**base, "tropism": 0.25}, 1)
+    mean_up = lambda t: float(t.axis[t.order >= 1, 2].mean())
+    assert mean_up(hi) > mean_up(lo) + 0.1
+
+
+# ------------------------------------------------------------------------------ output contract (D3)
+def test_topology_invariants(default_run, ssm):
+    tree, rec = default_run
+    n = tree.n
+    assert tree.parent[0] == -1 and np.count_nonzero(tree.parent < 0) == 1
+    assert np.all(tree.parent[1:] < np.arange(1, n))
+    assert np.max(np.abs(tree.end[tree.parent[1:]] - tree.start[1:])) < 1e-9
+    assert np.max(np.abs(np.linalg.norm(tree.axis, axis=1) - 1)) < 1e-9
+    assert tree.length.min() > 0 and tree.radius.min() > 0
+    assert np.bincount(tree.extension[tree.extension >= 0], minlength=n).max() <= 1
+    assert np.array_equal(np.unique(tree.branch), np.arange(tree.n_branches))
+    is_lat = tree.extras["is_lateral"]
+    same = tree.branch[1:] == tree.branch[tree.parent[1:]]
+    np.testing.assert_array_equal(same, ~is_lat[1:])
+    np.testing.assert_array_equal(tree.order[1:], tree.order[tree.parent[1:]] + is_lat[1:])
+    assert tree.order[0] == 0 and np.all(tree.order[tree.branch == 0] == 0)
+    np.testing.assert_array_equal(tree.order, rec["order"][14])  # model's Gravelius order
+    md = tree.metadata
+    assert md["model"] == "sot" and md["status"] == "ok" and md["seed"] == 7 and md["cycles"] == 14
+    assert md["params"]["max_iter"] == 14 and md["params"]["alpha1"] == 1.5
+    assert tree.topology == "source" and tree.max_order >= 3
+    # thickest mode: the thickest child continues each branch
+    thick = SOT(order_mode="thickest").simulate({"max_iter": 14}, 7)
+    np.testing.assert_array_equal(thick.start, tree.start)
+    assert thick.topology == "thickest"
+    ext = thick.extension
+    has = np.flatnonzero(ext >= 0)
+    r_max = np.zeros(n)
+    np.maximum.at(r_max, thick.parent[1:], thick.radius[1:])
+    np.testing.assert_array_equal(thick.radius[ext[has]], r_max[has])
+
+
+# ------------------------------------------------------------------------------ D1, D2, D4
+def test_determinism_and_seeds(ssm):
+    a = ssm.simulate({"max_iter": 10}, 11)
+    b = ssm.simulate({"max_iter": 10}, 11)
+    for k in ("start", "axis", "length", "radius", "parent", "extension"):
+        assert np.array_equal(getattr(a, k), getattr(b, k)), k
+    c = ssm.simulate({"max_iter": 10}, 12)
+    assert c.n != a.n or not np.array_equal(c.start, a.start)
+    # no randomness at all: every seed gives the same tree
+    quiet = {"max_iter": 10, "ran": 0.0, **NO_NOISE}
+    q1, q2 = ssm.simulate(quiet, 1), ssm.simulate(quiet, 99)
+    assert q1.equals(q2)
+    # each noise source alone makes seeds differ
+    for extra in ({"ran": 0.05}, {"branch_angle_sd": 5.0}, {"phyllotaxis_sd": 10.0},
+                  {"lambda_sd": 0.05}, {"tropism_sd": 0.05}):
+        t1 = ssm.simulate({**quiet, **extra}, 1)
+        t2 = ssm.simulate({**quiet, **extra}, 2)
+        assert not t1.equals(t2), extra
+
+
+def test_prefix_property(ssm):
+    short = ssm.simulate({"max_iter": 9, "lambda_sd": 0.02, "tropism_sd": 0.02}, 5)
+    snaps = {}
+    ssm.simulate({"max_iter": 12, "lambda_sd": 0.02, "tropism_sd": 0.02}, 5,
+                 on_step=lambda c, v: snaps.__setitem__(c, v.tree()) if c == 9 else None)
+    assert short.equals(snaps[9])
+
+
+def test_taller_with_more_cycles(ssm):
+    hs = {}
+    for seed in (1, 2, 3):
+        _, rec = run_recorded(ssm, {"max_iter": 16}, seed)
+        h = np.array([rec["heights"][c] for c in range(1, 17)])
+        assert np.all(np.diff(h) >= 0)
+        hs[seed] = h
+    mean = np.mean(list(hs.values()), axis=0)
+    # spec B.4 / D4: about 4.3 / 6.7 / 8.6 m at 8 / 12 / 16 cycles (+-25 % indicative)
+    for c, target in ((8, 4.3), (12, 6.7), (16, 8.6)):
+        assert abs(mean[c - 1] - target) < 0.25 * target
+
+
+def test_apical_control_trend_with_constant_lambda(ssm):
+    res = []
+    for lam in (0.45, 0.55, 0.65):
+        trees = [ssm.simulate({"max_iter": 12, "init_lambda": lam, "targ_lambda": lam}, s) for s in (1, 2)]
+        res.append((np.mean([height(t) for t in trees]), np.mean([t.n for t in trees])))
+    h, n = np.array(res).T
+    assert np.all(np.diff(h) > 0.3)
+    assert np.all(np.diff(n) < 0)
+
+
+def test_clones_differ(ssm):
+    def occupancy(t):
+        f = np.linspace(0, 1, 5)
+        pts = t.start[:, None, :] + f[None, :, None] * (t.length[:, None, None] * t.axis[:, None, :])
+        return set(map(tuple, np.floor(pts.reshape(-1, 3) / 0.4).astype(np.int64).tolist()))
+
+    occ = [occupancy(ssm.simulate({}, s)) for s in range(1, 6)]
+    jac = [len(a & b) / len(a | b) for a, b in itertools.combinations(occ, 2)]
+    assert np.mean(jac) < 0.5
+
+
+# ------------------------------------------------------------------------------ failures (D5)
+def test_too_many_segments_never_overshoots(ssm):
+    capped = SOT(max_live_segments=300)
+    with pytest.raises(bf.SimulationFailed) as ei:
+        capped.simulate({"max_iter": 18}, 1)
+    e = ei.value
+    assert e.status == "too_many_segments"
+    assert isinstance(e.tree, bf.Tree) and 0 < e.tree.n <= 300
+    assert e.tree.metadata["status"] == "too_many_segments"
+    # widths of the partial tree are updated (pipe model: base is the thickest)
+    assert e.tree.radius[0] == e.tree.radius.max() > 0.01
+
+
+def test_collapse_raises_with_partial_tree(ssm):
+    with pytest.raises(bf.SimulationFailed) as ei:
+        ssm.simulate({"alpha0": 0.0, "alpha1": 1.0, "shadow_a": 0.8, "shadow_b": 1.5, "max_iter": 12}, 1)
+    assert ei.value.status == "collapsed"
+    assert ei.value.tree is not None and ei.value.tree.n < 10
+
+
+def test_sympodial_has_no_apical_continuation(ssm):
+    # all vigor of apical buds is lost, so a sympodial tree needs weak apical control
+    t = SOT(sympodial=True).simulate({"max_iter": 10, "init_lambda": 0.35, "targ_lambda": 0.35}, 1)
+    # every non-root segment is the first metamer of a lateral shoot or continues one within a cycle
+    age = t.extras["age"]
+    ext_rows = np.flatnonzero(t.extension >= 0)
+    assert np.all(age[t.extension[ext_rows]] == age[ext_rows])  # apical children only within a shoot
+    assert t.n > 10

@@ -4,4 +4,6 @@ from bforest_core.hookspecs import hookimpl
 
 @hookimpl
 def bforest_components():
-    return []
+    from .ssm import LignumSSM
+
+    return [LignumSSM]

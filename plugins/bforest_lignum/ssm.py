@@ -1,0 +1,99 @@
+"""The ``lignum`` SSM component: simplified stochastic LIGNUM (spec ssm-models.md part A)."""
+from __future__ import annotations
+
+import numbers
+from typing import Callable, Literal, Mapping
+
+from pydantic import Field
+
+from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
+from bforest_core.tree import Tree
+
+from . import params as P
+from .model import _Simulation
+
+
+class LignumSettings(ComponentSettings):
+    """Settings of the ``lignum`` SSM.
+
+    Attributes
+    ----------
+    preset : {"sf_synthetic", "sf_real", "p98", "s08", "sf_test16"}
+        Parameter defaults (spec A.4); ``sf_synthetic`` (SF Table 2) by default.
+    order_mode : {"growth", "thickest"}
+        Output topology: the growth (bud) rule with the apical child as extension (``source``
+        topology), or QSM-like ``thickest`` (largest-radius child continues the branch).
+    max_live_segments : int
+        A run with more live segments after a growth year fails with ``too_many_segments``.
+    """
+
+    preset: Literal["sf_synthetic", "sf_real", "p98", "s08", "sf_test16"] = "sf_synthetic"
+    order_mode: Literal["growth", "thickest"] = "growth"
+    max_live_segments: int = Field(50_000, gt=0)
+
+
+class LignumSSM(SSM):
+    """Simplified stochastic LIGNUM (Potapov et al. 2016, Silva Fennica 50(1):1413).
+
+    Examples
+    --------
+    >>> import bforest_core as bf
+    >>> ssm = bf.component("ssm", "lignum", preset="sf_real")
+    >>> tree = ssm.simulate({"years": 20}, seed=3)
+    """
+
+    name = "lignum"
+    summary = "simplified stochastic LIGNUM: carbon balance, pyramid shadow, pipe model (pine)"
+    Settings = LignumSettings
+
+    @property
+    def parameters(self) -> list[ParameterSpec]:
+        """Parameter specs of A.3 with the current preset's values as defaults."""
+        return P.parameter_specs(self.settings.preset)
+
+    def resolve_params(self, params: Mapping[str, object]) -> dict:
+        """Preset defaults overridden by ``params`` (categorical spellings mapped to codes);
+        unknown names and non-numeric values raise ``ValueError``; the result is validated."""
+        params = P.normalise_inputs(params)
+        for k, v in params.items():
+            if k in P.NAMES and (isinstance(v, bool) or not isinstance(v, numbers.Real)):
+                if isinstance(v, bool) and k == "collision":
+                    continue
+                raise ValueError(f"parameter {k!r} must be a number, got {v!r}")
+        out = super().resolve_params(params)
+        P.validate(out)
+        return out
+
+    def simulate(self, params: Mapping[str, float], seed: int, on_step: Callable | None = None,
+                 *, trace: list | None = None) -> Tree:
+        """Grow one tree.
+
+        Parameters
+        ----------
+        params : mapping
+            Parameter values overriding the preset's defaults (unknown names raise
+            ``ValueError``; invalid values raise ``ValueError`` naming the parameter).
+        seed : int
+            Seed of the single ``numpy.random.Generator(PCG64(seed))``.
+        on_step : callable, optional
+            ``on_step(t, view)`` after the light step of every year t = 1..T, with a read-only
+            :class:`~bforest_lignum.model.LignumView`; ``view.tree()`` equals the output of a
+            ``years = t`` run (prefix property).
+        trace : list, optional
+            Debug hook: one :class:`~bforest_lignum.model.YearTrace` per growth year is
+            appended (internal arrays; for tests).
+
+        Returns
+        -------
+        Tree
+            Live segments (dead remnants included, ``extras["is_dead"]``), growth topology.
+
+        Raises
+        ------
+        SimulationFailed
+            ``negative_balance``, ``too_many_segments`` or ``no_root``, carrying the partial tree.
+        """
+        p = self.resolve_params(params)
+        sim = _Simulation(p, int(seed), preset=self.settings.preset, order_mode=self.settings.order_mode,
+                          max_live=self.settings.max_live_segments, on_step=on_step, trace=trace)
+        return sim.run()

@@ -1,7 +1,12 @@
-"""Entry point of this plugin: registers its components with Bayes Forest."""
+"""Entry point of the ``bforest_optim`` plugin: the optimisers ``ga``, ``nlopt``, ``emcee``, ``de``."""
 from bforest_core.hookspecs import hookimpl
+
+from .de import DifferentialEvolution
+from .emcee_sampler import EmceeSampler
+from .ga import GeneticAlgorithm
+from .nlopt_optimizer import NloptOptimizer
 
 
 @hookimpl
 def bforest_components():
-    return []
+    return [GeneticAlgorithm, NloptOptimizer, EmceeSampler, DifferentialEvolution]

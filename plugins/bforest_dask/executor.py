@@ -1,0 +1,166 @@
+"""The ``dask`` executor: evaluations on a Dask ``distributed`` cluster.
+
+Without an ``address`` it starts a :class:`distributed.LocalCluster` of ``workers`` processes
+with one thread each (like the ``process`` executor, but with Dask's dashboard, spilling and
+resilience); with an ``address`` it connects to a running scheduler (e.g. one started by
+dask-jobqueue's ``SLURMCluster`` or ``dask scheduler`` on a cluster login node; see
+``docs/dask.md``).
+
+The run's initializer (which loads the target data sets and builds the components) is wrapped
+in a worker plugin: it runs once on every worker that is connected when the run starts *and* on
+every worker that joins later (an adaptive cluster, a restarted worker), and its arguments
+travel to each worker once, inside the plugin, never with the tasks.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import uuid
+from typing import Any, Callable, Iterator, Sequence
+
+from pydantic import Field
+
+from bforest_core.executors import limit_threads
+from bforest_core.interfaces import ComponentSettings, Executor
+
+try:
+    import dask  # noqa: F401
+    from distributed import Client, LocalCluster, as_completed
+    from distributed.diagnostics.plugin import WorkerPlugin
+except ImportError as exc:  # pragma: no cover - exercised only where dask is absent
+    raise ImportError(
+        "the 'dask' executor needs dask and distributed, which are not installed "
+        f"({exc}); install them with: pip install 'bayesforest[dask]'") from exc
+
+
+class RunInitializer(WorkerPlugin):
+    """Worker plugin running ``initializer(*initargs)`` once in each worker process.
+
+    ``setup`` is called by the worker when the plugin is registered and when a worker joins the
+    cluster later, so late workers are initialised too.
+    """
+
+    def __init__(self, initializer: Callable | None, initargs: tuple, name: str):
+        self.initializer = initializer
+        self.initargs = tuple(initargs)
+        self.name = name
+
+    def setup(self, worker) -> None:
+        limit_threads()
+        if self.initializer is not None:
+            self.initializer(*self.initargs)
+
+
+class DaskSettings(ComponentSettings):
+    address: str | None = Field(None, description="address of a running Dask scheduler (e.g. "
+                                "tcp://10.0.0.5:8786 or a scheduler file path with scheduler_file); "
+                                "none: start a local cluster")
+    scheduler_file: str | None = Field(None, description="JSON scheduler file written by `dask scheduler "
+                                       "--scheduler-file` (alternative to address)")
+    workers: int | None = Field(None, ge=1, description="local cluster: number of worker processes "
+                                "(default: all cores); remote scheduler: wait until this many workers "
+                                "are connected (default 1)")
+    timeout: float = Field(120.0, gt=0, description="seconds to wait for the scheduler and its workers")
+    dashboard_address: str | None = Field(None, description="local cluster: where to serve the Dask "
+                                          "dashboard (e.g. ':8787'; needs bokeh); none: no dashboard")
+
+
+class DaskExecutor(Executor):
+    """Runs evaluations as Dask tasks, yielding results as they complete.
+
+    Results never depend on the cluster: every evaluation carries its own seed and workers hold
+    no random state (the same contract as the ``process`` executor).
+    """
+
+    name = "dask"
+    summary = "Dask distributed: a local cluster or a running scheduler (SLURM etc. via dask-jobqueue)"
+    Settings = DaskSettings
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self._client: Client | None = None
+        self._cluster: LocalCluster | None = None
+        self._plugin_name: str | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    @property
+    def client(self) -> Client:
+        """The connected :class:`distributed.Client` (after :meth:`start`)."""
+        if self._client is None:
+            raise RuntimeError("dask executor not started (use executor.started(...))")
+        return self._client
+
+    @property
+    def workers(self) -> int:
+        if self._client is not None:
+            return max(1, len(self._client.nthreads()))
+        if self.settings.workers is not None:
+            return self.settings.workers
+        return 1 if (self.settings.address or self.settings.scheduler_file) else max(1, os.cpu_count() or 1)
+
+    @property
+    def scheduler_address(self) -> str:
+        """Address of the scheduler in use (e.g. to let another client connect)."""
+        return self.client.scheduler.address
+
+    def start(self, initializer: Callable | None = None, initargs: tuple = ()) -> None:
+        s: DaskSettings = self.settings
+        if self._client is not None:
+            raise RuntimeError("dask executor already started")
+        if s.address and s.scheduler_file:
+            raise ValueError("dask executor: give address or scheduler_file, not both")
+        if s.address or s.scheduler_file:
+            client = Client(s.address, scheduler_file=s.scheduler_file, timeout=s.timeout,
+                            set_as_default=False)
+            n_wait = s.workers or 1
+        else:
+            n = s.workers or max(1, os.cpu_count() or 1)
+            self._cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                         dashboard_address=s.dashboard_address,
+                                         silence_logs=logging.WARNING)
+            client = Client(self._cluster, set_as_default=False)
+            n_wait = n
+        self._client = client
+        try:
+            client.wait_for_workers(n_wait, timeout=s.timeout)
+            # a unique name: several runs may share one scheduler, each with its own target
+            self._plugin_name = f"bforest-init-{uuid.uuid4().hex}"
+            client.register_plugin(RunInitializer(initializer, initargs, self._plugin_name),
+                                   name=self._plugin_name)
+        except BaseException:
+            self.shutdown()
+            raise
+
+    def map_unordered(self, fn: Callable, items: Sequence) -> Iterator[tuple[int, Any]]:
+        """Submit every item as one task; yield ``(index, result)`` as tasks complete.
+
+        A task's exception is re-raised here; leaving the loop early cancels the tasks still
+        pending.
+        """
+        client = self.client
+        items = list(items)
+        if not items:
+            return
+        futures = client.map(fn, items, pure=False)
+        index = {f.key: i for i, f in enumerate(futures)}
+        try:
+            for fut in as_completed(futures, loop=client.loop):
+                yield index[fut.key], fut.result()
+        finally:
+            pending = [f for f in futures if not f.done()]
+            if pending:
+                client.cancel(pending)
+
+    def shutdown(self) -> None:
+        client, cluster = self._client, self._cluster
+        self._client = self._cluster = None
+        if client is not None:
+            if self._plugin_name is not None and cluster is None:
+                try:  # leave a shared cluster clean
+                    client.unregister_worker_plugin(self._plugin_name)
+                except Exception:
+                    pass
+            client.close()
+        if cluster is not None:
+            cluster.close()
+        self._plugin_name = None

@@ -1,0 +1,253 @@
+"""Pieces shared by the optimisers: the checked box, the evaluation wrapper, logging, results.
+
+Every optimiser of this plugin talks to its :class:`~bforest_core.interfaces.Problem` through a
+:class:`BoxEvaluator`, which
+
+* rounds integer parameters and clips every point into the global bounds before it reaches
+  ``problem.evaluate`` (so the run store only ever sees feasible, integral points);
+* turns NaN values into ``+inf`` and remembers the best point it was told about;
+* knows when to stop (``problem.stopped`` or an exhausted ``problem.budget``).
+
+Log records (``problem.log``) of all optimisers share the keys ``iteration`` (0-based counter of
+records), ``best`` (best distance so far, ``None`` while nothing finite was seen) and
+``n_evaluations`` (``problem.n_evaluations``); each optimiser adds its own (``generation``,
+``mean``, ``step``, ``acceptance``...). Values are plain Python numbers (JSON friendly).
+"""
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from bforest_core.interfaces import ComponentSettings, OptimizeResult, Problem
+
+SamplingName = Literal["halton", "sobol", "lhs", "random"]
+
+
+class StopOptimization(Exception):
+    """Raised inside a library callback to unwind an optimiser when the problem has stopped."""
+
+
+class OptimizerSettings(ComponentSettings):
+    """Settings common to every optimiser of this plugin (none yet; a place for them)."""
+
+
+def _as_vector(value, p: int, what: str) -> np.ndarray:
+    a = np.asarray(value, dtype=float).reshape(-1)
+    if a.shape != (p,):
+        raise ValueError(f"problem.{what} has {a.size} values for {p} parameters")
+    return a
+
+
+class BoxEvaluator:
+    """The optimiser-side view of a :class:`Problem`.
+
+    Parameters
+    ----------
+    problem : Problem
+        The problem to evaluate.
+
+    Attributes
+    ----------
+    lower, upper : ndarray
+        Effective bounds: for integer parameters ``ceil(lower)`` and ``floor(upper)``.
+    integer : ndarray of bool
+        Integer flags.
+    init_lower, init_upper : ndarray
+        The initial box, clipped into the bounds (integer parameters rounded inwards).
+    best_x, best_f
+        Best (finite) point and value returned by ``problem.evaluate`` so far.
+    n_batches, n_points
+        Calls made to ``problem.evaluate`` and points sent.
+
+    Raises
+    ------
+    ValueError
+        Naming the parameter, for non-finite bounds, ``lower >= upper``, an integer parameter
+        whose range holds no whole number, or an initial box outside the bounds.
+    """
+
+    def __init__(self, problem: Problem):
+        self.problem = problem
+        names = list(problem.names)
+        p = len(names)
+        if p == 0:
+            raise ValueError("problem has no parameters")
+        lo = _as_vector(problem.lower, p, "lower")
+        hi = _as_vector(problem.upper, p, "upper")
+        integer = np.asarray(problem.integer, dtype=bool).reshape(-1)
+        if integer.shape != (p,):
+            raise ValueError(f"problem.integer has {integer.size} flags for {p} parameters")
+        for i, n in enumerate(names):
+            if not (math.isfinite(lo[i]) and math.isfinite(hi[i])):
+                raise ValueError(f"parameter {n!r}: bounds must be finite (got [{lo[i]}, {hi[i]}])")
+            if not lo[i] < hi[i]:
+                raise ValueError(f"parameter {n!r}: lower bound {lo[i]} is not below upper bound {hi[i]}")
+        lo = np.where(integer, np.ceil(lo), lo)
+        hi = np.where(integer, np.floor(hi), hi)
+        for i in np.flatnonzero(integer & (lo > hi)):
+            raise ValueError(f"integer parameter {names[i]!r}: the bounds "
+                             f"[{problem.lower[i]}, {problem.upper[i]}] hold no whole number")
+        ilo, ihi = problem.init_box()
+        ilo = np.clip(_as_vector(ilo, p, "init_lower"), lo, hi)
+        ihi = np.clip(_as_vector(ihi, p, "init_upper"), lo, hi)
+        ilo = np.where(integer, np.ceil(ilo), ilo)
+        ihi = np.where(integer, np.floor(ihi), ihi)
+        for i in np.flatnonzero(ilo > ihi):
+            raise ValueError(f"parameter {names[i]!r}: the initial range "
+                             f"[{problem.init_box()[0][i]}, {problem.init_box()[1][i]}] lies outside "
+                             f"the bounds [{problem.lower[i]}, {problem.upper[i]}] or holds no whole number")
+        self.names = names
+        self.lower, self.upper, self.integer = lo, hi, integer
+        self.init_lower, self.init_upper = ilo, ihi
+        self.best_x: np.ndarray | None = None
+        self.best_f = math.inf
+        self.n_batches = 0
+        self.n_points = 0
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def dim(self) -> int:
+        return len(self.names)
+
+    @property
+    def width(self) -> np.ndarray:
+        """Width of the bounds per parameter."""
+        return self.upper - self.lower
+
+    @property
+    def init_width(self) -> np.ndarray:
+        """Width of the initial box; where it is zero, the width of the bounds."""
+        w = self.init_upper - self.init_lower
+        return np.where(w > 0, w, self.width)
+
+    def relaxed_bounds(self, box: str = "bounds") -> tuple[np.ndarray, np.ndarray]:
+        """A continuous box in which rounding gives every whole number the same measure.
+
+        Integer parameters are widened by 0.5 on each side (minus one ulp), real ones are kept.
+        ``box`` is ``"bounds"`` or ``"init"``.
+        """
+        lo, hi = (self.lower, self.upper) if box == "bounds" else (self.init_lower, self.init_upper)
+        rlo = np.where(self.integer, np.nextafter(lo - 0.5, np.inf), lo)
+        rhi = np.where(self.integer, np.nextafter(hi + 0.5, -np.inf), hi)
+        return rlo, rhi
+
+    def project(self, X) -> np.ndarray:
+        """Round integer parameters and clip into the bounds; ``(k, p)`` in, ``(k, p)`` out."""
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        if X.ndim != 2 or X.shape[1] != self.dim:
+            raise ValueError(f"points must have shape (k, {self.dim}), got {X.shape}")
+        X = np.where(self.integer, np.rint(X), X)
+        return np.clip(X, self.lower, self.upper)
+
+    def sample_init(self, n: int, rng: np.random.Generator, method: str = "halton") -> np.ndarray:
+        """``n`` points spread over the initial box (integer parameters uniform over the whole
+        numbers of their initial range), drawn with ``rng``.
+
+        ``method``: ``"halton"``/``"sobol"`` (scrambled low-discrepancy), ``"lhs"`` (Latin
+        hypercube) or ``"random"`` (independent uniform).
+        """
+        from scipy.stats import qmc
+
+        p = self.dim
+        if method == "random":
+            U = rng.random((n, p))
+        elif method == "halton":
+            U = qmc.Halton(p, scramble=True, rng=rng).random(n)
+        elif method == "sobol":
+            # Sobol' points are balanced for powers of two; draw the next one and keep n
+            m = max(0, int(math.ceil(math.log2(max(n, 1)))))
+            U = qmc.Sobol(p, scramble=True, rng=rng).random_base2(m)[:n]
+        elif method == "lhs":
+            U = qmc.LatinHypercube(p, rng=rng).random(n)
+        else:
+            raise ValueError(f"unknown sampling method {method!r} (halton, sobol, lhs, random)")
+        rlo, rhi = self.relaxed_bounds("init")
+        return self.project(rlo + U * (rhi - rlo))
+
+    # ------------------------------------------------------------------ evaluation
+    @property
+    def stopped(self) -> bool:
+        """True once the problem has stopped or its evaluation budget is used up."""
+        pr = self.problem
+        return bool(pr.stopped) or pr.remaining() == 0
+
+    def __call__(self, X) -> np.ndarray:
+        """Evaluate a batch through ``problem.evaluate``; returns ``k`` values (``inf`` for points
+        that were not evaluated or failed).
+
+        Nothing is evaluated once the problem has stopped (all values ``inf``).
+        """
+        X = self.project(X)
+        k = X.shape[0]
+        if k == 0 or self.stopped:
+            return np.full(k, np.inf)
+        f = np.asarray(self.problem.evaluate(X), dtype=float).reshape(-1)
+        if f.shape != (k,):
+            raise ValueError(f"problem.evaluate returned {f.size} values for {k} points")
+        f = np.where(np.isnan(f), np.inf, f)
+        self.n_batches += 1
+        self.n_points += k
+        i = int(np.argmin(f))
+        if f[i] < self.best_f:
+            self.best_f, self.best_x = float(f[i]), X[i].copy()
+        return f
+
+    def stop_reason(self, own: str) -> str:
+        """The problem's stop reason when it stopped, else ``own``."""
+        pr = self.problem
+        if pr.stopped:
+            return pr.stop_reason or "stopped by the problem"
+        if pr.remaining() == 0:
+            return pr.stop_reason or f"evaluation budget ({pr.budget}) used"
+        return own
+
+
+def finite_or_none(v) -> float | None:
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+class History:
+    """Collects log records and forwards each to ``problem.log``."""
+
+    def __init__(self, problem: Problem):
+        self.problem = problem
+        self.records: list[dict] = []
+
+    def __call__(self, ev: BoxEvaluator, **fields) -> dict:
+        rec = {"iteration": len(self.records)}
+        for k, v in fields.items():
+            if isinstance(v, (np.floating, float)):
+                v = finite_or_none(v)
+            elif isinstance(v, np.integer):
+                v = int(v)
+            rec[k] = v
+        rec["best"] = finite_or_none(ev.best_f)
+        rec["n_evaluations"] = int(self.problem.n_evaluations)
+        self.records.append(rec)
+        self.problem.log(rec)
+        return rec
+
+
+def make_result(ev: BoxEvaluator, history: History, own_reason: str, diagnostics: dict) -> OptimizeResult:
+    """The :class:`OptimizeResult` of a run: the best point the optimiser saw (else the problem's
+    best, else the centre of the initial box with ``fun = inf``)."""
+    pr = ev.problem
+    if ev.best_x is not None:
+        x, fun = ev.best_x.copy(), ev.best_f
+    elif pr.best_x is not None:
+        x, fun = ev.project(pr.best_x)[0], float(pr.best_f)
+    else:
+        x, fun = ev.project(0.5 * (ev.init_lower + ev.init_upper))[0], math.inf
+    diagnostics = {"n_batches": ev.n_batches, "n_points": ev.n_points, **diagnostics}
+    return OptimizeResult(x=x, fun=float(fun), n_evaluations=int(pr.n_evaluations),
+                          stop_reason=ev.stop_reason(own_reason), history=list(history.records),
+                          diagnostics=diagnostics)
+
+
+def sampling_field(default: str = "halton"):
+    return Field(default, description="how the initial points are spread over the initial box: "
+                 "halton or sobol (scrambled low-discrepancy), lhs (Latin hypercube), random")

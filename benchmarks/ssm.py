@@ -25,16 +25,18 @@ def main(argv=None):
     from ssm_sot import bench_sot
     bench_sot(args.repeats, args.full)
 
-    # ---- LIGNUM: benchmarks/ssm_lignum.py provides its own function (see that module)
+    # ---- LIGNUM: benchmarks/ssm_lignum.py (written separately) is expected to offer
+    #      bench_lignum(repeats, full), like bench_sot; a main(argv) is used otherwise.
     print()
     try:
         lignum = importlib.import_module("ssm_lignum")
     except ModuleNotFoundError:
         print("LIGNUM benchmark: benchmarks/ssm_lignum.py not present yet")
+        return
+    if hasattr(lignum, "bench_lignum"):
+        lignum.bench_lignum(args.repeats, args.full)
     else:
-        bench = getattr(lignum, "bench_lignum", None) or getattr(lignum, "main")
-        bench(args.repeats, args.full) if bench.__name__ == "bench_lignum" else bench([])
-
+        lignum.main(["--repeats", str(args.repeats)] + (["--full"] if args.full else []))
 
 if __name__ == "__main__":
     main()

@@ -41,6 +41,7 @@ def run_recorded(ssm, params, seed, keep_trees=()):
             rec["trees"][c] = t
             store = view.store
             rec.setdefault("order", {})[c] = store.order[view.live_ids].copy()
+            rec.setdefault("growth_lateral", {})[c] = store.is_lateral[view.live_ids].copy()
             rec.setdefault("stubs", {})[c] = {k: getattr(store, k)[view.live_ids].copy() for k in
                                               ("api_state", "lat_state", "api_stub_w", "lat_stub_w")}
         # the incrementally maintained field equals one rebuilt from the living segments
@@ -354,6 +355,7 @@ def test_topology_invariants(default_run, ssm):
     assert np.bincount(tree.extension[tree.extension >= 0], minlength=n).max() <= 1
     assert np.array_equal(np.unique(tree.branch), np.arange(tree.n_branches))
     is_lat = tree.extras["is_lateral"]
+    np.testing.assert_array_equal(is_lat, rec["growth_lateral"][14])  # = first metamers of lateral shoots
     same = tree.branch[1:] == tree.branch[tree.parent[1:]]
     np.testing.assert_array_equal(same, ~is_lat[1:])
     np.testing.assert_array_equal(tree.order[1:], tree.order[tree.parent[1:]] + is_lat[1:])

@@ -503,7 +503,7 @@ class SOTGrowth:
             ax = np.cross(ha, ta)
             sn = np.linalg.norm(ax, axis=1)
             cs = np.einsum("ij,ij->i", ha, ta)
-            turn = sn > 1e-12
+            turn = sn > 1e-12  # h parallel or antiparallel to the target: no turn
             if turn.any():
                 ti = np.flatnonzero(turn)
                 axu = ax[ti] / sn[ti, None]

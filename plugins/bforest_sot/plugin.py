@@ -54,11 +54,12 @@ def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
         "units": {"length": "m", "angle": "deg"}, "frame": "Z up, stem base at the origin",
         "segments_created": int(s.n),
     }
-    return Tree(s.start[ids], s.h[ids], s.length[ids], 0.5 * width, parent, ext,
+    tree = Tree(s.start[ids], s.h[ids], s.length[ids], 0.5 * width, parent, ext,
                 topology="thickest" if order_mode == "thickest" else "source",
-                extras={"age": (run.cycle - s.born[ids]).astype(np.int64),
-                        "is_lateral": s.is_lateral[ids].copy()},
-                metadata=meta)
+                extras={"age": (run.cycle - s.born[ids]).astype(np.int64)}, metadata=meta)
+    # C: is_lateral = starts a new branch (in "growth" mode: the first metamer of a lateral shoot)
+    tree.extras["is_lateral"] = (tree.parent >= 0) & (tree.position_in_branch == 0)
+    return tree
 
 
 class SOT(SSM):

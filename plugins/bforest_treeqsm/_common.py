@@ -1,0 +1,578 @@
+"""Shared reader machinery: option handling, id conversion, validation, repairs, Tree building.
+
+Every reader turns its file into a :class:`RawCylinders` table (file row order, 0-based ids,
+-1 = none) and hands it to :func:`build_tree`, which applies the rules of
+``shared/spec/qsm-formats.md`` §0 in one place: always-errors (non-finite values, negative
+radii, zero axes, cycles, out-of-range ids, extensions that are not children), the default
+repairs (detached fragments, zero-length cylinders) with one warning each, axis
+renormalisation, the check of the stored branch/order against the recomputed ones, and the
+topology rule. Everything is vectorised; Python loops only run over repaired *chains* (a handful
+of iterations) or in error paths.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Optional, Union
+
+import numpy as np
+from pydantic import Field, ValidationError, field_validator
+
+from bforest_core.errors import ConfigError, QSMFormatError, TreeError
+from bforest_core.interfaces import ComponentSettings, QSMReader
+from bforest_core.tree import TOPOLOGY_RULES, Tree, children_csr
+
+#: a deviation of the axis norm from 1 above this is reported (spec §0)
+AXIS_WARN_TOL = 1e-3
+MAX_ROWS_SHOWN = 10
+
+
+class QSMReadWarning(UserWarning):
+    """A QSM file was read with a repair or an inconsistency worth knowing about."""
+
+
+def rows_text(rows, limit: int = MAX_ROWS_SHOWN) -> str:
+    """``"1, 3020, 3582"`` -- the first ``limit`` rows, then the total count."""
+    rows = [int(r) for r in np.asarray(rows).ravel()]
+    shown = ", ".join(str(r) for r in rows[:limit])
+    if len(rows) > limit:
+        return f"{shown}, ... ({len(rows)} rows)"
+    return shown
+
+
+def plural(k: int, word: str, many: str | None = None) -> str:
+    return f"{k} {word if k == 1 else (many or word + 's')}"
+
+
+def _caller_level() -> int:
+    """Stack level of the first frame outside this plugin and the core (the user's call)."""
+    import sys
+    level, f = 1, sys._getframe(1)
+    while f is not None:
+        name = f.f_globals.get("__name__", "")
+        if not (name.startswith("bforest_treeqsm") or name.startswith("bforest_core")):
+            return level
+        f = f.f_back
+        level += 1
+    return 2
+
+
+def warn(path, message: str) -> None:
+    """One user-facing warning naming the file (attributed to the caller's line)."""
+    warnings.warn(f"{path}: {message}", QSMReadWarning, stacklevel=_caller_level())
+
+
+# ------------------------------------------------------------------------------------------
+# options
+# ------------------------------------------------------------------------------------------
+
+class ReaderSettings(ComponentSettings):
+    """Options every QSM reader accepts (``bf.read_qsm(path, **options)``).
+
+    Attributes
+    ----------
+    select : int, list of int, "all" or None
+        Reconstruction(s) to read from a file holding several (``QSMs``); 0-based.
+        ``None`` takes the first with a warning.
+    topology : {"source", "subtree", "thickest"} or None
+        Topology rule (``features-distance.md`` §1.1). ``None`` means ``"source"``, except for
+        the native CSV, where it means the rule recorded in its JSON sidecar.
+    fragments : {"drop", "error"}
+        Detached parts (extra parentless cylinders): drop them with a warning, or raise.
+    drop_degenerate : bool
+        Remove zero-length cylinders (children reattached) with a warning; ``False`` raises.
+    """
+
+    select: Union[None, Literal["all"], int, list[int]] = None
+    topology: Optional[Literal["source", "subtree", "thickest"]] = None
+    fragments: Literal["drop", "error"] = "drop"
+    drop_degenerate: bool = True
+
+
+def resolve_options(reader: QSMReader, options: dict) -> ComponentSettings:
+    """Merge per-call options into the reader's settings; unknown or invalid ones raise
+    :class:`ConfigError` naming them."""
+    try:
+        return reader.Settings(**{**reader.settings.model_dump(), **options})
+    except ValidationError as exc:
+        parts = []
+        for e in exc.errors():
+            loc = ".".join(str(x) for x in e.get("loc", ()))
+            parts.append(f"{loc}: {e.get('msg')}")
+        raise ConfigError(f"qsm_reader '{reader.name}': invalid option(s): " + "; ".join(parts)) from None
+
+
+def select_models(path, models: list, select, label: str):
+    """Apply ``select`` to the list of reconstructions of one file.
+
+    Returns ``(indices, as_list, note)``: indices to read, whether the caller gets a list, and
+    a metadata note (or ``None``).
+    """
+    k = len(models)
+    if k == 0:
+        raise QSMFormatError(path, f"{label} holds no reconstructions (empty struct array)")
+    if select is None:
+        if k > 1:
+            note = (f"holds {k} reconstructions ({label} 1x{k}); using select=0 "
+                    f"(choose 0...{k - 1} or 'all')")
+            warn(path, note)
+            return [0], False, note
+        return [0], False, None
+    if isinstance(select, str):  # "all"
+        return list(range(k)), True, None
+    as_list = isinstance(select, list)
+    idx = list(select) if as_list else [select]
+    bad = [i for i in idx if not (0 <= i < k)]
+    if bad:
+        raise QSMFormatError(path, f"select={bad[0]} is outside 0...{k - 1}: the file holds {k} "
+                             f"reconstruction{'s' if k > 1 else ''} ({label} 1x{k}; "
+                             f"MATLAB {label}({bad[0] + 1}))")
+    return idx, as_list, None
+
+
+# ------------------------------------------------------------------------------------------
+# id conversion
+# ------------------------------------------------------------------------------------------
+
+def ids_to_rows(path, name: str, values, n: int, base: int = 1, *, what: str | None = None) -> np.ndarray:
+    """File ids (``base``-based, ``base - 1`` = none) to 0-based rows (-1 = none), int64.
+
+    The values are cast to int64 **before** the subtraction (TreeQSM stores ids as uint8/uint16,
+    where ``0 - 1`` wraps around). Non-finite, non-integral and out-of-range values raise
+    :class:`QSMFormatError` naming the column, the 1-based rows and the values.
+    """
+    v = np.asarray(values).reshape(-1)
+    what = what or name
+    if v.shape[0] != n:
+        raise QSMFormatError(path, f"'{name}' has {v.shape[0]} values, expected {n} (one per cylinder)")
+    if v.dtype.kind == "b":
+        v = v.astype(np.int64)
+    if v.dtype.kind not in "iuf":
+        raise QSMFormatError(path, f"'{name}' is not numeric (dtype {v.dtype})")
+    if v.dtype.kind == "f":
+        bad = np.flatnonzero(~np.isfinite(v))
+        if bad.size:
+            raise QSMFormatError(path, f"non-finite values in '{name}' at rows {rows_text(bad + 1)}", bad + 1)
+        bad = np.flatnonzero(v != np.round(v))
+        if bad.size:
+            raise QSMFormatError(path, f"'{name}' holds non-integer values at rows {rows_text(bad + 1)} "
+                                 f"(value {v[bad[0]]:g})", bad + 1)
+        lo, hi = base - 1, n - 1 + base
+        bad = np.flatnonzero((v < lo) | (v > hi))
+        if bad.size:
+            raise QSMFormatError(path, _range_msg(what, v, bad, n, base), bad + 1)
+        return v.astype(np.int64) - base
+    out = v.astype(np.int64)  # uint8/uint16 -> int64 first
+    bad = np.flatnonzero((out < base - 1) | (out > n - 1 + base))
+    if bad.size:
+        raise QSMFormatError(path, _range_msg(what, out, bad, n, base), bad + 1)
+    return out - base
+
+
+def _range_msg(name, v, bad, n, base):
+    i = int(bad[0])
+    val = v[i]
+    val = int(val) if float(val).is_integer() else float(val)
+    lo, hi = base, n - 1 + base
+    more = f" ({len(bad)} rows: {rows_text(bad + 1)})" if len(bad) > 1 else ""
+    return (f"{name} {val} at row {i + 1} is outside {lo}...{hi} ({base - 1} = none){more}")
+
+
+def labels_to_int(path, name: str, values, n: int) -> np.ndarray:
+    """Integral labels (branch ids, orders) as int64; errors for non-finite/non-integer values."""
+    v = np.asarray(values).reshape(-1)
+    if v.shape[0] != n:
+        raise QSMFormatError(path, f"'{name}' has {v.shape[0]} values, expected {n} (one per cylinder)")
+    if v.dtype.kind == "b":
+        return v.astype(np.int64)
+    if v.dtype.kind not in "iuf":
+        raise QSMFormatError(path, f"'{name}' is not numeric (dtype {v.dtype})")
+    if v.dtype.kind == "f":
+        bad = np.flatnonzero(~np.isfinite(v) | (np.abs(v) > 2.0 ** 53))
+        if bad.size:
+            raise QSMFormatError(path, f"non-finite or huge values in '{name}' at rows {rows_text(bad + 1)}", bad + 1)
+        bad = np.flatnonzero(v != np.round(v))
+        if bad.size:
+            raise QSMFormatError(path, f"'{name}' holds non-integer values at rows {rows_text(bad + 1)} "
+                                 f"(value {v[bad[0]]:g})", bad + 1)
+    return v.astype(np.int64)
+
+
+def float_column(path, name: str, values, n: int | None = None, width: int | None = None) -> np.ndarray:
+    """A numeric column as float64, shape ``(n,)`` or ``(n, width)`` (MATLAB vectors of any
+    orientation; ``squeeze_me`` scalars for one-cylinder trees)."""
+    a = np.asarray(values)
+    if a.dtype.kind not in "iufb":
+        raise QSMFormatError(path, f"'{name}' is not numeric (dtype {a.dtype})")
+    a = np.atleast_1d(a).astype(np.float64)
+    if width is None:
+        a = a.reshape(-1)
+        if n is not None and a.shape[0] != n:
+            raise QSMFormatError(path, f"'{name}' has {a.shape[0]} values, expected {n} (one per cylinder)")
+        return a
+    if n is None:
+        n = a.size // width
+    if a.size != n * width:
+        raise QSMFormatError(path, f"'{name}' has {a.size} values, expected {n}x{width}")
+    if a.ndim == 2 and a.shape == (width, n) and n != width:
+        a = a.T  # stored transposed
+    return np.ascontiguousarray(a.reshape(n, width))
+
+
+# ------------------------------------------------------------------------------------------
+# the raw table and the Tree builder
+# ------------------------------------------------------------------------------------------
+
+@dataclass
+class RawCylinders:
+    """Cylinder columns in file row order (0-based ids, -1 = none), before validation.
+
+    ``branch`` and ``order`` are the file's stored labels (any integer ids), used only to check
+    against the recomputed topology. ``extension=None`` means "no extension information".
+    """
+
+    radius: np.ndarray
+    length: np.ndarray
+    start: np.ndarray
+    axis: np.ndarray
+    parent: np.ndarray
+    extension: Optional[np.ndarray] = None
+    added: Optional[np.ndarray] = None
+    branch: Optional[np.ndarray] = None
+    order: Optional[np.ndarray] = None
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return int(np.asarray(self.length).shape[0])
+
+
+def _find_cycle(parent: np.ndarray, start: int) -> list[int]:
+    """Rows of one parent cycle reached from ``start`` (error path only)."""
+    seen: dict[int, int] = {}
+    i = int(start)
+    path = []
+    while i >= 0 and i not in seen and len(path) <= parent.shape[0]:
+        seen[i] = len(path)
+        path.append(i)
+        i = int(parent[i])
+    if i in seen:
+        return path[seen[i]:] + [i]
+    return path
+
+
+def components(parent: np.ndarray):
+    """Root row of every row's connected part, by level-synchronous descent from the roots.
+
+    Returns ``(label, reached)``: ``label[i]`` is the root above row i (-1 where not reached,
+    i.e. rows on or below a parent cycle).
+    """
+    n = parent.shape[0]
+    ptr, idx = children_csr(parent)
+    label = np.full(n, -1, dtype=np.int64)
+    frontier = np.flatnonzero(parent < 0)
+    label[frontier] = frontier
+    while frontier.size:
+        counts = ptr[frontier + 1] - ptr[frontier]
+        tot = int(counts.sum())
+        if tot == 0:
+            break
+        starts = np.repeat(ptr[frontier], counts)
+        offs = np.arange(tot) - np.repeat(np.cumsum(counts) - counts, counts)
+        ch = idx[starts + offs]
+        label[ch] = np.repeat(label[frontier], counts)
+        frontier = ch
+    return label, label >= 0
+
+
+def _resolve_through(mask: np.ndarray, link: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Follow ``link`` from ``values`` while the target is in ``mask`` (pointer chasing over the
+    removed rows only; iterations = longest chain of removed rows)."""
+    out = values.copy()
+    while True:
+        hit = (out >= 0) & mask[np.maximum(out, 0)]
+        if not hit.any():
+            return out
+        out[hit] = link[out[hit]]
+
+
+def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, metadata=None,
+               zero_length_hint: str = "", row_offset: int = 0, default_topology: str = "source") -> Tree:
+    """Validate and repair a raw cylinder table and build the :class:`Tree` (spec §0).
+
+    Parameters
+    ----------
+    path : Path
+        For messages and metadata.
+    raw : RawCylinders
+        Columns in file order with 0-based ids.
+    fmt, version : str
+        Format name and version for the metadata.
+    opts : ReaderSettings
+        ``topology``, ``fragments``, ``drop_degenerate``.
+    metadata : dict, optional
+        Extra metadata (variable, model index, notes).
+    zero_length_hint : str
+        Appended to the zero-length message (e.g. the TreeQSM text rounding).
+    row_offset : int
+        Added to 1-based data rows to give file lines in messages (header lines); rows are
+        still reported as data rows, the line only where given.
+
+    Raises
+    ------
+    QSMFormatError
+        For every always-error condition, and for repairs when the strict options are set.
+    """
+    fragments = getattr(opts, "fragments", "drop")
+    drop_degenerate = getattr(opts, "drop_degenerate", True)
+    topology = getattr(opts, "topology", None) or default_topology
+    n = raw.n
+    if n == 0:
+        raise QSMFormatError(path, "file contains no cylinders")
+    radius = np.asarray(raw.radius, dtype=np.float64).reshape(-1)
+    length = np.asarray(raw.length, dtype=np.float64).reshape(-1)
+    start = np.asarray(raw.start, dtype=np.float64).reshape(n, 3)
+    axis = np.asarray(raw.axis, dtype=np.float64).reshape(n, 3)
+    parent = np.asarray(raw.parent, dtype=np.int64).reshape(-1)
+    extension = (np.full(n, -1, dtype=np.int64) if raw.extension is None
+                 else np.asarray(raw.extension, dtype=np.int64).reshape(-1))
+    added = np.zeros(n, dtype=bool) if raw.added is None else np.asarray(raw.added).reshape(-1)
+    if added.dtype.kind == "f" and not np.all(np.isfinite(added)):
+        bad = np.flatnonzero(~np.isfinite(added))
+        raise QSMFormatError(path, f"non-finite values in 'added' at rows {rows_text(bad + 1)}", bad + 1)
+    added = added != 0
+    for name, a in (("radius", radius), ("parent", parent), ("extension", extension), ("added", added)):
+        if a.shape[0] != n:
+            raise QSMFormatError(path, f"'{name}' has {a.shape[0]} values, expected {n} (one per cylinder)")
+    repairs: list[dict] = []
+    problems: list[str] = []
+    prow: list[int] = []
+
+    # ---- always errors: non-finite values, negative radii/lengths, zero radius, zero axis
+    for name, a in (("radius", radius), ("length", length), ("start", start), ("axis", axis)):
+        ok = np.isfinite(a) if a.ndim == 1 else np.isfinite(a).all(axis=1)
+        if not ok.all():
+            bad = np.flatnonzero(~ok) + 1
+            problems.append(f"non-finite values in '{name}' at rows {rows_text(bad)}"
+                            f"{f' ({bad.size} rows)' if 1 < bad.size <= MAX_ROWS_SHOWN else ''}")
+            prow += bad[:MAX_ROWS_SHOWN].tolist()
+    if problems:
+        raise QSMFormatError(path, "; ".join(problems), prow)
+    bad = np.flatnonzero(radius <= 0)
+    if bad.size:
+        problems.append(f"radius <= 0 at rows {rows_text(bad + 1)} (value {radius[bad[0]]:g}); "
+                        "a cylinder needs a positive radius")
+        prow += (bad[:MAX_ROWS_SHOWN] + 1).tolist()
+    bad = np.flatnonzero(length < 0)
+    if bad.size:
+        problems.append(f"length < 0 at rows {rows_text(bad + 1)} (value {length[bad[0]]:g})")
+        prow += (bad[:MAX_ROWS_SHOWN] + 1).tolist()
+    zero_len = length == 0
+    norms = np.sqrt(np.einsum("ij,ij->i", axis, axis))
+    bad = np.flatnonzero((norms == 0) & ~zero_len)
+    if bad.size:
+        problems.append(f"axis has zero length at rows {rows_text(bad + 1)}")
+        prow += (bad[:MAX_ROWS_SHOWN] + 1).tolist()
+    if problems:
+        raise QSMFormatError(path, "; ".join(problems), prow)
+
+    # ---- always errors: ids
+    bad = np.flatnonzero((parent < -1) | (parent >= n))
+    if bad.size:
+        raise QSMFormatError(path, f"parent out of range at rows {rows_text(bad + 1)}", bad + 1)
+    bad = np.flatnonzero((extension < -1) | (extension >= n))
+    if bad.size:
+        raise QSMFormatError(path, f"extension out of range at rows {rows_text(bad + 1)}", bad + 1)
+    rows = np.arange(n)
+    bad = np.flatnonzero(parent == rows)
+    if bad.size:
+        raise QSMFormatError(path, f"cylinder {bad[0] + 1} is its own parent (rows {rows_text(bad + 1)})", bad + 1)
+    has_ext = np.flatnonzero(extension >= 0)
+    bad = has_ext[parent[extension[has_ext]] != has_ext]
+    if bad.size:
+        i = int(bad[0])
+        j = int(extension[i])
+        pj = int(parent[j])
+        more = f" ({bad.size} rows: {rows_text(bad + 1)})" if bad.size > 1 else ""
+        raise QSMFormatError(path, f"extension of row {i + 1} is row {j + 1}, whose parent is "
+                             f"{'row ' + str(pj + 1) if pj >= 0 else 'none'}{more}", bad + 1)
+    label, reached = components(parent)
+    if not reached.all():
+        bad = np.flatnonzero(~reached)
+        cyc = _find_cycle(parent, int(bad[0]))
+        raise QSMFormatError(path, "cylinders " + " -> ".join(str(c + 1) for c in cyc) +
+                             f" form a cycle ({bad.size} cylinders are not connected to a root)", bad + 1)
+
+    # ---- repair 1: detached fragments
+    keep = np.ones(n, dtype=bool)
+    roots = np.flatnonzero(parent < 0)
+    if roots.size > 1:
+        base = int(roots[np.argmin(start[roots, 2])])  # lowest start z; ties -> earlier row
+        sizes = np.bincount(label, minlength=n)
+        keep = label == base
+        kept = int(keep.sum())
+        msg = (f"{roots.size} cylinders have no parent (rows {rows_text(roots + 1)}); "
+               f"kept the connected part with the stem base ({kept} of {n} cylinders)")
+        biggest = int(roots[np.argmax(sizes[roots])])
+        if sizes[biggest] > sizes[base]:
+            msg += (f"; note: the stem base (row {base + 1}, lowest start) is not the root of the "
+                    f"largest part (row {biggest + 1}, {int(sizes[biggest])} cylinders)")
+        if fragments == "error":
+            raise QSMFormatError(path, msg + " [fragments='error']", roots + 1)
+        warn(path, msg)
+        dropped = np.flatnonzero(~keep)
+        repairs.append({"repair": "dropped_fragments", "roots": (roots + 1).tolist(),
+                        "stem_base_row": base + 1, "n_dropped": int(dropped.size),
+                        "dropped_rows": (dropped + 1).tolist(), "message": msg})
+
+    # ---- repair 2: zero-length cylinders (exactly 0 as read)
+    zl = np.flatnonzero(zero_len & keep)
+    removed = np.zeros(n, dtype=bool)
+    if zl.size:
+        hint = f"; {zero_length_hint}" if zero_length_hint else ""
+        zrows = rows_text(zl + 1)
+        if not drop_degenerate:
+            raise QSMFormatError(path, f"length <= 0 at row{'s' if zl.size > 1 else ''} {zrows} "
+                                 f"(value 0{hint}) [drop_degenerate=False]", zl + 1)
+        zroot = zl[parent[zl] < 0]
+        if zroot.size:
+            raise QSMFormatError(path, f"the root cylinder (row {zroot[0] + 1}) has zero length", zroot + 1)
+        removed[zl] = True
+        # children -> nearest kept ancestor
+        parent = _resolve_through(removed, parent, parent)
+        # a removed extension is replaced by its own extension (resolved through removed rows)
+        ext_new = _resolve_through(removed, extension, extension)
+        extension = np.where(removed, -1, ext_new)
+        msg = (f"removed {plural(zl.size, 'zero-length cylinder')} (row{'s' if zl.size > 1 else ''} "
+               f"{zrows}{hint}); children were attached to the parent")
+        warn(path, msg)
+        repairs.append({"repair": "removed_zero_length", "rows": (zl + 1).tolist(),
+                        "n_removed": int(zl.size), "message": msg})
+        keep &= ~removed
+
+    file_rows = np.flatnonzero(keep)
+    if file_rows.size < n:
+        new = np.full(n, -1, dtype=np.int64)
+        new[file_rows] = np.arange(file_rows.size)
+        remap = lambda a: np.where(a >= 0, new[np.maximum(a, 0)], -1)
+        radius, length, start, axis, added = (radius[file_rows], length[file_rows], start[file_rows],
+                                              axis[file_rows], added[file_rows])
+        parent = remap(parent[file_rows])
+        extension = remap(extension[file_rows])
+        norms = norms[file_rows]
+    m = file_rows.size
+
+    # ---- axes: renormalise in float64, report larger deviations
+    dev = np.abs(norms - 1.0)
+    off = np.flatnonzero(dev > AXIS_WARN_TOL)
+    if off.size:
+        msg = (f"{plural(off.size, 'axis', 'axes')} not unit vectors (norms {norms[off].min():.4g}..."
+               f"{norms[off].max():.4g}; rows {rows_text(file_rows[off] + 1)}); renormalised")
+        warn(path, msg)
+        repairs.append({"repair": "renormalised_axes", "n_rows": int(off.size),
+                        "rows": (file_rows[off] + 1).tolist(), "message": msg})
+    axis = axis / norms[:, None]
+
+    extras = {}
+    for k, v in (raw.extras or {}).items():
+        v = np.asarray(v)
+        if v.shape[:1] == (n,):
+            extras[k] = v[file_rows]
+
+    meta = {"source": str(path), "format": fmt, "version": version, "units": "m",
+            "n_file_rows": n, "repairs": repairs}
+    meta.update(metadata or {})
+    try:
+        tree = Tree(start, axis, length, radius, parent, extension, topology="source", added=added,
+                    source_row=file_rows, extras=extras, metadata=meta)
+    except TreeError as exc:
+        rows_ = [int(file_rows[r]) + 1 for r in exc.rows if 0 <= r < m]
+        raise QSMFormatError(path, f"invalid cylinder tree: {exc.problem}", rows_) from None
+
+    # ---- stored branch/order vs recomputed (under the file's own extension links)
+    pos = np.full(n, -1, dtype=np.int64)
+    pos[file_rows] = np.arange(m)
+    at = pos[tree.source_row]  # tree row -> index into the compressed stored arrays
+    mism = {}
+    if raw.order is not None:
+        so = np.asarray(raw.order, dtype=np.int64)[file_rows][at]
+        bad = np.flatnonzero(so != tree.order)
+        if bad.size:
+            mism["order"] = np.sort(tree.source_row[bad] + 1)
+    if raw.branch is not None:
+        sb = np.asarray(raw.branch, dtype=np.int64)[file_rows][at]
+        firsts = tree.branches.first
+        lab = sb[firsts]  # stored label of each recomputed branch's first cylinder
+        bad = sb != lab[tree.branch]
+        # two recomputed branches with the same stored label: flag the later ones
+        srt = np.lexsort((firsts, lab))
+        dup = np.zeros(firsts.size, dtype=bool)
+        dup[srt[1:]] = lab[srt[1:]] == lab[srt[:-1]]
+        bad |= dup[tree.branch]
+        bad = np.flatnonzero(bad)
+        if bad.size:
+            mism["branch"] = np.sort(tree.source_row[bad] + 1)
+    if mism:
+        parts = [f"{plural(v.size, 'row')} with a stored {k} that differs from the recomputed one "
+                 f"(rows {rows_text(v)})" for k, v in mism.items()]
+        msg = "; ".join(parts) + " -- the recomputed branches and orders are used"
+        warn(path, msg)
+        tree.metadata["stored_topology_mismatch"] = {k: v.tolist() for k, v in mism.items()}
+        tree.metadata["stored_topology_message"] = msg
+
+    # ---- plausibility of units
+    height = float(max(tree.start[:, 2].max(), tree.end[:, 2].max()) - tree.start[0, 2])
+    tree.metadata["height"] = height
+    tree.metadata["base"] = tree.start[0].tolist()
+    if radius.max() > 5.0 or height > 150.0:
+        warn(path, f"values look like millimetres (largest radius {radius.max():.4g}, height "
+                   f"{height:.4g}); QSM readers never convert units, metres are expected")
+    if topology != "source":
+        tree = tree.with_topology(topology)
+    return tree
+
+
+class BaseReader(QSMReader):
+    """Common ``read`` wrapper: option handling and conversion of every low-level exception
+    into :class:`QSMFormatError` (readers never leak scipy/h5py/numpy exceptions)."""
+
+    Settings = ReaderSettings
+    priority = 0
+    #: what a low-level failure is called in the message
+    container = "reader"
+
+    def read(self, path, **options):
+        path = Path(path)
+        opts = resolve_options(self, options)
+        if not path.exists():
+            raise QSMFormatError(path, "file not found")
+        try:
+            return self._read(path, opts)
+        except (QSMFormatError, ConfigError):
+            raise
+        except TreeError as exc:
+            raise QSMFormatError(path, f"invalid cylinder tree: {exc.problem}", [r + 1 for r in exc.rows]) from None
+        except MemoryError:
+            raise QSMFormatError(path, f"file is truncated or corrupt ({self.container}: "
+                                 "a size field asks for more memory than available)") from None
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except Exception as exc:  # scipy/h5py/struct/zlib/ValueError/IndexError/...
+            raise QSMFormatError(path, f"file is truncated or corrupt ({self.container}: "
+                                 f"{type(exc).__name__}: {exc})") from None
+
+    def _read(self, path: Path, opts):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+def sniff_safely(fn):
+    """Decorator: a sniffer never raises (a broken file just does not match)."""
+    def wrapper(self, path, head):
+        try:
+            return bool(fn(self, path, head))
+        except Exception:
+            return False
+    wrapper.__name__ = fn.__name__
+    wrapper.__doc__ = fn.__doc__
+    return wrapper

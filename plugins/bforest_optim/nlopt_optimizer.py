@@ -55,8 +55,10 @@ class NloptSettings(OptimizerSettings):
     algorithm: str = Field("GN_CRS2_LM", description="a derivative-free NLopt algorithm, with or without "
                            "the GN_/LN_ prefix, any case: GN_CRS2_LM, GN_ISRES, GN_ESCH, GN_DIRECT_L, "
                            "GN_MLSL_LDS, LN_SBPLX, LN_NELDERMEAD, LN_BOBYQA, LN_COBYLA, ...")
-    maxeval: int | None = Field(None, ge=1, description="evaluations of the main run (default: the "
-                                "problem's remaining budget less local_maxeval, or 1000 without a budget)")
+    maxeval: int | None = Field(None, ge=1, description="NLopt calls of the main run (default: the "
+                                "problem's remaining budget less local_maxeval, or 1000 without a budget; "
+                                "repeats of a point the run has already evaluated count here but not in "
+                                "the budget)")
     population: int | None = Field(None, ge=1, description="population of CRS2, ISRES, ESCH, MLSL "
                                    "(default: NLopt's own)")
     local_algorithm: str | None = Field(None, description="local derivative-free algorithm: polishes the "

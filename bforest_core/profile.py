@@ -1,0 +1,169 @@
+"""``bforest profile DIR --param NAME``: the distance along one parameter (GigaScience Fig. 4).
+
+Every other parameter stays at the best fit; for each value the model is grown with several
+seeds (the same seeds at every value: common random numbers, so each seed traces one
+realisation of the stochastic distance surface). The first seed is the fit's own first model
+seed, so its curve passes through the best fit. Writes ``figures/profile_<param>.png`` and
+``profile_<param>.csv`` (one row per value and seed, with the per-set distances).
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .errors import ConfigError
+
+__all__ = ["profile", "profile_values"]
+
+
+def profile_values(lower: float, upper: float, n: int = 11, integer: bool = False,
+                   include: float | None = None) -> np.ndarray:
+    """``n`` values spread evenly over ``[lower, upper]`` (whole numbers for integer
+    parameters, without repeats), plus ``include`` (the best fit) when given."""
+    if not upper > lower:
+        raise ConfigError(f"profile: upper bound {upper} must exceed lower bound {lower}")
+    if n < 2:
+        raise ConfigError(f"profile: need at least 2 values (n = {n})")
+    v = np.linspace(lower, upper, int(n))
+    if include is not None and np.isfinite(include):
+        v = np.append(v, float(include))
+    if integer:
+        v = np.round(v)
+    return np.unique(v)
+
+
+def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: int = 5, n: int = 11,
+            executor=None, progress: bool = False) -> dict:
+    """Distance profile along one parameter of a finished fit.
+
+    Parameters
+    ----------
+    run_dir : path
+        A run directory with ``best.json``.
+    param : str
+        A parameter of the run's SSM (free or fixed in the fit).
+    values : sequence of float, optional
+        Values to evaluate; default ``n`` values across the parameter's fit bounds (or the
+        model's allowed range for a parameter that was fixed), plus the best-fit value.
+    seeds : int
+        Model seeds per value (the first is the fit's own first seed).
+    n : int
+        Number of values when ``values`` is not given.
+    executor : Executor, optional
+        Default: the run's configured executor.
+
+    Returns
+    -------
+    dict
+        ``table_text`` (one line per value: median, quartiles, range, failures), ``figure``
+        (path of the PNG), ``csv`` (path), ``param``, ``values`` (k,), ``seeds`` (list),
+        ``distances`` (k, seeds), ``status`` (k, seeds), ``best_value``, ``best_distance``.
+    """
+    from .config import config_to_dict, load_config, section_settings, ssm_settings
+    from .objective import build_target, evaluate_task, init_worker, model_seeds
+    from .plotting import profile_figure
+    from .registry import component
+    from .report import slug
+    from .store import RunStore
+
+    run_dir = Path(run_dir)
+    store = RunStore.open(run_dir)
+    try:
+        cfg = load_config(store.config_path)
+        best = store.read_json("best.json")
+    finally:
+        store.close()
+    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+    try:
+        spec = ssm.parameter_spec(param)
+    except KeyError:
+        known = ", ".join(p.name for p in ssm.parameters)
+        raise ConfigError(f"profile: '{param}' is not a parameter of SSM '{cfg.ssm.kind}' (known: {known})") from None
+    base = dict(best["params"])
+    best_value = base.get(param, spec.default)
+    integer = bool(spec.integer)
+    if param in cfg.ssm.free:
+        fp = cfg.ssm.free[param]
+        lo, hi = fp.lower, fp.upper
+        integer = spec.integer if fp.integer is None else bool(fp.integer)
+    else:
+        lo, hi = spec.lower, spec.upper
+    if values is None:
+        vals = profile_values(lo, hi, n, integer, include=best_value)
+    else:
+        vals = np.unique(np.asarray(list(values), float))
+        if vals.size == 0:
+            raise ConfigError("profile: --values is empty")
+        bad = vals[(vals < spec.lower) | (vals > spec.upper)]
+        if bad.size:
+            raise ConfigError(f"profile: {param} = {bad[0]:g} is outside the model's allowed range "
+                              f"[{spec.lower:g}, {spec.upper:g}] {spec.unit}".rstrip())
+        if integer:
+            vals = np.unique(np.round(vals))
+    if int(seeds) < 1:
+        raise ConfigError(f"profile: seeds must be at least 1 (got {seeds})")
+    seed_list = model_seeds(cfg.seed, int(seeds), "fixed")
+
+    tasks, where = [], []
+    for i, x in enumerate(vals):
+        p = dict(base)
+        p[param] = int(round(x)) if integer else float(x)
+        for j, s in enumerate(seed_list):
+            tasks.append((p, [s]))
+            where.append((i, j))
+    tgt = build_target(cfg)
+    if executor is None:
+        executor = component("executor", cfg.executor.kind, **section_settings(cfg, "executor"))
+    D = np.full((vals.size, len(seed_list)), np.nan)
+    status = np.full(D.shape, "", dtype=object)
+    per_set: dict[tuple[int, int], dict] = {}
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=len(tasks), unit="eval", desc=f"profile {param}", dynamic_ncols=True)
+    with executor.started(init_worker, (config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings)):
+        for k, res in executor.map_unordered(evaluate_task, tasks):
+            i, j = where[k]
+            D[i, j] = res["distance"]
+            status[i, j] = res["status"]
+            per_set[(i, j)] = res["per_set"]
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+
+    set_names = list(tgt.U)
+    csv_path = run_dir / f"profile_{slug(param)}.csv"
+    with open(csv_path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["value", "seed", "distance", "status"] + [f"D[{s}]" for s in set_names])
+        for i, x in enumerate(vals):
+            for j, s in enumerate(seed_list):
+                ps = per_set.get((i, j)) or {}
+                w.writerow([f"{x:.10g}", s, f"{D[i, j]:.10g}", status[i, j]]
+                           + ["" if ps.get(n) is None else f"{ps[n]:.10g}" for n in set_names])
+
+    failed = status != "ok"
+    # the best fit's own distance (mean over the fit's seeds), drawn as a marker
+    best_distance = best.get("distance")
+    fig = profile_figure(vals, D, run_dir / "figures" / f"profile_{slug(param)}.png", param,
+                         failed=failed, best_value=best_value, best_distance=best_distance, unit=spec.unit,
+                         title=f"Distance profile along {param} ({len(seed_list)} seeds; other parameters "
+                               f"at the best fit)")
+    med = np.median(D, axis=1)
+    q1, q3 = np.quantile(D, [0.25, 0.75], axis=1)
+    lines = [f"profile of {param} ({spec.unit or 'no unit'}): {vals.size} values x {len(seed_list)} seeds, "
+             f"other parameters at the best fit; best fit {param} = {best_value:.6g}",
+             f"{'value':>12}{'median':>10}{'q25':>10}{'q75':>10}{'min':>10}{'max':>10}{'failed':>8}"]
+    for i, x in enumerate(vals):
+        mark = "  <- best fit" if np.isclose(x, best_value) else ""
+        lines.append(f"{x:>12.6g}{med[i]:>10.4f}{q1[i]:>10.4f}{q3[i]:>10.4f}{D[i].min():>10.4f}"
+                     f"{D[i].max():>10.4f}{int(failed[i].sum()):>8d}{mark}")
+    k = int(np.argmin(med))
+    lines.append(f"lowest median distance {med[k]:.4f} at {param} = {vals[k]:.6g}")
+    return {"table_text": "\n".join(lines), "figure": fig, "csv": csv_path, "param": param, "values": vals,
+            "seeds": seed_list, "distances": D, "status": status, "best_value": best_value,
+            "best_distance": best_distance}

@@ -1,0 +1,398 @@
+"""The conformance kit (bforest_core.testing): run on the bundled components and the toy plugin,
+and shown to catch deliberately broken components with a message naming component and check."""
+from __future__ import annotations
+
+import re
+import threading
+import warnings
+
+import numpy as np
+import pytest
+from pydantic import ConfigDict
+
+import bforest_core as bf
+from bforest_core import SSM, ComponentSettings, Distance, FeatureSet, OptimizeResult, Optimizer, ParameterSpec, Tree
+from bforest_core.testing import (ConformanceError, check_component, check_distance, check_feature_set,
+                                  check_optimizer, check_reader, check_ssm, check_tree, check_writer,
+                                  component_checks, run_all, sample_tables, sample_tree, ssm_checks)
+from conftest import QSM_DIR, qsm_path
+
+
+# ----------------------------------------------------------------------------- bundled components
+def _cases(kind, name, tag="", **options):
+    """One pytest param per check of a registered component, or one skipped param saying why."""
+    if name not in bf.discover().names(kind):
+        return [pytest.param(None, id=f"{kind} '{name}'", marks=pytest.mark.skip(
+            reason=f"{kind} '{name}' is not registered (its plugin is not installed or not written yet)"))]
+    checks = component_checks(bf.component_class(kind, name), registered="bayesforest", **options)
+    return [pytest.param(c, id=c.id + (f" [{tag}]" if tag else "")) for c in checks]
+
+
+BUNDLED = (
+    _cases("ssm", "sot", params={"max_iter": 8})
+    + _cases("ssm", "lignum", params={"years": 6})
+    + _cases("features", "branch-segment", settings={"sets": ["S0,1", "B1", "B2"]})
+    + _cases("features", "branch-segment", "linear", settings={"sets": ["S1"], "angles": "linear"})
+    + _cases("distance", "sliced")
+    + _cases("distance", "sliced", "wasserstein", settings={"statistic": "wasserstein", "lines": 32, "empty_cost": 3.0})
+    + _cases("optimizer", "ga", settings={"population": 8})
+    + _cases("optimizer", "de")
+    + _cases("optimizer", "nlopt")
+    + _cases("optimizer", "emcee")
+    + _cases("executor", "serial")
+)
+
+
+@pytest.mark.parametrize("check", BUNDLED)
+def test_bundled_component(check):
+    check()
+
+
+# sample file(s) in each reader's layout, and files of other layouts with the same suffix
+READERS = {
+    "treeqsm-mat": (["itsme_qsm_tree_v230.mat", "itsme_qsms_tree_v230.mat"], ["wytham_tf3.mat", "pine_ruotsinkyla_3.mat"]),
+    "treeqsm-flat": (["pine_ruotsinkyla_3.mat"], ["wytham_tf3.mat", "itsme_qsm_tree_v230.mat"]),
+    "cyldata-mat": (["wytham_tf3.mat"], ["itsme_qsm_tree_v230.mat"]),
+    "treeqsm-text": (["itsme_tree_v240_cylinder.txt", "archi_tree1_treeqsm_v23.txt"], []),
+    "archi-csv": (["coffeetree_archi.csv"], ["coffeetree_simpleforest.csv"]),
+    "simpleforest-csv": (["coffeetree_simpleforest.csv"], ["coffeetree_archi.csv"]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(READERS))
+def test_bundled_reader(name):
+    if name not in bf.discover().names("qsm_reader"):
+        pytest.skip(f"qsm_reader '{name}' is not registered")
+    own, foreign = READERS[name]
+    paths = [qsm_path(p) for p in own]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # readers warn about repaired rows of the real files
+        rep = check_reader(bf.component_class("qsm_reader", name), paths, foreign=[qsm_path(p) for p in foreign],
+                           registered="bayesforest")
+    assert rep.passed == ["class", "settings", "registered", "suffixes", "sniff", "read", "determinism", "pickle"]
+
+
+@pytest.mark.parametrize("name", ["bforest-csv", "treeqsm-text", "treeqsm-mat", "obj", "ply"])
+def test_bundled_writer(name, tmp_path):
+    if name not in bf.discover().names("qsm_writer"):
+        pytest.skip(f"qsm_writer '{name}' is not registered")
+    readable = name in ("bforest-csv", "treeqsm-text", "treeqsm-mat")
+    rep = check_writer(bf.component_class("qsm_writer", name), tmp_path, roundtrip=readable)
+    assert rep.ok and "write" in rep.passed
+    if name == "bforest-csv" and "bforest-csv" in bf.discover().names("qsm_reader"):
+        check_reader(bf.component_class("qsm_reader", "bforest-csv"), [tmp_path / "conformance_bforest-csv.csv"])
+
+
+# ----------------------------------------------------------------------------- toy plugin
+def test_toy_plugin_conforms(toy_plugin):
+    reports = run_all(distribution="bforest-toy", options={
+        ("ssm", "toy"): {"params": {"segments": 6}},
+        ("features", "toy-features"): {"trees": [sample_tree(0), sample_tree(1)]}})
+    assert sorted(reports) == [("distance", "toy-distance"), ("features", "toy-features"),
+                               ("optimizer", "toy-random"), ("ssm", "toy")]
+    assert all(r.ok and "registered" in r.passed for r in reports.values())
+    ssm = reports[("ssm", "toy")]
+    assert ssm.passed == ["class", "settings", "registered", "parameters", "resolve_params", "unknown_params",
+                          "simulate", "determinism", "seeds", "pickle", "bounds"]
+    assert "4 parameters" in str(ssm)
+
+
+def test_toy_ssm_failing_at_bounds_is_fine_when_it_raises_simulation_failed(toy_plugin):
+    # fail_above makes every angle above 60 raise SimulationFailed("collapsed"): allowed
+    rep = check_ssm(bf.component_class("ssm", "toy"), settings={"fail_above": 60.0}, params={"angle": 30.0},
+                    bounds="each", hold=[])
+    note = next(r.note for r in rep.results if r.check == "bounds")
+    assert "angle = 90 (upper): collapsed" in note and "all at upper bounds: collapsed" in note
+
+
+def test_run_all_skips_readers_without_samples_and_names_unknown_distribution():
+    reps = run_all(kinds=["qsm_reader"])
+    assert reps and all("needs sample files" in r.skipped for r in reps.values())
+    with pytest.raises(ConformanceError, match="'no-such-dist'.*registers no components"):
+        run_all(distribution="no-such-dist")
+
+
+# ----------------------------------------------------------------------------- helpers
+def test_sample_tree_is_valid_and_deterministic():
+    t = sample_tree(3)
+    check_tree(t)
+    assert t.max_order == 2 and np.bincount(t.order)[0] == 16
+    assert (t.order == 1).sum() > 50 and t.branches.order.tolist().count(1) == 28
+    u = sample_tree(3)
+    assert all(np.array_equal(getattr(t, k), getattr(u, k)) for k in ("start", "axis", "radius", "parent"))
+    assert not np.array_equal(sample_tree(4).axis, t.axis)
+
+
+def test_check_tree_names_violations():
+    t = sample_tree(0)
+    object.__setattr__(t, "metadata", ["not", "a", "dict"])
+    with pytest.raises(AssertionError, match="metadata is a list"):
+        check_tree(t, "x")
+    with pytest.raises(AssertionError, match="is a dict, not a bforest_core.Tree"):
+        check_tree({}, "x")
+
+
+# ----------------------------------------------------------------------------- broken components
+class GoodSettings(ComponentSettings):
+    scale: float = 1.0
+
+
+class GoodSSM(SSM):
+    """A correct little model (positive control): a trunk with one lateral per node."""
+
+    name = "good"
+    Settings = GoodSettings
+
+    @property
+    def parameters(self):
+        return [ParameterSpec("angle", 40.0, 10.0, 80.0, unit="deg", description="lateral angle"),
+                ParameterSpec("nodes", 5, 2, 12, integer=True, description="trunk cylinders")]
+
+    def _rng(self, seed):
+        return np.random.default_rng(seed)
+
+    def simulate(self, params, seed):
+        p = self.resolve_params(params)
+        rng = self._rng(seed)
+        n = int(p["nodes"])
+        a = np.radians(p["angle"] + rng.normal(0, 3, n))
+        az = rng.uniform(0, 2 * np.pi, n)
+        lat = np.c_[np.sin(a) * np.cos(az), np.sin(a) * np.sin(az), np.cos(a)]
+        start = np.r_[np.c_[np.zeros((n, 2)), np.arange(n)], np.c_[np.zeros((n, 2)), np.arange(n) + 1.0]]
+        axis = np.r_[np.tile([0, 0, 1.0], (n, 1)), lat]
+        parent = np.r_[-1, np.arange(n - 1), np.arange(n)]
+        ext = np.r_[np.arange(1, n), -1, np.full(n, -1)]
+        return Tree(start * self.settings.scale, axis, np.ones(2 * n), np.full(2 * n, 0.05), parent, ext,
+                    metadata=self._metadata(p, seed))
+
+    def _metadata(self, p, seed):
+        return {"model": self.name, "params": p, "seed": seed, "status": "ok"}
+
+
+class NoisySSM(GoodSSM):
+    name = "noisy"
+
+    def _rng(self, seed):
+        return np.random.default_rng()  # forgets the seed
+
+
+class SeedBlindSSM(GoodSSM):
+    name = "seed-blind"
+
+    def _rng(self, seed):
+        return np.random.default_rng(0)
+
+
+class UnpicklableSSM(GoodSSM):
+    name = "unpicklable"
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self._lock = threading.Lock()
+
+
+class BadSpecSSM(GoodSSM):
+    name = "bad-spec"
+
+    @property
+    def parameters(self):
+        return [ParameterSpec("angle", 95.0, 10.0, 80.0),          # default outside the range
+                ParameterSpec("nodes", 5, 2, 12.5, integer=True),  # fractional bound of an integer
+                ParameterSpec("nodes", 5, 2, 12, integer=True),    # duplicate
+                ParameterSpec("leaf area", 1.0, 0.0, 2.0)]         # not an identifier
+
+    def simulate(self, params, seed):
+        return super().simulate({}, seed)
+
+
+class CrashAtBoundsSSM(GoodSSM):
+    name = "crash-at-bounds"
+
+    def simulate(self, params, seed):
+        p = self.resolve_params(params)
+        if p["angle"] == 10.0:
+            raise ZeroDivisionError("division by zero in the light model")
+        if p["nodes"] == 12:
+            raise bf.SimulationFailed("too_many_segments", "fine: a typed failure")
+        return super().simulate(params, seed)
+
+
+class LaxSettings(GoodSettings):
+    model_config = ConfigDict(extra="allow", validate_assignment=True)  # a defect: unknown keys pass
+
+
+class LaxSettingsSSM(GoodSSM):
+    name = "lax-settings"
+    Settings = LaxSettings
+
+
+class LaxParamsSSM(GoodSSM):
+    name = "lax-params"
+
+    def resolve_params(self, params):
+        known = self.defaults()
+        return {**known, **{k: v for k, v in params.items() if k in known}}  # silently drops unknown names
+
+
+class NoSeedMetadataSSM(GoodSSM):
+    name = "no-seed-metadata"
+
+    def _metadata(self, p, seed):
+        return {"model": self.name, "params": p, "status": "ok"}
+
+
+def _fails(component, check, match, **options):
+    with pytest.raises(ConformanceError) as exc:
+        check_component(component, **options)
+    err = exc.value
+    assert isinstance(err, AssertionError)
+    assert check in err.checks, f"{check} not among the failed checks {err.checks}: {err}"
+    problem = dict(err.failures)[check]
+    assert re.search(match, problem), problem
+    assert err.component.startswith(f"{component.kind} '{component.name}'")
+    return err
+
+
+def test_positive_control_passes_every_check():
+    rep = check_ssm(GoodSSM, params={"nodes": 4})
+    assert rep.ok and len(rep.results) == 10  # no 'registered' check unless asked
+
+
+def test_nondeterministic_ssm_is_caught():
+    err = _fails(NoisySSM, "determinism", r"same params and seed 1 gave different trees: 'axis' differs")
+    assert str(err).startswith("ssm 'noisy': ")
+
+
+def test_seed_blind_ssm_is_caught_unless_declared_deterministic():
+    _fails(SeedBlindSSM, "seeds", r"seeds 1 and 2 gave identical trees; the model ignores its seed")
+    assert check_ssm(SeedBlindSSM, stochastic=False).ok
+
+
+def test_unpicklable_ssm_is_caught():
+    err = _fails(UnpicklableSSM, "pickle", r"cannot be pickled \(TypeError: .*lock")
+    assert err.checks == ["pickle"]
+    # one check run on its own raises with the component and the check in the message
+    check = next(c for c in ssm_checks(UnpicklableSSM) if c.name == "pickle")
+    with pytest.raises(ConformanceError, match=r"^ssm 'unpicklable': check 'pickle' failed: the instance cannot be pickled"):
+        check()
+
+
+def test_bad_parameter_specs_are_caught():
+    err = _fails(BadSpecSSM, "parameters", r"angle: default 95.0 is outside \[10.0, 80.0\]")
+    problem = dict(err.failures)["parameters"]
+    assert "nodes: integer parameter with non-integer" in problem
+    assert "duplicate parameter names: nodes" in problem
+    assert "'leaf area' is not a Python identifier" in problem
+
+
+def test_exception_at_bounds_is_caught_but_simulation_failed_is_allowed():
+    err = _fails(CrashAtBoundsSSM, "bounds", r"angle = 10 \(lower\): ZeroDivisionError: division by zero")
+    problem = dict(err.failures)["bounds"]
+    assert "nodes = 12" not in problem  # SimulationFailed at the upper bound is a legal outcome
+    assert err.checks == ["bounds"]
+    # parameters given in `params` are held there by the bounds check (cheap settings stay cheap)
+    rep = check_ssm(CrashAtBoundsSSM, params={"angle": 30.0})
+    assert "nodes = 12 (upper): too_many_segments" in next(r.note for r in rep.results if r.check == "bounds")
+    assert check_ssm(CrashAtBoundsSSM, bounds="none").ok
+
+
+def test_settings_that_accept_unknown_keys_are_caught():
+    _fails(LaxSettingsSSM, "settings", r"unknown settings key .* was accepted; Settings must forbid extra keys")
+
+
+def test_resolve_params_ignoring_unknown_names_is_caught():
+    err = _fails(LaxParamsSSM, "resolve_params", r"accepted an unknown parameter name")
+    assert "unknown_params" in err.checks
+
+
+def test_missing_metadata_is_caught():
+    _fails(NoSeedMetadataSSM, "simulate", r"tree.metadata lacks seed")
+
+
+def test_kit_rejects_bad_options():
+    with pytest.raises(ValueError, match="two different seeds"):
+        ssm_checks(GoodSSM, seeds=(1, 1))
+    with pytest.raises(ValueError, match="bounds must be"):
+        ssm_checks(GoodSSM, bounds="some")
+
+
+class FlatFeatures(FeatureSet):
+    name = "flat"
+
+    @property
+    def set_names(self):
+        return ["L"]
+
+    def columns(self, set_name):
+        return ["length", "radius"]
+
+    def extract(self, tree):
+        return {"L": tree.length.astype(np.float32)}  # 1-D float32: two defects
+
+
+class WideFeatures(FlatFeatures):
+    name = "wide"
+
+    def extract(self, tree):
+        return {"L": np.c_[tree.length, tree.radius, tree.order.astype(float)]}
+
+
+def test_broken_feature_sets_are_caught():
+    _fails(FlatFeatures, "extract", r"set 'L' has shape \(\d+,\); tables are 2-D")
+    _fails(WideFeatures, "extract", r"set 'L' has 3 columns but columns\('L'\) names 2")
+
+
+class OffsetDistance(Distance):
+    name = "offset"
+
+    def compute(self, u_model, u_data):
+        return 0.1 + float(np.abs(u_model.mean(0) - u_data.mean(0)).sum()) if len(u_model) else 1.0
+
+
+class SignedDistance(Distance):
+    name = "signed"
+
+    def compute(self, u_model, u_data):
+        return float(u_data.mean() - u_model.mean()) if len(u_model) else 0.0
+
+
+def test_broken_distances_are_caught():
+    _fails(OffsetDistance, "identical", r"identical model and data tables give non-zero distances")
+    _fails(SignedDistance, "finite", r"distance -?\d.* is not a finite non-negative number")
+    U_data, U_model, cols = sample_tables(dims=(3,), shift=2.0)
+    assert check_distance(OffsetDistance, (U_data, U_model, cols), raise_on_failure=False).failures[0].check == "identical"
+
+
+class GreedyOptimizer(Optimizer):
+    """Ignores problem.stopped and keeps evaluating."""
+
+    name = "greedy"
+
+    def minimize(self, problem):
+        rng = np.random.default_rng(problem.seed)
+        for _ in range(20):
+            problem.evaluate(problem.lower + (problem.upper - problem.lower) * rng.random((8, problem.dim)))
+        return OptimizeResult(x=problem.best_x, fun=problem.best_f, n_evaluations=problem.n_evaluations)
+
+
+class UnseededOptimizer(GreedyOptimizer):
+    name = "unseeded"
+
+    def minimize(self, problem):
+        rng = np.random.default_rng()
+        while not problem.stopped:
+            problem.evaluate(problem.lower + (problem.upper - problem.lower) * rng.random((8, problem.dim)))
+        return OptimizeResult(x=problem.best_x, fun=problem.best_f, n_evaluations=problem.n_evaluations)
+
+
+def test_broken_optimizers_are_caught():
+    _fails(GreedyOptimizer, "minimize", r"evaluate was called \d+ times after the problem stopped")
+    _fails(UnseededOptimizer, "determinism", r"the same seed and objective gave a different sequence")
+    rep = check_optimizer(GreedyOptimizer, raise_on_failure=False)
+    assert [f.check for f in rep.failures] == ["minimize"]  # deterministic and picklable, just greedy
+
+
+def test_feature_check_on_the_hand_tree():
+    from conftest import hand_tree
+    rep = check_feature_set(WideFeatures, trees=[hand_tree()], raise_on_failure=False)
+    assert [f.check for f in rep.failures] == ["extract"]

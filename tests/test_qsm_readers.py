@@ -474,7 +474,7 @@ def test_csv_duplicate_ids_and_unknown_parent(tmp_path):
     f[0] = "17"
     dup = tmp_path / "dup.csv"
     dup.write_text("\n".join(lines[:240] + [",".join(f)] + lines[241:]))
-    with pytest.raises(QSMFormatError, match=r"ID 17 appears 2 times \(rows 18, 240\)"):
+    with pytest.raises(QSMFormatError, match=r"ID 17 appears twice \(rows 18, 240\)"):
         bf.read_qsm(dup)
     f = lines[15].split(",")
     f[1] = "5000"

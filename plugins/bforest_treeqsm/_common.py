@@ -32,6 +32,14 @@ class QSMReadWarning(UserWarning):
     """A QSM file was read with a repair or an inconsistency worth knowing about."""
 
 
+class Repair(dict):
+    """One repair done while reading (a dict with ``repair``, counts, 1-based rows and
+    ``message``); ``str()`` gives the message, so it prints well in ``bforest info``."""
+
+    def __str__(self) -> str:
+        return str(self.get("message", dict.__repr__(self)))
+
+
 def rows_text(rows, limit: int = MAX_ROWS_SHOWN) -> str:
     """``"1, 3020, 3582"`` -- the first ``limit`` rows, then the total count."""
     rows = [int(r) for r in np.asarray(rows).ravel()]
@@ -263,27 +271,23 @@ def _find_cycle(parent: np.ndarray, start: int) -> list[int]:
 
 
 def components(parent: np.ndarray):
-    """Root row of every row's connected part, by level-synchronous descent from the roots.
+    """Root row of every row's connected part, by pointer doubling (O(n log depth)).
 
-    Returns ``(label, reached)``: ``label[i]`` is the root above row i (-1 where not reached,
-    i.e. rows on or below a parent cycle).
+    Returns ``(label, reached)``: ``label[i]`` is the root above row i (-1 where no root is
+    reached, i.e. rows on or below a parent cycle). Parents must be in ``-1 .. n-1``.
     """
     n = parent.shape[0]
-    ptr, idx = children_csr(parent)
-    label = np.full(n, -1, dtype=np.int64)
-    frontier = np.flatnonzero(parent < 0)
-    label[frontier] = frontier
-    while frontier.size:
-        counts = ptr[frontier + 1] - ptr[frontier]
-        tot = int(counts.sum())
-        if tot == 0:
+    is_root = parent < 0
+    anc = np.where(is_root, np.arange(n), parent)
+    # after k rounds anc is the 2^k-th ancestor (roots are fixed points); a row on or below a
+    # cycle never reaches a root, so ceil(log2 n) + 1 rounds decide every row
+    for _ in range(max(1, int(np.ceil(np.log2(max(n, 2))))) + 1):
+        nxt = anc[anc]
+        if np.array_equal(nxt, anc):
             break
-        starts = np.repeat(ptr[frontier], counts)
-        offs = np.arange(tot) - np.repeat(np.cumsum(counts) - counts, counts)
-        ch = idx[starts + offs]
-        label[ch] = np.repeat(label[frontier], counts)
-        frontier = ch
-    return label, label >= 0
+        anc = nxt
+    reached = is_root[anc]
+    return np.where(reached, anc, -1), reached
 
 
 def _resolve_through(mask: np.ndarray, link: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -422,9 +426,9 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
             raise QSMFormatError(path, msg + " [fragments='error']", roots + 1)
         warn(path, msg)
         dropped = np.flatnonzero(~keep)
-        repairs.append({"repair": "dropped_fragments", "roots": (roots + 1).tolist(),
+        repairs.append(Repair({"repair": "dropped_fragments", "roots": (roots + 1).tolist(),
                         "stem_base_row": base + 1, "n_dropped": int(dropped.size),
-                        "dropped_rows": (dropped + 1).tolist(), "message": msg})
+                        "dropped_rows": (dropped + 1).tolist(), "message": msg}))
 
     # ---- repair 2: zero-length cylinders (exactly 0 as read)
     zl = np.flatnonzero(zero_len & keep)
@@ -447,8 +451,8 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
         msg = (f"removed {plural(zl.size, 'zero-length cylinder')} (row{'s' if zl.size > 1 else ''} "
                f"{zrows}{hint}); children were attached to the parent")
         warn(path, msg)
-        repairs.append({"repair": "removed_zero_length", "rows": (zl + 1).tolist(),
-                        "n_removed": int(zl.size), "message": msg})
+        repairs.append(Repair({"repair": "removed_zero_length", "rows": (zl + 1).tolist(),
+                        "n_removed": int(zl.size), "message": msg}))
         keep &= ~removed
 
     file_rows = np.flatnonzero(keep)
@@ -470,8 +474,8 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
         msg = (f"{plural(off.size, 'axis', 'axes')} not unit vectors (norms {norms[off].min():.4g}..."
                f"{norms[off].max():.4g}; rows {rows_text(file_rows[off] + 1)}); renormalised")
         warn(path, msg)
-        repairs.append({"repair": "renormalised_axes", "n_rows": int(off.size),
-                        "rows": (file_rows[off] + 1).tolist(), "message": msg})
+        repairs.append(Repair({"repair": "renormalised_axes", "n_rows": int(off.size),
+                        "rows": (file_rows[off] + 1).tolist(), "message": msg}))
     axis = axis / norms[:, None]
 
     extras = {}

@@ -43,7 +43,7 @@ def describe_non_mat(head: bytes) -> str:
     sample = head[:2048]
     if sample and all(32 <= b < 127 or b in (9, 10, 13) for b in sample):
         first = sample.split(b"\n", 1)[0]
-        if first.count(b",") >= 2:
+        if first.count(b",") >= 1:
             return "content looks like CSV text, not a MAT-file"
         return "content looks like plain text, not a MAT-file"
     return "not a MAT-file (no MATLAB 5.0 or 7.3 header)"

@@ -64,26 +64,47 @@ def split_lines_head(data: bytes, k: int):
 
 
 def field_counts(body: bytes):
-    """Number of fields on every line of ``body`` (separators: space, tab, comma, CR).
-
-    Returns ``(counts, line_index)`` for the non-blank lines (0-based line index in ``body``).
-    """
+    """Number of fields on every line of ``body`` (separators: whitespace/control bytes and
+    commas). Returns ``(counts, line_index)`` for the non-blank lines (0-based line index)."""
     arr = np.frombuffer(body, dtype=np.uint8)
     if arr.size == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    nl = arr == 10
-    sep = nl | (arr == 32) | (arr == 9) | (arr == 44) | (arr == 13) | (arr == 11) | (arr == 12)
+    sep = (arr <= 32) | (arr == 44)
     starts = ~sep
     starts[1:] &= sep[:-1]
-    line_of = np.cumsum(nl)
-    nlines = int(line_of[-1]) + 1
-    counts = np.bincount(line_of[starts], minlength=nlines)
+    tok = np.flatnonzero(starts)
+    nl = np.flatnonzero(arr == 10)
+    counts = np.bincount(np.searchsorted(nl, tok), minlength=nl.size + 1)
     lines = np.flatnonzero(counts)
     return counts[lines], lines
 
 
+def first_line_fields(body: bytes) -> int:
+    """Fields on the first non-blank line of ``body``."""
+    for line in body[:1 << 16].split(b"\n"):
+        k = len(line.translate(_SEP_TABLE).split())
+        if k:
+            return k
+    return 0
+
+
+def _ragged(path, body: bytes, first_line: int, k: int, what: str):
+    """Error path: report the first line whose field count is not ``k``."""
+    counts, lines = field_counts(body)
+    bad = np.flatnonzero(counts != k)
+    if bad.size:
+        i = int(bad[0])
+        more = f" (and {bad.size - 1} more lines)" if bad.size > 1 else ""
+        raise QSMFormatError(path, f"line {int(lines[i]) + first_line}: {int(counts[i])} {what}, "
+                             f"expected {k}{more}", (lines[bad[:10]] + first_line).tolist())
+
+
 def parse_table(path, body: bytes, first_line: int, expected: Optional[int], what: str = "fields"):
-    """Parse whitespace/comma separated numbers.
+    """Parse whitespace/comma separated numbers with one ``np.loadtxt`` call.
+
+    The fast path trusts ``np.loadtxt`` (which refuses ragged rows and bad numbers); only when it
+    fails are the lines examined, to report the first ragged line or the first field that is
+    not a number with its file line.
 
     Parameters
     ----------
@@ -97,30 +118,27 @@ def parse_table(path, body: bytes, first_line: int, expected: Optional[int], wha
     Returns
     -------
     values : (m, k) float64
-    lines : (m,) int64
-        1-based file line of every row.
     """
-    counts, lines = field_counts(body)
-    if counts.size == 0:
+    k = first_line_fields(body) if expected is None else int(expected)
+    if k == 0:
         raise QSMFormatError(path, "file contains no cylinders")
-    k = int(counts[0]) if expected is None else int(expected)
-    bad = np.flatnonzero(counts != k)
-    if bad.size:
-        i = int(bad[0])
-        more = f" (and {bad.size - 1} more lines)" if bad.size > 1 else ""
-        raise QSMFormatError(path, f"line {int(lines[i]) + first_line}: {int(counts[i])} {what}, "
-                             f"expected {k}{more}", (lines[bad[:10]] + first_line).tolist())
-    text = body.translate(_SEP_TABLE).decode("latin-1")
+    if b"," in body or b"\r" in body or b"\x0b" in body or b"\x0c" in body:
+        body = body.translate(_SEP_TABLE)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            values = np.loadtxt(io.StringIO(text), dtype=np.float64, comments=None, ndmin=2)
+            values = np.loadtxt(io.BytesIO(body), dtype=np.float64, comments=None, ndmin=2,
+                                encoding="latin1")
     except Exception:
-        _locate_bad_token(path, text, first_line)
+        _ragged(path, body, first_line, k, what)
+        _locate_bad_token(path, body.decode("latin-1"), first_line)
         raise QSMFormatError(path, "could not read the numbers of the table")
-    if values.shape != (counts.size, k):
-        raise QSMFormatError(path, f"table has shape {values.shape}, expected ({counts.size}, {k})")
-    return values, lines.astype(np.int64) + first_line
+    if values.shape[0] == 0:
+        raise QSMFormatError(path, "file contains no cylinders")
+    if values.shape[1] != k:
+        _ragged(path, body, first_line, k, what)
+        raise QSMFormatError(path, f"{values.shape[1]} {what} per line, expected {k}")
+    return values
 
 
 def _locate_bad_token(path, text: str, first_line: int) -> None:
@@ -199,11 +217,10 @@ class TreeQSMTextReader(BaseReader):
                 layout = "treeqsm17"
         else:
             body, first_line = data, 1
-        counts, _ = field_counts(body)
-        if counts.size == 0:
+        k0 = first_line_fields(body)
+        if k0 == 0:
             raise QSMFormatError(path, "file contains no cylinders")
         if layout is None:
-            k0 = int(counts[0])
             if k0 == 17:
                 layout = "treeqsm17"
             elif k0 == 15:
@@ -220,7 +237,7 @@ class TreeQSMTextReader(BaseReader):
                 raise QSMFormatError(path, f"{k0} columns per row; expected 14, 15 or 17")
         ncol = {"treeqsm17": 17, "treeqsm15": 15, "treeqsm15-struct": 15, "treeqsm15-cyldata": 15,
                 "cyldata14": 14}[layout]
-        values, lines = parse_table(path, body, first_line, ncol)
+        values = parse_table(path, body, first_line, ncol)
         if layout == "treeqsm15":
             layout = detect_15(path, values)
         _, as_list, _ = select_models(path, [0], opts.select, "file")
@@ -341,8 +358,8 @@ class _CSVReader(BaseReader):
         dup = sorted({c for c in names if names.count(c) > 1})
         if dup:
             raise QSMFormatError(path, f"line 1: column name(s) {', '.join(dup)} appear more than once")
-        values, lines = parse_table(path, data[after:], 2, len(names), what="fields")
-        return {nm: values[:, i] for i, nm in enumerate(names)}, names, lines
+        values = parse_table(path, data[after:], 2, len(names), what="fields")
+        return {nm: values[:, i] for i, nm in enumerate(names)}, names
 
 
 def id_rows(path, ids_col, parent_col, id_name: str, parent_name: str, none_value: int):
@@ -356,7 +373,8 @@ def id_rows(path, ids_col, parent_col, id_name: str, parent_name: str, none_valu
     if dup.size:
         v = sids[dup[0]]
         rows = np.flatnonzero(ids == v) + 1
-        raise QSMFormatError(path, f"{id_name} {v} appears {rows.size} times (rows {rows_text(rows)})", rows)
+        times = "twice" if rows.size == 2 else f"{rows.size} times"
+        raise QSMFormatError(path, f"{id_name} {v} appears {times} (rows {rows_text(rows)})", rows)
     return ids, srt, sids, lookup_ids(path, pids, srt, sids, parent_name, none_value)
 
 
@@ -426,7 +444,7 @@ class SimpleForestCSVReader(_CSVReader):
     layout_label = "SimpleForest"
 
     def _read(self, path, opts):
-        cols, names, _ = self._table(path)
+        cols, names = self._table(path)
         _, as_list, _ = select_models(path, [0], opts.select, "file")
         _, _, _, parent = id_rows(path, cols["ID"], cols["parentID"], "ID", "parentID", -1)
         n = parent.shape[0]
@@ -452,7 +470,7 @@ class ArchiCSVReader(_CSVReader):
     layout_label = "aRchi"
 
     def _read(self, path, opts):
-        cols, names, _ = self._table(path)
+        cols, names = self._table(path)
         _, as_list, _ = select_models(path, [0], opts.select, "file")
         ids, srt, sids, parent = id_rows(path, cols["cyl_ID"], cols["parent_ID"], "cyl_ID", "parent_ID", 0)
         n = parent.shape[0]
@@ -500,7 +518,7 @@ class NativeCSVReader(_CSVReader):
         return det == self.name or det is None
 
     def _read(self, path, opts):
-        cols, names, _ = self._table(path)
+        cols, names = self._table(path)
         _, as_list, _ = select_models(path, [0], opts.select, "file")
         side = {}
         sp = Path(path).with_suffix(".json")
@@ -545,7 +563,7 @@ class NativeCSVReader(_CSVReader):
         # with_topology('source') still restores the original branching)
         base_ext = src_ext if src_ext is not None else ext
         default_rule = rule
-        raw = RawCylinders(cols["radius"], cols["length"], start, axis, parent, base_ext, added)
+        raw = RawCylinders(cols["radius"], cols["length"], start, axis, parent, base_ext, added, extras=extras)
         tree = build_tree(path, raw, fmt=self.name, version=str(side.get("format_version", "1")),
                           opts=opts, metadata=meta, default_topology=default_rule)
         if (opts.topology or default_rule) == rule and tree.n == n:

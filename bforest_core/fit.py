@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -48,7 +49,9 @@ class Evaluator:
         self.executor = executor
         self.names = names
         self.problem = problem
-        self.fixed = dict(cfg.ssm.fixed)
+        ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+        self.fixed = {k: (int(round(v)) if ssm.parameter_spec(k).integer else float(v))
+                      for k, v in cfg.ssm.fixed.items()}
         self.integer = problem.integer
         self.replay = store.replay()
         self.cache: dict[tuple, float] = {}
@@ -165,6 +168,14 @@ class _Progress:
             self.bar.close()
 
 
+def _result_relevant(cfg) -> dict:
+    """The parts of a config a run's results depend on (all but the executor and the report)."""
+    d = config_to_dict(cfg)
+    d.pop("executor", None)
+    d.pop("report", None)
+    return d
+
+
 def _free_specs(cfg, ssm):
     names, lo, hi, ilo, ihi, integer = [], [], [], [], [], []
     for name, fp in cfg.ssm.free.items():
@@ -200,10 +211,12 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     text = tomli_w.dumps(config_to_dict(cfg))
     if resume:
         store = RunStore.open(run_dir)
-        old = store.config_path.read_text(encoding="utf-8")
-        if old != text:
+        old = parse_config(tomllib.loads(store.config_path.read_text(encoding="utf-8")), source=str(store.config_path))
+        if _result_relevant(old) != _result_relevant(cfg):
             raise RunDirError(f"{run_dir}: the config differs from the run's config.toml; "
                               "resume with the run's own config (bforest fit RUN/config.toml -o RUN --resume)")
+        # the executor may change between sessions (results never depend on it)
+        store.config_path.write_text(text, encoding="utf-8")
         store.clear_log()
     else:
         store = RunStore.create(run_dir, text, overwrite=overwrite)

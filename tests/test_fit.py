@@ -96,6 +96,10 @@ def test_resume_refuses_other_config(toy_plugin, tmp_path):
         bf.fit(other, tmp_path / "run", resume=True, progress=False)
     with pytest.raises(bf.BayesForestError, match="already holds a run"):
         bf.fit(other, tmp_path / "run", progress=False)
+    # another executor is fine: results never depend on it
+    p = toy_config(tmp_path, budget=8, executor="process", executor_settings="workers = 2")
+    res = bf.fit(bf.load_config(p), tmp_path / "run", resume=True, progress=False)
+    assert res.n_evaluations == 8 and 'kind = "process"' in (tmp_path / "run" / "config.toml").read_text()
 
 
 def test_failing_and_hanging_simulations_are_logged(toy_plugin, tmp_path):

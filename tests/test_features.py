@@ -321,6 +321,26 @@ def test_open_range_needs_prepare_and_resolves_on_data():
     assert U["S1+"].shape[0] == np.count_nonzero(model.with_topology("source").order == 1)
 
 
+def test_resolved_settings_rebuild_the_same_sets_on_the_model_side():
+    data = random_tree(400, seed=9)
+    fs = feats(sets=["S0,1", "B2+", "B1", "s3,99"], min_rows=5, small_sets="drop")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fs.prepare(data)
+    s = fs.settings.model_dump()
+    s["sets"] = fs.resolved_sets
+    model_fs = BranchSegmentFeatures(**s)  # what the objective builds in each worker, without prepare
+    model = random_tree(500, seed=10)
+    a, b = fs.extract(model), model_fs.extract(model)
+    assert list(a) == list(b) == fs.set_names
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+    assert model_fs.orders("B2+") == fs.orders("B2+") and len(fs.orders("B2+")) >= 2
+    assert fs.orders("S3,99") == (3,)  # order 99 is absent from the data tree
+    with pytest.raises(ConfigError, match="unknown set"):
+        BranchSegmentFeatures(sets=["S1"], orders={"S2": [2]})
+
+
 def test_missing_orders():
     fs = feats(sets=["B2"])
     with pytest.raises(ConfigError, match="order 2"):

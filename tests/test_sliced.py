@@ -11,7 +11,7 @@ import bforest_core as bf
 from bforest_core import ConfigError
 from bforest_sliced.directions import directions, net_points
 from bforest_sliced.sliced import SlicedDistance, fit_normalization, holm
-from bforest_sliced.stats import ks_sorted, merge_sorted, stat_from_labels, stat_sorted
+from bforest_sliced.stats import ks_encoded, ks_sorted, merge_sorted, stat_from_labels, stat_sorted
 from conftest import qsm_path
 
 NETS = ("gp2", "sobol", "halton", "random")
@@ -156,6 +156,36 @@ def test_ks_tie_cases_by_hand():
     assert one(x, y, "ks") == pytest.approx(stats.ks_2samp(x, y).statistic, abs=1e-15)
 
 
+def test_bit_encoded_ks_is_exact_with_ties_signed_zeros_and_ulp_neighbours():
+    rng = np.random.default_rng(22)
+    for trial in range(150):
+        n, m = rng.integers(1, 60, 2)
+        x = np.round(rng.normal(size=(4, n)), rng.integers(0, 3))
+        y = np.round(rng.normal(size=(4, m)), rng.integers(0, 3))
+        if trial % 3 == 0:
+            x = -x
+        if trial % 5 == 0:
+            x[:, : n // 2] = 0.0
+            y[:, : m // 2] = -0.0
+        if trial % 7 == 0:
+            y[:, 0] = np.nextafter(x[:, 0], np.inf)  # one ulp apart: not a tie
+        if trial % 11 == 0:
+            y[:, -1] = np.nextafter(x[:, -1], -np.inf)
+        got = ks_encoded(np.sort(x, axis=1) + 0.0, y.copy())
+        ref = [stats.ks_2samp(x[i], y[i]).statistic for i in range(4)]
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12, err_msg=f"trial {trial}")
+
+
+def test_non_finite_tables_are_refused():
+    x = np.random.default_rng(0).normal(size=(20, 2))
+    bad = x.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(ValueError, match="model table has non-finite"):
+        dist(lines=8).compute_pair("S1", bad, x)
+    with pytest.raises(ValueError, match="data table has non-finite"):
+        dist(lines=8).compute(x, bad)
+
+
 def test_label_engine_matches_sorted_engine():
     rng = np.random.default_rng(9)
     X = np.sort(np.round(rng.normal(size=(6, 40)), 1), axis=1)
@@ -185,6 +215,21 @@ def test_sliced_equals_per_line_scipy_loop(stat):
                     "energy": lambda: stats.energy_distance(x, y) ** 2}[stat]())
     np.testing.assert_allclose(D.last_lines[None], ref, rtol=0, atol=1e-12)
     assert val == pytest.approx(np.mean(ref), abs=1e-12)
+
+
+def test_sliced_ks_with_rows_repeated_across_sides():
+    # SSM first segments repeat exactly (L = gamma = zeta = 0, one radius) and may equal data rows
+    rng = np.random.default_rng(23)
+    ud = np.round(rng.normal(size=(300, 4)), 1)
+    um = np.round(rng.normal(size=(200, 4)), 1)
+    ud[:40] = [0.05, 0, 0, 0]
+    um[:90] = [0.05, 0, 0, 0]
+    ud[40:45] = -0.0
+    D = dist(lines=48, normalize="zscore", return_lines=True)
+    D.compute(um, ud)
+    A = D.directions(4) / ud.std(axis=0)
+    ref = [stats.ks_2samp(ud @ a, um @ a).statistic for a in A]
+    np.testing.assert_allclose(D.last_lines[None], ref, rtol=0, atol=1e-12)
 
 
 # ------------------------------------------------------------------------------ properties

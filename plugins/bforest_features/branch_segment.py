@@ -254,6 +254,9 @@ class BranchSegmentSettings(ComponentSettings):
     small_sets: Literal["error", "drop", "keep"] = "error"
     clip_la: bool = Field(True, description="clip L_a's projection to the parent cylinder "
                                             "(False = toolbox parity)")
+    orders: dict[str, list[int]] | None = Field(
+        None, description="resolved orders per set name; written by prepare() so that a model-side "
+                          "instance built from these settings extracts exactly the data side's sets")
 
     @field_validator("sets", mode="before")
     @classmethod
@@ -312,6 +315,16 @@ class BranchSegmentFeatures(FeatureSet):
         # resolved orders per set name; open ranges stay unresolved until prepare()
         self._orders: dict[str, tuple[int, ...] | None] = {
             s.name: (s.orders if s.open_from is None else None) for s in self._specs}
+        given = self.settings.orders or {}
+        unknown = sorted(set(given) - set(self._orders))
+        if unknown:
+            raise ConfigError(f"features: 'orders' names unknown set(s) {unknown} "
+                              f"(sets: {', '.join(self._orders)})")
+        for k, v in given.items():
+            bad = [w for w in v if w < (1 if self._spec(k).kind == "B" else 0)]
+            if bad:
+                raise ConfigError(f"features: orders of set '{k}' hold invalid order(s) {bad}")
+            self._orders[k] = tuple(sorted(int(w) for w in v))
         self._active = [s.name for s in self._specs]
         self.last_dropped: dict[str, int] = {}
         self.prepared = False
@@ -319,6 +332,12 @@ class BranchSegmentFeatures(FeatureSet):
     # ------------------------------------------------------------------ interface
     @property
     def set_names(self) -> list[str]:
+        return list(self._active)
+
+    @property
+    def resolved_sets(self) -> list[str]:
+        """The sets taking part after :meth:`prepare` (small sets dropped). Together with the
+        resolved ``settings.orders`` they let a model-side instance extract the same tables."""
         return list(self._active)
 
     def orders(self, set_name: str) -> tuple[int, ...]:
@@ -409,6 +428,7 @@ class BranchSegmentFeatures(FeatureSet):
             raise ConfigError("features: every data set was dropped as too small "
                               f"(min_rows = {self.settings.min_rows})")
         self._active = kept
+        self.settings.orders = {k: list(self._orders[k]) for k in kept}
 
     def extract(self, tree) -> dict[str, np.ndarray]:
         """The tables of one tree.

@@ -293,10 +293,9 @@ def tree_comparison_figure(trees: Mapping[str, object], path, title: str | None 
             if len(items) > 1:
                 sub.suptitle(head + cap, fontsize="medium", fontweight="bold" if label else "normal")
             elif cap:
-                axes[len(views) // 2].set_xlabel(axes[len(views) // 2].get_xlabel() + "\n" + head + cap,
-                                                  fontsize="small")
+                sub.supxlabel(head + cap, fontsize="medium")
     if color_by == "order":
-        order_legend(first_axes[-1], orders, loc="upper right")
+        order_legend(first_axes[-1], orders, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     if title:
         fig.suptitle(title, fontsize="large")
     return save_figure(fig, path, dpi)
@@ -889,9 +888,8 @@ def profile_figure(values: np.ndarray, distances: np.ndarray, path, param: str,
         ax.scatter(v[ii], D[ii, jj], marker="x", color="#e6550d", s=25, label="failed simulation", zorder=4)
     if best_value is not None:
         ax.axvline(best_value, color="black", lw=1.0, ls="--")
-        ax.annotate("best fit", (best_value, 1.0), xycoords=("data", "axes fraction"), xytext=(0, -14),
-                    textcoords="offset points", ha="center", fontsize="small",
-                    arrowprops=None)
+        ax.annotate(f"best fit {best_value:.4g}", (best_value, 1.0), xycoords=("data", "axes fraction"),
+                    xytext=(4, -12), textcoords="offset points", ha="left", fontsize="small")
         if best_distance is not None:
             ax.plot([best_value], [best_distance], marker="v", color="black", ms=9, ls="",
                     label=f"best fit (D = {best_distance:.3f})")
@@ -935,6 +933,7 @@ def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: 
     fig = new_figure(7.8, 4.8)
     ax = fig.subplots()
     all_pos = True
+    lo_all, hi_all = np.inf, -np.inf
     for c, (name, runs) in enumerate(curves.items()):
         M = _pad_curves(runs)
         if M.size == 0:
@@ -943,13 +942,18 @@ def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: 
         x = np.arange(1, M.shape[1] + 1)
         med = np.median(M, axis=0)
         if M.shape[0] > 1:
-            ax.fill_between(x, M.min(0), M.max(0), color=col, alpha=0.08, lw=0)
+            ax.fill_between(x, M.min(0), M.max(0), color=col, alpha=0.08, lw=0, step="post")
             q1, q3 = np.quantile(M, [0.25, 0.75], axis=0)
-            ax.fill_between(x, q1, q3, color=col, alpha=0.25, lw=0)
-        ax.plot(x, med, color=col, lw=2.0, label=f"{name} (median of {M.shape[0]}: {med[-1]:.4g})")
-        all_pos &= bool(np.all(M[np.isfinite(M)] > 0))
+            ax.fill_between(x, q1, q3, color=col, alpha=0.25, lw=0, step="post")
+        ax.step(x, med, where="post", color=col, lw=2.0, label=f"{name} (median of {M.shape[0]}: {med[-1]:.4g})")
+        fin = M[np.isfinite(M)]
+        all_pos &= bool(np.all(fin > 0))
+        lo_all, hi_all = min(lo_all, fin.min(initial=np.inf)), max(hi_all, fin.max(initial=-np.inf))
     if threshold is not None:
-        ax.axhline(threshold, color="black", ls="--", lw=1.0, label=f"threshold {threshold:g}")
+        ax.axhline(threshold, color="black", ls="--", lw=1.0, label=f"threshold {threshold:.4g}")
+        lo_all = min(lo_all, threshold)
+    if all_pos and np.isfinite(lo_all) and lo_all > 0 and hi_all / lo_all > 20:
+        ax.set_yscale("log")  # best distances spanning decades
     ax.set_xlabel("evaluations")
     ax.set_ylabel("best distance so far")
     ax.grid(True, which="both", lw=0.3, alpha=0.5)

@@ -783,7 +783,9 @@ def _section_fit(doc: _Doc, v: RunView, figs: _Figures):
         best_ev = next((e for e in v.evaluations if e.idx == b.get("evaluation")), None) or v.store.best()
         n_rows = best_ev.n_rows if best_ev is not None else {}
         rows = []
-        for name, d in (b.get("per_set") or {}).items():
+        per_set = b.get("per_set") or {}
+        order = [k for k in v.U_data if k in per_set] + [k for k in per_set if k not in v.U_data]
+        for name, d in ((k, per_set[k]) for k in order):
             rows.append([name, weights.get(name, 1.0), d if d is not None else "skipped",
                          v.U_data[name].shape[0] if name in v.U_data else "–",
                          n_rows.get(name, v.U_model[name].shape[0] if v.U_model and name in v.U_model else "–")])

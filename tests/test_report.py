@@ -36,9 +36,12 @@ def assert_png(path: Path, min_w: int = 300, min_h: int = 200) -> None:
     assert 5_000 < path.stat().st_size < 5_000_000, (path.name, path.stat().st_size)
 
 
-def _toy_run(tmp: Path, budget: int = 24) -> Path:
+def _toy_run(tmp: Path, budget: int = 24, fail_above: float | None = None) -> Path:
     tmp.mkdir(parents=True, exist_ok=True)
-    bf.fit(bf.load_config(toy_config(tmp, budget=budget)), tmp / "run", progress=False)
+    cfg = toy_config(tmp, budget=budget)
+    if fail_above is not None:  # the toy SSM fails ("collapsed") above this angle
+        cfg.write_text(cfg.read_text().replace('kind = "toy"\n', f'kind = "toy"\nfail_above = {fail_above}\n', 1))
+    bf.fit(bf.load_config(cfg), tmp / "run", progress=False)
     return tmp / "run"
 
 
@@ -48,7 +51,7 @@ def toy_runs(toy_plugin, tmp_path_factory):
     base = tmp_path_factory.mktemp("report")
     with_clones = _toy_run(base / "a")
     grow_clones(with_clones, n=4, progress=False)
-    without = _toy_run(base / "b")
+    without = _toy_run(base / "b", fail_above=60.0)
     return with_clones, without
 
 
@@ -84,6 +87,13 @@ def test_report_of_a_run_without_clones(toy_runs):
     assert "No clones yet: grow them with `bforest clones" in text
     assert not (run / "figures" / "clones.png").exists()
     assert_png(run / "figures" / "trees.png")
+    assert_png(run / "figures" / "convergence.png")
+    # failures are counted by status, with an example message
+    evs = RunStore.open(run).evaluations()
+    n_fail = sum(e.status == "collapsed" for e in evs)
+    assert 0 < n_fail < len(evs)
+    assert f"{len(evs)} evaluations; {len(evs) - n_fail} ok, {n_fail} failed." in text
+    assert f"| collapsed | {n_fail} | {100 * n_fail / len(evs):.1f} % | simulation failed (collapsed): angle too large |" in text
 
 
 def test_report_of_an_unfinished_run_and_text_only(toy_plugin, tmp_path):
@@ -94,6 +104,19 @@ def test_report_of_an_unfinished_run_and_text_only(toy_plugin, tmp_path):
     assert "no best.json" in text and "figures were not drawn" in text
     assert not (run / "report.html").exists()
     assert not list((run / "figures").glob("*.png"))
+
+
+def test_report_when_the_config_no_longer_validates(toy_runs, tmp_path):
+    """A run whose plugin is gone still gets a report from what the run directory holds."""
+    run = tmp_path / "run"
+    shutil.copytree(toy_runs[1], run)
+    cfg = run / "config.toml"
+    cfg.write_text(cfg.read_text().replace('kind = "toy-random"', 'kind = "uninstalled-optimizer"'))
+    text = write_report(run, strict=True).read_text()
+    assert "config.toml does not validate with the installed plugins" in text
+    assert "| optimizer | `uninstalled-optimizer` |" in text
+    assert_png(run / "figures" / "convergence.png")
+    assert_png(run / "figures" / "trees.png")  # from target.txt alone (no model to regrow the best fit)
 
 
 def test_figures_match_the_fit(toy_runs):

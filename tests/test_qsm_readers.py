@@ -548,3 +548,60 @@ def test_ids_helper_rejects_wraparound_and_reports_range():
         _common.ids_to_rows("f.mat", "parent", v, 4, 1)
     out = _common.ids_to_rows("f.mat", "parent", v[:3], 3, 1)
     assert out.dtype == np.int64 and out.tolist() == [-1, 0, 1]
+
+
+def test_unsorted_rows_are_resorted_and_keep_file_rows(tmp_path):
+    """A valid tree stored child-before-parent: re-sorted, source_row = file row, and the
+    stored branch/order check maps rows correctly (no warning)."""
+    t = hand_tree()
+    p = bf.write_tree(t, tmp_path / "sorted.txt")
+    v = np.loadtxt(p, skiprows=1)
+    perm = np.array([6, 4, 2, 0, 5, 3, 1])          # new file row k holds old row perm[k]
+    new_of_old = np.empty(7, dtype=int)
+    new_of_old[perm] = np.arange(7)
+    w = v[perm].copy()
+    for c in (8, 9):                                  # parent, extension (1-based, 0 = none)
+        w[:, c] = np.where(w[:, c] > 0, new_of_old[np.maximum(w[:, c].astype(int) - 1, 0)] + 1, 0)
+    q = tmp_path / "shuffled.txt"
+    q.write_text(p.read_text().split("\n", 1)[0] + "\n" + "\n".join("\t".join("%.9g" % x for x in row) for row in w))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        u = bf.read_qsm(q)
+    old = perm[u.source_row]                          # original hand-tree row of every tree row
+    assert old[0] == 0 and sorted(old.tolist()) == list(range(7))
+    assert np.allclose(u.start, t.start[old]) and np.allclose(u.radius, t.radius[old])
+    assert np.array_equal(np.where(u.parent >= 0, old[np.maximum(u.parent, 0)], -1), t.parent[old])
+    assert u.n_branches == t.n_branches and np.array_equal(u.order, t.order[old])
+
+
+def test_csv_ids_need_not_equal_rows(tmp_path):
+    p = qsm_path("coffeetree_simpleforest.csv")
+    t = read_quiet(p)
+    lines = p.read_text().rstrip("\n").split("\n")
+    rng = np.random.default_rng(3)
+    body = [lines[1 + i] for i in rng.permutation(len(lines) - 1)]
+    q = tmp_path / "shuffled.csv"
+    q.write_text("\n".join([lines[0]] + body) + "\n")
+    u = read_quiet(q)
+    assert u.n == t.n and u.n_branches == t.n_branches
+    assert np.isclose(u.volume, t.volume) and np.allclose(np.sort(u.radius), np.sort(t.radius))
+    assert np.array_equal(np.bincount(u.order), np.bincount(t.order))
+
+
+def test_qsms_cell_array_in_mat_v5(tmp_path):
+    import scipy.io as sio
+
+    trees = read_quiet(qsm_path("itsme_qsms_tree_v230.mat"), select=[0, 1])
+
+    def cyl(t):
+        one = lambda a: np.where(a >= 0, a + 1, 0).astype(float)
+        return {"radius": t.radius, "length": t.length, "start": t.start, "axis": t.axis,
+                "parent": one(t.parent), "extension": one(t.extension), "added": t.added.astype(float)}
+    cell = np.empty((1, 2), dtype=object)
+    for i, t in enumerate(trees):
+        cell[0, i] = {"cylinder": cyl(t)}
+    p = tmp_path / "cell.mat"
+    sio.savemat(str(p), {"QSMs": cell})
+    got = bf.read_qsm(p, select="all")
+    assert [g.n for g in got] == [110, 102]
+    assert all(g.equals(t, atol=1e-12) for g, t in zip(got, trees))

@@ -14,14 +14,14 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Optional, Union
+from typing import Literal, Optional, Union
 
 import numpy as np
-from pydantic import Field, ValidationError, field_validator
+from pydantic import ValidationError
 
 from bforest_core.errors import ConfigError, QSMFormatError, TreeError
 from bforest_core.interfaces import ComponentSettings, QSMReader
-from bforest_core.tree import TOPOLOGY_RULES, Tree, children_csr
+from bforest_core.tree import Tree
 
 #: a deviation of the axis norm from 1 above this is reported (spec §0)
 AXIS_WARN_TOL = 1e-3

@@ -254,7 +254,7 @@ def _first_diff(a: np.ndarray, b: np.ndarray) -> str:
     if neq.size == 0:
         return "equal"
     r = int(neq[0])
-    return f"{neq.size} rows differ, first row {r}: {a[r]!r} vs {b[r]!r}"
+    return f"{neq.size} rows differ, first row {r}: {np.asarray(a[r]).tolist()} vs {np.asarray(b[r]).tolist()}"
 
 
 def _tree_diff(t1: Tree, t2: Tree) -> str | None:

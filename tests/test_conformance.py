@@ -309,6 +309,18 @@ def test_missing_metadata_is_caught():
     _fails(NoSeedMetadataSSM, "simulate", r"tree.metadata lacks seed")
 
 
+class MutatingSSM(GoodSSM):
+    name = "mutating"
+
+    def simulate(self, params, seed):
+        params.setdefault("angle", 40.0)  # writes into the caller's mapping
+        return super().simulate(params, seed)
+
+
+def test_simulate_mutating_its_params_is_caught():
+    _fails(MutatingSSM, "simulate", r"simulate changed the params mapping it was given \(\{\} -> \{'angle': 40.0\}\)")
+
+
 def test_kit_rejects_bad_options():
     with pytest.raises(ValueError, match="two different seeds"):
         ssm_checks(GoodSSM, seeds=(1, 1))

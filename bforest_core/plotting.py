@@ -188,7 +188,14 @@ def plot_tree(ax, tree, view: str = "xz", color_by: str = "order", *, origin="ba
 
 
 def order_legend(ax, orders: Sequence[int], loc: str = "upper right", title: str = "branch order", **kw):
-    """Legend of the branch-order colours present in ``orders``."""
+    """Legend of the branch-order colours present in ``orders`` (``ax`` may be an Axes or a
+    Figure)."""
+    return ax.legend(handles=order_handles(orders), loc=loc, title=title, fontsize="small",
+                     title_fontsize="small", framealpha=0.85, **kw)
+
+
+def order_handles(orders: Sequence[int]) -> list:
+    """Legend handles of the branch-order colours present in ``orders``."""
     orders = sorted({int(o) for o in orders})
     last = len(ORDER_COLORS) - 1
     handles, seen = [], set()
@@ -199,8 +206,7 @@ def order_legend(ax, orders: Sequence[int], loc: str = "upper right", title: str
         seen.add(key)
         label = "0 (trunk)" if o == 0 else (f"{o}" if o < last else f"{last}+")
         handles.append(Line2D([], [], color=ORDER_COLORS[key], lw=3, label=label))
-    return ax.legend(handles=handles, loc=loc, title=title, fontsize="small", title_fontsize="small",
-                     framealpha=0.85, **kw)
+    return handles
 
 
 def _extent(trees, view, origin="base"):
@@ -294,8 +300,8 @@ def tree_comparison_figure(trees: Mapping[str, object], path, title: str | None 
                 sub.suptitle(head + cap, fontsize="medium", fontweight="bold" if label else "normal")
             elif cap:
                 sub.supxlabel(head + cap, fontsize="medium")
-    if color_by == "order":
-        order_legend(first_axes[-1], orders, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    if color_by == "order":  # one legend for all rows, beside them
+        order_legend(fig, orders, loc="outside right upper")
     if title:
         fig.suptitle(title, fontsize="large")
     return save_figure(fig, path, dpi)

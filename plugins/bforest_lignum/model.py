@@ -24,12 +24,23 @@ index; nothing is drawn at t = T, so a T-year run is a prefix of a longer one):
 
 Shoots discarded at any later point (l° <= 0, lambda solve, ground, ``min_len``, collision) have
 consumed their draws; draws are never undone (futile years included).
+
+Implementation choices where the spec leaves room (all documented in docs/lignum-sizes.md):
+
+* the shadow S is evaluated only at foliated receivers (a bare segment's light is 0 whatever S
+  is, so the model is unchanged; ``LignumView.shadow`` is NaN there); every segment casts shadow;
+* dead remnants bend like the rest of their axis (as in the original ``branch_bending``), except
+  the axis's last segment;
+* a provisional shoot with r° = 0 (a TN L_R draw of exactly 0) is discarded like l° <= 0 (guard);
+* the collision option (A.9.5) hashes segment end points in 0.05 m cells; a shoot is rejected when
+  its end cell holds a live segment that is not its ancestor and not its sibling, or the end of an
+  earlier shoot of the same year (shoot-list order) that is not a sibling.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 from scipy.optimize import brentq
@@ -117,13 +128,17 @@ def foliage_survival(age: np.ndarray) -> np.ndarray:
 def light(mid: np.ndarray, wf: np.ndarray, p: Mapping[str, float]):
     """Light step c of A.5 for segment midpoints ``mid`` and foliage masses ``wf``.
 
-    Returns ``(S, I, f_L, P)``: shadow, intercepted light max(0, R - S) (0 where not foliated),
+    Returns ``(S, I, f_L, P)``: shadow (evaluated at foliated receivers only, NaN at bare
+    segments, whose light is 0 whatever S is), intercepted light max(0, R - S) (0 where not
+    foliated),
     f_L = max(0, (I/R - a_L) / (1 - a_L)) and production P = p_r sum I.
     """
     q = q_max_of(p["shadow_len"], p["voxel_size"])
-    S = shadow_fast(voxel_coords(mid, p["voxel_size"]), p["shadow_max"], q)
+    foliated = wf > FOLIATED
+    S = shadow_fast(voxel_coords(mid, p["voxel_size"]), p["shadow_max"], q, receivers=foliated)
     R = p["radiation"]
-    I = np.where(wf > FOLIATED, np.maximum(0.0, R - S), 0.0)
+    I = np.zeros(S.shape)
+    I[foliated] = np.maximum(0.0, R - S[foliated])
     ip = I / R
     aL = p["fl_threshold"]
     fL = np.maximum(0.0, (ip - aL) / (1.0 - aL))
@@ -202,8 +217,9 @@ class LignumView:
     """Read-only view of the state after step c of year ``t`` (passed to ``on_step``).
 
     Attributes are copies over the live rows (in output order): ``start``, ``axis``, ``length``,
-    ``radius``, ``heartwood_radius``, ``foliage``, ``age``, ``order``, ``is_dead``, ``shadow``,
-    ``light`` (I), ``f_L``; scalars ``t``, ``P``, ``M``, ``root_mass``. :meth:`tree` builds the
+    ``radius``, ``heartwood_radius``, ``foliage``, ``age``, ``order``, ``is_dead``, ``shadow``
+    (S; NaN at bare segments, where it is not needed), ``light`` (I), ``f_L``; scalars ``t``,
+    ``P``, ``M``, ``root_mass``. :meth:`tree` builds the
     output table exactly as a ``years = t`` run would return it.
     """
 
@@ -481,8 +497,28 @@ class _Simulation:
         ar = p["root_per_foliage"]
 
         def G(lam: float) -> float:
+            """G(lambda) of A.7, evaluated directly (O(n))."""
             extra = np.maximum(0.0, Ah + lam * lam * B + C - A)
             return balance - ((1 + ar) * lam * lam * sumW + rho * lam ** 3 * sumV + rho * float(np.dot(Lw, extra)))
+
+        # the same function in O(log n): segment i adds L_i (base_i + lam^2 B_i) once lam^2
+        # passes its threshold max(0, -base_i / B_i); prefix sums over the sorted thresholds
+        base = (Ah + C - A)[alive_idx]
+        Bl = B[alive_idx]
+        Ll = st.length[alive_idx]
+        pos = Bl > 0
+        const = float(np.dot(Ll[~pos], np.maximum(0.0, base[~pos])))
+        thr = np.maximum(0.0, -base[pos] / Bl[pos])
+        o = np.argsort(thr, kind="stable")
+        thr = thr[o]
+        cLb = np.concatenate(([0.0], np.cumsum((Ll[pos] * base[pos])[o])))
+        cLB = np.concatenate(([0.0], np.cumsum((Ll[pos] * Bl[pos])[o])))
+
+        def G_fast(lam: float) -> float:
+            l2 = lam * lam
+            k = int(np.searchsorted(thr, l2, side="right"))
+            wood = const + cLb[k] + l2 * cLB[k]
+            return balance - ((1 + ar) * l2 * sumW + rho * l2 * lam * sumV + rho * wood)
 
         lam = 0.0
         futile = False
@@ -492,11 +528,14 @@ class _Simulation:
                 futile = True
             else:
                 hi = 1.0
-                while G(hi) >= 0:
+                while G_fast(hi) >= 0:
                     hi *= 2.0
                     if hi > 1e12:
                         raise _Failed("negative_balance", "lambda bracket failed")  # unreachable in practice
-                lam = brentq(G, 0.0, hi, xtol=1e-12, rtol=1e-12, maxiter=500)
+                if G_fast(0.0) <= 0:  # rounding of the prefix form at the bracket end
+                    lam = brentq(G, 0.0, hi, xtol=1e-12, rtol=1e-12, maxiter=500)
+                else:
+                    lam = brentq(G_fast, 0.0, hi, xtol=1e-12, rtol=1e-12, maxiter=500)
         if tr is not None:
             tr.lam = lam
             tr.G_at_lam = G(lam) if ns and not futile else float("nan")

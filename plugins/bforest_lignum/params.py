@@ -20,6 +20,7 @@ from typing import Mapping
 from bforest_core.interfaces import ParameterSpec
 
 BUD_TABLES = ("p98", "s08")
+PAIRS = ("lr", "q", "r_env")
 PRESETS = ("sf_synthetic", "sf_real", "p98", "s08", "sf_test16")
 
 
@@ -146,9 +147,21 @@ def parameter_specs(preset: str) -> list[ParameterSpec]:
 
 
 def normalise_inputs(params: Mapping[str, object]) -> dict:
-    """Map the categorical spellings to their integer codes (``bud_table="s08"`` -> 1,
-    ``collision=True`` -> 1); other values are passed through."""
+    """Expand ``(mean, sd)`` pairs (``lr=(0.009, 0.001)`` -> ``lr_mean``, ``lr_sd``) and map the
+    categorical spellings to their integer codes (``bud_table="s08"`` -> 1, ``collision=True``
+    -> 1); other values are passed through."""
     out = dict(params)
+    for pair in PAIRS:  # the spec's (mean, sd) spelling: lr=(0.009, 0.001)
+        if pair in out:
+            v = out.pop(pair)
+            try:
+                mean, sd = v
+            except (TypeError, ValueError):
+                raise ValueError(f"parameter {pair!r} must be a (mean, sd) pair, got {v!r}") from None
+            for key, val in ((f"{pair}_mean", mean), (f"{pair}_sd", sd)):
+                if key in out and out[key] != val:
+                    raise ValueError(f"parameter {pair!r} conflicts with {key!r} = {out[key]!r}")
+                out[key] = val
     bt = out.get("bud_table")
     if isinstance(bt, str):
         if bt not in BUD_TABLES:

@@ -127,6 +127,8 @@ class ObjectiveConfig(_Strict):
     seed_mode: Literal["fixed", "per_evaluation"] = Field(
         "fixed", description="fixed: the same model seed(s) for every evaluation (the paper); "
                              "per_evaluation: from the run seed and the evaluation index")
+    model_seeds: Optional[list[int]] = Field(
+        None, description="explicit model seeds held fixed for every evaluation (overrides seeds/seed_mode)")
     weights: Optional[dict[str, float]] = Field(None, description="weight per data set (default equal)")
     penalty: float = Field(1.0, description="distance of a failed simulation")
     timeout: Optional[float] = Field(60.0, gt=0, description="seconds before a simulation is stopped (None: no limit)")

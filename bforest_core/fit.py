@@ -61,6 +61,7 @@ class Evaluator:
         self.progress = progress
         self.stop = cfg.stop
         self.k = cfg.objective.seeds
+        self.explicit_seeds = list(cfg.objective.model_seeds) if cfg.objective.model_seeds else None
         self.mode = cfg.objective.seed_mode
 
     def _params(self, x) -> dict:
@@ -99,7 +100,7 @@ class Evaluator:
             if pr.stopped:
                 continue
             params = self._params(x)
-            seeds = model_seeds(self.cfg.seed, self.k, self.mode, self.next_index)
+            seeds = self.explicit_seeds or model_seeds(self.cfg.seed, self.k, self.mode, self.next_index)
             key = self._key(params, seeds)
             if self.cfg.objective.cache and key in self.cache:
                 out[r] = self.cache[key]

@@ -184,3 +184,10 @@ def test_cli_fit_bad_input_one_line(toy_plugin, tmp_path, capsys):
     assert err.startswith("error: ") and "ssm.free.angle" in err and "\n" not in err
     assert main(["fit", str(tmp_path / "missing.toml")]) == 2
     assert "file not found" in capsys.readouterr().err
+
+
+def test_explicit_model_seeds(toy_plugin, tmp_path):
+    p = toy_config(tmp_path, budget=8)
+    p.write_text(p.read_text() + "\n[objective]\nmodel_seeds = [2, 5]\n")
+    bf.fit(bf.load_config(p), tmp_path / "run", progress=False)
+    assert {tuple(e.seeds) for e in RunStore.open(tmp_path / "run").evaluations()} == {(2, 5)}

@@ -132,3 +132,24 @@ def test_large_random_tree_orders_consistent():
         ch = np.flatnonzero(parent == p)
         if ch.size:
             assert vol[t.extension[p]] == vol[ch].max()
+
+
+def test_rebuilding_keeps_axes_bit_identical_and_source_topology():
+    rng = np.random.default_rng(1)
+    t = hand_tree()
+    ax = rng.normal(size=(7, 3))
+    ax /= np.linalg.norm(ax, axis=1)[:, None]
+    t = Tree(t.start, ax, t.length, t.radius, t.parent, t.extension)
+    for rule in ("thickest", "subtree", "source"):
+        t2 = t.with_topology(rule)
+        assert np.array_equal(t2.axis, t.axis)
+    assert t.with_topology("thickest").with_topology("source").equals(t)
+
+
+def test_resort_renumbers_source_extension():
+    # rows out of order (child before parent), built under thickest with the file's own branching kept
+    ext = np.array([-1, 0, -1])
+    t = Tree([[0, 0, 1], [0, 0, 0], [0, 0, 1]], [[0, 0, 1], [0, 0, 1], [1, 0, 0]], [1, 1, 1], [0.05, 0.2, 0.06],
+             [1, -1, 1], ext, topology="thickest", extras={"_source_extension": ext})
+    assert t.parent.tolist() == [-1, 0, 0] and t.extension[0] == 2  # thicker lateral continues
+    assert t.with_topology("source").extension.tolist() == [1, -1, -1]

@@ -16,7 +16,11 @@ Two engines:
 """
 from __future__ import annotations
 
+import sys
+
 import numpy as np
+
+_LOW_BYTE = 0 if sys.byteorder == "little" else 7  # byte holding the last mantissa bit
 
 STATISTICS = ("ks", "cvm", "ad", "w1", "energy", "l1", "l2")
 ALIASES = {"wasserstein": "w1"}
@@ -80,10 +84,10 @@ def ks_encoded(Xs: np.ndarray, Y: np.ndarray | None = None, *, A: np.ndarray | N
 
     The fast path of a fit. The sample label is written into the last mantissa bit (data
     cleared, model set), the pooled block is sorted once with NumPy's vectorised sort, and a
-    cumulative sum of the labels gives the walk ``w_k = m c_x(k) - n c_y(k) = n m (F1 - F2)``
-    at every pooled position. This costs one sort of the stacked block -- the floor of any
-    exact method -- plus a few linear passes, instead of a sort of the model side and
-    ``m log n`` binary searches.
+    positions of the model labels give the extremes of the walk
+    ``w_k = m c_x(k) - n c_y(k) = n m (F1 - F2)``. This costs one sort of the stacked block --
+    the floor of any exact method -- plus a few linear passes, instead of a sort of the model
+    side and ``m log n`` binary searches.
 
     Exactness: clearing/setting the last bit keeps the order of values that differ in more than
     the last bit, and ties within one sample do not change the supremum (between two points of
@@ -121,12 +125,19 @@ def ks_encoded(Xs: np.ndarray, Y: np.ndarray | None = None, *, A: np.ndarray | N
     yb = bits[:, n:]
     np.bitwise_or(yb, 1, out=yb)
     buf.sort(axis=1)
-    w = np.bitwise_and(bits, 1)
-    np.multiply(w, -N, out=w)
-    w += m                       # +m for a data point, -n for a model point
-    np.cumsum(w, axis=1, out=w)
-    D = np.maximum(w.max(axis=1), -w.min(axis=1)) * (1.0 / (n * m))
-    near = np.bitwise_xor(bits[:, 1:], bits[:, :-1], out=w[:, :-1]) == 1
+    # label = last bit = lowest byte's bit 0; positions of the model points per row
+    lab = np.bitwise_and(buf.view(np.uint8)[:, _LOW_BYTE::8], 1).view(bool)
+    q = np.flatnonzero(lab).reshape(B, m)
+    q -= (np.arange(B, dtype=np.int64) * N)[:, None]
+    # The walk w = n m (F1 - F2) rises by m at a data point and falls by n at a model point, so
+    # its maximum is just before a model point (or 0) and its minimum just after one. After the
+    # j-th model point (pooled 0-based position q_j) q_j - j + 1 data points have been seen.
+    jm1 = np.arange(m, dtype=np.int64)
+    q -= jm1
+    q *= m
+    q -= (jm1 + 1) * n                          # w just after model point j
+    D = np.maximum(np.maximum(q.max(axis=1) + n, 0), -q.min(axis=1)) * (1.0 / (n * m))
+    near = np.bitwise_xor(bits[:, 1:], bits[:, :-1]) == 1
     if near.any():
         rows = np.flatnonzero(near.any(axis=1))
         Yr = Y[rows] if Y is not None else A[rows] @ UT

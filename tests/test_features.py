@@ -440,3 +440,26 @@ def test_real_tables_are_finite():
     U = fs.extract(t)
     assert all(np.isfinite(v).all() for v in U.values())
     assert sum(fs.last_dropped.values()) == 0
+
+
+@pytest.mark.parametrize("name,branches", [("pine_ruotsinkyla_1.mat", 805), ("pine_ruotsinkyla_2.mat", 587),
+                                           ("pine_ruotsinkyla_3.mat", 300), ("archi_tree1_treeqsm_v23.txt", 233),
+                                           ("coffeetree_treeqsm_optqsm.mat", 82),
+                                           ("itsme_qsm_tree_v240.mat", 410), ("itsme_qsm_trunk.mat", 1)])
+def test_real_source_topology_branch_counts(name, branches):
+    # spec §7: 'source' reproduces TreeQSM's branch count (after detached fragments are removed)
+    assert read_or_skip(name).with_topology("source").n_branches == branches
+
+
+@pytest.mark.parametrize("name,share,share_stored", [("pine_ruotsinkyla_3.mat", 59, 54), ("pine_ruotsinkyla_1.mat", 49, 45),
+                                                     ("wytham_tf1.mat", 39, 35), ("itsme_qsm_tree_v240.mat", 20, 20),
+                                                     ("coffeetree_treeqsm_optqsm.mat", 18, 18)])
+def test_real_fork_shares_where_thickest_is_not_the_qsm_continuation(name, share, share_stored):
+    # spec §1.1: share of forks (>= 2 children) whose thickest child is not TreeQSM's continuation
+    t = read_or_skip(name).with_topology("source")
+    th = t.with_topology("thickest")
+    forks = np.flatnonzero(np.bincount(t.parent[1:], minlength=t.n) >= 2)
+    differ = th.extension[forks] != t.extension[forks]
+    stored = t.extension[forks] >= 0
+    assert round(100 * differ.mean()) == share
+    assert round(100 * differ[stored].mean()) == share_stored

@@ -173,6 +173,12 @@ class FeatureSet(Component):
         """Resolve data-dependent choices (e.g. ``"2+"`` orders) and check minimum sizes on the
         data tree(s), once at set-up. Default: nothing to do."""
 
+    def resolved_settings(self) -> dict:
+        """Settings with the data-dependent choices of :meth:`prepare` resolved, so that a
+        model-side instance built from them extracts exactly the same tables (default: the
+        settings as given)."""
+        return self.settings.model_dump()
+
     @abc.abstractmethod
     def extract(self, tree) -> dict[str, np.ndarray]:
         """Set name -> ``(n_i, d_i)`` float64 array (rows with NaN dropped per ``nan_policy``)."""

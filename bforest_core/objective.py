@@ -80,17 +80,7 @@ def build_target(cfg, trees=None) -> Target:
     fs.prepare(trees)
     U = fs.extract_pooled(trees)
     cols = {k: fs.columns(k) for k in fs.set_names}
-    return Target(trees, U, cols, resolved_feature_settings(fs))
-
-
-def resolved_feature_settings(fs) -> dict:
-    """Settings of a prepared feature set with data-dependent choices resolved (so the model
-    side extracts exactly the same sets)."""
-    s = fs.settings.model_dump()
-    resolved = getattr(fs, "resolved_sets", None)
-    if resolved is not None:
-        s["sets"] = list(resolved)
-    return s
+    return Target(trees, U, cols, fs.resolved_settings())
 
 
 # ---------------------------------------------------------------------------------- worker side

@@ -144,7 +144,7 @@ def real_tree_section() -> str:
 def stand_mates_section(out, cfg, summ) -> list[str]:
     """Distances of the clones to pine 3 against those of its two stand-mates (same features,
     distance and data-side normalisation as the fit)."""
-    from bforest_core.objective import build_target, feature_set_for, resolved_feature_settings
+    from bforest_core.objective import build_target
     tgt = build_target(cfg)
     fs = bf.component("features", cfg.features.kind, **tgt.feature_settings)
     dist = bf.component("distance", cfg.distance.kind, **cfg.distance.model_dump(exclude={"kind"}))
@@ -161,8 +161,6 @@ def stand_mates_section(out, cfg, summ) -> list[str]:
              f"subtree topology; sets {', '.join(tgt.U)}):", "",
              "| tree | distance to pine 3 | per set |", "|---|---|---|"]
     set_names = list(tgt.U)
-    for s in set_names:
-        pass
     per_clone = {s: np.array([r["per_set"][s] for r in summ["rows"] if r.get("status") == "ok"], float) for s in set_names}
     lines.append(f"| clones (n = {clone_d.size}): median [min, max] | {np.median(clone_d):.3f} "
                  f"[{clone_d.min():.3f}, {clone_d.max():.3f}] | " +

@@ -144,7 +144,10 @@ class SSM(Component):
         return {p.name: p.default for p in self.parameters}
 
     def resolve_params(self, params: Mapping[str, float]) -> dict[str, float]:
-        """Defaults overridden by ``params``; unknown names raise ``ValueError``."""
+        """Defaults overridden by ``params``.
+
+        Integer parameters are rounded and returned as ``int``. Raises ``ValueError`` naming
+        the parameter for an unknown name or a value that is not a finite number."""
         known = self.defaults()
         unknown = sorted(set(params) - set(known))
         if unknown:
@@ -153,8 +156,15 @@ class SSM(Component):
         out = dict(known)
         out.update(params)
         for p in self.parameters:
+            v = out[p.name]
+            try:
+                fv = float(v)
+            except (TypeError, ValueError):
+                raise ValueError(f"parameter {p.name!r} of SSM '{self.name}' must be a number, got {v!r}") from None
+            if not math.isfinite(fv):
+                raise ValueError(f"parameter {p.name!r} of SSM '{self.name}' must be finite, got {v!r}")
             if p.integer:
-                out[p.name] = int(round(out[p.name]))
+                out[p.name] = int(round(fv))
         return out
 
 

@@ -101,8 +101,8 @@ def test_component_registered_and_settings_checked():
     ({"shadow_a": 2.5, "shadow_b": 2.0}, "shadow_a"),
     ({"shadow_a": -0.1}, "shadow_a"),
     ({"depth": 1}, "depth"),
-    ({"depth": 2.5}, "depth"),
-    ({"max_iter": 7.5}, "max_iter"),
+    ({"depth": 1.4}, "depth"),           # integer parameters are rounded (SSM contract): 1
+    ({"max_iter": "many"}, "max_iter"),
     ({"branch_angle_sd": -1.0}, "branch_angle_sd"),
     ({"lambda_sd": -0.01}, "lambda_sd"),
     ({"ran": 0.7, "vert": 0.4}, "ran"),

@@ -174,15 +174,7 @@ def normalise_inputs(params: Mapping[str, object]) -> dict:
 
 def validate(p: Mapping[str, float]) -> None:
     """Raise ``ValueError`` naming the first invalid parameter of a resolved set."""
-    for name in NAMES:
-        v = p[name]
-        try:
-            fv = float(v)
-        except (TypeError, ValueError):
-            raise ValueError(f"parameter {name!r} must be a number, got {v!r}") from None
-        if not math.isfinite(fv):
-            raise ValueError(f"parameter {name!r} must be finite, got {v!r}")
-
+    # numbers and finiteness are checked (and integers rounded) by SSM.resolve_params
     def need(cond: bool, name: str, what: str):
         if not cond:
             raise ValueError(f"parameter {name!r} {what}, got {p[name]!r}")

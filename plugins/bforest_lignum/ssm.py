@@ -54,13 +54,7 @@ class LignumSSM(SSM):
     def resolve_params(self, params: Mapping[str, object]) -> dict:
         """Preset defaults overridden by ``params`` (categorical spellings mapped to codes);
         unknown names and non-numeric values raise ``ValueError``; the result is validated."""
-        params = P.normalise_inputs(params)
-        for k, v in params.items():
-            if k in P.NAMES and (isinstance(v, bool) or not isinstance(v, numbers.Real)):
-                if isinstance(v, bool) and k == "collision":
-                    continue
-                raise ValueError(f"parameter {k!r} must be a number, got {v!r}")
-        out = super().resolve_params(params)
+        out = super().resolve_params(P.normalise_inputs(params))
         P.validate(out)
         return out
 

@@ -61,29 +61,9 @@ PARAMETERS: list[ParameterSpec] = [
 INTEGER_NAMES = tuple(p.name for p in PARAMETERS if p.integer)
 
 
-def check_integers(raw: Mapping[str, float]) -> None:
-    """Reject non-integer values of integer parameters *before* they are rounded."""
-    for name in INTEGER_NAMES:
-        if name in raw:
-            v = raw[name]
-            try:
-                fv = float(v)
-            except (TypeError, ValueError):
-                raise ValueError(f"SOT parameter {name!r} must be an integer, got {v!r}") from None
-            if not math.isfinite(fv) or abs(fv - round(fv)) > 1e-9:
-                raise ValueError(f"SOT parameter {name!r} must be an integer, got {v!r}")
-
-
 def validate(p: Mapping[str, float]) -> None:
     """Raise ``ValueError`` naming the first invalid parameter of a resolved parameter dict."""
-    for name, v in p.items():
-        try:
-            fv = float(v)
-        except (TypeError, ValueError):
-            raise ValueError(f"SOT parameter {name!r} must be a number, got {v!r}") from None
-        if not math.isfinite(fv):
-            raise ValueError(f"SOT parameter {name!r} must be finite, got {v!r}")
-
+    # numbers and finiteness are checked (and integers rounded) by SSM.resolve_params
     def need(ok: bool, name: str, rule: str):
         if not ok:
             raise ValueError(f"invalid SOT parameter {name!r} = {p[name]!r}: must be {rule}")

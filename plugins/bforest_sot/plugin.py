@@ -17,7 +17,7 @@ from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
 from bforest_core.tree import Tree
 
 from .model import CHILD, GrowthFailure, SOTGrowth
-from .params import PARAMETERS, check_integers, validate
+from .params import PARAMETERS, validate
 
 MODEL_VERSION = "1.0"
 
@@ -119,7 +119,6 @@ class SOT(SSM):
             ``too_many_segments`` (a cycle would exceed ``max_live_segments``) or ``no_root``;
             carries the partial tree (widths updated).
         """
-        check_integers(params)
         p = self.resolve_params(params)
         p = {k: (int(v) if k in ("max_iter", "depth") else float(v)) for k, v in p.items()}
         validate(p)

@@ -195,6 +195,7 @@ def write_doc():
         if (RUNS / name / "best.json").exists():
             write_report(RUNS / name)
     lig, lig_s = recovery_table("lignum_synthetic")
+    lig3, lig3_s = recovery_table("lignum_synthetic_k3")
     sot, sot_s = recovery_table("sot_synthetic")
     shown = figures()
 
@@ -226,6 +227,16 @@ sets of the first-order branches, pooled in one table), GA population 40, elite 
 
 {lig}
 {img("lignum_synthetic_seed1", "trees.png", "LIGNUM synthetic target (seed 1) and the best fit (model seed 2)")}
+
+### 1b. Doing better than the protocol: three model seeds per evaluation
+
+With one model seed the fit also fits that realisation's noise, and the GA stops once 10
+generations bring no improvement. Configs `lignum_synthetic_k3_seed*.toml`: each evaluation is
+the mean distance over model seeds 2, 3 and 4 (common random numbers: the same three seeds for
+every parameter vector), the GA runs all 22 generations with intermediate crossover; everything
+else as above.
+
+{lig3}
 {img("lignum_synthetic_seed1", "convergence.png", "GA convergence of the LIGNUM recovery (target seed 1)")}
 
 ## 2. Synthetic recovery, SOT (5 parameters)
@@ -251,7 +262,7 @@ branches), GA population 50, elite 2, 24 generations; then 100 clones.
 {img("lignum_pine3", "set_S1.png", "Data set S¹: QSM (blue) against the best fit (red)")}
 """
     DOC.write_text(text, encoding="utf-8")
-    (RUNS / "summary.json").write_text(json.dumps({"lignum": lig_s, "sot": sot_s}, indent=2))
+    (RUNS / "summary.json").write_text(json.dumps({"lignum": lig_s, "lignum_k3": lig3_s, "sot": sot_s}, indent=2))
     print(f"wrote {DOC}")
 
 
@@ -263,7 +274,7 @@ def main():
     RUNS.mkdir(parents=True, exist_ok=True)
     if not args.report:
         plan = [f"sot_synthetic_seed{s}" for s in (1, 2, 3)] + [f"lignum_synthetic_seed{s}" for s in (1, 2, 3)] + \
-               ["lignum_pine3"]
+               ["lignum_pine3"] + [f"lignum_synthetic_k3_seed{s}" for s in (1, 2, 3)]
         for name in plan:
             if args.only and not name.startswith(args.only):
                 continue

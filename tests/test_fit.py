@@ -191,3 +191,17 @@ def test_explicit_model_seeds(toy_plugin, tmp_path):
     p.write_text(p.read_text() + "\n[objective]\nmodel_seeds = [2, 5]\n")
     bf.fit(bf.load_config(p), tmp_path / "run", progress=False)
     assert {tuple(e.seeds) for e in RunStore.open(tmp_path / "run").evaluations()} == {(2, 5)}
+
+
+def test_compare_optimizers_on_equal_budgets(toy_plugin, tmp_path):
+    from bforest_core.compare import compare
+    res = compare(toy_config(tmp_path), ["ga", "de", "toy-random"], budget=16, repeats=2,
+                  out_dir=tmp_path / "cmp")
+    assert [t["optimizer"] for t in res["table"]] == ["ga", "de", "toy-random"]
+    assert len(res["runs"]) == 6 and all(r["evaluations"] == 16 for r in res["runs"])
+    for name, curves in res["curves"].items():
+        assert len(curves) == 2 and all(len(c) == 16 and (np.diff(c) <= 0).all() for c in curves)
+    # repeats use different run seeds, so their evaluation sequences differ
+    assert not np.array_equal(res["curves"]["ga"][0], res["curves"]["ga"][1])
+    assert res["figure"].exists() and res["figure"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "median best" in res["table_text"] and (tmp_path / "cmp" / "compare.json").exists()

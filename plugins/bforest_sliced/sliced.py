@@ -334,6 +334,7 @@ class SlicedDistance(Distance):
         self._columns = {k: tuple(v) for k, v in (columns or {}).items()}
         for k, ud in U_data.items():
             ud = _as_table(ud, f"data set '{k}'")
+            _check_finite(ud, "data", k)
             norm = fit_normalization(ud, self.settings.normalize, self._columns.get(k), set_name=k)
             self._prepared[k] = self._make_state(ud, norm, set_name=k)
 
@@ -342,7 +343,6 @@ class SlicedDistance(Distance):
         return {k: st.norm.to_dict() for k, st in self._prepared.items()}
 
     def _make_state(self, ud: np.ndarray, norm: Normalization, digest: str = "", set_name=None) -> _PairState:
-        _check_finite(ud, "data", set_name)
         d = ud.shape[1]
         A = self.directions(d)
         A_eff = np.ascontiguousarray(A / norm.scale[None, :])
@@ -376,6 +376,7 @@ class SlicedDistance(Distance):
                 self._cache.move_to_end(key)
                 return hit
         # a prepared set keeps its frozen transform; otherwise fit it on this data table
+        _check_finite(ud, "data", set_name)
         norm = st.norm if st is not None else fit_normalization(ud, self.settings.normalize, cols, set_name)
         new = self._make_state(ud, norm, dig, set_name)
         with self._lock:
@@ -559,6 +560,7 @@ class SlicedDistance(Distance):
             if nd == 0 or nm == 0:
                 pairs.append(dict(name=k, const=self.empty_cost(max(nd, nm))))
                 continue
+            _check_finite(um, "model", k)
             st = self._state(k, ud)
             P = st.A_eff @ np.concatenate([ud, um]).T        # (L, N)
             order = np.argsort(P, axis=1, kind="stable")

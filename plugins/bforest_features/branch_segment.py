@@ -334,6 +334,15 @@ class BranchSegmentFeatures(FeatureSet):
     def set_names(self) -> list[str]:
         return list(self._active)
 
+    def resolved_settings(self) -> dict:
+        """Settings for a model-side instance: the sets taking part after :meth:`prepare`
+        (small sets dropped) with their resolved orders (open ranges, missing orders)."""
+        s = self.settings.model_dump()
+        s["sets"] = list(self._active)
+        if self.prepared or any(v is not None for v in self._orders.values()):
+            s["orders"] = {k: list(self._orders[k]) for k in self._active if self._orders[k] is not None}
+        return s
+
     @property
     def resolved_sets(self) -> list[str]:
         """The sets taking part after :meth:`prepare` (small sets dropped). Together with the

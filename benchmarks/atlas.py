@@ -111,7 +111,7 @@ def plot(M, names, groups, path: Path, lines: int):
         ax.set_yticks(range(k), labels, fontsize=7)
         ax.set_xlabel("model side (column)")
         ax.set_ylabel("data side (row): normalisation fitted here")
-        ax.set_title(f"$S^1$ (segments of order 1)" if s == "S1" else "$B^1$ (branches of order 1)")
+        ax.set_title("$S^1$ (segments of order 1)" if s == "S1" else "$B^1$ (branches of order 1)")
     fig.colorbar(im, ax=axes, shrink=0.7, label="sliced KS distance")
     fig.suptitle(f"Sliced KS distance between the sample QSMs: topology 'subtree', {lines} gp2 lines, "
                  "zscore + circular angles; grey = both tables empty", fontsize=11)
@@ -230,7 +230,7 @@ def write_doc(path: Path, names, groups, trees, res, S, lines: int, norm_res=Non
     if i3:
         i3 = i3[0]
         mates = [j for j in pine_idx if j != i3]
-        L.append(f"Pine 3 (the Silva Fennica tree) to its stand-mates under `subtree`: S^1 "
+        L.append("Pine 3 (the Silva Fennica tree) to its stand-mates under `subtree`: S^1 "
                  + ", ".join(f"{M['S1'][i3, j]:.3f}" for j in mates) + "; B^1 "
                  + ", ".join(f"{M['B1'][i3, j]:.3f}" for j in mates) + ".\n")
     same = [i for i, n in enumerate(names) if n.startswith("coffeetree")]

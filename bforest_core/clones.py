@@ -2,12 +2,11 @@
 from __future__ import annotations
 
 import csv
-import math
 from pathlib import Path
 
 import numpy as np
 
-from .config import config_to_dict, load_config, ssm_settings
+from .config import config_to_dict, load_config
 from .errors import SimulationFailed
 from .objective import build_target, clone_seeds, init_worker, _CTX
 from .registry import component

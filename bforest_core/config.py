@@ -25,7 +25,6 @@ third-party plugin's settings are validated exactly like a bundled one's. Exampl
 from __future__ import annotations
 
 import functools
-import json
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union
@@ -34,9 +33,7 @@ import pydantic
 from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
 from .errors import ConfigError
-from .interfaces import KINDS
 from .registry import discover
-from .tree import TOPOLOGY_RULES
 
 #: config section -> component kind
 SECTIONS = {"ssm": "ssm", "features": "features", "distance": "distance", "optimizer": "optimizer",

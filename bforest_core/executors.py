@@ -9,7 +9,6 @@ from __future__ import annotations
 import concurrent.futures as cf
 import multiprocessing as mp
 import os
-from typing import Any, Callable, Iterator, Sequence
 
 from pydantic import Field
 

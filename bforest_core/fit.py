@@ -8,7 +8,6 @@ uninterrupted one.
 from __future__ import annotations
 
 import json
-import math
 import time
 import tomllib
 from dataclasses import dataclass, field
@@ -17,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from .config import config_to_dict, dump_config, load_config, parse_config, section_settings, ssm_settings
+from .config import config_to_dict, load_config, parse_config, section_settings, ssm_settings
 from .errors import BayesForestError, ConfigError
 from .interfaces import Problem
 from .objective import (Target, _simulate_with_timeout, _Timeout, build_target, evaluate_task, init_worker,
@@ -234,7 +233,6 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     evaluator = Evaluator(cfg, store, executor, names, problem, progress=bar)
     problem.evaluate = evaluator
     cfg_dict = config_to_dict(cfg)
-    t0 = time.monotonic()
     try:
         with executor.started(init_worker, (cfg_dict, tgt.U, tgt.columns, tgt.feature_settings)):
             result = optimizer.minimize(problem)

@@ -11,10 +11,13 @@ import abc
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Iterable, Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Iterator, Mapping, Sequence
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
+
+if TYPE_CHECKING:
+    from .tree import Tree
 
 KINDS = ("qsm_reader", "qsm_writer", "ssm", "features", "distance", "optimizer", "executor")
 

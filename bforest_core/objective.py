@@ -12,15 +12,13 @@ never from worker state, so results do not depend on the executor or the number 
 """
 from __future__ import annotations
 
-import math
 import os
 import signal
 import socket
 import threading
 import time
-import traceback
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 

@@ -24,15 +24,12 @@ import csv
 import datetime as _dt
 import html as _html
 import json
-import math
 import re
 import time
-import traceback
 from collections import Counter
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 

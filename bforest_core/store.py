@@ -18,12 +18,11 @@ how ``--resume`` continues without repeating work.
 from __future__ import annotations
 
 import json
-import math
 import sqlite3
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 from .errors import BayesForestError
 

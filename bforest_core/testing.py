@@ -54,7 +54,6 @@ from __future__ import annotations
 import json
 import keyword
 import math
-import os
 import pickle
 import time
 from dataclasses import dataclass, field
@@ -65,9 +64,7 @@ import numpy as np
 import pydantic
 
 from .errors import SimulationFailed
-from .interfaces import (INTERFACES, KINDS, SSM, Component, ComponentSettings, Distance, Executor,
-                         FeatureSet, OptimizeResult, Optimizer, ParameterSpec, Problem, QSMReader,
-                         QSMWriter)
+from .interfaces import (INTERFACES, KINDS, ComponentSettings, OptimizeResult, ParameterSpec, Problem)
 from .tree import Tree
 
 __all__ = ["ConformanceError", "Check", "CheckResult", "Report", "check_tree", "sample_tree",

@@ -5,7 +5,6 @@ parameter specs (the same models `bforest config schema` prints).
 """
 from __future__ import annotations
 
-import typing
 from pathlib import Path
 
 from bforest_core.config import (ClonesConfig, FreeParameter, GeneratedTarget, ObjectiveConfig, ReportConfig,

@@ -19,6 +19,12 @@ def qsm_path(name: str) -> Path:
     return p
 
 
+def read_sample(name: str, **options):
+    """A real sample QSM read with the bundled readers (skips when the data folder is absent)."""
+    from bforest_core import read_qsm
+    return read_qsm(qsm_path(name), **options)
+
+
 @pytest.fixture
 def qsm_dir() -> Path:
     if not QSM_DIR.is_dir():

@@ -15,7 +15,7 @@ from bforest_core import SSM, ComponentSettings, Distance, FeatureSet, OptimizeR
 from bforest_core.testing import (ConformanceError, check_component, check_distance, check_feature_set,
                                   check_optimizer, check_reader, check_ssm, check_tree, check_writer,
                                   component_checks, run_all, sample_tables, sample_tree, ssm_checks)
-from conftest import QSM_DIR, qsm_path
+from conftest import qsm_path
 
 
 # ----------------------------------------------------------------------------- bundled components

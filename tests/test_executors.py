@@ -1,7 +1,5 @@
 import os
 
-import numpy as np
-import pytest
 
 import bforest_core as bf
 from bforest_core.objective import clone_seeds, model_seeds

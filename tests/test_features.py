@@ -9,7 +9,7 @@ import bforest_core as bf
 from bforest_core import ConfigError, Tree
 from bforest_features.branch_segment import (BranchSegmentFeatures, _segment_angles, azimuth_frame,
                                              branch_table, parse_set, segment_table)
-from conftest import hand_tree, qsm_path
+from conftest import hand_tree, read_sample
 
 S60, C60 = np.sin(np.radians(60)), np.cos(np.radians(60))
 
@@ -401,21 +401,10 @@ def test_registered_and_defaults():
 
 # ------------------------------------------------------------------------------ real data
 
-def read_or_skip(name, **options):
-    """Read a sample QSM, or skip when no installed reader handles it yet."""
-    path = qsm_path(name)
-    try:
-        return bf.read_qsm(path, **options)
-    except bf.PluginError as exc:
-        pytest.skip(f"no QSM reader plugin available to read {name}: {exc}")
-    except bf.QSMFormatError as exc:
-        if "unsupported file type" in str(exc) or "matches no known" in str(exc):
-            pytest.skip(f"no installed QSM reader handles {name} yet: {exc}")
-        raise
 
 
 def test_real_pine3_branch_counts_by_rule():
-    t = read_or_skip("pine_ruotsinkyla_3.mat")
+    t = read_sample("pine_ruotsinkyla_3.mat")
     src = t.with_topology("source")
     assert src.n_branches == 300
     fs = feats(sets=["S1"])
@@ -429,12 +418,12 @@ def test_real_pine3_branch_counts_by_rule():
 
 
 def test_real_coffee_branch_count():
-    t = read_or_skip("coffeetree_treeqsm_optqsm.mat")
+    t = read_sample("coffeetree_treeqsm_optqsm.mat")
     assert t.with_topology("source").n_branches == 82
 
 
 def test_real_tables_are_finite():
-    t = read_or_skip("pine_ruotsinkyla_1.mat")
+    t = read_sample("pine_ruotsinkyla_1.mat")
     fs = feats(sets=["S0+", "B1+"], angles="circular", topology="subtree")
     fs.prepare(t)
     U = fs.extract(t)
@@ -448,7 +437,7 @@ def test_real_tables_are_finite():
                                            ("itsme_qsm_tree_v240.mat", 410), ("itsme_qsm_trunk.mat", 1)])
 def test_real_source_topology_branch_counts(name, branches):
     # spec §7: 'source' reproduces TreeQSM's branch count (after detached fragments are removed)
-    assert read_or_skip(name).with_topology("source").n_branches == branches
+    assert read_sample(name).with_topology("source").n_branches == branches
 
 
 @pytest.mark.parametrize("name,share,share_stored", [("pine_ruotsinkyla_3.mat", 59, 54), ("pine_ruotsinkyla_1.mat", 49, 45),
@@ -456,7 +445,7 @@ def test_real_source_topology_branch_counts(name, branches):
                                                      ("coffeetree_treeqsm_optqsm.mat", 18, 18)])
 def test_real_fork_shares_where_thickest_is_not_the_qsm_continuation(name, share, share_stored):
     # spec §1.1: share of forks (>= 2 children) whose thickest child is not TreeQSM's continuation
-    t = read_or_skip(name).with_topology("source")
+    t = read_sample(name).with_topology("source")
     th = t.with_topology("thickest")
     forks = np.flatnonzero(np.bincount(t.parent[1:], minlength=t.n) >= 2)
     differ = th.extension[forks] != t.extension[forks]

@@ -5,7 +5,7 @@ import pytest
 import bforest_core as bf
 from bforest_core import Tree
 from bforest_core.metrics import crown_spread, dbh
-from conftest import hand_tree, qsm_path
+from conftest import hand_tree, read_sample
 
 S60 = np.sin(np.radians(60))
 
@@ -85,28 +85,18 @@ def test_relative_errors():
 
 # ------------------------------------------------------------------------------ real data
 
-def read_or_skip(name, **options):
-    path = qsm_path(name)
-    try:
-        return bf.read_qsm(path, **options)
-    except bf.PluginError as exc:
-        pytest.skip(f"no QSM reader plugin available to read {name}: {exc}")
-    except bf.QSMFormatError as exc:
-        if "unsupported file type" in str(exc) or "matches no known" in str(exc):
-            pytest.skip(f"no installed QSM reader handles {name} yet: {exc}")
-        raise
 
 
 @pytest.mark.parametrize("name,h,g", [("coffeetree_treeqsm_optqsm.mat", 3.72, 0.093),
                                       ("coffeetree_simpleforest.csv", 3.70, 0.094),
                                       ("coffeetree_archi.csv", 3.65, 0.086)])
 def test_real_coffee_tree_height_and_girth(name, h, g):
-    m = bf.classical_metrics(read_or_skip(name))
+    m = bf.classical_metrics(read_sample(name))
     assert m["height"] == pytest.approx(h, abs=0.005)
     assert m["girth"] == pytest.approx(g, abs=0.0005)
 
 
 def test_real_coffee_crown_spread():
-    t = read_or_skip("coffeetree_treeqsm_optqsm.mat")
+    t = read_sample("coffeetree_treeqsm_optqsm.mat")
     assert crown_spread(t) == pytest.approx(1.35, abs=0.005)
     assert crown_spread(t, empty_sectors="drop") == pytest.approx(1.80, abs=0.005)

@@ -308,7 +308,7 @@ def test_mat73_struct_and_struct_array_written_with_h5py(tmp_path):
             cyl_refs.append(g.ref)
         top = f.create_group("QSMs")
         top.attrs["MATLAB_class"] = np.bytes_("struct")
-        ds = top.create_dataset("cylinder", data=np.array(cyl_refs, dtype=h5py.ref_dtype).reshape(2, 1))
+        top.create_dataset("cylinder", data=np.array(cyl_refs, dtype=h5py.ref_dtype).reshape(2, 1))
     _mat73_header(p2)
     with pytest.warns(QSMReadWarning, match="holds 2 reconstructions"):
         first = bf.read_qsm(p2)

@@ -10,9 +10,9 @@ from scipy import stats
 import bforest_core as bf
 from bforest_core import ConfigError
 from bforest_sliced.directions import directions, net_points
-from bforest_sliced.sliced import SlicedDistance, fit_normalization, holm
+from bforest_sliced.sliced import fit_normalization, holm
 from bforest_sliced.stats import ks_encoded, ks_sorted, merge_sorted, stat_from_labels, stat_sorted
-from conftest import qsm_path
+from conftest import read_sample
 
 NETS = ("gp2", "sobol", "halton", "random")
 
@@ -447,16 +447,6 @@ def test_permutation_per_set_and_holm_and_determinism():
 
 # ------------------------------------------------------------------------------ real data (§3 table)
 
-def read_or_skip(name, **options):
-    path = qsm_path(name)
-    try:
-        return bf.read_qsm(path, **options)
-    except bf.PluginError as exc:
-        pytest.skip(f"no QSM reader plugin available to read {name}: {exc}")
-    except bf.QSMFormatError as exc:
-        if "unsupported file type" in str(exc) or "matches no known" in str(exc):
-            pytest.skip(f"no installed QSM reader handles {name} yet: {exc}")
-        raise
 
 
 def _wrap(deg):
@@ -475,7 +465,7 @@ def _embed(S):
     ("zscore", "circular", (0.313, 0.190, 0.120)),
 ])
 def test_real_pine3_normalisation_table(normalize, angles, expected):
-    tree = read_or_skip("pine_ruotsinkyla_3.mat")
+    tree = read_sample("pine_ruotsinkyla_3.mat")
     fs = bf.component("features", "branch-segment", sets=["S1"], topology="source", angles="linear")
     S = fs.extract(tree)["S1"]
     assert S.shape == (290, 4)

@@ -10,7 +10,7 @@ import pytest
 
 import bforest_core as bf
 from bforest_sot.light import LightField, shadow_kernel
-from bforest_sot.model import BUD, CHILD, EMPTY, STUB, accumulate, allocate, path_any
+from bforest_sot.model import BUD, CHILD, STUB, accumulate, allocate, path_any
 from bforest_sot.params import PARAMETERS
 from bforest_sot.plugin import SOT
 

@@ -18,7 +18,6 @@ import numpy as np
 
 import bforest_core as bf
 from bforest_core.clones import clones
-from bforest_core.store import RunStore
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]

@@ -49,7 +49,6 @@ from scipy.special import ndtr, ndtri
 from bforest_core.errors import SimulationFailed
 from bforest_core.tree import Tree
 
-from . import params as P
 from .shadow import q_max_of, shadow_fast, voxel_coords
 
 FOLIATED = 1e-5                        # W_f above this counts as foliated (light and P)

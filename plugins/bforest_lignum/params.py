@@ -13,7 +13,6 @@ defaults; parameters passed to ``simulate`` override them.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Mapping
 

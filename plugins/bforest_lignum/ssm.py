@@ -1,7 +1,6 @@
 """The ``lignum`` SSM component: simplified stochastic LIGNUM (spec ssm-models.md part A)."""
 from __future__ import annotations
 
-import numbers
 from typing import Callable, Literal, Mapping
 
 from pydantic import Field

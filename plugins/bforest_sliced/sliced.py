@@ -32,7 +32,7 @@ from pydantic import AliasChoices, Field, field_validator, model_validator
 from bforest_core.interfaces import ComponentSettings, Distance
 
 from .directions import directions as _directions
-from .stats import ALIASES, STATISTICS, ks_encoded, stat_from_labels, stat_sorted
+from .stats import ALIASES, ks_encoded, stat_from_labels, stat_sorted
 
 __all__ = ["SlicedDistance", "SlicedSettings", "Normalization", "fit_normalization",
            "PermutationResult", "holm"]

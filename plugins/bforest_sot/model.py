@@ -23,8 +23,8 @@ Random draws, all from one ``numpy.random.Generator(PCG64(seed))`` (spec B.7):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Any, Callable
+from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 

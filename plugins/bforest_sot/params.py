@@ -7,7 +7,6 @@ Ranges of the clone-noise sds are project choices (the spec gives only their def
 """
 from __future__ import annotations
 
-import math
 from typing import Mapping
 
 from bforest_core.interfaces import ParameterSpec

@@ -269,7 +269,7 @@ def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: flo
             "evaluation": ev.idx, "seeds": ev.seeds, "stop_reason": stop_reason,
             "n_evaluations": store.count(), "seconds": seconds,
             "target_metrics": target_metrics, "optimizer": cfg.optimizer.kind,
-            "diagnostics": _jsonable(getattr(result, "diagnostics", {}) or {})}
+            "diagnostics": _jsonable(store.write_diagnostics(getattr(result, "diagnostics", {}) or {}))}
     if ev.status != "ok":
         best["model_metrics"] = None
         best["note"] = f"no evaluation succeeded (best status: {ev.status})"

@@ -586,7 +586,7 @@ def mcmc_chain(diag: dict, names: list[str]):
 
 def _fig_mcmc(v: RunView):
     from .plotting import chain_figure, corner_figure
-    diag = (v.best or {}).get("diagnostics") or {}
+    diag = v.store.read_diagnostics()
     names = v.free_names
     got = mcmc_chain(diag, names)
     if got is None:
@@ -824,12 +824,12 @@ def _section_optimizer(doc: _Doc, v: RunView, figs: _Figures):
                      + ", ".join(f"{k} = {_fmt(val)}" for k, val in last.items()
                                  if isinstance(val, (int, float)) or val is None))
     doc.items(items)
-    diag = b.get("diagnostics") or {}
+    diag = v.store.read_diagnostics()
     scal = [[k, _fmt(val) if not isinstance(val, str) else val] for k, val in diag.items()
             if isinstance(val, (int, float, str, bool)) or val is None]
     arr = []
     for k, val in diag.items():
-        if isinstance(val, (list, tuple)) and k != "names":
+        if isinstance(val, (list, tuple, np.ndarray)) and k != "names":
             try:
                 arr.append([k, f"array of shape {np.shape(np.asarray(val, float))}"])
             except (TypeError, ValueError):

@@ -176,6 +176,43 @@ class RunStore:
             raise RunDirError(f"{self.path}: no {name} (has the fit finished?)")
         return json.loads(p.read_text(encoding="utf-8"))
 
+    # ------------------------------------------------------------------ optimiser diagnostics
+    def write_diagnostics(self, diagnostics: dict, max_inline: int = 64) -> dict:
+        """Split optimiser diagnostics: arrays with more than ``max_inline`` values (an MCMC
+        chain, a final population) go to ``diagnostics.npz``; the rest is returned for
+        ``best.json`` with ``"arrays"`` naming the stored keys."""
+        import numpy as np
+        small, big = {}, {}
+        for k, v in (diagnostics or {}).items():
+            arr = None
+            if isinstance(v, np.ndarray) or (isinstance(v, (list, tuple)) and v and isinstance(v[0], (list, tuple, np.ndarray))):
+                try:
+                    arr = np.asarray(v, dtype=float)
+                except (TypeError, ValueError):
+                    arr = None
+            if arr is not None and arr.size > max_inline:
+                big[k] = arr
+            else:
+                small[k] = v
+        path = self.path / "diagnostics.npz"
+        if big:
+            np.savez_compressed(path, **big)
+            small["arrays"] = sorted(big)
+        else:
+            path.unlink(missing_ok=True)
+        return small
+
+    def read_diagnostics(self) -> dict:
+        """The optimiser diagnostics of ``best.json`` with the stored arrays put back."""
+        import numpy as np
+        p = self.path / "best.json"
+        diag = dict(json.loads(p.read_text(encoding="utf-8")).get("diagnostics") or {}) if p.exists() else {}
+        npz = self.path / "diagnostics.npz"
+        if diag.pop("arrays", None) is not None and npz.exists():
+            with np.load(npz) as z:
+                diag.update({k: z[k] for k in z.files})
+        return diag
+
     def close(self) -> None:
         self._con.close()
 

@@ -221,7 +221,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     else:
         store = RunStore.create(run_dir, text, overwrite=overwrite)
     tgt = target if target is not None else build_target(cfg)
-    _save_target(store, tgt)
+    _save_target(store, tgt, cfg)
     ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
     names, lo, hi, ilo, ihi, integer = _free_specs(cfg, ssm)
     optimizer = component("optimizer", cfg.optimizer.kind, **section_settings(cfg, "optimizer"))
@@ -248,9 +248,23 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
                      history=store.log_records(), diagnostics=result.diagnostics)
 
 
-def _save_target(store: RunStore, tgt: Target) -> None:
-    import numpy as np
+def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
+    """The data tables, and the distance's frozen data-side transforms and directions, so every
+    number of the run can be recomputed from the run directory."""
     np.savez_compressed(store.path / "target_sets.npz", **tgt.U)
+    if cfg is not None:
+        dist = component("distance", cfg.distance.kind, **section_settings(cfg, "distance"))
+        dist.prepare(tgt.U, tgt.columns)
+        frozen = {"distance": cfg.distance.kind, "settings": section_settings(cfg, "distance"),
+                  "columns": tgt.columns}
+        if hasattr(dist, "normalizations"):
+            frozen["normalization"] = dist.normalizations()
+        store.write_json("distance.json", frozen)
+        dims = sorted({u.shape[1] for u in tgt.U.values() if u.ndim == 2})
+        try:
+            np.savez_compressed(store.path / "directions.npz", **{f"d{d}": dist.directions(d) for d in dims})
+        except NotImplementedError:
+            pass
     try:
         from .io import write_tree
         write_tree(tgt.trees[0], store.path / "target.txt")

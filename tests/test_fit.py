@@ -38,6 +38,10 @@ def test_fit_writes_run_directory_and_improves(toy_plugin, tmp_path):
     assert set(best) >= {"params", "distance", "per_set", "target_metrics", "model_metrics", "relative_errors"}
     assert best["params"]["noise"] == 2.0 and isinstance(best["params"]["segments"], int)
     assert (run / "config.toml").exists() and (run / "best_tree.txt").exists()
+    assert json.loads((run / "distance.json").read_text())["distance"] == "toy-distance"
+    # the toy model grows 2 cylinders per trunk segment: the written best tree is the best fit
+    assert bf.read_qsm(run / "best_tree.txt").n == 2 * best["params"]["segments"]
+    assert bf.read_qsm(run / "target.txt").n == 2 * 12
     assert bf.load_config(run / "config.toml").ssm.free["angle"].upper == 80.0
     recs = RunStore.open(run).log_records()
     assert len(recs) == 6 and recs[-1]["best"] == pytest.approx(res.distance)

@@ -13,42 +13,24 @@ travel to each worker once, inside the plugin, never with the tasks.
 """
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
 import uuid
-from typing import Any, Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 from pydantic import Field
 
-from bforest_core.executors import limit_threads
 from bforest_core.interfaces import ComponentSettings, Executor
 
-try:
-    import dask  # noqa: F401
-    from distributed import Client, LocalCluster, as_completed
-    from distributed.diagnostics.plugin import WorkerPlugin
-except ImportError as exc:  # pragma: no cover - exercised only where dask is absent
-    raise ImportError(
-        "the 'dask' executor needs dask and distributed, which are not installed "
-        f"({exc}); install them with: pip install 'bayesforest[dask]'") from exc
+if TYPE_CHECKING:
+    from distributed import Client, LocalCluster
 
-
-class RunInitializer(WorkerPlugin):
-    """Worker plugin running ``initializer(*initargs)`` once in each worker process.
-
-    ``setup`` is called by the worker when the plugin is registered and when a worker joins the
-    cluster later, so late workers are initialised too.
-    """
-
-    def __init__(self, initializer: Callable | None, initargs: tuple, name: str):
-        self.initializer = initializer
-        self.initargs = tuple(initargs)
-        self.name = name
-
-    def setup(self, worker) -> None:
-        limit_threads()
-        if self.initializer is not None:
-            self.initializer(*self.initargs)
+# checked without importing: `distributed` costs ~0.3 s, paid only when a dask run starts
+for _mod in ("dask", "distributed"):
+    if importlib.util.find_spec(_mod) is None:  # pragma: no cover - exercised where dask is absent
+        raise ImportError(f"the 'dask' executor needs dask and distributed; '{_mod}' is not installed. "
+                          "Install them with: pip install 'bayesforest[dask]'")
 
 
 class DaskSettings(ComponentSettings):
@@ -104,6 +86,9 @@ class DaskExecutor(Executor):
         return self.client.scheduler.address
 
     def start(self, initializer: Callable | None = None, initargs: tuple = ()) -> None:
+        from distributed import Client, LocalCluster
+
+        from ._worker_plugin import RunInitializer
         s: DaskSettings = self.settings
         if self._client is not None:
             raise RuntimeError("dask executor already started")
@@ -137,6 +122,7 @@ class DaskExecutor(Executor):
         A task's exception is re-raised here; leaving the loop early cancels the tasks still
         pending.
         """
+        from distributed import as_completed
         client = self.client
         items = list(items)
         if not items:

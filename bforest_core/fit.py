@@ -42,13 +42,12 @@ class FitResult:
 class Evaluator:
     """``Problem.evaluate`` of a run: replay from the store, cache, executor, stop criteria."""
 
-    def __init__(self, cfg, store: RunStore, executor, names, problem: Problem, progress=None):
+    def __init__(self, cfg, store: RunStore, executor, ssm, names, problem: Problem, progress=None):
         self.cfg = cfg
         self.store = store
         self.executor = executor
         self.names = names
         self.problem = problem
-        ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
         self.fixed = {k: (int(round(v)) if ssm.parameter_spec(k).integer else float(v))
                       for k, v in cfg.ssm.fixed.items()}
         self.integer = problem.integer
@@ -208,7 +207,8 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     if not hasattr(cfg, "ssm"):
         cfg = load_config(cfg)
     run_dir = Path(run_dir)
-    text = tomli_w.dumps(config_to_dict(cfg))
+    cfg_dict = config_to_dict(cfg)
+    text = tomli_w.dumps(cfg_dict)
     if resume:
         store = RunStore.open(run_dir)
         old = parse_config(tomllib.loads(store.config_path.read_text(encoding="utf-8")), source=str(store.config_path))
@@ -230,9 +230,8 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
                       init_upper=ihi, seed=int(cfg.seed), budget=cfg.stop.max_evaluations,
                       log=store.log)
     bar = _Progress(cfg.stop.max_evaluations, enabled=progress)
-    evaluator = Evaluator(cfg, store, executor, names, problem, progress=bar)
+    evaluator = Evaluator(cfg, store, executor, ssm, names, problem, progress=bar)
     problem.evaluate = evaluator
-    cfg_dict = config_to_dict(cfg)
     try:
         with executor.started(init_worker, (cfg_dict, tgt.U, tgt.columns, tgt.feature_settings)):
             result = optimizer.minimize(problem)

@@ -40,12 +40,16 @@ def clone_seeds(run_seed: int, n: int, base: int | None = None) -> list[int]:
 
 
 # ---------------------------------------------------------------------------------- target
-def feature_set_for(cfg, side: str):
-    """The feature set of one side (``"target"`` or ``"model"``), honouring per-side topology."""
+def feature_set_for(cfg, side: str, settings: dict | None = None):
+    """The feature set of one side (``"target"`` or ``"model"``), honouring per-side topology.
+
+    ``settings`` defaults to the ``[features]`` section; the model side passes the data side's
+    resolved settings so it extracts exactly the same sets.
+    """
     from .config import section_settings
-    settings = section_settings(cfg, "features")
+    settings = dict(section_settings(cfg, "features") if settings is None else settings)
     rule = cfg.target.topology if side == "target" else getattr(cfg.ssm, "topology", None)
-    if rule is not None and "topology" in type(getattr(cfg, "features")).model_fields:
+    if rule is not None and "topology" in settings:
         settings["topology"] = rule
     return component("features", cfg.features.kind, **settings)
 
@@ -91,18 +95,14 @@ class _Timeout(Exception):
 
 def init_worker(cfg_dict: dict, U_data: dict, columns: dict, feature_settings: dict) -> None:
     """Executor initializer: build the components once in this process."""
-    from .config import parse_config, ssm_settings
+    from .config import parse_config, section_settings, ssm_settings
     cfg = parse_config(cfg_dict)
-    fs_settings = dict(feature_settings)
-    rule = getattr(cfg.ssm, "topology", None)
-    if rule is not None and "topology" in fs_settings:
-        fs_settings["topology"] = rule
-    dist = component("distance", cfg.distance.kind, **{k: v for k, v in cfg.distance.model_dump().items() if k != "kind"})
+    dist = component("distance", cfg.distance.kind, **section_settings(cfg, "distance"))
     dist.prepare(U_data, columns)
     _CTX.clear()
     _CTX.update(
         ssm=component("ssm", cfg.ssm.kind, **ssm_settings(cfg)),
-        features=component("features", cfg.features.kind, **fs_settings),
+        features=feature_set_for(cfg, "model", feature_settings),
         distance=dist, U_data=U_data, weights=cfg.objective.weights, penalty=cfg.objective.penalty,
         timeout=cfg.objective.timeout, worker=f"{socket.gethostname()}:{os.getpid()}")
 

@@ -21,6 +21,7 @@ from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
+from matplotlib.ticker import MaxNLocator
 
 __all__ = ["ORDER_COLORS", "DATA_COLOR", "MODEL_COLOR", "VIEWS", "order_colors", "radius_linewidths",
            "tree_segments", "plot_tree", "order_legend", "save_tree_figure", "tree_comparison_figure",
@@ -400,6 +401,7 @@ def clone_metrics_figure(values: Mapping[str, np.ndarray], path, target: Mapping
         ax.set_xlabel(lab)
         ax.set_ylabel("clones")
         ax.yaxis.get_major_locator().set_params(integer=True)
+        ax.xaxis.set_major_locator(MaxNLocator(nbins=4))  # narrow ranges print long tick labels
         tv = target.get(key)
         if key in ("d_h", "d_g", "d_c"):
             tv = 0.0 if target else None

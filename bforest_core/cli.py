@@ -163,11 +163,13 @@ def cmd_distance(args):
     for key, ek in (("height", "d_h"), ("girth", "d_g"), ("crown_spread", "d_c")):
         print(f"{key:<14}{ma[key]:>10.3f}{mb[key]:>10.3f}{err[ek]:>12.3f}")
     if args.test:
+        if not hasattr(dist, "permutation_test"):
+            raise _UsageError(f"distance '{args.distance}' offers no permutation test")
         res = dist.permutation_test(Ua, Ub, seed=args.seed)
-        p = res["p_value"] if isinstance(res, dict) else res.p_value
-        print(f"permutation test: p = {p:.4f}" + (" (distinguishable at 0.05)" if p < 0.05 else ""))
-        if isinstance(res, dict):
-            print("  " + ", ".join(f"{k}={v}" for k, v in res.items() if k != "p_value" and not isinstance(v, (dict, list))))
+        print(f"permutation test: {res.summary()}")
+        for k, p in res.per_set.items():
+            print(f"  {k:<10} p = {p:.4f} (Holm-corrected {res.per_set_holm.get(k, float('nan')):.4f})")
+        print("  (rows of one tree are not independent: a screening measure, not an exact test)")
     return 0
 
 

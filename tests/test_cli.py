@@ -60,3 +60,13 @@ def test_info_on_real_pine(capsys):
     assert main(["info", str(p)]) == 0
     out = capsys.readouterr().out
     assert "cylinders     876" in out and "branches      300" in out and "height        9.94 m" in out
+
+
+def test_distance_of_a_tree_to_itself_and_the_permutation_test(capsys):
+    p = qsm_path("pine_ruotsinkyla_3.mat")
+    assert main(["distance", str(p), str(p), "--sets", "S1 B1", "--lines", "64", "--test"]) == 0
+    out = capsys.readouterr().out
+    assert "distance (sliced, ks, 64 lines): 0.0000" in out
+    assert "S1         0.0000  (rows A 362, B 362)" in out
+    # identical trees are indistinguishable: every permuted D >= D0 = 0, so p = 1 after 100 draws
+    assert "permutation test: p = 1.0000 (100 draws" in out and "not distinguishable" in out

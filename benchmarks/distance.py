@@ -22,18 +22,12 @@ import time
 import warnings
 
 import numpy as np
+from _timing import median_time
 from scipy import stats
 
 import bforest_core as bf
 
 
-def median_time(fn, repeats: int) -> float:
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts))
 
 
 def interleaved(fns: dict, repeats: int) -> dict:

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 import warnings
 
 # single core, as the spec's targets (set before numpy loads its BLAS)
@@ -26,6 +25,7 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
 import numpy as np  # noqa: E402
+from _timing import timed  # noqa: E402
 
 # spec B.4: cycles -> (live segments, height m, crown radius m, base diameter m, time budget s)
 SPEC_B4 = {8: ("~130", 4.3, 1.4, 0.07, 0.05), 12: ("~0.6 k", 6.7, 2.5, 0.14, 0.1),
@@ -48,14 +48,6 @@ def sizes(tree) -> tuple[int, float, float, float]:
             float(np.hypot(e[:, 0] - base[0], e[:, 1] - base[1]).max()), float(2 * tree.radius[0]))
 
 
-def timed(fn, repeats: int):
-    ts = []
-    out = None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        ts.append(time.perf_counter() - t0)
-    return float(np.median(ts)), float(np.min(ts)), out
 
 
 def machine_baseline(repeats: int) -> float:

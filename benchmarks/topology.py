@@ -8,10 +8,9 @@ in the same run: a plain Python forward pass in row order (the obvious non-vecto
 """
 from __future__ import annotations
 
-import statistics
-import time
 
 import numpy as np
+from _timing import median_time
 
 from bforest_core import Tree
 from bforest_core.tree import subtree_sum
@@ -50,13 +49,6 @@ def python_forward_pass(parent, extension):
     return branch, order, pos
 
 
-def median_time(fn, repeats=5):
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-    return statistics.median(ts)
 
 
 def main():

@@ -91,6 +91,13 @@ def recovery_table(kind: str, seeds=(1, 2, 3)) -> tuple[str, dict]:
     dist = [f"{b['distance']:.4f} ({b['n_evaluations']} eval.)" for _, b in rows]
     summary = {"median_error_per_seed": per_seed, "all_within_15": within15, "median_all": float(np.median(all_e)),
                "max_all": float(all_e.max()), "best_distance": dist}
+    if kind.startswith("lignum"):
+        better = [SYMBOL.get(n, n) for n in names if np.median(errs[n]) < PAPER_TABLE2[n]]
+        worse = [SYMBOL.get(n, n) for n in names if np.median(errs[n]) > PAPER_TABLE2[n]]
+        summary["better_than_paper"] = better
+        lines += ["", f"Median error (over the three targets) below the paper's single-run error for "
+                  f"{len(better)} of {len(names)} parameters ({', '.join(better) or 'none'}); above it for "
+                  f"{', '.join(worse) or 'none'}."]
     lines += ["", f"Best distance per seed: {', '.join(dist)}. Median relative error per seed: "
               f"{', '.join(f'{x:.1f} %' for x in per_seed)}; over all parameters and seeds: median "
               f"{np.median(all_e):.1f} %, maximum {all_e.max():.1f} %. Every parameter within 15 %: "
@@ -228,6 +235,8 @@ sets of the first-order branches, pooled in one table), GA population 40, elite 
 {lig}
 {img("lignum_synthetic_seed1", "trees.png", "LIGNUM synthetic target (seed 1) and the best fit (model seed 2)")}
 
+{img("lignum_synthetic_seed1", "convergence.png", "GA convergence of the LIGNUM recovery (target seed 1)")}
+
 ### 1b. Doing better than the protocol: three model seeds per evaluation
 
 With one model seed the fit also fits that realisation's noise, and the GA stops once 10
@@ -245,7 +254,12 @@ apical dominance Q reproduces the same taper). Configs `lignum_synthetic_rich_se
 the trunk's segments and the branch tables: data sets S⁰˒¹ and B¹˒², three model seeds, full GA.
 
 {ligr}
-{img("lignum_synthetic_seed1", "convergence.png", "GA convergence of the LIGNUM recovery (target seed 1)")}
+With the trunk in the data the age T is recovered within one year for every target, and L_R,
+Q and β_init come close; Δβ (the mean yearly bending) is then under-estimated by about 15 % for
+all three targets alike — a bias, not noise, so some fixed parameter or the bending cap β_max
+compensates for it. The stretch aim of the issue (every parameter within 15 %, median within
+5 %) is met for one target of three (see the last line of the table).
+
 
 ## 2. Synthetic recovery, SOT (5 parameters)
 

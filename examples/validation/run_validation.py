@@ -105,8 +105,8 @@ def recovery_table(kind: str, seeds=(1, 2, 3)) -> tuple[str, dict]:
     return "\n".join(lines) + "\n", summary
 
 
-def real_tree_section() -> str:
-    out = RUNS / "lignum_pine3"
+def real_tree_section(name: str = "lignum_pine3") -> str:
+    out = RUNS / name
     if not (out / "best.json").exists():
         return "(not run)\n"
     best = json.loads((out / "best.json").read_text())
@@ -184,7 +184,8 @@ def figures():
     IMG.mkdir(parents=True, exist_ok=True)
     picks = [("lignum_synthetic_seed1", "trees.png"), ("lignum_synthetic_seed1", "convergence.png"),
              ("sot_synthetic_seed1", "trees.png"), ("lignum_pine3", "trees.png"), ("lignum_pine3", "clones.png"),
-             ("lignum_pine3", "clone_metrics.png"), ("lignum_pine3", "set_S1.png"), ("lignum_pine3", "convergence.png")]
+             ("lignum_pine3", "clone_metrics.png"), ("lignum_pine3", "set_S1.png"), ("lignum_pine3", "convergence.png"),
+             ("lignum_pine3_rich", "clones.png")]
     shown = {}
     for run, fig in picks:
         src = RUNS / run / "figures" / fig
@@ -197,7 +198,7 @@ def figures():
 
 def write_doc():
     from bforest_core.report import write_report
-    for name in ("lignum_synthetic_seed1", "sot_synthetic_seed1", "lignum_pine3"):
+    for name in ("lignum_synthetic_seed1", "sot_synthetic_seed1", "lignum_pine3", "lignum_pine3_rich"):
         if (RUNS / name / "best.json").exists():
             write_report(RUNS / name)
     lig, lig_s = recovery_table("lignum_synthetic")
@@ -289,6 +290,14 @@ its two stand-mates. Fitting S⁰ (the trunk) and B² as well is the obvious nex
 {img("lignum_pine3", "clones.png", "Six clones of the best fit beside the QSM")}
 {img("lignum_pine3", "clone_metrics.png", "Classical metrics over the 100 clones; the QSM's value marked")}
 {img("lignum_pine3", "set_S1.png", "Data set S¹: QSM (blue) against the best fit (red)")}
+
+### 3b. The same fit with the trunk and second-order branches
+
+Config `examples/validation/lignum_pine3_rich.toml`: as above, with data sets S⁰˒¹ (trunk and
+first-order segments) and B¹˒² (first- and second-order branches).
+
+{real_tree_section("lignum_pine3_rich")}
+{img("lignum_pine3_rich", "clones.png", "Variant 3b: six clones of the best fit beside the QSM")}
 """
     DOC.write_text(text, encoding="utf-8")
     (RUNS / "summary.json").write_text(json.dumps({"lignum": lig_s, "lignum_k3": lig3_s, "lignum_rich": ligr_s,
@@ -304,11 +313,12 @@ def main():
     RUNS.mkdir(parents=True, exist_ok=True)
     if not args.report:
         plan = [f"sot_synthetic_seed{s}" for s in (1, 2, 3)] + [f"lignum_synthetic_seed{s}" for s in (1, 2, 3)] + \
-               ["lignum_pine3"] + [f"lignum_synthetic_{v}_seed{s}" for v in ("k3", "rich") for s in (1, 2, 3)]
+               ["lignum_pine3"] + [f"lignum_synthetic_{v}_seed{s}" for v in ("k3", "rich") for s in (1, 2, 3)] + \
+               ["lignum_pine3_rich"]
         for name in plan:
             if args.only and not name.startswith(args.only):
                 continue
-            run_fit(name, clones_n=100 if name == "lignum_pine3" else None)
+            run_fit(name, clones_n=100 if name.startswith("lignum_pine3") else None)
     write_doc()
 
 

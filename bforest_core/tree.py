@@ -57,13 +57,19 @@ def depth_of(parent: np.ndarray) -> np.ndarray:
     return d
 
 
+def group_by_level(level: np.ndarray):
+    """Indices grouped by a non-negative integer level (e.g. depth): ``(order, bounds)``, with the
+    indices of level k at ``order[bounds[k]:bounds[k+1]]`` in increasing index order."""
+    level = np.asarray(level)
+    order = np.argsort(level, kind="stable")
+    bounds = np.zeros(int(level.max()) + 2 if level.size else 1, dtype=np.int64)
+    np.cumsum(np.bincount(level), out=bounds[1:])
+    return order, bounds
+
+
 def levels(parent: np.ndarray):
     """Rows grouped by depth: ``(order, bounds)`` with rows of depth k at ``order[bounds[k]:bounds[k+1]]``."""
-    d = depth_of(parent)
-    order = np.argsort(d, kind="stable")
-    counts = np.bincount(d)
-    bounds = np.concatenate(([0], np.cumsum(counts)))
-    return order, bounds
+    return group_by_level(depth_of(parent))
 
 
 def subtree_sum(parent: np.ndarray, values: np.ndarray) -> np.ndarray:

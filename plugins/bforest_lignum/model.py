@@ -47,7 +47,7 @@ from scipy.optimize import brentq
 from scipy.special import ndtr, ndtri
 
 from bforest_core.errors import SimulationFailed
-from bforest_core.tree import Tree
+from bforest_core.tree import Tree, group_by_level
 
 from .shadow import q_max_of, shadow_fast, voxel_coords
 
@@ -146,14 +146,11 @@ def light(mid: np.ndarray, wf: np.ndarray, p: Mapping[str, float]):
 
 def depth_levels(idx: np.ndarray, depth: np.ndarray) -> list[np.ndarray]:
     """Rows ``idx`` grouped by depth (ascending index within a level)."""
-    d = depth[idx]
-    if d.size == 0:
+    if idx.size == 0:
         return []
-    o = np.argsort(d, kind="stable")
-    counts = np.bincount(d)
-    bounds = np.concatenate(([0], np.cumsum(counts)))
-    s = idx[o]
-    return [s[bounds[k]:bounds[k + 1]] for k in range(counts.size)]
+    order, bounds = group_by_level(depth[idx])
+    s = idx[order]
+    return [s[bounds[k]:bounds[k + 1]] for k in range(bounds.size - 1)]
 
 
 # ------------------------------------------------------------------------------------ state

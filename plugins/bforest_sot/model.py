@@ -28,6 +28,8 @@ from typing import Callable
 
 import numpy as np
 
+from bforest_core.tree import group_by_level
+
 from .light import LightField
 
 EMPTY, BUD, CHILD, STUB = 0, 1, 2, 3
@@ -70,14 +72,6 @@ def lambda_schedule(age: float, init_lambda: float, targ_lambda: float, delay: f
 # ------------------------------------------------------------------------------------------------
 # the two passes, on a compact node set (local indices 0..m-1, children given as local ids)
 # ------------------------------------------------------------------------------------------------
-
-def depth_levels(depth: np.ndarray):
-    """``(order, bounds)``: nodes of depth level j are ``order[bounds[j]:bounds[j+1]]``."""
-    order = np.argsort(depth, kind="stable")
-    bounds = np.zeros(int(depth.max()) + 2 if depth.size else 1, dtype=np.int64)
-    np.cumsum(np.bincount(depth), out=bounds[1:])
-    return order, bounds
-
 
 def accumulate(api_state, lat_state, api_child, lat_child, q_api, q_lat, api_stub_w, lat_stub_w,
                depth, lam, kappa, pipe_exp, init_width, levels=None):
@@ -123,7 +117,7 @@ def accumulate(api_state, lat_state, api_child, lat_child, q_api, q_lat, api_stu
     lc = np.where(lat_state == CHILD, lat_child, sent)
     d0n = float(init_width) ** pipe_exp
     V = np.zeros((m + 1, 3))
-    order, bounds = depth_levels(depth) if levels is None else levels
+    order, bounds = group_by_level(depth) if levels is None else levels
     for j in range(bounds.shape[0] - 2, -1, -1):
         L = order[bounds[j]:bounds[j + 1]]
         x = base[L] + V[ac[L]] + V[lc[L]]

@@ -305,6 +305,10 @@ class _MatReader(BaseReader):
     suffixes = (".mat",)
     container = "MAT reader"
 
+    @sniff_safely
+    def sniff(self, path, head):
+        return detect_mat(Path(path), head).reader == self.name
+
     def _open(self, path: Path) -> MatFile:
         with open(path, "rb") as fh:
             head = fh.read(4096)
@@ -445,10 +449,6 @@ class TreeQSMFlatReader(_MatReader):
     summary = "TreeQSM 2.0 and older flat variables Rad/Len/Sta/Axe/CPar/CExt/BoC (MAT v5 and v7.3)"
     priority = 20
 
-    @sniff_safely
-    def sniff(self, path, head):
-        return detect_mat(Path(path), head).reader == self.name
-
     def _read(self, path, opts):
         with self._open(path) as mf:
             if not all(s in mf.variables for s in FLAT_NAMES):
@@ -510,10 +510,6 @@ class CylDataMatReader(_MatReader):
     summary = "14-column CylData matrix in a .mat file (TreeQSM <= 2.2 layout)"
     Settings = CylDataSettings
     priority = 10
-
-    @sniff_safely
-    def sniff(self, path, head):
-        return detect_mat(Path(path), head).reader == self.name
 
     def _read(self, path, opts):
         with self._open(path) as mf:

@@ -6,10 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import config_to_dict, load_config
+from .config import load_config
 from .errors import SimulationFailed
-from .objective import build_target, clone_seeds, init_worker, _CTX
-from .registry import component
+from .objective import _CTX, build_target, clone_seeds, progress_bar, started_workers
 from .store import RunStore
 
 METRIC_KEYS = ("height", "girth", "crown_spread")
@@ -50,24 +49,16 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True) 
     out_dir.mkdir(exist_ok=True)
     for old in out_dir.glob("clone_*.txt"):
         old.unlink()
-    if executor is None:
-        from .config import section_settings
-        executor = component("executor", cfg.executor.kind, **section_settings(cfg, "executor"))
     tasks = [(i, best["params"], s, str(out_dir)) for i, s in enumerate(seeds)]
     rows = [None] * n
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=n, unit="clone", desc="clones", dynamic_ncols=True)
-    with executor.started(init_worker, (config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings)):
-        for j, res in executor.map_unordered(_clone_task, tasks):
+    bar = progress_bar(n, "clones", "clone", progress)
+    with started_workers(cfg, tgt, executor) as ex:
+        for j, res in ex.map_unordered(_clone_task, tasks):
             if res["status"] == "ok":
                 res.update(relative_errors(tm, {k: res[k] for k in METRIC_KEYS}))
             rows[j] = res
-            if bar is not None:
-                bar.update(1)
-    if bar is not None:
-        bar.close()
+            bar.update(1)
+    bar.close()
     set_names = list(tgt.U)
     cols = ["index", "seed", "status", "file", "distance"] + [f"D[{s}]" for s in set_names] + \
         ["n_cylinders", "height", "girth", "crown_spread", "d_h", "d_g", "d_c"]

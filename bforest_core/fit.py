@@ -19,8 +19,8 @@ import numpy as np
 from .config import config_to_dict, load_config, parse_config, section_settings, ssm_settings
 from .errors import BayesForestError, ConfigError
 from .interfaces import Problem
-from .objective import (Target, _simulate_with_timeout, _Timeout, build_target, evaluate_task, init_worker,
-                        model_seeds)
+from .objective import (Target, _simulate_with_timeout, _Timeout, build_target, evaluate_task, model_seeds,
+                        progress_bar, run_executor, started_workers)
 from .registry import component
 from .store import Evaluation, RunDirError, RunStore
 
@@ -149,22 +149,17 @@ class Evaluator:
 
 
 class _Progress:
-    """tqdm bar: evaluations done, best distance, ETA (to the budget when there is one)."""
+    """Progress of a fit: evaluations done, best distance, ETA (to the budget when there is one)."""
 
     def __init__(self, total, enabled=True):
-        self.bar = None
-        if enabled:
-            from tqdm.auto import tqdm
-            self.bar = tqdm(total=total, unit="eval", dynamic_ncols=True, desc="fit", leave=True)
+        self.bar = progress_bar(total, "fit", "eval", enabled)
 
     def __call__(self, pr, replayed):
-        if self.bar is not None:
-            self.bar.update(1)
-            self.bar.set_postfix_str(f"best={pr.best_f:.4f}" + (" (replay)" if replayed else ""), refresh=False)
+        self.bar.update(1)
+        self.bar.set_postfix_str(f"best={pr.best_f:.4f}" + (" (replay)" if replayed else ""), refresh=False)
 
     def close(self):
-        if self.bar is not None:
-            self.bar.close()
+        self.bar.close()
 
 
 def _result_relevant(cfg) -> dict:
@@ -225,7 +220,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
     names, lo, hi, ilo, ihi, integer = _free_specs(cfg, ssm)
     optimizer = component("optimizer", cfg.optimizer.kind, **section_settings(cfg, "optimizer"))
-    executor = component("executor", cfg.executor.kind, **section_settings(cfg, "executor"))
+    executor = run_executor(cfg)
     problem = Problem(names=names, lower=lo, upper=hi, integer=integer, evaluate=None, init_lower=ilo,
                       init_upper=ihi, seed=int(cfg.seed), budget=cfg.stop.max_evaluations,
                       log=store.log)
@@ -233,7 +228,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     evaluator = Evaluator(cfg, store, executor, ssm, names, problem, progress=bar)
     problem.evaluate = evaluator
     try:
-        with executor.started(init_worker, (cfg_dict, tgt.U, tgt.columns, tgt.feature_settings)):
+        with started_workers(cfg, tgt, executor):
             result = optimizer.minimize(problem)
     finally:
         bar.close()
@@ -241,7 +236,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     stop_reason = problem.stop_reason or result.stop_reason or "optimiser finished"
     if store.count() == 0:
         raise BayesForestError(f"{run_dir}: the optimiser evaluated nothing ({stop_reason})")
-    out = finish_fit(cfg, store, tgt, stop_reason, evaluator.elapsed(), result)
+    out = finish_fit(cfg, store, tgt, stop_reason, evaluator.elapsed(), result, ssm)
     return FitResult(params=out["params"], distance=out["distance"], per_set=out["per_set"],
                      n_evaluations=store.count(), stop_reason=stop_reason, run_dir=run_dir,
                      history=store.log_records(), diagnostics=result.diagnostics)
@@ -271,7 +266,7 @@ def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
         pass
 
 
-def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: float, result) -> dict:
+def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: float, result, ssm) -> dict:
     """Write ``best.json`` (the best logged evaluation, classical metrics of target and best
     tree) and ``best_tree.txt`` (the best parameters regrown with the first model seed)."""
     from .metrics import classical_metrics, relative_errors
@@ -289,7 +284,6 @@ def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: flo
         store.write_json("best.json", best)
         return best
     try:
-        ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
         tree = _simulate_with_timeout(ssm, ev.params, ev.seeds[0], cfg.objective.timeout)
         m = classical_metrics(tree)
         best["model_metrics"] = m

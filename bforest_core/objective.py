@@ -107,6 +107,39 @@ def init_worker(cfg_dict: dict, U_data: dict, columns: dict, feature_settings: d
         timeout=cfg.objective.timeout, worker=f"{socket.gethostname()}:{os.getpid()}")
 
 
+def run_executor(cfg):
+    """The executor of the run's ``[executor]`` section."""
+    from .config import section_settings
+    return component("executor", cfg.executor.kind, **section_settings(cfg, "executor"))
+
+
+def started_workers(cfg, tgt: Target, executor=None):
+    """The run's executor (or ``executor``) started with :func:`init_worker` on the target, as a
+    context manager: the target's tables travel to each worker once."""
+    from .config import config_to_dict
+    ex = run_executor(cfg) if executor is None else executor
+    return ex.started(init_worker, (config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings))
+
+
+class _NoBar:
+    def update(self, n=1):
+        pass
+
+    def set_postfix_str(self, s, refresh=True):
+        pass
+
+    def close(self):
+        pass
+
+
+def progress_bar(total, desc: str, unit: str, enabled: bool = True):
+    """A tqdm progress bar, or a silent stand-in when ``enabled`` is false."""
+    if not enabled:
+        return _NoBar()
+    from tqdm.auto import tqdm
+    return tqdm(total=total, unit=unit, desc=desc, dynamic_ncols=True)
+
+
 def _alarm(signum, frame):
     raise _Timeout()
 

@@ -62,8 +62,8 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
         (path of the PNG), ``csv`` (path), ``param``, ``values`` (k,), ``seeds`` (list),
         ``distances`` (k, seeds), ``status`` (k, seeds), ``best_value``, ``best_distance``.
     """
-    from .config import config_to_dict, load_config, section_settings, ssm_settings
-    from .objective import build_target, evaluate_task, init_worker, model_seeds
+    from .config import load_config, ssm_settings
+    from .objective import build_target, evaluate_task, model_seeds, progress_bar, started_workers
     from .plotting import profile_figure
     from .registry import component
     from .report import slug
@@ -115,25 +115,18 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
             tasks.append((p, [s]))
             where.append((i, j))
     tgt = build_target(cfg)
-    if executor is None:
-        executor = component("executor", cfg.executor.kind, **section_settings(cfg, "executor"))
     D = np.full((vals.size, len(seed_list)), np.nan)
     status = np.full(D.shape, "", dtype=object)
     per_set: dict[tuple[int, int], dict] = {}
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=len(tasks), unit="eval", desc=f"profile {param}", dynamic_ncols=True)
-    with executor.started(init_worker, (config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings)):
-        for k, res in executor.map_unordered(evaluate_task, tasks):
+    bar = progress_bar(len(tasks), f"profile {param}", "eval", progress)
+    with started_workers(cfg, tgt, executor) as ex:
+        for k, res in ex.map_unordered(evaluate_task, tasks):
             i, j = where[k]
             D[i, j] = res["distance"]
             status[i, j] = res["status"]
             per_set[(i, j)] = res["per_set"]
-            if bar is not None:
-                bar.update(1)
-    if bar is not None:
-        bar.close()
+            bar.update(1)
+    bar.close()
 
     set_names = list(tgt.U)
     csv_path = run_dir / f"profile_{slug(param)}.csv"

@@ -13,25 +13,16 @@ from .objective import build_target
 from .registry import component_class
 from .store import RunStore
 
-#: settings that bound an optimiser's own length; raised so the shared budget is what stops it
-_LENGTH_KEYS = {"generations": 10**6, "maxiter": 10**6, "maxeval": None, "steps": None,
-                "stall_generations": 10**6}
-
-
 def _settings_for_budget(name: str, budget: int) -> dict:
-    cls = component_class("optimizer", name)
-    fields = cls.Settings.model_fields
-    out = {}
-    for key, value in _LENGTH_KEYS.items():
-        if key not in fields:
-            continue
-        if key == "maxeval":
-            out[key] = budget
-        elif key == "steps":
-            walkers = fields["walkers"].default if "walkers" in fields else 32
-            out[key] = int(math.ceil(budget / max(1, walkers or 32))) + 1
-        else:
-            out[key] = value
+    """Settings that let the shared evaluation budget, not the optimiser's own length limits,
+    end each run."""
+    fields = component_class("optimizer", name).Settings.model_fields
+    out = {k: 10**6 for k in ("generations", "maxiter", "stall_generations") if k in fields}
+    if "maxeval" in fields:
+        out["maxeval"] = budget
+    if "steps" in fields:  # MCMC: enough steps of the ensemble to spend the budget
+        walkers = fields["walkers"].default if "walkers" in fields else None
+        out["steps"] = int(math.ceil(budget / (walkers or 32))) + 1
     return out
 
 

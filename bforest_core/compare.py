@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import math
 import time
 from pathlib import Path
 
@@ -20,9 +19,8 @@ def _settings_for_budget(name: str, budget: int) -> dict:
     out = {k: 10**6 for k in ("generations", "maxiter", "stall_generations") if k in fields}
     if "maxeval" in fields:
         out["maxeval"] = budget
-    if "steps" in fields:  # MCMC: enough steps of the ensemble to spend the budget
-        walkers = fields["walkers"].default if "walkers" in fields else None
-        out["steps"] = int(math.ceil(budget / (walkers or 32))) + 1
+    if "steps" in fields:  # MCMC: every step evaluates at least one walker, so this spends the budget
+        out["steps"] = int(budget)
     return out
 
 

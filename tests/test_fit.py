@@ -198,12 +198,13 @@ def test_explicit_model_seeds(toy_plugin, tmp_path):
 
 def test_compare_optimizers_on_equal_budgets(toy_plugin, tmp_path):
     from bforest_core.compare import compare
-    res = compare(toy_config(tmp_path), ["ga", "de", "toy-random"], budget=16, repeats=2,
+    # budget 100 is not a multiple of emcee's default 16 walkers: every optimiser still spends all of it
+    res = compare(toy_config(tmp_path), ["ga", "de", "emcee", "toy-random"], budget=100, repeats=2,
                   out_dir=tmp_path / "cmp")
-    assert [t["optimizer"] for t in res["table"]] == ["ga", "de", "toy-random"]
-    assert len(res["runs"]) == 6 and all(r["evaluations"] == 16 for r in res["runs"])
+    assert [t["optimizer"] for t in res["table"]] == ["ga", "de", "emcee", "toy-random"]
+    assert len(res["runs"]) == 8 and all(r["evaluations"] == 100 for r in res["runs"])
     for name, curves in res["curves"].items():
-        assert len(curves) == 2 and all(len(c) == 16 and (np.diff(c) <= 0).all() for c in curves)
+        assert len(curves) == 2 and all(len(c) == 100 and (np.diff(c) <= 0).all() for c in curves)
     # repeats use different run seeds, so their evaluation sequences differ
     assert not np.array_equal(res["curves"]["ga"][0], res["curves"]["ga"][1])
     assert res["figure"].exists() and res["figure"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -140,7 +140,7 @@ def cmd_distance(args):
     a, b = _read(args.tree_a), _read(args.tree_b)
     a = a[0] if isinstance(a, list) else a
     b = b[0] if isinstance(b, list) else b
-    fs_settings = {"sets": args.sets.split(";") if ";" in args.sets else [s.strip() for s in _split_sets(args.sets)]}
+    fs_settings = {"sets": _split_sets(args.sets)}
     if args.topology:
         fs_settings["topology"] = args.topology
     fs = component("features", args.features, **fs_settings)
@@ -173,12 +173,9 @@ def cmd_distance(args):
     return 0
 
 
-def _split_sets(text):
-    # "S0,1 B2,3,4" or "S0,1+B2,3,4": sets separated by spaces or '+'/';'
-    parts = []
-    for tok in text.replace("+", " ").replace(";", " ").split():
-        parts.append(tok)
-    return parts
+def _split_sets(text: str) -> list[str]:
+    """'S0,1 B2+' or 'S0,1;B2+' -> ['S0,1', 'B2+'] ('+' belongs to open order ranges)."""
+    return text.replace(";", " ").split()
 
 
 def cmd_fit(args):

@@ -70,3 +70,10 @@ def test_distance_of_a_tree_to_itself_and_the_permutation_test(capsys):
     assert "S1         0.0000  (rows A 362, B 362)" in out
     # identical trees are indistinguishable: every permuted D >= D0 = 0, so p = 1 after 100 draws
     assert "permutation test: p = 1.0000 (100 draws" in out and "not distinguishable" in out
+
+
+def test_distance_sets_keep_open_ranges(capsys):
+    p = qsm_path("pine_ruotsinkyla_3.mat")
+    assert main(["distance", str(p), str(p), "--sets", "S1;B2+", "--lines", "16"]) == 0
+    out = capsys.readouterr().out
+    assert "S1 " in out and "B2+ " in out

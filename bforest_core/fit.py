@@ -20,7 +20,7 @@ from .config import config_to_dict, load_config, parse_config, section_settings,
 from .errors import BayesForestError, ConfigError
 from .interfaces import Problem
 from .objective import (Target, _simulate_with_timeout, _Timeout, build_target, evaluate_task, model_seeds,
-                        progress_bar, run_executor, started_workers)
+                        progress_bar, run_executor, spread_seeds, started_workers)
 from .registry import component
 from .store import Evaluation, RunDirError, RunStore
 
@@ -79,6 +79,13 @@ class Evaluator:
             pr.stopped, pr.stop_reason = True, f"wall time ({st.wall_time:g} s) reached"
         elif st.target_distance is not None and pr.best_f <= st.target_distance:
             pr.stopped, pr.stop_reason = True, f"target distance {st.target_distance:g} reached"
+
+    def seed_spread(self, x, k: int) -> np.ndarray:
+        """``Problem.seed_spread``: the objective at ``x`` under ``k`` fresh model seeds, one
+        seed per value (run on the executor; not logged)."""
+        params = self._params(np.clip(np.asarray(x, float), self.problem.lower, self.problem.upper))
+        tasks = [(params, [s]) for s in spread_seeds(self.cfg.seed, int(k))]
+        return np.array([r["distance"] for r in self.executor.map(evaluate_task, tasks)], float)
 
     def elapsed(self) -> float:
         return self.elapsed_before + time.monotonic() - self.t0
@@ -227,6 +234,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     bar = _Progress(cfg.stop.max_evaluations, enabled=progress)
     evaluator = Evaluator(cfg, store, executor, ssm, names, problem, progress=bar)
     problem.evaluate = evaluator
+    problem.seed_spread = evaluator.seed_spread
     try:
         with started_workers(cfg, tgt, executor):
             result = optimizer.minimize(problem)

@@ -281,6 +281,11 @@ class Problem:
     stop_reason: str = ""
     #: diagnostics callback; optimisers call ``problem.log(dict)`` once per generation/iteration
     log: Callable[[dict], None] = field(default=lambda rec: None)
+    #: ``seed_spread(x, k)`` -> ``k`` objective values of the point ``x`` under ``k`` model seeds
+    #: other than the fit's own: the objective's seed noise, i.e. what a perfect model would still
+    #: show. Deterministic for a given ``x`` and ``k``; not logged and not counted in
+    #: ``n_evaluations``. ``None`` where the caller cannot provide it.
+    seed_spread: Callable[[np.ndarray, int], np.ndarray] | None = None
 
     @property
     def dim(self) -> int:

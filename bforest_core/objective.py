@@ -33,6 +33,11 @@ def model_seeds(run_seed: int, k: int, mode: str = "fixed", index: int = 0) -> l
     return [int(s.generate_state(1, np.uint32)[0]) for s in np.random.SeedSequence(key).spawn(k)]
 
 
+def spread_seeds(run_seed: int, k: int) -> list[int]:
+    """Model seeds for measuring the objective's seed noise (distinct from fitting and clone seeds)."""
+    return [int(s.generate_state(1, np.uint32)[0]) for s in np.random.SeedSequence([int(run_seed), 4]).spawn(k)]
+
+
 def clone_seeds(run_seed: int, n: int, base: int | None = None) -> list[int]:
     """Fresh seeds for clones (distinct from the fitting seeds)."""
     key = [int(run_seed), 3] if base is None else [int(base), 3]

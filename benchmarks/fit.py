@@ -19,7 +19,7 @@ from pathlib import Path
 
 import bforest_core as bf
 from bforest_core.config import config_to_dict, parse_config
-from bforest_core.store import RunStore
+from bforest_core.pipeline.store import RunStore
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "examples" / "sot_pine3.toml"
@@ -63,7 +63,7 @@ def main():
         res_s, wall_s, inside_s, evs_s = _run(raw, tmp / "serial", args.generations, {"kind": "serial"})
         n = len(evs_s)
         setup_t0 = time.perf_counter()
-        from bforest_core.objective import build_target
+        from bforest_core.pipeline.objective import build_target
         build_target(base)
         setup = time.perf_counter() - setup_t0
         loop = wall_s - inside_s - setup

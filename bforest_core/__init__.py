@@ -17,8 +17,8 @@ from .registry import component, component_class, discover
 from .io import read_qsm, write_tree
 from .config import load_config
 # binding the functions after importing their modules keeps `bf.fit`/`bf.clones` callable
-from .fit import fit
-from .clones import clones
+from .pipeline.fit import fit
+from .pipeline.clones import clones
 
 try:
     __version__ = _version("bayesforest")

@@ -32,7 +32,7 @@ from typing import Annotated, Any, Literal, Optional, Union
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
-from .errors import ConfigError
+from .errors import ConfigError, validation_error_text
 from .registry import discover
 
 #: config section -> component kind
@@ -40,31 +40,6 @@ SECTIONS = {"ssm": "ssm", "features": "features", "distance": "distance", "optim
             "executor": "executor"}
 DEFAULT_KINDS = {"features": "branch-segment", "distance": "sliced", "optimizer": "ga",
                  "executor": "process"}
-
-
-def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = None) -> str:
-    """One readable clause per problem: ``key.path: message (got value)``."""
-    parts = []
-    for e in exc.errors():
-        loc = [str(x) for x in e["loc"]]
-        # drop the union tag pydantic inserts after a discriminated section name
-        if tags and len(loc) > 1 and loc[0] in tags and loc[1] == tags[loc[0]]:
-            loc = [loc[0]] + loc[2:]
-        loc = [x for x in loc if not x.startswith("function-")]
-        where = ".".join(loc) or "(top level)"
-        msg = e["msg"]
-        if e.get("type") == "extra_forbidden":
-            msg = "unknown key"
-            model = e.get("ctx", {}).get("allowed")
-            if model:
-                msg += f" (allowed: {model})"
-        if msg.startswith("Value error, "):
-            msg = msg[len("Value error, "):]
-        inp = e.get("input")
-        shown = "" if isinstance(inp, dict) or e.get("type") in ("missing", "extra_forbidden", "value_error") \
-            else f" (got {inp!r})"
-        parts.append(f"{where}: {msg}{shown}")
-    return "; ".join(parts)
 
 
 class _Strict(BaseModel):

@@ -5,6 +5,8 @@ those into one readable line and exit code 2.
 """
 from __future__ import annotations
 
+import pydantic
+
 
 class BayesForestError(Exception):
     """Base class of every error a user can cause (bad file, bad config, ...)."""
@@ -61,3 +63,28 @@ class SimulationFailed(BayesForestError):
         self.status = status
         self.tree = tree
         super().__init__(f"simulation failed ({status})" + (f": {message}" if message else ""))
+
+
+def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = None) -> str:
+    """One readable clause per problem: ``key.path: message (got value)``."""
+    parts = []
+    for e in exc.errors():
+        loc = [str(x) for x in e["loc"]]
+        # drop the union tag pydantic inserts after a discriminated section name
+        if tags and len(loc) > 1 and loc[0] in tags and loc[1] == tags[loc[0]]:
+            loc = [loc[0]] + loc[2:]
+        loc = [x for x in loc if not x.startswith("function-")]
+        where = ".".join(loc) or "(top level)"
+        msg = e["msg"]
+        if e.get("type") == "extra_forbidden":
+            msg = "unknown key"
+            model = e.get("ctx", {}).get("allowed")
+            if model:
+                msg += f" (allowed: {model})"
+        if msg.startswith("Value error, "):
+            msg = msg[len("Value error, "):]
+        inp = e.get("input")
+        shown = "" if isinstance(inp, dict) or e.get("type") in ("missing", "extra_forbidden", "value_error") \
+            else f" (got {inp!r})"
+        parts.append(f"{where}: {msg}{shown}")
+    return "; ".join(parts)

@@ -17,7 +17,7 @@ from typing import Any
 import pluggy
 
 from . import hookspecs
-from .errors import PluginError
+from .errors import PluginError, validation_error_text
 from .interfaces import INTERFACES, KINDS, Component
 
 GROUP = "bforest"
@@ -137,7 +137,6 @@ def component(kind: str, name: str, **settings: Any) -> Component:
     Raises ``PluginError`` for an unknown name (listing the known ones) and ``ConfigError`` for
     invalid settings.
     """
-    from .config import validation_error_text  # local: config imports the registry
     from .errors import ConfigError
     import pydantic
 

@@ -17,7 +17,7 @@ pytest.importorskip("distributed", reason="distributed is not installed (optiona
 
 import bforest_core as bf  # noqa: E402
 from bforest_core.errors import ConfigError  # noqa: E402
-from bforest_core.executors import SerialExecutor  # noqa: E402
+from bforest_core.pipeline.executors import SerialExecutor  # noqa: E402
 
 TABLE = np.arange(1.0, 8.0)  # stands in for the target data sets a worker loads once
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import bforest_core as bf
-from bforest_core.store import RunStore
+from bforest_core.pipeline.store import RunStore
 from bforest_core.testing import check_ssm, check_tree, ssm_checks
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "docs" / "examples" / "bforest-example-ssm"

@@ -2,7 +2,7 @@ import os
 
 
 import bforest_core as bf
-from bforest_core.objective import clone_seeds, model_seeds
+from bforest_core.pipeline.objective import clone_seeds, model_seeds
 
 _STATE = {}
 

@@ -13,10 +13,10 @@ import pytest
 import bforest_core as bf
 
 import importlib
-from bforest_core.store import RunStore
+from bforest_core.pipeline.store import RunStore
 from conftest import TOY_DIR, toy_config
 
-fit_mod = importlib.import_module("bforest_core.fit")
+fit_mod = importlib.import_module("bforest_core.pipeline.fit")
 
 
 def _evals(run):
@@ -128,7 +128,7 @@ def test_failing_and_hanging_simulations_are_logged(toy_plugin, tmp_path):
 
 def test_clones_table_and_summary(toy_plugin, tmp_path):
     bf.fit(bf.load_config(toy_config(tmp_path, budget=16)), tmp_path / "run", progress=False)
-    from bforest_core.clones import clones
+    from bforest_core.pipeline.clones import clones
     s = clones(tmp_path / "run", n=5, progress=False)
     assert s["ok"] == 5 and len(list((tmp_path / "run" / "clones").glob("clone_*.txt"))) == 5
     header = (tmp_path / "run" / "clones" / "clones.csv").read_text().splitlines()[0].split(",")
@@ -197,7 +197,7 @@ def test_explicit_model_seeds(toy_plugin, tmp_path):
 
 
 def test_compare_optimizers_on_equal_budgets(toy_plugin, tmp_path):
-    from bforest_core.compare import compare
+    from bforest_core.pipeline.compare import compare
     # budget 100 is not a multiple of emcee's default 16 walkers: every optimiser still spends all of it
     res = compare(toy_config(tmp_path), ["ga", "de", "emcee", "toy-random"], budget=100, repeats=2,
                   out_dir=tmp_path / "cmp")
@@ -207,5 +207,8 @@ def test_compare_optimizers_on_equal_budgets(toy_plugin, tmp_path):
         assert len(curves) == 2 and all(len(c) == 100 and (np.diff(c) <= 0).all() for c in curves)
     # repeats use different run seeds, so their evaluation sequences differ
     assert not np.array_equal(res["curves"]["ga"][0], res["curves"]["ga"][1])
-    assert res["figure"].exists() and res["figure"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    from bforest_core.report.comparison import write_compare_figure
+    fig = write_compare_figure(res)
+    assert fig.exists() and fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "](compare.png)" in (tmp_path / "cmp" / "compare.md").read_text()
     assert "median best" in res["table_text"] and (tmp_path / "cmp" / "compare.json").exists()

@@ -49,7 +49,7 @@ def test_invalid_settings_name_key():
 
 
 def test_conflicting_registration_names_both_distributions():
-    from bforest_core.executors import SerialExecutor
+    from bforest_core.pipeline.executors import SerialExecutor
 
     class Other(SerialExecutor):
         pass

@@ -8,12 +8,15 @@ import numpy as np
 import pytest
 
 import bforest_core as bf
-from bforest_core import plotting
-from bforest_core.clones import clones as grow_clones
+from bforest_core.report import canvas, comparison, convergence, datasets, posterior, trees
+from bforest_core.pipeline.clones import clones as grow_clones
 from bforest_core.errors import ConfigError
-from bforest_core.profile import profile, profile_values
-from bforest_core.report import RunView, _distance_view, mcmc_chain, write_report
-from bforest_core.store import RunStore
+from bforest_core.pipeline.profile import profile, profile_values
+from bforest_core.report import write_report
+from bforest_core.report.datasets import distance_view
+from bforest_core.report.posterior import mcmc_chain
+from bforest_core.report.run_view import RunView
+from bforest_core.pipeline.store import RunStore
 from conftest import hand_tree, toy_config
 
 SECTIONS = ["# Bayes Forest run report", "## Target", "## Model and method", "## Parameters", "## Fit result",
@@ -144,7 +147,7 @@ def test_profile_passes_through_the_best_fit(toy_runs):
     # the toy target was grown at angle 30: the median profile is lowest near it
     med = np.median(res["distances"], axis=1)
     assert abs(v[np.argmin(med)] - 30) < 20 and med[0] > med[i] and med[-1] > med[i]
-    assert_png(res["figure"])
+    assert_png(comparison.write_profile_figure(res))
     rows = res["csv"].read_text().splitlines()
     assert rows[0].startswith("value,seed,distance,status,D[L]") and len(rows) == 1 + 18
     assert "<- best fit" in res["table_text"]
@@ -167,12 +170,12 @@ def test_profile_integer_values_and_errors(toy_runs):
 # ---------------------------------------------------------------------------------- plotting units
 def test_plot_tree_widths_colours_and_depth_order():
     tree = hand_tree()
-    fig = plotting.new_figure(4, 4)
+    fig = canvas.new_figure(4, 4)
     ax = fig.subplots()
-    lc = plotting.plot_tree(ax, tree, "xz", lw_max=4.0, lw_min=0.5)
+    lc = trees.plot_tree(ax, tree, "xz", lw_max=4.0, lw_min=0.5)
     segs = np.asarray(lc.get_segments())
     assert segs.shape == (tree.n, 2, 2)
-    _, perm = plotting.tree_segments(tree, "xz")
+    _, perm = trees.tree_segments(tree, "xz")
     # far-to-near along the viewing direction (+y points away in the XZ view)
     mid_y = 0.5 * (tree.start[perm, 1] + tree.end[perm, 1])
     assert np.all(np.diff(-mid_y) >= 0)
@@ -184,27 +187,27 @@ def test_plot_tree_widths_colours_and_depth_order():
     assert np.allclose(lw, np.maximum(0.5, 4.0 * tree.radius[perm] / 0.20))
     cols = lc.get_colors()
     from matplotlib.colors import to_rgba
-    assert np.allclose(cols, [to_rgba(plotting.ORDER_COLORS[o]) for o in tree.order[perm]])
+    assert np.allclose(cols, [to_rgba(canvas.ORDER_COLORS[o]) for o in tree.order[perm]])
     assert ax.get_xlabel() == "x (m)" and ax.get_ylabel() == "z (m)"
-    assert plotting.radius_linewidths(np.array([0.001, 0.1, 0.2]), 4.0, 0.3).tolist() == [0.3, 2.0, 4.0]
+    assert trees.radius_linewidths(np.array([0.001, 0.1, 0.2]), 4.0, 0.3).tolist() == [0.3, 2.0, 4.0]
     with pytest.raises(ValueError, match="view must be one of"):
-        plotting.tree_segments(tree, "zz")
+        trees.tree_segments(tree, "zz")
 
 
 def test_save_tree_figure_and_clones_figure(tmp_path):
     tree = hand_tree()
-    assert_png(plotting.save_tree_figure(tree, tmp_path / "t.png", title="hand tree"))
+    assert_png(trees.save_tree_figure(tree, tmp_path / "t.png", title="hand tree"))
     clones = [(f"clone {i}", tree.translated([0.1 * i, 0, 0])) for i in range(3)]
-    assert_png(plotting.clones_figure(tree, clones, tmp_path / "c.png"))
+    assert_png(trees.clones_figure(tree, clones, tmp_path / "c.png"))
     vals = {"height": np.array([3.0, 3.2, 2.9]), "girth": np.array([0.4, 0.41, 0.39]),
             "d_h": np.array([0.0, 0.06, 0.03])}
-    assert_png(plotting.clone_metrics_figure(vals, tmp_path / "m.png", target={"height": 3.0, "girth": 0.4}))
+    assert_png(trees.clone_metrics_figure(vals, tmp_path / "m.png", target={"height": 3.0, "girth": 0.4}))
 
 
 def test_display_columns_turns_circular_pairs_into_degrees():
     ang = np.array([10.0, -170.0, 90.0])
     tab = np.c_[np.ones(3), np.sin(np.radians(ang)), np.cos(np.radians(ang)), 2 * np.ones(3)]
-    out, names = plotting.display_columns(tab, ["R", "sin(gamma)", "cos(gamma)", "L"])
+    out, names = datasets.display_columns(tab, ["R", "sin(gamma)", "cos(gamma)", "L"])
     assert names == ["R", "gamma", "L"]
     assert np.allclose(out[:, 1], ang) and np.allclose(out[:, [0, 2]], tab[:, [0, 3]])
 
@@ -217,7 +220,7 @@ def test_per_line_ks_equals_scipy_with_ties():
     A = rng.normal(size=(7, 3))
     A /= np.linalg.norm(A, axis=1, keepdims=True)
     A[0] = [1, 0, 0]  # heavy ties on a coordinate axis
-    got = plotting.per_line_ks(um, ud, A)
+    got = datasets.per_line_ks(um, ud, A)
     want = [ks_2samp(um @ a, ud @ a).statistic for a in A]
     assert np.allclose(got, want, atol=1e-12)
 
@@ -228,22 +231,22 @@ def test_data_set_and_worst_lines_figures(tmp_path):
     g = rng.uniform(-np.pi, np.pi, (2, 300))
     ud = np.c_[rng.gamma(2, 0.01, 300), rng.uniform(0, 3, 300), np.sin(g[0]), np.cos(g[0])]
     um = np.c_[rng.gamma(2, 0.012, 300), rng.uniform(0, 2, 300), np.sin(g[1]), np.cos(g[1])]
-    assert_png(plotting.set_scatter_figure(ud, um, cols, tmp_path / "s.png", title="S1"), 600, 600)
+    assert_png(datasets.set_scatter_figure(ud, um, cols, tmp_path / "s.png", title="S1"), 600, 600)
     A = rng.normal(size=(32, 4))
     A /= np.linalg.norm(A, axis=1, keepdims=True)
-    assert_png(plotting.worst_lines_figure(um, ud, A, cols, tmp_path / "l.png", k=3), 900, 200)
+    assert_png(datasets.worst_lines_figure(um, ud, A, cols, tmp_path / "l.png", k=3), 900, 200)
     # an empty model table still draws (data only)
-    assert_png(plotting.set_scatter_figure(ud, np.empty((0, 4)), cols, tmp_path / "e.png"))
+    assert_png(datasets.set_scatter_figure(ud, np.empty((0, 4)), cols, tmp_path / "e.png"))
 
 
 def test_convergence_compare_chain_and_corner_figures(tmp_path):
     d = np.r_[0.5, 0.4, 1.0, 0.3, 0.35, 0.2]
     st = ["ok", "ok", "collapsed", "ok", "ok", "ok"]
     recs = [{"generation": 0, "best": 0.4, "mean": 0.45, "std": 0.05}, {"generation": 1, "best": 0.2, "mean": 0.3}]
-    assert_png(plotting.convergence_figure(d, tmp_path / "c.png", statuses=st, records=recs), 900)
-    assert plotting._pad_curves([np.array([3.0, 2, 2.5]), np.array([4.0, 1])]).tolist() == [[3, 2, 2], [4, 1, 1]]
+    assert_png(convergence.convergence_figure(d, tmp_path / "c.png", statuses=st, records=recs), 900)
+    assert comparison._pad_curves([np.array([3.0, 2, 2.5]), np.array([4.0, 1])]).tolist() == [[3, 2, 2], [4, 1, 1]]
     curves = {"ga": [np.linspace(1, 0.2, 50), np.linspace(1, 0.3, 40)], "de": [np.linspace(1, 0.5, 50)]}
-    assert_png(plotting.compare_figure(curves, tmp_path / "cmp.png", threshold=0.3))
+    assert_png(comparison.compare_figure(curves, tmp_path / "cmp.png", threshold=0.3))
     rng = np.random.default_rng(0)
     chain = rng.normal(size=(30, 8, 3)) * [1, 2, 0.1] + [0, 5, 1]
     diag = {"chain": chain.tolist(), "distances": rng.random((30, 8)).tolist(), "burn_in": 10,
@@ -251,8 +254,8 @@ def test_convergence_compare_chain_and_corner_figures(tmp_path):
     got = mcmc_chain(diag, ["x", "y", "z"])
     assert got[0].shape == (30, 8, 3) and got[1].shape == (30, 8) and got[2] == 10 and got[3] == ["a", "b", "c"]
     assert mcmc_chain({"generations": 3}, ["a"]) is None
-    assert_png(plotting.chain_figure(got[0], got[3], tmp_path / "ch.png", burn_in=10, distances=got[1]))
-    assert_png(plotting.corner_figure(chain[10:].reshape(-1, 3), ["a", "b", "c"], tmp_path / "co.png",
+    assert_png(posterior.chain_figure(got[0], got[3], tmp_path / "ch.png", burn_in=10, distances=got[1]))
+    assert_png(posterior.corner_figure(chain[10:].reshape(-1, 3), ["a", "b", "c"], tmp_path / "co.png",
                                       truths=[0, 5, 1]), 500, 500)
 
 
@@ -311,8 +314,8 @@ def test_report_of_a_real_emcee_run(tmp_path):
     best = json.loads((run / "best.json").read_text())
     feats, dist = v.worker_parts
     for name, ud in v.U_data.items():
-        um2, ud2, lines, stat, normalised = _distance_view(dist, name, v.U_model[name], ud)
+        um2, ud2, lines, stat, normalised = distance_view(dist, name, v.U_model[name], ud)
         assert stat == "ks" and normalised and lines.shape == (32,)
         assert lines.mean() == pytest.approx(best["per_set"][name], abs=1e-12)
         # ... and equal the KS of the normalised projections the figure draws
-        assert np.allclose(plotting.per_line_ks(um2, ud2, dist.directions(ud.shape[1])), lines, atol=1e-9)
+        assert np.allclose(datasets.per_line_ks(um2, ud2, dist.directions(ud.shape[1])), lines, atol=1e-9)

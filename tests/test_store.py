@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from bforest_core.store import Evaluation, RunDirError, RunStore
+from bforest_core.pipeline.store import Evaluation, RunDirError, RunStore
 
 
 def test_evaluations_are_committed_one_by_one(tmp_path):

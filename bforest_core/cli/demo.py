@@ -58,9 +58,9 @@ def demo_config_text(quick: bool = False) -> str:
 
 
 def run_demo(out: Path, quick: bool = False, progress: bool = True) -> int:
-    from .clones import clones
-    from .config import load_config
-    from .fit import fit
+    from ..pipeline.clones import clones
+    from ..config import load_config
+    from ..pipeline.fit import fit
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cfg_path = out.parent / f"{out.name}.toml"
@@ -78,7 +78,7 @@ def run_demo(out: Path, quick: bool = False, progress: bool = True) -> int:
     print(f"clones: {s['ok']} of {s['count']} grown; mean distance to the target "
           f"{s.get('distance', {}).get('mean', float('nan')):.4f}")
     try:
-        from .report import write_report
+        from ..report.build import write_report
         rep = write_report(out)
         print(f"report: {rep}")
     except ImportError:

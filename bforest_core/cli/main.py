@@ -45,7 +45,7 @@ class _UsageError(Exception):
 
 # ---------------------------------------------------------------------------------- commands
 def cmd_plugins(args):
-    from .registry import discover
+    from ..registry import discover
     reg = discover()
     rows = sorted(reg.components.values(), key=lambda e: (e.kind, e.name))
     print(f"{'kind':<11} {'name':<16} {'distribution':<28} summary")
@@ -64,7 +64,7 @@ def cmd_plugins(args):
 
 
 def cmd_config(args):
-    from .config import config_schema, load_config
+    from ..config import config_schema, load_config
     if args.action == "schema":
         print(json.dumps(config_schema(), indent=2))
         return 0
@@ -76,7 +76,7 @@ def cmd_config(args):
 
 
 def _read(path, args=None):
-    from .io import read_qsm
+    from ..io import read_qsm
     opts = {}
     if args is not None:
         if getattr(args, "select", None) is not None:
@@ -87,7 +87,7 @@ def _read(path, args=None):
 
 
 def cmd_info(args):
-    from .metrics import classical_metrics
+    from ..metrics import classical_metrics
     tree = _read(args.tree, args)
     trees = tree if isinstance(tree, list) else [tree]
     for k, t in enumerate(trees):
@@ -112,9 +112,9 @@ def cmd_info(args):
 
 
 def cmd_simulate(args):
-    from .io import write_tree
-    from .metrics import classical_metrics
-    from .registry import component
+    from ..io import write_tree
+    from ..metrics import classical_metrics
+    from ..registry import component
     settings = _parse_set(args.setting)
     if args.preset:
         settings["preset"] = args.preset
@@ -128,15 +128,15 @@ def cmd_simulate(args):
         p = write_tree(tree, args.output)
         print(f"wrote {p}")
     if args.png:
-        from .plotting import save_tree_figure
+        from ..report.trees import save_tree_figure
         save_tree_figure(tree, args.png, title=f"{args.ssm}, seed {args.seed}")
         print(f"wrote {args.png}")
     return 0
 
 
 def cmd_distance(args):
-    from .metrics import classical_metrics, relative_errors
-    from .registry import component
+    from ..metrics import classical_metrics, relative_errors
+    from ..registry import component
     a, b = _read(args.tree_a), _read(args.tree_b)
     a = a[0] if isinstance(a, list) else a
     b = b[0] if isinstance(b, list) else b
@@ -179,8 +179,8 @@ def _split_sets(text: str) -> list[str]:
 
 
 def cmd_fit(args):
-    from .config import load_config
-    from .fit import fit
+    from ..config import load_config
+    from ..pipeline.fit import fit
     cfg = load_config(args.config)
     if args.max_evaluations:
         cfg.stop.max_evaluations = args.max_evaluations
@@ -197,7 +197,7 @@ def cmd_fit(args):
 
 def _report(run_dir):
     try:
-        from .report import write_report
+        from ..report.build import write_report
     except ImportError:
         return
     p = write_report(run_dir)
@@ -205,7 +205,7 @@ def _report(run_dir):
 
 
 def cmd_clones(args):
-    from .clones import clones
+    from ..pipeline.clones import clones
     s = clones(args.run_dir, n=args.n, progress=not args.quiet)
     print(f"{s['ok']} of {s['count']} clones grown in {Path(args.run_dir) / 'clones'}")
     for key in ("distance", "height", "girth", "crown_spread", "d_h", "d_g", "d_c"):
@@ -218,26 +218,28 @@ def cmd_clones(args):
 
 
 def cmd_report(args):
-    from .report import write_report
+    from ..report.build import write_report
     p = write_report(args.run_dir)
     print(f"report: {p}")
     return 0
 
 
 def cmd_compare(args):
-    from .compare import compare
+    from ..pipeline.compare import compare
     res = compare(args.config, optimizers=[o.strip() for o in args.optimizers.split(",") if o.strip()],
                   budget=args.budget, repeats=args.repeats, out_dir=args.output, threshold=args.threshold)
+    from ..report.comparison import write_compare_figure
     print(res["table_text"])
-    print(f"figure: {res['figure']}")
+    print(f"figure: {write_compare_figure(res)}")
     return 0
 
 
 def cmd_profile(args):
-    from .profile import profile
+    from ..pipeline.profile import profile
     res = profile(args.run_dir, args.param, values=args.values, seeds=args.seeds, n=args.n)
+    from ..report.comparison import write_profile_figure
     print(res["table_text"])
-    print(f"figure: {res['figure']}")
+    print(f"figure: {write_profile_figure(res)}")
     return 0
 
 
@@ -248,7 +250,7 @@ def cmd_demo(args):
 
 # ---------------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
+    from .. import __version__
     p = _Parser(prog="bforest", description="Bayes Forest: fit growth models to laser-scanned trees "
                 "and grow morphological clones.")
     p.add_argument("--version", action="version", version=f"bforest {__version__}")
@@ -351,7 +353,7 @@ def _select_arg(text):
 
 
 def main(argv=None) -> int:
-    from .errors import BayesForestError
+    from ..errors import BayesForestError
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):

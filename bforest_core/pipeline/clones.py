@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import load_config
-from .errors import SimulationFailed
+from ..config import load_config
+from ..errors import SimulationFailed
 from .objective import _CTX, build_target, clone_seeds, progress_bar, started_workers
 from .store import RunStore
 
@@ -16,8 +16,8 @@ METRIC_KEYS = ("height", "girth", "crown_spread")
 
 def _clone_task(task):
     """Grow one clone in a worker, write it, and score it against the target."""
-    from .io import write_tree
-    from .metrics import classical_metrics
+    from ..io import write_tree
+    from ..metrics import classical_metrics
     i, params, seed, out_dir = task
     c = _CTX
     try:
@@ -36,7 +36,7 @@ def _clone_task(task):
 def clones(run_dir, n: int | None = None, executor=None, progress: bool = True) -> dict:
     """Grow ``n`` clones of a finished fit; writes ``clones/clone_NNN.txt``, ``clones/clones.csv``
     and ``clones/summary.json``. Returns the summary."""
-    from .metrics import relative_errors
+    from ..metrics import relative_errors
     run_dir = Path(run_dir)
     store = RunStore.open(run_dir)
     cfg = load_config(store.config_path)

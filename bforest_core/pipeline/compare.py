@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import config_to_dict, load_config, parse_config
+from ..config import config_to_dict, load_config, parse_config
 from .objective import build_target
-from .registry import component_class
+from ..registry import component_class
 from .store import RunStore
 
 def _settings_for_budget(name: str, budget: int) -> dict:
@@ -80,10 +80,8 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
         lines.append(f"{t['optimizer']:<10}{t['median_best']:>12.4f}{'[%.4f, %.4f]' % (t['min_best'], t['max_best']):>20}"
                      f"{e:>15}{t['reached']:>9}{t['median_seconds']:>9.1f}")
     text = "\n".join(lines)
-    fig = out_dir / "compare.png"
-    from .plotting import compare_figure
-    compare_figure(curves, fig, threshold=threshold)
     (out_dir / "compare.json").write_text(json.dumps({"budget": budget, "repeats": repeats, "threshold": threshold,
                                                       "table": table, "runs": rows}, indent=2))
-    (out_dir / "compare.md").write_text(f"# Optimiser comparison\n\n```\n{text}\n```\n\n![curves](compare.png)\n")
-    return {"table": table, "table_text": text, "figure": fig, "curves": curves, "runs": rows}
+    (out_dir / "compare.md").write_text(f"# Optimiser comparison\n\n```\n{text}\n```\n")
+    return {"table": table, "table_text": text, "curves": curves, "runs": rows, "threshold": threshold,
+            "out_dir": out_dir}

@@ -12,7 +12,7 @@ import os
 
 from pydantic import Field
 
-from .interfaces import ComponentSettings, Executor
+from ..interfaces import ComponentSettings, Executor
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
                 "VECLIB_MAXIMUM_THREADS", "BLIS_NUM_THREADS")

@@ -16,12 +16,12 @@ from typing import Any
 
 import numpy as np
 
-from .config import config_to_dict, load_config, parse_config, section_settings, ssm_settings
-from .errors import BayesForestError, ConfigError
-from .interfaces import Problem
+from ..config import config_to_dict, load_config, parse_config, section_settings, ssm_settings
+from ..errors import BayesForestError, ConfigError
+from ..interfaces import Problem
 from .objective import (Target, _simulate_with_timeout, _Timeout, build_target, evaluate_task, model_seeds,
                         progress_bar, run_executor, spread_seeds, started_workers)
-from .registry import component
+from ..registry import component
 from .store import Evaluation, RunDirError, RunStore
 
 
@@ -268,7 +268,7 @@ def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
         except NotImplementedError:
             pass
     try:
-        from .io import write_tree
+        from ..io import write_tree
         write_tree(tgt.trees[0], store.path / "target.txt")
     except Exception:  # writing a copy of the target is a convenience, never fatal
         pass
@@ -277,8 +277,8 @@ def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
 def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: float, result, ssm) -> dict:
     """Write ``best.json`` (the best logged evaluation, classical metrics of target and best
     tree) and ``best_tree.txt`` (the best parameters regrown with the first model seed)."""
-    from .metrics import classical_metrics, relative_errors
-    from .io import write_tree
+    from ..metrics import classical_metrics, relative_errors
+    from ..io import write_tree
     ev = store.best()
     target_metrics = classical_metrics(tgt.trees[0])
     best = {"params": ev.params, "distance": ev.distance, "per_set": ev.per_set, "status": ev.status,

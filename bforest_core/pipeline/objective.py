@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from .errors import BayesForestError, SimulationFailed, TreeError
-from .registry import component
+from ..errors import BayesForestError, SimulationFailed, TreeError
+from ..registry import component
 
 
 # ---------------------------------------------------------------------------------- seeds
@@ -51,7 +51,7 @@ def feature_set_for(cfg, side: str, settings: dict | None = None):
     ``settings`` defaults to the ``[features]`` section; the model side passes the data side's
     resolved settings so it extracts exactly the same sets.
     """
-    from .config import section_settings
+    from ..config import section_settings
     settings = dict(section_settings(cfg, "features") if settings is None else settings)
     rule = cfg.target.topology if side == "target" else getattr(cfg.ssm, "topology", None)
     if rule is not None and "topology" in settings:
@@ -61,7 +61,7 @@ def feature_set_for(cfg, side: str, settings: dict | None = None):
 
 def load_target_trees(cfg) -> list:
     """The data tree(s) of the run: read from the QSM file or grown by the named SSM."""
-    from .io import read_qsm
+    from ..io import read_qsm
     t = cfg.target
     if t.generate is not None:
         ssm = component("ssm", t.generate.ssm, **t.generate.settings)
@@ -100,7 +100,7 @@ class _Timeout(Exception):
 
 def init_worker(cfg_dict: dict, U_data: dict, columns: dict, feature_settings: dict) -> None:
     """Executor initializer: build the components once in this process."""
-    from .config import parse_config, section_settings, ssm_settings
+    from ..config import parse_config, section_settings, ssm_settings
     cfg = parse_config(cfg_dict)
     dist = component("distance", cfg.distance.kind, **section_settings(cfg, "distance"))
     dist.prepare(U_data, columns)
@@ -114,14 +114,14 @@ def init_worker(cfg_dict: dict, U_data: dict, columns: dict, feature_settings: d
 
 def run_executor(cfg):
     """The executor of the run's ``[executor]`` section."""
-    from .config import section_settings
+    from ..config import section_settings
     return component("executor", cfg.executor.kind, **section_settings(cfg, "executor"))
 
 
 def started_workers(cfg, tgt: Target, executor=None):
     """The run's executor (or ``executor``) started with :func:`init_worker` on the target, as a
     context manager: the target's tables travel to each worker once."""
-    from .config import config_to_dict
+    from ..config import config_to_dict
     ex = run_executor(cfg) if executor is None else executor
     return ex.started(init_worker, (config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings))
 

@@ -14,7 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 __all__ = ["profile", "profile_values"]
 
@@ -62,12 +62,10 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
         (path of the PNG), ``csv`` (path), ``param``, ``values`` (k,), ``seeds`` (list),
         ``distances`` (k, seeds), ``status`` (k, seeds), ``best_value``, ``best_distance``.
     """
-    from .config import load_config, ssm_settings
+    from ..config import load_config, ssm_settings
     from .objective import build_target, evaluate_task, model_seeds, progress_bar, started_workers
-    from .plotting import profile_figure
-    from .registry import component
-    from .report import slug
-    from .store import RunStore
+    from ..registry import component
+    from .store import RunStore, slug
 
     run_dir = Path(run_dir)
     store = RunStore.open(run_dir)
@@ -142,10 +140,6 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
     failed = status != "ok"
     # the best fit's own distance (mean over the fit's seeds), drawn as a marker
     best_distance = best.get("distance")
-    fig = profile_figure(vals, D, run_dir / "figures" / f"profile_{slug(param)}.png", param,
-                         failed=failed, best_value=best_value, best_distance=best_distance, unit=spec.unit,
-                         title=f"Distance profile along {param} ({len(seed_list)} seeds; other parameters "
-                               f"at the best fit)")
     med = np.median(D, axis=1)
     q1, q3 = np.quantile(D, [0.25, 0.75], axis=1)
     lines = [f"profile of {param} ({spec.unit or 'no unit'}): {vals.size} values x {len(seed_list)} seeds, "
@@ -157,6 +151,6 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
                      f"{D[i].max():>10.4f}{int(failed[i].sum()):>8d}{mark}")
     k = int(np.argmin(med))
     lines.append(f"lowest median distance {med[k]:.4f} at {param} = {vals[k]:.6g}")
-    return {"table_text": "\n".join(lines), "figure": fig, "csv": csv_path, "param": param, "values": vals,
-            "seeds": seed_list, "distances": D, "status": status, "best_value": best_value,
-            "best_distance": best_distance}
+    return {"table_text": "\n".join(lines), "csv": csv_path, "param": param, "values": vals,
+            "seeds": seed_list, "distances": D, "status": status, "failed": failed, "best_value": best_value,
+            "best_distance": best_distance, "unit": spec.unit, "run_dir": run_dir}

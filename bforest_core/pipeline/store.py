@@ -18,13 +18,14 @@ how ``--resume`` continues without repeating work.
 from __future__ import annotations
 
 import json
+import re
 import sqlite3
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .errors import BayesForestError
+from ..errors import BayesForestError
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS evaluations (
@@ -46,6 +47,13 @@ CREATE TABLE IF NOT EXISTS log (
 );
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT);
 """
+
+
+
+def slug(text: str) -> str:
+    """A file-name-safe version of a set or parameter name (``"S0,1"`` -> ``"S0-1"``)."""
+    s = re.sub(r"[^A-Za-z0-9_.-]+", "-", str(text)).strip("-")
+    return s or "x"
 
 
 class RunDirError(BayesForestError):

@@ -1,75 +1,24 @@
-"""Figures of trees, data sets, fits, clones and optimiser runs (matplotlib, headless).
-
-Every ``*_figure`` function draws on a fresh :class:`matplotlib.figure.Figure` (no pyplot, no
-global backend switch: it renders with Agg and never needs a display) and writes a PNG. The
-drawing primitives (:func:`plot_tree`, :func:`plot_ecdf_line`, ...) take an ``Axes`` so they can
-be reused in notebooks and other figures.
-
-Conventions follow Potapov et al. (GigaScience 2017): the data side (QSM) is blue, the model side
-(SSM) red; cylinders are drawn as segments whose width is proportional to the radius and whose
-colour is the branch order; lengths are in metres and angles in degrees.
-"""
+"""Figures of trees: one tree in three views, target beside best fit, clones beside the target,
+and the clones' classical metrics. The drawing primitives (:func:`plot_tree`, ...) take an ``Axes``
+so they can be reused in notebooks and other figures."""
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import math
-import re
 from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
 from matplotlib.collections import LineCollection
-from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
 
-__all__ = ["ORDER_COLORS", "DATA_COLOR", "MODEL_COLOR", "VIEWS", "order_colors", "radius_linewidths",
-           "tree_segments", "plot_tree", "order_legend", "save_tree_figure", "tree_comparison_figure",
-           "clones_figure", "clone_metrics_figure", "display_columns", "set_scatter_figure",
-           "per_line_ks", "plot_ecdf_line", "worst_lines_figure", "convergence_figure",
-           "parameter_scatter_figure", "chain_figure", "corner_figure", "profile_figure",
-           "compare_figure", "new_figure", "save_figure"]
+from .canvas import (ORDER_COLORS, DATA_COLOR, MODEL_COLOR, TARGET_LINE, VIEWS, new_figure, save_figure, _AXIS_NAMES, _VIEW_TITLES)
 
-#: colours of branch orders 0 (trunk), 1, 2, ...; the last one repeats for higher orders
-ORDER_COLORS = ("#5a3a1a", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#d62728", "#17becf",
-                "#e377c2", "#8c8c8c")
-DATA_COLOR = "#1f5fbf"   # QSM / target (blue, as in the GigaScience figures)
-MODEL_COLOR = "#d62728"  # SSM / model (red)
-TARGET_LINE = "black"
-
-#: view name -> (horizontal coordinate, vertical coordinate, coordinate pointing at the viewer,
-#: sign). "xz" looks along +y (y points away), "yz" along -x, "xy" down from above.
-VIEWS = {"xz": (0, 2, 1, -1.0), "yz": (1, 2, 0, 1.0), "xy": (0, 1, 2, 1.0)}
-_AXIS_NAMES = "xyz"
-_VIEW_TITLES = {"xz": "side view (XZ)", "yz": "side view (YZ)", "xy": "top view (XY)"}
-
-#: units of the branch-segment feature columns (spec features-distance §2)
-COLUMN_UNITS = {"beta": "deg", "alpha": "deg", "gamma": "deg", "zeta": "deg", "L_t": "m", "R_f": "m",
-                "L_a": "m", "R": "m", "L": "m", "angle": "deg", "length": "m"}
-_GREEK = {"beta": r"$\beta$", "alpha": r"$\alpha$", "gamma": r"$\gamma$", "zeta": r"$\zeta$",
-          "L_t": r"$L_t$", "R_f": r"$R_f$", "L_a": r"$L_a$"}
-
-
-# ---------------------------------------------------------------------------------- figures
-def new_figure(width: float, height: float, layout: str | None = "constrained") -> Figure:
-    """A new Agg-backed figure (inches)."""
-    fig = Figure(figsize=(width, height), layout=layout)
-    return fig
-
-
-def save_figure(fig: Figure, path, dpi: int = 130) -> Path:
-    """Write ``fig`` as PNG (creating the folder) and return the path."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi, facecolor="white")
-    return path
-
-
-def column_label(name: str) -> str:
-    """Axis label of a feature column with its unit, e.g. ``"β (deg)"``."""
-    unit = COLUMN_UNITS.get(name)
-    shown = _GREEK.get(name, name)
-    return f"{shown} ({unit})" if unit else shown
+if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
+    from .run_view import RunView
 
 
 # ---------------------------------------------------------------------------------- trees
@@ -233,7 +182,7 @@ def _set_limits(ax, ext, pad=0.04):
 
 def _tree_caption(tree) -> str:
     try:
-        from .metrics import classical_metrics
+        from ..metrics import classical_metrics
         m = classical_metrics(tree)
         return (f"{tree.n} cylinders, {tree.n_branches} branches, height {m['height']:.2f} m, "
                 f"girth {m['girth']:.3f} m, crown spread {m['crown_spread']:.2f} m")
@@ -423,549 +372,65 @@ def clone_metrics_figure(values: Mapping[str, np.ndarray], path, target: Mapping
     return save_figure(fig, path, dpi)
 
 
-# ---------------------------------------------------------------------------------- data sets
-_CIRC = re.compile(r"^(sin|cos)\((.+)\)$")
+# ---------------------------------------------------------------------------------- run report
+def fig_trees(v: "RunView"):
+    trees = {}
+    if v.target_tree is not None:
+        trees["target (QSM)" if v.cfg is None or v.cfg.target.qsm else "target"] = v.target_tree
+    if v.best_tree is not None:
+        trees["best fit"] = v.best_tree
+    if not trees:
+        v.note("trees figure skipped: neither the target nor the best-fit tree is available")
+        return []
+    p = tree_comparison_figure(trees, v.path / "figures" / "trees.png",
+                               title="Target and best-fit tree (line width ∝ radius, colour = branch order)")
+    cap = "Target and best-fit tree in the side views XZ, YZ and the top view XY, on one scale"
+    if v.best_tree_source == "regrown":
+        cap += " (best fit grown with the best parameters and the first model seed)"
+    return [(p, cap)]
 
 
-def display_columns(table: np.ndarray, columns: Sequence[str]):
-    """Turn circular pairs ``sin(x)``, ``cos(x)`` back into the angle x in degrees for display.
-
-    Returns ``(table, names)`` with one column per original feature (the angle takes the place
-    of its ``sin`` column).
-    """
-    table = np.asarray(table, float)
-    columns = list(columns)
-    idx = {c: i for i, c in enumerate(columns)}
-    out, names, used = [], [], set()
-    for i, c in enumerate(columns):
-        if i in used:
+def fig_clones(v: "RunView"):
+    rows = v.clone_rows
+    ok = [r for r in rows if r.get("status") == "ok"]
+    if not ok:
+        return []
+    out = []
+    k = v.cfg.report.clones_in_figure if v.cfg is not None else 6
+    shown = []
+    from ..io import read_qsm
+    for r in ok:
+        if len(shown) >= k:
+            break
+        f = r.get("file")
+        if not f or not (v.path / "clones" / f).exists():
             continue
-        m = _CIRC.match(c)
-        if m:
-            base = m.group(2)
-            si, ci = idx.get(f"sin({base})"), idx.get(f"cos({base})")
-            if si is not None and ci is not None:
-                out.append(np.degrees(np.arctan2(table[:, si], table[:, ci])))
-                names.append(base)
-                used.update((si, ci))
-                continue
-        out.append(table[:, i])
-        names.append(c)
-        used.add(i)
-    arr = np.column_stack(out) if out else np.empty((table.shape[0], 0))
-    return arr, names
-
-
-def _subsample(x: np.ndarray, k: int, rng) -> np.ndarray:
-    if x.shape[0] <= k:
-        return x
-    return x[np.sort(rng.choice(x.shape[0], k, replace=False))]
-
-
-def set_scatter_figure(data: np.ndarray, model: np.ndarray, columns: Sequence[str], path,
-                       title: str | None = None, max_points: int = 4000, seed: int = 0,
-                       dpi: int = 120) -> Path:
-    """Data (QSM, blue) against model (SSM, red) for one data set: every pair of variates as a
-    scatter (lower triangle), each variate's distribution on the diagonal (GigaScience Fig. 3).
-
-    Circular ``sin``/``cos`` pairs are shown as angles in degrees. At most ``max_points`` rows
-    per side are drawn (a seeded random subset; the legend gives the full counts).
-    """
-    d_tab, names = display_columns(data, columns)
-    m_tab, _ = display_columns(model, columns)
-    k = len(names)
-    rng = np.random.default_rng(seed)
-    d_pts, m_pts = _subsample(d_tab, max_points, rng), _subsample(m_tab, max_points, rng)
-    size = 1.9 if k > 3 else 2.6
-    fig = new_figure(max(5.0, size * k), max(4.6, size * k + 0.4))
-    axes = fig.subplots(k, k, squeeze=False)
-    both = np.concatenate([d_tab, m_tab]) if m_tab.size else d_tab
-    lims = []
-    for j in range(k):
-        col = both[:, j][np.isfinite(both[:, j])]
-        if col.size == 0:
-            lims.append((0.0, 1.0))
+        try:
+            t = read_qsm(v.path / "clones" / f)
+            t = t[0] if isinstance(t, list) else t
+        except Exception as exc:
+            v.note(f"clone file {f} could not be read ({type(exc).__name__}: {exc})")
             continue
-        lo, hi = np.quantile(col, [0.0, 1.0])
-        pad = 0.04 * (hi - lo) if hi > lo else 0.5
-        lims.append((lo - pad, hi + pad))
-    ms = 3.0 if max(len(d_pts), len(m_pts)) > 1500 else 6.0
-    for i in range(k):
-        for j in range(k):
-            ax = axes[i, j]
-            if j > i:
-                ax.set_visible(False)
-                continue
-            if i == j:
-                bins = np.linspace(*lims[j], 31)
-                if d_tab.shape[0]:
-                    ax.hist(d_tab[:, j], bins=bins, density=True, histtype="stepfilled", color=DATA_COLOR,
-                            alpha=0.35)
-                    ax.hist(d_tab[:, j], bins=bins, density=True, histtype="step", color=DATA_COLOR, lw=1.0)
-                if m_tab.shape[0]:
-                    ax.hist(m_tab[:, j], bins=bins, density=True, histtype="step", color=MODEL_COLOR, lw=1.4)
-                ax.set_yticks([])
-            else:
-                ax.scatter(d_pts[:, j], d_pts[:, i], s=ms, c=DATA_COLOR, alpha=0.45, lw=0, rasterized=True)
-                if m_pts.shape[0]:
-                    ax.scatter(m_pts[:, j], m_pts[:, i], s=ms, c=MODEL_COLOR, alpha=0.45, lw=0,
-                               rasterized=True)
-                ax.set_ylim(*lims[i])
-            ax.set_xlim(*lims[j])
-            ax.tick_params(labelsize="x-small")
-            if i == k - 1:
-                ax.set_xlabel(column_label(names[j]), fontsize="small")
-            else:
-                ax.set_xticklabels([])
-            if j == 0 and i > 0:
-                ax.set_ylabel(column_label(names[i]), fontsize="small")
-            elif j > 0 and i != j:
-                ax.set_yticklabels([])
-    handles = [Line2D([], [], marker="o", ls="", color=DATA_COLOR, label=f"data: target (n = {d_tab.shape[0]})"),
-               Line2D([], [], marker="o", ls="", color=MODEL_COLOR, label=f"model: best fit (n = {m_tab.shape[0]})")]
-    if k > 1:  # in the empty upper triangle, outside the layout
-        fig.legend(handles=handles, loc="upper right", bbox_to_anchor=(0.98, 0.93), fontsize="medium",
-                   frameon=False)
-    else:
-        axes[0, 0].legend(handles=handles, fontsize="small")
-    if title:
-        fig.suptitle(title)
-    return save_figure(fig, path, dpi)
-
-
-def per_line_ks(u_model: np.ndarray, u_data: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Two-sample KS statistic of the projections on every line, vectorised over lines.
-
-    Equals ``scipy.stats.ks_2samp(u_model @ a, u_data @ a).statistic`` for each row ``a`` of
-    ``directions`` (ties handled: the ECDF difference is taken after each run of equal values).
-    """
-    u_model = np.asarray(u_model, float)
-    u_data = np.asarray(u_data, float)
-    A = np.asarray(directions, float)
-    nm, nd = u_model.shape[0], u_data.shape[0]
-    if nm == 0 or nd == 0:
-        return np.ones(A.shape[0])
-    z = np.concatenate([u_data @ A.T, u_model @ A.T], axis=0)          # (N, L)
-    w = np.concatenate([np.full(nd, 1.0 / nd), np.full(nm, -1.0 / nm)])
-    order = np.argsort(z, axis=0, kind="stable")
-    zs = np.take_along_axis(z, order, axis=0)
-    c = np.cumsum(w[order], axis=0)
-    last = np.ones_like(zs, dtype=bool)
-    last[:-1] = zs[1:] != zs[:-1]
-    return np.max(np.abs(c) * last, axis=0)
-
-
-def _ecdf(x):
-    x = np.sort(np.asarray(x, float))
-    return x, np.arange(1, x.size + 1) / x.size
-
-
-def plot_ecdf_line(ax, x_model: np.ndarray, x_data: np.ndarray, label: str | None = None):
-    """ECDFs of data (blue) and model (red) projections on one line, with the KS gap marked.
-
-    Returns the KS statistic.
-    """
-    xd, Fd = _ecdf(x_data)
-    xm, Fm = _ecdf(x_model)
-    if xd.size:
-        ax.step(np.r_[xd[0], xd], np.r_[0, Fd], where="post", color=DATA_COLOR, lw=1.4, label="data (target)")
-    if xm.size:
-        ax.step(np.r_[xm[0], xm], np.r_[0, Fm], where="post", color=MODEL_COLOR, lw=1.4, label="model (best fit)")
-    ks = 1.0
-    if xd.size and xm.size:
-        z = np.concatenate([xd, xm])
-        F1 = np.searchsorted(xd, z, side="right") / xd.size
-        F2 = np.searchsorted(xm, z, side="right") / xm.size
-        k = int(np.argmax(np.abs(F1 - F2)))
-        ks = float(abs(F1[k] - F2[k]))
-        ax.plot([z[k], z[k]], [F1[k], F2[k]], color="black", lw=2.0, solid_capstyle="butt")
-        ax.annotate(f"KS = {ks:.3f}", (z[k], 0.5 * (F1[k] + F2[k])), xytext=(6, 0), textcoords="offset points",
-                    fontsize="small", va="center")
-    ax.set_ylim(-0.02, 1.02)
-    ax.set_ylabel("ECDF")
-    if label:
-        ax.set_title(label, fontsize="small")
-    return ks
-
-
-def _line_formula(a: np.ndarray, names: Sequence[str], top: int = 3) -> str:
-    idx = np.argsort(-np.abs(a))[:top]
-    parts = []
-    for n, i in enumerate(idx):
-        c = a[i]
-        sign = "-" if c < 0 else ("+" if n else "")
-        parts.append(f"{sign}{abs(c):.2f}·{names[i]}")
-    more = " …" if len(a) > top else ""
-    return " ".join(parts) + more
-
-
-def worst_lines_figure(u_model: np.ndarray, u_data: np.ndarray, directions: np.ndarray,
-                       columns: Sequence[str], path, line_values: np.ndarray | None = None,
-                       statistic: str = "ks", k: int = 4, title: str | None = None, normalised: bool = False,
-                       dpi: int = 120) -> Path:
-    """Where the model misses the data: the distribution of the per-line statistic and the
-    ECDFs of both sides on the ``k`` worst lines, with the KS gap marked.
-
-    ``u_model``/``u_data`` must already be in the distance's units (normalised if it
-    normalises); ``line_values`` are the distance's own per-line values when it provides them,
-    else the KS statistic is computed on every line (:func:`per_line_ks`).
-    """
-    A = np.asarray(directions, float)
-    vals = per_line_ks(u_model, u_data, A) if line_values is None else np.asarray(line_values, float)
-    stat_name = (statistic if line_values is not None else "ks").upper()
-    worst = np.argsort(-vals, kind="stable")[:k]
-    fig = new_figure(3.4 * (k + 1), 3.3)
-    axes = fig.subplots(1, k + 1, squeeze=False)[0]
-    ax = axes[0]
-    ax.hist(vals, bins=min(30, max(5, vals.size // 4)), color="#bbbbbb", edgecolor="#777777")
-    ax.axvline(vals.mean(), color="black", lw=1.5, label=f"mean = {vals.mean():.3f}")
-    for i in worst:
-        ax.axvline(vals[i], color=MODEL_COLOR, lw=0.8, ls=":")
-    ax.set_xlabel(f"{stat_name} per line")
-    ax.set_ylabel("lines")
-    ax.set_title(f"{A.shape[0]} lines", fontsize="small")
-    ax.legend(fontsize="x-small")
-    for ax, i in zip(axes[1:], worst):
-        a = A[i]
-        plot_ecdf_line(ax, u_model @ a, u_data @ a,
-                       label=f"line {i} ({stat_name} {vals[i]:.3f})\n{_line_formula(a, list(columns))}")
-        ax.set_xlabel("projection" + (" (normalised units)" if normalised else ""), fontsize="small")
-    axes[1].legend(fontsize="x-small", loc="lower right")
-    if title:
-        fig.suptitle(title)
-    return save_figure(fig, path, dpi)
-
-
-# ---------------------------------------------------------------------------------- fit diagnostics
-def convergence_figure(distances: np.ndarray, path, statuses: Sequence[str] | None = None,
-                       records: Sequence[Mapping] | None = None, title: str | None = None,
-                       dpi: int = 130) -> Path:
-    """Distance of every evaluation with the best so far (left) and, when the optimiser logs
-    generations/iterations, the best and mean distance per generation (right).
-
-    Failed evaluations are marked at the top edge (their penalty distance is off the scale).
-    """
-    d = np.asarray(distances, float)
-    ok = np.ones(d.size, bool) if statuses is None else np.array([s == "ok" for s in statuses], bool)
-    gen = _generation_series(records or [])
-    ncol = 2 if gen is not None else 1
-    fig = new_figure(6.2 * ncol, 4.0)
-    axes = fig.subplots(1, ncol, squeeze=False)[0]
-    ax = axes[0]
-    x = np.arange(1, d.size + 1)
-    if ok.any():
-        ax.scatter(x[ok], d[ok], s=8, color="#7f7f7f", alpha=0.55, lw=0, label="evaluation")
-    best = np.minimum.accumulate(np.where(np.isfinite(d), d, np.inf)) if d.size else d
-    ax.step(x, best, where="post", color=MODEL_COLOR, lw=1.8, label="best so far")
-    if (~ok).any():
-        ax.scatter(x[~ok], np.full((~ok).sum(), 0.97), transform=ax.get_xaxis_transform(), marker="x",
-                   color="#e6550d", s=18, lw=1.0, label=f"failed ({(~ok).sum()}, penalty)", clip_on=False)
-    if ok.any():
-        lo, hi = float(np.min(d[ok])), float(np.max(d[ok]))
-        pad = 0.05 * (hi - lo) if hi > lo else 0.05 * max(abs(hi), 1e-3)
-        ax.set_ylim(lo - pad, hi + 3 * pad)
-    ax.set_xlabel("evaluation")
-    ax.set_ylabel("distance D")
-    ax.set_xlim(0, max(1, d.size) + 1)
-    ax.grid(True, lw=0.3, alpha=0.5)
-    ax.legend(fontsize="small", loc="upper right")
-    ax.set_title("every evaluation", fontsize="medium")
-    if gen is not None:
-        ax = axes[1]
-        xkey, xs, series = gen
-        for key, style in (("best", dict(color=MODEL_COLOR, lw=1.8, marker="o", ms=3)),
-                           ("mean", dict(color="#1f77b4", lw=1.2, marker=".", ms=3)),
-                           ("median", dict(color="#2ca02c", lw=1.2, ls="--"))):
-            if key in series:
-                ax.plot(xs, series[key], label=key, **style)
-        if "mean" in series and "std" in series:
-            m, s = series["mean"], series["std"]
-            ax.fill_between(xs, m - s, m + s, color="#1f77b4", alpha=0.15, lw=0, label="mean ± sd")
-        ax.set_xlabel(xkey)
-        ax.xaxis.get_major_locator().set_params(integer=True)
-        ax.set_ylabel("distance D")
-        ax.grid(True, lw=0.3, alpha=0.5)
-        ax.legend(fontsize="small")
-        ax.set_title(f"per {xkey}", fontsize="medium")
-    if title:
-        fig.suptitle(title)
-    return save_figure(fig, path, dpi)
-
-
-def _generation_series(records):
-    """(x key, x values, {series: values}) from optimiser log records, or None."""
-    recs = [r for r in records if isinstance(r, Mapping)]
-    if not recs:
-        return None
-    xkey = next((k for k in ("generation", "step", "iteration", "round") if all(k in r for r in recs)), None)
-    series = {}
-    for key in ("best", "mean", "median", "std"):
-        vals = [r.get(key) for r in recs]
-        if all(v is None for v in vals):
-            continue
-        series[key] = np.array([np.nan if v is None else float(v) for v in vals])
-    if "best" not in series and "mean" not in series:
-        return None
-    xs = np.array([r[xkey] for r in recs], float) if xkey else np.arange(len(recs), dtype=float)
-    return (xkey or "record"), xs, series
-
-
-def parameter_scatter_figure(names: Sequence[str], X: np.ndarray, distances: np.ndarray, path,
-                             best: Mapping[str, float] | None = None,
-                             bounds: Mapping[str, tuple[float, float]] | None = None,
-                             units: Mapping[str, str] | None = None,
-                             title: str | None = None, dpi: int = 130) -> Path:
-    """Distance against each free parameter over the successful evaluations, coloured by
-    evaluation number (where the optimiser looked, and when); the best fit is a red star."""
-    X = np.asarray(X, float).reshape(len(distances), len(names))
-    d = np.asarray(distances, float)
-    p = len(names)
-    ncol = min(p, 3)
-    nrow = math.ceil(p / ncol)
-    fig = new_figure(4.3 * ncol + 0.8, 3.4 * nrow)
-    axes = fig.subplots(nrow, ncol, squeeze=False).ravel()
-    sc = None
-    for j, (ax, name) in enumerate(zip(axes, names)):
-        sc = ax.scatter(X[:, j], d, c=np.arange(d.size), cmap="viridis", s=10, alpha=0.7, lw=0)
-        if best and name in best:
-            ax.scatter([best[name]], [np.min(d)] if d.size else [np.nan], marker="*", s=160, color=MODEL_COLOR,
-                       edgecolor="black", lw=0.6, zorder=5, label=f"best {best[name]:.4g}")
-            ax.legend(fontsize="small")
-        if bounds and name in bounds:
-            lo, hi = bounds[name]
-            pad = 0.02 * (hi - lo)
-            ax.set_xlim(lo - pad, hi + pad)
-        unit = (units or {}).get(name)
-        ax.set_xlabel(f"{name} ({unit})" if unit else name)
-        ax.set_ylabel("distance D")
-        ax.grid(True, lw=0.3, alpha=0.5)
-    for ax in axes[p:]:
-        ax.set_visible(False)
-    if sc is not None:
-        fig.colorbar(sc, ax=list(axes[:p]), label="evaluation", shrink=0.9)
-    if title:
-        fig.suptitle(title)
-    return save_figure(fig, path, dpi)
-
-
-def chain_figure(chain: np.ndarray, names: Sequence[str], path, burn_in: int = 0,
-                 distances: np.ndarray | None = None, title: str | None = None, dpi: int = 120) -> Path:
-    """Trace of every walker of an MCMC chain ``(steps, walkers, parameters)`` per parameter
-    (and of each walker's distance, ``(steps, walkers)``), the burn-in shaded."""
-    chain = np.asarray(chain, float)
-    steps, walkers, p = chain.shape
-    rows = p + (1 if distances is not None else 0)
-    fig = new_figure(9.0, 1.7 * rows + 0.6)
-    axes = fig.subplots(rows, 1, squeeze=False, sharex=True)[:, 0]
-    t = np.arange(steps)
-    for j in range(p):
-        ax = axes[j]
-        ax.plot(t, chain[:, :, j], color="black", alpha=max(0.05, min(0.5, 8.0 / walkers)), lw=0.6)
-        ax.set_ylabel(names[j] if j < len(names) else f"p{j}", fontsize="small")
-    if distances is not None:
-        dd = np.asarray(distances, float)
-        ax = axes[p]
-        ax.plot(t, np.where(np.isfinite(dd), dd, np.nan), color="#1f77b4",
-                alpha=max(0.05, min(0.5, 8.0 / walkers)), lw=0.6)
-        ax.set_ylabel("distance D", fontsize="small")
-    for ax in axes:
-        if burn_in > 0:
-            ax.axvspan(0, burn_in, color="#dddddd", alpha=0.6, lw=0)
-        ax.grid(True, lw=0.3, alpha=0.4)
-    axes[-1].set_xlabel(f"step ({walkers} walkers" + (f", burn-in {burn_in} shaded)" if burn_in else ")"))
-    if title:
-        fig.suptitle(title)
-    return save_figure(fig, path, dpi)
-
-
-def corner_figure(samples: np.ndarray, names: Sequence[str], path, truths: Sequence[float] | None = None,
-                  bins: int | None = None, bounds: Sequence[tuple[float, float]] | None = None,
-                  smooth: float = 1.0, title: str | None = None, dpi: int = 120) -> Path:
-    """Corner plot of posterior samples ``(n, p)``: marginal histograms with the 16/50/84 %
-    quantiles on the diagonal, 2-D histograms (Gaussian-smoothed by ``smooth`` bins) with
-    39/86 % (1σ/2σ) contours below; ``truths`` (e.g. the best fit) in red. ``bins`` defaults
-    to about sqrt(n)/2, between 8 and 30."""
-    from scipy.ndimage import gaussian_filter
-    S = np.asarray(samples, float)
-    S = S[np.isfinite(S).all(1)]
-    n, p = S.shape
-    if bins is None:
-        bins = int(np.clip(np.sqrt(max(n, 1)) / 2, 8, 30))
-    size = 2.3 if p > 2 else 3.0
-    fig = new_figure(size * p + 0.5, size * p + 0.5)
-    axes = fig.subplots(p, p, squeeze=False)
-    rng = []
-    for j in range(p):
-        lo, hi = (float(S[:, j].min()), float(S[:, j].max())) if n else (0.0, 1.0)
-        if bounds is not None:
-            lo, hi = max(lo, bounds[j][0]) if n else bounds[j][0], min(hi, bounds[j][1]) if n else bounds[j][1]
-        if hi <= lo:
-            lo, hi = lo - 0.5 * max(abs(lo), 1e-3), hi + 0.5 * max(abs(hi), 1e-3)
-        rng.append((lo, hi))
-    for i in range(p):
-        for j in range(p):
-            ax = axes[i, j]
-            if j > i:
-                ax.set_visible(False)
-                continue
-            if i == j:
-                ax.hist(S[:, j], bins=bins, range=rng[j], histtype="step", color="black", lw=1.2)
-                if n:
-                    q = np.quantile(S[:, j], [0.16, 0.5, 0.84])
-                    for v, ls in zip(q, (":", "-", ":")):
-                        ax.axvline(v, color="#1f77b4", ls=ls, lw=1.0)
-                    ax.set_title(f"{names[j]} = {q[1]:.3g}$^{{+{q[2] - q[1]:.2g}}}_{{-{q[1] - q[0]:.2g}}}$",
-                                 fontsize="small")
-                ax.set_yticks([])
-                if truths is not None:
-                    ax.axvline(truths[j], color=MODEL_COLOR, lw=1.2)
-            else:
-                H, xe, ye = np.histogram2d(S[:, j], S[:, i], bins=bins, range=[rng[j], rng[i]])
-                if smooth:
-                    H = gaussian_filter(H, smooth, mode="constant")
-                ax.pcolormesh(xe, ye, H.T, cmap="Greys", shading="flat", rasterized=True)
-                levels = _hpd_levels(H, (0.393, 0.865)) if n >= 50 else None
-                if levels is not None:
-                    xc, yc = 0.5 * (xe[1:] + xe[:-1]), 0.5 * (ye[1:] + ye[:-1])
-                    ax.contour(xc, yc, H.T, levels=levels, colors="#1f77b4", linewidths=0.9)
-                if truths is not None:
-                    ax.axvline(truths[j], color=MODEL_COLOR, lw=1.0)
-                    ax.axhline(truths[i], color=MODEL_COLOR, lw=1.0)
-                    ax.plot(truths[j], truths[i], "s", color=MODEL_COLOR, ms=4)
-                ax.set_ylim(*rng[i])
-            ax.set_xlim(*rng[j])
-            ax.tick_params(labelsize="x-small")
-            if i == p - 1:
-                ax.set_xlabel(names[j], fontsize="small")
-            else:
-                ax.set_xticklabels([])
-            if j == 0 and i > 0:
-                ax.set_ylabel(names[i], fontsize="small")
-            elif i != j:
-                ax.set_yticklabels([])
-    if title:
-        fig.suptitle(title)
-    return save_figure(fig, path, dpi)
-
-
-def _hpd_levels(H: np.ndarray, masses=(0.393, 0.865)):
-    """Density thresholds enclosing the given probability masses of a 2-D histogram."""
-    flat = np.sort(H.ravel())[::-1]
-    total = flat.sum()
-    if total <= 0:
-        return None
-    cum = np.cumsum(flat) / total
-    levels = []
-    for m in masses:
-        k = min(int(np.searchsorted(cum, m)), flat.size - 1)
-        levels.append(flat[k])
-    levels = np.unique(levels)
-    levels = levels[levels > 0]
-    return levels if levels.size else None
-
-
-# ---------------------------------------------------------------------------------- profiles, comparison
-def profile_figure(values: np.ndarray, distances: np.ndarray, path, param: str,
-                   failed: np.ndarray | None = None, best_value: float | None = None,
-                   best_distance: float | None = None, unit: str = "", title: str | None = None,
-                   dpi: int = 130) -> Path:
-    """Distance profile along one parameter (GigaScience Fig. 4): one thin line per seed (a
-    realisation of the distance surface), the median over seeds, the interquartile and
-    min-max bands, and the best-fit value marked.
-
-    ``distances`` is ``(len(values), seeds)``; ``failed`` (same shape) marks failed
-    simulations (their penalty distance is included in the statistics).
-    """
-    v = np.asarray(values, float)
-    D = np.asarray(distances, float).reshape(v.size, -1)
-    k = D.shape[1]
-    fig = new_figure(7.5, 4.6)
-    ax = fig.subplots()
-    for j in range(1, k):
-        ax.plot(v, D[:, j], color="#888888", lw=0.7, alpha=0.6, label="other seeds" if j == 1 else None)
-    ax.plot(v, D[:, 0], color="black", lw=0.9, ls="--", alpha=0.8, label="the fit's own seed")
-    med = np.nanmedian(D, axis=1)
-    if k > 1:
-        ax.fill_between(v, np.nanmin(D, 1), np.nanmax(D, 1), color=MODEL_COLOR, alpha=0.08, lw=0, label="min–max")
-        q1, q3 = np.nanquantile(D, [0.25, 0.75], axis=1)
-        ax.fill_between(v, q1, q3, color=MODEL_COLOR, alpha=0.2, lw=0, label="interquartile range")
-    ax.plot(v, med, color=MODEL_COLOR, lw=2.0, marker="o", ms=4, label=f"median of {k} seeds")
-    if failed is not None and np.asarray(failed).any():
-        f = np.asarray(failed, bool).reshape(D.shape)
-        ii, jj = np.nonzero(f)
-        ax.scatter(v[ii], D[ii, jj], marker="x", color="#e6550d", s=25, label="failed simulation", zorder=4)
-    if best_value is not None:
-        ax.axvline(best_value, color="black", lw=1.0, ls="--")
-        ax.annotate(f"best fit {best_value:.4g}", (best_value, 1.0), xycoords=("data", "axes fraction"),
-                    xytext=(4, -12), textcoords="offset points", ha="left", fontsize="small")
-        if best_distance is not None:
-            ax.plot([best_value], [best_distance], marker="v", color="black", ms=9, ls="",
-                    label=f"best fit (D = {best_distance:.3f})")
-    ax.set_xlabel(f"{param} ({unit})" if unit else param)
-    ax.set_ylabel("distance D")
-    ax.grid(True, lw=0.3, alpha=0.5)
-    ax.legend(fontsize="small")
-    ax.set_title(title or f"distance profile along {param} (other parameters at the best fit)", fontsize="medium")
-    return save_figure(fig, path, dpi)
-
-
-def _pad_curves(curves: Sequence[np.ndarray]) -> np.ndarray:
-    """Best-so-far curves of unequal length as one ``(repeats, n)`` array; a finished run keeps
-    its last value (its best does not change after it stops)."""
-    curves = [np.minimum.accumulate(np.asarray(c, float).ravel()) for c in curves if np.size(c)]
-    if not curves:
-        return np.empty((0, 0))
-    n = max(c.size for c in curves)
-    out = np.empty((len(curves), n))
-    for r, c in enumerate(curves):
-        out[r, :c.size] = c
-        out[r, c.size:] = c[-1]
+        d = r.get("distance")
+        shown.append((f"clone {int(r['index'])}" + (f"\nD = {d:.3f}" if d is not None and np.isfinite(d) else ""), t))
+    if shown and v.target_tree is not None:
+        out.append((clones_figure(v.target_tree, shown, v.path / "figures" / "clones.png",
+                                  title=f"Target and {len(shown)} morphological clones of the best fit"),
+                    f"The target and {len(shown)} clones (the best-fit model with fresh seeds) on one scale, "
+                    "side view XZ and top view XY"))
+    keys = ("height", "girth", "crown_spread", "distance", "d_h", "d_g", "d_c", "n_cylinders")
+    values = {k: np.array([r.get(k, np.nan) for r in ok], float) for k in keys}
+    tm = dict(v.target_metrics or {})
+    if v.target_tree is not None:
+        tm["n_cylinders"] = v.target_tree.n
+    bm = dict(v.model_metrics or {})
+    if v.best is not None:
+        bm["distance"] = v.best.get("distance")
+        bm.update((v.best.get("relative_errors") or {}))
+    if v.best_tree is not None:
+        bm["n_cylinders"] = v.best_tree.n
+    out.append((clone_metrics_figure(values, v.path / "figures" / "clone_metrics.png", target=tm, best=bm,
+                                     title=f"Classical metrics of {len(ok)} clones"),
+                "Distributions over the clones: height, girth, crown spread, structural distance and the "
+                "relative errors d_h, d_g, d_c; black: target, red dashed: best-fit tree"))
     return out
-
-
-def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: float | None = None,
-                   title: str | None = None, dpi: int = 130) -> Path:
-    """Optimiser comparison: best-so-far distance against evaluations, median over repeats
-    (line) and the interquartile and min-max spread (bands), one colour per optimiser.
-
-    Parameters
-    ----------
-    curves : dict
-        Optimiser name -> list of best-so-far (or raw distance) arrays, one per repeat, indexed by
-        evaluation; shorter runs keep their last value.
-    threshold : float, optional
-        A target distance drawn as a dashed line (for "evaluations to reach").
-    """
-    from matplotlib import colormaps
-    pal = colormaps["tab10"].colors
-    fig = new_figure(7.8, 4.8)
-    ax = fig.subplots()
-    all_pos = True
-    lo_all, hi_all = np.inf, -np.inf
-    for c, (name, runs) in enumerate(curves.items()):
-        M = _pad_curves(runs)
-        if M.size == 0:
-            continue
-        col = pal[c % len(pal)]
-        x = np.arange(1, M.shape[1] + 1)
-        med = np.median(M, axis=0)
-        if M.shape[0] > 1:
-            ax.fill_between(x, M.min(0), M.max(0), color=col, alpha=0.08, lw=0, step="post")
-            q1, q3 = np.quantile(M, [0.25, 0.75], axis=0)
-            ax.fill_between(x, q1, q3, color=col, alpha=0.25, lw=0, step="post")
-        ax.step(x, med, where="post", color=col, lw=2.0, label=f"{name} (median of {M.shape[0]}: {med[-1]:.4g})")
-        fin = M[np.isfinite(M)]
-        all_pos &= bool(np.all(fin > 0))
-        lo_all, hi_all = min(lo_all, fin.min(initial=np.inf)), max(hi_all, fin.max(initial=-np.inf))
-    if threshold is not None:
-        ax.axhline(threshold, color="black", ls="--", lw=1.0, label=f"threshold {threshold:.4g}")
-        lo_all = min(lo_all, threshold)
-    if all_pos and np.isfinite(lo_all) and lo_all > 0 and hi_all / lo_all > 20:
-        ax.set_yscale("log")  # best distances spanning decades
-    ax.set_xlabel("evaluations")
-    ax.set_ylabel("best distance so far")
-    ax.grid(True, which="both", lw=0.3, alpha=0.5)
-    ax.legend(fontsize="small", title="optimizer (final median)", title_fontsize="small")
-    ax.set_title(title or "optimiser comparison (bands: interquartile and min–max over repeats)",
-                 fontsize="medium")
-    return save_figure(fig, path, dpi)

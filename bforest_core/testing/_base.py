@@ -63,9 +63,9 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import numpy as np
 import pydantic
 
-from .errors import SimulationFailed
-from .interfaces import (INTERFACES, KINDS, ComponentSettings, OptimizeResult, ParameterSpec, Problem)
-from .tree import Tree
+from ..errors import SimulationFailed
+from ..interfaces import (INTERFACES, KINDS, ComponentSettings, OptimizeResult, ParameterSpec, Problem)
+from ..tree import Tree
 
 __all__ = ["ConformanceError", "Check", "CheckResult", "Report", "check_tree", "sample_tree",
            "sample_trees", "sample_tables", "component_checks", "check_component", "ssm_checks",
@@ -364,7 +364,7 @@ def _common_checks(cls, inst, settings, label, kind, registered, make_error="") 
     checks = [Check(label, "class", c_class), Check(label, "settings", c_settings)]
     if registered:
         def c_registered():
-            from .registry import discover
+            from ..registry import discover
             reg = discover()
             entry = reg.components.get((kind, cls.name))
             _require(entry is not None, f"not registered: bf.discover() has no {kind} {cls.name!r} "
@@ -375,7 +375,7 @@ def _common_checks(cls, inst, settings, label, kind, registered, make_error="") 
             if isinstance(registered, str):
                 _require(entry.distribution == registered, f"registered by distribution {entry.distribution!r}, "
                                                            f"expected {registered!r}")
-            from .registry import component
+            from ..registry import component
             component(kind, cls.name, **settings)
             return f"from {entry.distribution} {entry.version} (entry point {entry.plugin!r})"
         checks.append(Check(label, "registered", c_registered))
@@ -1067,7 +1067,7 @@ def writer_checks(writer, out_dir: str | Path, tree: Tree | None = None, *, sett
         _require(out is not None and Path(out).exists() and Path(out).stat().st_size > 0,
                  f"write returned {out!r}, which is not a non-empty file")
         if roundtrip:
-            from .io import read_qsm
+            from ..io import read_qsm
             back = read_qsm(out)
             back = back[0] if isinstance(back, (list, tuple)) else back
             _require(back.n == tree.n, f"read back {back.n} cylinders of {tree.n}")
@@ -1315,7 +1315,7 @@ def run_all(distribution: str | None = None, kinds: Iterable[str] | None = None,
     dict
         ``(kind, name) -> Report``.
     """
-    from .registry import discover
+    from ..registry import discover
     reg = discover()
     options = dict(options or {})
     kinds = set(kinds) if kinds is not None else None

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 import bforest_core as bf
-from bforest_core.clones import clones
+from bforest_core.pipeline.clones import clones
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
@@ -150,7 +150,7 @@ def real_tree_section(name: str = "lignum_pine3") -> str:
 def stand_mates_section(out, cfg, summ) -> list[str]:
     """Distances of the clones to pine 3 against those of its two stand-mates (same features,
     distance and data-side normalisation as the fit)."""
-    from bforest_core.objective import build_target
+    from bforest_core.pipeline.objective import build_target
     tgt = build_target(cfg)
     fs = bf.component("features", cfg.features.kind, **tgt.feature_settings)
     dist = bf.component("distance", cfg.distance.kind, **cfg.distance.model_dump(exclude={"kind"}))

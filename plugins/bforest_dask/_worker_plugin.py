@@ -6,7 +6,7 @@ from typing import Callable
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from bforest_core.executors import limit_threads
+from bforest_core.pipeline.executors import limit_threads
 
 
 class RunInitializer(WorkerPlugin):

@@ -28,9 +28,11 @@ from typing import Callable
 
 import numpy as np
 
-from bforest_core.tree import group_by_level
+from bforest_core.tree import Tree, group_by_level
 
 from .light import LightField
+
+MODEL_VERSION = "1.0"
 
 EMPTY, BUD, CHILD, STUB = 0, 1, 2, 3
 SLOT_NAMES = {EMPTY: "EMPTY", BUD: "BUD", CHILD: "CHILD", STUB: "STUB"}
@@ -618,5 +620,32 @@ class StepView:
         return self._tree
 
     def _run_tree(self):
-        from .plugin import build_tree  # local import: plugin imports this module
         return build_tree(self._run, status="ok")
+
+
+def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
+    """The output :class:`Tree` of a run's current state, after a width-only basipetal update
+    (applied to a copy of the widths). Raises ``GrowthFailure('no_root')`` if nothing lives."""
+    s = run.s
+    if run.s.n == 0 or not s.alive[0]:
+        raise GrowthFailure("no_root", "the tree has no living segments")
+    ids, width = run.widths()
+    loc = np.full(s.n, -1, dtype=np.int64)
+    loc[ids] = np.arange(ids.size)
+    par = s.parent[ids]
+    parent = np.where(par >= 0, loc[np.maximum(par, 0)], -1)
+    ext = np.where(s.api_state[ids] == CHILD, loc[np.maximum(s.api_child[ids], 0)], -1)
+    settings = getattr(run, "settings", None)
+    order_mode = getattr(settings, "order_mode", "growth")
+    meta = {
+        "model": "sot", "model_version": MODEL_VERSION, "params": dict(run.p), "seed": run.seed,
+        "status": status, "cycles": int(run.cycle), "order_mode": order_mode,
+        "units": {"length": "m", "angle": "deg"}, "frame": "Z up, stem base at the origin",
+        "segments_created": int(s.n),
+    }
+    tree = Tree(s.start[ids], s.h[ids], s.length[ids], 0.5 * width, parent, ext,
+                topology="thickest" if order_mode == "thickest" else "source",
+                extras={"age": (run.cycle - s.born[ids]).astype(np.int64)}, metadata=meta)
+    # C: is_lateral = starts a new branch (in "growth" mode: the first metamer of a lateral shoot)
+    tree.extras["is_lateral"] = (tree.parent >= 0) & (tree.position_in_branch == 0)
+    return tree

@@ -16,11 +16,8 @@ from bforest_core.hookspecs import hookimpl
 from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
 from bforest_core.tree import Tree
 
-from .model import CHILD, GrowthFailure, SOTGrowth
+from .model import MODEL_VERSION, GrowthFailure, SOTGrowth, build_tree
 from .params import PARAMETERS, validate
-
-MODEL_VERSION = "1.0"
-
 
 class SOTSettings(ComponentSettings):
     """Switches of the SOT model (not fitted)."""
@@ -32,34 +29,6 @@ class SOTSettings(ComponentSettings):
         "multiplicative", description="light field: multiplicative shadow propagation (LPFG-SOT)")
     max_live_segments: int = Field(200_000, ge=1, description="status 'too_many_segments' above this")
     sympodial: bool = Field(False, description="remove apical buds (sympodial branching)")
-
-
-def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
-    """The output :class:`Tree` of a run's current state, after a width-only basipetal update
-    (applied to a copy of the widths). Raises ``GrowthFailure('no_root')`` if nothing lives."""
-    s = run.s
-    if run.s.n == 0 or not s.alive[0]:
-        raise GrowthFailure("no_root", "the tree has no living segments")
-    ids, width = run.widths()
-    loc = np.full(s.n, -1, dtype=np.int64)
-    loc[ids] = np.arange(ids.size)
-    par = s.parent[ids]
-    parent = np.where(par >= 0, loc[np.maximum(par, 0)], -1)
-    ext = np.where(s.api_state[ids] == CHILD, loc[np.maximum(s.api_child[ids], 0)], -1)
-    settings = getattr(run, "settings", None)
-    order_mode = getattr(settings, "order_mode", "growth")
-    meta = {
-        "model": "sot", "model_version": MODEL_VERSION, "params": dict(run.p), "seed": run.seed,
-        "status": status, "cycles": int(run.cycle), "order_mode": order_mode,
-        "units": {"length": "m", "angle": "deg"}, "frame": "Z up, stem base at the origin",
-        "segments_created": int(s.n),
-    }
-    tree = Tree(s.start[ids], s.h[ids], s.length[ids], 0.5 * width, parent, ext,
-                topology="thickest" if order_mode == "thickest" else "source",
-                extras={"age": (run.cycle - s.born[ids]).astype(np.int64)}, metadata=meta)
-    # C: is_lateral = starts a new branch (in "growth" mode: the first metamer of a lateral shoot)
-    tree.extras["is_lateral"] = (tree.parent >= 0) & (tree.position_in_branch == 0)
-    return tree
 
 
 class SOT(SSM):

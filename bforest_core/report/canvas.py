@@ -1,0 +1,53 @@
+"""Shared drawing conventions of every figure (matplotlib, headless).
+
+Every ``*_figure`` function of the report draws on a fresh :class:`matplotlib.figure.Figure` (no
+pyplot, no global backend switch: it renders with Agg and never needs a display) and writes a PNG.
+Conventions follow Potapov et al. (GigaScience 2017): the data side (QSM) is blue, the model side
+(SSM) red; branch orders have fixed colours; lengths are in metres and angles in degrees.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from matplotlib.figure import Figure
+
+#: colours of branch orders 0 (trunk), 1, 2, ...; the last one repeats for higher orders
+ORDER_COLORS = ("#5a3a1a", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#d62728", "#17becf",
+                "#e377c2", "#8c8c8c")
+DATA_COLOR = "#1f5fbf"   # QSM / target (blue, as in the GigaScience figures)
+MODEL_COLOR = "#d62728"  # SSM / model (red)
+TARGET_LINE = "black"
+
+#: view name -> (horizontal coordinate, vertical coordinate, coordinate pointing at the viewer,
+#: sign). "xz" looks along +y (y points away), "yz" along -x, "xy" down from above.
+VIEWS = {"xz": (0, 2, 1, -1.0), "yz": (1, 2, 0, 1.0), "xy": (0, 1, 2, 1.0)}
+_AXIS_NAMES = "xyz"
+_VIEW_TITLES = {"xz": "side view (XZ)", "yz": "side view (YZ)", "xy": "top view (XY)"}
+
+#: units of the branch-segment feature columns (spec features-distance §2)
+COLUMN_UNITS = {"beta": "deg", "alpha": "deg", "gamma": "deg", "zeta": "deg", "L_t": "m", "R_f": "m",
+                "L_a": "m", "R": "m", "L": "m", "angle": "deg", "length": "m"}
+_GREEK = {"beta": r"$\beta$", "alpha": r"$\alpha$", "gamma": r"$\gamma$", "zeta": r"$\zeta$",
+          "L_t": r"$L_t$", "R_f": r"$R_f$", "L_a": r"$L_a$"}
+
+
+# ---------------------------------------------------------------------------------- figures
+def new_figure(width: float, height: float, layout: str | None = "constrained") -> Figure:
+    """A new Agg-backed figure (inches)."""
+    fig = Figure(figsize=(width, height), layout=layout)
+    return fig
+
+
+def save_figure(fig: Figure, path, dpi: int = 130) -> Path:
+    """Write ``fig`` as PNG (creating the folder) and return the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi, facecolor="white")
+    return path
+
+
+def column_label(name: str) -> str:
+    """Axis label of a feature column with its unit, e.g. ``"β (deg)"``."""
+    unit = COLUMN_UNITS.get(name)
+    shown = _GREEK.get(name, name)
+    return f"{shown} ({unit})" if unit else shown

@@ -1,0 +1,261 @@
+"""Everything the report reads from a run directory, read once (:class:`RunView`)."""
+from __future__ import annotations
+
+import csv
+import json
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import BayesForestError
+from ..pipeline.store import RunStore
+
+
+
+# ---------------------------------------------------------------------------------- run data
+class RunView:
+    """Lazy, cached access to everything a run directory holds (and what can be rebuilt from
+    its config). Problems are collected in ``notes`` instead of raised."""
+
+    def __init__(self, run_dir):
+        self.path = Path(run_dir)
+        self.store = RunStore.open(self.path)
+        self.notes: list[str] = []
+        self.best_tree_source = ""
+
+    def note(self, text: str) -> None:
+        if text not in self.notes:
+            self.notes.append(text)
+
+    # ----------------------------------------------------------------- config, results
+    @cached_property
+    def raw_config(self) -> dict:
+        import tomllib
+        try:
+            return tomllib.loads(self.store.config_path.read_text(encoding="utf-8"))
+        except Exception as exc:
+            self.note(f"config.toml could not be read: {exc}")
+            return {}
+
+    @cached_property
+    def cfg(self):
+        from ..config import load_config
+        try:
+            return load_config(self.store.config_path)
+        except BayesForestError as exc:
+            self.note(f"config.toml does not validate with the installed plugins ({exc}); "
+                      "figures that need the models are skipped")
+            return None
+
+    @cached_property
+    def best(self) -> dict | None:
+        p = self.path / "best.json"
+        if not p.exists():
+            self.note("no best.json: the fit has not finished (the report shows the evaluations so far)")
+            return None
+        return json.loads(p.read_text(encoding="utf-8"))
+
+    @cached_property
+    def evaluations(self):
+        return self.store.evaluations()
+
+    @cached_property
+    def records(self) -> list[dict]:
+        return self.store.log_records()
+
+    @cached_property
+    def param_specs(self) -> dict:
+        """The SSM's parameter specs by name (empty when the SSM is not available)."""
+        if self.cfg is None:
+            return {}
+        try:
+            from ..config import ssm_settings
+            from ..registry import component
+            ssm = component("ssm", self.cfg.ssm.kind, **ssm_settings(self.cfg))
+            return {p.name: p for p in ssm.parameters}
+        except Exception:
+            return {}
+
+    @property
+    def free_names(self) -> list[str]:
+        if self.cfg is not None:
+            return list(self.cfg.ssm.free)
+        return list((self.raw_config.get("ssm") or {}).get("free", {}))
+
+    @property
+    def best_params(self) -> dict | None:
+        if self.best is not None:
+            return dict(self.best["params"])
+        ev = self.store.best()
+        return None if ev is None else dict(ev.params)
+
+    @property
+    def best_seeds(self) -> list[int]:
+        if self.best is not None and self.best.get("seeds"):
+            return list(self.best["seeds"])
+        from ..pipeline.objective import model_seeds
+        c = self.cfg
+        return model_seeds(c.seed, c.objective.seeds, "fixed") if c is not None else [1]
+
+    # ----------------------------------------------------------------- target and data sets
+    @cached_property
+    def target(self):
+        """The :class:`~bforest_core.objective.Target` rebuilt from the config (or None)."""
+        if self.cfg is None:
+            return None
+        from ..pipeline.objective import build_target
+        try:
+            return build_target(self.cfg)
+        except Exception as exc:  # a moved QSM file must not stop the report
+            self.note(f"the target could not be rebuilt from the config ({type(exc).__name__}: {exc}); "
+                      "using the run's saved copies")
+            return None
+
+    @cached_property
+    def U_data(self) -> dict[str, np.ndarray]:
+        p = self.path / "target_sets.npz"
+        if p.exists():
+            with np.load(p) as z:
+                return {k: np.asarray(z[k]) for k in z.files}
+        if self.target is not None:
+            return dict(self.target.U)
+        self.note("no target_sets.npz and the target could not be rebuilt: data-set figures skipped")
+        return {}
+
+    @cached_property
+    def columns(self) -> dict[str, list[str]]:
+        if self.target is not None:
+            return dict(self.target.columns)
+        if self.cfg is not None and self.U_data:
+            try:
+                from ..pipeline.objective import feature_set_for
+                fs = feature_set_for(self.cfg, "target")
+                return {k: list(fs.columns(k)) for k in self.U_data}
+            except Exception:
+                pass
+        return {k: [f"x{i}" for i in range(v.shape[1])] for k, v in self.U_data.items()}
+
+    def _read_tree(self, name: str):
+        p = self.path / name
+        if not p.exists():
+            return None
+        try:
+            from ..io import read_qsm
+            t = read_qsm(p)
+            return t[0] if isinstance(t, list) else t
+        except Exception as exc:
+            self.note(f"{name} could not be read ({type(exc).__name__}: {exc})")
+            return None
+
+    @cached_property
+    def target_tree(self):
+        if self.target is not None:
+            return self.target.trees[0]
+        t = self._read_tree("target.txt")
+        if t is None:
+            self.note("the target tree is not available (no target.txt and no readable target in the config)")
+        return t
+
+    @cached_property
+    def best_tree(self):
+        """The best-fit tree: regrown from the best parameters and the first model seed (exactly
+        the tree ``finish_fit`` scored and wrote), else read from ``best_tree.txt``.
+
+        Regrowing comes first because the text file rounds coordinates (to ~1e-8 m), which can
+        move segment angles of near-vertical cylinders and so the distance in the 4th digit.
+        """
+        if self.cfg is not None and self.best_params is not None:
+            try:
+                from ..config import ssm_settings
+                from ..registry import component
+                ssm = component("ssm", self.cfg.ssm.kind, **ssm_settings(self.cfg))
+                tree = ssm.simulate(self.best_params, int(self.best_seeds[0]))
+                self.best_tree_source = "regrown"
+                return tree
+            except Exception as exc:
+                self.note(f"the best-fit tree could not be regrown ({type(exc).__name__}: {exc}); "
+                          "using best_tree.txt")
+        t = self._read_tree("best_tree.txt")
+        if t is not None:
+            self.best_tree_source = "best_tree.txt"
+        return t
+
+    @cached_property
+    def worker_parts(self):
+        """(features, distance) built exactly as the fit's workers build them (``init_worker``),
+        or None."""
+        if self.cfg is None or not self.U_data:
+            return None
+        from ..pipeline import objective
+        from ..config import config_to_dict, section_settings
+        if self.target is not None:
+            fs_settings = self.target.feature_settings
+        else:
+            fs_settings = section_settings(self.cfg, "features")
+        saved = dict(objective._CTX)
+        try:
+            objective.init_worker(config_to_dict(self.cfg), self.U_data, self.columns, fs_settings)
+            return objective._CTX["features"], objective._CTX["distance"]
+        except Exception as exc:
+            self.note(f"the feature set and distance could not be set up ({type(exc).__name__}: {exc})")
+            return None
+        finally:
+            objective._CTX.clear()
+            objective._CTX.update(saved)
+
+    @cached_property
+    def U_model(self) -> dict[str, np.ndarray] | None:
+        if self.worker_parts is None or self.best_tree is None:
+            return None
+        try:
+            return self.worker_parts[0].extract(self.best_tree)
+        except Exception as exc:
+            self.note(f"data sets of the best-fit tree could not be extracted ({type(exc).__name__}: {exc})")
+            return None
+
+    @cached_property
+    def target_metrics(self) -> dict | None:
+        if self.best is not None and self.best.get("target_metrics"):
+            return self.best["target_metrics"]
+        if self.target_tree is not None:
+            from ..metrics import classical_metrics
+            return classical_metrics(self.target_tree)
+        return None
+
+    @cached_property
+    def model_metrics(self) -> dict | None:
+        if self.best is not None and self.best.get("model_metrics"):
+            return self.best["model_metrics"]
+        if self.best_tree is not None:
+            from ..metrics import classical_metrics
+            return classical_metrics(self.best_tree)
+        return None
+
+    # ----------------------------------------------------------------- clones
+    @cached_property
+    def clone_rows(self) -> list[dict]:
+        p = self.path / "clones" / "clones.csv"
+        if not p.exists():
+            return []
+        rows = []
+        with open(p, newline="") as fh:
+            for r in csv.DictReader(fh):
+                out = {}
+                for k, v in r.items():
+                    if k in ("status", "file"):
+                        out[k] = v
+                        continue
+                    try:
+                        out[k] = float(v) if v not in ("", None) else float("nan")
+                    except ValueError:
+                        out[k] = v
+                rows.append(out)
+        return rows
+
+    @cached_property
+    def clone_summary(self) -> dict | None:
+        p = self.path / "clones" / "summary.json"
+        if not p.exists():
+            return None
+        return json.loads(p.read_text(encoding="utf-8"))

@@ -225,6 +225,44 @@ class BranchTable:
         return int(self.first.shape[0])
 
 
+
+def _unit_axes(axis: np.ndarray) -> np.ndarray:
+    """The axes checked to be unit vectors (rows off by more than rounding are renormalised)."""
+    norm = np.linalg.norm(axis, axis=1)
+    bad = np.flatnonzero(norm == 0)
+    if bad.size:
+        raise TreeError(f"axis has zero length at rows {_rows_text(bad)}", bad)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > _AXIS_TOL)
+    if bad.size:
+        raise TreeError(f"axis is not a unit vector at rows {_rows_text(bad)} (norm {norm[bad[0]]:.6g}); "
+                        "renormalise it before building the tree", bad)
+    # renormalise only rows that are off by more than rounding, so rebuilding a tree
+    # (with_topology, round trips) leaves its axes bit-identical
+    off = np.abs(norm - 1.0) > 4e-15
+    if off.any():
+        axis = axis.copy()
+        axis[off] /= norm[off, None]
+    return axis
+
+
+def _parent_first(start, axis, length, radius, parent, extension, added, source_row, extras):
+    """The rows reordered so that every parent precedes its children (unchanged if they do)."""
+    perm = parent_first_order(parent)
+    if perm is not None:
+        n = parent.size
+        inv = np.empty(n, dtype=np.int64)
+        inv[perm] = np.arange(n)
+        remap = lambda a: np.where(a >= 0, inv[np.maximum(a, 0)], -1)
+        start, axis, length, radius, added, source_row = (
+            start[perm], axis[perm], length[perm], radius[perm], added[perm], source_row[perm])
+        parent = remap(parent[perm])
+        extension = remap(extension[perm])
+        extras = {k: v[perm] for k, v in extras.items()}
+        if "_source_extension" in extras:  # holds row ids: renumber like extension
+            extras["_source_extension"] = remap(extras["_source_extension"])
+    return start, axis, length, radius, parent, extension, added, source_row, extras
+
+
 class Tree:
     """A tree as a table of cylinders with parent links (spec §1).
 
@@ -296,20 +334,7 @@ class Tree:
             bad = np.flatnonzero(arr <= 0)
             if bad.size:
                 raise TreeError(f"{name} <= 0 at rows {_rows_text(bad)} (value {arr[bad[0]]:g})", bad)
-        norm = np.linalg.norm(axis, axis=1)
-        bad = np.flatnonzero(norm == 0)
-        if bad.size:
-            raise TreeError(f"axis has zero length at rows {_rows_text(bad)}", bad)
-        bad = np.flatnonzero(np.abs(norm - 1.0) > _AXIS_TOL)
-        if bad.size:
-            raise TreeError(f"axis is not a unit vector at rows {_rows_text(bad)} (norm {norm[bad[0]]:.6g}); "
-                            "renormalise it before building the tree", bad)
-        # renormalise only rows that are off by more than rounding, so rebuilding a tree
-        # (with_topology, round trips) leaves its axes bit-identical
-        off = np.abs(norm - 1.0) > 4e-15
-        if off.any():
-            axis = axis.copy()
-            axis[off] /= norm[off, None]
+        axis = _unit_axes(axis)
         if topology not in TOPOLOGY_RULES:
             raise TreeError(f"unknown topology rule {topology!r} (choose from {', '.join(TOPOLOGY_RULES)})")
         if added is None:
@@ -326,18 +351,8 @@ class Tree:
         bad = np.flatnonzero((extension < -1) | (extension >= n))
         if bad.size:
             raise TreeError(f"extension out of range at rows {_rows_text(bad)}", bad)
-        perm = parent_first_order(parent)
-        if perm is not None:
-            inv = np.empty(n, dtype=np.int64)
-            inv[perm] = np.arange(n)
-            remap = lambda a: np.where(a >= 0, inv[np.maximum(a, 0)], -1)
-            start, axis, length, radius, added, source_row = (
-                start[perm], axis[perm], length[perm], radius[perm], added[perm], source_row[perm])
-            parent = remap(parent[perm])
-            extension = remap(extension[perm])
-            extras = {k: v[perm] for k, v in extras.items()}
-            if "_source_extension" in extras:  # holds row ids: renumber like extension
-                extras["_source_extension"] = remap(extras["_source_extension"])
+        start, axis, length, radius, parent, extension, added, source_row, extras = _parent_first(
+            start, axis, length, radius, parent, extension, added, source_row, extras)
         has_ext = np.flatnonzero(extension >= 0)
         bad = has_ext[parent[extension[has_ext]] != has_ext]
         if bad.size:

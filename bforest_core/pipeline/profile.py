@@ -35,6 +35,29 @@ def profile_values(lower: float, upper: float, n: int = 11, integer: bool = Fals
     return np.unique(v)
 
 
+
+def _profile_grid(cfg, spec, param: str, values, n: int, best_value: float):
+    """The values to profile and whether they are whole numbers: ``n`` across the fit bounds (or
+    the model's range for a fixed parameter) plus the best value, or the user's ``values``
+    checked against the model's range."""
+    integer = bool(spec.integer)
+    if param in cfg.ssm.free:
+        fp = cfg.ssm.free[param]
+        lo, hi = fp.lower, fp.upper
+        integer = spec.integer if fp.integer is None else bool(fp.integer)
+    else:
+        lo, hi = spec.lower, spec.upper
+    if values is None:
+        return profile_values(lo, hi, n, integer, include=best_value), integer
+    vals = np.unique(np.asarray(list(values), float))
+    if vals.size == 0:
+        raise ConfigError("profile: --values is empty")
+    bad = vals[(vals < spec.lower) | (vals > spec.upper)]
+    if bad.size:
+        raise ConfigError(f"profile: {param} = {bad[0]:g} is outside the model's allowed range "
+                          f"[{spec.lower:g}, {spec.upper:g}] {spec.unit}".rstrip())
+    return (np.unique(np.round(vals)) if integer else vals), integer
+
 def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: int = 5, n: int = 11,
             executor=None, progress: bool = False) -> dict:
     """Distance profile along one parameter of a finished fit.
@@ -58,8 +81,7 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
     Returns
     -------
     dict
-        ``table_text`` (one line per value: median, quartiles, range, failures), ``figure``
-        (path of the PNG), ``csv`` (path), ``param``, ``values`` (k,), ``seeds`` (list),
+        ``table_text`` (one line per value: median, quartiles, range, failures), ``csv`` (path), ``param``, ``values`` (k,), ``seeds`` (list),
         ``distances`` (k, seeds), ``status`` (k, seeds), ``best_value``, ``best_distance``.
     """
     from ..config import load_config, ssm_settings
@@ -82,25 +104,7 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
         raise ConfigError(f"profile: '{param}' is not a parameter of SSM '{cfg.ssm.kind}' (known: {known})") from None
     base = dict(best["params"])
     best_value = base.get(param, spec.default)
-    integer = bool(spec.integer)
-    if param in cfg.ssm.free:
-        fp = cfg.ssm.free[param]
-        lo, hi = fp.lower, fp.upper
-        integer = spec.integer if fp.integer is None else bool(fp.integer)
-    else:
-        lo, hi = spec.lower, spec.upper
-    if values is None:
-        vals = profile_values(lo, hi, n, integer, include=best_value)
-    else:
-        vals = np.unique(np.asarray(list(values), float))
-        if vals.size == 0:
-            raise ConfigError("profile: --values is empty")
-        bad = vals[(vals < spec.lower) | (vals > spec.upper)]
-        if bad.size:
-            raise ConfigError(f"profile: {param} = {bad[0]:g} is outside the model's allowed range "
-                              f"[{spec.lower:g}, {spec.upper:g}] {spec.unit}".rstrip())
-        if integer:
-            vals = np.unique(np.round(vals))
+    vals, integer = _profile_grid(cfg, spec, param, values, n, best_value)
     if int(seeds) < 1:
         raise ConfigError(f"profile: seeds must be at least 1 (got {seeds})")
     seed_list = model_seeds(cfg.seed, int(seeds), "fixed")
@@ -126,8 +130,19 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
             bar.update(1)
     bar.close()
 
-    set_names = list(tgt.U)
-    csv_path = run_dir / f"profile_{slug(param)}.csv"
+    csv_path = _write_profile_csv(run_dir / f"profile_{slug(param)}.csv", vals, seed_list, D, status, per_set,
+                                  list(tgt.U))
+    failed = status != "ok"
+    # the best fit's own distance (mean over the fit's seeds), drawn as a marker
+    best_distance = best.get("distance")
+    lines = _profile_table(param, spec.unit, vals, seed_list, D, failed, best_value)
+    return {"table_text": "\n".join(lines), "csv": csv_path, "param": param, "values": vals,
+            "seeds": seed_list, "distances": D, "status": status, "failed": failed, "best_value": best_value,
+            "best_distance": best_distance, "unit": spec.unit, "run_dir": run_dir}
+
+
+def _write_profile_csv(csv_path, vals, seed_list, D, status, per_set, set_names):
+    """One row per (value, seed): the distance, status and per-set distances."""
     with open(csv_path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["value", "seed", "distance", "status"] + [f"D[{s}]" for s in set_names])
@@ -136,13 +151,14 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
                 ps = per_set.get((i, j)) or {}
                 w.writerow([f"{x:.10g}", s, f"{D[i, j]:.10g}", status[i, j]]
                            + ["" if ps.get(n) is None else f"{ps[n]:.10g}" for n in set_names])
+    return csv_path
 
-    failed = status != "ok"
-    # the best fit's own distance (mean over the fit's seeds), drawn as a marker
-    best_distance = best.get("distance")
+
+def _profile_table(param, unit, vals, seed_list, D, failed, best_value) -> list[str]:
+    """The printed table: median, quartiles and range of the distance per value."""
     med = np.median(D, axis=1)
     q1, q3 = np.quantile(D, [0.25, 0.75], axis=1)
-    lines = [f"profile of {param} ({spec.unit or 'no unit'}): {vals.size} values x {len(seed_list)} seeds, "
+    lines = [f"profile of {param} ({unit or 'no unit'}): {vals.size} values x {len(seed_list)} seeds, "
              f"other parameters at the best fit; best fit {param} = {best_value:.6g}",
              f"{'value':>12}{'median':>10}{'q25':>10}{'q75':>10}{'min':>10}{'max':>10}{'failed':>8}"]
     for i, x in enumerate(vals):
@@ -151,6 +167,4 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
                      f"{D[i].max():>10.4f}{int(failed[i].sum()):>8d}{mark}")
     k = int(np.argmin(med))
     lines.append(f"lowest median distance {med[k]:.4f} at {param} = {vals[k]:.6g}")
-    return {"table_text": "\n".join(lines), "csv": csv_path, "param": param, "values": vals,
-            "seeds": seed_list, "distances": D, "status": status, "failed": failed, "best_value": best_value,
-            "best_distance": best_distance, "unit": spec.unit, "run_dir": run_dir}
+    return lines

@@ -1,0 +1,114 @@
+"""Commands that run or read a fit: demo, fit, clones, report, compare, profile."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from .common import report
+
+
+def cmd_fit(args):
+    from ..config import load_config
+    from ..pipeline.fit import fit
+    cfg = load_config(args.config)
+    if args.max_evaluations:
+        cfg.stop.max_evaluations = args.max_evaluations
+    out = Path(args.output) if args.output else Path("runs") / Path(args.config).stem
+    res = fit(cfg, out, resume=args.resume, progress=not args.quiet, overwrite=args.overwrite)
+    print(f"best distance {res.distance:.4f} after {res.n_evaluations} evaluations ({res.stop_reason})")
+    for k, v in res.params.items():
+        print(f"  {k} = {v:.6g}" if isinstance(v, float) else f"  {k} = {v}")
+    print(f"run directory: {out}")
+    if cfg.report.enabled and not args.no_report:
+        report(out)
+    return 0
+
+
+def cmd_clones(args):
+    from ..pipeline.clones import clones
+    s = clones(args.run_dir, n=args.n, progress=not args.quiet)
+    print(f"{s['ok']} of {s['count']} clones grown in {Path(args.run_dir) / 'clones'}")
+    for key in ("distance", "height", "girth", "crown_spread", "d_h", "d_g", "d_c"):
+        if key in s:
+            v = s[key]
+            print(f"  {key:<13} mean {v['mean']:.4f}  sd {v['sd']:.4f}  [{v['min']:.4f}, {v['max']:.4f}]")
+    if not args.no_report:
+        report(args.run_dir)
+    return 0
+
+
+def cmd_report(args):
+    from ..report.build import write_report
+    p = write_report(args.run_dir)
+    print(f"report: {p}")
+    return 0
+
+
+def cmd_compare(args):
+    from ..pipeline.compare import compare
+    res = compare(args.config, optimizers=[o.strip() for o in args.optimizers.split(",") if o.strip()],
+                  budget=args.budget, repeats=args.repeats, out_dir=args.output, threshold=args.threshold)
+    from ..report.comparison import write_compare_figure
+    print(res["table_text"])
+    print(f"figure: {write_compare_figure(res)}")
+    return 0
+
+
+def cmd_profile(args):
+    from ..pipeline.profile import profile
+    res = profile(args.run_dir, args.param, values=args.values, seeds=args.seeds, n=args.n)
+    from ..report.comparison import write_profile_figure
+    print(res["table_text"])
+    print(f"figure: {write_profile_figure(res)}")
+    return 0
+
+
+def cmd_demo(args):
+    from .demo import run_demo
+    return run_demo(Path(args.output), quick=args.quick, progress=not args.quiet)
+
+
+def add_commands(sub) -> None:
+    """Register this group's subcommands."""
+    s = sub.add_parser("demo", help="the main job on the embedded default target, end to end")
+    s.add_argument("-o", "--output", default="demo-run", help="run directory (default: demo-run)")
+    s.add_argument("--quick", action="store_true", help="a smaller fit (for tests)")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("fit", help="fit a growth model as configured in RUN.toml")
+    s.add_argument("config", metavar="RUN.toml")
+    s.add_argument("-o", "--output", help="run directory (default: runs/<config name>)")
+    s.add_argument("--resume", action="store_true", help="continue a stopped or killed run in -o")
+    s.add_argument("--overwrite", action="store_true", help="replace an existing run in -o")
+    s.add_argument("--max-evaluations", type=int, help="override [stop] max_evaluations")
+    s.add_argument("--no-report", action="store_true")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=cmd_fit)
+
+    s = sub.add_parser("clones", help="clones of a finished fit, with their distances and metrics")
+    s.add_argument("run_dir", metavar="DIR")
+    s.add_argument("-n", type=int, default=None, help="number of clones (default: [clones] count)")
+    s.add_argument("--no-report", action="store_true")
+    s.add_argument("-q", "--quiet", action="store_true")
+    s.set_defaults(func=cmd_clones)
+
+    s = sub.add_parser("report", help="figures (PNG) and a summary (Markdown/HTML) of a run")
+    s.add_argument("run_dir", metavar="DIR")
+    s.set_defaults(func=cmd_report)
+
+    s = sub.add_parser("compare", help="compare optimisers on equal evaluation budgets")
+    s.add_argument("config", metavar="RUN.toml")
+    s.add_argument("--optimizers", default="ga,nlopt,emcee,de")
+    s.add_argument("--budget", type=int, required=True, help="evaluations per optimiser run")
+    s.add_argument("--repeats", type=int, default=3)
+    s.add_argument("--threshold", type=float, default=None, help="distance for 'evaluations to reach'")
+    s.add_argument("-o", "--output", default=None, help="output directory (default: runs/compare-<config>)")
+    s.set_defaults(func=cmd_compare)
+
+    s = sub.add_parser("profile", help="distance along one parameter for several seeds")
+    s.add_argument("run_dir", metavar="DIR")
+    s.add_argument("--param", required=True)
+    s.add_argument("--values", type=float, nargs="+", default=None, help="values (default: 11 across the bounds)")
+    s.add_argument("--n", type=int, default=11)
+    s.add_argument("--seeds", type=int, default=5)
+    s.set_defaults(func=cmd_profile)

@@ -1,0 +1,126 @@
+"""Commands on single trees: info, simulate, distance."""
+from __future__ import annotations
+
+
+from .common import UsageError, parse_set, read, select_arg, split_sets
+
+
+def cmd_info(args):
+    from ..metrics import classical_metrics
+    tree = read(args.tree, args)
+    trees = tree if isinstance(tree, list) else [tree]
+    for k, t in enumerate(trees):
+        m = classical_metrics(t)
+        md = t.metadata
+        head = f"{args.tree}" + (f" [reconstruction {md.get('model_index', k)}]" if len(trees) > 1 else "")
+        print(head)
+        fmt = md.get("format", "?") + (f" (version {md['version']})" if md.get("version") else "")
+        print(f"  format        {fmt}")
+        print(f"  cylinders     {t.n}" + (f" ({int(t.added.sum())} added)" if t.added.any() else ""))
+        print(f"  branches      {t.n_branches} (topology {t.topology})")
+        print(f"  max order     {t.max_order}")
+        print(f"  height        {m['height']:.2f} m")
+        print(f"  girth (base)  {m['girth']:.3f} m")
+        if m.get("dbh") is not None and m["dbh"] == m["dbh"]:
+            print(f"  DBH (1.3 m)   {m['dbh']:.3f} m")
+        print(f"  crown spread  {m['crown_spread']:.2f} m")
+        print(f"  wood volume   {t.volume:.4f} m^3")
+        for note in md.get("repairs", []) or []:
+            print(f"  repaired      {note}")
+    return 0
+
+
+def cmd_simulate(args):
+    from ..io import write_tree
+    from ..metrics import classical_metrics
+    from ..registry import component
+    settings = parse_set(args.setting)
+    if args.preset:
+        settings["preset"] = args.preset
+    ssm = component("ssm", args.ssm, **settings)
+    params = parse_set(args.set)
+    tree = ssm.simulate(params, args.seed)
+    m = classical_metrics(tree)
+    print(f"{args.ssm} seed {args.seed}: {tree.n} cylinders, {tree.n_branches} branches, "
+          f"height {m['height']:.2f} m, girth {m['girth']:.3f} m, crown spread {m['crown_spread']:.2f} m")
+    if args.output:
+        p = write_tree(tree, args.output)
+        print(f"wrote {p}")
+    if args.png:
+        from ..report.trees import save_tree_figure
+        save_tree_figure(tree, args.png, title=f"{args.ssm}, seed {args.seed}")
+        print(f"wrote {args.png}")
+    return 0
+
+
+def cmd_distance(args):
+    from ..metrics import classical_metrics, relative_errors
+    from ..registry import component
+    a, b = read(args.tree_a), read(args.tree_b)
+    a = a[0] if isinstance(a, list) else a
+    b = b[0] if isinstance(b, list) else b
+    fs_settings = {"sets": split_sets(args.sets)}
+    if args.topology:
+        fs_settings["topology"] = args.topology
+    fs = component("features", args.features, **fs_settings)
+    fs.prepare([b])
+    Ub, Ua = fs.extract(b), fs.extract(a)
+    dset = {"statistic": args.statistic, "lines": args.lines}
+    if args.normalize:
+        dset["normalize"] = args.normalize
+    dist = component("distance", args.distance, **dset)
+    dist.prepare(Ub, {k: fs.columns(k) for k in fs.set_names})
+    per = dist.compute_per_set(Ua, Ub)
+    total = dist.combine(per)
+    print(f"data (B): {args.tree_b}\nmodel (A): {args.tree_a}")
+    print(f"distance ({args.distance}, {args.statistic}, {args.lines} lines): {total:.4f}")
+    for k, v in per.items():
+        print(f"  {k:<10} {'skipped' if v is None else f'{v:.4f}'}  (rows A {Ua[k].shape[0]}, B {Ub[k].shape[0]})")
+    ma, mb = classical_metrics(a), classical_metrics(b)
+    err = relative_errors(mb, ma)
+    print(f"{'metric':<14}{'A':>10}{'B':>10}{'rel. error':>12}")
+    for key, ek in (("height", "d_h"), ("girth", "d_g"), ("crown_spread", "d_c")):
+        print(f"{key:<14}{ma[key]:>10.3f}{mb[key]:>10.3f}{err[ek]:>12.3f}")
+    if args.test:
+        if not hasattr(dist, "permutation_test"):
+            raise UsageError(f"distance '{args.distance}' offers no permutation test")
+        res = dist.permutation_test(Ua, Ub, seed=args.seed)
+        print(f"permutation test: {res.summary()}")
+        for k, p in res.per_set.items():
+            print(f"  {k:<10} p = {p:.4f} (Holm-corrected {res.per_set_holm.get(k, float('nan')):.4f})")
+        print("  (rows of one tree are not independent: a screening measure, not an exact test)")
+    return 0
+
+
+def add_commands(sub) -> None:
+    """Register this group's subcommands."""
+    s = sub.add_parser("distance", help="structural distance between two QSM files (B is the data side)")
+    s.add_argument("tree_a", metavar="TREE_A")
+    s.add_argument("tree_b", metavar="TREE_B")
+    s.add_argument("--sets", default="S1 B1", help="data sets, e.g. 'S0,1 B2,3,4' (default: 'S1 B1')")
+    s.add_argument("--statistic", default="ks")
+    s.add_argument("--lines", type=int, default=256)
+    s.add_argument("--normalize", default=None)
+    s.add_argument("--topology", default=None, choices=["source", "subtree", "thickest"])
+    s.add_argument("--features", default="branch-segment")
+    s.add_argument("--distance", default="sliced")
+    s.add_argument("--test", action="store_true", help="permutation test p-value")
+    s.add_argument("--seed", type=int, default=1)
+    s.set_defaults(func=cmd_distance)
+
+    s = sub.add_parser("simulate", help="grow one tree with a growth model")
+    s.add_argument("--ssm", required=True)
+    s.add_argument("--seed", type=int, default=1)
+    s.add_argument("--set", action="append", metavar="NAME=VALUE", help="model parameter (repeatable)")
+    s.add_argument("--setting", action="append", metavar="NAME=VALUE", help="component setting (repeatable)")
+    s.add_argument("--preset", default=None, help="parameter preset (LIGNUM)")
+    s.add_argument("-o", "--output", help="tree file (.txt TreeQSM text, .csv, .ply, .obj)")
+    s.add_argument("--png", help="figure of the tree")
+    s.set_defaults(func=cmd_simulate)
+
+    s = sub.add_parser("info", help="what a QSM file holds")
+    s.add_argument("tree", metavar="TREE")
+    s.add_argument("--reader", default=None)
+    s.add_argument("--select", default=None, type=select_arg, help="reconstruction index, list or 'all'")
+    s.add_argument("--topology", default=None, choices=["source", "subtree", "thickest"])
+    s.set_defaults(func=cmd_info)

@@ -32,7 +32,7 @@ from typing import Annotated, Any, Literal, Optional, Union
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
 
-from .errors import ConfigError, validation_error_text
+from .errors import ConfigError, PluginError, validation_error_text
 from .registry import discover
 
 #: config section -> component kind
@@ -92,6 +92,29 @@ class TargetConfig(_Strict):
         return self
 
 
+class TermConfig(_Strict):
+    """One more term of the objective: its own feature set and distance, and a weight.
+
+    The objective is the weighted mean of its terms: the ``[features]``/``[distance]`` term
+    (weight ``objective.structure_weight``) and each ``[[objective.terms]]`` entry. Its data
+    sets are stored as ``<name>/<set>``.
+    """
+
+    name: str = Field(..., pattern=r"^[A-Za-z][A-Za-z0-9_-]*$",
+                      description="name of the term (its sets are stored as NAME/SET)")
+    weight: float = Field(1.0, gt=0, description="weight of the term in the objective")
+    features: dict[str, Any] = Field(..., description="feature set: { kind = NAME, settings... }")
+    distance: dict[str, Any] = Field(..., description="distance: { kind = NAME, settings... }")
+    weights: Optional[dict[str, float]] = Field(None, description="weight per data set within the term")
+
+    @model_validator(mode="after")
+    def _kinds(self):
+        for part in ("features", "distance"):
+            if not isinstance(getattr(self, part).get("kind"), str):
+                raise ValueError(f"{part}: needs kind = \"<{part} plugin name>\"")
+        return self
+
+
 class ObjectiveConfig(_Strict):
     """How one parameter vector is scored."""
 
@@ -105,6 +128,18 @@ class ObjectiveConfig(_Strict):
     penalty: float = Field(1.0, description="distance of a failed simulation")
     timeout: Optional[float] = Field(60.0, gt=0, description="seconds before a simulation is stopped (None: no limit)")
     cache: bool = Field(True, description="never simulate identical params and seeds twice")
+    structure_weight: float = Field(1.0, gt=0, description="weight of the [features]/[distance] term "
+                                    "when [[objective.terms]] adds others")
+    terms: list[TermConfig] = Field(default_factory=list, description="more terms of the objective, e.g. a "
+                                    "summary-statistics term beside the structural distance")
+
+    @model_validator(mode="after")
+    def _unique_terms(self):
+        names = [t.name for t in self.terms]
+        dup = sorted({n for n in names if names.count(n) > 1} | ({"structure"} & set(names)))
+        if dup:
+            raise ValueError(f"terms: the name {dup[0]!r} is used twice ('structure' is the [features]/[distance] term)")
+        return self
 
 
 class StopConfig(_Strict):
@@ -236,9 +271,22 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
             cfg.target.qsm = str((base_dir / p).resolve())
     try:
         check_ssm_parameters(cfg)
+        check_terms(cfg)
     except ConfigError as exc:
         raise ConfigError(f"{source}: {exc}") from None
     return cfg
+
+
+def check_terms(cfg) -> None:
+    """Every ``[[objective.terms]]`` entry names installed components with valid settings."""
+    from .registry import component
+    for i, t in enumerate(cfg.objective.terms):
+        for kind, part in (("features", t.features), ("distance", t.distance)):
+            settings = {k: v for k, v in part.items() if k != "kind"}
+            try:
+                component(kind, part["kind"], **settings)
+            except (ConfigError, PluginError) as exc:
+                raise ConfigError(f"objective.terms[{i}] ({t.name}).{kind}: {exc}") from None
 
 
 def load_config(path) -> BaseModel:

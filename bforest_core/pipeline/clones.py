@@ -8,7 +8,7 @@ import numpy as np
 
 from ..config import load_config
 from ..errors import SimulationFailed
-from .objective import _CTX, build_target, clone_seeds, progress_bar, started_workers
+from .objective import _CTX, build_target, clone_seeds, combine_terms, progress_bar, score_tree, started_workers, with_term_values
 from .store import RunStore
 
 METRIC_KEYS = ("height", "girth", "crown_spread")
@@ -26,11 +26,10 @@ def _clone_task(task):
         return dict(index=i, seed=seed, status=exc.status, message=str(exc))
     path = Path(out_dir) / f"clone_{i:03d}.txt"
     write_tree(tree, path)
-    U = c["features"].extract(tree)
-    per_set = c["distance"].compute_per_set(U, c["U_data"])
-    total = c["distance"].combine(per_set, c["weights"])
+    per_set, _ = score_tree(tree)
+    total, values = combine_terms(per_set)
     return dict(index=i, seed=seed, status="ok", message="", file=path.name, distance=total,
-                per_set=per_set, n_cylinders=tree.n, **classical_metrics(tree))
+                per_set=with_term_values(per_set, values), n_cylinders=tree.n, **classical_metrics(tree))
 
 
 def clones(run_dir, n: int | None = None, executor=None, progress: bool = True) -> dict:
@@ -59,7 +58,7 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True) 
             rows[j] = res
             bar.update(1)
     bar.close()
-    set_names = list(tgt.U)
+    set_names = list(tgt.U) + ([f"term:{t['name']}" for t in tgt.terms] if len(tgt.terms or []) > 1 else [])
     cols = ["index", "seed", "status", "file", "distance"] + [f"D[{s}]" for s in set_names] + \
         ["n_cylinders", "height", "girth", "crown_spread", "d_h", "d_g", "d_c"]
     with open(out_dir / "clones.csv", "w", newline="") as fh:

@@ -256,13 +256,15 @@ def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
     np.savez_compressed(store.path / "target_sets.npz", **tgt.U)
     if cfg is not None:
         dist = component("distance", cfg.distance.kind, **section_settings(cfg, "distance"))
-        dist.prepare(tgt.U, tgt.columns)
+        own = {k: v for k, v in tgt.U.items() if "/" not in k}  # the [distance] term's sets
+        cols = {k: v for k, v in tgt.columns.items() if "/" not in k}
+        dist.prepare(own, cols)
         frozen = {"distance": cfg.distance.kind, "settings": section_settings(cfg, "distance"),
-                  "columns": tgt.columns}
+                  "columns": cols}
         if hasattr(dist, "normalizations"):
             frozen["normalization"] = dist.normalizations()
         store.write_json("distance.json", frozen)
-        dims = sorted({u.shape[1] for u in tgt.U.values() if u.ndim == 2})
+        dims = sorted({u.shape[1] for u in own.values() if u.ndim == 2})
         try:
             np.savez_compressed(store.path / "directions.npz", **{f"d{d}": dist.directions(d) for d in dims})
         except NotImplementedError:

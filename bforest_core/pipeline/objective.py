@@ -45,18 +45,42 @@ def clone_seeds(run_seed: int, n: int, base: int | None = None) -> list[int]:
 
 
 # ---------------------------------------------------------------------------------- target
-def feature_set_for(cfg, side: str, settings: dict | None = None):
+#: name of the [features]/[distance] term when the objective has more than one
+STRUCTURE = "structure"
+
+
+def feature_set_for(cfg, side: str, settings: dict | None = None, kind: str | None = None):
     """The feature set of one side (``"target"`` or ``"model"``), honouring per-side topology.
 
     ``settings`` defaults to the ``[features]`` section; the model side passes the data side's
-    resolved settings so it extracts exactly the same sets.
+    resolved settings so it extracts exactly the same sets. ``kind`` defaults to
+    ``[features] kind`` (other terms name their own).
     """
     from ..config import section_settings
     settings = dict(section_settings(cfg, "features") if settings is None else settings)
     rule = cfg.target.topology if side == "target" else getattr(cfg.ssm, "topology", None)
     if rule is not None and "topology" in settings:
         settings["topology"] = rule
-    return component("features", cfg.features.kind, **settings)
+    return component("features", kind or cfg.features.kind, **settings)
+
+
+def term_specs(cfg) -> list[dict]:
+    """The terms of the objective: the ``[features]``/``[distance]`` term first (prefix ``""``,
+    so a one-term run stores its sets under their own names), then ``[[objective.terms]]``
+    (prefix ``"<name>/"``). Each: name, prefix, weight, set weights, features and distance
+    kinds and settings."""
+    from ..config import section_settings
+    o = cfg.objective
+    specs = [dict(name=STRUCTURE, prefix="", weight=float(o.structure_weight), set_weights=o.weights,
+                  features_kind=cfg.features.kind, features=section_settings(cfg, "features"),
+                  distance_kind=cfg.distance.kind, distance=section_settings(cfg, "distance"))]
+    for t in o.terms:
+        specs.append(dict(name=t.name, prefix=f"{t.name}/", weight=float(t.weight), set_weights=t.weights,
+                          features_kind=t.features["kind"],
+                          features={k: v for k, v in t.features.items() if k != "kind"},
+                          distance_kind=t.distance["kind"],
+                          distance={k: v for k, v in t.distance.items() if k != "kind"}))
+    return specs
 
 
 def load_target_trees(cfg) -> list:
@@ -76,18 +100,24 @@ def load_target_trees(cfg) -> list:
 @dataclass
 class Target:
     trees: list
-    U: dict[str, np.ndarray]
+    U: dict[str, np.ndarray]         # every term's data sets (other terms' as "<term>/<set>")
     columns: dict[str, list[str]]
     feature_settings: dict          # the data-side feature set after prepare (resolved sets)
+    terms: list[dict] | None = None  # term_specs with each term's resolved feature settings
 
 
 def build_target(cfg, trees=None) -> Target:
     trees = load_target_trees(cfg) if trees is None else trees
-    fs = feature_set_for(cfg, "target")
-    fs.prepare(trees)
-    U = fs.extract_pooled(trees)
-    cols = {k: fs.columns(k) for k in fs.set_names}
-    return Target(trees, U, cols, fs.resolved_settings())
+    U, cols, terms = {}, {}, []
+    for spec in term_specs(cfg):
+        fs = feature_set_for(cfg, "target", spec["features"], spec["features_kind"])
+        fs.prepare(trees)
+        Ut = fs.extract_pooled(trees)
+        for k in fs.set_names:
+            U[spec["prefix"] + k] = Ut[k]
+            cols[spec["prefix"] + k] = fs.columns(k)
+        terms.append({**spec, "features": fs.resolved_settings()})
+    return Target(trees, U, cols, terms[0]["features"], terms)
 
 
 # ---------------------------------------------------------------------------------- worker side
@@ -98,18 +128,64 @@ class _Timeout(Exception):
     pass
 
 
-def init_worker(cfg_dict: dict, U_data: dict, columns: dict, feature_settings: dict) -> None:
-    """Executor initializer: build the components once in this process."""
-    from ..config import parse_config, section_settings, ssm_settings
+def init_worker(cfg_dict: dict, U_data: dict, columns: dict, feature_settings: dict,
+                terms: list[dict] | None = None) -> None:
+    """Executor initializer: build the components of every term once in this process and
+    prepare each distance on its data sets."""
+    from ..config import parse_config, ssm_settings
     cfg = parse_config(cfg_dict)
-    dist = component("distance", cfg.distance.kind, **section_settings(cfg, "distance"))
-    dist.prepare(U_data, columns)
+    if terms is None:  # rebuilt from the config (a report reading an older or partial run)
+        terms = term_specs(cfg)
+        terms[0]["features"] = feature_settings
+    built = []
+    for spec in terms:
+        pre = spec["prefix"]
+        Ud = {k[len(pre):]: v for k, v in U_data.items() if k.startswith(pre) and (pre or "/" not in k)}
+        cd = {k[len(pre):]: v for k, v in columns.items() if k.startswith(pre) and (pre or "/" not in k)}
+        dist = component("distance", spec["distance_kind"], **spec["distance"])
+        dist.prepare(Ud, cd)
+        built.append(dict(name=spec["name"], prefix=pre, weight=spec["weight"], set_weights=spec["set_weights"],
+                          features=feature_set_for(cfg, "model", spec["features"], spec["features_kind"]),
+                          distance=dist, U_data=Ud))
     _CTX.clear()
     _CTX.update(
         ssm=component("ssm", cfg.ssm.kind, **ssm_settings(cfg)),
-        features=feature_set_for(cfg, "model", feature_settings),
-        distance=dist, U_data=U_data, weights=cfg.objective.weights, penalty=cfg.objective.penalty,
+        features=built[0]["features"], distance=built[0]["distance"], terms=built,
+        U_data=U_data, weights=cfg.objective.weights, penalty=cfg.objective.penalty,
         timeout=cfg.objective.timeout, worker=f"{socket.gethostname()}:{os.getpid()}")
+
+
+def score_tree(tree) -> tuple[dict[str, float | None], dict[str, int]]:
+    """Distance per data set of every term (keys as in ``Target.U``) and the model's rows per
+    set, for one tree, in an initialised worker."""
+    per_set, n_rows = {}, {}
+    for t in _CTX["terms"]:
+        U = t["features"].extract(tree)
+        for k, v in t["distance"].compute_per_set(U, t["U_data"]).items():
+            per_set[t["prefix"] + k] = v
+        for k, v in U.items():
+            n_rows[t["prefix"] + k] = int(v.shape[0])
+    return per_set, n_rows
+
+
+def combine_terms(per_set: dict[str, float | None]) -> tuple[float, dict[str, float]]:
+    """The objective (weighted mean of the terms) and each term's own value."""
+    terms = _CTX["terms"]
+    values, num, den = {}, 0.0, 0.0
+    for t in terms:
+        pre = t["prefix"]
+        mine = {k[len(pre):]: v for k, v in per_set.items() if k.startswith(pre) and (pre or "/" not in k)}
+        values[t["name"]] = float(t["distance"].combine(mine, t["set_weights"]))
+        num += t["weight"] * values[t["name"]]
+        den += t["weight"]
+    return num / den, values
+
+
+def with_term_values(per_set: dict, values: dict[str, float]) -> dict:
+    """``per_set`` plus ``term:<name>`` entries when the objective has more than one term."""
+    if len(values) < 2:
+        return dict(per_set)
+    return {**per_set, **{f"term:{k}": v for k, v in values.items()}}
 
 
 def run_executor(cfg):
@@ -123,7 +199,7 @@ def started_workers(cfg, tgt: Target, executor=None):
     context manager: the target's tables travel to each worker once."""
     from ..config import config_to_dict
     ex = run_executor(cfg) if executor is None else executor
-    return ex.started(init_worker, (config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings))
+    return ex.started(init_worker, (config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms))
 
 
 class _NoBar:
@@ -176,10 +252,10 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
     for seed in seeds:
         try:
             tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
-            U = c["features"].extract(tree)
-            per_seed.append(c["distance"].compute_per_set(U, c["U_data"]))
-            for k, v in U.items():
-                n_rows[k] = n_rows.get(k, 0) + int(v.shape[0])
+            ps, rows = score_tree(tree)
+            per_seed.append(ps)
+            for k, v in rows.items():
+                n_rows[k] = n_rows.get(k, 0) + v
         except SimulationFailed as exc:
             status, message = exc.status, str(exc)
             break
@@ -200,6 +276,6 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
     for k in per_seed[0]:
         vals = [p[k] for p in per_seed if p[k] is not None]
         per_set[k] = float(np.mean(vals)) if vals else None
-    total = c["distance"].combine(per_set, c["weights"])
-    return dict(distance=float(total), per_set=per_set, status="ok", message="", seconds=seconds,
+    total, values = combine_terms(per_set)
+    return dict(distance=float(total), per_set=with_term_values(per_set, values), status="ok", message="", seconds=seconds,
                 worker=c["worker"], n_rows={k: v // len(seeds) for k, v in n_rows.items()})

@@ -275,6 +275,8 @@ def fig_sets(v: "RunView"):
     dist = v.worker_parts[1] if v.worker_parts is not None else None
     per_set = (v.best or {}).get("per_set", {})
     for name, ud in v.U_data.items():
+        if "/" in name:  # a set of another objective term (e.g. a one-row summary): no scatter
+            continue
         um = Um.get(name, np.empty((0, ud.shape[1]))) if Um is not None else np.empty((0, ud.shape[1]))
         cols = v.columns.get(name) or [f"x{i}" for i in range(ud.shape[1])]
         D = per_set.get(name)

@@ -84,6 +84,9 @@ class TargetConfig(_Strict):
     select: Union[int, list[int], Literal["all"], None] = Field(None, description="reconstruction(s) of a QSMs file")
     topology: Optional[Literal["source", "subtree", "thickest"]] = Field(
         None, description="topology rule of the data side (default: the feature set's)")
+    references: list[str] = Field(
+        default_factory=list, description="QSM files of other trees of the stand (relative to the config file): "
+        "the report shows the target's distance to each beside the clones' distances")
 
     @model_validator(mode="after")
     def _one(self):
@@ -265,10 +268,10 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
         cfg = model.model_validate(raw)
     except pydantic.ValidationError as exc:
         raise ConfigError(f"{source}: {validation_error_text(exc, tags)}") from None
-    if cfg.target.qsm is not None and base_dir is not None:
-        p = Path(cfg.target.qsm).expanduser()
-        if not p.is_absolute():
-            cfg.target.qsm = str((base_dir / p).resolve())
+    if base_dir is not None:
+        if cfg.target.qsm is not None:
+            cfg.target.qsm = _resolve(cfg.target.qsm, base_dir)
+        cfg.target.references = [_resolve(r, base_dir) for r in cfg.target.references]
     try:
         check_ssm_parameters(cfg)
         check_terms(cfg)
@@ -287,6 +290,11 @@ def check_terms(cfg) -> None:
                 component(kind, part["kind"], **settings)
             except (ConfigError, PluginError) as exc:
                 raise ConfigError(f"objective.terms[{i}] ({t.name}).{kind}: {exc}") from None
+
+
+def _resolve(path: str, base_dir: Path) -> str:
+    p = Path(path).expanduser()
+    return str(p if p.is_absolute() else (base_dir / p).resolve())
 
 
 def load_config(path) -> BaseModel:

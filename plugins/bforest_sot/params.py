@@ -54,7 +54,8 @@ PARAMETERS: list[ParameterSpec] = [
     # ---- fixed geometry (GS)
     P("node_length", 0.2, 0.2, 0.2, False, "m", "internode length (1 node unit of vigor)", "fixed"),
     P("voxel_size", 0.2, 0.2, 0.2, False, "m", "light voxel edge", "fixed"),
-    P("span", 12.0, 12.0, 12.0, False, "m", "edge of the world cube (tree at the XY centre, Z up)", "fixed"),
+    P("span", 12.0, 12.0, 30.0, False, "m", "edge of the world cube (tree at the XY centre, Z up); GS: 12 m, "
+      "larger for trees taller than about 11 m", "fixed"),
 ]
 
 INTEGER_NAMES = tuple(p.name for p in PARAMETERS if p.integer)

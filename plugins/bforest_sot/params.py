@@ -52,7 +52,8 @@ PARAMETERS: list[ParameterSpec] = [
     P("phyllotaxis_sd", 10.0, 0.0, 30.0, False, "deg", "clone noise: sd of the phyllotaxis angle, per metamer", "V"),
     P("tropism_sd", 0.0, 0.0, 0.05, False, "", "clone noise: sd of the tropism, per shoot", "V"),
     # ---- fixed geometry (GS)
-    P("node_length", 0.2, 0.2, 0.2, False, "m", "internode length (1 node unit of vigor)", "fixed"),
+    P("node_length", 0.2, 0.1, 0.3, False, "m", "internode length (1 node unit of vigor; one lateral bud per "
+      "internode, so it sets how many branches a metre of stem can carry); GS: 0.2 m", "fixed"),
     P("voxel_size", 0.2, 0.2, 0.2, False, "m", "light voxel edge", "fixed"),
     P("span", 12.0, 12.0, 30.0, False, "m", "edge of the world cube (tree at the XY centre, Z up); GS: 12 m, "
       "larger for trees taller than about 11 m", "fixed"),

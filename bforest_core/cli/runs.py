@@ -25,12 +25,22 @@ def cmd_fit(args):
 
 def cmd_clones(args):
     from ..pipeline.clones import clones
-    s = clones(args.run_dir, n=args.n, progress=not args.quiet)
-    print(f"{s['ok']} of {s['count']} clones grown in {Path(args.run_dir) / 'clones'}")
+    s = clones(args.run_dir, n=args.n, progress=not args.quiet, replace=args.replace)
+    where = Path(args.run_dir) / "clones"
+    kept = s["count"] - s["grown"]
+    print(f"{s['grown']} clones grown, {kept} kept: {s['ok']} of {s['count']} clones ok in {where}"
+          + ("" if s["requested"] >= s["count"] else f" (asked for {s['requested']}; nothing is deleted "
+                                                    "without --replace)"))
     for key in ("distance", "height", "girth", "crown_spread", "d_h", "d_g", "d_c"):
         if key in s:
             v = s[key]
             print(f"  {key:<13} mean {v['mean']:.4f}  sd {v['sd']:.4f}  [{v['min']:.4f}, {v['max']:.4f}]")
+    fid = s.get("fidelity") or {}
+    if fid.get("table"):
+        print("\nfidelity: the clones against the target on every summary statistic")
+        print(fid["text"])
+    for r in s.get("references", []):
+        print(f"reference {r['file']}: distance to the target {r['distance']:.4f}")
     if not args.no_report:
         report(args.run_dir)
     return 0
@@ -87,7 +97,9 @@ def add_commands(sub) -> None:
 
     s = sub.add_parser("clones", help="clones of a finished fit, with their distances and metrics")
     s.add_argument("run_dir", metavar="DIR")
-    s.add_argument("-n", type=int, default=None, help="number of clones (default: [clones] count)")
+    s.add_argument("-n", type=int, default=None, help="clones the set should hold (default: [clones] count); "
+                   "existing clones are kept, only missing ones are grown")
+    s.add_argument("--replace", action="store_true", help="delete the existing clones and grow the set anew")
     s.add_argument("--no-report", action="store_true")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=cmd_clones)

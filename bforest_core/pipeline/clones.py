@@ -1,23 +1,39 @@
-"""Morphological clones (paper stage B5): the best-fit SSM run with fresh seeds."""
+"""Morphological clones (paper stage B5): the best-fit SSM run with fresh seeds.
+
+Clone ``i`` always has the same seed (``clone_seeds`` spawns one child seed per index), so a set
+of clones can grow: asking for more clones than exist grows only the missing ones, asking for
+fewer deletes nothing. Regrowing an existing set needs ``replace=True``. Clones of other
+parameters (a fit resumed to a different best) are never mixed into a set.
+"""
 from __future__ import annotations
 
 import csv
+import shutil
 from pathlib import Path
 
 import numpy as np
 
 from ..config import load_config
-from ..errors import SimulationFailed
-from .objective import _CTX, build_target, clone_seeds, combine_terms, progress_bar, score_tree, started_workers, with_term_values
+from ..errors import BayesForestError, SimulationFailed
+from .fidelity import bound_flags, fidelity_table, fidelity_text, fidelity_warnings
+from .objective import _CTX, build_target, clone_seeds, combine_terms, progress_bar, score_tree, started_workers, \
+    with_term_values
 from .store import RunStore
 
 METRIC_KEYS = ("height", "girth", "crown_spread")
+#: clones.csv column of each per-clone value (units in the header; girth is the base diameter)
+CSV_COLUMNS = {"n_cylinders": "n_cylinders", "height": "height_m", "girth": "base_diameter_m",
+               "dbh": "dbh_m", "crown_spread": "crown_spread_m", "d_h": "d_h", "d_g": "d_g", "d_c": "d_c"}
+
+
+class ClonesError(BayesForestError):
+    """The clones folder cannot take the requested clones (e.g. other parameters)."""
 
 
 def _clone_task(task):
     """Grow one clone in a worker, write it, and score it against the target."""
     from ..io import write_tree
-    from ..metrics import classical_metrics
+    from ..metrics import classical_metrics, tree_summary
     i, params, seed, out_dir = task
     c = _CTX
     try:
@@ -29,57 +45,141 @@ def _clone_task(task):
     per_set, _ = score_tree(tree)
     total, values = combine_terms(per_set)
     return dict(index=i, seed=seed, status="ok", message="", file=path.name, distance=total,
-                per_set=with_term_values(per_set, values), n_cylinders=tree.n, **classical_metrics(tree))
+                per_set=with_term_values(per_set, values), n_cylinders=tree.n, summary=tree_summary(tree),
+                **classical_metrics(tree))
 
 
-def clones(run_dir, n: int | None = None, executor=None, progress: bool = True) -> dict:
-    """Grow ``n`` clones of a finished fit; writes ``clones/clone_NNN.txt``, ``clones/clones.csv``
-    and ``clones/summary.json``. Returns the summary."""
-    from ..metrics import relative_errors
+def _reference_task(task):
+    """Score a reference tree of the stand against the target, like a clone."""
+    from ..io import read_qsm
+    from ..metrics import tree_summary
+    path = task
+    tree = read_qsm(path)
+    tree = tree[0] if isinstance(tree, list) else tree
+    per_set, _ = score_tree(tree)
+    total, values = combine_terms(per_set)
+    return dict(file=str(path), distance=total, per_set=with_term_values(per_set, values),
+                summary=tree_summary(tree))
+
+
+def _existing(out_dir: Path, store: RunStore, params: dict) -> list[dict]:
+    """The rows of the clones already in ``out_dir`` (checked to be clones of ``params``)."""
+    if not (out_dir / "summary.json").exists():
+        if any(out_dir.glob("clone_*.txt")):
+            raise ClonesError(f"{out_dir}: holds clone files but no summary.json; regrow them with --replace, "
+                              "or move the folder to keep them")
+        return []
+    old = store.read_json("clones/summary.json")
+    if old.get("best_params") != params:
+        raise ClonesError(f"{out_dir}: holds clones of other parameters ({old.get('best_params')}); "
+                          "regrow them with --replace, or move the folder to keep them")
+    return [r for r in old.get("rows", []) if (out_dir / r.get("file", "-")).exists() or r.get("status") != "ok"]
+
+
+def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, replace: bool = False) -> dict:
+    """Grow clones of a finished fit until the set holds ``n``; writes ``clones/clone_NNN.txt``,
+    ``clones/clones.csv``, ``clones/summary.json`` and ``clones/fidelity.json``.
+
+    Parameters
+    ----------
+    run_dir : path
+        A finished fit.
+    n : int, optional
+        Clones the set should hold (default ``[clones] count``). Existing clones are kept; only
+        the missing ones are grown.
+    replace : bool
+        Delete the existing clones first and grow ``n`` anew.
+
+    Returns
+    -------
+    dict
+        The summary (also in ``clones/summary.json``): counts, per-measure statistics,
+        ``grown`` (clones grown by this call), ``fidelity`` (table, flags, warnings) and
+        ``references``.
+    """
     run_dir = Path(run_dir)
     store = RunStore.open(run_dir)
     cfg = load_config(store.config_path)
     best = store.read_json("best.json")
     n = cfg.clones.count if n is None else int(n)
+    if n < 0:
+        raise ClonesError(f"clones: n must be at least 0 (got {n})")
+    out_dir = run_dir / "clones"
+    if replace and out_dir.exists():
+        shutil.rmtree(out_dir)
+    out_dir.mkdir(exist_ok=True)
+    rows = sorted(_existing(out_dir, store, best["params"]), key=lambda r: r["index"])
+    have = {int(r["index"]) for r in rows}
+    want = [i for i in range(max(n, 0)) if i not in have]
     tgt = build_target(cfg)
     tm = best.get("target_metrics")
-    seeds = clone_seeds(cfg.seed, n, cfg.clones.seed)
-    out_dir = run_dir / "clones"
-    out_dir.mkdir(exist_ok=True)
-    for old in out_dir.glob("clone_*.txt"):
-        old.unlink()
-    tasks = [(i, best["params"], s, str(out_dir)) for i, s in enumerate(seeds)]
-    rows = [None] * n
-    bar = progress_bar(n, "clones", "clone", progress)
-    with started_workers(cfg, tgt, executor) as ex:
-        for j, res in ex.map_unordered(_clone_task, tasks):
-            if res["status"] == "ok":
-                res.update(relative_errors(tm, {k: res[k] for k in METRIC_KEYS}))
-            rows[j] = res
-            bar.update(1)
-    bar.close()
-    set_names = list(tgt.U) + ([f"term:{t['name']}" for t in tgt.terms] if len(tgt.terms or []) > 1 else [])
-    cols = ["index", "seed", "status", "file", "distance"] + [f"D[{s}]" for s in set_names] + \
-        ["n_cylinders", "height", "girth", "crown_spread", "d_h", "d_g", "d_c"]
-    with open(out_dir / "clones.csv", "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(cols)
-        for r in rows:
-            w.writerow([r.get("index"), r.get("seed"), r.get("status"), r.get("file", ""), r.get("distance", "")]
-                       + [(r.get("per_set") or {}).get(s, "") for s in set_names]
-                       + [r.get(k, "") for k in cols[-7:]])
+    seeds = clone_seeds(cfg.seed, max(n, len(rows)), cfg.clones.seed)
+    tasks = [(i, best["params"], seeds[i], str(out_dir)) for i in want]
+    refs = list(cfg.target.references)
+    new_rows, references = [], []
+    if tasks or refs:
+        bar = progress_bar(len(tasks), "clones", "clone", progress and bool(tasks))
+        with started_workers(cfg, tgt, executor) as ex:
+            for _, res in ex.map_unordered(_clone_task, tasks):
+                if res["status"] == "ok":
+                    from ..metrics import relative_errors
+                    res.update(relative_errors(tm, {k: res[k] for k in METRIC_KEYS}))
+                new_rows.append(res)
+                bar.update(1)
+            bar.close()
+            if refs:
+                references = ex.map(_reference_task, refs)
+    rows = sorted(rows + new_rows, key=lambda r: r["index"])
+    summary = _summarise(rows, tgt, best, tm)
+    summary["grown"] = len(new_rows)
+    summary["requested"] = n
+    summary["fidelity"] = _fidelity(cfg, tgt, best, rows)
+    summary["references"] = references
+    _write_csv(out_dir / "clones.csv", rows, tgt)
+    store.write_json("clones/fidelity.json", summary["fidelity"])
+    store.write_json("clones/summary.json", summary)
+    return summary
+
+
+def _fidelity(cfg, tgt, best, rows) -> dict:
+    from ..metrics import SUMMARY_UNITS, tree_summary
+    target = tree_summary(tgt.trees[0])
+    ok = [r["summary"] for r in rows if r.get("status") == "ok" and r.get("summary")]
+    table = fidelity_table(target, ok, SUMMARY_UNITS)
+    bounds = {k: (fp.lower, fp.upper) for k, fp in cfg.ssm.free.items()}
+    flags = bound_flags(best["params"], bounds)
+    warns = fidelity_warnings(table)
+    return {"table": table, "flags": flags, "warnings": warns, "text": fidelity_text(table, flags, warns)}
+
+
+def _summarise(rows, tgt, best, tm) -> dict:
     ok = [r for r in rows if r["status"] == "ok"]
-    summary = {"count": n, "ok": len(ok), "failed": n - len(ok), "target_metrics": tm,
+    summary = {"count": len(rows), "ok": len(ok), "failed": len(rows) - len(ok), "target_metrics": tm,
                "best_params": best["params"], "fit_distance": best["distance"]}
     for key in ["distance", "height", "girth", "crown_spread", "d_h", "d_g", "d_c"]:
         vals = np.array([r[key] for r in ok if r.get(key) is not None and np.isfinite(r[key])], float)
         if vals.size:
             summary[key] = {"mean": float(vals.mean()), "sd": float(vals.std(ddof=1)) if vals.size > 1 else 0.0,
                             "median": float(np.median(vals)), "min": float(vals.min()), "max": float(vals.max())}
-    for s in set_names:
+    for s in _set_columns(tgt):
         vals = np.array([r["per_set"][s] for r in ok if r["per_set"].get(s) is not None], float)
         if vals.size:
             summary[f"D[{s}]"] = {"mean": float(vals.mean()), "median": float(np.median(vals))}
     summary["rows"] = rows
-    store.write_json("clones/summary.json", summary)
     return summary
+
+
+def _set_columns(tgt) -> list[str]:
+    return list(tgt.U) + ([f"term:{t['name']}" for t in tgt.terms] if len(tgt.terms or []) > 1 else [])
+
+
+def _write_csv(path: Path, rows, tgt) -> None:
+    sets = _set_columns(tgt)
+    header = ["index", "seed", "status", "file", "distance"] + [f"D[{s}]" for s in sets] + list(CSV_COLUMNS.values())
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        for r in rows:
+            w.writerow([r.get("index"), r.get("seed"), r.get("status"), r.get("file", ""), r.get("distance", "")]
+                       + [(r.get("per_set") or {}).get(s, "") for s in sets]
+                       + [r.get(k, "") for k in CSV_COLUMNS])

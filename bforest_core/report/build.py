@@ -89,6 +89,9 @@ def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool 
         figs.run("convergence", "convergence", fig_convergence, v)
         figs.run("mcmc", "MCMC", fig_mcmc, v)
         figs.run("clones", "clones", fig_clones, v)
+        if not v.clone_rows:  # figures drawn from clones that are gone would contradict the folder
+            for stale in ("clones.png", "clone_metrics.png"):
+                (v.path / "figures" / stale).unlink(missing_ok=True)
     doc = Document()
     title = f"Bayes Forest run report: {v.path.name}"
     doc.h(1, title)

@@ -9,11 +9,16 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import BayesForestError
+from ..pipeline.clones import CSV_COLUMNS
 from ..pipeline.store import RunStore
 
 
 
 # ---------------------------------------------------------------------------------- run data
+#: clones.csv header -> row key (headers carry units)
+_CSV_KEYS = {v: k for k, v in CSV_COLUMNS.items()}
+
+
 class RunView:
     """Lazy, cached access to everything a run directory holds (and what can be rebuilt from
     its config). Problems are collected in ``notes`` instead of raised."""
@@ -243,6 +248,7 @@ class RunView:
             for r in csv.DictReader(fh):
                 out = {}
                 for k, v in r.items():
+                    k = _CSV_KEYS.get(k, k)
                     if k in ("status", "file"):
                         out[k] = v
                         continue

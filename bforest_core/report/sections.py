@@ -5,6 +5,8 @@ import datetime as _dt
 import json
 from collections import Counter
 
+from pathlib import Path
+
 import numpy as np
 
 
@@ -256,8 +258,36 @@ def section_clones(doc: Document, v: RunView, figs):
                       np.max(x), tm.get(key) if key in tm else ((v.best or {}).get("distance") if key == "distance" else None)])
     if table:
         doc.table(["measure", "mean", "sd", "median", "min", "max", "target / fit"], table)
+    section_fidelity(doc, v)
     for rel_path, cap in figs.made.get("clones", []):
         doc.fig(rel_path, cap)
+
+
+def section_fidelity(doc: Document, v: RunView):
+    """The clones against the target on every summary statistic, the parameters at a bound, the
+    warnings, and the stand's reference trees beside the clones."""
+    s = v.clone_summary or {}
+    fid = s.get("fidelity") or {}
+    if not fid.get("table"):
+        return
+    doc.h(3, "Fidelity: do the clones look like the target?")
+    for w in fid.get("warnings", []):
+        doc.p(f"**WARNING: {w}.**")
+    doc.table(["statistic", "unit", "target", "clones mean", "sd", "error"],
+              [[r["statistic"], r["unit"], r["target"], r["mean"], r["sd"],
+                "–" if r["error"] is None else f"{100 * r['error']:+.1f} %"] for r in fid["table"]])
+    if fid.get("flags"):
+        doc.p("Fitted parameters at a bound of their search box (the optimum may lie outside it):")
+        doc.items(fid["flags"])
+    refs = s.get("references") or []
+    if refs:
+        d = np.array([r.get("distance", np.nan) for r in v.clone_rows if r.get("status") == "ok"], float)
+        d = d[np.isfinite(d)]
+        med = float(np.median(d)) if d.size else float("nan")
+        doc.p(f"Reference trees of the stand, scored against the target with the fit's own objective, beside "
+              f"the clones (median {med:.4f}): clones as close as a neighbour tree are as good as the "
+              "objective can tell.")
+        doc.table(["reference", "distance to the target"], [[Path(r["file"]).name, r["distance"]] for r in refs])
 
 
 def section_profiles(doc: Document, v: RunView):

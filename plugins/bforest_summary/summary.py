@@ -1,0 +1,140 @@
+"""Tree-level summary statistics as a data set, and a distance between summaries.
+
+The structural distance compares the *distributions* of branch and segment rows; it does not see
+how tall a tree is, how many branches it carries or where its crown starts. ``tree-summary``
+turns a tree into one row of such statistics (:func:`bforest_core.metrics.tree_summary`, the same
+code for QSMs and model trees) and ``summary`` scores a model row against the data row,
+statistic by statistic, so that one objective can weigh both (``[[objective.terms]]``).
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from bforest_core.interfaces import ComponentSettings, Distance, FeatureSet
+from bforest_core.metrics import summary_unit, tree_summary
+
+SET = "summary"
+#: the statistics of the default set: size, stem, crown, branch counts and the vertical profile
+DEFAULT_STATISTICS = ("height", "dbh", "crown_spread", "crown_base_height", "n_branches_o1", "n_branches_o2",
+                      "length_o1", "length_o2", "volume_o0", "profile_len_b0", "profile_len_b1",
+                      "profile_len_b2", "profile_len_b3", "profile_len_b4")
+#: offset c of the log ratio |log((m + c) / (d + c))| by unit: a count of 0 is fine, a length or
+#: volume near 0 does not blow up
+OFFSETS = {"": 1.0, "m": 0.05, "m^3": 1e-4}
+
+
+class TreeSummarySettings(ComponentSettings):
+    statistics: list[str] = Field(list(DEFAULT_STATISTICS), min_length=1, description=(
+        "statistics of bforest_core.metrics.tree_summary (height, dbh, base_diameter, crown_spread, "
+        "crown_base_height, stem_length, n_branches_o<w>, length_o<w>, volume_o<w>, profile_n_b<k>, "
+        "profile_len_b<k>)"))
+    max_order: int = Field(3, ge=1, le=10, description="highest branch order with its own statistics")
+    bands: int = Field(5, ge=1, le=50, description="height bands of the vertical profile")
+
+
+class TreeSummary(FeatureSet):
+    """One row of tree-level statistics (the data set ``summary``)."""
+
+    name = "tree-summary"
+    summary = "tree-level statistics: height, DBH, crown spread, crown base, branch counts, vertical profile"
+    Settings = TreeSummarySettings
+
+    @property
+    def set_names(self) -> list[str]:
+        return [SET]
+
+    def columns(self, set_name: str) -> list[str]:
+        return list(self.settings.statistics)
+
+    def _row(self, tree) -> np.ndarray:
+        s = self.settings
+        stats = tree_summary(tree, max_order=s.max_order, bands=s.bands)
+        missing = [k for k in s.statistics if k not in stats]
+        if missing:
+            raise ValueError(f"tree-summary: unknown statistic(s) {', '.join(missing)} (known with max_order = "
+                             f"{s.max_order}, bands = {s.bands}: {', '.join(stats)})")
+        return np.array([[stats[k] for k in s.statistics]], float)
+
+    def prepare(self, data_trees) -> None:
+        for t in data_trees:
+            self._row(t)  # names are checked once, at set-up, against the data tree
+
+    def extract(self, tree) -> dict[str, np.ndarray]:
+        return {SET: self._row(tree)}
+
+
+class SummaryDistanceSettings(ComponentSettings):
+    form: Literal["logratio", "relative"] = Field("logratio", description=(
+        "logratio: |log((m + c) / (d + c))| (symmetric; c by unit: 1 for counts, 0.05 m, 1e-4 m^3); "
+        "relative: |m - d| / |d|"))
+    weights: dict[str, float] = Field(default_factory=dict, description="weight per statistic (default 1)")
+    scales: dict[str, float] = Field(default_factory=dict, description=(
+        "scale per statistic: its term is divided by it (e.g. 0.05 for height: a 5 % miss counts 1)"))
+    cap: float = Field(2.0, gt=0, description="largest term of one statistic (a missing value counts this)")
+
+    @field_validator("weights", "scales")
+    @classmethod
+    def _positive(cls, v):
+        bad = {k: x for k, x in v.items() if not x > 0}
+        if bad:
+            raise ValueError(f"must be positive: {bad}")
+        return v
+
+
+class SummaryDistance(Distance):
+    """Weighted mean over statistics of the per-statistic miss of the model's summary row."""
+
+    name = "summary"
+    summary = "distance between summary rows: weighted mean of per-statistic log ratios or relative errors"
+    Settings = SummaryDistanceSettings
+
+    def __init__(self, settings=None, **kwargs):
+        super().__init__(settings, **kwargs)
+        self._columns: dict[str, list[str]] = {}
+
+    def prepare(self, U_data, columns=None) -> None:
+        self._columns = {k: list(v) for k, v in (columns or {}).items()}
+        for k, cols in self._columns.items():
+            unknown = sorted((set(self.settings.weights) | set(self.settings.scales)) - set(cols))
+            if unknown:
+                raise ValueError(f"summary distance: weights/scales name statistics that set {k!r} does not have: "
+                                 f"{', '.join(unknown)} (it has: {', '.join(cols)})")
+
+    def per_statistic(self, u_model: np.ndarray, u_data: np.ndarray, names=None) -> dict[str, float]:
+        """The (scaled, capped) term of each statistic; the model and data rows are averaged
+        first when there are several."""
+        u_model, u_data = np.atleast_2d(u_model), np.atleast_2d(u_data)
+        names = list(names) if names is not None else [f"x{i}" for i in range(u_data.shape[1])]
+        cap = self.settings.cap
+        if u_model.shape[0] == 0:
+            return {n: cap for n in names}
+        m, d = np.nanmean(u_model, axis=0), np.nanmean(u_data, axis=0)
+        out = {}
+        for i, n in enumerate(names):
+            if not np.isfinite(d[i]):
+                continue  # the data tree has no value (e.g. no DBH below 1.3 m): not compared
+            if not np.isfinite(m[i]):
+                out[n] = cap
+                continue
+            if self.settings.form == "logratio":
+                c = OFFSETS.get(summary_unit(n), 1.0)
+                term = abs(np.log((max(m[i], 0.0) + c) / (max(d[i], 0.0) + c)))
+            else:
+                term = abs(m[i] - d[i]) / abs(d[i]) if d[i] != 0 else (0.0 if m[i] == 0 else cap)
+            out[n] = float(min(term / self.settings.scales.get(n, 1.0), cap))
+        return out
+
+    def _mean(self, terms: dict[str, float]) -> float:
+        if not terms:
+            return 0.0
+        w = np.array([self.settings.weights.get(k, 1.0) for k in terms])
+        return float(np.dot(w, list(terms.values())) / w.sum())
+
+    def compute(self, u_model: np.ndarray, u_data: np.ndarray) -> float:
+        return self._mean(self.per_statistic(u_model, u_data))
+
+    def compute_pair(self, set_name: str, u_model: np.ndarray, u_data: np.ndarray) -> float | None:
+        return self._mean(self.per_statistic(u_model, u_data, self._columns.get(set_name)))

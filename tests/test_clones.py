@@ -1,0 +1,109 @@
+"""Clones: a set that only grows unless asked, fidelity against the target, reference trees."""
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+import bforest_core as bf
+from bforest_core.pipeline.clones import ClonesError, clones
+from bforest_core.pipeline.fidelity import bound_flags, fidelity_table, fidelity_text, fidelity_warnings
+from conftest import toy_config
+
+
+# ------------------------------------------------------------------------------ pure functions
+def test_fidelity_table_known_answers():
+    target = {"height": 10.0, "dbh": 0.2, "n_branches_o1": 0.0}
+    clones_ = [{"height": 9.0, "dbh": 0.25, "n_branches_o1": 3}, {"height": 11.0, "dbh": 0.35, "n_branches_o1": 5}]
+    rows = {r["statistic"]: r for r in fidelity_table(target, clones_, {"height": "m", "dbh": "m"})}
+    assert rows["height"]["mean"] == 10.0 and rows["height"]["error"] == 0.0
+    assert rows["height"]["sd"] == pytest.approx(np.std([9, 11], ddof=1)) and rows["height"]["unit"] == "m"
+    assert rows["dbh"]["error"] == pytest.approx(0.5)
+    assert rows["n_branches_o1"]["error"] is None  # a target of 0 has no relative error
+    warns = fidelity_warnings(list(rows.values()))
+    assert len(warns) == 1 and "dbh" in warns[0] and "+50 %" in warns[0]
+    text = fidelity_text(list(rows.values()), [], warns)
+    assert "WARNING: clones miss the target's dbh" in text and "+50.0%" in text
+
+
+def test_warning_limit_is_twenty_percent_of_height_dbh_and_crown():
+    rows = fidelity_table({"height": 10.0, "crown_spread": 4.0, "length_o1": 100.0},
+                          [{"height": 8.1, "crown_spread": 5.2, "length_o1": 10.0}])
+    warns = fidelity_warnings(rows)
+    assert len(warns) == 1 and "crown_spread" in warns[0]  # height -19 % passes; length is no key statistic
+
+
+def test_bound_flags():
+    flags = bound_flags({"a": 0.02, "b": 0.5, "c": 9.9, "d": 3}, {"a": (0, 1), "b": (0, 1), "c": (0, 10)})
+    assert flags == ["a = 0.02 is at its lower bound 0", "c = 9.9 is at its upper bound 10"]
+
+
+# ------------------------------------------------------------------------------ the clone set
+@pytest.fixture(scope="module")
+def toy_fit(toy_plugin, tmp_path_factory):
+    base = tmp_path_factory.mktemp("clones")
+    cfg = bf.load_config(toy_config(base, budget=16))
+    bf.fit(cfg, base / "run", progress=False)
+    return base / "run"
+
+
+def _files(run):
+    return {p.name: p.read_bytes() for p in sorted((run / "clones").glob("clone_*.txt"))}
+
+
+def test_the_clone_set_only_grows_unless_replaced(toy_fit, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(toy_fit, run)
+    s = clones(run, n=2, progress=False)
+    assert s["grown"] == 2 and s["count"] == 2
+    first = _files(run)
+    s = clones(run, n=4, progress=False)
+    assert s["grown"] == 2 and s["count"] == 4
+    now = _files(run)
+    assert len(now) == 4 and all(now[k] == v for k, v in first.items())  # the first two untouched
+    for n in (0, 1):  # fewer than exist: nothing is deleted
+        s = clones(run, n=n, progress=False)
+        assert s["grown"] == 0 and s["count"] == 4 and _files(run) == now
+    # clone i has the same seed however the set was grown
+    other = tmp_path / "other"
+    shutil.copytree(toy_fit, other)
+    clones(other, n=4, progress=False)
+    assert _files(other) == now
+    rows = json.loads((run / "clones" / "summary.json").read_text())["rows"]
+    assert [r["index"] for r in rows] == [0, 1, 2, 3]
+    header = (run / "clones" / "clones.csv").read_text().splitlines()[0]
+    assert "height_m" in header and "base_diameter_m" in header and "crown_spread_m" in header
+    s = clones(run, n=1, progress=False, replace=True)
+    assert s["count"] == 1 and list(_files(run)) == ["clone_000.txt"]
+
+
+def test_clones_of_other_parameters_are_not_mixed(toy_fit, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(toy_fit, run)
+    clones(run, n=1, progress=False)
+    best = json.loads((run / "best.json").read_text())
+    best["params"]["angle"] = best["params"]["angle"] + 1.0
+    (run / "best.json").write_text(json.dumps(best))
+    with pytest.raises(ClonesError, match="other parameters.*--replace"):
+        clones(run, n=2, progress=False)
+    assert len(_files(run)) == 1
+
+
+def test_fidelity_and_references_of_a_run(toy_fit, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(toy_fit, run)
+    ref = tmp_path / "ref.txt"
+    bf.write_tree(bf.read_qsm(run / "target.txt"), ref)  # the target itself: distance 0
+    cfg = (run / "config.toml").read_text()
+    assert "references = []" in cfg
+    (run / "config.toml").write_text(cfg.replace("references = []", f'references = ["{ref}"]', 1))
+    s = clones(run, n=3, progress=False)
+    fid = s["fidelity"]
+    stats = {r["statistic"]: r for r in fid["table"]}
+    assert {"height", "dbh", "crown_spread", "crown_base_height", "n_branches_o1"} <= set(stats)
+    assert stats["height"]["n"] == 3
+    assert json.loads((run / "clones" / "fidelity.json").read_text())["table"] == fid["table"]
+    assert len(s["references"]) == 1 and s["references"][0]["distance"] == pytest.approx(0.0, abs=1e-6)  # text file precision
+    from bforest_core.report import write_report
+    text = write_report(run, figures=False, html=False).read_text()
+    assert "Fidelity: do the clones look like the target?" in text and "ref.txt" in text

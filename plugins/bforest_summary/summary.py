@@ -84,6 +84,15 @@ class SummaryDistanceSettings(ComponentSettings):
         return v
 
 
+def _column_means(u: np.ndarray) -> np.ndarray:
+    """Mean of the finite values of each column (NaN where a column has none), without the
+    warning ``np.nanmean`` gives for an all-NaN column (a tree without DBH is a normal case)."""
+    ok = np.isfinite(u)
+    n = ok.sum(axis=0)
+    total = np.where(ok, u, 0.0).sum(axis=0)
+    return np.where(n > 0, total / np.maximum(n, 1), np.nan)
+
+
 class SummaryDistance(Distance):
     """Weighted mean over statistics of the per-statistic miss of the model's summary row."""
 
@@ -111,7 +120,7 @@ class SummaryDistance(Distance):
         cap = self.settings.cap
         if u_model.shape[0] == 0:
             return {n: cap for n in names}
-        m, d = np.nanmean(u_model, axis=0), np.nanmean(u_data, axis=0)
+        m, d = _column_means(u_model), _column_means(u_data)
         out = {}
         for i, n in enumerate(names):
             if not np.isfinite(d[i]):

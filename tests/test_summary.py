@@ -1,0 +1,111 @@
+"""Tree-level summary statistics and the summary distance, with known answers."""
+import math
+
+import numpy as np
+import pytest
+
+import bforest_core as bf
+from bforest_core.metrics import crown_base_height, order_summary, summary_unit, tree_summary
+from conftest import hand_tree, read_sample
+
+PI = math.pi
+
+
+def test_tree_summary_of_the_hand_built_tree():
+    """Trunk 3 x 1 m (radii 0.2, 0.15, 0.1); laterals A (z = 1, 0.8 + 0.5 m at 60 deg), B (z = 1.5,
+    0.6 m), C (z = 2.25, 0.6 m)."""
+    s = tree_summary(hand_tree(), max_order=2, bands=5)
+    assert s["height"] == pytest.approx(3.0) and s["base_diameter"] == pytest.approx(0.4)
+    assert s["dbh"] == pytest.approx(0.3)  # 1.3 m lies in trunk cylinder 1 (radius 0.15)
+    assert s["stem_length"] == pytest.approx(3.0)
+    assert s["n_branches_o1"] == 3 and s["n_branches_o2"] == 0
+    assert s["length_o1"] == pytest.approx(2.5) and s["length_o2"] == 0
+    assert s["volume_o0"] == pytest.approx(PI * (0.04 + 0.0225 + 0.01))
+    assert s["volume_o1"] == pytest.approx(PI * (0.0025 * 0.8 + 0.0016 * 0.5 + 0.0016 * 0.6 + 0.0009 * 0.6))
+    # bases at 1/3, 1/2 and 3/4 of the height: bands 1, 2, 3 of 5
+    assert [s[f"profile_n_b{k}"] for k in range(5)] == [0, 1, 1, 1, 0]
+    assert [s[f"profile_len_b{k}"] for k in range(5)] == pytest.approx([0, 1.3, 0.6, 0.6, 0])
+    assert s["crown_base_height"] == pytest.approx(1.0)
+    assert s["crown_spread"] == pytest.approx(bf.classical_metrics(hand_tree())["crown_spread"])
+
+
+def test_crown_base_height_weighs_branch_length():
+    t = hand_tree()
+    # 5 % of 2.5 m lies below A's base: A; 60 % (1.5 m) is more than A (1.3 m): B's base, 1.5 m
+    assert crown_base_height(t, share=0.05) == pytest.approx(1.0)
+    assert crown_base_height(t, share=0.6) == pytest.approx(1.5)
+    assert crown_base_height(t, share=0.99) == pytest.approx(2.25)
+
+
+def test_dead_remnants_are_not_crown():
+    t = hand_tree()
+    dead = np.zeros(t.n, bool)
+    dead[[3, 4]] = True  # lateral A (its two cylinders) is a dead remnant
+    t2 = bf.Tree(t.start, t.axis, t.length, t.radius, t.parent, t.extension, extras={"is_dead": dead})
+    s = tree_summary(t2)
+    assert s["n_branches_o1"] == 2 and s["length_o1"] == pytest.approx(1.2)
+    assert s["crown_base_height"] == pytest.approx(1.5)
+    assert s["volume_o1"] == pytest.approx(tree_summary(t)["volume_o1"])  # dead wood is still wood
+
+
+def test_order_summary_of_the_hand_built_tree():
+    rows = order_summary(hand_tree())
+    assert [r["order"] for r in rows] == [0, 1]
+    assert rows[0]["n_branches"] == 1 and rows[0]["length_m"] == pytest.approx(3.0)
+    assert math.isnan(rows[0]["mean_angle_deg"]) and rows[0]["mean_base_diameter_m"] == pytest.approx(0.4)
+    assert rows[1]["n_branches"] == 3 and rows[1]["length_m"] == pytest.approx(2.5)
+    assert rows[1]["mean_angle_deg"] == pytest.approx((60 + 90 + 90) / 3)
+    assert rows[1]["mean_base_diameter_m"] == pytest.approx(2 * (0.05 + 0.04 + 0.03) / 3)
+
+
+def test_summary_of_a_real_pine_against_an_independent_count():
+    t = read_sample("pine_ruotsinkyla_3.mat")
+    s = tree_summary(t)
+    br = t.branches
+    lengths = np.array([t.length[br.cylinders[br.ptr[b]:br.ptr[b + 1]]].sum() for b in range(len(br))])
+    assert s["n_branches_o1"] == np.count_nonzero(br.order == 1) == 73
+    assert s["length_o1"] == pytest.approx(lengths[br.order == 1].sum())
+    assert s["height"] == pytest.approx(9.936, abs=1e-3)
+    assert sum(s[f"profile_n_b{k}"] for k in range(5)) == 73
+    assert 1.0 < s["crown_base_height"] < 6.0
+    assert summary_unit("length_o2") == "m" and summary_unit("volume_o0") == "m^3" and summary_unit("n_branches_o1") == ""
+
+
+# ------------------------------------------------------------------------------ the components
+def test_tree_summary_feature_set():
+    fs = bf.component("features", "tree-summary", statistics=["height", "n_branches_o1", "profile_len_b1"])
+    assert fs.set_names == ["summary"] and fs.columns("summary") == ["height", "n_branches_o1", "profile_len_b1"]
+    U = fs.extract(hand_tree())
+    assert U["summary"].shape == (1, 3) and U["summary"][0].tolist() == pytest.approx([3.0, 3.0, 1.3])
+    bad = bf.component("features", "tree-summary", statistics=["height", "heigth"])
+    with pytest.raises(ValueError, match="unknown statistic.*heigth.*known"):
+        bad.prepare([hand_tree()])
+
+
+def _dist(**settings):
+    d = bf.component("distance", "summary", **settings)
+    d.prepare({"summary": np.zeros((1, 2))}, {"summary": ["height", "n_branches_o1"]})
+    return d
+
+
+def test_summary_distance_known_answers():
+    m, d = np.array([[10.0, 0.0]]), np.array([[5.0, 0.0]])
+    x = abs(math.log(10.05 / 5.05))  # offset 0.05 m for a length; a count of 0 against 0 is 0
+    assert _dist().compute_pair("summary", m, d) == pytest.approx(x / 2)
+    assert _dist(weights={"height": 3.0}).compute_pair("summary", m, d) == pytest.approx(3 * x / 4)
+    assert _dist(scales={"height": 0.5}).compute_pair("summary", m, d) == pytest.approx(min(x / 0.5, 2.0) / 2)
+    assert _dist(form="relative").compute_pair("summary", m, d) == pytest.approx((1.0 + 0.0) / 2)
+    # symmetric: the log ratio does not care which side is larger
+    assert _dist().compute_pair("summary", d, m) == pytest.approx(x / 2)
+    # counts: 3 against 0 branches is log(4)
+    assert _dist().compute_pair("summary", np.array([[5.0, 3.0]]), d) == pytest.approx(math.log(4) / 2)
+
+
+def test_summary_distance_missing_values_and_caps():
+    d = _dist(cap=1.5)
+    assert d.compute_pair("summary", np.empty((0, 2)), np.array([[5.0, 1.0]])) == 1.5
+    # a NaN model value (no DBH) costs the cap; a NaN data value leaves the statistic out
+    assert d.compute_pair("summary", np.array([[np.nan, 1.0]]), np.array([[5.0, 1.0]])) == pytest.approx(0.75)
+    assert d.compute_pair("summary", np.array([[7.0, 1.0]]), np.array([[np.nan, 1.0]])) == 0.0
+    with pytest.raises(ValueError, match="does not have: hieght"):
+        _dist(weights={"hieght": 2.0})

@@ -251,3 +251,57 @@ def make_result(ev: BoxEvaluator, history: History, own_reason: str, diagnostics
 def sampling_field(default: str = "halton"):
     return Field(default, description="how the initial points are spread over the initial box: "
                  "halton or sobol (scrambled low-discrepancy), lhs (Latin hypercube), random")
+
+
+def noise_stop_fields():
+    """The settings of the noise-aware early stop (:class:`NoiseStop`), shared by optimisers."""
+    return dict(
+        patience=Field(None, ge=1, description="stop when the best distance has not improved by more than the "
+                       "objective's seed noise in this many generations (None: off)"),
+        noise=Field("auto", description="the noise of that stop: 'auto' = the sd of the distance over "
+                    "noise_seeds model seeds at the best point (Problem.seed_spread), or a number"),
+        noise_seeds=Field(5, ge=2, description="model seeds of the 'auto' noise"),
+    )
+
+
+class NoiseStop:
+    """Early stop that does not cost quality: no improvement of the best distance by more than
+    the distance's own seed noise in ``patience`` generations.
+
+    The noise is what a perfect model would still show between model seeds, so an improvement
+    smaller than it is not evidence of a better point. ``"auto"`` measures it once, at the best
+    point of the first generation, with ``problem.seed_spread`` (0 where the problem cannot
+    provide it: then only a real standstill stops).
+    """
+
+    def __init__(self, problem: Problem, patience: int | None, noise="auto", noise_seeds: int = 5):
+        self.problem, self.patience, self.noise_setting, self.k = problem, patience, noise, int(noise_seeds)
+        self.noise: float | None = None if noise == "auto" else float(noise)
+        self.anchor = math.inf   # best value that last counted as an improvement
+        self.since = 0           # generations since then
+        self.reason = ""
+
+    def _measure(self, ev: "BoxEvaluator") -> float:
+        fn = self.problem.seed_spread
+        if fn is None or ev.best_x is None:
+            return 0.0
+        vals = np.asarray(fn(ev.best_x, self.k), float)
+        vals = vals[np.isfinite(vals)]
+        return float(vals.std(ddof=1)) if vals.size > 1 else 0.0
+
+    def __call__(self, ev: "BoxEvaluator") -> bool:
+        """Call once per generation; True when the run should stop (``reason`` says why)."""
+        if self.patience is None:
+            return False
+        if self.noise is None:  # measured once, at the first generation's best point
+            self.noise = self._measure(ev)
+        best = ev.best_f
+        if not math.isfinite(self.anchor) or best < self.anchor - self.noise:
+            self.anchor, self.since = best, 0
+            return False
+        self.since += 1
+        if self.since < self.patience:
+            return False
+        self.reason = (f"no improvement of the best distance by more than the seed noise {self.noise:.4g} "
+                       f"in {self.since} generations")
+        return True

@@ -33,7 +33,10 @@ from pydantic import Field, model_validator
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import BoxEvaluator, History, OptimizerSettings, SamplingName, make_result, sampling_field
+from ._common import (BoxEvaluator, History, NoiseStop, OptimizerSettings, SamplingName, make_result, noise_stop_fields,
+                      sampling_field)
+
+_NOISE = noise_stop_fields()
 
 
 class GASettings(OptimizerSettings):
@@ -63,6 +66,9 @@ class GASettings(OptimizerSettings):
     function_tolerance: float = Field(1e-6, ge=0.0, description="an improvement smaller than "
                                       "function_tolerance * max(1, |best|) does not count")
     init_sampling: SamplingName = sampling_field("halton")
+    patience: int | None = _NOISE["patience"]
+    noise: float | str = _NOISE["noise"]
+    noise_seeds: int = _NOISE["noise_seeds"]
 
     @model_validator(mode="after")
     def _elite_fits(self):
@@ -115,6 +121,8 @@ class GeneticAlgorithm(Optimizer):
         pop = ev.sample_init(n, np.random.default_rng(init_ss), s.init_sampling)
         f = ev(pop)
         self._log(log, ev, 0, f, n, sigma=s.mutation_scale, stall=0)
+        noise_stop = NoiseStop(problem, s.patience, s.noise, s.noise_seeds)
+        noise_stop(ev)
         prev_best, stall, reason, done = ev.best_f, 0, f"{s.generations} generations done", 0
         for g in range(1, s.generations + 1):
             if ev.stopped:
@@ -137,8 +145,11 @@ class GeneticAlgorithm(Optimizer):
             if s.stall_generations is not None and stall >= s.stall_generations:
                 reason = f"no improvement in {stall} generations"
                 break
+            if noise_stop(ev):
+                reason = noise_stop.reason
+                break
         diagnostics = {"generations": done, "elite_count": n_elite, "final_population": pop,
-                       "final_distances": f}
+                       "final_distances": f, "seed_noise": noise_stop.noise}
         return make_result(ev, log, reason, diagnostics)
 
     @staticmethod
@@ -148,6 +159,10 @@ class GeneticAlgorithm(Optimizer):
             dict(mean=math.inf, median=math.inf, std=math.inf)
         log(ev, generation=g, **stats, n_new=int(n_new), n_failed=int(f.size - fin.size),
             sigma=float(sigma), stall=int(stall))
+
+    def expected_evaluations(self, dim: int) -> int:
+        """Population x (generations + 1): what the run evaluates when no stop comes first."""
+        return self.settings.population * (self.settings.generations + 1)
 
     def _sigma(self, g: int) -> float:
         """Mutation scale of generation ``g`` (1-based): geometric from the first to the final."""

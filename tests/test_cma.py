@@ -1,0 +1,120 @@
+"""CMA-ES and the noise-aware early stop on problems with known answers."""
+import numpy as np
+import pytest
+
+import bforest_core as bf
+from bforest_core.interfaces import Problem
+from conftest import toy_config
+
+
+def _problem(f, lo, hi, integer=None, budget=600, seed=1, seed_spread=None):
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    pr = Problem(names=[f"x{i}" for i in range(lo.size)], lower=lo, upper=hi,
+                 integer=np.zeros(lo.size, bool) if integer is None else np.asarray(integer, bool),
+                 evaluate=None, seed=seed, budget=budget, seed_spread=seed_spread)
+    asked = []
+
+    def evaluate(X):
+        X = np.atleast_2d(X)
+        k = min(len(X), pr.remaining())
+        asked.extend(map(tuple, X[:k]))
+        out = np.full(len(X), np.inf)
+        out[:k] = [f(x) for x in X[:k]]
+        pr.n_evaluations += k
+        if pr.remaining() == 0:
+            pr.stopped, pr.stop_reason = True, "budget"
+        for x, v in zip(X[:k], out[:k]):
+            if v < pr.best_f:
+                pr.best_f, pr.best_x = float(v), np.array(x)
+        return out
+
+    pr.evaluate = evaluate
+    return pr, asked
+
+
+SHIFT = np.array([0.3, -1.2, 2.5, 0.7])
+
+
+def sphere(x):
+    return float(((x - SHIFT) ** 2).sum())
+
+
+def test_cma_finds_the_minimum_of_a_shifted_sphere():
+    pr, _ = _problem(sphere, [-5] * 4, [5] * 4, budget=800)
+    res = bf.component("optimizer", "cma").minimize(pr)
+    assert res.fun < 1e-6 and np.allclose(res.x, SHIFT, atol=1e-3)
+    assert res.n_evaluations <= 800 and res.history and "sigma" in res.history[-1]
+
+
+def test_cma_beats_the_ga_at_equal_budget_on_rosenbrock():
+    def rosen(x):
+        return float(((1 - x[:-1]) ** 2 + 100 * (x[1:] - x[:-1] ** 2) ** 2).sum())
+    best = {}
+    for name in ("cma", "ga"):
+        pr, _ = _problem(rosen, [-2] * 4, [2] * 4, budget=1500)
+        best[name] = bf.component("optimizer", name).minimize(pr).fun
+    assert best["cma"] < 1e-3 and best["cma"] < best["ga"] / 10
+
+
+def test_cma_integer_parameters_are_whole_and_bounds_hold():
+    pr, asked = _problem(lambda x: (x[0] - 7.2) ** 2 + (x[1] - 0.25) ** 2, [0, 0], [20, 1], integer=[True, False],
+                         budget=300)
+    res = bf.component("optimizer", "cma").minimize(pr)
+    X = np.array(asked)
+    assert np.all(X[:, 0] == np.round(X[:, 0])) and X[:, 0].min() >= 0 and X[:, 0].max() <= 20
+    assert X[:, 1].min() >= 0 and X[:, 1].max() <= 1
+    assert res.x[0] == 7 and abs(res.x[1] - 0.25) < 1e-3
+
+
+def test_cma_is_deterministic_for_a_seed():
+    runs = []
+    for _ in range(2):
+        pr, asked = _problem(sphere, [-5] * 4, [5] * 4, budget=200, seed=4)
+        bf.component("optimizer", "cma", restarts=2).minimize(pr)
+        runs.append(asked)
+    assert runs[0] == runs[1]
+    pr, asked = _problem(sphere, [-5] * 4, [5] * 4, budget=200, seed=5)
+    bf.component("optimizer", "cma").minimize(pr)
+    assert asked != runs[0]
+
+
+def test_noise_stop_waits_for_patience_and_uses_the_seed_noise():
+    """A flat objective with noise 0.1: improvements below the noise do not count."""
+    rng = np.random.default_rng(0)
+    calls = []
+
+    def spread(x, k):
+        calls.append(k)
+        return 5.0 + 0.1 * rng.standard_normal(k) * np.sqrt(k / (k - 1))
+
+    f = lambda x: 5.0 + 0.01 * rng.random()  # noise far below 0.1: never an improvement
+    pr, _ = _problem(f, [-1] * 3, [1] * 3, budget=5000, seed_spread=spread)
+    res = bf.component("optimizer", "cma", patience=6, noise_seeds=8).minimize(pr)
+    assert "seed noise" in res.stop_reason and "in 6 generations" in res.stop_reason
+    assert calls == [8]  # measured once
+    gens = [r["generation"] for r in res.history]
+    assert gens[-1] == 7  # the first generation sets the anchor, then 6 without an improvement > noise
+    assert 0.03 < res.diagnostics["seed_noise"] < 0.3
+
+
+def test_noise_stop_keeps_going_while_the_objective_improves():
+    pr, _ = _problem(sphere, [-5] * 4, [5] * 4, budget=400, seed_spread=lambda x, k: np.full(k, 1.0))
+    res = bf.component("optimizer", "cma", patience=10, noise=1e-12).minimize(pr)
+    assert res.fun < 1e-3
+
+
+def test_cma_in_a_fit(toy_plugin, tmp_path):
+    p = toy_config(tmp_path, optimizer="cma", optimizer_settings="population = 6\nmax_generations = 4\nrestarts = 0",
+                   budget=60)
+    res = bf.fit(bf.load_config(p), tmp_path / "run", progress=False)
+    assert 0 < res.n_evaluations <= 24 and (tmp_path / "run" / "best.json").exists()
+    assert isinstance(res.params["segments"], int)
+
+
+def test_the_ga_stops_on_the_seed_noise_too():
+    rng = np.random.default_rng(1)
+    pr, _ = _problem(lambda x: 5.0 + 0.01 * rng.random(), [-1] * 3, [1] * 3, budget=5000,
+                     seed_spread=lambda x, k: 5.0 + 0.1 * rng.standard_normal(k))
+    res = bf.component("optimizer", "ga", population=10, generations=50, stall_generations=None,
+                       patience=4).minimize(pr)
+    assert "seed noise" in res.stop_reason and res.history[-1]["generation"] == 4

@@ -269,9 +269,9 @@ class NoiseStop:
     the distance's own seed noise in ``patience`` generations.
 
     The noise is what a perfect model would still show between model seeds, so an improvement
-    smaller than it is not evidence of a better point. ``"auto"`` measures it once, at the best
-    point of the first generation, with ``problem.seed_spread`` (0 where the problem cannot
-    provide it: then only a real standstill stops).
+    smaller than it is not evidence of a better point. ``"auto"`` measures it at the end of each
+    window of ``patience`` generations, at the best point, with ``problem.seed_spread`` (0 where
+    the problem cannot provide it: then only a real standstill stops).
     """
 
     def __init__(self, problem: Problem, patience: int | None, noise="auto", noise_seeds: int = 5):
@@ -290,18 +290,27 @@ class NoiseStop:
         return float(vals.std(ddof=1)) if vals.size > 1 else 0.0
 
     def __call__(self, ev: "BoxEvaluator") -> bool:
-        """Call once per generation; True when the run should stop (``reason`` says why)."""
+        """Call once per generation; True when the run should stop (``reason`` says why).
+
+        Generations are judged in windows of ``patience``: at the end of a window the noise is
+        measured at the current best point (``"auto"``) and the run stops unless the best
+        distance improved over the window by more than that noise.
+        """
         if self.patience is None:
             return False
-        if self.noise is None:  # measured once, at the first generation's best point
-            self.noise = self._measure(ev)
         best = ev.best_f
-        if not math.isfinite(self.anchor) or best < self.anchor - self.noise:
+        if not math.isfinite(self.anchor):
             self.anchor, self.since = best, 0
             return False
         self.since += 1
         if self.since < self.patience:
             return False
-        self.reason = (f"no improvement of the best distance by more than the seed noise {self.noise:.4g} "
+        if self.noise_setting == "auto":
+            self.noise = self._measure(ev)
+        gain = self.anchor - best
+        if gain > self.noise:
+            self.anchor, self.since = best, 0
+            return False
+        self.reason = (f"the best distance improved by {gain:.4g}, not more than the seed noise {self.noise:.4g}, "
                        f"in {self.since} generations")
         return True

@@ -81,10 +81,13 @@ class Evaluator:
             pr.stopped, pr.stop_reason = True, f"target distance {st.target_distance:g} reached"
 
     def seed_spread(self, x, k: int) -> np.ndarray:
-        """``Problem.seed_spread``: the objective at ``x`` under ``k`` fresh model seeds, one
-        seed per value (run on the executor; not logged)."""
+        """``Problem.seed_spread``: the objective at ``x`` under ``k`` sets of fresh model seeds,
+        each set as large as an evaluation's (so the spread is that of the objective itself; run
+        on the executor; not logged)."""
         params = self._params(np.clip(np.asarray(x, float), self.problem.lower, self.problem.upper))
-        tasks = [(params, [s]) for s in spread_seeds(self.cfg.seed, int(k))]
+        per = len(self.explicit_seeds) if self.explicit_seeds else int(self.k)
+        seeds = spread_seeds(self.cfg.seed, int(k) * per)
+        tasks = [(params, seeds[i * per:(i + 1) * per]) for i in range(int(k))]
         return np.array([r["distance"] for r in self.executor.map(evaluate_task, tasks)], float)
 
     def elapsed(self) -> float:

@@ -26,7 +26,7 @@ or when the problem stops (budget, wall time, target).
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Literal, Union
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -67,7 +67,7 @@ class GASettings(OptimizerSettings):
                                       "function_tolerance * max(1, |best|) does not count")
     init_sampling: SamplingName = sampling_field("halton")
     patience: int | None = _NOISE["patience"]
-    noise: float | str = _NOISE["noise"]
+    noise: Union[float, str] = _NOISE["noise"]
     noise_seeds: int = _NOISE["noise_seeds"]
 
     @model_validator(mode="after")

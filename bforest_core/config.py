@@ -256,6 +256,9 @@ def section_settings(cfg, section: str) -> dict:
 def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"):
     """Validate a config dict; relative target paths are resolved against ``base_dir``."""
     model = run_config_model()
+    if "target" not in raw:
+        raise ConfigError(f"{source}: no [target]: add the tree to fit, e.g. [target] qsm = \"path/to/tree.mat\" "
+                          "(relative to this file), or [target.generate] ssm = \"sot\" for a model-grown target")
     raw = _fill_defaults(raw)
     reg = discover()
     for section, kind in SECTIONS.items():

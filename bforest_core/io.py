@@ -59,21 +59,28 @@ def read_qsm(path, reader: str | None = None, **options):
                          + ", ".join(c.name for c in cands) + "); pass reader=... to force one")
 
 
+def writer_for(path, format: str | None = None):
+    """The writer class for ``path`` (by suffix) or ``format`` (a registered writer's name);
+    raises ``QSMFormatError`` naming the known suffixes. Lets a caller check an output name before
+    it computes the tree."""
+    path = Path(path)
+    reg = discover()
+    if format is not None:
+        return reg.get("qsm_writer", format)
+    suffix = path.suffix.lower()
+    cands = [reg.get("qsm_writer", n) for n in reg.names("qsm_writer")]
+    cands = [c for c in cands if suffix in c.suffixes]
+    if not cands:
+        known = sorted({s for n in reg.names("qsm_writer") for s in reg.get("qsm_writer", n).suffixes})
+        raise QSMFormatError(path, f"no writer for '{path.suffix}' (known: {', '.join(known) or 'none'})")
+    cands.sort(key=lambda c: -getattr(c, "priority", 0))
+    return cands[0]
+
+
 def write_tree(tree, path, format: str | None = None, **options) -> Path:
     """Write a tree: TreeQSM text (``.txt``), CSV (``.csv``), PLY/OBJ meshes, by suffix or
     ``format`` (a registered writer's name)."""
     path = Path(path)
-    reg = discover()
-    if format is not None:
-        cls = reg.get("qsm_writer", format)
-    else:
-        suffix = path.suffix.lower()
-        cands = [reg.get("qsm_writer", n) for n in reg.names("qsm_writer")]
-        cands = [c for c in cands if suffix in c.suffixes]
-        if not cands:
-            known = sorted({s for n in reg.names("qsm_writer") for s in reg.get("qsm_writer", n).suffixes})
-            raise QSMFormatError(path, f"no writer for '{path.suffix}' (known: {', '.join(known) or 'none'})")
-        cands.sort(key=lambda c: -getattr(c, "priority", 0))
-        cls = cands[0]
+    cls = writer_for(path, format)
     path.parent.mkdir(parents=True, exist_ok=True)
     return cls().write(tree, path, **options)

@@ -1,5 +1,6 @@
 """The `bforest` command: help, version, readable one-line errors with exit code 2."""
 import subprocess
+from pathlib import Path
 import sys
 
 import pytest
@@ -77,3 +78,33 @@ def test_distance_sets_keep_open_ranges(capsys):
     assert main(["distance", str(p), str(p), "--sets", "S1;B2+", "--lines", "16"]) == 0
     out = capsys.readouterr().out
     assert "S1 " in out and "B2+ " in out
+
+
+# ------------------------------------------------------------------ messages and paths (issue 15)
+def _bforest(*args, cwd=None):
+    import shutil
+    exe = shutil.which("bforest") or str(Path(sys.executable).with_name("bforest"))
+    return subprocess.run([exe, *args], capture_output=True, text=True, cwd=cwd)
+
+
+def test_config_without_target_says_what_to_add(tmp_path):
+    p = tmp_path / "run.toml"
+    p.write_text('[ssm]\nkind = "sot"\n')
+    r = _bforest("config", "check", str(p))
+    assert r.returncode == 2 and "no [target]" in r.stderr and 'qsm = "path/to/tree.mat"' in r.stderr
+
+
+def test_config_check_names_a_missing_target_file(tmp_path):
+    p = tmp_path / "run.toml"
+    p.write_text('[target]\nqsm = "trees/missing.mat"\n[ssm]\nkind = "sot"\n')
+    r = _bforest("config", "check", str(p))
+    assert r.returncode == 2 and "target.qsm: file not found" in r.stderr
+    assert str(tmp_path / "trees" / "missing.mat") in r.stderr  # resolved against the config's folder
+
+
+def test_simulate_checks_the_output_format_before_growing(tmp_path):
+    import time
+    t0 = time.monotonic()
+    r = _bforest("simulate", "--ssm", "lignum", "--preset", "sf_real", "-o", str(tmp_path / "tree.xyz1"))
+    assert r.returncode == 2 and "no writer for '.xyz1'" in r.stderr
+    assert time.monotonic() - t0 < 20 and not list(tmp_path.iterdir())

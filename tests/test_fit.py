@@ -103,6 +103,7 @@ def test_resume_refuses_other_config(toy_plugin, tmp_path):
     p = toy_config(tmp_path, budget=8, executor="process", executor_settings="workers = 2")
     res = bf.fit(bf.load_config(p), tmp_path / "run", resume=True, progress=False)
     assert res.n_evaluations == 8 and 'kind = "process"' in (tmp_path / "run" / "config.toml").read_text()
+    assert res.already_finished  # the run had finished: it says so
 
 
 def test_failing_and_hanging_simulations_are_logged(toy_plugin, tmp_path):
@@ -212,3 +213,17 @@ def test_compare_optimizers_on_equal_budgets(toy_plugin, tmp_path):
     assert fig.exists() and fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "](compare.png)" in (tmp_path / "cmp" / "compare.md").read_text()
     assert "median best" in res["table_text"] and (tmp_path / "cmp" / "compare.json").exists()
+
+
+def test_a_fit_that_failed_before_its_first_evaluation_does_not_block_the_retry(toy_plugin, tmp_path):
+    bad = toy_config(tmp_path, budget=4)
+    text = bad.read_text()
+    bad.write_text(text.replace(text[text.index("[target.generate]"):text.index("[ssm]")],
+                                '[target]\nqsm = "missing.txt"\n'))  # fails while reading the target
+    with pytest.raises((bf.BayesForestError, FileNotFoundError)):
+        bf.fit(bf.load_config(bad), tmp_path / "run", progress=False)
+    assert (tmp_path / "run" / "evaluations.sqlite").exists() and RunStore.open(tmp_path / "run").count() == 0
+    res = bf.fit(bf.load_config(toy_config(tmp_path, budget=4)), tmp_path / "run", progress=False)
+    assert res.n_evaluations == 4
+    with pytest.raises(bf.BayesForestError, match="--resume.*--overwrite"):
+        bf.fit(bf.load_config(toy_config(tmp_path, budget=4)), tmp_path / "run", progress=False)

@@ -14,9 +14,16 @@ def cmd_fit(args):
         cfg.stop.max_evaluations = args.max_evaluations
     out = Path(args.output) if args.output else Path("runs") / Path(args.config).stem
     res = fit(cfg, out, resume=args.resume, progress=not args.quiet, overwrite=args.overwrite)
+    if res.already_finished:
+        print(f"{out}: this run had already finished; nothing was simulated (grow clones with "
+              f"'bforest clones {out}', or start anew with --overwrite)")
     print(f"best distance {res.distance:.4f} after {res.n_evaluations} evaluations ({res.stop_reason})")
-    for k, v in res.params.items():
-        print(f"  {k} = {v:.6g}" if isinstance(v, float) else f"  {k} = {v}")
+    for title, names in (("fitted", list(cfg.ssm.free)), ("fixed", [k for k in res.params if k not in cfg.ssm.free])):
+        if names:
+            print(f"{title}:")
+        for k in names:
+            v = res.params[k]
+            print(f"  {k} = {v:.6g}" if isinstance(v, float) else f"  {k} = {v}")
     print(f"run directory: {out}")
     if cfg.report.enabled and not args.no_report:
         report(out)

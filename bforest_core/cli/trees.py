@@ -31,9 +31,11 @@ def cmd_info(args):
 
 
 def cmd_simulate(args):
-    from ..io import write_tree
+    from ..io import write_tree, writer_for
     from ..metrics import classical_metrics
     from ..registry import component
+    if args.output:
+        writer_for(args.output)  # a wrong output name fails before the tree is grown
     settings = parse_set(args.setting)
     if args.preset:
         settings["preset"] = args.preset

@@ -37,6 +37,7 @@ class FitResult:
     run_dir: Path
     history: list[dict] = field(default_factory=list)
     diagnostics: dict[str, Any] = field(default_factory=dict)
+    already_finished: bool = False   # a --resume of a run that had finished: nothing was simulated
 
 
 class Evaluator:
@@ -220,10 +221,12 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
         if _result_relevant(old) != _result_relevant(cfg):
             raise RunDirError(f"{run_dir}: the config differs from the run's config.toml; "
                               "resume with the run's own config (bforest fit RUN/config.toml -o RUN --resume)")
+        finished = (store.path / "best.json").exists()  # resuming it replays the log, simulates nothing
         # the executor may change between sessions (results never depend on it)
         store.config_path.write_text(text, encoding="utf-8")
         store.clear_log()
     else:
+        finished = False
         store = RunStore.create(run_dir, text, overwrite=overwrite)
     tgt = target if target is not None else build_target(cfg)
     _save_target(store, tgt, cfg)
@@ -250,7 +253,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     out = finish_fit(cfg, store, tgt, stop_reason, evaluator.elapsed(), result, ssm)
     return FitResult(params=out["params"], distance=out["distance"], per_set=out["per_set"],
                      n_evaluations=store.count(), stop_reason=stop_reason, run_dir=run_dir,
-                     history=store.log_records(), diagnostics=result.diagnostics)
+                     history=store.log_records(), diagnostics=result.diagnostics, already_finished=finished)
 
 
 def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:

@@ -102,8 +102,9 @@ class RunStore:
         """
         path = Path(path)
         db = path / "evaluations.sqlite"
-        if db.exists() and not overwrite:
-            raise RunDirError(f"{path}: already holds a run (use --resume to continue it, or another -o)")
+        if db.exists() and not overwrite and cls._held(path) > 0:
+            raise RunDirError(f"{path}: already holds a run; continue it with --resume, replace it with "
+                              "--overwrite, or choose another -o")
         path.mkdir(parents=True, exist_ok=True)
         if overwrite:
             for f in (db, path / "evaluations.sqlite-wal", path / "evaluations.sqlite-shm", path / "best.json"):
@@ -114,6 +115,15 @@ class RunStore:
         store = cls(path)
         store.set_meta("created", time.time())
         return store
+
+    @classmethod
+    def _held(cls, path) -> int:
+        """Evaluations in an existing run directory (0: a run that failed before its first)."""
+        probe = cls(path)
+        try:
+            return probe.count()
+        finally:
+            probe.close()
 
     @classmethod
     def open(cls, path) -> "RunStore":

@@ -2,7 +2,8 @@
 """Set-up and entry commands of Bayes Forest: needs only Python >= 3.11 and pip.
 
     python3 dev.py demo     fit a growth model to the embedded default target (writes ./demo-run)
-    python3 dev.py test     run the whole test suite
+    python3 dev.py test     run the whole test suite (arguments go to pytest)
+    python3 dev.py env      only create or refresh .venv (then use .venv/bin/bforest, .venv/bin/python)
 
 Each creates (or reuses) the virtual environment ``.venv`` beside this file and installs the
 project into it (editable, with the test and Dask extras and the example third-party plugin).

@@ -108,3 +108,27 @@ def test_simulate_checks_the_output_format_before_growing(tmp_path):
     r = _bforest("simulate", "--ssm", "lignum", "--preset", "sf_real", "-o", str(tmp_path / "tree.xyz1"))
     assert r.returncode == 2 and "no writer for '.xyz1'" in r.stderr
     assert time.monotonic() - t0 < 20 and not list(tmp_path.iterdir())
+
+
+def test_info_per_order_table_text_json_and_csv():
+    import csv
+    import io
+    import json
+    p = str(qsm_path("pine_ruotsinkyla_3.mat"))
+    r = _bforest("info", p)
+    assert r.returncode == 0 and "mean angle (deg)" in r.stdout and "base diameter" in r.stdout
+    data = json.loads(_bforest("info", p, "--json").stdout)
+    orders = {o["order"]: o for o in data["orders"]}
+    assert orders[1]["n_branches"] == 73 and orders[0]["mean_angle_deg"] is None  # NaN -> null
+    assert data["metrics_m"]["height"] == pytest.approx(9.936, abs=1e-3)
+    rows = list(csv.DictReader(io.StringIO(_bforest("info", p, "--csv").stdout)))
+    assert [int(r["order"]) for r in rows] == sorted(orders) and float(rows[1]["length_m"]) == pytest.approx(
+        orders[1]["length_m"])
+
+
+def test_distance_json():
+    import json
+    a, b = str(qsm_path("pine_ruotsinkyla_1.mat")), str(qsm_path("pine_ruotsinkyla_3.mat"))
+    d = json.loads(_bforest("distance", a, b, "--json").stdout)
+    assert set(d["per_set"]) == {"S1", "B1"} and 0 < d["distance"] < 1
+    assert d["distance"] == pytest.approx(sum(d["per_set"].values()) / 2)

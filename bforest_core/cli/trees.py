@@ -2,13 +2,15 @@
 from __future__ import annotations
 
 
-from .common import UsageError, parse_set, read, select_arg, split_sets
+from .common import UsageError, json_text, parse_set, read, select_arg, split_sets
 
 
 def cmd_info(args):
-    from ..metrics import classical_metrics
+    from ..metrics import classical_metrics, order_summary
     tree = read(args.tree, args)
     trees = tree if isinstance(tree, list) else [tree]
+    if args.json or args.csv:
+        return _info_table(args, trees)
     for k, t in enumerate(trees):
         m = classical_metrics(t)
         md = t.metadata
@@ -20,13 +22,39 @@ def cmd_info(args):
         print(f"  branches      {t.n_branches} (topology {t.topology})")
         print(f"  max order     {t.max_order}")
         print(f"  height        {m['height']:.2f} m")
-        print(f"  girth (base)  {m['girth']:.3f} m")
+        print(f"  base diameter {m['base_diameter']:.3f} m  (the papers' 'girth')")
         if m.get("dbh") is not None and m["dbh"] == m["dbh"]:
             print(f"  DBH (1.3 m)   {m['dbh']:.3f} m")
         print(f"  crown spread  {m['crown_spread']:.2f} m")
         print(f"  wood volume   {t.volume:.4f} m^3")
         for note in md.get("repairs", []) or []:
             print(f"  repaired      {note}")
+        print(f"  {'order':>5} {'branches':>9} {'length (m)':>11} {'volume (m^3)':>13} {'mean angle (deg)':>17} "
+              f"{'base diam. (m)':>15}")
+        for r in order_summary(t):
+            ang = "–" if r["mean_angle_deg"] != r["mean_angle_deg"] else f"{r['mean_angle_deg']:.1f}"
+            print(f"  {r['order']:>5} {r['n_branches']:>9} {r['length_m']:>11.2f} {r['volume_m3']:>13.5f} {ang:>17} "
+                  f"{r['mean_base_diameter_m']:>15.4f}")
+    return 0
+
+
+def _info_table(args, trees) -> int:
+    """``info --json`` (metrics and the per-order table of each reconstruction) or ``--csv``
+    (the per-order table, one row per reconstruction and order)."""
+    import csv
+    import sys
+    from ..metrics import classical_metrics, order_summary
+    out = [{"file": str(args.tree), "reconstruction": k, "cylinders": t.n, "branches": t.n_branches,
+            "metrics_m": classical_metrics(t), "orders": order_summary(t)} for k, t in enumerate(trees)]
+    if args.json:
+        print(json_text(out if len(out) > 1 else out[0]))
+        return 0
+    cols = ["order", "n_branches", "length_m", "volume_m3", "mean_angle_deg", "mean_base_diameter_m"]
+    w = csv.writer(sys.stdout)
+    w.writerow(["reconstruction"] + cols)
+    for item in out:
+        for r in item["orders"]:
+            w.writerow([item["reconstruction"]] + [r[c] for c in cols])
     return 0
 
 
@@ -74,6 +102,14 @@ def cmd_distance(args):
     dist.prepare(Ub, {k: fs.columns(k) for k in fs.set_names})
     per = dist.compute_per_set(Ua, Ub)
     total = dist.combine(per)
+    if args.json:
+        ma, mb = classical_metrics(a), classical_metrics(b)
+        print(json_text({"data": str(args.tree_b), "model": str(args.tree_a), "distance": total,
+                          "settings": {"distance": args.distance, "statistic": args.statistic, "lines": args.lines,
+                                       "sets": list(per)},
+                          "per_set": per, "rows": {k: [int(Ua[k].shape[0]), int(Ub[k].shape[0])] for k in per},
+                          "metrics_model_m": ma, "metrics_data_m": mb, "relative_errors": relative_errors(mb, ma)}))
+        return 0
     print(f"data (B): {args.tree_b}\nmodel (A): {args.tree_a}")
     print(f"distance ({args.distance}, {args.statistic}, {args.lines} lines): {total:.4f}")
     for k, v in per.items():
@@ -107,6 +143,7 @@ def add_commands(sub) -> None:
     s.add_argument("--features", default="branch-segment")
     s.add_argument("--distance", default="sliced")
     s.add_argument("--test", action="store_true", help="permutation test p-value")
+    s.add_argument("--json", action="store_true", help="print the result as JSON")
     s.add_argument("--seed", type=int, default=1)
     s.set_defaults(func=cmd_distance)
 
@@ -125,4 +162,7 @@ def add_commands(sub) -> None:
     s.add_argument("--reader", default=None)
     s.add_argument("--select", default=None, type=select_arg, help="reconstruction index, list or 'all'")
     s.add_argument("--topology", default=None, choices=["source", "subtree", "thickest"])
+    out = s.add_mutually_exclusive_group()
+    out.add_argument("--json", action="store_true", help="metrics and the per-order table as JSON")
+    out.add_argument("--csv", action="store_true", help="the per-order table as CSV (one row per order)")
     s.set_defaults(func=cmd_info)

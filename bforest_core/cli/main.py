@@ -2,8 +2,8 @@
 
 Every error a user can cause prints one line ``error: ...`` and exits with code 2; ``--debug``
 shows the traceback instead. The subcommands live in one module per group: ``runs`` (demo, fit,
-clones, report, compare, profile), ``trees`` (info, simulate, distance), ``setup`` (plugins,
-config).
+clones, report, compare, profile), ``trees`` (info, simulate, distance), ``export``, ``setup``
+(plugins, config).
 """
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import argparse
 import sys
 import warnings
 
-from . import runs, setup, trees
+from . import export, runs, setup, trees
 from .common import EXIT_USAGE, Parser, UsageError
 
 
@@ -26,7 +26,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"bforest {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
-    for group in (runs, trees, setup):
+    for group in (runs, trees, export, setup):
         group.add_commands(sub)
     return p
 

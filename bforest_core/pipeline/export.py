@@ -1,0 +1,102 @@
+"""Exports of a run: the best-fit tree and the clones in other file formats, and the evaluation
+log as one flat table.
+
+Trees go out through the installed QSM writers (``bforest plugins`` lists them), chosen by a
+writer's name (``treeqsm-text``, ``treeqsm-mat``, ``bforest-csv``, ``ply``, ``obj``, or a plugin's)
+or by a file suffix (``txt``, ``mat``, ``csv``, ``ply``, ``obj``, ...). An existing file is never
+overwritten unless asked.
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+from ..errors import BayesForestError
+from .store import RunStore
+
+
+class ExportError(BayesForestError):
+    """An export cannot be written as asked (unknown format, existing file, nothing to export)."""
+
+
+def _writer(fmt: str):
+    """(writer name, suffix) of a format given as a writer name or a suffix."""
+    from ..registry import discover
+    reg = discover()
+    names = reg.names("qsm_writer")
+    if fmt in names:
+        cls = reg.get("qsm_writer", fmt)
+        return fmt, cls.suffixes[0]
+    suffix = "." + fmt.lower().lstrip(".")
+    for n in names:
+        if suffix in reg.get("qsm_writer", n).suffixes:
+            return n, suffix
+    known = sorted(set(names) | {s.lstrip(".") for n in names for s in reg.get("qsm_writer", n).suffixes})
+    raise ExportError(f"unknown export format {fmt!r} (known: {', '.join(known)})")
+
+
+def run_trees(run_dir: Path, what: tuple[str, ...] = ("best", "clones")) -> list[Path]:
+    """The tree files of a run: ``best_tree.txt`` and ``clones/clone_*.txt``."""
+    files = []
+    if "best" in what and (run_dir / "best_tree.txt").exists():
+        files.append(run_dir / "best_tree.txt")
+    if "clones" in what:
+        files += sorted((run_dir / "clones").glob("clone_*.txt"))
+    return files
+
+
+def export_trees(run_dir, formats: list[str], out_dir=None, what: tuple[str, ...] = ("best", "clones"),
+                 overwrite: bool = False) -> list[Path]:
+    """Write the run's trees in each of ``formats`` into ``out_dir`` (default ``RUN/export``).
+
+    Raises
+    ------
+    ExportError
+        For an unknown format, a run without trees, or a file that exists (without ``overwrite``);
+        nothing is written then.
+    """
+    from ..io import read_qsm, write_tree
+    run_dir = Path(run_dir)
+    RunStore.open(run_dir).close()  # a run directory, or a clear error
+    out_dir = Path(out_dir) if out_dir is not None else run_dir / "export"
+    writers = [_writer(f) for f in formats]
+    files = run_trees(run_dir, what)
+    if not files:
+        raise ExportError(f"{run_dir}: no trees to export ({' or '.join(what)}: run the fit / bforest clones first)")
+    plan = [(src, name, out_dir / f"{src.stem}{suffix}") for src in files for name, suffix in writers]
+    existing = [dst for _, _, dst in plan if dst.exists()]
+    if existing and not overwrite:
+        raise ExportError(f"{existing[0]} exists ({len(existing)} files would be replaced); pass --overwrite to "
+                          "replace them or choose another -o")
+    out = []
+    for src, name, dst in plan:
+        tree = read_qsm(src)
+        out.append(write_tree(tree[0] if isinstance(tree, list) else tree, dst, format=name))
+    return out
+
+
+def export_evaluations(run_dir, path, overwrite: bool = False) -> int:
+    """Flatten ``evaluations.sqlite`` into a CSV (one row per evaluation: index, status, seconds,
+    distance, one column per parameter, one ``D[<set>]`` per data set, seeds, worker, message);
+    returns the number of rows."""
+    run_dir, path = Path(run_dir), Path(path)
+    if path.exists() and not overwrite:
+        raise ExportError(f"{path} exists; pass --overwrite to replace it")
+    store = RunStore.open(run_dir)
+    try:
+        evs = store.evaluations()
+    finally:
+        store.close()
+    params = list(dict.fromkeys(k for e in evs for k in e.params))
+    sets = list(dict.fromkeys(k for e in evs for k in e.per_set))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["evaluation", "status", "seconds", "distance"] + params + [f"D[{s}]" for s in sets]
+                   + ["seeds", "worker", "message"])
+        for e in evs:
+            w.writerow([e.idx, e.status, f"{e.seconds:.6g}", repr(float(e.distance))]
+                       + [e.params.get(k, "") for k in params]
+                       + ["" if e.per_set.get(s) is None else repr(float(e.per_set[s])) for s in sets]
+                       + [" ".join(map(str, e.seeds)), e.worker, e.message])
+    return len(evs)

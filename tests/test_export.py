@@ -1,0 +1,53 @@
+"""bforest export: trees of a run in other formats, the evaluation log as one CSV."""
+import csv
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import bforest_core as bf
+from bforest_core.pipeline.clones import clones
+from bforest_core.pipeline.export import ExportError, export_evaluations, export_trees
+from bforest_core.pipeline.store import RunStore
+from conftest import toy_config
+
+
+@pytest.fixture(scope="module")
+def run(toy_plugin, tmp_path_factory):
+    base = tmp_path_factory.mktemp("export")
+    bf.fit(bf.load_config(toy_config(base, budget=12)), base / "run", progress=False)
+    clones(base / "run", n=2, progress=False)
+    return base / "run"
+
+
+def test_trees_in_other_formats(run, tmp_path):
+    files = export_trees(run, ["ply", "treeqsm-mat"], tmp_path / "out")
+    assert sorted(p.name for p in files) == ["best_tree.mat", "best_tree.ply", "clone_000.mat", "clone_000.ply",
+                                             "clone_001.mat", "clone_001.ply"]
+    back = bf.read_qsm(tmp_path / "out" / "clone_001.mat")
+    assert back.n == bf.read_qsm(run / "clones" / "clone_001.txt").n
+    with pytest.raises(ExportError, match="exists.*--overwrite"):
+        export_trees(run, ["ply"], tmp_path / "out")
+    assert len(export_trees(run, ["ply"], tmp_path / "out", what=("best",), overwrite=True)) == 1
+    with pytest.raises(ExportError, match="unknown export format 'las'.*known: .*ply"):
+        export_trees(run, ["las"], tmp_path / "x")
+
+
+def test_evaluations_as_one_table(run, tmp_path):
+    n = export_evaluations(run, tmp_path / "ev.csv")
+    rows = list(csv.DictReader(open(tmp_path / "ev.csv")))
+    evs = RunStore.open(run).evaluations()
+    assert n == len(rows) == len(evs) == 12
+    assert {"evaluation", "status", "distance", "angle", "segments", "noise", "D[L]", "seeds"} <= set(rows[0])
+    assert float(rows[3]["distance"]) == evs[3].distance and float(rows[3]["angle"]) == evs[3].params["angle"]
+
+
+def test_export_command(run, tmp_path):
+    exe = shutil.which("bforest") or str(Path(sys.executable).with_name("bforest"))
+    r = subprocess.run([exe, "export", str(run), "--format", "obj", "-o", str(tmp_path / "o"),
+                        "--evaluations", str(tmp_path / "ev.csv")], capture_output=True, text=True)
+    assert r.returncode == 0 and "wrote 3 files" in r.stdout and (tmp_path / "o" / "clone_000.obj").exists()
+    r = subprocess.run([exe, "export", str(run)], capture_output=True, text=True)
+    assert r.returncode == 2 and "at least one --format" in r.stderr

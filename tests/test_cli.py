@@ -132,3 +132,26 @@ def test_distance_json():
     d = json.loads(_bforest("distance", a, b, "--json").stdout)
     assert set(d["per_set"]) == {"S1", "B1"} and 0 < d["distance"] < 1
     assert d["distance"] == pytest.approx(sum(d["per_set"].values()) / 2)
+
+
+def test_every_option_has_a_help_line():
+    import argparse
+    from bforest_core.cli.main import build_parser
+
+    missing = []
+
+    def walk(parser, path):
+        for a in parser._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, sp in a.choices.items():
+                    walk(sp, path + [name])
+            elif not a.help and not isinstance(a, argparse._HelpAction):
+                missing.append(f"{' '.join(path)} {'/'.join(a.option_strings) or a.dest}")
+    walk(build_parser(), ["bforest"])
+    assert not missing, "options without a help line: " + ", ".join(missing)
+
+
+def test_dev_py_lists_its_commands():
+    import pathlib
+    r = subprocess.run([sys.executable, str(pathlib.Path(__file__).parents[1] / "dev.py")], capture_output=True, text=True)
+    assert r.returncode == 2 and all(f"dev.py {c}" in r.stdout for c in ("demo", "test", "env"))

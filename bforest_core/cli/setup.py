@@ -59,5 +59,5 @@ def add_commands(sub) -> None:
     cs = s.add_subparsers(dest="action", metavar="ACTION", parser_class=Parser, required=True)
     cs.add_parser("schema", help="print the JSON schema of run configs")
     c2 = cs.add_parser("check", help="validate a run config")
-    c2.add_argument("file", metavar="RUN.toml")
+    c2.add_argument("file", metavar="RUN.toml", help="the run configuration to check")
     s.set_defaults(func=cmd_config)

@@ -317,6 +317,9 @@ class Optimizer(Component):
 
     kind = "optimizer"
 
+    # Optional (duck-typed): ``expected_evaluations(dim) -> int | None``, the evaluations a run
+    # plans when no stop comes first (the fit's progress bar counts to it).
+
     @abc.abstractmethod
     def minimize(self, problem: Problem) -> OptimizeResult:
         """Search the box for the minimum. Must be deterministic given ``problem.seed`` and the

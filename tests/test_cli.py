@@ -155,3 +155,17 @@ def test_dev_py_lists_its_commands():
     import pathlib
     r = subprocess.run([sys.executable, str(pathlib.Path(__file__).parents[1] / "dev.py")], capture_output=True, text=True)
     assert r.returncode == 2 and all(f"dev.py {c}" in r.stdout for c in ("demo", "test", "env"))
+
+
+def test_fit_progress_bar_counts_to_the_plan_and_closes_with_the_reason(toy_plugin, tmp_path):
+    """The GA plans population x (generations + 1) evaluations; the bar ends with why it stopped."""
+    import os
+    from conftest import toy_config
+    p = toy_config(tmp_path, optimizer="ga", optimizer_settings="population = 6\ngenerations = 3", budget=1000)
+    from conftest import TOY_DIR
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(toy_plugin), str(TOY_DIR)])}  # the toy plugin, for the subprocess
+    exe = Path(sys.executable).with_name("bforest")
+    r = subprocess.run([str(exe), "fit", str(p), "-o", str(tmp_path / "run"), "--no-report"], capture_output=True,
+                       text=True, env=env)
+    assert r.returncode == 0, r.stderr
+    assert "/24" in r.stderr and "stopped:" in r.stderr

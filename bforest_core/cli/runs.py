@@ -63,7 +63,8 @@ def cmd_report(args):
 def cmd_compare(args):
     from ..pipeline.compare import compare
     res = compare(args.config, optimizers=[o.strip() for o in args.optimizers.split(",") if o.strip()],
-                  budget=args.budget, repeats=args.repeats, out_dir=args.output, threshold=args.threshold)
+                  budget=args.budget, repeats=args.repeats, out_dir=args.output, threshold=args.threshold,
+                  progress=not args.quiet)
     from ..report.comparison import write_compare_figure
     print(res["table_text"])
     print(f"figure: {write_compare_figure(res)}")
@@ -72,7 +73,7 @@ def cmd_compare(args):
 
 def cmd_profile(args):
     from ..pipeline.profile import profile
-    res = profile(args.run_dir, args.param, values=args.values, seeds=args.seeds, n=args.n)
+    res = profile(args.run_dir, args.param, values=args.values, seeds=args.seeds, n=args.n, progress=not args.quiet)
     from ..report.comparison import write_profile_figure
     print(res["table_text"])
     print(f"figure: {write_profile_figure(res)}")
@@ -122,6 +123,7 @@ def add_commands(sub) -> None:
     s.add_argument("--repeats", type=int, default=3, help="runs per optimiser with different run seeds (default 3)")
     s.add_argument("--threshold", type=float, default=None, help="distance for 'evaluations to reach'")
     s.add_argument("-o", "--output", default=None, help="output directory (default: runs/compare-<config>)")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_compare)
 
     s = sub.add_parser("profile", help="distance along one parameter for several seeds")
@@ -130,4 +132,5 @@ def add_commands(sub) -> None:
     s.add_argument("--values", type=float, nargs="+", default=None, help="values (default: 11 across the bounds)")
     s.add_argument("--n", type=int, default=11, help="number of values across the bounds (default 11)")
     s.add_argument("--seeds", type=int, default=5, help="model seeds per value (default 5)")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_profile)

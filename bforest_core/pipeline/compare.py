@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import config_to_dict, load_config, parse_config
-from .objective import build_target
+from .objective import build_target, progress_bar
 from ..registry import component_class
 from .store import RunStore
 
@@ -40,6 +40,7 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
     target = build_target(base)
     raw = config_to_dict(base)
     curves, rows = {}, []
+    bar = progress_bar(len(optimizers) * repeats * int(budget), "compare", "eval", progress)
     for name in optimizers:
         curves[name] = []
         for r in range(repeats):
@@ -50,12 +51,15 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
             cfg = parse_config(cfg_raw, source=f"compare/{name}")
             run = out_dir / f"{name}-{r}"
             t0 = time.monotonic()
-            res = fit(cfg, run, progress=progress, overwrite=True, target=target)
+            bar.set_postfix_str(f"{name} run {r + 1}/{repeats}", refresh=True)
+            res = fit(cfg, run, progress=False, overwrite=True, target=target)
             wall = time.monotonic() - t0
+            bar.update(int(budget))  # a run that stopped early still takes its share of the total
             curve = best_so_far(run)
             curves[name].append(curve)
             rows.append({"optimizer": name, "repeat": r, "best": res.distance, "evaluations": res.n_evaluations,
                          "seconds": wall, "stop_reason": res.stop_reason})
+    bar.close()
     finals = np.array([row["best"] for row in rows])
     if threshold is None:
         threshold = float(np.quantile(finals, 0.25)) * 1.05

@@ -169,8 +169,19 @@ class _Progress:
         self.bar.update(1)
         self.bar.set_postfix_str(f"best={pr.best_f:.4f}" + (" (replay)" if replayed else ""), refresh=False)
 
-    def close(self):
+    def close(self, reason: str = ""):
+        if reason:  # the bar ends with why the fit stopped (budget, the optimiser's own stop, ...)
+            self.bar.set_postfix_str(f"{self.bar.postfix or ''} stopped: {reason}".strip(), refresh=True)
         self.bar.close()
+
+
+def _expected_total(cfg, optimizer, dim: int) -> int | None:
+    """Evaluations the progress bar counts to: the budget, or what the optimiser plans
+    (``expected_evaluations``, duck-typed), whichever is smaller."""
+    plan = getattr(optimizer, "expected_evaluations", None)
+    planned = plan(dim) if callable(plan) else None
+    totals = [t for t in (cfg.stop.max_evaluations, planned) if t]
+    return min(totals) if totals else None
 
 
 def _result_relevant(cfg) -> dict:
@@ -237,15 +248,16 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     problem = Problem(names=names, lower=lo, upper=hi, integer=integer, evaluate=None, init_lower=ilo,
                       init_upper=ihi, seed=int(cfg.seed), budget=cfg.stop.max_evaluations,
                       log=store.log)
-    bar = _Progress(cfg.stop.max_evaluations, enabled=progress)
+    bar = _Progress(_expected_total(cfg, optimizer, len(names)), enabled=progress)
     evaluator = Evaluator(cfg, store, executor, ssm, names, problem, progress=bar)
     problem.evaluate = evaluator
     problem.seed_spread = evaluator.seed_spread
+    result = None
     try:
         with started_workers(cfg, tgt, executor):
             result = optimizer.minimize(problem)
     finally:
-        bar.close()
+        bar.close(problem.stop_reason or getattr(result, "stop_reason", "") or "")
         store.set_meta("elapsed", evaluator.elapsed())
     stop_reason = problem.stop_reason or result.stop_reason or "optimiser finished"
     if store.count() == 0:

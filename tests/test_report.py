@@ -319,3 +319,17 @@ def test_report_of_a_real_emcee_run(tmp_path):
         assert lines.mean() == pytest.approx(best["per_set"][name], abs=1e-12)
         # ... and equal the KS of the normalised projections the figure draws
         assert np.allclose(datasets.per_line_ks(um2, ud2, dist.directions(ud.shape[1])), lines, atol=1e-9)
+
+
+def test_wide_figures_stay_readable(tmp_path):
+    """Many worst lines or many parameters: at most 1600 px wide, units on the corner axes."""
+    rng = np.random.default_rng(0)
+    ud, um = rng.normal(size=(200, 4)), rng.normal(0.3, 1, size=(150, 4))
+    A = rng.normal(size=(64, 4))
+    A /= np.linalg.norm(A, axis=1, keepdims=True)
+    p = datasets.worst_lines_figure(um, ud, A, ["a", "b", "c", "d"], tmp_path / "l.png", k=8)
+    w, h = png_size(p)
+    assert w <= 1600 and h > 600  # the 9 panels wrap into 3 rows
+    S = rng.normal(size=(500, 10))
+    p = posterior.corner_figure(S, [f"p{i}" for i in range(10)], tmp_path / "c.png", units=["m"] * 10)
+    assert png_size(p)[0] <= 1600

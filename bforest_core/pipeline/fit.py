@@ -171,7 +171,7 @@ class _Progress:
 
     def close(self, reason: str = ""):
         if reason:  # the bar ends with why the fit stopped (budget, the optimiser's own stop, ...)
-            self.bar.set_postfix_str(f"{self.bar.postfix or ''} stopped: {reason}".strip(), refresh=True)
+            self.bar.set_postfix_str(f"{getattr(self.bar, 'postfix', '') or ''} stopped: {reason}".strip(), refresh=True)
         self.bar.close()
 
 

@@ -38,6 +38,16 @@ def new_figure(width: float, height: float, layout: str | None = "constrained") 
     return fig
 
 
+#: widest figure in pixels at its dpi: a report is read on a normal screen
+MAX_WIDTH_PX = 1600
+
+
+def capped_size(width: float, height: float, dpi: int, max_px: int = MAX_WIDTH_PX) -> tuple[float, float]:
+    """(width, height) in inches scaled down together so the PNG is at most ``max_px`` wide."""
+    f = min(1.0, max_px / (width * dpi))
+    return width * f, height * f
+
+
 def save_figure(fig: Figure, path, dpi: int = 130) -> Path:
     """Write ``fig`` as PNG (creating the folder) and return the path."""
     path = Path(path)

@@ -12,7 +12,7 @@ import numpy as np
 from matplotlib.lines import Line2D
 
 from .document import slug
-from .canvas import DATA_COLOR, MODEL_COLOR, new_figure, save_figure, column_label
+from .canvas import DATA_COLOR, MODEL_COLOR, capped_size, new_figure, save_figure, column_label
 
 if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
     from .run_view import RunView
@@ -209,15 +209,19 @@ def worst_lines_figure(u_model: np.ndarray, u_data: np.ndarray, directions: np.n
     vals = per_line_ks(u_model, u_data, A) if line_values is None else np.asarray(line_values, float)
     stat_name = (statistic if line_values is not None else "ks").upper()
     worst = np.argsort(-vals, kind="stable")[:k]
-    fig = new_figure(3.4 * (k + 1), 3.3)
-    axes = fig.subplots(1, k + 1, squeeze=False)[0]
+    ncol = min(k + 1, 4)  # panels wrap into rows: the figure stays readable at a normal size
+    nrow = -(-(k + 1) // ncol)
+    fig = new_figure(*capped_size(3.6 * ncol, 3.4 * nrow, dpi))
+    axes = fig.subplots(nrow, ncol, squeeze=False).ravel()
+    for ax in axes[k + 1:]:
+        ax.set_visible(False)
     ax = axes[0]
     ax.hist(vals, bins=min(30, max(5, vals.size // 4)), color="#bbbbbb", edgecolor="#777777")
     ax.axvline(vals.mean(), color="black", lw=1.5, label=f"mean = {vals.mean():.3f}")
     for i in worst:
         ax.axvline(vals[i], color=MODEL_COLOR, lw=0.8, ls=":")
     ax.set_xlabel(f"{stat_name} per line")
-    ax.set_ylabel("lines")
+    ax.set_ylabel("number of lines")
     ax.set_title(f"{A.shape[0]} lines", fontsize="small")
     ax.legend(fontsize="x-small")
     for ax, i in zip(axes[1:], worst):

@@ -9,7 +9,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .canvas import MODEL_COLOR, new_figure, save_figure
+from .canvas import MODEL_COLOR, capped_size, new_figure, save_figure
 
 if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
     from .run_view import RunView
@@ -47,7 +47,8 @@ def chain_figure(chain: np.ndarray, names: Sequence[str], path, burn_in: int = 0
 
 def corner_figure(samples: np.ndarray, names: Sequence[str], path, truths: Sequence[float] | None = None,
                   bins: int | None = None, bounds: Sequence[tuple[float, float]] | None = None,
-                  smooth: float = 1.0, title: str | None = None, dpi: int = 120) -> Path:
+                  smooth: float = 1.0, title: str | None = None, dpi: int = 120,
+                  units: Sequence[str] | None = None) -> Path:
     """Corner plot of posterior samples ``(n, p)``: marginal histograms with the 16/50/84 %
     quantiles on the diagonal, 2-D histograms (Gaussian-smoothed by ``smooth`` bins) with
     39/86 % (1σ/2σ) contours below; ``truths`` (e.g. the best fit) in red. ``bins`` defaults
@@ -56,10 +57,11 @@ def corner_figure(samples: np.ndarray, names: Sequence[str], path, truths: Seque
     S = np.asarray(samples, float)
     S = S[np.isfinite(S).all(1)]
     n, p = S.shape
+    labels = [f"{nm} ({u})" if u else nm for nm, u in zip(names, list(units or []) + [""] * p)]
     if bins is None:
         bins = int(np.clip(np.sqrt(max(n, 1)) / 2, 8, 30))
     size = 2.3 if p > 2 else 3.0
-    fig = new_figure(size * p + 0.5, size * p + 0.5)
+    fig = new_figure(*capped_size(size * p + 0.5, size * p + 0.5, dpi))
     axes = fig.subplots(p, p, squeeze=False)
     rng = []
     for j in range(p):
@@ -103,11 +105,11 @@ def corner_figure(samples: np.ndarray, names: Sequence[str], path, truths: Seque
             ax.set_xlim(*rng[j])
             ax.tick_params(labelsize="x-small")
             if i == p - 1:
-                ax.set_xlabel(names[j], fontsize="small")
+                ax.set_xlabel(labels[j], fontsize="small")
             else:
                 ax.set_xticklabels([])
             if j == 0 and i > 0:
-                ax.set_ylabel(names[i], fontsize="small")
+                ax.set_ylabel(labels[i], fontsize="small")
             elif i != j:
                 ax.set_yticklabels([])
     if title:
@@ -180,7 +182,17 @@ def fig_mcmc(v: "RunView"):
     bounds = None
     if v.cfg is not None and all(n in v.cfg.ssm.free for n in names):
         bounds = [(v.cfg.ssm.free[n].lower, v.cfg.ssm.free[n].upper) for n in names]
+    units = None
+    if v.cfg is not None:
+        try:
+            from ..registry import component
+            from ..config import ssm_settings
+            ssm = component("ssm", v.cfg.ssm.kind, **ssm_settings(v.cfg))
+            units = [ssm.parameter_spec(n).unit for n in names]
+        except Exception:  # a report of a run whose model is gone still draws, without units
+            units = None
     out.append((corner_figure(samples, names, v.path / "figures" / "corner.png", truths=truths, bounds=bounds,
+                              units=units,
                               title=f"Posterior ({samples.shape[0]} samples after burn-in)"),
                 "Posterior marginals (16/50/84 % quantiles) and pairwise densities (39 %/86 % contours); "
                 "red: the best evaluation"))

@@ -324,9 +324,9 @@ def clones_figure(target, clones: Sequence[tuple[str, object]], path, title: str
     return save_figure(fig, path, dpi)
 
 
-_METRIC_PANELS = (("height", "height (m)"), ("girth", "girth (m)"), ("crown_spread", "crown spread (m)"),
+_METRIC_PANELS = (("height", "height (m)"), ("girth", "base diameter (m)"), ("crown_spread", "crown spread (m)"),
                   ("distance", "structural distance D"),
-                  ("d_h", "$d_h$ (height, rel. error)"), ("d_g", "$d_g$ (girth, rel. error)"),
+                  ("d_h", "$d_h$ (height, rel. error)"), ("d_g", "$d_g$ (base diameter, rel. error)"),
                   ("d_c", "$d_c$ (crown spread, rel. error)"), ("n_cylinders", "cylinders"))
 
 
@@ -348,7 +348,7 @@ def clone_metrics_figure(values: Mapping[str, np.ndarray], path, target: Mapping
         bins = min(30, max(5, int(np.sqrt(x.size)) + 2))
         ax.hist(x, bins=bins, color="#9bbcd9", edgecolor="#4a6f94", lw=0.6)
         ax.set_xlabel(lab)
-        ax.set_ylabel("clones")
+        ax.set_ylabel("number of clones")
         ax.yaxis.get_major_locator().set_params(integer=True)
         ax.xaxis.set_major_locator(MaxNLocator(nbins=4))  # narrow ranges print long tick labels
         tv = target.get(key)

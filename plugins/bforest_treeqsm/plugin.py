@@ -13,20 +13,23 @@ Readers (``bf.read_qsm``; detected from content, or by ``reader=<name>``):
 ========================  =====================================================================
 
 Writers (``bf.write_tree``; by suffix or ``format=<name>``): ``treeqsm-text`` (.txt),
-``bforest-csv`` (.csv + .json), ``treeqsm-mat`` (.mat), ``ply`` (.ply), ``obj`` (.obj), and the
-synthetic laser scans ``las`` (.las, .laz) and ``xyz`` (.xyz).
+``bforest-csv`` (.csv + .json), ``treeqsm-mat`` (.mat), ``ply`` (.ply), ``obj`` (.obj), the other
+tools' CSV layouts ``simpleforest-csv`` and ``archi-csv`` (by name), and the synthetic laser scans
+``las`` (.las, .laz) and ``xyz`` (.xyz).
 """
 from bforest_core.hookspecs import hookimpl
 
 from ._common import QSMReadWarning
 from ._mat import CylDataMatReader, TreeQSMFlatReader, TreeQSMMatReader
 from ._text import ArchiCSVReader, NativeCSVReader, SimpleForestCSVReader, TreeQSMTextReader
+from .foreign_csv import ArchiCSVWriter, SimpleForestCSVWriter
 from .scan import LASWriter, XYZWriter
 from .writers import CSVWriter, OBJWriter, PLYWriter, TreeQSMMatWriter, TreeQSMTextWriter
 
 READERS = [TreeQSMMatReader, TreeQSMFlatReader, CylDataMatReader, TreeQSMTextReader,
            SimpleForestCSVReader, ArchiCSVReader, NativeCSVReader]
-WRITERS = [TreeQSMTextWriter, CSVWriter, TreeQSMMatWriter, PLYWriter, OBJWriter, LASWriter, XYZWriter]
+WRITERS = [TreeQSMTextWriter, CSVWriter, TreeQSMMatWriter, PLYWriter, OBJWriter, LASWriter, XYZWriter,
+           SimpleForestCSVWriter, ArchiCSVWriter]
 
 __all__ = ["READERS", "WRITERS", "QSMReadWarning", "bforest_components"]
 

@@ -1,0 +1,97 @@
+"""Writers of the CSV layouts of other QSM tools: SimpleForest and aRchi (spec qsm-formats.md §6,
+§7), so that clones open where those tools' users work. Written back through the bundled readers
+they give the same cylinder table (at ``%.9g``, about 1e-6 m)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from bforest_core.interfaces import ComponentSettings, QSMWriter
+from bforest_core.tree import _jump_to_head, levels, subtree_sum
+
+from .writers import _options, format_rows
+
+SIMPLEFOREST_HEADER = (" ID, parentID, startX, startY, startZ, endX, endY, endZ, radius, length, growthLength, "
+                       "averagePointDistance,segmentID, parentSegmentID, branchOrder, reverseBranchOrder, branchID")
+ARCHI_HEADER = ("startX,startY,startZ,endX,endY,endZ,cyl_ID,parent_ID,extension_ID,radius_cyl,length,volume,"
+                "axis_ID,segment_ID,node_ID,branching_order")
+
+
+def segments(tree):
+    """Chains between forks: ``(seg, seg_parent, seg_last, reverse)`` with the 0-based segment of
+    each cylinder, the parent segment of each segment (-1 for the first), the last cylinder of
+    each segment and its reverse order (1 for a segment ending in a tip, else 1 + the largest of
+    its child segments')."""
+    parent = tree.parent
+    nchild = np.bincount(parent[parent >= 0], minlength=tree.n)
+    is_head = (parent < 0) | (nchild[np.maximum(parent, 0)] > 1)
+    head, dist = _jump_to_head(parent, is_head)
+    heads = np.flatnonzero(is_head)
+    seg_of_head = np.full(tree.n, -1)
+    seg_of_head[heads] = np.arange(heads.size)
+    seg = seg_of_head[head]
+    seg_parent = np.where(parent[heads] >= 0, seg[np.maximum(parent[heads], 0)], -1)
+    last = np.full(heads.size, -1)
+    best = np.full(heads.size, -1)
+    o = np.argsort(dist, kind="stable")  # the largest distance in a segment is written last
+    last[seg[o]] = o
+    best[seg[o]] = dist[o]
+    reverse = np.ones(heads.size, dtype=np.int64)
+    order, bounds = levels(seg_parent)
+    for k in range(len(bounds) - 1, 1, -1):
+        rows = order[bounds[k - 1]:bounds[k]]
+        np.maximum.at(reverse, seg_parent[rows], reverse[rows] + 1)
+    return seg, seg_parent, last, reverse
+
+
+def stem_branch_id(tree) -> np.ndarray:
+    """Per cylinder: 0 on the stem, else k = 1, 2, ... for the stem-attached branch it belongs to
+    (with all its sub-branches), as SimpleForest's ``branchID``."""
+    br = tree.branches
+    top, _ = _jump_to_head(br.parent_branch, br.order <= 1)
+    first_order = np.flatnonzero(br.order == 1)
+    label = np.zeros(len(br), dtype=np.int64)
+    label[first_order] = np.arange(1, first_order.size + 1)
+    return np.where(br.order[tree.branch] == 0, 0, label[top[tree.branch]])
+
+
+class SimpleForestCSVWriter(QSMWriter):
+    """SimpleForest CSV: 0-based ids, start and end points, segments between forks."""
+
+    name = "simpleforest-csv"
+    summary = "SimpleForest QSM CSV (0-based ids, end points, segments, branch orders)"
+    suffixes = (".csv",)
+    Settings = ComponentSettings
+
+    def write(self, tree, path, **options) -> Path:
+        _options(self, options)
+        path = Path(path)
+        seg, seg_parent, _, reverse = segments(tree)
+        cols = np.column_stack([np.arange(tree.n), tree.parent, tree.start, tree.end, tree.radius, tree.length,
+                                subtree_sum(tree.parent, tree.length), np.zeros(tree.n), seg, seg_parent[seg],
+                                tree.order, reverse[seg], stem_branch_id(tree)]).astype(float)
+        fmts = ["%d", "%d"] + ["%.9g"] * 8 + ["%.9g", "%g"] + ["%d"] * 5
+        path.write_text(SIMPLEFOREST_HEADER + "\n" + format_rows(cols, fmts, sep=","), encoding="utf-8")
+        return path
+
+
+class ArchiCSVWriter(QSMWriter):
+    """aRchi CSV: 1-based ids (0 = none), start and end points, axis = branch, order from 1."""
+
+    name = "archi-csv"
+    summary = "aRchi QSM CSV (1-based ids, end points, axes, segments, branching order from 1)"
+    suffixes = (".csv",)
+    Settings = ComponentSettings
+
+    def write(self, tree, path, **options) -> Path:
+        _options(self, options)
+        path = Path(path)
+        seg, seg_parent, last, _ = segments(tree)
+        node = np.where(seg_parent[seg] >= 0, last[np.maximum(seg_parent[seg], 0)] + 1, 0)
+        cols = np.column_stack([tree.start, tree.end, np.arange(1, tree.n + 1), tree.parent + 1, tree.extension + 1,
+                                tree.radius, tree.length, np.pi * tree.radius ** 2 * tree.length, tree.branch + 1,
+                                last[seg] + 1, node, tree.order + 1]).astype(float)
+        fmts = ["%.9g"] * 6 + ["%d"] * 3 + ["%.9g"] * 3 + ["%d"] * 4
+        path.write_text(ARCHI_HEADER + "\n" + format_rows(cols, fmts, sep=","), encoding="utf-8")
+        return path

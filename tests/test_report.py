@@ -149,7 +149,7 @@ def test_profile_passes_through_the_best_fit(toy_runs):
     assert abs(v[np.argmin(med)] - 30) < 20 and med[0] > med[i] and med[-1] > med[i]
     assert_png(comparison.write_profile_figure(res))
     rows = res["csv"].read_text().splitlines()
-    assert rows[0].startswith("value,seed,distance,status,D[L]") and len(rows) == 1 + 18
+    assert rows[0].startswith("value_deg,seed,distance,status,D[L]") and len(rows) == 1 + 18  # the unit in the header
     assert "<- best fit" in res["table_text"]
     # the report includes the profile figure
     assert "](figures/profile_angle.png)" in write_report(run, figures=False).read_text()

@@ -29,7 +29,8 @@ def add_commands(sub) -> None:
     s.add_argument("run_dir", metavar="RUN", help="a run directory (bforest fit output)")
     s.add_argument("--format", action="append", metavar="FMT",
                    help="writer name or suffix, repeatable or comma separated: txt (TreeQSM text), mat (TreeQSM "
-                        ".mat), csv, ply, obj, or any installed writer (bforest plugins)")
+                        ".mat), csv (native), simpleforest-csv, archi-csv, ply, obj, las, laz, xyz (synthetic "
+                        "laser scans), or any installed writer (bforest plugins)")
     s.add_argument("--what", default="best,clones", help="trees to export: best, clones or both (default)")
     s.add_argument("-o", "--output", default=None, help="folder of the tree files (default: RUN/export)")
     s.add_argument("--evaluations", metavar="FILE.csv", help="also flatten evaluations.sqlite into this CSV")

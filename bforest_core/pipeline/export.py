@@ -2,8 +2,9 @@
 log as one flat table.
 
 Trees go out through the installed QSM writers (``bforest plugins`` lists them), chosen by a
-writer's name (``treeqsm-text``, ``treeqsm-mat``, ``bforest-csv``, ``ply``, ``obj``, or a plugin's)
-or by a file suffix (``txt``, ``mat``, ``csv``, ``ply``, ``obj``, ...). An existing file is never
+writer's name (``treeqsm-text``, ``treeqsm-mat``, ``bforest-csv``, ``simpleforest-csv``,
+``archi-csv``, ``ply``, ``obj``, ``las``, ``xyz``, or a plugin's) or by a file suffix (``txt``,
+``mat``, ``csv``, ``ply``, ``obj``, ``las``, ``laz``, ``xyz``, ...). An existing file is never
 overwritten unless asked.
 """
 from __future__ import annotations

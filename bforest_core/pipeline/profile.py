@@ -131,7 +131,7 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
     bar.close()
 
     csv_path = _write_profile_csv(run_dir / f"profile_{slug(param)}.csv", vals, seed_list, D, status, per_set,
-                                  list(tgt.U))
+                                  list(tgt.U), spec.unit)
     failed = status != "ok"
     # the best fit's own distance (mean over the fit's seeds), drawn as a marker
     best_distance = best.get("distance")
@@ -141,11 +141,12 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
             "best_distance": best_distance, "unit": spec.unit, "run_dir": run_dir}
 
 
-def _write_profile_csv(csv_path, vals, seed_list, D, status, per_set, set_names):
-    """One row per (value, seed): the distance, status and per-set distances."""
+def _write_profile_csv(csv_path, vals, seed_list, D, status, per_set, set_names, unit: str = ""):
+    """One row per (value, seed): the distance, status and per-set distances (the value column
+    carries the parameter's unit, e.g. ``value_deg``)."""
     with open(csv_path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["value", "seed", "distance", "status"] + [f"D[{s}]" for s in set_names])
+        w.writerow([f"value_{unit}" if unit else "value", "seed", "distance", "status"] + [f"D[{s}]" for s in set_names])
         for i, x in enumerate(vals):
             for j, s in enumerate(seed_list):
                 ps = per_set.get((i, j)) or {}

@@ -31,8 +31,12 @@ def test_trees_in_other_formats(run, tmp_path):
     with pytest.raises(ExportError, match="exists.*--overwrite"):
         export_trees(run, ["ply"], tmp_path / "out")
     assert len(export_trees(run, ["ply"], tmp_path / "out", what=("best",), overwrite=True)) == 1
-    with pytest.raises(ExportError, match="unknown export format 'las'.*known: .*ply"):
-        export_trees(run, ["las"], tmp_path / "x")
+    with pytest.raises(ExportError, match="unknown export format 'lass'.*known: .*ply"):
+        export_trees(run, ["lass"], tmp_path / "x")
+    both = export_trees(run, ["csv", "simpleforest-csv", "archi-csv"], tmp_path / "csv", what=("best",))
+    assert sorted(p.name for p in both) == ["best_tree_archi-csv.csv", "best_tree_bforest-csv.csv",
+                                            "best_tree_simpleforest-csv.csv"]
+    assert bf.read_qsm(tmp_path / "csv" / "best_tree_archi-csv.csv").metadata["format"] == "archi-csv"
 
 
 def test_evaluations_as_one_table(run, tmp_path):

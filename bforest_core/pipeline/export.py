@@ -29,9 +29,12 @@ def _writer(fmt: str):
         cls = reg.get("qsm_writer", fmt)
         return fmt, cls.suffixes[0]
     suffix = "." + fmt.lower().lstrip(".")
-    for n in names:
-        if suffix in reg.get("qsm_writer", n).suffixes:
-            return n, suffix
+    from ..errors import QSMFormatError
+    from ..io import writer_for
+    try:
+        return writer_for(Path("tree" + suffix)).name, suffix  # the suffix's own writer (highest priority)
+    except QSMFormatError:
+        pass
     known = sorted(set(names) | {s.lstrip(".") for n in names for s in reg.get("qsm_writer", n).suffixes})
     raise ExportError(f"unknown export format {fmt!r} (known: {', '.join(known)})")
 
@@ -64,7 +67,10 @@ def export_trees(run_dir, formats: list[str], out_dir=None, what: tuple[str, ...
     files = run_trees(run_dir, what)
     if not files:
         raise ExportError(f"{run_dir}: no trees to export ({' or '.join(what)}: run the fit / bforest clones first)")
-    plan = [(src, name, out_dir / f"{src.stem}{suffix}") for src in files for name, suffix in writers]
+    shared = {sfx for _, sfx in writers if [w[1] for w in writers].count(sfx) > 1}
+    # two formats with one suffix (csv and simpleforest-csv) get the writer's name in the file name
+    plan = [(src, name, out_dir / (f"{src.stem}_{name}{suffix}" if suffix in shared else f"{src.stem}{suffix}"))
+            for src in files for name, suffix in writers]
     existing = [dst for _, _, dst in plan if dst.exists()]
     if existing and not overwrite:
         raise ExportError(f"{existing[0]} exists ({len(existing)} files would be replaced); pass --overwrite to "

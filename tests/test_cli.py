@@ -169,3 +169,6 @@ def test_fit_progress_bar_counts_to_the_plan_and_closes_with_the_reason(toy_plug
                        text=True, env=env)
     assert r.returncode == 0, r.stderr
     assert "/24" in r.stderr and "stopped:" in r.stderr
+    # the summary lists the fitted parameters apart from the fixed one
+    out = r.stdout
+    assert out.index("fitted:") < out.index("  angle =") < out.index("fixed:") < out.index("  noise =")

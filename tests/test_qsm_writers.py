@@ -292,5 +292,5 @@ def test_write_by_format_name_and_unknown_suffix(tmp_path):
     p = bf.write_tree(t, tmp_path / "x.dat", format="treeqsm-mat")
     import scipy.io as sio
     assert "qsm" in sio.whosmat(str(p))[0]
-    with pytest.raises(QSMFormatError, match="no writer for '.xyz'"):
-        bf.write_tree(t, tmp_path / "x.xyz")
+    with pytest.raises(QSMFormatError, match="no writer for '.stl'"):
+        bf.write_tree(t, tmp_path / "x.stl")

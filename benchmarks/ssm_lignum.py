@@ -4,9 +4,10 @@
 
 Prints (single core):
 
-* the median and minimum wall time of ``repeats`` runs of the Silva Fennica synthetic target
+* the median and minimum wall time over seeds 1-5 of the Silva Fennica synthetic target
   (``sf_synthetic``, T = 15, target <= 0.25 s) and of the real fit (``sf_real``, T = 32, target
-  <= 2.5 s), seed 1;
+  <= 0.2 s; T = 40, target <= 0.5 s), each beside the previous code (the shadow without the
+  compiled bucket kernel) in the same run, and whether both grow identical trees;
 * baselines measured in the same run: a fixed numpy workload (each model time is also given as a
   multiple of it, so figures from a loaded machine can be compared) and, on the final
   ``sf_synthetic`` crown, the brute-force O(n^2) pyramid sum against the kd-tree kernel used;
@@ -19,6 +20,7 @@ Timings are noisy on a shared machine; re-run when it is quiet.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import warnings
@@ -76,24 +78,53 @@ def _numpy_workload():
     return a
 
 
+def _over_seeds(ssm, T: int):
+    """Median and minimum wall time of one run per seed of SEEDS, and the trees."""
+    ts, trees = [], []
+    for seed in SEEDS:
+        t, _, tree = timed(lambda: ssm.simulate({"years": T}, seed=seed), 1)
+        ts.append(t)
+        trees.append(tree)
+    return float(np.median(ts)), float(np.min(ts)), trees
+
+
+@contextlib.contextmanager
+def _without_grid():
+    """The shadow method choice of the code before the compiled bucket kernel."""
+    from bforest_lignum import shadow
+    saved = shadow._C_GRID
+    shadow._C_GRID = float("inf")
+    try:
+        yield
+    finally:
+        shadow._C_GRID = saved
+
+
 def bench_lignum(repeats: int = 5, full: bool = False) -> dict:
     """Time the two A.12 cases and the same-run baselines; returns the figures."""
     from bforest_lignum.shadow import shadow_brute, shadow_fast, voxel_coords
 
     base_med, _, _ = timed(_numpy_workload, repeats)
-    print(f"LIGNUM benchmark (single core, median/min of {repeats} runs, seed 1)")
+    print(f"LIGNUM benchmark (single core; models: median/min over seeds {SEEDS[0]}-{SEEDS[-1]}; "
+          f"kernels: median of {repeats} runs)")
     print(f"  baseline numpy workload: {base_med * 1000:.1f} ms")
     out = {"baseline": base_med}
-    cases = [("sf_synthetic", 15, 0.25), ("sf_real", 32, 2.5)]
+    cases = [("sf_synthetic", 15, 0.25), ("sf_real", 32, 0.2), ("sf_real", 40, 0.5)]
     for preset, T, target in cases:
         ssm = _ssm(preset)
-        ssm.simulate({"years": T}, seed=1)  # warm-up (imports, caches)
-        med, mn, tree = timed(lambda: ssm.simulate({"years": T}, seed=1), repeats)
-        s = sizes(tree)
+        ssm.simulate({"years": T}, seed=1)  # warm-up (imports, compiled kernel cache)
+        med, mn, trees = _over_seeds(ssm, T)
+        with _without_grid():  # the previous code: the same choice among the other three methods
+            old_med, _, old_trees = _over_seeds(ssm, T)
+        same = all(np.array_equal(a.start, b.start) and np.array_equal(a.radius, b.radius)
+                   for a, b in zip(trees, old_trees))
+        s = sizes(trees[0])
         flag = "ok" if med <= target else "OVER TARGET (machine load?)"
-        print(f"  {preset:13s} T={T:2d}: median {med:.3f} s, min {mn:.3f} s (target <= {target} s: {flag}); "
-              f"{med / base_med:.1f} x baseline; {s['live']} live / {s['created']} created segments")
-        out[f"{preset}_T{T}"] = (med, mn)
+        print(f"  {preset:13s} T={T:2d}: median {med:.3f} s, min {mn:.3f} s over seeds {SEEDS[0]}-{SEEDS[-1]} "
+              f"(target <= {target} s: {flag}); previous code {old_med:.3f} s ({old_med / med:.1f}x), "
+              f"identical trees: {same}; {med / base_med:.1f} x baseline; seed 1: {s['live']} live / "
+              f"{s['created']} created segments")
+        out[f"{preset}_T{T}"] = (med, mn, old_med)
     # the hot spot against its brute-force reference, on the final sf_synthetic crown
     views = {}
     _ssm("sf_synthetic").simulate({}, seed=1, on_step=lambda t, v: views.__setitem__(t, v))
@@ -101,7 +132,7 @@ def bench_lignum(repeats: int = 5, full: bool = False) -> dict:
     vox = voxel_coords(v.start + 0.5 * v.length[:, None] * v.axis, 0.02)
     f_med, _, S1 = timed(lambda: shadow_fast(vox, 10.0, 28), repeats)
     b_med, _, S2 = timed(lambda: shadow_brute(vox, 10.0, 28), max(1, min(repeats, 2)))
-    print(f"  shadow kernel on {len(vox)} points: kd-tree {f_med * 1000:.1f} ms vs brute force "
+    print(f"  shadow kernel on {len(vox)} points: auto method {f_med * 1000:.1f} ms vs brute force "
           f"{b_med * 1000:.1f} ms ({b_med / f_med:.0f}x), equal: {bool(np.array_equal(S1, S2))}")
     out["shadow"] = (f_med, b_med)
     return out

@@ -152,7 +152,7 @@ def test_fast_shadow_equals_brute_force(n, spread, q):
     assert np.array_equal(fast, brute)
     assert np.all(fast >= 0) and fast.max() > 0
     some = RNG.random(n) < 0.3  # receivers only at some points (all points cast shadow)
-    for method in ("auto", "pairs", "two_tree", "sat"):
+    for method in ("auto", "grid", "pairs", "two_tree", "sat"):
         assert np.array_equal(shadow_fast(vox, 7.3, q, method=method), brute)
         part = shadow_fast(vox, 7.3, q, receivers=some, method=method)
         assert np.array_equal(part[some], brute[some]) and np.all(np.isnan(part[~some]))
@@ -180,13 +180,14 @@ def test_all_shadow_methods_on_a_grown_crown(synth12, monkeypatch):
     assert np.array_equal(shadow_fast(vox, 10.0, 28, receivers=fol, method="two_tree")[fol], ref[fol])
     monkeypatch.setattr(SH, "_SAT_CHUNK_CELLS", 20_000)  # many layer chunks
     assert np.array_equal(SH.shadow_fast(vox, 10.0, 28, method="sat"), ref)
-    # the cost model prefers pair searches for this sparse fine-voxel crown, the integral
-    # images for a dense block of points in coarse voxels
-    assert SH.choose_method(vox - vox.min(0), vox.shape[0], 28) == "pairs"
+    assert np.array_equal(SH.shadow_fast(vox, 10.0, 28, receivers=fol, method="grid")[fol], ref[fol])
+    # the cost model prefers the compiled column scan for this sparse fine-voxel crown, the
+    # integral images for a dense block of points in coarse voxels
+    assert SH.choose_method(vox - vox.min(0), vox.shape[0], 28) == "grid"
     dense = RNG.integers(0, 12, size=(20_000, 3))
     assert SH.choose_method(dense, dense.shape[0], 10) == "sat"
     with pytest.raises(ValueError, match="method"):
-        shadow_fast(vox, 10.0, 28, method="grid")
+        shadow_fast(vox, 10.0, 28, method="kdtree")
 
 
 def test_pyramid_geometry_exact_values():

@@ -227,3 +227,17 @@ def test_a_fit_that_failed_before_its_first_evaluation_does_not_block_the_retry(
     assert res.n_evaluations == 4
     with pytest.raises(bf.BayesForestError, match="--resume.*--overwrite"):
         bf.fit(bf.load_config(toy_config(tmp_path, budget=4)), tmp_path / "run", progress=False)
+
+
+def test_compare_threshold_by_name_and_the_configs_own_settings(toy_plugin, tmp_path):
+    from bforest_core.pipeline.compare import compare
+    import tomllib
+    cfg = toy_config(tmp_path, optimizer="ga", optimizer_settings="population = 6")
+    res = compare(cfg, ["ga", "toy-random"], budget=24, repeats=2, out_dir=tmp_path / "cmp", threshold="ga")
+    ga_best = [r["best"] for r in res["runs"] if r["optimizer"] == "ga"]
+    assert res["threshold"] == pytest.approx(float(np.median(ga_best)))
+    # the GA kept the config's population of 6: its first generation is 6 evaluations wide
+    run_cfg = tomllib.loads(RunStore.open(tmp_path / "cmp" / "ga-0").config_path.read_text())
+    assert run_cfg["optimizer"]["population"] == 6
+    with pytest.raises(ValueError, match="neither a distance nor one of the compared"):
+        compare(cfg, ["ga"], budget=6, repeats=1, out_dir=tmp_path / "cmp2", threshold="cma")

@@ -121,7 +121,9 @@ def add_commands(sub) -> None:
     s.add_argument("--optimizers", default="ga,nlopt,emcee,de", help="comma-separated optimiser names (default: ga,nlopt,emcee,de)")
     s.add_argument("--budget", type=int, required=True, help="evaluations per optimiser run")
     s.add_argument("--repeats", type=int, default=3, help="runs per optimiser with different run seeds (default 3)")
-    s.add_argument("--threshold", type=float, default=None, help="distance for 'evaluations to reach'")
+    s.add_argument("--threshold", default=None,
+                   help="distance for 'evaluations to reach', or an optimiser's name: its median final best "
+                        "(default: 5%% above the lower quartile of all final bests)")
     s.add_argument("-o", "--output", default=None, help="output directory (default: runs/compare-<config>)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_compare)

@@ -12,11 +12,13 @@ from .objective import build_target, progress_bar
 from ..registry import component_class
 from .store import RunStore
 
-def _settings_for_budget(name: str, budget: int) -> dict:
+def _settings_for_budget(name: str, budget: int, own: dict | None = None) -> dict:
     """Settings that let the shared evaluation budget, not the optimiser's own length limits,
-    end each run."""
+    end each run; ``own`` (the config's settings when the config names this optimiser) is kept
+    otherwise, so the recipe's population, restarts or noise stop are what is compared."""
     fields = component_class("optimizer", name).Settings.model_fields
-    out = {k: 10**6 for k in ("generations", "maxiter", "stall_generations") if k in fields}
+    out = {k: v for k, v in (own or {}).items() if k != "kind"}
+    out.update({k: 10**6 for k in ("generations", "maxiter", "stall_generations") if k in fields})
     if "maxeval" in fields:
         out["maxeval"] = budget
     if "steps" in fields:  # MCMC: every step evaluates at least one walker, so this spends the budget
@@ -32,7 +34,18 @@ def best_so_far(run_dir: Path) -> np.ndarray:
 def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None, threshold=None,
             progress: bool = False) -> dict:
     """Run each optimiser ``repeats`` times with ``budget`` evaluations; returns the table, the
-    curves and the figure path."""
+    curves and the figure path.
+
+    ``threshold`` (the distance for "evaluations to reach") is a number, the name of one of the
+    compared optimisers (its median final best: "how soon do the others get where it ends?"),
+    or None (5 % above the lower quartile of all final bests)."""
+    if isinstance(threshold, str):
+        try:
+            threshold = float(threshold)
+        except ValueError:
+            if threshold not in optimizers:
+                raise ValueError(f"--threshold {threshold!r} is neither a distance nor one of the compared "
+                                 f"optimisers ({', '.join(optimizers)})") from None
     from .fit import fit
     base = load_config(config_path)
     out_dir = Path(out_dir) if out_dir else Path("runs") / f"compare-{Path(config_path).stem}"
@@ -46,7 +59,8 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
         for r in range(repeats):
             cfg_raw = dict(raw)
             cfg_raw["seed"] = int(base.seed) + r
-            cfg_raw["optimizer"] = {"kind": name, **_settings_for_budget(name, budget)}
+            own = raw.get("optimizer") if raw.get("optimizer", {}).get("kind") == name else None
+            cfg_raw["optimizer"] = {"kind": name, **_settings_for_budget(name, budget, own)}
             cfg_raw["stop"] = {**raw.get("stop", {}), "max_evaluations": int(budget)}
             cfg = parse_config(cfg_raw, source=f"compare/{name}")
             run = out_dir / f"{name}-{r}"
@@ -63,6 +77,8 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
     finals = np.array([row["best"] for row in rows])
     if threshold is None:
         threshold = float(np.quantile(finals, 0.25)) * 1.05
+    elif isinstance(threshold, str):
+        threshold = float(np.median([row["best"] for row in rows if row["optimizer"] == threshold]))
     table = []
     for name in optimizers:
         mine = [row for row in rows if row["optimizer"] == name]

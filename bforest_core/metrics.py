@@ -159,9 +159,13 @@ def relative_errors(data_metrics: Mapping[str, float], model_metrics: Mapping[st
 #: unit of each summary statistic, by name prefix (longest prefix wins)
 SUMMARY_UNITS = {"height": "m", "dbh": "m", "base_diameter": "m", "crown_spread": "m",
                  "crown_base_height": "m", "stem_length": "m", "n_branches": "", "length": "m",
-                 "volume": "m^3", "profile_n": "", "profile_len": "m"}
+                 "volume": "m^3", "profile_n": "", "profile_len": "m", "n_all_branches": ""}
 #: share of the living first-order branch length that may lie below the crown base
 CROWN_BASE_SHARE = 0.05
+#: base diameter (m) below which a branch is left out of the branch counts, lengths and profile:
+#: a QSM from terrestrial laser scanning rarely resolves thinner branches, so a model tree,
+#: which holds every twig, is compared with what a scan of it would show
+DETECTION_DIAMETER = 0.01
 
 
 def summary_unit(name: str) -> str:
@@ -204,7 +208,8 @@ def crown_base_height(tree, share: float = CROWN_BASE_SHARE) -> float:
     return float(z[order][min(k, z.size - 1)])
 
 
-def tree_summary(tree, max_order: int = 3, bands: int = 5) -> dict[str, float]:
+def tree_summary(tree, max_order: int = 3, bands: int = 5,
+                 min_diameter: float = DETECTION_DIAMETER) -> dict[str, float]:
     """Tree-level summary statistics, one implementation for QSMs and model trees.
 
     Parameters
@@ -215,33 +220,39 @@ def tree_summary(tree, max_order: int = 3, bands: int = 5) -> dict[str, float]:
     bands : int
         Height bands of the vertical profile: band k covers ``[k, k+1) / bands`` of the tree
         height (branch bases at the very top fall in the last band).
+    min_diameter : float
+        Detection limit (m): branches whose first cylinder is thinner are left out of the
+        counts, lengths and profile (:data:`DETECTION_DIAMETER`; 0 counts every branch).
 
     Returns
     -------
     dict
         ``height``, ``dbh``, ``base_diameter``, ``crown_spread``, ``crown_base_height``,
-        ``stem_length`` (m); per order w: ``n_branches_o{w}`` (living branches),
-        ``length_o{w}`` (their total length, m), ``volume_o{w}`` (wood volume, m^3, dead
-        remnants included, order 0 = the stem); the profile ``profile_n_b{k}`` and
-        ``profile_len_b{k}`` (living first-order branches whose base lies in band k, and their
-        length). Units: :func:`summary_unit`.
+        ``stem_length`` (m); per order w: ``n_branches_o{w}`` (living branches at least
+        ``min_diameter`` thick at the base), ``n_all_branches_o{w}`` (every living branch),
+        ``length_o{w}`` (the counted branches' total length, m), ``volume_o{w}`` (wood volume,
+        m^3, of every cylinder, dead remnants included, order 0 = the stem); the profile
+        ``profile_n_b{k}`` and ``profile_len_b{k}`` (counted first-order branches whose base lies
+        in band k, and their length). Units: :func:`summary_unit`.
     """
     m = classical_metrics(tree)
     br = tree.branches
     order = tree.order
     blen = np.bincount(tree.branch, weights=tree.length, minlength=len(br))
     living = _living(tree)
+    seen = living & (2.0 * tree.radius[br.first] >= min_diameter)
     vol = np.pi * tree.radius ** 2 * tree.length
     out = {"height": m["height"], "dbh": m["dbh"], "base_diameter": m["base_diameter"],
            "crown_spread": m["crown_spread"], "crown_base_height": crown_base_height(tree),
            "stem_length": float(tree.length[order == 0].sum())}
     for w in range(1, max_order + 1):
-        sel = (br.order == w) & living
+        sel = (br.order == w) & seen
         out[f"n_branches_o{w}"] = float(np.count_nonzero(sel))
+        out[f"n_all_branches_o{w}"] = float(np.count_nonzero((br.order == w) & living))
         out[f"length_o{w}"] = float(blen[sel].sum())
     for w in range(0, max_order + 1):
         out[f"volume_o{w}"] = float(vol[order == w].sum())
-    o1 = (br.order == 1) & living
+    o1 = (br.order == 1) & seen
     rel = (tree.start[br.first[o1], 2] - tree.start[0, 2]) / max(m["height"], 1e-12)
     band = np.clip(np.floor(rel * bands).astype(np.int64), 0, bands - 1)
     counts = np.bincount(band, minlength=bands)

@@ -29,6 +29,17 @@ def test_tree_summary_of_the_hand_built_tree():
     assert s["crown_spread"] == pytest.approx(bf.classical_metrics(hand_tree())["crown_spread"])
 
 
+def test_detection_limit_leaves_thin_branches_out_of_counts_lengths_and_profile():
+    # base diameters of A, B, C are 0.10, 0.08 and 0.06 m: a 7 cm limit keeps A and B only
+    s = tree_summary(hand_tree(), max_order=2, bands=5, min_diameter=0.07)
+    assert s["n_branches_o1"] == 2 and s["n_all_branches_o1"] == 3
+    assert s["length_o1"] == pytest.approx(1.9)
+    assert [s[f"profile_n_b{k}"] for k in range(5)] == [0, 1, 1, 0, 0]
+    assert s["volume_o1"] == pytest.approx(tree_summary(hand_tree())["volume_o1"])  # wood is wood
+    fs = bf.component("features", "tree-summary", statistics=["n_branches_o1"], min_branch_diameter=0.07)
+    assert fs.extract(hand_tree())["summary"][0].tolist() == [2.0]
+
+
 def test_crown_base_height_weighs_branch_length():
     t = hand_tree()
     # 5 % of 2.5 m lies below A's base: A; 60 % (1.5 m) is more than A (1.3 m): B's base, 1.5 m
@@ -63,10 +74,14 @@ def test_summary_of_a_real_pine_against_an_independent_count():
     s = tree_summary(t)
     br = t.branches
     lengths = np.array([t.length[br.cylinders[br.ptr[b]:br.ptr[b + 1]]].sum() for b in range(len(br))])
-    assert s["n_branches_o1"] == np.count_nonzero(br.order == 1) == 73
-    assert s["length_o1"] == pytest.approx(lengths[br.order == 1].sum())
+    assert s["n_all_branches_o1"] == np.count_nonzero(br.order == 1) == 73
+    # the detection limit: first-order branches at least 1 cm thick at the base
+    seen = (br.order == 1) & (2 * t.radius[br.first] >= 0.01)
+    assert s["n_branches_o1"] == np.count_nonzero(seen) == 72
+    assert s["length_o1"] == pytest.approx(lengths[seen].sum())
+    assert tree_summary(t, min_diameter=0)["length_o1"] == pytest.approx(lengths[br.order == 1].sum())
     assert s["height"] == pytest.approx(9.936, abs=1e-3)
-    assert sum(s[f"profile_n_b{k}"] for k in range(5)) == 73
+    assert sum(s[f"profile_n_b{k}"] for k in range(5)) == 72
     assert 1.0 < s["crown_base_height"] < 6.0
     assert summary_unit("length_o2") == "m" and summary_unit("volume_o0") == "m^3" and summary_unit("n_branches_o1") == ""
 

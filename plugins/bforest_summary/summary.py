@@ -14,7 +14,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from bforest_core.interfaces import ComponentSettings, Distance, FeatureSet
-from bforest_core.metrics import summary_unit, tree_summary
+from bforest_core.metrics import DETECTION_DIAMETER, summary_unit, tree_summary
 
 SET = "summary"
 #: the statistics of the default set: size, stem, crown, branch counts and the vertical profile
@@ -29,10 +29,13 @@ OFFSETS = {"": 1.0, "m": 0.05, "m^3": 1e-4}
 class TreeSummarySettings(ComponentSettings):
     statistics: list[str] = Field(list(DEFAULT_STATISTICS), min_length=1, description=(
         "statistics of bforest_core.metrics.tree_summary (height, dbh, base_diameter, crown_spread, "
-        "crown_base_height, stem_length, n_branches_o<w>, length_o<w>, volume_o<w>, profile_n_b<k>, "
+        "crown_base_height, stem_length, n_branches_o<w>, n_all_branches_o<w>, length_o<w>, volume_o<w>, profile_n_b<k>, "
         "profile_len_b<k>)"))
     max_order: int = Field(3, ge=1, le=10, description="highest branch order with its own statistics")
     bands: int = Field(5, ge=1, le=50, description="height bands of the vertical profile")
+    min_branch_diameter: float = Field(DETECTION_DIAMETER, ge=0, description=(
+        "detection limit (m): branches thinner at the base are left out of the branch counts, lengths "
+        "and profile, in the target and the model alike (a TLS QSM rarely resolves them); 0 counts all"))
 
 
 class TreeSummary(FeatureSet):
@@ -51,7 +54,7 @@ class TreeSummary(FeatureSet):
 
     def _row(self, tree) -> np.ndarray:
         s = self.settings
-        stats = tree_summary(tree, max_order=s.max_order, bands=s.bands)
+        stats = tree_summary(tree, max_order=s.max_order, bands=s.bands, min_diameter=s.min_branch_diameter)
         missing = [k for k in s.statistics if k not in stats]
         if missing:
             raise ValueError(f"tree-summary: unknown statistic(s) {', '.join(missing)} (known with max_order = "

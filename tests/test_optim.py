@@ -305,10 +305,11 @@ def test_emcee_posterior_median_near_minimum_and_diagnostics():
 
 def test_emcee_auto_epsilon_is_scaled_mad_of_initial_walkers():
     pr, rec, _ = make_problem(budget=200, seed=8)
-    res = EmceeSampler(steps=5, epsilon_scale=0.5).minimize(pr)
+    res = EmceeSampler(steps=5, epsilon="auto", epsilon_scale=0.5).minimize(pr)
     f0 = rec.batches[0][1]
     mad = 1.4826 * np.median(np.abs(f0 - np.median(f0)))
     assert res.diagnostics["epsilon"] == pytest.approx(0.5 * mad)
+    assert res.diagnostics["epsilon_rule"].startswith("auto")
     assert auto_epsilon(np.array([2.0, 2.0, 2.0])) == 1.0  # no spread: falls back to 1
     assert auto_epsilon(np.array([1.0, 1.0, 1.0, 5.0, np.inf])) == pytest.approx(np.std([1, 1, 1, 5.0]))
 
@@ -378,3 +379,26 @@ def test_bad_problem_is_reported_by_name():
     pr, _, _ = make_problem(lower=np.array([-5.0, -5.0, 0.2]), upper=np.array([5.0, 5.0, 0.8]))
     with pytest.raises(ValueError, match="integer parameter 'n'"):
         DifferentialEvolution().minimize(pr)
+
+
+def test_emcee_noise_epsilon_is_the_seed_spread_at_the_best_initial_walker():
+    pr, rec, _ = make_problem(budget=200, seed=8)
+    seen = []
+
+    def spread(x, k):
+        seen.append((np.array(x), k))
+        return 0.2 + 0.05 * np.arange(k)  # sd (ddof 1) of 0.2, 0.25, ... 0.55 over 8 seeds
+
+    pr.seed_spread = spread
+    res = EmceeSampler(steps=5, epsilon_scale=2.0).minimize(pr)  # "noise" is the default
+    x0, f0 = rec.batches[0]
+    assert len(seen) == 1 and seen[0][1] == 8
+    assert np.array_equal(seen[0][0], x0[np.argmin(f0)])  # measured at the best initial walker
+    assert res.diagnostics["epsilon"] == pytest.approx(2.0 * np.std(0.05 * np.arange(8), ddof=1))
+    assert res.diagnostics["epsilon_rule"].startswith("noise")
+    # a deterministic model (no seed spread) falls back to the auto rule
+    pr2, rec2, _ = make_problem(budget=200, seed=8)
+    pr2.seed_spread = lambda x, k: np.full(k, 0.3)
+    res2 = EmceeSampler(steps=5).minimize(pr2)
+    f0 = rec2.batches[0][1]
+    assert res2.diagnostics["epsilon"] == pytest.approx(1.4826 * np.median(np.abs(f0 - np.median(f0))))

@@ -264,6 +264,17 @@ def noise_stop_fields():
     )
 
 
+def seed_noise(problem: Problem, x: np.ndarray, k: int) -> float:
+    """The objective's seed noise at ``x``: the standard deviation of its value under ``k`` other
+    model seeds (``problem.seed_spread``); 0 where the problem cannot tell."""
+    fn = problem.seed_spread
+    if fn is None:
+        return 0.0
+    vals = np.asarray(fn(np.asarray(x, float), int(k)), float)
+    vals = vals[np.isfinite(vals)]
+    return float(vals.std(ddof=1)) if vals.size > 1 else 0.0
+
+
 class NoiseStop:
     """Early stop that does not cost quality: no improvement of the best distance by more than
     the distance's own seed noise in ``patience`` generations.
@@ -282,12 +293,7 @@ class NoiseStop:
         self.reason = ""
 
     def _measure(self, ev: "BoxEvaluator") -> float:
-        fn = self.problem.seed_spread
-        if fn is None or ev.best_x is None:
-            return 0.0
-        vals = np.asarray(fn(ev.best_x, self.k), float)
-        vals = vals[np.isfinite(vals)]
-        return float(vals.std(ddof=1)) if vals.size > 1 else 0.0
+        return 0.0 if ev.best_x is None else seed_noise(self.problem, ev.best_x, self.k)
 
     def __call__(self, ev: "BoxEvaluator") -> bool:
         """Call once per generation; True when the run should stop (``reason`` says why).

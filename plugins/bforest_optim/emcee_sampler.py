@@ -6,12 +6,20 @@ is rounded before evaluation). The likelihood is ``exp(-D(x) / epsilon)``, the A
 of the structural distance ``D``; ``epsilon`` sets how much worse than the best a parameter set
 may fit and still carry posterior weight.
 
-``epsilon = "auto"`` takes the spread of the distances of the initial walkers (spread over the
-initial box): ``1.4826 * MAD`` (the median absolute deviation scaled to a standard deviation for
-normal data, robust to failed simulations), falling back to their standard deviation, then to 1,
-and multiplied by ``epsilon_scale``. That is a *tempered* choice: it keeps every region that
-fits about as well as a typical initial guess plausible. For a sharper posterior give a number
-(e.g. the distance's sampling noise: the spread of ``D`` between two seeds of the best model).
+``epsilon = "noise"`` (the default) takes the distance's own noise: the standard deviation of
+``D`` at the best initial walker under ``noise_seeds`` other model seeds (``problem.seed_spread``),
+times ``epsilon_scale``. That is the spread a *perfect* model would still show against the data,
+so parameter sets whose distance is within a few noise widths of the best are kept plausible and
+no others: the posterior's width comes from the data and the model's stochasticity, not from the
+initial box. Where the problem cannot measure seed noise (no ``seed_spread``, or a deterministic
+model with zero spread) it falls back to ``auto``.
+
+``epsilon = "auto"`` (the earlier default) takes the spread of the distances of the initial
+walkers (spread over the initial box): ``1.4826 * MAD`` (the median absolute deviation scaled to a
+standard deviation for normal data, robust to failed simulations), falling back to their standard
+deviation, then to 1, and multiplied by ``epsilon_scale``. That is a *tempered* choice: it keeps
+every region that fits about as well as a typical initial guess plausible, so its intervals are
+wide and their coverage is not known. A number sets epsilon directly.
 
 Parallelism: emcee's moves update the ensemble in two halves (the red-blue split its detailed
 balance needs), and ``vectorize=True`` hands each half to the log-probability at once, so each
@@ -30,7 +38,8 @@ from pydantic import Field, model_validator
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import BoxEvaluator, History, OptimizerSettings, SamplingName, finite_or_none, make_result, sampling_field
+from ._common import (BoxEvaluator, History, OptimizerSettings, SamplingName, finite_or_none, make_result,
+                      sampling_field, seed_noise)
 
 PERCENTILES = (2.5, 16.0, 50.0, 84.0, 97.5)
 
@@ -45,9 +54,12 @@ class EmceeSettings(OptimizerSettings):
     moves: Literal["stretch", "de", "de_snooker", "walk"] = Field(
         "stretch", description="emcee move: stretch (affine-invariant), de (differential evolution), "
         "de_snooker, walk")
-    epsilon: float | Literal["auto"] = Field("auto", description="temperature of exp(-D/epsilon): a positive "
-                                             "number, or auto = 1.4826 * MAD of the initial walkers' distances")
-    epsilon_scale: float = Field(1.0, gt=0, description="multiplies the auto epsilon")
+    epsilon: float | Literal["noise", "auto"] = Field(
+        "noise", description="temperature of exp(-D/epsilon): noise = the sd of D between model seeds at the "
+        "best initial walker (falls back to auto where there is no seed noise), auto = 1.4826 * MAD of the "
+        "initial walkers' distances, or a positive number")
+    epsilon_scale: float = Field(1.0, gt=0, description="multiplies the noise or auto epsilon")
+    noise_seeds: int = Field(8, ge=2, description="model seeds of the noise epsilon's measurement")
     init_sampling: SamplingName = sampling_field("lhs")
 
     @model_validator(mode="after")
@@ -55,7 +67,7 @@ class EmceeSettings(OptimizerSettings):
         if self.walkers is not None and self.walkers % 2:
             raise ValueError(f"walkers must be even (got {self.walkers})")
         if not isinstance(self.epsilon, str) and not (self.epsilon > 0 and math.isfinite(self.epsilon)):
-            raise ValueError(f"epsilon must be a positive number or 'auto' (got {self.epsilon})")
+            raise ValueError(f"epsilon must be a positive number, 'noise' or 'auto' (got {self.epsilon})")
         return self
 
 
@@ -120,7 +132,7 @@ class EmceeSampler(Optimizer):
         init_ss, mcmc_ss = np.random.SeedSequence([int(problem.seed), 0xE3]).spawn(2)
         coords = self._initial_walkers(ev, nw, ilo, ihi, np.random.default_rng(init_ss), s.init_sampling)
         f0 = ev(coords)
-        eps = auto_epsilon(f0) * s.epsilon_scale if s.epsilon == "auto" else float(s.epsilon)
+        eps, eps_rule = self._epsilon(problem, ev, f0)
 
         def log_prob(X):
             X = np.atleast_2d(X)
@@ -147,7 +159,19 @@ class EmceeSampler(Optimizer):
                 if ev.stopped:
                     break
         diagnostics = self._summaries(sampler, ev, eps, nw)
+        diagnostics["epsilon_rule"] = eps_rule
         return make_result(ev, log, reason, diagnostics)
+
+    def _epsilon(self, problem: Problem, ev: BoxEvaluator, f0: np.ndarray) -> tuple[float, str]:
+        """The temperature and the rule that gave it (see the module text)."""
+        s: EmceeSettings = self.settings
+        if not isinstance(s.epsilon, str):
+            return float(s.epsilon), "given"
+        if s.epsilon == "noise" and ev.best_x is not None:
+            noise = seed_noise(problem, ev.best_x, s.noise_seeds)
+            if noise > 0 and math.isfinite(noise):
+                return noise * s.epsilon_scale, f"noise: sd of D over {s.noise_seeds} model seeds at the best walker"
+        return auto_epsilon(f0) * s.epsilon_scale, "auto: 1.4826 * MAD of the initial walkers' distances"
 
     @staticmethod
     def _autocorr(sampler, burn: int, dim: int) -> np.ndarray:

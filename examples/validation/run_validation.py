@@ -326,6 +326,10 @@ girth and breast-height diameter errors of the clones fall well below those of t
 higher-order branches remain unfitted. S⁰ itself stays the hardest table to match (its per-set
 distance is the largest), so the simplified LIGNUM cannot reproduce this pine's trunk exactly.
 """
+    marker = "<!-- real-tree fidelity: written by examples/real/run_fidelity.py --doc -->"
+    old = DOC.read_text(encoding="utf-8") if DOC.exists() else ""
+    if marker in old:  # the real-tree fidelity section is examples/real/run_fidelity.py's: keep it
+        text = text.rstrip() + "\n\n" + marker + old.split(marker, 1)[1]
     DOC.write_text(text, encoding="utf-8")
     (RUNS / "summary.json").write_text(json.dumps({"lignum": lig_s, "lignum_k3": lig3_s, "lignum_rich": ligr_s,
                                                          "sot": sot_s, "sot_k3": sot3_s}, indent=2))

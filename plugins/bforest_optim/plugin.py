@@ -1,6 +1,7 @@
-"""Entry point of the ``bforest_optim`` plugin: the optimisers ``ga``, ``cma``, ``nlopt``, ``emcee``, ``de``."""
+"""Entry point of the ``bforest_optim`` plugin: the optimisers ``ga``, ``cma``, ``nlopt``, ``emcee``, ``abc-smc``, ``de``."""
 from bforest_core.hookspecs import hookimpl
 
+from .abc_smc import AbcSmc
 from .cma_es import CMAES
 from .de import DifferentialEvolution
 from .emcee_sampler import EmceeSampler
@@ -10,4 +11,4 @@ from .nlopt_optimizer import NloptOptimizer
 
 @hookimpl
 def bforest_components():
-    return [GeneticAlgorithm, CMAES, NloptOptimizer, EmceeSampler, DifferentialEvolution]
+    return [GeneticAlgorithm, CMAES, NloptOptimizer, EmceeSampler, AbcSmc, DifferentialEvolution]

@@ -1,0 +1,230 @@
+"""ABC-SMC: sequential Monte Carlo approximate Bayesian computation over the fit's distance.
+
+The posterior of the parameters given the tree is approximated by the particles that simulate
+trees within a tolerance epsilon of the data, tightened generation by generation (Toni et al.
+2009; Beaumont et al. 2009; Del Moral et al. 2012):
+
+* **Prior**: uniform in the bounds (integer parameters uniform over their whole numbers: the
+  particles live in the bounds widened by 0.5 on each side of an integer range, and are rounded
+  before evaluation, as in the other optimisers of this plugin).
+* **Generation 0**: ``particles`` draws from the prior, all accepted with equal weights.
+* **Generation t**: epsilon_t is the ``quantile`` of the previous population's distances. A
+  proposal picks a parent by weight, perturbs it with the kernel, and is dropped without
+  evaluation when it leaves the bounds (prior density 0). Proposals are evaluated in batches
+  through ``problem.evaluate`` (so they run on the executor in parallel); those with a distance
+  at most epsilon_t are accepted until the population is full. The weight of an accepted
+  particle is prior / sum_j W_j K(theta | theta_j).
+* **Kernels**: ``mvn``, a normal with twice the weighted covariance of the previous population
+  (Beaumont et al. 2009); ``local``, a normal per parent with twice the covariance of its
+  ``neighbours`` nearest particles (in the spirit of Filippi et al. 2013's local kernels; better
+  when the posterior is curved or has several modes).
+* **Stops**: epsilon at or below ``epsilon_target``; a generation that needs more than
+  ``particles / min_acceptance`` proposals (the acceptance rate fell below ``min_acceptance``);
+  ``generations`` done; the run's evaluation budget or wall time. The posterior is always the
+  last *complete* generation.
+
+Everything random comes from the run seed, and the proposals depend only on earlier results, so a
+run killed and resumed (the fit replays logged evaluations) proposes and accepts exactly the same
+particles. With ``[objective] model_seeds`` every proposal is simulated with the same model seeds
+(common random numbers), which makes the acceptance decisions less noisy.
+
+``diagnostics`` holds the final population (``particles``, ``weights``, ``distances``), the
+``epsilon`` schedule, the ``acceptance`` rate and effective sample size (``ess``) per generation,
+and ``posterior``: weighted mean, sd and 2.5/5/16/25/50/75/84/95/97.5 % quantiles per parameter.
+"""
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+from scipy.spatial import cKDTree
+
+from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
+
+from ._common import BoxEvaluator, History, OptimizerSettings, make_result
+
+QUANTILES = (2.5, 5.0, 16.0, 25.0, 50.0, 75.0, 84.0, 95.0, 97.5)
+
+
+class AbcSmcSettings(OptimizerSettings):
+    """Settings of the ``abc-smc`` sampler."""
+
+    particles: int = Field(100, ge=4, description="population size (accepted particles per generation)")
+    generations: int = Field(30, ge=1, description="largest number of generations (generation 0 = the prior)")
+    quantile: float = Field(0.5, gt=0, lt=1, description="epsilon_t = this quantile of the previous "
+                            "generation's distances")
+    epsilon_target: float = Field(0.0, ge=0, description="stop once epsilon is at or below this distance "
+                                  "(0: never; e.g. the distance's seed noise)")
+    min_acceptance: float = Field(0.02, gt=0, le=1, description="stop when a generation's acceptance rate "
+                                  "falls below this (it would need more than particles / min_acceptance proposals)")
+    kernel: Literal["mvn", "local"] = Field("mvn", description="perturbation kernel: mvn (normal, twice the "
+                                            "weighted population covariance) or local (normal per parent, twice "
+                                            "the covariance of its nearest particles)")
+    neighbours: int | None = Field(None, ge=2, description="particles per local covariance (local kernel; "
+                                   "default max(2 * dimension + 1, particles / 5))")
+    batch: int | None = Field(None, ge=1, description="proposals per evaluation batch (default: the "
+                              "expected number still needed, from the last acceptance rate, at least workers' "
+                              "worth; at most particles)")
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.neighbours is not None and self.neighbours > self.particles:
+            raise ValueError(f"neighbours ({self.neighbours}) must not exceed particles ({self.particles})")
+        return self
+
+
+def weighted_quantiles(x: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
+    """Quantiles (in %) of ``x`` under weights ``w`` (inverse of the weighted ECDF with the
+    midpoint rule, so equal weights give numpy's 'hazen' quantiles)."""
+    o = np.argsort(x, kind="stable")
+    xs, ws = x[o], w[o] / w.sum()
+    cdf = np.cumsum(ws) - 0.5 * ws
+    return np.interp(np.asarray(qs, float) / 100.0, cdf, xs)
+
+
+def _ess(w: np.ndarray) -> float:
+    return float(1.0 / np.sum((w / w.sum()) ** 2))
+
+
+def _log_mvn(diff: np.ndarray, chol: np.ndarray) -> np.ndarray:
+    """log N(diff; 0, L L^T) up to the constant common to all kernels of one width."""
+    z = np.linalg.solve(chol, diff.T)
+    return -0.5 * np.sum(z * z, axis=0) - np.sum(np.log(np.diag(chol)))
+
+
+class AbcSmc(Optimizer):
+    """Sequential Monte Carlo ABC under a uniform prior (see the module text)."""
+
+    name = "abc-smc"
+    summary = "ABC-SMC sampler: a weighted posterior population and the best particle"
+    Settings = AbcSmcSettings
+
+    def minimize(self, problem: Problem) -> OptimizeResult:
+        s: AbcSmcSettings = self.settings
+        ev = BoxEvaluator(problem)
+        log = History(problem)
+        lo, hi = ev.relaxed_bounds("bounds")
+        rng = np.random.default_rng(np.random.SeedSequence([int(problem.seed), 0xABC5]))
+        n = s.particles
+        # generation 0: the prior
+        theta = lo + rng.random((n, ev.dim)) * (hi - lo)
+        dist = ev(theta)
+        weights = np.full(n, 1.0 / n)
+        eps_hist, acc_hist, ess_hist = [math.inf], [1.0], [float(n)]
+        log(ev, generation=0, epsilon=None, acceptance=1.0, ess=float(n), proposals=n)
+        reason = f"{s.generations} generations done"
+        if ev.stopped:
+            reason = "stopped during the prior draws"
+        for t in range(1, s.generations):
+            if ev.stopped:
+                break
+            fin = np.isfinite(dist)
+            if not fin.any():
+                reason = "no finite distance in the population"
+                break
+            eps = float(np.quantile(dist[fin], s.quantile))
+            if eps_hist[-1] <= s.epsilon_target:
+                reason = f"epsilon {eps_hist[-1]:.4g} at or below the target {s.epsilon_target:g}"
+                break
+            kern = self._kernel(theta, weights)
+            new_t, new_d, proposals, rate = [], [], 0, 1.0
+            limit = int(math.ceil(n / s.min_acceptance))
+            while sum(len(d) for d in new_d) < n and proposals < limit and not ev.stopped:
+                need = n - sum(len(d) for d in new_d)
+                k = s.batch or int(min(n, max(need / max(rate, s.min_acceptance), 8)))
+                k = min(k, limit - proposals)
+                if problem.remaining() is not None:
+                    k = min(k, problem.remaining())
+                X = self._propose(kern, theta, weights, k, lo, hi, rng)
+                d = ev(X)
+                proposals += k
+                ok = np.isfinite(d) & (d <= eps)
+                new_t.append(X[ok])
+                new_d.append(d[ok])
+                rate = max(sum(len(x) for x in new_d) / proposals, 1.0 / (proposals + 1))
+            got = sum(len(d) for d in new_d)
+            if got < n:
+                reason = (f"generation {t} incomplete ({got} of {n} particles): "
+                          + (ev.stop_reason("stopped") if ev.stopped else
+                             f"acceptance {got / max(proposals, 1):.3g} below min_acceptance {s.min_acceptance:g}"))
+                log(ev, generation=t, epsilon=eps, acceptance=got / max(proposals, 1), ess=None,
+                    proposals=proposals, complete=False)
+                break
+            cand = np.concatenate(new_t)[:n]
+            cand_d = np.concatenate(new_d)[:n]
+            w = 1.0 / np.exp(self._log_kernel_mix(kern, theta, weights, cand))
+            theta, dist, weights = cand, cand_d, w / w.sum()
+            eps_hist.append(eps)
+            acc_hist.append(n / proposals)
+            ess_hist.append(_ess(weights))
+            log(ev, generation=t, epsilon=eps, acceptance=n / proposals, ess=ess_hist[-1], proposals=proposals,
+                complete=True)
+        diag = self._diagnostics(ev, theta, weights, dist, eps_hist, acc_hist, ess_hist)
+        diag["note"] = f"{reason}; the posterior is generation {len(eps_hist) - 1}, the last complete one"
+        return make_result(ev, log, reason, diag)
+
+    # ------------------------------------------------------------------ kernels
+    def _kernel(self, theta: np.ndarray, w: np.ndarray) -> list[np.ndarray]:
+        """Cholesky factors of the perturbation covariance: one (mvn) or one per particle (local)."""
+        p = theta.shape[1]
+        floor = 1e-12 + 1e-9 * np.ptp(theta, axis=0) ** 2
+
+        def chol(cov):
+            return np.linalg.cholesky(cov + np.diag(floor + 1e-10 * np.trace(cov) / p))
+
+        if self.settings.kernel == "mvn":
+            mu = w @ theta
+            c = theta - mu
+            return [chol(2.0 * (c * w[:, None]).T @ c / (1.0 - np.sum(w ** 2) + 1e-12))]
+        m = self.settings.neighbours or max(2 * p + 1, theta.shape[0] // 5)
+        scale = np.where(np.ptp(theta, axis=0) > 0, np.ptp(theta, axis=0), 1.0)
+        _, idx = cKDTree(theta / scale).query(theta / scale, k=min(m, theta.shape[0]))
+        out = []
+        for i in range(theta.shape[0]):
+            nb = theta[idx[i]]
+            c = nb - nb.mean(axis=0)
+            out.append(chol(2.0 * c.T @ c / max(len(nb) - 1, 1)))
+        return out
+
+    @staticmethod
+    def _propose(kern, theta, w, k, lo, hi, rng) -> np.ndarray:
+        """``k`` perturbed particles inside the (relaxed) bounds; parents drawn by weight."""
+        out = np.empty((0, theta.shape[1]))
+        while out.shape[0] < k:
+            m = 2 * (k - out.shape[0])
+            parent = rng.choice(theta.shape[0], size=m, p=w)
+            z = rng.standard_normal((m, theta.shape[1]))
+            if len(kern) == 1:
+                X = theta[parent] + z @ kern[0].T
+            else:
+                X = theta[parent] + np.einsum("mij,mj->mi", np.asarray(kern)[parent], z)
+            inside = np.all((X >= lo) & (X <= hi), axis=1)
+            out = np.vstack([out, X[inside]])
+        return out[:k]
+
+    @staticmethod
+    def _log_kernel_mix(kern, theta, w, X) -> np.ndarray:
+        """log sum_j w_j K_j(X | theta_j) for every row of X."""
+        terms = np.empty((X.shape[0], theta.shape[0]))
+        for j in range(theta.shape[0]):
+            L = kern[0] if len(kern) == 1 else kern[j]
+            terms[:, j] = _log_mvn(X - theta[j], L) + math.log(w[j])
+        top = terms.max(axis=1, keepdims=True)
+        return (top + np.log(np.exp(terms - top).sum(axis=1, keepdims=True)))[:, 0]
+
+    # ------------------------------------------------------------------ outputs
+    @staticmethod
+    def _diagnostics(ev, theta, w, dist, eps_hist, acc_hist, ess_hist) -> dict:
+        X = ev.project(theta)
+        post = {}
+        for j, name in enumerate(ev.names):
+            q = weighted_quantiles(X[:, j], w, QUANTILES)
+            mean = float(w @ X[:, j])
+            post[name] = {"mean": mean, "std": float(np.sqrt(w @ (X[:, j] - mean) ** 2)),
+                          **{f"p{q_:g}": float(v) for q_, v in zip(QUANTILES, q)},
+                          "median": float(q[QUANTILES.index(50.0)])}
+        return {"names": list(ev.names), "particles": X, "weights": w, "distances": dist,
+                "epsilon": [None if not math.isfinite(e) else e for e in eps_hist],
+                "acceptance": acc_hist, "ess": ess_hist, "generations": len(eps_hist), "posterior": post}

@@ -1,0 +1,135 @@
+"""ABC-SMC on problems with a known posterior, its stops, and resume through the fit pipeline."""
+import numpy as np
+import pytest
+
+import bforest_core as bf
+from bforest_core.interfaces import Problem
+from bforest_optim.abc_smc import AbcSmc, weighted_quantiles
+from conftest import toy_config
+
+
+def _problem(simulate_distance, lo, hi, integer=None, budget=200_000, seed=1):
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    pr = Problem(names=[f"x{i}" for i in range(lo.size)], lower=lo, upper=hi,
+                 integer=np.zeros(lo.size, bool) if integer is None else np.asarray(integer, bool),
+                 evaluate=None, seed=seed, budget=budget)
+    calls = []
+
+    def evaluate(X):
+        X = np.atleast_2d(X)
+        k = min(len(X), pr.remaining())
+        out = np.full(len(X), np.inf)
+        out[:k] = simulate_distance(X[:k])
+        calls.append(X[:k].copy())
+        pr.n_evaluations += k
+        if pr.remaining() == 0:
+            pr.stopped, pr.stop_reason = True, "budget"
+        return out
+
+    pr.evaluate = evaluate
+    return pr, calls
+
+
+def gaussian_location(y_obs=2.0, sigma=1.0, seed=0):
+    """One draw y ~ N(theta, sigma^2) per simulation, D = |y - y_obs|: under a flat prior the
+    exact posterior is N(y_obs, sigma^2); ABC at tolerance eps adds eps^2 / 3 to the variance."""
+    rng = np.random.default_rng(seed)
+    return lambda X: np.abs(X[:, 0] + sigma * rng.standard_normal(len(X)) - y_obs)
+
+
+def test_weighted_quantiles_equal_weights_match_numpy_hazen():
+    x = np.random.default_rng(1).normal(size=101)
+    q = weighted_quantiles(x, np.ones_like(x), [10, 50, 90])
+    assert q == pytest.approx(np.percentile(x, [10, 50, 90], method="hazen"))
+    # a weight of zero removes a point
+    assert weighted_quantiles(np.array([0.0, 1.0, 100.0]), np.array([1.0, 1.0, 0.0]), [50]) == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("kernel", ["mvn", "local"])
+def test_gaussian_location_posterior_mean_and_sd(kernel):
+    pr, _ = _problem(gaussian_location(), [-10.0], [10.0])
+    res = AbcSmc(particles=400, generations=40, epsilon_target=0.1, min_acceptance=0.005,
+                 kernel=kernel).minimize(pr)
+    d = res.diagnostics
+    assert d["epsilon"][-1] <= 0.1 and "target" in res.stop_reason
+    post = d["posterior"]["x0"]
+    eps = d["epsilon"][-1]
+    sd_exact = np.sqrt(1.0 + eps ** 2 / 3)
+    assert post["mean"] == pytest.approx(2.0, abs=0.1 * sd_exact)
+    assert post["std"] == pytest.approx(sd_exact, rel=0.10)
+    assert post["p5"] < post["p50"] < post["p95"]
+    assert d["particles"].shape == (400, 1) and d["weights"].sum() == pytest.approx(1.0)
+    assert all(a > b for a, b in zip(d["epsilon"][1:], d["epsilon"][2:]))  # epsilon falls every generation
+    assert np.all(d["distances"] <= eps)
+
+
+def test_stops_on_min_acceptance_and_budget_keeping_the_last_complete_generation():
+    pr, _ = _problem(gaussian_location(), [-10.0], [10.0])
+    res = AbcSmc(particles=100, generations=60, min_acceptance=0.2).minimize(pr)
+    assert "below min_acceptance" in res.stop_reason
+    assert res.diagnostics["acceptance"][-1] >= 0.2
+    pr, _ = _problem(gaussian_location(), [-10.0], [10.0], budget=450)
+    res = AbcSmc(particles=100).minimize(pr)
+    assert pr.n_evaluations == 450 and "budget" in res.stop_reason
+    assert "incomplete" in res.diagnostics["note"] and "last complete" in res.diagnostics["note"]
+    assert res.diagnostics["particles"].shape == (100, 1)
+
+
+def test_integer_parameters_are_whole_numbers_and_the_run_is_reproducible():
+    def dist(X):
+        return np.abs(X[:, 0] - 7) + np.abs(X[:, 1] - 0.3)
+
+    runs = []
+    for _ in range(2):
+        pr, calls = _problem(dist, [0, 0.0], [20, 1.0], integer=[True, False], budget=3000)
+        res = AbcSmc(particles=50, generations=6).minimize(pr)
+        X = np.vstack(calls)
+        assert np.all(X[:, 0] == np.rint(X[:, 0]))
+        runs.append((X, res.diagnostics["particles"]))
+    assert np.array_equal(runs[0][0], runs[1][0]) and np.array_equal(runs[0][1], runs[1][1])
+    assert runs[0][1][:, 0].tolist().count(7) > 25  # the posterior concentrates on the right integer
+
+
+def test_abc_smc_in_a_fit_resumes_after_a_kill(toy_plugin, tmp_path, monkeypatch):
+    """A fit killed after 30 evaluations and resumed ends exactly where an uninterrupted run ends
+    (the logged evaluations are replayed, the same particles proposed and accepted)."""
+    from bforest_core.pipeline.store import RunStore
+    settings = "particles = 12\ngenerations = 4"
+    cfg_path = toy_config(tmp_path, optimizer="abc-smc", optimizer_settings=settings, budget=80)
+    full = bf.fit(bf.load_config(cfg_path), tmp_path / "full", progress=False)
+    real_add = RunStore.add
+    calls = {"n": 0}
+
+    def crashing_add(self, ev):
+        if calls["n"] == 30:
+            raise KeyboardInterrupt("simulated kill")
+        calls["n"] += 1
+        real_add(self, ev)
+
+    monkeypatch.setattr(RunStore, "add", crashing_add)
+    with pytest.raises(KeyboardInterrupt):
+        bf.fit(bf.load_config(cfg_path), tmp_path / "killed", progress=False)
+    monkeypatch.setattr(RunStore, "add", real_add)
+    res = bf.fit(bf.load_config(cfg_path), tmp_path / "killed", resume=True, progress=False)
+    ev = lambda run: [(e.params, e.distance) for e in RunStore.open(run).evaluations()]  # noqa: E731
+    assert ev(tmp_path / "killed") == ev(tmp_path / "full")
+    assert res.params == full.params and res.distance == full.distance
+
+
+def test_posterior_csv_of_abc_smc_and_emcee_runs(toy_plugin, tmp_path):
+    import csv
+    for kind, settings in (("abc-smc", "particles = 10\ngenerations = 3"), ("emcee", "walkers = 8\nsteps = 6\nburn_in = 2")):
+        run = tmp_path / kind
+        p = toy_config(tmp_path, optimizer=kind, optimizer_settings=settings, budget=200)
+        res = bf.fit(bf.load_config(p), run, progress=False)
+        rows = list(csv.reader((run / "posterior.csv").open()))
+        names = res.diagnostics["names"]  # the fitted parameters
+        assert rows[0] == [*names, "weight"] and set(names) < set(res.params)
+        w = np.array([float(r[-1]) for r in rows[1:]])
+        assert w.sum() == pytest.approx(1.0)
+        if kind == "abc-smc":
+            assert len(rows) - 1 == 10
+            X = np.array([[float(v) for v in r[:-1]] for r in rows[1:]])
+            assert np.allclose(X, res.diagnostics["particles"]) and np.allclose(w, res.diagnostics["weights"])
+        else:
+            assert len(rows) - 1 == 8 * (6 - 2) and np.allclose(w, 1 / 32)

@@ -285,3 +285,14 @@ def order_summary(tree) -> list[dict]:
                      "mean_angle_deg": float(np.nanmean(a)) if np.isfinite(a).any() else float("nan"),
                      "mean_base_diameter_m": float(2.0 * tree.radius[br.first[sel]].mean())})
     return rows
+
+
+def weighted_quantiles(x: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
+    """Quantiles (in %) of ``x`` under weights ``w`` (inverse of the weighted ECDF with the
+    midpoint rule, so equal weights give numpy's 'hazen' quantiles)."""
+    x = np.asarray(x, float)
+    o = np.argsort(x, kind="stable")
+    ws = np.asarray(w, float)[o]
+    ws = ws / ws.sum()
+    cdf = np.cumsum(ws) - 0.5 * ws
+    return np.interp(np.asarray(qs, float) / 100.0, cdf, x[o])

@@ -4,7 +4,8 @@ import pytest
 
 import bforest_core as bf
 from bforest_core.interfaces import Problem
-from bforest_optim.abc_smc import AbcSmc, weighted_quantiles
+from bforest_core.metrics import weighted_quantiles
+from bforest_optim.abc_smc import AbcSmc
 from conftest import toy_config
 
 
@@ -133,3 +134,27 @@ def test_posterior_csv_of_abc_smc_and_emcee_runs(toy_plugin, tmp_path):
             assert np.allclose(X, res.diagnostics["particles"]) and np.allclose(w, res.diagnostics["weights"])
         else:
             assert len(rows) - 1 == 8 * (6 - 2) and np.allclose(w, 1 / 32)
+
+
+def test_inference_data_and_summary_round_trip(toy_plugin, tmp_path):
+    import json
+    import arviz as az
+    for kind, settings in (("abc-smc", "particles = 10\ngenerations = 3"), ("emcee", "walkers = 8\nsteps = 6\nburn_in = 2")):
+        run = tmp_path / kind
+        res = bf.fit(bf.load_config(toy_config(tmp_path, optimizer=kind, optimizer_settings=settings, budget=200)),
+                     run, progress=False)
+        names = res.diagnostics["names"]
+        idata = az.from_netcdf(str(run / "posterior.nc"))
+        table = json.loads((run / "best.json").read_text())["posterior_summary"]
+        X = np.loadtxt(run / "posterior.csv", delimiter=",", skiprows=1)
+        for j, name in enumerate(names):
+            draws = idata.posterior[name].values
+            if kind == "emcee":  # walkers x kept steps, the same numbers as the CSV
+                assert draws.shape == (8, 4) and np.allclose(np.sort(draws.ravel()), np.sort(X[:, j]))
+                assert "r_hat" in table[name]
+            else:  # one chain of a resample by weight; the raw weights beside it
+                assert draws.shape == (1, 10)
+                assert np.all(np.isclose(draws.ravel()[:, None], X[None, :, j], rtol=1e-9).any(axis=1))
+                assert np.allclose(idata.sample_stats["weight"].values.ravel(), X[:, -1])
+            assert table[name]["p5"] <= table[name]["p50"] <= table[name]["p95"]
+            assert table[name]["mean"] == pytest.approx(float(X[:, -1] @ X[:, j]))

@@ -306,10 +306,12 @@ def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: flo
             "n_evaluations": store.count(), "seconds": seconds,
             "target_metrics": target_metrics, "optimizer": cfg.optimizer.kind,
             "diagnostics": _jsonable(store.write_diagnostics(getattr(result, "diagnostics", {}) or {}))}
-    from .posterior import write_posterior_csv
+    from .posterior import posterior_outputs
     diag = getattr(result, "diagnostics", {}) or {}
-    if write_posterior_csv(store.path / "posterior.csv", diag, list(diag.get("names") or ev.params)) is not None:
-        best["posterior_csv"] = "posterior.csv"
+    table = posterior_outputs(store.path, diag, list(diag.get("names") or ev.params))
+    if table is not None:
+        best["posterior_summary"] = table
+        best["posterior_files"] = ["posterior.csv", "posterior.nc"]
     if ev.status != "ok":
         best["model_metrics"] = None
         best["note"] = f"no evaluation succeeded (best status: {ev.status})"

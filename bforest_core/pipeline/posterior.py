@@ -1,10 +1,17 @@
-"""Posterior samples of a sampler's run (``abc-smc`` particles, ``emcee`` chains) as a table."""
+"""Posterior outputs of a sampler's run (``abc-smc`` particles, ``emcee`` chains): a table
+(``posterior.csv``), an ArviZ ``InferenceData`` file (``posterior.nc``) and a summary (mean, sd,
+5/50/95 % quantiles, 90 % HDI; R-hat and bulk ESS for MCMC chains)."""
 from __future__ import annotations
 
 import csv
+import warnings
 from pathlib import Path
 
 import numpy as np
+
+from ..metrics import weighted_quantiles
+
+HDI_PROB = 0.90
 
 
 def posterior_samples(diag: dict, names: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
@@ -43,3 +50,56 @@ def write_posterior_csv(path: Path, diag: dict, names: list[str]) -> Path | None
         for row, wi in zip(X, w):
             out.writerow([f"{v:.10g}" for v in row] + [f"{wi:.10g}"])
     return path
+
+
+def _draws(diag: dict, names: list[str], X: np.ndarray, w: np.ndarray) -> dict[str, np.ndarray]:
+    """Per parameter an array (chain, draw): the walkers of an MCMC chain after burn-in, or for
+    weighted particles one chain of a deterministic systematic resample by weight."""
+    if diag.get("chain") is not None and diag.get("particles") is None:
+        chain = np.asarray(diag["chain"], float)
+        burn = min(int(diag.get("burn_in") or 0), chain.shape[0] - 1)
+        kept = chain[burn:].transpose(1, 0, 2)  # (walkers, steps, p)
+        return {n: kept[:, :, j] for j, n in enumerate(names)}
+    n = X.shape[0]
+    idx = np.searchsorted(np.cumsum(w), (np.arange(n) + 0.5) / n).clip(0, n - 1)
+    return {name: X[idx, j][None, :] for j, name in enumerate(names)}
+
+
+def posterior_outputs(run_dir: Path, diag: dict, names: list[str]) -> dict | None:
+    """Write ``posterior.csv`` and ``posterior.nc`` (ArviZ InferenceData; for weighted particles
+    the posterior group is a systematic resample by weight and ``sample_stats.weight`` holds
+    the raw weights) into ``run_dir``; return the summary table per parameter, or None when the
+    optimiser gave no posterior."""
+    got = posterior_samples(diag, names)
+    if got is None:
+        return None
+    run_dir = Path(run_dir)
+    write_posterior_csv(run_dir / "posterior.csv", diag, names)
+    X, w = got
+    import arviz as az
+    draws = _draws(diag, names, X, w)
+    mcmc = next(iter(draws.values())).shape[0] > 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # arviz's future-change notices
+        idata = az.from_dict(posterior=draws,
+                             sample_stats=None if mcmc else {"weight": w[None, :]},
+                             attrs={"sampler": "emcee" if mcmc else "abc-smc"})
+        try:
+            idata.to_netcdf(str(run_dir / "posterior.nc"))
+        except Exception:  # no netCDF engine: the CSV still holds everything
+            pass
+        hdi = az.hdi(idata, hdi_prob=HDI_PROB)
+        diag_stats = az.summary(idata, kind="diagnostics") if mcmc else None
+    table = {}
+    for j, name in enumerate(names):
+        q = weighted_quantiles(X[:, j], w, [5, 50, 95])
+        mean = float(w @ X[:, j])
+        row = {"mean": mean, "sd": float(np.sqrt(w @ (X[:, j] - mean) ** 2)), "p5": float(q[0]),
+               "p50": float(q[1]), "p95": float(q[2]),
+               f"hdi{int(100 * HDI_PROB)}_low": float(hdi[name].values[0]),
+               f"hdi{int(100 * HDI_PROB)}_high": float(hdi[name].values[1])}
+        if diag_stats is not None:
+            row["r_hat"] = float(diag_stats.loc[name, "r_hat"])
+            row["ess_bulk"] = float(diag_stats.loc[name, "ess_bulk"])
+        table[name] = row
+    return table

@@ -42,6 +42,7 @@ from pydantic import Field, model_validator
 from scipy.spatial import cKDTree
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
+from bforest_core.metrics import weighted_quantiles
 
 from ._common import BoxEvaluator, History, OptimizerSettings, make_result
 
@@ -73,15 +74,6 @@ class AbcSmcSettings(OptimizerSettings):
         if self.neighbours is not None and self.neighbours > self.particles:
             raise ValueError(f"neighbours ({self.neighbours}) must not exceed particles ({self.particles})")
         return self
-
-
-def weighted_quantiles(x: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
-    """Quantiles (in %) of ``x`` under weights ``w`` (inverse of the weighted ECDF with the
-    midpoint rule, so equal weights give numpy's 'hazen' quantiles)."""
-    o = np.argsort(x, kind="stable")
-    xs, ws = x[o], w[o] / w.sum()
-    cdf = np.cumsum(ws) - 0.5 * ws
-    return np.interp(np.asarray(qs, float) / 100.0, cdf, xs)
 
 
 def _ess(w: np.ndarray) -> float:

@@ -158,3 +158,27 @@ def test_inference_data_and_summary_round_trip(toy_plugin, tmp_path):
                 assert np.allclose(idata.sample_stats["weight"].values.ravel(), X[:, -1])
             assert table[name]["p5"] <= table[name]["p50"] <= table[name]["p95"]
             assert table[name]["mean"] == pytest.approx(float(X[:, -1] @ X[:, j]))
+
+
+def test_posterior_predictive_clones_draw_distinct_parameters(toy_plugin, tmp_path):
+    from bforest_core.pipeline.clones import ClonesError, clones
+    run = tmp_path / "abc"
+    res = bf.fit(bf.load_config(toy_config(tmp_path, optimizer="abc-smc",
+                                           optimizer_settings="particles = 10\ngenerations = 3", budget=200)),
+                 run, progress=False)
+    s = clones(run, n=6, posterior=True, progress=False)
+    names = res.diagnostics["names"]
+    drawn = [tuple(r["params"][k] for k in names) for r in s["rows"]]
+    assert len(set(drawn)) >= 3 and s["posterior"] is True  # draws, not the best fit six times
+    X = np.loadtxt(run / "posterior.csv", delimiter=",", skiprows=1)[:, :-1]
+    for d in drawn:  # every draw is a particle of the posterior
+        assert np.isclose(X, np.array(d, float), rtol=1e-9).all(axis=1).any()
+    assert (run / "clones_posterior" / "clones.csv").exists()
+    # the set grows reproducibly: clone i keeps its draw
+    again = clones(run, n=8, posterior=True, progress=False)
+    assert [tuple(r["params"][k] for k in names) for r in again["rows"][:6]] == drawn
+    # a run without a posterior says so
+    run2 = tmp_path / "ga"
+    bf.fit(bf.load_config(toy_config(tmp_path, optimizer="ga", budget=20)), run2, progress=False)
+    with pytest.raises(ClonesError, match="posterior clones need a sampler's run"):
+        clones(run2, n=2, posterior=True, progress=False)

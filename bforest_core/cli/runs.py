@@ -32,8 +32,8 @@ def cmd_fit(args):
 
 def cmd_clones(args):
     from ..pipeline.clones import clones
-    s = clones(args.run_dir, n=args.n, progress=not args.quiet, replace=args.replace)
-    where = Path(args.run_dir) / "clones"
+    s = clones(args.run_dir, n=args.n, progress=not args.quiet, replace=args.replace, posterior=args.posterior)
+    where = Path(args.run_dir) / ("clones_posterior" if args.posterior else "clones")
     kept = s["count"] - s["grown"]
     print(f"{s['grown']} clones grown, {kept} kept: {s['ok']} of {s['count']} clones ok in {where}"
           + ("" if s["requested"] >= s["count"] else f" (asked for {s['requested']}; nothing is deleted "
@@ -108,6 +108,9 @@ def add_commands(sub) -> None:
     s.add_argument("-n", type=int, default=None, help="clones the set should hold (default: [clones] count); "
                    "existing clones are kept, only missing ones are grown")
     s.add_argument("--replace", action="store_true", help="delete the existing clones and grow the set anew")
+    s.add_argument("--posterior", action="store_true",
+                   help="posterior-predictive clones (abc-smc or emcee runs): each clone's parameters are one "
+                        "draw from posterior.csv; written to RUN/clones_posterior")
     s.add_argument("--no-report", action="store_true", help="do not update the report afterwards")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_clones)

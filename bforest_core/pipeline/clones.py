@@ -4,6 +4,11 @@ Clone ``i`` always has the same seed (``clone_seeds`` spawns one child seed per 
 of clones can grow: asking for more clones than exist grows only the missing ones, asking for
 fewer deletes nothing. Regrowing an existing set needs ``replace=True``. Clones of other
 parameters (a fit resumed to a different best) are never mixed into a set.
+
+Posterior-predictive clones (``posterior=True``, a sampler's run: ``abc-smc``, ``emcee``) go to a
+set of their own, ``clones_posterior/``: clone ``i`` draws its parameter vector from the run's
+``posterior.csv`` by weight, with a generator seeded by its own clone seed, so the set carries
+the parameter uncertainty and still grows reproducibly.
 """
 from __future__ import annotations
 
@@ -39,14 +44,14 @@ def _clone_task(task):
     try:
         tree = c["ssm"].simulate(params, seed)
     except SimulationFailed as exc:
-        return dict(index=i, seed=seed, status=exc.status, message=str(exc))
+        return dict(index=i, seed=seed, status=exc.status, message=str(exc), params=params)
     path = Path(out_dir) / f"clone_{i:03d}.txt"
     write_tree(tree, path)
     per_set, _ = score_tree(tree)
     total, values = combine_terms(per_set)
     return dict(index=i, seed=seed, status="ok", message="", file=path.name, distance=total,
                 per_set=with_term_values(per_set, values), n_cylinders=tree.n, summary=tree_summary(tree),
-                **classical_metrics(tree))
+                params=params, **classical_metrics(tree))
 
 
 def _reference_task(task):
@@ -62,6 +67,25 @@ def _reference_task(task):
                 summary=tree_summary(tree))
 
 
+def posterior_draw(run_dir: Path, base: dict, seed: int) -> dict:
+    """The parameters of one posterior-predictive clone: ``base`` (the best fit, for the fixed
+    parameters) with the fitted ones drawn from ``posterior.csv`` by weight."""
+    path = Path(run_dir) / "posterior.csv"
+    if not path.exists():
+        raise ClonesError(f"{run_dir}: no posterior.csv; posterior clones need a sampler's run "
+                          "(optimizer kind abc-smc or emcee)")
+    with path.open(newline="", encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    names, data = rows[0][:-1], np.array(rows[1:], float)
+    w = data[:, -1] / data[:, -1].sum()
+    k = int(np.random.default_rng(seed).choice(len(w), p=w))
+    out = dict(base)
+    for j, name in enumerate(names):
+        v = float(data[k, j])
+        out[name] = int(round(v)) if isinstance(base.get(name), int) else v
+    return out
+
+
 def _existing(out_dir: Path, store: RunStore, params: dict) -> list[dict]:
     """The rows of the clones already in ``out_dir`` (checked to be clones of ``params``)."""
     if not (out_dir / "summary.json").exists():
@@ -69,14 +93,15 @@ def _existing(out_dir: Path, store: RunStore, params: dict) -> list[dict]:
             raise ClonesError(f"{out_dir}: holds clone files but no summary.json; regrow them with --replace, "
                               "or move the folder to keep them")
         return []
-    old = store.read_json("clones/summary.json")
+    old = store.read_json(f"{out_dir.name}/summary.json")
     if old.get("best_params") != params:
         raise ClonesError(f"{out_dir}: holds clones of other parameters ({old.get('best_params')}); "
                           "regrow them with --replace, or move the folder to keep them")
     return [r for r in old.get("rows", []) if (out_dir / r.get("file", "-")).exists() or r.get("status") != "ok"]
 
 
-def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, replace: bool = False) -> dict:
+def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, replace: bool = False,
+           posterior: bool = False) -> dict:
     """Grow clones of a finished fit until the set holds ``n``; writes ``clones/clone_NNN.txt``,
     ``clones/clones.csv``, ``clones/summary.json`` and ``clones/fidelity.json``.
 
@@ -89,6 +114,9 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
         the missing ones are grown.
     replace : bool
         Delete the existing clones first and grow ``n`` anew.
+    posterior : bool
+        Posterior-predictive clones in ``clones_posterior/``: each clone's parameters are one
+        draw from the run's posterior (see the module text).
 
     Returns
     -------
@@ -104,7 +132,7 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
     n = cfg.clones.count if n is None else int(n)
     if n < 0:
         raise ClonesError(f"clones: n must be at least 0 (got {n})")
-    out_dir = run_dir / "clones"
+    out_dir = run_dir / ("clones_posterior" if posterior else "clones")
     if replace and out_dir.exists():
         shutil.rmtree(out_dir)
     out_dir.mkdir(exist_ok=True)
@@ -114,7 +142,8 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
     tgt = build_target(cfg)
     tm = best.get("target_metrics")
     seeds = clone_seeds(cfg.seed, max(n, len(rows)), cfg.clones.seed)
-    tasks = [(i, best["params"], seeds[i], str(out_dir)) for i in want]
+    tasks = [(i, posterior_draw(run_dir, best["params"], seeds[i]) if posterior else best["params"], seeds[i],
+              str(out_dir)) for i in want]
     refs = list(cfg.target.references)
     new_rows, references = [], []
     if tasks or refs:
@@ -135,9 +164,10 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
     summary["requested"] = n
     summary["fidelity"] = _fidelity(cfg, tgt, best, rows)
     summary["references"] = references
+    summary["posterior"] = bool(posterior)
     _write_csv(out_dir / "clones.csv", rows, tgt)
-    store.write_json("clones/fidelity.json", summary["fidelity"])
-    store.write_json("clones/summary.json", summary)
+    store.write_json(f"{out_dir.name}/fidelity.json", summary["fidelity"])
+    store.write_json(f"{out_dir.name}/summary.json", summary)
     return summary
 
 

@@ -320,6 +320,11 @@ class Optimizer(Component):
     # Optional (duck-typed): ``expected_evaluations(dim) -> int | None``, the evaluations a run
     # plans when no stop comes first (the fit's progress bar counts to it).
 
+    #: True for a sampler whose result's diagnostics carry a posterior sample (weighted
+    #: ``particles``/``weights`` or an MCMC ``chain``): the fit writes posterior.csv, and
+    #: ``bforest calibrate`` accepts it.
+    gives_posterior: bool = False
+
     @abc.abstractmethod
     def minimize(self, problem: Problem) -> OptimizeResult:
         """Search the box for the minimum. Must be deterministic given ``problem.seed`` and the

@@ -2,8 +2,8 @@
 
 Every error a user can cause prints one line ``error: ...`` and exits with code 2; ``--debug``
 shows the traceback instead. The subcommands live in one module per group: ``runs`` (demo, fit,
-clones, report, compare, profile), ``trees`` (info, simulate, distance), ``export``, ``setup``
-(plugins, config).
+clones, report, compare, profile, calibrate), ``trees`` (info, simulate, distance), ``export``,
+``setup`` (plugins, config).
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Commands that run or read a fit: demo, fit, clones, report, compare, profile."""
+"""Commands that run or read a fit: demo, fit, clones, report, compare, profile, calibrate."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -80,6 +80,19 @@ def cmd_profile(args):
     return 0
 
 
+def cmd_calibrate(args):
+    from ..pipeline.calibrate import calibrate
+    res = calibrate(args.config, args.n, out_dir=args.output, resume=args.resume, overwrite=args.overwrite,
+                    progress=not args.quiet)
+    from ..report.calibration import write_calibration_figure
+    c = res["counts"]
+    print(f"runs: {c['fitted']} fitted, {c['resumed']} resumed, {c['read back']} read back from {res['out_dir']}")
+    print(res["table_text"])
+    print(f"table: {res['csv']}, {res['json']}")
+    print(f"figure: {write_calibration_figure(res)}")
+    return 0
+
+
 def cmd_demo(args):
     from .demo import run_demo
     return run_demo(Path(args.output), quick=args.quick, progress=not args.quiet)
@@ -139,3 +152,15 @@ def add_commands(sub) -> None:
     s.add_argument("--seeds", type=int, default=5, help="model seeds per value (default 5)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_profile)
+
+    s = sub.add_parser("calibrate", help="simulation-based calibration: coverage of the sampler's intervals "
+                       "on targets grown from prior draws")
+    s.add_argument("config", metavar="CONFIG", help="a run configuration with a sampler (abc-smc, emcee); "
+                   "its [target] is optional and replaced in every run")
+    s.add_argument("-n", type=int, required=True, help="calibration runs (prior draws, one fit each)")
+    s.add_argument("-o", "--output", default=None, help="study folder (default: runs/calibrate-<config>)")
+    s.add_argument("--resume", action="store_true", help="continue a study in -o: finished runs are read back, "
+                   "stopped ones resumed")
+    s.add_argument("--overwrite", action="store_true", help="refit every run of an earlier study in -o")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=cmd_calibrate)

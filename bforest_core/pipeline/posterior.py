@@ -52,6 +52,33 @@ def write_posterior_csv(path: Path, diag: dict, names: list[str]) -> Path | None
     return path
 
 
+def read_posterior_csv(path) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """``(names, samples (n, p), weights (n,) summing to 1)`` from a ``posterior.csv``.
+
+    Raises
+    ------
+    RunDirError
+        When the file is missing, empty or not a posterior table.
+    """
+    from .store import RunDirError
+    path = Path(path)
+    try:
+        with path.open(newline="", encoding="utf-8") as fh:
+            rows = list(csv.reader(fh))
+    except FileNotFoundError:
+        raise RunDirError(f"{path}: not found (the run gave no posterior)") from None
+    if len(rows) < 2 or not rows[0] or rows[0][-1] != "weight":
+        raise RunDirError(f"{path}: not a posterior table (needs a header ending in 'weight' and rows)")
+    try:
+        data = np.array(rows[1:], float)
+    except ValueError:
+        raise RunDirError(f"{path}: non-numeric values") from None
+    w = data[:, -1]
+    if not (np.all(w >= 0) and w.sum() > 0):
+        raise RunDirError(f"{path}: weights must be non-negative and not all zero")
+    return rows[0][:-1], data[:, :-1], w / w.sum()
+
+
 def _draws(diag: dict, names: list[str], X: np.ndarray, w: np.ndarray) -> dict[str, np.ndarray]:
     """Per parameter an array (chain, draw): the walkers of an MCMC chain after burn-in, or for
     weighted particles one chain of a deterministic systematic resample by weight."""

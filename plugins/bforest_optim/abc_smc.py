@@ -92,6 +92,7 @@ class AbcSmc(Optimizer):
     name = "abc-smc"
     summary = "ABC-SMC sampler: a weighted posterior population and the best particle"
     Settings = AbcSmcSettings
+    gives_posterior = True
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         s: AbcSmcSettings = self.settings

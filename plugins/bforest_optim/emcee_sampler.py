@@ -115,6 +115,7 @@ class EmceeSampler(Optimizer):
     name = "emcee"
     summary = "emcee ensemble sampler of exp(-D/epsilon): best fit plus posterior summaries"
     Settings = EmceeSettings
+    gives_posterior = True
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         import emcee

@@ -86,7 +86,8 @@ def cmd_calibrate(args):
                     progress=not args.quiet)
     from ..report.calibration import write_calibration_figure
     c = res["counts"]
-    print(f"runs: {c['fitted']} fitted, {c['resumed']} resumed, {c['read back']} read back from {res['out_dir']}")
+    print(f"runs: {c['fitted']} fitted, {c['resumed']} resumed, {c['read back']} read back"
+          + (f", {c['failed']} failed" if c["failed"] else "") + f" in {res['out_dir']}")
     print(res["table_text"])
     print(f"table: {res['csv']}, {res['json']}")
     print(f"figure: {write_calibration_figure(res)}")

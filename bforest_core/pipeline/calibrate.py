@@ -335,7 +335,7 @@ def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite
                               "refit the study with --overwrite, or choose another -o")
         plans.append((i, theta, run_cfg, run_dir, state))
 
-    counts = {"fitted": 0, "resumed": 0, "read back": 0}
+    counts = {"fitted": 0, "resumed": 0, "read back": 0, "failed": 0}
     rows = []
     t0 = time.monotonic()
     bar = progress_bar(int(n), "calibrate", "run", progress)
@@ -349,10 +349,14 @@ def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite
                 try:
                     fit(run_cfg, run_dir, resume=state == "partial", progress=False, overwrite=overwrite)
                 except (BayesForestError, ValueError) as exc:
-                    if isinstance(exc, (ConfigError, RunDirError)):
+                    # the run configs were validated above, so what fails here depends on the drawn
+                    # target (e.g. a data set with too few rows, a model that collapses): the run is
+                    # recorded and left out of the coverage; a run folder problem stops the study
+                    if isinstance(exc, RunDirError):
                         raise
                     rows.append({"run": run_dir.name, "status": f"fit failed: {exc}".replace("\n", " ")[:300],
                                  "params": {}, "truth": dict(zip(names, map(float, theta)))})
+                    counts["failed"] += 1
                     bar.update(1)
                     continue
                 counts["resumed" if state == "partial" else "fitted"] += 1
@@ -362,6 +366,8 @@ def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite
         bar.close()
     for (i, theta, *_), row in zip(plans, rows):
         row.setdefault("truth", {nm: float(v) for nm, v in zip(names, theta)})
+    if not any(r["status"] == "ok" for r in rows):
+        raise BayesForestError(f"calibrate: no run gave a posterior ({rows[0]['run']}: {rows[0]['status']})")
     table = coverage_table(rows, names, lo, hi)
     ok = [r for r in rows if r["status"] == "ok"]
     bins = rank_bins(len(ok)) if ok else 2

@@ -591,3 +591,28 @@ def test_collision_option_rejects_shoots(ssm):
         assert not np.any(tr.data["shoot_kept"] & tr.data["shoot_collided"])
     assert rejected > 0
     assert np.max(np.abs(tree.end[tree.parent[1:]] - tree.start[1:])) < 1e-9
+
+
+def test_stand_shade_adds_its_shadow_below_the_top():
+    p = _ssm().resolve_params({"stand_shade": 4.0})
+    mid = np.array([[0.0, 0.0, 0.25], [0.0, 0.0, 3.0], [5.0, 5.0, 6.0]])
+    wf = np.full(3, 0.01)
+    S0, I0, _, _ = LM.light(mid, wf, {**p, "stand_shade": 0.0}, z_top=6.0)
+    S, I, fL, P = LM.light(mid, wf, p, z_top=6.0)
+    assert np.allclose(S - S0, 4.0 * np.array([5.75, 3.0, 0.0]), rtol=0, atol=1e-12)
+    assert I[0] == max(0.0, p["radiation"] - S[0]) and I[2] == I0[2]
+    assert P == pytest.approx(p["photo_eff"] * I.sum(), rel=1e-15)
+
+
+def test_stand_shade_lifts_the_crown_and_is_off_by_default():
+    ssm = _ssm(preset="sf_real")
+    base = {"years": 22}
+    t0 = ssm.simulate(base, seed=3)
+    assert _same(t0, ssm.simulate({**base, "stand_shade": 0.0}, seed=3))
+    low = []
+    for k in (0.0, 8.0, 16.0):
+        t = ssm.simulate({**base, "stand_shade": k}, seed=3)
+        alive = ~np.asarray(t.extras["is_dead"], bool)
+        h = float(t.end[:, 2].max())
+        low.append(float(t.length[alive & (t.order >= 1) & (t.start[:, 2] < 0.4 * h)].sum()))
+    assert low[0] > low[1] > low[2]

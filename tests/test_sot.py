@@ -69,13 +69,15 @@ def test_parameter_table_complete():
                 "nonlinear", "reorient", "redir_strength", "tropism", "sample_rad", "ran", "vert",
                 "init_lambda", "targ_lambda", "delay", "transition", "depth", "spread", "shadow_a",
                 "shadow_b", "branch_angle", "phyllotaxis", "nonplanar_twist", "node_length",
-                "voxel_size", "span", "branch_angle_sd", "phyllotaxis_sd", "lambda_sd", "tropism_sd"}
+                "voxel_size", "span", "branch_angle_sd", "phyllotaxis_sd", "lambda_sd", "tropism_sd",
+                "stand_shade", "heading_sd"}  # the last two are additions to the spec, off by default
     assert set(names) == expected and len(names) == len(expected)
     by = {p.name: p for p in PARAMETERS}
     # calibrated defaults of B.4 and clone noise of E
     calib = {"max_iter": 18, "alpha0": 1, "alpha1": 1.5, "shadow_a": 0.5, "shadow_b": 2, "max_grow": 3,
              "drop_thresh": 0.2, "init_width": 0.02, "sample_rad": 0.32, "branch_angle_sd": 5,
-             "phyllotaxis_sd": 10, "lambda_sd": 0, "tropism_sd": 0, "span": 12, "node_length": 0.2}
+             "phyllotaxis_sd": 10, "lambda_sd": 0, "tropism_sd": 0, "span": 12, "node_length": 0.2,
+             "stand_shade": 0, "heading_sd": 0}
     for k, v in calib.items():
         assert by[k].default == v, k
     assert {p.name for p in PARAMETERS if p.integer} == {"max_iter", "depth"}
@@ -466,3 +468,51 @@ def test_sympodial_has_no_apical_continuation(ssm):
     ext_rows = np.flatnonzero(t.extension >= 0)
     assert np.all(age[t.extension[ext_rows]] == age[ext_rows])  # apical children only within a shoot
     assert t.n > 10
+
+
+# ------------------------------------------------------------------------------ additions: stand shade, winding
+def test_stand_shade_exposure_is_beer_lambert_below_the_top():
+    f = LightField(12.0, 0.2, 6, 1.0, 0.5, 2.0, ran=0.0)
+    g = LightField(12.0, 0.2, 6, 1.0, 0.5, 2.0, ran=0.0, stand_shade=0.3)
+    g.z_top = 5.0
+    pts = np.array([[0.1, 0.0, 1.0], [0.1, 0.0, 4.5], [0.1, 0.0, 5.0], [0.1, 0.0, 6.0]])
+    for fld in (f, g):
+        fld.cast(np.array([[0.0, 0.0, 7.0]]))
+    e0, e1 = f.exposure(pts), g.exposure(pts)
+    assert e1[0] == pytest.approx(e0[0] * math.exp(-0.3 * 4.0), rel=1e-14)
+    assert e1[1] == pytest.approx(e0[1] * math.exp(-0.3 * 0.5), rel=1e-14)
+    assert e1[2] == e0[2] and e1[3] == e0[3]  # at and above the top: open sky
+    # the gradient now points up: light comes from above
+    assert g.gradient(np.array([[3.0, 3.0, 2.0]]), 0.32)[0, 2] > 0 == f.gradient(np.array([[3.0, 3.0, 2.0]]), 0.32)[0, 2]
+
+
+def test_stand_shade_raises_the_crown_and_keeps_trees_without_it(ssm):
+    base = {"max_iter": 16}
+    t0 = ssm.simulate(base, 1)
+    assert _same_tree(t0, ssm.simulate({**base, "stand_shade": 0.0}, 1))
+    lows = []
+    for k in (0.0, 0.2, 0.5):
+        t = ssm.simulate({**base, "stand_shade": k}, 1)
+        h = height(t)
+        mid = t.start + 0.5 * t.length[:, None] * t.axis
+        lows.append(int(np.count_nonzero(mid[:, 2] < 0.5 * h)))  # segments in the lower half
+    assert lows[0] > lows[1] > lows[2]
+
+
+def _same_tree(a, b):
+    return all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("start", "axis", "length", "radius", "parent"))
+
+
+def test_heading_noise_winds_axes_and_stays_deterministic(ssm):
+    base = {"max_iter": 12, **NO_NOISE}
+    smooth = ssm.simulate(base, 1)
+    assert _same_tree(smooth, ssm.simulate({**base, "heading_sd": 0.0}, 1))  # no draws without it
+    wind = ssm.simulate({**base, "heading_sd": 8.0}, 1)
+    assert _same_tree(wind, ssm.simulate({**base, "heading_sd": 8.0}, 1))
+    assert not _same_tree(wind, ssm.simulate({**base, "heading_sd": 8.0}, 2))
+
+    def turn(t):  # mean angle (deg) between a cylinder and its parent on the same branch
+        child = np.flatnonzero((t.parent >= 0) & (t.branch == t.branch[np.maximum(t.parent, 0)]))
+        c = np.einsum("ij,ij->i", t.axis[child], t.axis[t.parent[child]])
+        return float(np.degrees(np.arccos(np.clip(c, -1, 1))).mean())
+    assert turn(wind) > turn(smooth) + 3.0

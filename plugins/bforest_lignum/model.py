@@ -124,17 +124,24 @@ def foliage_survival(age: np.ndarray) -> np.ndarray:
     return np.where(age < PF.size, PF[np.clip(age, 0, PF.size - 1)], 0.0)
 
 
-def light(mid: np.ndarray, wf: np.ndarray, p: Mapping[str, float]):
+def light(mid: np.ndarray, wf: np.ndarray, p: Mapping[str, float], z_top: float = 0.0):
     """Light step c of A.5 for segment midpoints ``mid`` and foliage masses ``wf``.
 
     Returns ``(S, I, f_L, P)``: shadow (evaluated at foliated receivers only, NaN at bare
     segments, whose light is 0 whatever S is), intercepted light max(0, R - S) (0 where not
     foliated),
     f_L = max(0, (I/R - a_L) / (1 - a_L)) and production P = p_r sum I.
+
+    ``stand_shade`` (an addition to the papers' open-grown model) adds the shade of a stand whose
+    canopy grows with the tree: S_stand (z_top - z) at a point z below the tree's current top
+    ``z_top``. Trees scanned in a stand have lost their lower branches to their neighbours' shade,
+    which the tree's own shadow pyramid (only ``shadow_len`` deep) cannot do.
     """
     q = q_max_of(p["shadow_len"], p["voxel_size"])
     foliated = wf > FOLIATED
     S = shadow_fast(voxel_coords(mid, p["voxel_size"]), p["shadow_max"], q, receivers=foliated)
+    if p.get("stand_shade", 0.0) > 0.0:
+        S = S + p["stand_shade"] * np.maximum(0.0, z_top - mid[:, 2])
     R = p["radiation"]
     I = np.zeros(S.shape)
     I[foliated] = np.maximum(0.0, R - S[foliated])
@@ -360,7 +367,8 @@ class _Simulation:
         st = self.st
         idx = np.flatnonzero(live)
         mid = st.start[idx] + 0.5 * st.length[idx, None] * st.axis[idx]
-        S_l, I_l, fL_l, Pv = light(mid, st.wf[idx], self.p)
+        z_top = float((st.start[idx, 2] + st.length[idx] * st.axis[idx, 2]).max())
+        S_l, I_l, fL_l, Pv = light(mid, st.wf[idx], self.p, z_top)
         S = np.zeros(st.n)
         I = np.zeros(st.n)
         fL = np.zeros(st.n)

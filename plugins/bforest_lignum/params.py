@@ -42,6 +42,9 @@ _TABLE = [
     _Par("shadow_max", "S_max", "", 5, 80, False, "one segment's shadow at the pyramid top", "light"),
     _Par("shadow_len", "S_L", "m", 0.3, 1.5, False, "shadow depth", "light"),
     _Par("voxel_size", "V_S", "m", 0.01, 0.05, False, "voxel edge of the shadow lattice", "light"),
+    _Par("stand_shade", "S_stand", "m-1", 0.0, 40.0, False,
+         "shade of the surrounding stand per metre below the tree's top: S += S_stand (z_top - z) "
+         "(0 = an open-grown tree, the papers' model)", "light"),
     _Par("r_env_mean", "R_env mean", "m", 0.1, 4.0, False,
          "mean of TN R_env: buds farther from the stem axis die (1 draw per bud per year)", "space"),
     _Par("r_env_sd", "R_env sd", "m", 0.0, 0.3, False, "sd of TN R_env", "space"),
@@ -89,7 +92,7 @@ NAMES = tuple(p.name for p in _TABLE)
 SYMBOLS = {p.name: p.symbol for p in _TABLE}
 
 _P98 = dict(
-    years=10, radiation=30.0, shadow_max=10.0, shadow_len=0.55, voxel_size=0.01,
+    years=10, radiation=30.0, shadow_max=10.0, shadow_len=0.55, voxel_size=0.01, stand_shade=0.0,
     r_env_mean=1.33, r_env_sd=0.0, lr_mean=0.01, lr_sd=0.0, q_mean=0.1, q_sd=0.0,
     beta_init=45.0, beta_incr=10.0, beta_max=95.0, zeta_sd=5.0, gamma_sd=5.0,
     init_rot_angle=144.0, whorl_rotation_sd=15.0, shed_year=0, shed_dist=0, shed_mu=2.0,

@@ -80,8 +80,12 @@ class LightField:
     """
 
     def __init__(self, span, voxel_size, depth, spread, shadow_a, shadow_b, ran=0.0, vert=0.0,
-                 uniforms=None):
+                 uniforms=None, stand_shade=0.0):
         self.span = float(span)
+        #: extinction (1/m) of the surrounding stand's canopy below the tree's top ``z_top``
+        #: (kept current by the model); 0 = an open-grown tree (the papers' model)
+        self.stand_shade = float(stand_shade)
+        self.z_top = 0.0
         self.voxel = float(voxel_size)
         self.n_vox = n = int(round(self.span / self.voxel))
         self.di, self.dj, self.dk, self.log_f = shadow_kernel(depth, spread, shadow_a, shadow_b)
@@ -168,7 +172,8 @@ class LightField:
         return e
 
     def exposure(self, points: np.ndarray) -> np.ndarray:
-        """Trilinear exposure at points over the 8 surrounding voxel centres, in [0, 1]."""
+        """Trilinear exposure at points over the 8 surrounding voxel centres, in [0, 1], times
+        the stand's transmission ``exp(-stand_shade * max(0, z_top - z))``."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         n = self.n_vox
         c = np.empty(p.shape)
@@ -185,7 +190,10 @@ class LightField:
         wy = np.concatenate([1 - ty, ty], axis=1)
         wz = np.concatenate([1 - tz, tz], axis=1)
         w = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
-        return np.clip(np.sum(w * vals, axis=1), 0.0, 1.0)
+        e = np.clip(np.sum(w * vals, axis=1), 0.0, 1.0)
+        if self.stand_shade > 0.0:
+            e *= np.exp(-self.stand_shade * np.maximum(0.0, self.z_top - p[:, 2]))
+        return e
 
     def clamp_to_cube(self, points: np.ndarray) -> np.ndarray:
         """Points clipped into the cube (x, y in [-span/2, span/2], z in [0, span])."""

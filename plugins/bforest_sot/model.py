@@ -14,7 +14,8 @@ Random draws, all from one ``numpy.random.Generator(PCG64(seed))`` (spec B.7):
   2. one standard normal per growing lateral shoot (``branch_angle_sd``);
   3. one standard normal per growing shoot (``tropism_sd``);
   4. at each metamer step k, one standard normal per shoot still active after the wall check
-     (``phyllotaxis_sd``).
+     (``phyllotaxis_sd``), then, only when ``heading_sd`` > 0, one more per such shoot
+     (``heading_sd``, an addition to the spec: trees without it keep their old draws).
 
   Shoots are ordered by bearing segment, the apical shoot before the lateral one. A block is
   drawn even when its sd is 0; no draw depends on ``max_iter``, so a run of length t equals the
@@ -304,7 +305,8 @@ class SOTGrowth:
         n_vox = int(round(p["span"] / p["voxel_size"]))
         uniforms = self.rng.random(n_vox ** 3)
         self.field = LightField(p["span"], p["voxel_size"], int(p["depth"]), p["spread"],
-                                p["shadow_a"], p["shadow_b"], p["ran"], p["vert"], uniforms)
+                                p["shadow_a"], p["shadow_b"], p["ran"], p["vert"], uniforms,
+                                stand_shade=p["stand_shade"])
         self.s = SegmentStore()
         self.age = 0.0
         self.cycle = 0
@@ -376,6 +378,9 @@ class SOTGrowth:
         z_lam = rng.standard_normal()
         lam = float(np.clip(lam + p["lambda_sd"] * z_lam, 0.0, 1.0))
         self.lam = lam
+        if p["stand_shade"] > 0.0:  # the stand's canopy grows with the tree: its top is the tree's
+            live = s.live
+            self.field.z_top = float((s.start[live, 2] + s.length[live] * s.h[live, 2]).max())
 
         # 2. bud light; 3. basipetal pass
         ids, loc, lpar, ac, lc = self._compact()
@@ -507,6 +512,13 @@ class SOTGrowth:
                 ha[ti] = rotate(ha[ti], axu, th)
                 ua[ti] = rotate(ua[ti], axu, th)
             ha = _unit(ha)
+            if p["heading_sd"] > 0.0:
+                # clone noise (an addition): each metamer bends by N(0, heading_sd) about its up
+                # vector, whose phyllotaxis roll turns the bending plane from metamer to metamer;
+                # drawn only when the sd is positive, so trees without it are unchanged
+                z_head = rng.standard_normal(act.size)
+                bend = np.radians(p["heading_sd"] * z_head)
+                ha = _unit(rotate(ha, ua, bend))  # u is the axis: it stays perpendicular to h
             # (iii) phyllotaxis roll of u about h
             phi = np.radians(p["phyllotaxis"] + p["phyllotaxis_sd"] * z_phy)
             ua = rotate(ua, ha, phi)

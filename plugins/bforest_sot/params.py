@@ -20,7 +20,7 @@ PARAMETERS: list[ParameterSpec] = [
     P("alpha1", 1.5, 0.5, 3.0, False, "internode", "vigor per unit of light collected by the tree", "I"),
     P("max_grow", 3.0, 2.0, 20.0, False, "internode",
       "vigor cap of a bud; a shoot has floor(v) <= floor(max_grow) metamers per cycle", "I"),
-    P("drop_thresh", 0.2, 0.1, 0.5, False, "internode",
+    P("drop_thresh", 0.2, 0.05, 0.5, False, "internode",
       "a branch is shed when its vigor per distal element v/N falls to this value", "I"),
     P("init_width", 0.02, 0.01, 0.04, False, "m", "diameter of a terminal segment", "I"),
     P("pipe_exp", 2.6, 2.0, 3.0, False, "", "pipe-model exponent n: d^n = sum of children's d_i^n", "I"),
@@ -33,9 +33,11 @@ PARAMETERS: list[ParameterSpec] = [
     P("sample_rad", 0.32, 0.1, 0.6, False, "m", "probe distance of the light-gradient estimate", "II"),
     P("ran", 0.05, 0.0, 0.2, False, "", "initial exposure noise: E0 += ran * U(0, 1) per voxel", "II"),
     P("vert", 0.0, 0.0, 0.3, False, "", "vertical gradient of the initial exposure", "II"),
+    P("stand_shade", 0.0, 0.0, 2.0, False, "1/m", "extinction of the surrounding stand's canopy: exposure "
+      "times exp(-stand_shade * depth below the tree's top); 0 = open-grown (the papers' model)", "II"),
     # ---- III: apical dominance
-    P("init_lambda", 0.65, 0.35, 0.65, False, "", "apical control lambda up to `delay` cycles", "III"),
-    P("targ_lambda", 0.51, 0.35, 0.65, False, "", "apical control lambda after delay + transition", "III"),
+    P("init_lambda", 0.65, 0.35, 0.9, False, "", "apical control lambda up to `delay` cycles", "III"),
+    P("targ_lambda", 0.51, 0.35, 0.9, False, "", "apical control lambda after delay + transition", "III"),
     P("delay", 7.0, 0.0, 20.0, False, "cycles", "cycles at init_lambda", "III"),
     P("transition", 7.0, 1.0, 20.0, False, "cycles", "cycles of the linear ramp from init to targ lambda", "III"),
     P("lambda_sd", 0.0, 0.0, 0.05, False, "", "clone noise: lambda(c) + N(0, sd) per cycle, clipped to [0, 1]", "III"),
@@ -51,6 +53,8 @@ PARAMETERS: list[ParameterSpec] = [
     P("branch_angle_sd", 5.0, 0.0, 15.0, False, "deg", "clone noise: sd of the branch angle, per lateral shoot", "V"),
     P("phyllotaxis_sd", 10.0, 0.0, 30.0, False, "deg", "clone noise: sd of the phyllotaxis angle, per metamer", "V"),
     P("tropism_sd", 0.0, 0.0, 0.05, False, "", "clone noise: sd of the tropism, per shoot", "V"),
+    P("heading_sd", 0.0, 0.0, 20.0, False, "deg", "clone noise (an addition): sd of a bend of each metamer "
+      "about its up vector, so that branches wind as scanned ones do; 0 = smooth axes", "V"),
     # ---- fixed geometry (GS)
     P("node_length", 0.2, 0.1, 0.3, False, "m", "internode length (1 node unit of vigor; one lateral bud per "
       "internode, so it sets how many branches a metre of stem can carry); GS: 0.2 m", "fixed"),

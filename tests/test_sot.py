@@ -516,3 +516,7 @@ def test_heading_noise_winds_axes_and_stays_deterministic(ssm):
         c = np.einsum("ij,ij->i", t.axis[child], t.axis[t.parent[child]])
         return float(np.degrees(np.arccos(np.clip(c, -1, 1))).mean())
     assert turn(wind) > turn(smooth) + 3.0
+    # the stem does not wind: without light-seeking it stays exactly vertical
+    straight = ssm.simulate({**base, "heading_sd": 8.0, "reorient": 0.0}, 1)
+    assert np.abs(straight.axis[straight.order == 0] - [0.0, 0.0, 1.0]).max() < 1e-9
+    assert turn(straight) > 3.0

@@ -513,11 +513,12 @@ class SOTGrowth:
                 ua[ti] = rotate(ua[ti], axu, th)
             ha = _unit(ha)
             if p["heading_sd"] > 0.0:
-                # clone noise (an addition): each metamer bends by N(0, heading_sd) about its up
-                # vector, whose phyllotaxis roll turns the bending plane from metamer to metamer;
-                # drawn only when the sd is positive, so trees without it are unchanged
+                # clone noise (an addition): each metamer of a branch bends by N(0, heading_sd)
+                # about its up vector, whose phyllotaxis roll turns the bending plane from metamer
+                # to metamer; the stem (order 0) stays straight, as a leader held by gravitropism
+                # does. Drawn only when the sd is positive, so trees without it are unchanged.
                 z_head = rng.standard_normal(act.size)
-                bend = np.radians(p["heading_sd"] * z_head)
+                bend = np.radians(p["heading_sd"] * z_head) * (order[act] > 0)
                 ha = _unit(rotate(ha, ua, bend))  # u is the axis: it stays perpendicular to h
             # (iii) phyllotaxis roll of u about h
             phi = np.radians(p["phyllotaxis"] + p["phyllotaxis_sd"] * z_phy)

@@ -53,8 +53,8 @@ PARAMETERS: list[ParameterSpec] = [
     P("branch_angle_sd", 5.0, 0.0, 15.0, False, "deg", "clone noise: sd of the branch angle, per lateral shoot", "V"),
     P("phyllotaxis_sd", 10.0, 0.0, 30.0, False, "deg", "clone noise: sd of the phyllotaxis angle, per metamer", "V"),
     P("tropism_sd", 0.0, 0.0, 0.05, False, "", "clone noise: sd of the tropism, per shoot", "V"),
-    P("heading_sd", 0.0, 0.0, 20.0, False, "deg", "clone noise (an addition): sd of a bend of each metamer "
-      "about its up vector, so that branches wind as scanned ones do; 0 = smooth axes", "V"),
+    P("heading_sd", 0.0, 0.0, 20.0, False, "deg", "clone noise (an addition): sd of a bend of each branch metamer "
+      "about its up vector, so that branches wind as scanned ones do (the stem stays straight); 0 = smooth axes", "V"),
     # ---- fixed geometry (GS)
     P("node_length", 0.2, 0.1, 0.3, False, "m", "internode length (1 node unit of vigor; one lateral bud per "
       "internode, so it sets how many branches a metre of stem can carry); GS: 0.2 m", "fixed"),

@@ -182,3 +182,37 @@ def test_posterior_predictive_clones_draw_distinct_parameters(toy_plugin, tmp_pa
     bf.fit(bf.load_config(toy_config(tmp_path, optimizer="ga", budget=20)), run2, progress=False)
     with pytest.raises(ClonesError, match="posterior clones need a sampler's run"):
         clones(run2, n=2, posterior=True, progress=False)
+
+
+def test_noise_target_stops_at_the_distance_a_perfect_model_shows():
+    """``epsilon_target = "noise"``: the median distance under fresh seeds at the best particle or
+    the weighted mean, whichever is lower.
+    For the Gaussian location (D = |theta + z - y_obs|) a perfect model's median distance is
+    0.674 sigma; the last generation runs at that epsilon and the posterior is the exact one
+    widened by eps^2 / 3."""
+    pr, _ = _problem(gaussian_location(), [-10.0], [10.0])
+    rng = np.random.default_rng(7)
+    measured = []
+
+    def seed_spread(x, k):
+        vals = np.abs(x[0] + rng.standard_normal(k) - 2.0)
+        measured.append(np.median(vals))
+        return vals
+
+    pr.seed_spread = seed_spread
+    res = AbcSmc(particles=400, generations=40, epsilon_target="noise", noise_seeds=200,
+                 min_acceptance=0.005).minimize(pr)
+    d = res.diagnostics
+    targets = [min(a, b) for a, b in zip(measured[::2], measured[1::2])]  # best particle, weighted mean
+    assert "noise floor" in res.stop_reason and d["epsilon_target"] == pytest.approx(targets)
+    eps = d["epsilon"][-1]
+    assert eps == pytest.approx(targets[-2])  # the last generation ran at the target (clamped)
+    assert eps == pytest.approx(0.674, rel=0.15)
+    assert d["posterior"]["x0"]["std"] == pytest.approx(np.sqrt(1.0 + eps ** 2 / 3), rel=0.10)
+    assert d["posterior"]["x0"]["mean"] == pytest.approx(2.0, abs=0.15)
+    # without a way to measure the noise there is no target (the other stops end the run)
+    pr, _ = _problem(gaussian_location(), [-10.0], [10.0], budget=3000)
+    res = AbcSmc(particles=100, generations=5, epsilon_target="noise").minimize(pr)
+    assert res.stop_reason == "5 generations done" and res.diagnostics["epsilon_target"] == [0.0] * 4
+    with pytest.raises(Exception, match="epsilon_target"):
+        AbcSmc(epsilon_target=-1.0)

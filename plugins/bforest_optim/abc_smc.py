@@ -18,7 +18,16 @@ trees within a tolerance epsilon of the data, tightened generation by generation
   (Beaumont et al. 2009); ``local``, a normal per parent with twice the covariance of its
   ``neighbours`` nearest particles (in the spirit of Filippi et al. 2013's local kernels; better
   when the posterior is curved or has several modes).
-* **Stops**: epsilon at or below ``epsilon_target``; a generation that needs more than
+* **Epsilon target**: epsilon never goes below ``epsilon_target`` (the last generation runs at it)
+  and the sampler stops once it is reached. ``"noise"`` takes the distance's own noise floor: the
+  median distance under ``noise_seeds`` fresh model seeds (``problem.seed_spread``) at the best
+  particle or at the population's weighted mean, whichever is lower, measured before every
+  generation: what a perfect model still shows against the data. Above it the truth passes the tolerance almost surely and the posterior is
+  wider than the data warrant (the calibration study in docs/validation.md found the 50 %
+  intervals covering about two thirds of the truths when the run stopped at 1.4 times the floor);
+  at it a perfect model passes half the time; below it the acceptance rate, and so the cost,
+  falls fast for little gain.
+* **Stops**: epsilon at or below the target; a generation that needs more than
   ``particles / min_acceptance`` proposals (the acceptance rate fell below ``min_acceptance``);
   ``generations`` done; the run's evaluation budget or wall time. The posterior is always the
   last *complete* generation.
@@ -29,7 +38,8 @@ particles. With ``[objective] model_seeds`` every proposal is simulated with the
 (common random numbers), which makes the acceptance decisions less noisy.
 
 ``diagnostics`` holds the final population (``particles``, ``weights``, ``distances``), the
-``epsilon`` schedule, the ``acceptance`` rate and effective sample size (``ess``) per generation,
+``epsilon`` schedule (and with ``epsilon_target = "noise"`` the measured target per generation,
+``epsilon_target``), the ``acceptance`` rate and effective sample size (``ess``) per generation,
 and ``posterior``: weighted mean, sd and 2.5/5/16/25/50/75/84/95/97.5 % quantiles per parameter.
 """
 from __future__ import annotations
@@ -56,8 +66,12 @@ class AbcSmcSettings(OptimizerSettings):
     generations: int = Field(30, ge=1, description="largest number of generations (generation 0 = the prior)")
     quantile: float = Field(0.5, gt=0, lt=1, description="epsilon_t = this quantile of the previous "
                             "generation's distances")
-    epsilon_target: float = Field(0.0, ge=0, description="stop once epsilon is at or below this distance "
-                                  "(0: never; e.g. the distance's seed noise)")
+    epsilon_target: float | Literal["noise"] = Field(
+        0.0, description="epsilon never goes below this distance and the run stops once it is reached (0: "
+        "never); noise = the median distance under noise_seeds fresh model seeds at the best particle or the "
+        "population's weighted mean, whichever is lower (what a perfect model still shows), measured before "
+        "every generation")
+    noise_seeds: int = Field(8, ge=2, description="model seeds of the noise target's measurement")
     min_acceptance: float = Field(0.02, gt=0, le=1, description="stop when a generation's acceptance rate "
                                   "falls below this (it would need more than particles / min_acceptance proposals)")
     kernel: Literal["mvn", "local"] = Field("mvn", description="perturbation kernel: mvn (normal, twice the "
@@ -71,6 +85,9 @@ class AbcSmcSettings(OptimizerSettings):
 
     @model_validator(mode="after")
     def _check(self):
+        if not isinstance(self.epsilon_target, str) and not (self.epsilon_target >= 0
+                                                              and math.isfinite(self.epsilon_target)):
+            raise ValueError(f"epsilon_target must be a distance >= 0 or 'noise' (got {self.epsilon_target})")
         if self.neighbours is not None and self.neighbours > self.particles:
             raise ValueError(f"neighbours ({self.neighbours}) must not exceed particles ({self.particles})")
         return self
@@ -105,7 +122,7 @@ class AbcSmc(Optimizer):
         theta = lo + rng.random((n, ev.dim)) * (hi - lo)
         dist = ev(theta)
         weights = np.full(n, 1.0 / n)
-        eps_hist, acc_hist, ess_hist = [math.inf], [1.0], [float(n)]
+        eps_hist, acc_hist, ess_hist, target_hist = [math.inf], [1.0], [float(n)], []
         log(ev, generation=0, epsilon=None, acceptance=1.0, ess=float(n), proposals=n)
         reason = f"{s.generations} generations done"
         if ev.stopped:
@@ -117,10 +134,13 @@ class AbcSmc(Optimizer):
             if not fin.any():
                 reason = "no finite distance in the population"
                 break
-            eps = float(np.quantile(dist[fin], s.quantile))
-            if eps_hist[-1] <= s.epsilon_target:
-                reason = f"epsilon {eps_hist[-1]:.4g} at or below the target {s.epsilon_target:g}"
+            target = self._target(problem, ev, theta, weights)
+            target_hist.append(target)
+            if eps_hist[-1] <= target:
+                reason = f"epsilon {eps_hist[-1]:.4g} at or below the target {target:.4g}" + (
+                    " (the distance's noise floor)" if s.epsilon_target == "noise" else "")
                 break
+            eps = max(float(np.quantile(dist[fin], s.quantile)), target)
             kern = self._kernel(theta, weights)
             new_t, new_d, proposals, rate = [], [], 0, 1.0
             limit = int(math.ceil(n / s.min_acceptance))
@@ -155,8 +175,28 @@ class AbcSmc(Optimizer):
             log(ev, generation=t, epsilon=eps, acceptance=n / proposals, ess=ess_hist[-1], proposals=proposals,
                 complete=True)
         diag = self._diagnostics(ev, theta, weights, dist, eps_hist, acc_hist, ess_hist)
+        if s.epsilon_target == "noise":
+            diag["epsilon_target"] = target_hist
         diag["note"] = f"{reason}; the posterior is generation {len(eps_hist) - 1}, the last complete one"
         return make_result(ev, log, reason, diag)
+
+    def _target(self, problem: Problem, ev: BoxEvaluator, theta: np.ndarray, w: np.ndarray) -> float:
+        """The epsilon target of the next generation (see the module text); 0 where the noise
+        cannot be measured (no ``problem.seed_spread``)."""
+        s = self.settings
+        if s.epsilon_target != "noise":
+            return float(s.epsilon_target)
+        if problem.seed_spread is None or ev.best_x is None:
+            return 0.0
+        medians = []
+        # the best particle won on one lucky draw and may sit off the mode; the weighted mean is
+        # central but may fall between modes: the lower median of the two is the floor
+        for x in (np.asarray(ev.best_x, float), ev.project(w @ theta)[0]):
+            vals = np.asarray(problem.seed_spread(x, int(s.noise_seeds)), float)
+            vals = vals[np.isfinite(vals)]
+            if vals.size:
+                medians.append(float(np.median(vals)))
+        return min(medians) if medians else 0.0
 
     # ------------------------------------------------------------------ kernels
     def _kernel(self, theta: np.ndarray, w: np.ndarray) -> list[np.ndarray]:

@@ -172,3 +172,22 @@ def test_fit_progress_bar_counts_to_the_plan_and_closes_with_the_reason(toy_plug
     # the summary lists the fitted parameters apart from the fixed one
     out = r.stdout
     assert out.index("fitted:") < out.index("  angle =") < out.index("fixed:") < out.index("  noise =")
+
+
+def test_compare_and_clones_show_bars_with_totals(toy_plugin, tmp_path):
+    """compare counts to optimisers x repeats x budget; clones counts to the clones it grows."""
+    import os
+    from conftest import TOY_DIR, toy_config
+    p = toy_config(tmp_path, budget=1000)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(toy_plugin), str(TOY_DIR)])}
+    exe = str(Path(sys.executable).with_name("bforest"))
+    r = subprocess.run([exe, "compare", str(p), "--optimizers", "toy-random,ga", "--budget", "12", "--repeats", "2",
+                        "-o", str(tmp_path / "cmp")], capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stderr
+    assert "/48" in r.stderr  # 2 optimisers x 2 repeats x 12 evaluations
+    r = subprocess.run([exe, "fit", str(p), "-o", str(tmp_path / "run"), "--no-report"], capture_output=True,
+                       text=True, env=env)
+    assert r.returncode == 0, r.stderr
+    r = subprocess.run([exe, "clones", str(tmp_path / "run"), "-n", "5"], capture_output=True, text=True, env=env)
+    assert r.returncode == 0, r.stderr
+    assert "5/5" in r.stderr

@@ -328,6 +328,10 @@ distance is the largest), so the simplified LIGNUM cannot reproduce this pine's 
 """
     marker = "<!-- real-tree fidelity: written by examples/real/run_fidelity.py --doc -->"
     old = DOC.read_text(encoding="utf-8") if DOC.exists() else ""
+    cal, cal_end = ("<!-- calibration: written by examples/calibration/run_calibration.py --doc -->",
+                    "<!-- /calibration -->")
+    if cal in old and cal_end in old:  # the calibration section is examples/calibration/run_calibration.py's
+        text = text.rstrip() + "\n\n" + cal + old.split(cal, 1)[1].split(cal_end, 1)[0] + cal_end + "\n"
     if marker in old:  # the real-tree fidelity section is examples/real/run_fidelity.py's: keep it
         text = text.rstrip() + "\n\n" + marker + old.split(marker, 1)[1]
     DOC.write_text(text, encoding="utf-8")

@@ -34,8 +34,12 @@ trees within a tolerance epsilon of the data, tightened generation by generation
 
 Everything random comes from the run seed, and the proposals depend only on earlier results, so a
 run killed and resumed (the fit replays logged evaluations) proposes and accepts exactly the same
-particles. With ``[objective] model_seeds`` every proposal is simulated with the same model seeds
-(common random numbers), which makes the acceptance decisions less noisy.
+particles. With ``[objective] model_seeds`` (or the default ``seed_mode = "fixed"``) every proposal
+is simulated with the same model seeds (common random numbers), which makes the acceptance
+decisions less noisy, but the posterior is then that of those seeds: as epsilon falls it
+concentrates around the parameters that fit best *with those seeds* and leaves the seed-to-seed
+variation out, so its intervals are expected to be too narrow (not measured). For intervals meant
+to cover the truth use ``seed_mode = "per_evaluation"``, as the calibration study does.
 
 ``diagnostics`` holds the final population (``particles``, ``weights``, ``distances``), the
 ``epsilon`` schedule (and with ``epsilon_target = "noise"`` the measured target per generation,

@@ -406,7 +406,7 @@ def table_text(res: dict) -> str:
                      f"{t['width50']:>15.3f}{t['width90']:>15.3f}")
     failed = [r for r in res["runs"] if r["status"] != "ok"]
     if failed:
-        lines.append(f"{len(failed)} runs without a posterior, left out: "
+        lines.append(f"{len(failed)} run{'' if len(failed) == 1 else 's'} without a posterior, left out: "
                      + "; ".join(f"{r['run']}: {r['status']}" for r in failed[:3]) + (" ..." if len(failed) > 3 else ""))
     secs = [r["seconds"] for r in ok if r.get("seconds")]
     evals = [r["n_evaluations"] for r in ok if r.get("n_evaluations")]

@@ -128,7 +128,8 @@ def doc_section(results: dict) -> str:
              "subtree topology): the median over clones of their distance to the pine, beside the "
              "pine's distance to the other two pines. Limits: height 5 %, DBH 15 %, crown spread 20 %, "
              "crown base and first-order branches 25 % on pine 3; half as much again on pines 1 and 2. "
-             "Fit times on the 2-core machine with nothing else running.", "",
+             "Fit times are the wall times of these runs on the 2-core machine (shared with other jobs "
+             "when they were made: quiet-machine timings are in performance.md).", "",
              "```", ".venv/bin/python examples/real/run_fidelity.py --out runs/fidelity --figures --doc", "```",
              "", head, "|" + "---|" * (head.count("|") - 1)]
     for key in sorted(results, key=lambda k: (results[k]["recipe"], [3, 1, 2].index(results[k]["pine"]))):

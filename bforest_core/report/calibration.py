@@ -36,9 +36,9 @@ def calibration_figure(res: dict, path, title: str | None = None, dpi: int = 120
         counts = np.asarray(t["rank_counts"], float)
         edges = np.arange(bins + 1) * (draws + 1) / bins
         ax.axhspan(lo_band, hi_band, color="#bbbbbb", alpha=0.5, lw=0, label="99 % band of uniform ranks")
-        ax.axhline(n / bins, color="black", ls="--", lw=0.8, label="uniform expectation")
-        ax.bar(edges[:-1], counts, width=np.diff(edges), align="edge", color=MODEL_COLOR, alpha=0.75,
-               edgecolor="white", label="runs")
+        ax.axhline(n / bins, color="black", ls="--", lw=0.8, label="uniform expectation", zorder=3)
+        ax.bar(edges[:-1], counts, width=np.diff(edges), align="edge", color="#e06666", edgecolor="white",
+               label="runs", zorder=2)
         ax.set_xlim(0, draws + 1)
         ax.set_xlabel(f"rank of the truth among {draws} posterior draws", fontsize="small")
         ax.set_ylabel("number of runs" if j == 0 else "", fontsize="small")

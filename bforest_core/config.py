@@ -309,15 +309,23 @@ def load_config(path) -> BaseModel:
         Naming the file, the key path and the allowed values.
     """
     path = Path(path)
+    return parse_config(read_toml(path), base_dir=path.resolve().parent, source=str(path))
+
+
+def read_toml(path) -> dict:
+    """The TOML table of a config file; a missing, unreadable or malformed file is a
+    :class:`ConfigError` naming it."""
+    path = Path(path)
     try:
-        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+        return tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a folder, not a config file") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
     except UnicodeDecodeError:
         raise ConfigError(f"{path}: not a text file") from None
-    return parse_config(raw, base_dir=path.resolve().parent, source=str(path))
 
 
 def config_to_dict(cfg) -> dict:

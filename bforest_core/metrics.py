@@ -291,8 +291,11 @@ def weighted_quantiles(x: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
     """Quantiles (in %) of ``x`` under weights ``w`` (inverse of the weighted ECDF with the
     midpoint rule, so equal weights give numpy's 'hazen' quantiles)."""
     x = np.asarray(x, float)
+    w = np.asarray(w, float)
+    keep = w > 0  # a point of zero weight is not in the distribution (it must not stretch a tail)
+    x, w = x[keep], w[keep]
     o = np.argsort(x, kind="stable")
-    ws = np.asarray(w, float)[o]
+    ws = w[o]
     ws = ws / ws.sum()
     cdf = np.cumsum(ws) - 0.5 * ws
     return np.interp(np.asarray(qs, float) / 100.0, cdf, x[o])

@@ -44,6 +44,10 @@ def test_weighted_quantiles_equal_weights_match_numpy_hazen():
     assert q == pytest.approx(np.percentile(x, [10, 50, 90], method="hazen"))
     # a weight of zero removes a point
     assert weighted_quantiles(np.array([0.0, 1.0, 100.0]), np.array([1.0, 1.0, 0.0]), [50]) == pytest.approx(0.5)
+    # ... in the tails too: the same quantiles as without it
+    with_zero = weighted_quantiles(np.array([1.0, 2.0, 100.0]), np.array([1.0, 1.0, 0.0]), [5, 50, 95])
+    assert with_zero == pytest.approx(weighted_quantiles(np.array([1.0, 2.0]), np.array([1.0, 1.0]), [5, 50, 95]))
+    assert with_zero[-1] == pytest.approx(2.0)
 
 
 @pytest.mark.parametrize("kernel", ["mvn", "local"])

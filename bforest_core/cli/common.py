@@ -66,19 +66,3 @@ def report(run_dir):
     print(f"report: {p}")
 
 
-def json_text(obj) -> str:
-    """JSON with NaN and infinities as null (strict JSON readers reject NaN)."""
-    import json
-    import math
-
-    def clean(x):
-        if isinstance(x, dict):
-            return {str(k): clean(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [clean(v) for v in x]
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        if hasattr(x, "item"):  # numpy scalars
-            return clean(x.item())
-        return x
-    return json.dumps(clean(obj), indent=2, allow_nan=False)

@@ -1,8 +1,8 @@
 """Commands on single trees: info, simulate, distance."""
 from __future__ import annotations
 
-
-from .common import UsageError, json_text, parse_set, read, select_arg, split_sets
+from ..pipeline.store import json_text
+from .common import UsageError, parse_set, read, select_arg, split_sets
 
 
 def cmd_info(args):

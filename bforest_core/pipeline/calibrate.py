@@ -38,7 +38,6 @@ import csv
 import json
 import math
 import time
-import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -95,21 +94,24 @@ def rank_counts(ranks, bins: int, draws: int = RANK_DRAWS) -> np.ndarray:
     return np.bincount(r * bins // (draws + 1), minlength=bins)[:bins]
 
 
+def _binomial_range(n_runs: int, p: float, prob: float) -> tuple[float, float]:
+    """The central ``prob`` range of a Binomial(n_runs, p) count."""
+    from scipy.stats import binom
+    a = (1.0 - prob) / 2.0
+    return float(binom.ppf(a, n_runs, p)), float(binom.ppf(1.0 - a, n_runs, p))
+
+
 def uniform_band(n_runs: int, bins: int, prob: float = 0.99) -> tuple[float, float]:
     """The central ``prob`` range of one bin's count when the ranks are uniform
     (Binomial(n, 1/bins); the grey band of the SBC histogram)."""
-    from scipy.stats import binom
-    a = (1.0 - prob) / 2.0
-    return float(binom.ppf(a, n_runs, 1.0 / bins)), float(binom.ppf(1.0 - a, n_runs, 1.0 / bins))
+    return _binomial_range(n_runs, 1.0 / bins, prob)
 
 
 def coverage_range(n_runs: int, level: float, prob: float = 0.95) -> tuple[float, float]:
     """The central ``prob`` range of the coverage (%) of a calibrated ``level`` % interval over
     ``n_runs`` runs (Binomial)."""
-    from scipy.stats import binom
-    a = (1.0 - prob) / 2.0
-    p = level / 100.0
-    return (100.0 * binom.ppf(a, n_runs, p) / n_runs, 100.0 * binom.ppf(1.0 - a, n_runs, p) / n_runs)
+    lo, hi = _binomial_range(n_runs, level / 100.0, prob)
+    return 100.0 * lo / n_runs, 100.0 * hi / n_runs
 
 
 def prior_draw(seed: int, i: int, lower, upper, integer) -> tuple[np.ndarray, int]:
@@ -216,9 +218,8 @@ def _held_runs(out_dir: Path) -> list[Path]:
 def _same_config(run_dir: Path, cfg) -> bool:
     from .fit import _result_relevant
     try:
-        old = parse_config(tomllib.loads((run_dir / "config.toml").read_text(encoding="utf-8")),
-                           source=str(run_dir / "config.toml"))
-    except (OSError, tomllib.TOMLDecodeError, BayesForestError):
+        old = parse_config(read_toml(run_dir / "config.toml"), source=str(run_dir / "config.toml"))
+    except (OSError, BayesForestError):
         return False
     return _result_relevant(old) == _result_relevant(cfg)
 
@@ -416,20 +417,8 @@ def table_text(res: dict) -> str:
 
 
 def _write_json(path: Path, res: dict) -> Path:
-    def clean(x):
-        if isinstance(x, dict):
-            return {str(k): clean(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [clean(v) for v in x]
-        if isinstance(x, Path):
-            return str(x)
-        if hasattr(x, "item"):
-            x = x.item()
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        return x
-    keep = {k: v for k, v in res.items() if k not in ("json", "csv")}
-    path.write_text(json.dumps(clean(keep), indent=2, allow_nan=False), encoding="utf-8")
+    from .store import json_text
+    path.write_text(json_text({k: v for k, v in res.items() if k not in ("json", "csv")}), encoding="utf-8")
     return path
 
 

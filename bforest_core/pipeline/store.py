@@ -18,6 +18,7 @@ how ``--resume`` continues without repeating work.
 from __future__ import annotations
 
 import json
+import math
 import re
 import sqlite3
 import time
@@ -80,6 +81,24 @@ class Evaluation:
 
 def _json(x) -> str:
     return json.dumps(x, sort_keys=True, allow_nan=True)
+
+
+def json_text(obj) -> str:
+    """Strict JSON (indented) of results for people and other programs: NaN and infinities as
+    null (strict JSON readers reject NaN), numpy scalars as numbers, paths as strings."""
+    def clean(x):
+        if isinstance(x, dict):
+            return {str(k): clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        if isinstance(x, Path):
+            return str(x)
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        if hasattr(x, "item"):  # numpy scalars
+            return clean(x.item())
+        return x
+    return json.dumps(clean(obj), indent=2, allow_nan=False)
 
 
 class RunStore:

@@ -140,7 +140,7 @@ def light(mid: np.ndarray, wf: np.ndarray, p: Mapping[str, float], z_top: float 
     q = q_max_of(p["shadow_len"], p["voxel_size"])
     foliated = wf > FOLIATED
     S = shadow_fast(voxel_coords(mid, p["voxel_size"]), p["shadow_max"], q, receivers=foliated)
-    if p.get("stand_shade", 0.0) > 0.0:
+    if p["stand_shade"] > 0.0:
         S = S + p["stand_shade"] * np.maximum(0.0, z_top - mid[:, 2])
     R = p["radiation"]
     I = np.zeros(S.shape)
@@ -367,7 +367,8 @@ class _Simulation:
         st = self.st
         idx = np.flatnonzero(live)
         mid = st.start[idx] + 0.5 * st.length[idx, None] * st.axis[idx]
-        z_top = float((st.start[idx, 2] + st.length[idx] * st.axis[idx, 2]).max())
+        z_top = (float((st.start[idx, 2] + st.length[idx] * st.axis[idx, 2]).max())
+                 if self.p["stand_shade"] > 0.0 else 0.0)
         S_l, I_l, fL_l, Pv = light(mid, st.wf[idx], self.p, z_top)
         S = np.zeros(st.n)
         I = np.zeros(st.n)

@@ -241,3 +241,21 @@ def test_compare_threshold_by_name_and_the_configs_own_settings(toy_plugin, tmp_
     assert run_cfg["optimizer"]["population"] == 6
     with pytest.raises(ValueError, match="neither a distance nor one of the compared"):
         compare(cfg, ["ga"], budget=6, repeats=1, out_dir=tmp_path / "cmp2", threshold="cma")
+
+
+def test_compare_keeps_earlier_runs_and_adds_an_optimiser_with_resume(toy_plugin, tmp_path):
+    from bforest_core.pipeline.compare import compare
+    from bforest_core.pipeline.store import RunDirError
+    cfg = toy_config(tmp_path)
+    first = compare(cfg, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp")
+    stamp = (tmp_path / "cmp" / "ga-0" / "evaluations.sqlite").stat().st_mtime_ns
+    with pytest.raises(RunDirError, match="ga-0.*--resume.*--overwrite"):
+        compare(cfg, ["ga", "toy-random"], budget=24, repeats=2, out_dir=tmp_path / "cmp")
+    res = compare(cfg, ["ga", "toy-random"], budget=24, repeats=2, out_dir=tmp_path / "cmp", resume=True)
+    # the GA's runs were read back, not fitted again: same curves, same wall times, same log
+    for a, b in zip(first["curves"]["ga"], res["curves"]["ga"]):
+        np.testing.assert_array_equal(a, b)
+    assert [r["seconds"] for r in res["runs"][:2]] == [r["seconds"] for r in first["runs"]]
+    assert (tmp_path / "cmp" / "ga-0" / "evaluations.sqlite").stat().st_mtime_ns == stamp
+    assert [t["optimizer"] for t in res["table"]] == ["ga", "toy-random"]
+    assert all(r["evaluations"] == 24 for r in res["runs"])

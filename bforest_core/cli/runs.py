@@ -64,7 +64,7 @@ def cmd_compare(args):
     from ..pipeline.compare import compare
     res = compare(args.config, optimizers=[o.strip() for o in args.optimizers.split(",") if o.strip()],
                   budget=args.budget, repeats=args.repeats, out_dir=args.output, threshold=args.threshold,
-                  progress=not args.quiet)
+                  progress=not args.quiet, resume=args.resume, overwrite=args.overwrite)
     from ..report.comparison import write_compare_figure
     print(res["table_text"])
     print(f"figure: {write_compare_figure(res)}")
@@ -142,6 +142,9 @@ def add_commands(sub) -> None:
                    help="distance for 'evaluations to reach', or an optimiser's name: its median final best "
                         "(default: 5%% above the lower quartile of all final bests)")
     s.add_argument("-o", "--output", default=None, help="output directory (default: runs/compare-<config>)")
+    s.add_argument("--resume", action="store_true", help="continue the runs of an earlier comparison in -o; "
+                   "finished runs are read back (so another optimiser can be added to it)")
+    s.add_argument("--overwrite", action="store_true", help="replace the runs of an earlier comparison in -o")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_compare)
 

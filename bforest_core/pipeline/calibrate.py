@@ -45,6 +45,8 @@ import numpy as np
 from ..config import config_to_dict, parse_config, read_toml
 from ..errors import BayesForestError, ConfigError
 from ..metrics import weighted_quantiles
+from .fit import _free_specs, fit, same_config
+from .store import RunDirError, RunStore, json_text
 
 __all__ = ["calibrate", "central_interval", "sbc_rank", "prior_draw", "coverage_table", "rank_counts",
            "uniform_band", "rank_bins", "LEVELS", "RANK_DRAWS"]
@@ -199,7 +201,6 @@ def run_config(base: dict, i: int, truth: dict, target_seed: int):
 def _study_spec(cfg):
     from ..config import ssm_settings
     from ..registry import component
-    from .fit import _free_specs
     ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
     names, lo, hi, _, _, integer = _free_specs(cfg, ssm)
     units = [ssm.parameter_spec(n).unit or "" for n in names]
@@ -208,38 +209,12 @@ def _study_spec(cfg):
 
 def _held_runs(out_dir: Path) -> list[Path]:
     """Run folders of an earlier study in ``out_dir`` holding evaluations or results."""
-    held = []
-    for d in sorted(out_dir.glob("run_*")):
-        if (d / "best.json").exists() or (d / "evaluations.sqlite").exists():
-            held.append(d)
-    return held
-
-
-def _same_config(run_dir: Path, cfg) -> bool:
-    from .fit import _result_relevant
-    try:
-        old = parse_config(read_toml(run_dir / "config.toml"), source=str(run_dir / "config.toml"))
-    except (OSError, BayesForestError):
-        return False
-    return _result_relevant(old) == _result_relevant(cfg)
-
-
-def _run_state(run_dir: Path) -> str:
-    """``finished`` (best.json), ``partial`` (evaluations logged) or ``new``."""
-    if (run_dir / "best.json").exists():
-        return "finished"
-    db = run_dir / "evaluations.sqlite"
-    if db.exists():
-        from .store import RunStore
-        if RunStore._held(run_dir) > 0:
-            return "partial"
-    return "new"
+    return [d for d in sorted(out_dir.glob("run_*")) if RunStore.state(d) != "new"]
 
 
 def _evaluate_run(run_dir: Path, names, theta, integer, seed: int, i: int) -> dict:
     """The row of one finished run: truth, intervals, median and rank per parameter."""
     from .posterior import read_posterior_csv
-    from .store import RunDirError
     best = json.loads((run_dir / "best.json").read_text(encoding="utf-8"))
     diag = best.get("diagnostics") or {}
     eps = diag.get("epsilon")
@@ -277,8 +252,8 @@ def _plan_runs(cfg, base: dict, out_dir: Path, n: int, overwrite: bool, names, l
         truth = {nm: (int(v) if integer[j] else float(v)) for j, (nm, v) in enumerate(zip(names, theta))}
         run_cfg = run_config(base, i, truth, tseed)
         run_dir = out_dir / f"run_{i:03d}"
-        state = "new" if overwrite else _run_state(run_dir)
-        if state != "new" and not _same_config(run_dir, run_cfg):
+        state = "new" if overwrite else RunStore.state(run_dir)
+        if state != "new" and not same_config(run_dir, run_cfg):
             raise ConfigError(f"{run_dir}: was made with another config (or another version of this one); "
                               "refit the study with --overwrite, or choose another -o")
         plans.append((i, theta, run_cfg, run_dir, state))
@@ -313,9 +288,7 @@ def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite
         99 % band of a bin's count), ``counts`` (fitted / resumed / read back), ``wall_seconds``
         (summed fit time of the runs), ``json``/``csv`` paths, ``out_dir``.
     """
-    from .fit import fit
     from .objective import progress_bar
-    from .store import RunDirError
     config_path = Path(config_path)
     if int(n) < 1:
         raise ConfigError(f"calibrate: -n must be at least 1 (got {n})")
@@ -417,7 +390,6 @@ def table_text(res: dict) -> str:
 
 
 def _write_json(path: Path, res: dict) -> Path:
-    from .store import json_text
     path.write_text(json_text({k: v for k, v in res.items() if k not in ("json", "csv")}), encoding="utf-8")
     return path
 

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +9,7 @@ import numpy as np
 from ..config import config_to_dict, load_config, parse_config
 from .objective import build_target, progress_bar
 from ..registry import component_class
-from .store import RunStore
+from .store import RunDirError, RunStore
 
 def _settings_for_budget(name: str, budget: int, own: dict | None = None) -> dict:
     """Settings that let the shared evaluation budget, not the optimiser's own length limits,
@@ -32,9 +31,14 @@ def best_so_far(run_dir: Path) -> np.ndarray:
 
 
 def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None, threshold=None,
-            progress: bool = False) -> dict:
+            progress: bool = False, resume: bool = False, overwrite: bool = False) -> dict:
     """Run each optimiser ``repeats`` times with ``budget`` evaluations; returns the table, the
     curves and the figure path.
+
+    A run directory of ``out_dir`` that already exists is an error unless ``resume`` (continue
+    it, or read it back when it has finished: a run is named ``<optimizer>-<repeat>`` and its
+    config must be the one this comparison would write, so an optimiser can be added to an
+    earlier comparison without repeating the others) or ``overwrite`` (start it anew).
 
     ``threshold`` (the distance for "evaluations to reach") is a number, the name of one of the
     compared optimisers (its median final best: "how soon do the others get where it ends?"),
@@ -46,7 +50,7 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
             if threshold not in optimizers:
                 raise ValueError(f"--threshold {threshold!r} is neither a distance nor one of the compared "
                                  f"optimisers ({', '.join(optimizers)})") from None
-    from .fit import fit
+    from .fit import fit, same_config
     base = load_config(config_path)
     out_dir = Path(out_dir) if out_dir else Path("runs") / f"compare-{Path(config_path).stem}"
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -64,15 +68,25 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
             cfg_raw["stop"] = {**raw.get("stop", {}), "max_evaluations": int(budget)}
             cfg = parse_config(cfg_raw, source=f"compare/{name}")
             run = out_dir / f"{name}-{r}"
-            t0 = time.monotonic()
-            bar.set_postfix_str(f"{name} run {r + 1}/{repeats}", refresh=True)
-            res = fit(cfg, run, progress=False, overwrite=True, target=target)
-            wall = time.monotonic() - t0
+            state = "new" if overwrite else RunStore.state(run)
+            if state != "new" and not resume:
+                raise RunDirError(f"{run}: already holds a run; add to this comparison with --resume, replace "
+                                  "its runs with --overwrite, or choose another -o")
+            if state != "new" and not same_config(run, cfg):
+                raise RunDirError(f"{run}: was made with another config (or budget); replace it with "
+                                  "--overwrite, or choose another -o")
+            bar.set_postfix_str(f"{name} run {r + 1}/{repeats}" + {"finished": " (read back)",
+                                "partial": " (resume)"}.get(state, ""), refresh=True)
+            if state != "finished":
+                fit(cfg, run, resume=state == "partial", progress=False, overwrite=overwrite, target=target)
+            # the result as the run recorded it (its clock sums the sessions of a resumed run)
+            best = json.loads((run / "best.json").read_text(encoding="utf-8"))
+            row = {"best": best["distance"], "evaluations": best["n_evaluations"], "seconds": best["seconds"],
+                   "stop_reason": best["stop_reason"]}
             bar.update(int(budget))  # a run that stopped early still takes its share of the total
             curve = best_so_far(run)
             curves[name].append(curve)
-            rows.append({"optimizer": name, "repeat": r, "best": res.distance, "evaluations": res.n_evaluations,
-                         "seconds": wall, "stop_reason": res.stop_reason})
+            rows.append({"optimizer": name, "repeat": r, **row})
     bar.close()
     finals = np.array([row["best"] for row in rows])
     if threshold is None:

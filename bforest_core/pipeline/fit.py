@@ -9,14 +9,13 @@ from __future__ import annotations
 
 import json
 import time
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..config import config_to_dict, load_config, parse_config, section_settings, ssm_settings
+from ..config import config_to_dict, load_config, parse_config, read_toml, section_settings, ssm_settings
 from ..errors import BayesForestError, ConfigError
 from ..interfaces import Problem
 from .objective import (Target, _simulate_with_timeout, _Timeout, build_target, evaluate_task, model_seeds,
@@ -192,6 +191,17 @@ def _result_relevant(cfg) -> dict:
     return d
 
 
+def same_config(run_dir, cfg) -> bool:
+    """Whether the run in ``run_dir`` was made with ``cfg`` (up to the executor and the report,
+    which do not change results); False when its config.toml is missing or unreadable."""
+    path = Path(run_dir) / "config.toml"
+    try:
+        old = parse_config(read_toml(path), source=str(path))
+    except (OSError, BayesForestError):
+        return False
+    return _result_relevant(old) == _result_relevant(cfg)
+
+
 def _free_specs(cfg, ssm):
     names, lo, hi, ilo, ihi, integer = [], [], [], [], [], []
     for name, fp in cfg.ssm.free.items():
@@ -228,8 +238,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     text = tomli_w.dumps(cfg_dict)
     if resume:
         store = RunStore.open(run_dir)
-        old = parse_config(tomllib.loads(store.config_path.read_text(encoding="utf-8")), source=str(store.config_path))
-        if _result_relevant(old) != _result_relevant(cfg):
+        if not same_config(run_dir, cfg):
             raise RunDirError(f"{run_dir}: the config differs from the run's config.toml; "
                               "resume with the run's own config (bforest fit RUN/config.toml -o RUN --resume)")
         finished = (store.path / "best.json").exists()  # resuming it replays the log, simulates nothing

@@ -121,7 +121,7 @@ class RunStore:
         """
         path = Path(path)
         db = path / "evaluations.sqlite"
-        if db.exists() and not overwrite and cls._held(path) > 0:
+        if db.exists() and not overwrite and cls.held(path) > 0:
             raise RunDirError(f"{path}: already holds a run; continue it with --resume, replace it with "
                               "--overwrite, or choose another -o")
         path.mkdir(parents=True, exist_ok=True)
@@ -136,13 +136,24 @@ class RunStore:
         return store
 
     @classmethod
-    def _held(cls, path) -> int:
+    def held(cls, path) -> int:
         """Evaluations in an existing run directory (0: a run that failed before its first)."""
         probe = cls(path)
         try:
             return probe.count()
         finally:
             probe.close()
+
+    @classmethod
+    def state(cls, path) -> str:
+        """``finished`` (it has its ``best.json``), ``partial`` (evaluations logged, no result:
+        stopped or killed) or ``new`` (nothing to keep) for the run directory ``path``."""
+        path = Path(path)
+        if (path / "best.json").exists():
+            return "finished"
+        if (path / "evaluations.sqlite").exists() and cls.held(path) > 0:
+            return "partial"
+        return "new"
 
     @classmethod
     def open(cls, path) -> "RunStore":

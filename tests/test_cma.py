@@ -118,3 +118,22 @@ def test_the_ga_stops_on_the_seed_noise_too():
     res = bf.component("optimizer", "ga", population=10, generations=50, stall_generations=None,
                        patience=4).minimize(pr)
     assert "seed noise" in res.stop_reason and res.history[-1]["generation"] == 4
+
+
+def test_cma_init_design_is_a_sobol_look_and_the_search_starts_at_its_best():
+    corner = np.array([4.0, 4.0, -4.0, 4.0])
+    f = lambda x: float(((x - corner) ** 2).sum())
+    pr, asked = _problem(f, [-5] * 4, [5] * 4, budget=400, seed=3)
+    res = bf.component("optimizer", "cma", init_design=32, population=8, sigma0=0.05).minimize(pr)
+    X = np.array(asked)
+    design = X[:32]
+    # the design: 32 distinct points spread over the box (every half of every axis is visited)
+    assert len({tuple(x) for x in design}) == 32
+    assert all(((design[:, j] < 0).sum() == 16) for j in range(4))  # a Sobol' design is balanced
+    assert res.history[0]["generation"] == 0 and res.history[0]["population"] == 32
+    assert res.history[1]["generation"] == 1 and res.history[1]["sigma"] is not None
+    # the first CMA generation is centred on the design's best point, not on the box centre
+    best = design[np.argmin([f(x) for x in design])]
+    first = X[32:40].mean(axis=0)  # 8 points of sd 0.5 per axis around the start
+    assert np.linalg.norm(best) > 3.0 and np.linalg.norm(first - best) < 1.0
+    assert res.fun < 1e-3 and res.n_evaluations == 400

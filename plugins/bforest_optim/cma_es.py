@@ -28,6 +28,9 @@ class CMASettings(OptimizerSettings):
     population: Optional[int] = Field(None, ge=4, description="points per generation (default cma's 4 + 3 ln p)")
     sigma0: float = Field(0.3, gt=0, le=1, description="initial step size, as a fraction of each parameter's range")
     restarts: int = Field(1, ge=0, description="restarts with doubled population after a run converges (IPOP)")
+    init_design: int = Field(0, ge=0, description="points of a scrambled Sobol' design over the initial box "
+                             "evaluated first; CMA-ES then starts at the best of them instead of the box's "
+                             "centre (0: no design)")
     max_generations: Optional[int] = Field(None, ge=1, description="generations per run (default: until cma stops)")
     tolfun: float = Field(1e-4, ge=0, description="cma's stop when the distances of a generation differ by less")
     patience: Optional[int] = _NOISE["patience"]
@@ -35,11 +38,17 @@ class CMASettings(OptimizerSettings):
     noise_seeds: int = _NOISE["noise_seeds"]
 
 
+def _finite_stat(f: np.ndarray, stat) -> float:
+    finite = f[np.isfinite(f)]
+    return float(stat(finite)) if finite.size else math.inf
+
+
 class CMAES(Optimizer):
     """Covariance matrix adaptation evolution strategy with IPOP restarts.
 
     Log records (one per generation): ``generation``, ``run`` (restart index), ``population``,
-    ``sigma`` (cma's step size in the unit cube), ``mean``, ``median``, ``best``.
+    ``sigma`` (cma's step size in the unit cube), ``mean``, ``median``, ``best``; with an
+    ``init_design``, generation 0 (run -1, no sigma) is the design.
     """
 
     name = "cma"
@@ -51,7 +60,7 @@ class CMAES(Optimizer):
         if s.max_generations is None:
             return None
         pop = s.population or 4 + int(3 * math.log(dim))
-        return sum(pop * 2 ** r * s.max_generations for r in range(s.restarts + 1))
+        return s.init_design + sum(pop * 2 ** r * s.max_generations for r in range(s.restarts + 1))
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         import cma
@@ -64,6 +73,15 @@ class CMAES(Optimizer):
         x0 = ((ilo + ihi) / 2 - lo) / (hi - lo)
         pop0 = s.population or 4 + int(3 * math.log(ev.dim))
         reason, generation, runs = "cma stopped", 0, []
+        if s.init_design:
+            # generation 0: a space-filling look at the initial box, so the search starts in its
+            # best region rather than at a centre that may be poor (the points count in the budget)
+            X = ev.sample_init(s.init_design, np.random.default_rng([int(problem.seed), 0xC3A]), "sobol")
+            f = ev(X)
+            log(ev, generation=0, run=-1, population=len(X), sigma=None,
+                mean=_finite_stat(f, np.mean), median=_finite_stat(f, np.median))
+            if np.isfinite(f).any():
+                x0 = (X[int(np.argmin(f))] - lo) / (hi - lo)
         for run in range(s.restarts + 1):
             opts = {"bounds": [0.0, 1.0], "popsize": pop0 * 2 ** run, "seed": int(problem.seed) * 1009 + run + 1,
                     "verbose": -9, "tolfun": s.tolfun, "tolx": 1e-6}
@@ -78,8 +96,7 @@ class CMAES(Optimizer):
                 es.tell(list(U), list(np.where(np.isfinite(f), f, worst)))
                 generation += 1
                 log(ev, generation=generation, run=run, population=len(U), sigma=float(es.sigma),
-                    mean=float(finite.mean()) if finite.size else math.inf,
-                    median=float(np.median(finite)) if finite.size else math.inf)
+                    mean=_finite_stat(f, np.mean), median=_finite_stat(f, np.median))
                 if stop(ev):
                     reason = stop.reason
                     break

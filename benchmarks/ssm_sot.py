@@ -111,13 +111,21 @@ def bench_sot(repeats: int = 5, full: bool = False, seeds=(1, 2, 3, 4, 5)) -> di
         cases.append(("default, 30 cycles (at the roof, seed 1)", {"max_iter": 30}, 1, 4.0))
     results = {"baseline_s": base, "shadow_loop_s": t_loop, "shadow_batched_s": t_vec,
                "timings": [], "sizes": []}
-    print(f"  {'case':44s} {'segments':>8s} {'median s':>9s} {'min s':>7s} {'target s':>8s} {'x baseline':>10s}")
+    print(f"  {'case':60s} {'segments':>8s} {'median s':>9s} {'min s':>7s} {'target s':>8s} {'x baseline':>10s}")
+    import bforest_sot.light as light
+
+    def fresh(params, seed):  # a seed not seen before: the initial light field is computed
+        light._INITIAL.clear()
+        return ssm.simulate(params, seed)
+
     for label, params, seed, target in cases:
-        med, mn, tree = timed(lambda: ssm.simulate(params, seed), repeats)
-        ok = "ok" if med <= target else "OVER"
-        print(f"  {label:44s} {tree.n:8d} {med:9.3f} {mn:7.3f} {target:8.2f} {med / base:10.1f}  {ok}")
-        results["timings"].append({"case": label, "segments": tree.n, "median_s": med, "min_s": mn,
-                                   "target_s": target})
+        # a fit grows every candidate with the same model seeds: their initial fields are cached
+        for kind, fn in (("repeated seed", ssm.simulate), ("fresh seed", fresh)):
+            med, mn, tree = timed(lambda: fn(params, seed), repeats)
+            ok = "ok" if med <= target else "OVER"
+            print(f"  {label + ', ' + kind:60s} {tree.n:8d} {med:9.3f} {mn:7.3f} {target:8.2f} {med / base:10.1f}  {ok}")
+            results["timings"].append({"case": f"{label}, {kind}", "segments": tree.n, "median_s": med,
+                                       "min_s": mn, "target_s": target})
 
     print(f"\nSizes over seeds {list(seeds)} (mean; range of segments) vs spec B.4 (no clone noise):")
     print(f"  {'cycles':>6s} {'noise':>6s} {'segments':>13s} {'spec':>10s} {'height':>7s} {'spec':>5s} "

@@ -520,3 +520,25 @@ def test_heading_noise_winds_axes_and_stays_deterministic(ssm):
     straight = ssm.simulate({**base, "heading_sd": 8.0, "reorient": 0.0}, 1)
     assert np.abs(straight.axis[straight.order == 0] - [0.0, 0.0, 1.0]).max() < 1e-9
     assert turn(straight) > 3.0
+
+
+def test_cached_initial_field_gives_the_same_trees(ssm):
+    """A seed seen before takes its initial light field from the cache and skips its uniforms
+    (PCG64 advance): the tree is the one grown without the cache, and other seeds, ran or grid
+    sizes are not served the wrong field."""
+    import bforest_sot.light as light
+    for params in ({"max_iter": 10}, {"max_iter": 10, "ran": 0.2}):
+        light._INITIAL.clear()
+        miss = ssm.simulate(params, 21)
+        assert [k[0] for k in light._INITIAL] == [("sot", 21)]
+        hit = ssm.simulate(params, 21)
+        assert hit.equals(miss)
+        # a hit that skipped the wrong number of draws would change every later random choice
+        assert not ssm.simulate(params, 22).equals(miss)
+    light._INITIAL.clear()
+    a = ssm.simulate({"max_iter": 10, "ran": 0.2}, 21)
+    b = ssm.simulate({"max_iter": 10, "ran": 0.0}, 21)  # same seed, another initial field
+    assert len(light._INITIAL) == 2 and not a.equals(b)
+    for seed in range(30, 36):
+        ssm.simulate({"max_iter": 2}, seed)
+    assert len(light._INITIAL) == light._INITIAL_KEEP

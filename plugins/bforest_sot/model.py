@@ -52,10 +52,10 @@ class GrowthFailure(Exception):
 # ------------------------------------------------------------------------------------------------
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of (m, 3) arrays: the arithmetic of ``np.cross`` (so the same
-    bits) without its axis handling, which costs more than the products for the short batches
-    of a growth cycle."""
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    """Row-wise cross product of (m, 3) arrays of one shape: the arithmetic of ``np.cross`` (so
+    the same bits) without its axis handling, which costs more than the products for the short
+    batches of a growth cycle."""
+    out = np.empty(a.shape)
     a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
     b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
     np.subtract(a1 * b2, a2 * b1, out=out[:, 0])
@@ -72,8 +72,13 @@ def rotate(v: np.ndarray, k: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return v * c + cross(k, v) * s + k * (kdv * (1.0 - c))
 
 
+def _norm(v: np.ndarray) -> np.ndarray:
+    """Row norms of (m, 3) ``v``: ``np.linalg.norm(v, axis=1)``'s sum in its order (the same bits)."""
+    return np.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])
+
+
 def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=1)[:, None]
+    return v / _norm(v)[:, None]
 
 
 def lambda_schedule(age: float, init_lambda: float, targ_lambda: float, delay: float,
@@ -315,11 +320,21 @@ class SOTGrowth:
         self.on_step = on_step
         self.record = record or on_step is not None
         self.rng = np.random.Generator(np.random.PCG64(seed))
-        n_vox = int(round(p["span"] / p["voxel_size"]))
-        uniforms = self.rng.random(n_vox ** 3)
+        n3 = int(round(p["span"] / p["voxel_size"])) ** 3
+        drawn = []
+
+        def uniforms():
+            drawn.append(n3)
+            return self.rng.random(n3)
+
+        # draw 1; the field of a seed seen before comes from the field's cache, and the generator
+        # then skips the n3 draws it was made of (PCG64 advance: the same stream after it)
         self.field = LightField(p["span"], p["voxel_size"], int(p["depth"]), p["spread"],
                                 p["shadow_a"], p["shadow_b"], p["ran"], p["vert"], uniforms,
-                                stand_shade=p["stand_shade"])
+                                stand_shade=p["stand_shade"],
+                                initial_key=("sot", int(seed)) if isinstance(seed, (int, np.integer)) else None)
+        if not drawn:
+            self.rng.bit_generator.advance(n3)
         self.s = SegmentStore()
         self.age = 0.0
         self.cycle = 0
@@ -474,7 +489,7 @@ class SOTGrowth:
         grad = self.field.gradient(s.start[bearing], p["sample_rad"]) if m else np.zeros((0, 3))
         t = p["reorient"] * grad
         t[:, 2] += p["tropism"] + p["tropism_sd"] * z_trop
-        tn = np.linalg.norm(t, axis=1)
+        tn = _norm(t)
         tau = np.minimum(tn, p["redir_strength"])
         that = np.where(tn[:, None] > 0, t / np.where(tn > 0, tn, 1.0)[:, None], 0.0)
         # 7. initial frames
@@ -515,7 +530,7 @@ class SOTGrowth:
             ha, ua, ta, tu = h[act], u[act], that[act], tau[act]
             # (ii) partial rotation of the frame towards the target
             ax = cross(ha, ta)
-            sn = np.linalg.norm(ax, axis=1)
+            sn = _norm(ax)
             cs = np.einsum("ij,ij->i", ha, ta)
             turn = sn > 1e-12  # h parallel or antiparallel to the target: no turn
             if turn.any():

@@ -556,24 +556,25 @@ class SOTGrowth:
             u[act] = ua
             # (iv) append the metamers
             nid = s.n + np.arange(act.size)
+            new = slice(s.n, s.n + act.size)  # the rows nid, as a slice (cheaper to write)
             par = bearing[act] if k == 0 else last[act]
-            s.start[nid] = pos[act]
-            s.h[nid] = ha
-            s.u[nid] = ua
-            s.length[nid] = seg_len[act]
-            s.width[nid] = p["init_width"]
-            s.parent[nid] = par
-            s.is_lateral[nid] = lateral[act] & (k == 0)
-            s.order[nid] = order[act]
-            s.depth[nid] = s.depth[par] + 1
-            s.alive[nid] = True
-            s.born[nid] = c
-            s.api_state[nid] = EMPTY
-            s.lat_state[nid] = BUD
-            s.api_child[nid] = -1
-            s.lat_child[nid] = -1
-            s.api_stub_w[nid] = 0.0
-            s.lat_stub_w[nid] = 0.0
+            s.start[new] = pos[act]
+            s.h[new] = ha
+            s.u[new] = ua
+            s.length[new] = seg_len[act]
+            s.width[new] = p["init_width"]
+            s.parent[new] = par
+            s.is_lateral[new] = lateral[act] & (k == 0)
+            s.order[new] = order[act]
+            s.depth[new] = s.depth[par] + 1
+            s.alive[new] = True
+            s.born[new] = c
+            s.api_state[new] = EMPTY
+            s.lat_state[new] = BUD
+            s.api_child[new] = -1
+            s.lat_child[new] = -1
+            s.api_stub_w[new] = 0.0
+            s.lat_stub_w[new] = 0.0
             if k == 0:
                 la = lateral[act]
                 s.lat_state[par[la]] = CHILD

@@ -357,6 +357,18 @@ def test_prepare_equals_unprepared_and_freezes_transform():
     assert frozen != pytest.approx(refit, abs=1e-6)
 
 
+def test_default_threads_follow_the_process_thread_limit(monkeypatch):
+    import os
+    d = bf.component("distance", "sliced", lines=16)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert d.n_threads == max(1, min(8, os.cpu_count() or 1))
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")  # as in a worker of the process executor
+    assert d.n_threads == 1
+    monkeypatch.setenv("OMP_NUM_THREADS", "junk")
+    assert d.n_threads == max(1, min(8, os.cpu_count() or 1))
+    assert bf.component("distance", "sliced", lines=16, threads=3).n_threads == 3  # explicit wins
+
+
 def test_presort_fallback_threads_and_blocks_agree():
     rng = np.random.default_rng(18)
     ud, um = rng.normal(size=(500, 5)), rng.normal(size=(400, 5))

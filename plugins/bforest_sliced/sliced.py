@@ -257,7 +257,9 @@ class SlicedDistance(Distance):
         Distance of a pair with one empty side. Defaults to 1.0 for KS (sqrt(n/2) when scaled);
         required for every other statistic.
     threads : int
-        Worker threads over line blocks (default min(8, cores)); ``block`` lines per block.
+        Worker threads over line blocks (default min(8, cores), and no more than
+        ``OMP_NUM_THREADS`` when that is set: the process and Dask executors set it to 1 in their
+        workers, which already keep every core busy); ``block`` lines per block.
     presort_memory_limit : int
         Bytes above which the data projections are not kept sorted (recomputed per block).
     return_lines : bool
@@ -307,7 +309,11 @@ class SlicedDistance(Distance):
     @property
     def n_threads(self) -> int:
         t = self.settings.threads
-        return t if t is not None else max(1, min(8, os.cpu_count() or 1))
+        if t is not None:
+            return t
+        omp = os.environ.get("OMP_NUM_THREADS", "").strip()
+        cap = int(omp) if omp.isdigit() and int(omp) >= 1 else 8
+        return max(1, min(8, cap, os.cpu_count() or 1))
 
     def empty_cost(self, n_nonempty: int) -> float:
         """Distance of a pair whose other side is empty (§4.5)."""

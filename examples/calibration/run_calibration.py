@@ -267,9 +267,12 @@ def _verdict(a: dict, b: dict, both: list, names: list, n_asked: int) -> str:
     inside = all(BAND[50][0] <= c <= BAND[50][1] for c in new50) and all(BAND[90][0] <= c <= BAND[90][1]
                                                                          for c in new90)
     rng = lambda v: f"{min(v):.0f}–{max(v):.0f} %"  # noqa: E731
+    out = [f"`{nm}` {lev} % ({c:.1f} %)" for lev, cs in ((50, new50), (90, new90)) for nm, c in zip(names, cs)
+           if not BAND[lev][0] <= c <= BAND[lev][1]]
     text = (f"Its coverage on these {len(both)} draws is {rng(new50)} (50 %) and {rng(new90)} (90 %) over the "
-            f"three parameters, {'all inside' if inside else 'not all inside'} the issue's bands; with 7 "
-            f"generations the same draws gave {rng(old50)} and {rng(old90)}.")
+            f"three parameters, " + ("all inside the issue's bands" if inside else
+                                     f"outside the issue's bands for {', '.join(out)}")
+            + f"; with 7 generations the same draws gave {rng(old50)} and {rng(old90)}.")
     if len(both) < 39:
         r50, r90 = coverage_range(len(both), 50), coverage_range(len(both), 90)
         text += (f" {len(both)} runs cannot settle the acceptance, though: over {len(both)} runs a calibrated "

@@ -7,7 +7,8 @@ pointer-jumping rounds (acropetal pass) and metamer steps (shoot construction).
 
 Random draws, all from one ``numpy.random.Generator(PCG64(seed))`` (spec B.7):
 
-* init: ``n_vox**3`` uniforms for ``ran`` in C order of (i, j, k) (drawn even when ran = 0);
+* init: ``n_vox**3`` uniforms for ``ran`` in C order of (i, j, k) (drawn even when ran = 0;
+  skipped with ``advance`` when the initial field of this seed is cached: the same stream after)
 * per growth cycle c = 2 .. max_iter, in this order:
 
   1. one standard normal for lambda (``lambda_sd``);

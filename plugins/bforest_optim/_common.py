@@ -205,6 +205,14 @@ class BoxEvaluator:
         return own
 
 
+def finite_stats(f: np.ndarray, *names: str) -> dict[str, float]:
+    """``mean``, ``median`` and/or ``std`` of the finite values of ``f`` (inf when there are
+    none): the population statistics of a log record."""
+    fin = f[np.isfinite(f)]
+    fns = {"mean": np.mean, "median": np.median, "std": np.std}
+    return {k: float(fns[k](fin)) if fin.size else math.inf for k in names}
+
+
 def finite_or_none(v) -> float | None:
     v = float(v)
     return v if math.isfinite(v) else None

@@ -19,7 +19,8 @@ from pydantic import Field
 
 from bforest_core.interfaces import OptimizeResult, Optimizer, Problem
 
-from ._common import BoxEvaluator, History, NoiseStop, OptimizerSettings, make_result, noise_stop_fields
+from ._common import (BoxEvaluator, History, NoiseStop, OptimizerSettings, finite_stats, make_result,
+                      noise_stop_fields)
 
 _NOISE = noise_stop_fields()
 
@@ -36,11 +37,6 @@ class CMASettings(OptimizerSettings):
     patience: Optional[int] = _NOISE["patience"]
     noise: Union[float, str] = _NOISE["noise"]
     noise_seeds: int = _NOISE["noise_seeds"]
-
-
-def _finite_stat(f: np.ndarray, stat) -> float:
-    finite = f[np.isfinite(f)]
-    return float(stat(finite)) if finite.size else math.inf
 
 
 class CMAES(Optimizer):
@@ -78,8 +74,7 @@ class CMAES(Optimizer):
             # best region rather than at a centre that may be poor (the points count in the budget)
             X = ev.sample_init(s.init_design, np.random.default_rng([int(problem.seed), 0xC3A]), "sobol")
             f = ev(X)
-            log(ev, generation=0, run=-1, population=len(X), sigma=None,
-                mean=_finite_stat(f, np.mean), median=_finite_stat(f, np.median))
+            log(ev, generation=0, run=-1, population=len(X), sigma=None, **finite_stats(f, "mean", "median"))
             if np.isfinite(f).any():
                 x0 = (X[int(np.argmin(f))] - lo) / (hi - lo)
         for run in range(s.restarts + 1):
@@ -96,7 +91,7 @@ class CMAES(Optimizer):
                 es.tell(list(U), list(np.where(np.isfinite(f), f, worst)))
                 generation += 1
                 log(ev, generation=generation, run=run, population=len(U), sigma=float(es.sigma),
-                    mean=_finite_stat(f, np.mean), median=_finite_stat(f, np.median))
+                    **finite_stats(f, "mean", "median"))
                 if stop(ev):
                     reason = stop.reason
                     break

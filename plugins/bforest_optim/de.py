@@ -13,8 +13,8 @@ from pydantic import Field
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import BoxEvaluator, History, OptimizerSettings, SamplingName, StopOptimization, make_result, \
-    sampling_field
+from ._common import BoxEvaluator, History, OptimizerSettings, SamplingName, StopOptimization, finite_stats, \
+    make_result, sampling_field
 
 Strategy = Literal["best1bin", "best1exp", "rand1bin", "rand1exp", "rand2bin", "rand2exp", "randtobest1bin",
                    "randtobest1exp", "currenttobest1bin", "currenttobest1exp", "best2bin", "best2exp"]
@@ -70,8 +70,7 @@ class DifferentialEvolution(Optimizer):
 
         def callback(intermediate_result):
             e = np.asarray(intermediate_result.population_energies, float)
-            fin = e[np.isfinite(e)]
-            log(ev, generation=int(intermediate_result.nit), mean=float(fin.mean()) if fin.size else np.inf,
+            log(ev, generation=int(intermediate_result.nit), **finite_stats(e, "mean"),
                 convergence=float(getattr(intermediate_result, "convergence", np.nan)))
             return ev.stopped
 

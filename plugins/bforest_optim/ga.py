@@ -33,8 +33,8 @@ from pydantic import Field, model_validator
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import (BoxEvaluator, History, NoiseStop, OptimizerSettings, SamplingName, make_result, noise_stop_fields,
-                      sampling_field)
+from ._common import (BoxEvaluator, History, NoiseStop, OptimizerSettings, SamplingName, finite_stats, make_result,
+                      noise_stop_fields, sampling_field)
 
 _NOISE = noise_stop_fields()
 
@@ -154,11 +154,8 @@ class GeneticAlgorithm(Optimizer):
 
     @staticmethod
     def _log(log, ev, g, f, n_new, *, sigma, stall):
-        fin = f[np.isfinite(f)]
-        stats = dict(mean=fin.mean(), median=np.median(fin), std=fin.std()) if fin.size else \
-            dict(mean=math.inf, median=math.inf, std=math.inf)
-        log(ev, generation=g, **stats, n_new=int(n_new), n_failed=int(f.size - fin.size),
-            sigma=float(sigma), stall=int(stall))
+        log(ev, generation=g, **finite_stats(f, "mean", "median", "std"), n_new=int(n_new),
+            n_failed=int(np.count_nonzero(~np.isfinite(f))), sigma=float(sigma), stall=int(stall))
 
     def expected_evaluations(self, dim: int) -> int:
         """Population x (generations + 1): what the run evaluates when no stop comes first."""

@@ -109,7 +109,9 @@ class LightField:
         self._off = self.di * self._si + self.dj * self._sj + self.dk
         self._interior = (slice(pxy, pxy + n), slice(pxy, pxy + n), slice(pz, pz + n))
         key = None if initial_key is None else (initial_key, n, float(ran), float(vert), pxy, pz)
-        if key is not None and key in _INITIAL:
+        #: True when the initial field came from the cache (``uniforms`` was not called)
+        self.from_cache = key is not None and key in _INITIAL
+        if self.from_cache:
             _INITIAL.move_to_end(key)
             self._log0, self._roof = _INITIAL[key]
         else:

@@ -322,19 +322,13 @@ class SOTGrowth:
         self.record = record or on_step is not None
         self.rng = np.random.Generator(np.random.PCG64(seed))
         n3 = int(round(p["span"] / p["voxel_size"])) ** 3
-        drawn = []
-
-        def uniforms():
-            drawn.append(n3)
-            return self.rng.random(n3)
-
         # draw 1; the field of a seed seen before comes from the field's cache, and the generator
         # then skips the n3 draws it was made of (PCG64 advance: the same stream after it)
         self.field = LightField(p["span"], p["voxel_size"], int(p["depth"]), p["spread"],
-                                p["shadow_a"], p["shadow_b"], p["ran"], p["vert"], uniforms,
+                                p["shadow_a"], p["shadow_b"], p["ran"], p["vert"], lambda: self.rng.random(n3),
                                 stand_shade=p["stand_shade"],
                                 initial_key=("sot", int(seed)) if isinstance(seed, (int, np.integer)) else None)
-        if not drawn:
+        if self.field.from_cache:
             self.rng.bit_generator.advance(n3)
         self.s = SegmentStore()
         self.age = 0.0

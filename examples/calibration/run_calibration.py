@@ -255,17 +255,27 @@ def facts(results: dict) -> dict:
     return out
 
 
+def _span(v) -> str:
+    return f"{min(v):.0f}–{max(v):.0f} %"
+
+
+def _bands_phrase(cov: dict, names: list) -> str:
+    """"all inside the issue's bands" or "outside the issue's bands for <cells>", from the coverage
+    (in %) per interval level, one value per parameter in ``names``."""
+    out = [f"`{nm}` {lev} % ({c:.1f} %)" for lev in (50, 90) for nm, c in zip(names, cov[lev])
+           if not BAND[lev][0] <= c <= BAND[lev][1]]
+    return f"outside the issue's bands for {', '.join(out)}" if out else "all inside the issue's bands"
+
+
 def _all_runs(res: dict, paired: int) -> str:
     """The sentence on a study extended beyond the draws it shares with the others."""
     ok = [r for r in res["runs"] if r["status"] == "ok"]
     if len(ok) <= paired:
         return ""
     cov = {lev: [100 * t[f"coverage{lev}"] for t in res["table"]] for lev in (50, 90)}
-    out = [f"`{t['parameter']}` {lev} % ({100 * t[f'coverage{lev}']:.1f} %)" for lev in (50, 90)
-           for t in res["table"] if not BAND[lev][0] <= 100 * t[f"coverage{lev}"] <= BAND[lev][1]]
     text = (f" Over all {len(ok)} runs of the extended study ({len(res['runs'])} draws) the coverage is "
-            f"{min(cov[50]):.0f}–{max(cov[50]):.0f} % (50 %) and {min(cov[90]):.0f}–{max(cov[90]):.0f} % (90 %), "
-            + (f"outside the issue's bands for {', '.join(out)}" if out else "inside the issue's bands"))
+            f"{_span(cov[50])} (50 %) and {_span(cov[90])} (90 %), "
+            + _bands_phrase(cov, [t["parameter"] for t in res["table"]]))
     if all(x >= lev for lev in (50, 90) for x in cov[lev]):
         text += ("; every cell is at or above its nominal level, so the intervals are, if anything, slightly "
                  "too wide (conservative), as a tolerance above zero makes them")
@@ -280,16 +290,10 @@ def _verdict(a: dict, b: dict, both: list, names: list, n_asked: int) -> str:
         return [100.0 * sum(rows[k]["params"][nm][f"lo{lev}"] <= rows[k]["params"][nm]["truth"]
                             <= rows[k]["params"][nm][f"hi{lev}"] for k in both) / len(both) for nm in names]
 
-    new50, new90, old50, old90 = cov(b, 50), cov(b, 90), cov(a, 50), cov(a, 90)
-    inside = all(BAND[50][0] <= c <= BAND[50][1] for c in new50) and all(BAND[90][0] <= c <= BAND[90][1]
-                                                                         for c in new90)
-    rng = lambda v: f"{min(v):.0f}–{max(v):.0f} %"  # noqa: E731
-    out = [f"`{nm}` {lev} % ({c:.1f} %)" for lev, cs in ((50, new50), (90, new90)) for nm, c in zip(names, cs)
-           if not BAND[lev][0] <= c <= BAND[lev][1]]
-    text = (f"Its coverage on these {len(both)} draws is {rng(new50)} (50 %) and {rng(new90)} (90 %) over the "
-            f"three parameters, " + ("all inside the issue's bands" if inside else
-                                     f"outside the issue's bands for {', '.join(out)}")
-            + f"; with 7 generations the same draws gave {rng(old50)} and {rng(old90)}.")
+    new, old = {lev: cov(b, lev) for lev in (50, 90)}, {lev: cov(a, lev) for lev in (50, 90)}
+    text = (f"Its coverage on these {len(both)} draws is {_span(new[50])} (50 %) and {_span(new[90])} (90 %) "
+            f"over the three parameters, {_bands_phrase(new, names)}; with 7 generations the same draws gave "
+            f"{_span(old[50])} and {_span(old[90])}.")
     if len(both) < 39:
         r50, r90 = coverage_range(len(both), 50), coverage_range(len(both), 90)
         text += (f" {len(both)} runs cannot settle the acceptance, though: over {len(both)} runs a calibrated "

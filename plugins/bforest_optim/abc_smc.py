@@ -22,11 +22,11 @@ trees within a tolerance epsilon of the data, tightened generation by generation
   and the sampler stops once it is reached. ``"noise"`` takes the distance's own noise floor: the
   median distance under ``noise_seeds`` fresh model seeds (``problem.seed_spread``) at the best
   particle or at the population's weighted mean, whichever is lower, measured before every
-  generation: what a perfect model still shows against the data. Above it the truth passes the tolerance almost surely and the posterior is
-  wider than the data warrant (the calibration study in docs/validation.md found the 50 %
-  intervals covering about two thirds of the truths when the run stopped at 1.4 times the floor);
-  at it a perfect model passes half the time; below it the acceptance rate, and so the cost,
-  falls fast for little gain.
+  generation: what a perfect model still shows against the data. Above it the truth passes the
+  tolerance almost surely and the posterior is wider than the data warrant (the calibration study
+  in docs/validation.md found the 50 % intervals covering about two thirds of the truths when the
+  run stopped at 1.4 times the floor); at it a perfect model passes half the time; below it the
+  acceptance rate, and so the cost, falls fast for little gain.
 * **Stops**: epsilon at or below the target; a generation that needs more than
   ``particles / min_acceptance`` proposals (the acceptance rate fell below ``min_acceptance``);
   ``generations`` done; the run's evaluation budget or wall time. The posterior is always the

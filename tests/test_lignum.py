@@ -616,3 +616,51 @@ def test_stand_shade_lifts_the_crown_and_is_off_by_default():
         h = float(t.end[:, 2].max())
         low.append(float(t.length[alive & (t.order >= 1) & (t.start[:, 2] < 0.4 * h)].sum()))
     assert low[0] > low[1] > low[2]
+
+
+def test_render_pieces_on_a_hand_built_table():
+    # a vertical stem segment (1 m) and a lateral (0.35 m along +x) from its end
+    start = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    axis = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    length = np.array([1.0, 0.35])
+    parent = np.array([-1, 0])
+    ext = np.array([-1, -1])
+    order = np.array([0, 1])
+    for wind in (0.0, 25.0):
+        s, a, ln, par, ex, keep = LM.render_pieces(start, axis, length, parent, ext, order, 0.1, wind,
+                                                   np.random.default_rng(5))
+        assert keep.tolist() == [0] * 10 + [1] * 4                  # ceil(1/0.1) and ceil(0.35/0.1)
+        assert par.tolist() == [-1] + list(range(9)) + [9, 10, 11, 12]
+        assert ex.tolist() == list(range(1, 10)) + [-1, 11, 12, 13, -1]
+        end = s + a * ln[:, None]
+        assert np.allclose(end[:-1][par[1:]], s[1:][par[1:] >= 0], atol=1e-12)  # pieces chain up
+        assert np.allclose(end[9], [0, 0, 1], atol=1e-12) and np.allclose(end[13], [0.35, 0, 1], atol=1e-12)
+        assert np.allclose(a[:10], [0, 0, 1]) and np.allclose(ln[:10], 0.1)  # the stem never winds
+        turns = np.degrees(np.arccos(np.clip(a[10:] @ [1.0, 0.0, 0.0], -1, 1)))
+        if wind == 0:
+            assert np.allclose(ln[10:], 0.0875) and np.allclose(turns, 0, atol=1e-6)
+        else:
+            assert turns.min() > 0.5 and ln[10:].sum() > 0.35
+
+
+def test_pieces_are_output_only_reproducible_and_off_by_default():
+    ssm = _ssm(preset="sf_real")
+    base = {"years": 16}
+    t0 = ssm.simulate(base, seed=3)
+    assert _same(t0, ssm.simulate({**base, "piece_length": 0.0, "wind_sd": 30.0}, seed=3))
+    straight = ssm.simulate({**base, "piece_length": 0.12}, seed=3)
+    wound = ssm.simulate({**base, "piece_length": 0.12, "wind_sd": 20.0}, seed=3)
+    assert _same(wound, ssm.simulate({**base, "piece_length": 0.12, "wind_sd": 20.0}, seed=3))
+    assert not _same(wound, ssm.simulate({**base, "piece_length": 0.12, "wind_sd": 20.0}, seed=4))
+    ends0 = np.round(t0.end, 9)
+    for t in (straight, wound):
+        assert t.n > 1.5 * t0.n and t.n_branches == t0.n_branches and t.max_order == t0.max_order
+        # the growth is unchanged: every segment's end point is the end of its last piece
+        got = {tuple(r) for r in np.round(t.end, 9)}
+        assert {tuple(r) for r in ends0} <= got
+        assert np.isclose(t.end[:, 2].max(), t0.end[:, 2].max(), rtol=0, atol=1e-9)
+    assert straight.length.max() <= 0.12 + 1e-12
+    assert math.isclose(straight.length.sum(), t0.length.sum(), rel_tol=1e-12)
+    assert wound.length.sum() > straight.length.sum()
+    assert np.allclose(wound.axis[wound.order == 0], straight.axis[straight.order == 0], rtol=0, atol=1e-12)
+    assert not np.allclose(wound.axis[wound.order > 0], straight.axis[straight.order > 0], atol=1e-3)

@@ -160,6 +160,73 @@ def depth_levels(idx: np.ndarray, depth: np.ndarray) -> list[np.ndarray]:
     return [s[bounds[k]:bounds[k + 1]] for k in range(bounds.size - 1)]
 
 
+# ------------------------------------------------------------------------------------ output
+#: stream of the output-only draws (``render_pieces``), apart from the growth draws of the seed
+RENDER_STREAM = 0x57494E44
+
+
+def render_rng(seed: int) -> np.random.Generator:
+    """The generator of the output-only draws of model seed ``seed`` (independent of the growth
+    stream, so trees drawn in pieces grow exactly as those drawn one cylinder per shoot)."""
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), RENDER_STREAM])))
+
+
+def render_pieces(start, axis, length, parent, ext, order, piece_length: float, wind_sd: float,
+                  rng: np.random.Generator):
+    """Draw every segment as ``k = ceil(length / piece_length)`` consecutive cylinders.
+
+    A QSM draws a branch as short cylinders fitted to the scan (median 0.08-0.16 m on the
+    Ruotsinkyla pines); LIGNUM grows a year's shoot as one straight segment. Here a segment of
+    order > 0 winds: piece j points along ``axis + e_j - mean(e)``, with e_j normal to the axis and
+    each of its two components N(0, wind_sd) (radians), so the pieces end exactly at the segment's
+    end point and the growth (light, positions of the children) is unchanged; order-0 segments
+    (the stem) stay straight. One draw block per call: 2 normals per piece of every segment of
+    order > 0 with k >= 2, in row order.
+
+    Returns ``(start, axis, length, parent, extension, keep)``: the pieces' table (parents and
+    extensions re-indexed; a segment's children hang from its last piece) and, per piece, the row
+    of its segment (``keep``, for the per-segment columns).
+    """
+    n = length.size
+    k = np.maximum(1, np.ceil(length / piece_length - 1e-9).astype(np.int64))
+    first = np.zeros(n, dtype=np.int64)
+    np.cumsum(k[:-1], out=first[1:])
+    last = first + k - 1
+    keep = np.repeat(np.arange(n), k)
+    j = np.arange(keep.size) - first[keep]                    # piece number within its segment
+    kk = k[keep].astype(np.float64)
+    vec = axis[keep] * (length[keep] / kk)[:, None]
+    wind = (order[keep] > 0) & (kk > 1)
+    if wind_sd > 0 and wind.any():
+        rows = np.flatnonzero(wind)
+        a = axis[keep[rows]]
+        # two unit normals of each axis
+        helper = np.where(np.abs(a[:, 2:3]) < 0.9, EZ, EX)
+        u = _unit(_cross(a, helper))
+        v = _cross(a, u)
+        g = rng.standard_normal((rows.size, 2)) * math.radians(wind_sd)
+        e = g[:, :1] * u + g[:, 1:] * v
+        seg = keep[rows]                                       # centre e within each segment
+        sums = np.zeros((n, 3))
+        np.add.at(sums, seg, e)
+        e -= sums[seg] / kk[rows, None]
+        vec[rows] += e * (length[seg] / kk[rows])[:, None]
+    plen = np.linalg.norm(vec, axis=1)
+    paxis = vec / plen[:, None]
+    # piece starts: the segment's start plus the vectors of its earlier pieces
+    csum = np.cumsum(vec, axis=0)
+    before = csum - vec - (csum[first] - vec[first])[keep]
+    pstart = start[keep] + before
+    ppar = np.where(j > 0, np.arange(keep.size) - 1, -1)
+    root = j == 0
+    ppar[root] = np.where(parent[keep[root]] >= 0, last[np.maximum(parent[keep[root]], 0)], -1)
+    pext = np.where(j < kk - 1, np.arange(keep.size) + 1, -1)
+    at_last = np.flatnonzero(j == kk - 1)
+    has_ext = ext[keep[at_last]] >= 0
+    pext[at_last[has_ext]] = first[ext[keep[at_last[has_ext]]]]
+    return pstart, paxis, plen, ppar, pext, keep
+
+
 # ------------------------------------------------------------------------------------ state
 _FIELDS = {
     "start": (np.float64, 3), "axis": (np.float64, 3), "length": (np.float64, 0),
@@ -303,7 +370,15 @@ class _Simulation:
                   "foliage_mass": st.wf[idx].copy(), "heartwood_radius": st.hw[idx].copy(),
                   "is_lateral": st.is_lat[idx].copy(), "segment_id": idx.copy(),
                   "birth_year": st.born[idx].copy()}
-        return Tree(st.start[idx], axis, st.length[idx], st.radius[idx], parent_out, ext,
+        start, length, radius = st.start[idx], st.length[idx], st.radius[idx]
+        if self.p["piece_length"] > 0:
+            start, axis, length, parent_out, ext, keep = render_pieces(
+                start, axis, length, parent_out, ext, st.order[idx], self.p["piece_length"],
+                self.p["wind_sd"], render_rng(self.seed))
+            radius = radius[keep]
+            extras = {k: v[keep] for k, v in extras.items()}
+            meta["pieces"] = {"piece_length": float(self.p["piece_length"]), "wind_sd": float(self.p["wind_sd"])}
+        return Tree(start, axis, length, radius, parent_out, ext,
                     topology="thickest" if self.order_mode == "thickest" else "source",
                     extras=extras, metadata=meta)
 

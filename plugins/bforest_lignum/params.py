@@ -48,13 +48,14 @@ _TABLE = [
     _Par("r_env_mean", "R_env mean", "m", 0.1, 4.0, False,
          "mean of TN R_env: buds farther from the stem axis die (1 draw per bud per year)", "space"),
     _Par("r_env_sd", "R_env sd", "m", 0.0, 0.3, False, "sd of TN R_env", "space"),
-    _Par("lr_mean", "L_R mean", "", 0.0045, 0.0135, False,
-         "mean of TN L_R, radius:length of a new shoot (1 draw per shoot)", "shoot"),
+    _Par("lr_mean", "L_R mean", "", 0.0045, 0.025, False,
+         "mean of TN L_R, radius:length of a new shoot (1 draw per shoot; the spec's range stops at "
+         "0.0135, scanned pines' first-order branches have base radius:length 0.011-0.024)", "shoot"),
     _Par("lr_sd", "L_R sd", "", 0.0, 0.003, False, "sd of TN L_R", "shoot"),
     _Par("q_mean", "Q mean", "", 0.0, 0.4, False,
          "mean of TN Q, apical dominance 1 - w*Q (1 draw per bud + 1 per shoot)", "shoot"),
     _Par("q_sd", "Q sd", "", 0.0, 0.05, False, "sd of TN Q", "shoot"),
-    _Par("beta_init", "beta_init", "deg", 17.5, 60, False, "angle of a new lateral to its parent", "angles"),
+    _Par("beta_init", "beta_init", "deg", 17.5, 90, False, "angle of a new lateral to its parent (the spec's range stops at 60; scanned pines' first-order branches leave the stem at 55-120 deg)", "angles"),
     _Par("beta_incr", "Delta beta", "deg", 0, 15, False, "mean yearly bending (mean of delta)", "angles"),
     _Par("beta_max", "beta_max", "deg", 40, 105, False, "bending cap vs the mother segment", "angles"),
     _Par("zeta_sd", "Delta zeta", "deg", 0, 10, False, "sd of delta ~ N(Delta beta, Delta zeta)", "angles"),
@@ -84,6 +85,12 @@ _TABLE = [
     _Par("init_len", "INITLEN", "m", 0.1, 1.0, False, "first segment length", "shoot"),
     _Par("pipe_coeff", "c_p", "", 0.75, 1.0, False, "pipe weight of lateral links", "carbon"),
     _Par("fol_threshold", "FOLTHR", "kg", 0.0, 1e-4, False, "foliage counted as none (shedding)", "shedding"),
+    _Par("piece_length", "l_piece", "m", 0.0, 0.5, False,
+         "output only (an addition): each shoot is drawn as pieces at most this long, as a scan's "
+         "QSM draws a branch as short cylinders; the growth is unchanged (0 = one cylinder per shoot)", "output"),
+    _Par("wind_sd", "sigma_wind", "deg", 0.0, 40.0, False,
+         "output only (an addition): sd of the bend of each piece of a branch shoot (order > 0) "
+         "with the shoot's end points kept, so branches wind as scanned ones do (0 = straight shoots)", "output"),
     _Par("bud_table", "-", "", 0, 1, True, "lateral-count table: 0 = p98, 1 = s08", "shoot"),
     _Par("collision", "-", "", 0, 1, True, "optional collision test: 0 off, 1 on", "space"),
 ]
@@ -100,6 +107,7 @@ _P98 = dict(
     ss_start=0, resp_foliage=0.2, resp_sapwood=0.024, resp_root=0.24, heartwood_share=0.6,
     wood_density=400.0, photo_eff=0.001, fl_threshold=0.4, fl_min_buds=0.0, min_len=0.0,
     init_len=0.5, pipe_coeff=1.0, fol_threshold=1e-8, bud_table=0, collision=0,
+    piece_length=0.0, wind_sd=0.0,
 )
 _S08 = dict(
     _P98, radiation=40.0, shadow_max=50.0, shadow_len=0.7, voxel_size=0.01, r_env_mean=1.2,
@@ -189,7 +197,8 @@ def validate(p: Mapping[str, float]) -> None:
                  "ss_start", "r_env_mean", "q_mean"):
         need(p[name] >= 0, name, "must be >= 0")
     need(p["lr_mean"] > 0, "lr_mean", "must be > 0")
-    for name in ("r_env_sd", "lr_sd", "q_sd", "zeta_sd", "gamma_sd", "whorl_rotation_sd"):
+    need(p["piece_length"] >= 0, "piece_length", "must be >= 0 (0 = one cylinder per shoot)")
+    for name in ("r_env_sd", "lr_sd", "q_sd", "zeta_sd", "gamma_sd", "whorl_rotation_sd", "wind_sd"):
         need(p[name] >= 0, name, "is a standard deviation and must be >= 0")
     for name in ("root_senescence", "sapwood_senescence"):
         need(0 <= p[name] <= 1, name, "must lie in [0, 1]")

@@ -109,6 +109,43 @@ def test_report_of_an_unfinished_run_and_text_only(toy_plugin, tmp_path):
     assert not list((run / "figures").glob("*.png"))
 
 
+def test_report_draws_the_same_figures_in_one_or_two_processes(toy_runs, tmp_path, monkeypatch):
+    """On two cores the data-set figures are drawn in a second (spawned) process; the report
+    lists the same figures as when one process draws them all, and a second process that fails
+    leaves a note and the figures drawn in the first."""
+    import re
+    from concurrent.futures import Future
+    from bforest_core.report import build
+    run = tmp_path / "run"
+    shutil.copytree(toy_runs[0], run)
+    figs = lambda text: re.findall(r"\]\((figures/[^)]+\.png)\)", text)  # noqa: E731
+
+    monkeypatch.setattr(build, "_cores", lambda: 1)
+    one = figs(write_report(run, strict=True).read_text())
+    monkeypatch.setattr(build, "_cores", lambda: 2)
+    two_text = write_report(run, strict=True).read_text()
+    assert one == figs(two_text) and "figures/set_L.png" in one
+    assert "second report process" not in two_text
+
+    class Broken:
+        def __init__(self, *a, **k):
+            pass
+
+        def submit(self, *a, **k):
+            f = Future()
+            f.set_exception(RuntimeError("no luck"))
+            return f
+
+        def shutdown(self, **k):
+            pass
+
+    monkeypatch.setattr(build, "ProcessPoolExecutor", Broken)
+    (run / "figures" / "set_L.png").unlink()
+    text = write_report(run).read_text()
+    assert figs(text) == one and "the second report process failed (RuntimeError: no luck)" in text
+    assert_png(run / "figures" / "set_L.png")
+
+
 def test_report_when_the_config_no_longer_validates(toy_runs, tmp_path):
     """A run whose plugin is gone still gets a report from what the run directory holds."""
     run = tmp_path / "run"

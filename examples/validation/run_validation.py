@@ -3,6 +3,8 @@
     .venv/bin/python examples/validation/run_validation.py            # everything (about 1 h on 2 cores)
     .venv/bin/python examples/validation/run_validation.py --only sot_synthetic
     .venv/bin/python examples/validation/run_validation.py --report   # tables/figures from finished runs
+    .venv/bin/python examples/validation/run_validation.py --check runs/validation-check
+        # refit the synthetic recoveries into a fresh folder and compare with the page (no rewrite)
 
 Fits already finished in runs/validation/<name> (best.json present) are reused; an interrupted
 fit is resumed. Every number in docs/validation.md comes from these runs.
@@ -11,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 from pathlib import Path
 
@@ -34,9 +37,9 @@ SYMBOL = {"lr_mean": "L_R mean", "lr_sd": "L_R sd", "q_mean": "Q mean", "q_sd": 
           "drop_thresh": "drop threshold", "shadow_a": "shadow a", "init_lambda": "λ (initial)"}
 
 
-def run_fit(name: str, clones_n: int | None = None) -> Path:
+def run_fit(name: str, clones_n: int | None = None, runs: Path = RUNS) -> Path:
     cfg_path = HERE / f"{name}.toml"
-    out = RUNS / name
+    out = runs / name
     if (out / "best.json").exists():
         print(f"[{name}] reusing finished fit in {out}")
     else:
@@ -340,11 +343,49 @@ distance is the largest), so the simplified LIGNUM cannot reproduce this pine's 
     print(f"wrote {DOC}")
 
 
+#: heading of each synthetic recovery's section on the page -> its configs (seed appended)
+RECOVERIES = {"## 1. ": "lignum_synthetic_seed", "### 1b. ": "lignum_synthetic_k3_seed",
+              "### 1c. ": "lignum_synthetic_rich_seed", "## 2. ": "sot_synthetic_seed",
+              "### 2b. ": "sot_synthetic_k3_seed"}
+
+
+def check_recoveries(runs: Path) -> bool:
+    """Refit every synthetic recovery into ``runs`` (fits already there are reused) and compare
+    its best distance, evaluation count and estimates (as the page rounds them) with the page's
+    tables; prints one line per run and returns whether every run gives the recorded result."""
+    page = DOC.read_text(encoding="utf-8")
+    heads = [m.start() for m in re.finditer(r"(?m)^##+ ", page)]
+    same_all = True
+    for head, stem in RECOVERIES.items():
+        i = page.index(head)
+        text = page[i:min([k for k in heads if k > i] or [len(page)])]
+        recorded = re.search(r"Best distance per seed: (.*?)\. ", text).group(1).split("), ")
+        for s in (1, 2, 3):
+            b = json.loads((run_fit(f"{stem}{s}", runs=runs) / "best.json").read_text())
+            got = f"{b['distance']:.4f} ({b['n_evaluations']} eval."
+            diffs = []
+            for name, v in b["params"].items():
+                row = re.search(rf"(?m)^\| [^|]*\(`{name}`\) \|([^\n]*)$", text)
+                cell = [c.strip() for c in row.group(1).split("|")][1 + s] if row else None
+                if cell is not None and cell != f"{v:.4g}":
+                    diffs.append(f"{name} {cell} -> {v:.4g}")
+            same = recorded[s - 1].startswith(got) and not diffs
+            same_all &= same
+            print(f"{head.strip('# ')}{stem}{s}: page {recorded[s - 1].rstrip(')')}), re-run {got}); "
+                  f"estimates {'as on the page' if not diffs else ', '.join(diffs)} -> {'same' if same else 'DIFFERENT'}")
+    print("every recovery gives the recorded result" if same_all else "some recoveries differ from the page")
+    return same_all
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--only", default=None, help="run only configs whose name starts with this")
     ap.add_argument("--report", action="store_true", help="only rewrite docs/validation.md")
+    ap.add_argument("--check", type=Path, metavar="DIR", help="refit the synthetic recoveries into DIR and "
+                    "compare them with docs/validation.md (the page is not rewritten)")
     args = ap.parse_args()
+    if args.check:
+        raise SystemExit(0 if check_recoveries(args.check) else 1)
     RUNS.mkdir(parents=True, exist_ok=True)
     if not args.report:
         plan = [f"sot_synthetic_seed{s}" for s in (1, 2, 3)] + [f"lignum_synthetic_seed{s}" for s in (1, 2, 3)] + \

@@ -272,9 +272,13 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     if store.count() == 0:
         raise BayesForestError(f"{run_dir}: the optimiser evaluated nothing ({stop_reason})")
     out = finish_fit(cfg, store, tgt, stop_reason, evaluator.elapsed(), result, ssm)
-    return FitResult(params=out["params"], distance=out["distance"], per_set=out["per_set"],
-                     n_evaluations=store.count(), stop_reason=stop_reason, run_dir=run_dir,
-                     history=store.log_records(), diagnostics=result.diagnostics, already_finished=finished)
+    res = FitResult(params=out["params"], distance=out["distance"], per_set=out["per_set"],
+                    n_evaluations=store.count(), stop_reason=stop_reason, run_dir=run_dir,
+                    history=store.log_records(), diagnostics=result.diagnostics, already_finished=finished)
+    # closed now, not whenever the collector gets to it: the last connection's close writes the
+    # log file (SQLite's checkpoint), which must not happen while a later command reads the run
+    store.close()
+    return res
 
 
 def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:

@@ -20,6 +20,15 @@ def test_evaluations_are_committed_one_by_one(tmp_path):
         RunStore.open(tmp_path / "nothing")
 
 
+def test_a_store_used_as_a_context_closes_its_connection(tmp_path):
+    import sqlite3
+    RunStore.create(tmp_path / "run", "seed = 1\n").close()
+    with RunStore.open(tmp_path / "run") as s:
+        assert s.count() == 0
+    with pytest.raises(sqlite3.ProgrammingError, match="closed"):
+        s.count()
+
+
 def test_large_diagnostics_go_to_npz(tmp_path):
     s = RunStore.create(tmp_path / "run", "seed = 1\n")
     chain = np.random.default_rng(0).normal(size=(50, 16, 3))

@@ -126,49 +126,49 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
         ``references``.
     """
     run_dir = Path(run_dir)
-    store = RunStore.open(run_dir)
-    cfg = load_config(store.config_path)
-    best = store.read_json("best.json")
-    n = cfg.clones.count if n is None else int(n)
-    if n < 0:
-        raise ClonesError(f"clones: n must be at least 0 (got {n})")
-    out_dir = run_dir / ("clones_posterior" if posterior else "clones")
-    if replace and out_dir.exists():
-        shutil.rmtree(out_dir)
-    out_dir.mkdir(exist_ok=True)
-    rows = sorted(_existing(out_dir, store, best["params"]), key=lambda r: r["index"])
-    have = {int(r["index"]) for r in rows}
-    want = [i for i in range(max(n, 0)) if i not in have]
-    tgt = build_target(cfg)
-    tm = best.get("target_metrics")
-    seeds = clone_seeds(cfg.seed, max(n, len(rows)), cfg.clones.seed)
-    tasks = [(i, posterior_draw(run_dir, best["params"], seeds[i]) if posterior else best["params"], seeds[i],
-              str(out_dir)) for i in want]
-    refs = list(cfg.target.references)
-    new_rows, references = [], []
-    if tasks or refs:
-        bar = progress_bar(len(tasks), "clones", "clone", progress and bool(tasks))
-        with started_workers(cfg, tgt, executor) as ex:
-            for _, res in ex.map_unordered(_clone_task, tasks):
-                if res["status"] == "ok":
-                    from ..metrics import relative_errors
-                    res.update(relative_errors(tm, {k: res[k] for k in METRIC_KEYS}))
-                new_rows.append(res)
-                bar.update(1)
-            bar.close()
-            if refs:
-                references = ex.map(_reference_task, refs)
-    rows = sorted(rows + new_rows, key=lambda r: r["index"])
-    summary = _summarise(rows, tgt, best, tm)
-    summary["grown"] = len(new_rows)
-    summary["requested"] = n
-    summary["fidelity"] = _fidelity(cfg, tgt, best, rows)
-    summary["references"] = references
-    summary["posterior"] = bool(posterior)
-    _write_csv(out_dir / "clones.csv", rows, tgt)
-    store.write_json(f"{out_dir.name}/fidelity.json", summary["fidelity"])
-    store.write_json(f"{out_dir.name}/summary.json", summary)
-    return summary
+    with RunStore.open(run_dir) as store:
+        cfg = load_config(store.config_path)
+        best = store.read_json("best.json")
+        n = cfg.clones.count if n is None else int(n)
+        if n < 0:
+            raise ClonesError(f"clones: n must be at least 0 (got {n})")
+        out_dir = run_dir / ("clones_posterior" if posterior else "clones")
+        if replace and out_dir.exists():
+            shutil.rmtree(out_dir)
+        out_dir.mkdir(exist_ok=True)
+        rows = sorted(_existing(out_dir, store, best["params"]), key=lambda r: r["index"])
+        have = {int(r["index"]) for r in rows}
+        want = [i for i in range(max(n, 0)) if i not in have]
+        tgt = build_target(cfg)
+        tm = best.get("target_metrics")
+        seeds = clone_seeds(cfg.seed, max(n, len(rows)), cfg.clones.seed)
+        tasks = [(i, posterior_draw(run_dir, best["params"], seeds[i]) if posterior else best["params"], seeds[i],
+                  str(out_dir)) for i in want]
+        refs = list(cfg.target.references)
+        new_rows, references = [], []
+        if tasks or refs:
+            bar = progress_bar(len(tasks), "clones", "clone", progress and bool(tasks))
+            with started_workers(cfg, tgt, executor) as ex:
+                for _, res in ex.map_unordered(_clone_task, tasks):
+                    if res["status"] == "ok":
+                        from ..metrics import relative_errors
+                        res.update(relative_errors(tm, {k: res[k] for k in METRIC_KEYS}))
+                    new_rows.append(res)
+                    bar.update(1)
+                bar.close()
+                if refs:
+                    references = ex.map(_reference_task, refs)
+        rows = sorted(rows + new_rows, key=lambda r: r["index"])
+        summary = _summarise(rows, tgt, best, tm)
+        summary["grown"] = len(new_rows)
+        summary["requested"] = n
+        summary["fidelity"] = _fidelity(cfg, tgt, best, rows)
+        summary["references"] = references
+        summary["posterior"] = bool(posterior)
+        _write_csv(out_dir / "clones.csv", rows, tgt)
+        store.write_json(f"{out_dir.name}/fidelity.json", summary["fidelity"])
+        store.write_json(f"{out_dir.name}/summary.json", summary)
+        return summary
 
 
 def _fidelity(cfg, tgt, best, rows) -> dict:

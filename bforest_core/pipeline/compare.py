@@ -26,11 +26,8 @@ def _settings_for_budget(name: str, budget: int, own: dict | None = None) -> dic
 
 
 def best_so_far(run_dir: Path) -> np.ndarray:
-    store = RunStore.open(run_dir)
-    try:  # closed here, not whenever the collector gets to it: its close may write the log file
+    with RunStore.open(run_dir) as store:
         evs = store.evaluations()
-    finally:
-        store.close()
     return np.minimum.accumulate(np.array([e.distance for e in evs], float)) if evs else np.array([])
 
 

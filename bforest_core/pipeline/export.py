@@ -89,11 +89,8 @@ def export_evaluations(run_dir, path, overwrite: bool = False) -> int:
     run_dir, path = Path(run_dir), Path(path)
     if path.exists() and not overwrite:
         raise ExportError(f"{path} exists; pass --overwrite to replace it")
-    store = RunStore.open(run_dir)
-    try:
+    with RunStore.open(run_dir) as store:
         evs = store.evaluations()
-    finally:
-        store.close()
     params = list(dict.fromkeys(k for e in evs for k in e.params))
     sets = list(dict.fromkeys(k for e in evs for k in e.per_set))
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -236,49 +236,45 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     run_dir = Path(run_dir)
     cfg_dict = config_to_dict(cfg)
     text = tomli_w.dumps(cfg_dict)
-    if resume:
-        store = RunStore.open(run_dir)
-        if not same_config(run_dir, cfg):
-            raise RunDirError(f"{run_dir}: the config differs from the run's config.toml; "
-                              "resume with the run's own config (bforest fit RUN/config.toml -o RUN --resume)")
-        finished = (store.path / "best.json").exists()  # resuming it replays the log, simulates nothing
-        # the executor may change between sessions (results never depend on it)
-        store.config_path.write_text(text, encoding="utf-8")
-        store.clear_log()
-    else:
-        finished = False
-        store = RunStore.create(run_dir, text, overwrite=overwrite)
-    tgt = target if target is not None else build_target(cfg)
-    _save_target(store, tgt, cfg)
-    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
-    names, lo, hi, ilo, ihi, integer = _free_specs(cfg, ssm)
-    optimizer = component("optimizer", cfg.optimizer.kind, **section_settings(cfg, "optimizer"))
-    executor = run_executor(cfg)
-    problem = Problem(names=names, lower=lo, upper=hi, integer=integer, evaluate=None, init_lower=ilo,
-                      init_upper=ihi, seed=int(cfg.seed), budget=cfg.stop.max_evaluations,
-                      log=store.log)
-    bar = _Progress(_expected_total(cfg, optimizer, len(names)), enabled=progress)
-    evaluator = Evaluator(cfg, store, executor, ssm, names, problem, progress=bar)
-    problem.evaluate = evaluator
-    problem.seed_spread = evaluator.seed_spread
-    result = None
-    try:
-        with started_workers(cfg, tgt, executor):
-            result = optimizer.minimize(problem)
-    finally:
-        bar.close(problem.stop_reason or getattr(result, "stop_reason", "") or "")
-        store.set_meta("elapsed", evaluator.elapsed())
-    stop_reason = problem.stop_reason or result.stop_reason or "optimiser finished"
-    if store.count() == 0:
-        raise BayesForestError(f"{run_dir}: the optimiser evaluated nothing ({stop_reason})")
-    out = finish_fit(cfg, store, tgt, stop_reason, evaluator.elapsed(), result, ssm)
-    res = FitResult(params=out["params"], distance=out["distance"], per_set=out["per_set"],
-                    n_evaluations=store.count(), stop_reason=stop_reason, run_dir=run_dir,
-                    history=store.log_records(), diagnostics=result.diagnostics, already_finished=finished)
-    # closed now, not whenever the collector gets to it: the last connection's close writes the
-    # log file (SQLite's checkpoint), which must not happen while a later command reads the run
-    store.close()
-    return res
+    store = RunStore.open(run_dir) if resume else RunStore.create(run_dir, text, overwrite=overwrite)
+    with store:
+        if resume:
+            if not same_config(run_dir, cfg):
+                raise RunDirError(f"{run_dir}: the config differs from the run's config.toml; "
+                                  "resume with the run's own config (bforest fit RUN/config.toml -o RUN --resume)")
+            finished = (store.path / "best.json").exists()  # resuming it replays the log, simulates nothing
+            # the executor may change between sessions (results never depend on it)
+            store.config_path.write_text(text, encoding="utf-8")
+            store.clear_log()
+        else:
+            finished = False
+        tgt = target if target is not None else build_target(cfg)
+        _save_target(store, tgt, cfg)
+        ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+        names, lo, hi, ilo, ihi, integer = _free_specs(cfg, ssm)
+        optimizer = component("optimizer", cfg.optimizer.kind, **section_settings(cfg, "optimizer"))
+        executor = run_executor(cfg)
+        problem = Problem(names=names, lower=lo, upper=hi, integer=integer, evaluate=None, init_lower=ilo,
+                          init_upper=ihi, seed=int(cfg.seed), budget=cfg.stop.max_evaluations,
+                          log=store.log)
+        bar = _Progress(_expected_total(cfg, optimizer, len(names)), enabled=progress)
+        evaluator = Evaluator(cfg, store, executor, ssm, names, problem, progress=bar)
+        problem.evaluate = evaluator
+        problem.seed_spread = evaluator.seed_spread
+        result = None
+        try:
+            with started_workers(cfg, tgt, executor):
+                result = optimizer.minimize(problem)
+        finally:
+            bar.close(problem.stop_reason or getattr(result, "stop_reason", "") or "")
+            store.set_meta("elapsed", evaluator.elapsed())
+        stop_reason = problem.stop_reason or result.stop_reason or "optimiser finished"
+        if store.count() == 0:
+            raise BayesForestError(f"{run_dir}: the optimiser evaluated nothing ({stop_reason})")
+        out = finish_fit(cfg, store, tgt, stop_reason, evaluator.elapsed(), result, ssm)
+        return FitResult(params=out["params"], distance=out["distance"], per_set=out["per_set"],
+                         n_evaluations=store.count(), stop_reason=stop_reason, run_dir=run_dir,
+                         history=store.log_records(), diagnostics=result.diagnostics, already_finished=finished)
 
 
 def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:

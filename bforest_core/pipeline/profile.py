@@ -90,12 +90,9 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
     from .store import RunStore, slug
 
     run_dir = Path(run_dir)
-    store = RunStore.open(run_dir)
-    try:
+    with RunStore.open(run_dir) as store:
         cfg = load_config(store.config_path)
         best = store.read_json("best.json")
-    finally:
-        store.close()
     ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
     try:
         spec = ssm.parameter_spec(param)

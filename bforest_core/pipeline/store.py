@@ -262,7 +262,17 @@ class RunStore:
         return diag
 
     def close(self) -> None:
+        """Close the log's connection. Close it when done rather than leave it to the garbage
+        collector: the last connection's close checkpoints SQLite's write-ahead log into
+        ``evaluations.sqlite``, which must not happen at a random later moment (under a later
+        command reading the run)."""
         self._con.close()
+
+    def __enter__(self) -> "RunStore":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def _default(o):

@@ -137,3 +137,45 @@ def test_cma_init_design_is_a_sobol_look_and_the_search_starts_at_its_best():
     first = X[32:40].mean(axis=0)  # 8 points of sd 0.5 per axis around the start
     assert np.linalg.norm(best) > 3.0 and np.linalg.norm(first - best) < 1.0
     assert res.fun < 1e-3 and res.n_evaluations == 400
+
+
+def _ellipsoid(dim=12, seed=0):
+    """An ill-conditioned quadratic (axis scales 1..100) in the unit cube; minimum 0 at ``c``."""
+    c = np.random.default_rng(seed).uniform(0.2, 0.8, dim)
+    w = np.logspace(0, 2, dim)
+    return (lambda x: float((w * (x - c) ** 2).sum())), c
+
+
+def test_lq_surrogate_needs_far_fewer_evaluations_on_a_quadratic():
+    """lq-CMA-ES (Hansen 2019): on a quadratic the model ranks whole generations, so at equal
+    budget it gets orders of magnitude closer than plain CMA-ES; its true evaluations go out in
+    whole batches of ``surrogate_batch`` points."""
+    f, c = _ellipsoid()
+    got = {}
+    for sur in ("none", "lq"):
+        pr, asked = _problem(f, [0] * 12, [1] * 12, budget=400, seed=2)
+        sizes = []
+        inner = pr.evaluate
+        pr.evaluate = lambda X: (sizes.append(len(X)), inner(X))[1]
+        got[sur] = res = bf.component("optimizer", "cma", population=12, surrogate=sur,
+                                      surrogate_batch=3).minimize(pr)
+        assert res.n_evaluations <= 400
+    plain, lq = got["none"], got["lq"]
+    assert plain.fun > 1e-2 and lq.fun < 1e-6 and np.allclose(lq.x, c, atol=1e-3)
+    assert all(n % 3 == 0 for n in sizes[:-1])  # whole batches (the last one may be cut by the budget)
+    grown = [r["grown"] for r in lq.history]
+    assert min(grown) < 12 and all(g <= r["population"] for g, r in zip(grown, lq.history))
+    assert max(r["tau"] for r in lq.history) >= 0.85  # the model ranked some generation as the truth does
+
+
+def test_lq_surrogate_is_deterministic_and_grows_every_point_of_a_noise_only_objective():
+    """Pure noise: the model never ranks as the truth does (tau stays low), so every point of
+    every generation is grown, as without a surrogate."""
+    runs = []
+    for _ in range(2):
+        rng = np.random.default_rng(7)
+        pr, asked = _problem(lambda x: float(rng.random()), [0] * 5, [1] * 5, budget=200, seed=4)
+        res = bf.component("optimizer", "cma", population=8, surrogate="lq").minimize(pr)
+        runs.append(asked)
+        assert all(r["grown"] == r["population"] for r in res.history[2:])
+    assert runs[0] == runs[1]

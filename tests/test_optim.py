@@ -15,6 +15,7 @@ import bforest_core as bf
 from bforest_core.errors import ConfigError
 from bforest_core.interfaces import Problem
 
+from bforest_optim.cma_es import CMAES
 from bforest_optim.de import DifferentialEvolution
 from bforest_optim.emcee_sampler import EmceeSampler, auto_epsilon
 from bforest_optim.ga import GeneticAlgorithm, reflect
@@ -107,6 +108,7 @@ CASES = {
     "nlopt-direct+bobyqa": (NloptOptimizer, {"algorithm": "direct_l", "local_algorithm": "LN_BOBYQA"}, 1500, 0.05, 1e-3),
     "emcee": (EmceeSampler, {"epsilon": 0.5, "steps": 150}, None, 0.3, 0.1),
     "de": (DifferentialEvolution, {}, None, 0.05, 1e-3),
+    "cma-lq": (CMAES, {"surrogate": "lq", "population": 8}, 600, 0.05, 1e-3),
 }
 
 
@@ -184,7 +186,7 @@ def test_stops_at_target_mid_run_and_returns_best_seen(case):
     assert res.fun <= 10.0 and res.fun == rec.values.min() and np.array_equal(res.x, pr.best_x)
 
 
-@pytest.mark.parametrize("case", ["ga", "nlopt-crs2", "emcee", "de"])
+@pytest.mark.parametrize("case", ["ga", "nlopt-crs2", "emcee", "de", "cma-lq"])
 def test_resume_replay_gives_the_same_batches(case):
     """Resume re-runs the optimiser from the start: the first batches' values come from the log
     (nothing is computed), the rest are computed; the run must ask for the same points."""

@@ -245,11 +245,13 @@ class _State:
         self.cap = cap
         for k, (dt, w) in _FIELDS.items():
             setattr(self, "_" + k, np.zeros((cap, w) if w else cap, dtype=dt))
+        self._views()
 
-    def __getattr__(self, name):  # views of the used part
-        if name in _FIELDS:
-            return object.__getattribute__(self, "_" + name)[: self.n]
-        raise AttributeError(name)
+    def _views(self):
+        """``self.<field>``: a view of the used part of each array (refreshed when rows are
+        added; plain attributes, as a hot loop reads them hundreds of thousands of times)."""
+        for k in _FIELDS:
+            setattr(self, k, getattr(self, "_" + k)[: self.n])
 
     def append(self, **cols) -> np.ndarray:
         k = len(cols["length"])
@@ -257,16 +259,16 @@ class _State:
         if need > self.cap:
             cap = max(need, 2 * self.cap)
             for f in _FIELDS:
-                old = object.__getattribute__(self, "_" + f)
+                old = getattr(self, "_" + f)
                 new = np.zeros((cap,) + old.shape[1:], dtype=old.dtype)
                 new[: self.n] = old[: self.n]
                 setattr(self, "_" + f, new)
             self.cap = cap
         rows = np.arange(self.n, need)
         for f in _FIELDS:
-            arr = object.__getattribute__(self, "_" + f)
-            arr[self.n:need] = cols[f]
+            getattr(self, "_" + f)[self.n:need] = cols[f]
         self.n = need
+        self._views()
         return rows
 
 

@@ -191,3 +191,23 @@ def test_compare_and_clones_show_bars_with_totals(toy_plugin, tmp_path):
     r = subprocess.run([exe, "clones", str(tmp_path / "run"), "-n", "5"], capture_output=True, text=True, env=env)
     assert r.returncode == 0, r.stderr
     assert "5/5" in r.stderr
+
+
+def test_a_dead_worker_pool_is_one_line_that_says_resume(tmp_path, monkeypatch, capsys):
+    """A worker whose start-up fails (or that is killed) breaks the process pool: one line that
+    says what happened and that finished evaluations are kept, no traceback."""
+    from concurrent.futures.process import BrokenProcessPool
+    import bforest_core.pipeline.fit as fit_mod
+
+    def broken(*a, **k):
+        raise BrokenProcessPool("A process in the process pool was terminated abruptly")
+
+    monkeypatch.setattr(fit_mod, "fit", broken)
+    cfg = tmp_path / "run.toml"
+    cfg.write_text("")
+    monkeypatch.setattr("bforest_core.config.load_config", lambda p: None)
+    assert main(["fit", str(cfg), "-o", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith("error: the worker processes stopped (A process in the process pool was terminated")
+    assert "continue with --resume" in err[0]

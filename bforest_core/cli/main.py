@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 import warnings
+from concurrent.futures import BrokenExecutor
 
 from . import export, runs, setup, trees
 from .common import EXIT_USAGE, Parser, UsageError
@@ -50,6 +51,13 @@ def main(argv=None) -> int:
         if args.debug:
             raise
         print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_USAGE
+    except BrokenExecutor as exc:  # a worker process died: its start-up failed, or it was killed
+        if args.debug:
+            raise
+        print(f"error: the worker processes stopped ({_one_line(exc)}); a worker's start-up failed "
+              "(its message is above) or it was killed, e.g. out of memory; finished evaluations are "
+              "saved: continue with --resume", file=sys.stderr)
         return EXIT_USAGE
     except ValueError as exc:  # e.g. an SSM rejecting a parameter value
         if args.debug:

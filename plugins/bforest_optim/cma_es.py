@@ -89,6 +89,10 @@ class CMAES(Optimizer):
         x0 = ((ilo + ihi) / 2 - lo) / (hi - lo)
         pop0 = s.population or 4 + int(3 * math.log(ev.dim))
         surrogate = _LQSurrogate(s.surrogate_batch) if s.surrogate == "lq" else None
+
+        def grow(U):  # unit cube -> parameters -> distances
+            return ev(lo + U * (hi - lo))
+
         reason, generation, runs = "cma stopped", 0, []
         if s.init_design:
             # generation 0: a space-filling look at the initial box, so the search starts in its
@@ -106,7 +110,6 @@ class CMAES(Optimizer):
             es = cma.CMAEvolutionStrategy(x0, s.sigma0, opts)
             while not es.stop() and not ev.stopped:
                 U = np.asarray(es.ask())
-                grow = lambda V: ev(lo + V * (hi - lo))  # noqa: E731
                 f, extra = surrogate(U, grow) if surrogate else (grow(U), {})
                 finite = f[np.isfinite(f)]
                 worst = finite.max() + 1.0 if finite.size else 1e6
@@ -152,8 +155,9 @@ class _LQSurrogate:
                                                  3 / m.settings.truncation_ratio - m.size)))
         tau = 0.0
         while not done.all():
-            F = np.array([m.eval(u) for u in U], float) if m.size > U.shape[1] + 1 else np.zeros(lam)
-            order = np.argsort(F, kind="stable")
+            # the model's values (NaN, and grown in CMA-ES's order, while it has too few points)
+            F = np.array([m.eval(u) for u in U], float) if m.size > U.shape[1] + 1 else np.full(lam, np.nan)
+            order = np.argsort(np.nan_to_num(F), kind="stable")
             todo = [int(i) for i in order if not done[i]]
             k = max(number - int(done.sum()), 1)
             k = min(len(todo), -(-k // self.batch) * self.batch)  # whole batches: no worker waits
@@ -165,8 +169,8 @@ class _LQSurrogate:
                 if np.isfinite(f[i]):
                     m.add_data_row(U[i], float(f[i]))
             m.sort(int(done.sum()))
-            ok = done & np.isfinite(f)
-            tau = _kendall(pred[ok], f[ok]) if ok.sum() >= self.min_true and m.size > U.shape[1] + 1 else 0.0
+            ok = done & np.isfinite(f) & np.isfinite(pred)
+            tau = _kendall(pred[ok], f[ok]) if ok.sum() >= self.min_true else 0.0
             if tau >= S.tau_truth_threshold:
                 break
             number = int(done.sum()) + int(math.ceil(done.sum() / 2))

@@ -151,8 +151,9 @@ class _LQSurrogate:
             m.settings.max_absolute_size = S.model_max_size_factor * lam
         f, pred = np.full(lam, np.inf), np.full(lam, np.nan)
         done = np.zeros(lam, bool)
-        number = max(self.min_true, int(1 + max(lam * S.min_evals_percent / 100,
-                                                 3 / m.settings.truncation_ratio - m.size)))
+        # cma's first count, 1 + max(2 % of the population, 3 / truncation_ratio - model size), is
+        # at most 5 below 250 points: the rank check's minimum decides
+        number = max(self.min_true, int(1 + lam * S.min_evals_percent / 100))
         tau = 0.0
         while not done.all():
             # the model's values (NaN, and grown in CMA-ES's order, while it has too few points)

@@ -160,7 +160,8 @@ def write_doc(results: dict) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default="runs/fidelity", help="folder of the runs and fidelity.json")
-    ap.add_argument("--recipes", nargs="+", default=["sot", "lignum"], help="recipes: sot, lignum")
+    ap.add_argument("--recipes", nargs="+", default=["sot", "lignum"],
+                    help="recipes: sot, lignum (examples/real/pine_<name>.toml) or the path of your own .toml")
     ap.add_argument("--pines", nargs="*", type=int, default=[3, 1, 2],
                     help="pines of the stand (1, 2, 3); none with --doc only rewrites the page")
     ap.add_argument("--clones", type=int, default=30, help="clones per fit")
@@ -171,8 +172,11 @@ def main(argv=None) -> int:
     out = Path(args.out)
     result_path = out / "fidelity.json"
     results = json.loads(result_path.read_text()) if result_path.exists() else {}
-    for name in args.recipes:
-        recipe = HERE / f"pine_{name}.toml"
+    for arg in args.recipes:
+        recipe = Path(arg) if arg.endswith(".toml") else HERE / f"pine_{arg}.toml"
+        if not recipe.is_file():
+            raise SystemExit(f"run_fidelity: no recipe file {recipe}")
+        name = recipe.stem.removeprefix("pine_")
         for k in args.pines:
             row = run_one(recipe, k, out, args.clones, args.figures)
             results[f"{name}_pine{k}"] = row

@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import pytest
 
@@ -78,3 +79,32 @@ def test_cli_config_check_and_schema(toy_plugin, tmp_path, capsys):
     assert err.startswith("error: ") and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert main(["config", "schema"]) == 0
     assert json.loads(capsys.readouterr().out)["title"] == "RunConfig"
+
+
+EXAMPLES = sorted((Path(__file__).resolve().parents[1] / "examples").rglob("*.toml"))
+
+
+@pytest.mark.parametrize("path", EXAMPLES, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_shipped_example_configs_validate(path):
+    """Every config the repository ships (recipes, validation and calibration studies) passes the
+    same validation as ``bforest config check``: a renamed or removed setting breaks it here."""
+    if path.parent.name == "calibration":  # study configs: no [target], each run grows its own
+        from bforest_core.pipeline.calibrate import _read_study_config
+        cfg = _read_study_config(path)
+    else:
+        cfg = bf.load_config(path)
+    assert cfg.ssm.kind in {"sot", "lignum"}
+
+
+def test_lignum_recipe_weights_statistics_by_their_fidelity_limits():
+    """The LIGNUM recipe's summary weights are proportional to 1 / the fidelity limits (height 5 %,
+    DBH 15 %, crown spread 20 %, crown base and first-order branches 25 %), and its structure and
+    size terms weigh alike: the balance its validation (docs/validation.md section 4) rests on."""
+    root = Path(__file__).resolve().parents[1]
+    cfg = bf.load_config(root / "examples" / "real" / "pine_lignum.toml")
+    (size,) = [t for t in cfg.objective.terms if t.name == "size"]
+    w = size.distance["weights"]
+    limits = {"height": 0.05, "dbh": 0.15, "crown_spread": 0.20, "crown_base_height": 0.25, "n_branches_o1": 0.25}
+    ratio = [w[k] * limits[k] for k in limits]
+    assert max(ratio) / min(ratio) == pytest.approx(1.0, abs=0.02)  # DBH: 2.7 for 8 / 3
+    assert cfg.objective.structure_weight == pytest.approx(size.weight)

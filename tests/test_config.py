@@ -100,11 +100,15 @@ def test_lignum_recipe_weights_statistics_by_their_fidelity_limits():
     """The LIGNUM recipe's summary weights are proportional to 1 / the fidelity limits (height 5 %,
     DBH 15 %, crown spread 20 %, crown base and first-order branches 25 %), and its structure and
     size terms weigh alike: the balance its validation (docs/validation.md section 4) rests on."""
-    root = Path(__file__).resolve().parents[1]
-    cfg = bf.load_config(root / "examples" / "real" / "pine_lignum.toml")
+    import importlib.util
+    real = Path(__file__).resolve().parents[1] / "examples" / "real"
+    spec = importlib.util.spec_from_file_location("run_fidelity", real / "run_fidelity.py")
+    run_fidelity = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(run_fidelity)
+    limits = run_fidelity.LIMITS  # the limits the validation checks the clones against
+    cfg = bf.load_config(real / "pine_lignum.toml")
     (size,) = [t for t in cfg.objective.terms if t.name == "size"]
     w = size.distance["weights"]
-    limits = {"height": 0.05, "dbh": 0.15, "crown_spread": 0.20, "crown_base_height": 0.25, "n_branches_o1": 0.25}
     ratio = [w[k] * limits[k] for k in limits]
     assert max(ratio) / min(ratio) == pytest.approx(1.0, abs=0.02)  # DBH: 2.7 for 8 / 3
     assert cfg.objective.structure_weight == pytest.approx(size.weight)

@@ -16,6 +16,9 @@ Usage (from the repository root; the pines are read from ../shared/data/qsm)::
 
     .venv/bin/python examples/real/run_fidelity.py --out runs/fidelity [--recipes sot lignum] [--pines 3 1 2]
 
+``--recipes`` also takes the path of a recipe file (``my_pine.toml``): a variant is checked on the
+three pines without editing the shipped recipe.
+
 Results go to ``OUT/fidelity.json`` and ``OUT/<recipe>_pine<k>/`` (run directories); the figures
 to ``docs/img/validation/fidelity_<recipe>_pine<k>.png`` with ``--figures``; ``--doc`` rewrites the
 real-tree fidelity section at the end of ``docs/validation.md`` from ``OUT/fidelity.json``

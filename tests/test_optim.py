@@ -20,6 +20,7 @@ from bforest_optim.de import DifferentialEvolution
 from bforest_optim.emcee_sampler import EmceeSampler, auto_epsilon
 from bforest_optim.ga import GeneticAlgorithm, reflect
 from bforest_optim.nlopt_optimizer import NloptOptimizer, resolve_algorithm
+from bforest_optim.turbo import Turbo
 
 NAMES = ["a", "b", "n"]
 LOWER = np.array([-5.0, -5.0, 0.0])
@@ -109,6 +110,7 @@ CASES = {
     "emcee": (EmceeSampler, {"epsilon": 0.5, "steps": 150}, None, 0.3, 0.1),
     "de": (DifferentialEvolution, {}, None, 0.05, 1e-3),
     "cma-lq": (CMAES, {"surrogate": "lq", "population": 8}, 600, 0.05, 1e-3),
+    "turbo": (Turbo, {"candidates": 256, "max_train": 100}, 200, 0.05, 1e-3),
 }
 
 
@@ -148,7 +150,7 @@ def test_same_seed_same_result(case):
     assert all(np.array_equal(a[0], b[0]) for a, b in zip(c1.batches, c2.batches))
 
 
-@pytest.mark.parametrize("case", ["ga", "nlopt-crs2", "emcee", "de"])
+@pytest.mark.parametrize("case", ["ga", "nlopt-crs2", "emcee", "de", "turbo"])
 def test_other_seed_other_search(case):
     cls, settings, *_ = CASES[case]
     pts = []
@@ -186,7 +188,7 @@ def test_stops_at_target_mid_run_and_returns_best_seen(case):
     assert res.fun <= 10.0 and res.fun == rec.values.min() and np.array_equal(res.x, pr.best_x)
 
 
-@pytest.mark.parametrize("case", ["ga", "nlopt-crs2", "emcee", "de", "cma-lq"])
+@pytest.mark.parametrize("case", ["ga", "nlopt-crs2", "emcee", "de", "cma-lq", "turbo"])
 def test_resume_replay_gives_the_same_batches(case):
     """Resume re-runs the optimiser from the start: the first batches' values come from the log
     (nothing is computed), the rest are computed; the run must ask for the same points."""
@@ -206,7 +208,7 @@ def test_resume_replay_gives_the_same_batches(case):
 
 
 # ------------------------------------------------------------------------------ bounds, integers
-@pytest.mark.parametrize("case", ["ga", "nlopt-crs2", "nlopt-sbplx", "emcee", "de"])
+@pytest.mark.parametrize("case", ["ga", "nlopt-crs2", "nlopt-sbplx", "emcee", "de", "turbo"])
 def test_evaluations_respect_bounds_and_init_box(case):
     """Integer bounds that are not whole numbers are narrowed; the initial points lie in the
     initial box; every evaluated point is feasible and integral."""

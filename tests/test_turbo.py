@@ -21,23 +21,28 @@ def test_turbo_needs_far_fewer_evaluations_than_cma_on_an_ill_conditioned_quadra
     assert got["turbo"].fun < got["cma"].fun / 10, (got["turbo"].fun, got["cma"].fun)
 
 
-def test_a_flat_objective_halves_the_trust_region_after_each_failure_tolerance_and_restarts():
+@pytest.mark.parametrize("restart", ["design", "best"])
+def test_a_flat_objective_halves_the_trust_region_after_each_failure_tolerance_and_restarts(restart):
     """Nothing improves on a constant: every ``failure_tol`` batches halve the box, from 0.8 to
-    below 0.5**7 in 7 halvings, and then a new run starts with a fresh design."""
+    below 0.5**7 in 7 halvings; then a new run starts, with a fresh design (``design``, TuRBO-1)
+    or at full size around the best point with every point kept (``best``)."""
     pr, asked = _problem(lambda x: 1.0, [0] * 3, [1] * 3, budget=10_000, seed=1)
-    res = bf.component("optimizer", "turbo", batch=2, failure_tol=3, init_points=6, restarts=1,
+    res = bf.component("optimizer", "turbo", batch=2, failure_tol=3, init_points=6, restarts=1, restart=restart,
                        **FAST).minimize(pr)
     runs = [r["run"] for r in res.history]
     first = [r for r in res.history if r["run"] == 0]
     assert first[0]["length"] is None and first[0]["population"] == 6  # the design
     lengths = [r["length"] for r in first[1:]]
     assert lengths == [0.8 / 2 ** (i // 3 + 1) if i % 3 == 2 else 0.8 / 2 ** (i // 3) for i in range(21)]
-    assert runs.count(0) == 22 and runs.count(1) == 22  # restarts = 1: two runs, then the end
-    assert res.n_evaluations == 2 * (6 + 21 * 2)
+    second = [r for r in res.history if r["run"] == 1]
+    assert len(runs) == len(first) + len(second) and len(first) == 22  # restarts = 1: two runs, then the end
     assert "length_min" in res.stop_reason
-    # the second run's design is a fresh one, not the first run's again
     X = np.array(asked)
-    assert not np.array_equal(X[:6], X[48:54])
+    if restart == "design":  # a fresh design, not the first run's again
+        assert len(second) == 22 and res.n_evaluations == 2 * (6 + 21 * 2)
+        assert second[0]["length"] is None and not np.array_equal(X[:6], X[48:54])
+    else:  # no design: the same halvings again, from the first run's points
+        assert [r["length"] for r in second] == lengths and res.n_evaluations == 6 + 2 * 21 * 2
 
 
 def test_turbo_points_stay_in_the_trust_region_around_the_best_point():

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import Optional, Union
+from typing import Literal, Optional, Union
 
 import numpy as np
 from pydantic import Field
@@ -53,6 +53,14 @@ class TurboSettings(OptimizerSettings):
     failure_tol: Optional[int] = Field(None, ge=1, description="batches in a row without improvement that halve "
                                        "it (default ceil(max(4, dimension) / batch))")
     candidates: int = Field(1000, ge=10, description="candidate points per Thompson draw")
+    centre: Literal["best", "model"] = Field("model", description="centre of the trust region: 'best', the point "
+                                             "with the lowest distance; 'model', the point the GP expects lowest "
+                                             "(robust to a lucky draw of a noisy distance)")
+    restart: Literal["best", "design"] = Field("best", description="when the trust region has shrunk below "
+                                               "length_min: 'best', it starts again at length_init around the "
+                                               "best point with every point kept (for budgets of a few hundred "
+                                               "evaluations per dimension or less); 'design', a fresh Sobol' "
+                                               "design and the earlier points dropped (TuRBO-1)")
     restarts: int = Field(10, ge=0, description="fresh runs after the first one's trust region has shrunk below "
                           "length_min (the budget or a stop usually ends the search first)")
     hyper_every: int = Field(5, ge=1, description="batches between maximum-likelihood fits of the GP's "
@@ -93,21 +101,21 @@ class Turbo(Optimizer):
             return (X - lo) / (hi - lo), ev(X)
 
         reason, generation, runs = "", 0, []
-        run = -1
+        run, gp = -1, None
         while not ev.stopped and run < s.restarts:
             run += 1
-            U, f = grow(ev.sample_init(n_init, rng, "sobol"))
-            generation += 1
-            log(ev, generation=generation, run=run, length=None, population=len(f), **finite_stats(f, "mean"))
+            if run == 0 or s.restart == "design":
+                U, f = grow(ev.sample_init(n_init, rng, "sobol"))
+                generation += 1
+                log(ev, generation=generation, run=run, length=None, population=len(f), **finite_stats(f, "mean"))
+                gp = _GP(dim)
             length, succ, fail = s.length_init, 0, 0
-            gp = _GP(dim)
             n_batches = 0
             while not ev.stopped and length >= s.length_min:
                 y = _finite_or_worst(f)
-                best_i = int(np.argmin(y))
-                centre = U[best_i]
-                idx = _nearest(U, centre, gp.length_scales, s.max_train)
+                idx = _nearest(U, U[int(np.argmin(y))], gp.length_scales, s.max_train)
                 gp.fit(U[idx], y[idx], hyper=n_batches % s.hyper_every == 0)
+                centre = U[idx[int(np.argmin(gp.mean(U[idx])))]] if s.centre == "model" else U[int(np.argmin(y))]
                 w = gp.length_scales / np.exp(np.mean(np.log(gp.length_scales)))
                 half = 0.5 * length * w
                 tr_lo, tr_hi = np.clip(centre - half, 0.0, 1.0), np.clip(centre + half, 0.0, 1.0)
@@ -178,7 +186,7 @@ class _GP:
         from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
         self.kernel = (ConstantKernel(1.0, (0.05, 20.0))
                        * Matern(length_scale=np.full(dim, 0.5), length_scale_bounds=(0.005, 2.0), nu=2.5)
-                       + WhiteKernel(0.01, (1e-6, 0.5)))
+                       + WhiteKernel(0.01, (5e-4, 0.5)))  # TuRBO's noise floor (standardised units)
         self.model = None
 
     @property
@@ -189,7 +197,7 @@ class _GP:
     def noise_sd(self) -> float | None:
         if self.model is None:
             return None
-        return float(math.sqrt(self.kernel.k2.noise_level) * self.model._y_train_std)
+        return float(math.sqrt(self.kernel.k2.noise_level) * self.model._y_train_std)  # in the GP's units
 
     def fit(self, U: np.ndarray, y: np.ndarray, hyper: bool = True) -> None:
         """Fit to ``(U, y)``; ``hyper``: by maximum likelihood from the last hyperparameters, else
@@ -202,6 +210,10 @@ class _GP:
             warnings.simplefilter("ignore", ConvergenceWarning)
             gp.fit(U, y)
         self.model, self.kernel = gp, gp.kernel_
+
+    def mean(self, U: np.ndarray) -> np.ndarray:
+        """The GP's posterior mean at ``U`` (in its own units: only the order matters)."""
+        return self.model.kernel_.k1(U, self.model.X_train_) @ self.model.alpha_
 
     def thompson(self, cand: np.ndarray, q: int, rng: np.random.Generator) -> np.ndarray:
         """``q`` distinct candidates, each the minimum of one joint draw of the latent function

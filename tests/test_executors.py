@@ -1,5 +1,11 @@
 import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
+import pytest
 
 import bforest_core as bf
 from bforest_core.pipeline.objective import clone_seeds, model_seeds
@@ -39,3 +45,41 @@ def test_model_seeds_depend_only_on_run_seed_and_index():
     assert model_seeds(1, 1, "fixed", 0) == model_seeds(1, 1, "fixed", 99)
     assert model_seeds(1, 1, "per_evaluation", 0) != model_seeds(1, 1, "per_evaluation", 1)
     assert len(set(clone_seeds(1, 50))) == 50 and set(clone_seeds(1, 5)).isdisjoint(model_seeds(1, 5))
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    with open(f"/proc/{pid}/stat") as fh:  # a zombie waiting for its parent counts as gone
+        return fh.read().split(")")[-1].split()[0] != "Z"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_workers_end_when_the_process_that_owns_the_pool_is_killed(tmp_path):
+    """A fit killed with SIGKILL leaves no worker waiting for tasks for ever (each would hold its
+    target tree in memory): the workers see their owner gone and exit within seconds."""
+    script = (
+        "import os, time\n"
+        "import bforest_core as bf\n"
+        "from test_executors import _init, _work\n"
+        "ex = bf.component('executor', 'process', workers=2)\n"
+        "ex.start(_init, (1,))\n"
+        "pids = {out[1] for _, out in ex.map_unordered(_work, range(8))}\n"
+        "print(' '.join(map(str, sorted(pids))), flush=True)\n"
+        "time.sleep(120)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        pids = [int(p) for p in proc.stdout.readline().split()]
+        assert pids and all(_pid_alive(p) for p in pids)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline and any(_pid_alive(p) for p in pids):
+            time.sleep(0.2)
+        assert not any(_pid_alive(p) for p in pids), "workers outlived the killed owner"
+    finally:
+        proc.kill()

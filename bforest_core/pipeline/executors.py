@@ -29,8 +29,33 @@ def limit_threads() -> None:
         pass
 
 
-def _worker_init(initializer, initargs):
+def _exit_with(owner: int, every: float = 1.0) -> None:
+    """End this worker when the process that owns its pool is gone.
+
+    A pool's workers hold both ends of its task queue, so a killed owner (SIGKILL, an out-of-memory
+    kill, a closed terminal) never gives them an end of file: without this they would wait for
+    tasks for ever, each holding its target tree in memory. A daemon thread checks the owner every
+    ``every`` seconds."""
+    import threading
+    import time
+
+    def watch():
+        while True:
+            time.sleep(every)
+            try:
+                os.kill(owner, 0)
+            except ProcessLookupError:
+                os._exit(1)
+            except PermissionError:  # a process of another user took the number: ours is gone
+                os._exit(1)
+
+    threading.Thread(target=watch, name="bforest-owner-watch", daemon=True).start()
+
+
+def _worker_init(initializer, initargs, owner=None):
     limit_threads()
+    if owner is not None and os.name == "posix":
+        _exit_with(owner)
     if initializer is not None:
         initializer(*initargs)
 
@@ -79,7 +104,7 @@ class ProcessExecutor(Executor):
     def start(self, initializer=None, initargs=()):
         ctx = mp.get_context(self.settings.start_method)
         self._pool = cf.ProcessPoolExecutor(max_workers=self.settings.workers, mp_context=ctx,
-                                            initializer=_worker_init, initargs=(initializer, initargs))
+                                            initializer=_worker_init, initargs=(initializer, initargs, os.getpid()))
 
     def map_unordered(self, fn, items):
         if self._pool is None:

@@ -110,7 +110,7 @@ CASES = {
     "emcee": (EmceeSampler, {"epsilon": 0.5, "steps": 150}, None, 0.3, 0.1),
     "de": (DifferentialEvolution, {}, None, 0.05, 1e-3),
     "cma-lq": (CMAES, {"surrogate": "lq", "population": 8}, 600, 0.05, 1e-3),
-    "turbo": (Turbo, {"candidates": 256, "max_train": 100}, 200, 0.05, 1e-3),
+    "turbo": (Turbo, {"candidates": 256, "max_train": 100, "hyper_every": 10}, 200, 0.05, 1e-3),
 }
 
 

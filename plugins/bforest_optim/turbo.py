@@ -1,30 +1,36 @@
-"""TuRBO: trust-region Bayesian optimisation (Eriksson et al. 2019, NeurIPS), one trust region.
+"""TuRBO: trust-region Bayesian optimisation (Eriksson et al. 2019, NeurIPS), one trust region,
+adapted to the noisy distances of stochastic growth models.
 
 A sample-efficient optimiser for a budget of a few hundred to a few thousand evaluations of an
 expensive objective in 5-30 dimensions, where a global Gaussian-process model is too coarse and
 an evolution strategy spends too many evaluations learning its covariance.
 
-* The search runs in the unit cube (each parameter scaled by its bounds). A run starts with a
+* The search runs in the unit cube (each parameter scaled by its bounds). It starts with a
   scrambled Sobol' design over the initial box (``init_points``, default 2 x the dimension).
 * A Gaussian process (scikit-learn: constant x Matern-5/2 with one length scale per parameter,
-  plus a white-noise term for the model seeds' noise; hyperparameters by maximum likelihood,
-  warm-started from the previous fit) is fitted to the run's points nearest the best one
-  (``max_train``).
-* The next ``batch`` points come from a trust region around the best point: a box of side
-  ``length`` shaped by the length scales (long where the distance changes slowly). Candidates
-  are Sobol' points in the box that move only some coordinates (each with probability
-  ``min(1, 20 / dimension)``); each point of the batch is the minimum of one joint posterior draw
-  over the candidates (Thompson sampling), so a batch explores and exploits in proportion to the
-  model's uncertainty.
+  plus a white-noise term for the model seeds' noise, at least TuRBO's floor; hyperparameters by
+  maximum likelihood every ``hyper_every`` batches, warm-started from the previous fit) is fitted
+  to the ``max_train`` points nearest the best one.
+* The next ``batch`` points come from a trust region: a box of side ``length`` shaped by the
+  length scales (long where the distance changes slowly), centred on the evaluated point the GP
+  expects lowest (``centre = "model"``: a tree distance's best value is partly a lucky draw of
+  the model seeds, and a box around a lucky point finds nothing better; ``"best"`` is TuRBO's
+  lowest value). Candidates are Sobol' points in the box that move only some coordinates (each
+  with probability ``min(1, 20 / dimension)``); each point of the batch is the minimum of one
+  joint posterior draw over the candidates (Thompson sampling), so a batch explores and exploits
+  in proportion to the model's uncertainty.
 * ``success_tol`` batches in a row that improve the best distance (by more than 0.1 %) double the
-  box (up to ``length_max``); ``failure_tol`` batches that do not halve it. Below
-  ``length_min`` the run restarts with a fresh design (its data are dropped, as in TuRBO-1).
+  box (up to ``length_max``); ``failure_tol`` batches that do not halve it. Below ``length_min``
+  a new run starts: with ``restart = "best"`` (default) at ``length_init`` around the GP's best
+  point with every point kept, which suits budgets too small to throw evaluations away; with
+  ``"design"`` from a fresh design with the earlier points dropped (TuRBO-1).
 
 Integer parameters: the model sees their continuous relaxation (the box widened by half a step
 at each end) and points are rounded when they are grown; the model is fitted on the rounded
-points. Failed simulations count as the worst distance of the run. Everything is seeded from
+points. Failed simulations count as the worst distance so far. Everything is seeded from
 ``problem.seed`` and the GP fit is deterministic, so the same returned values give the same
-points: a resumed fit replays.
+points: a resumed fit replays. Settings compared on the LIGNUM pine recipe, and the cost of the
+model per batch: ``docs/performance.md``.
 """
 from __future__ import annotations
 
@@ -57,11 +63,11 @@ class TurboSettings(OptimizerSettings):
                                              "with the lowest distance; 'model', the point the GP expects lowest "
                                              "(robust to a lucky draw of a noisy distance)")
     restart: Literal["best", "design"] = Field("best", description="when the trust region has shrunk below "
-                                               "length_min: 'best', it starts again at length_init around the "
-                                               "best point with every point kept (for budgets of a few hundred "
+                                               "length_min: 'best', it starts again at length_init around its "
+                                               "centre with every point kept (for budgets of a few hundred "
                                                "evaluations per dimension or less); 'design', a fresh Sobol' "
                                                "design and the earlier points dropped (TuRBO-1)")
-    restarts: int = Field(10, ge=0, description="fresh runs after the first one's trust region has shrunk below "
+    restarts: int = Field(10, ge=0, description="new runs after the first one's trust region has shrunk below "
                           "length_min (the budget or a stop usually ends the search first)")
     hyper_every: int = Field(5, ge=1, description="batches between maximum-likelihood fits of the GP's "
                              "hyperparameters (in between the GP takes the new points with the last ones)")
@@ -73,11 +79,14 @@ class TurboSettings(OptimizerSettings):
 
 
 class Turbo(Optimizer):
-    """Trust-region Bayesian optimisation with Thompson sampling (TuRBO-1) and restarts.
+    """Trust-region Bayesian optimisation with Thompson sampling (after TuRBO-1) and restarts.
 
     Log records (one per batch): ``generation``, ``run`` (restart index), ``length`` (side of the
     trust region, ``None`` for the design), ``population`` (points in the batch), ``mean``
     (their mean distance), ``noise`` (the GP's noise sd in distance units).
+
+    With a ``patience``, the noise-aware stop (``_common.NoiseStop``) ends the search when the best
+    distance has not improved by more than the objective's seed noise in that many batches.
     """
 
     name = "turbo"
@@ -146,8 +155,7 @@ class Turbo(Optimizer):
             if reason:
                 break
         reason = reason or f"the trust region shrank below length_min in {run + 1} run(s)"
-        return make_result(ev, log, reason, {"generations": generation, "runs": runs,
-                                                          "seed_noise": stop.noise})
+        return make_result(ev, log, reason, {"generations": generation, "runs": runs, "seed_noise": stop.noise})
 
 
 def _finite_or_worst(f: np.ndarray) -> np.ndarray:

@@ -84,10 +84,10 @@ def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: 
     """
     from matplotlib import colormaps
     pal = colormaps["tab10"].colors
-    fig = new_figure(7.8, 4.8)
-    ax = fig.subplots()
+    fig = new_figure(12.0, 4.8)
+    ax, zoom = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.2, 1.0]})
     all_pos = True
-    lo_all, hi_all = np.inf, -np.inf
+    lo_all, hi_all, early = np.inf, -np.inf, -np.inf
     for c, (name, runs) in enumerate(curves.items()):
         M = _pad_curves(runs)
         if M.size == 0:
@@ -95,22 +95,32 @@ def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: 
         col = pal[c % len(pal)]
         x = np.arange(1, M.shape[1] + 1)
         med = np.median(M, axis=0)
-        if M.shape[0] > 1:
-            ax.fill_between(x, M.min(0), M.max(0), color=col, alpha=0.08, lw=0, step="post")
-            q1, q3 = np.quantile(M, [0.25, 0.75], axis=0)
-            ax.fill_between(x, q1, q3, color=col, alpha=0.25, lw=0, step="post")
-        ax.step(x, med, where="post", color=col, lw=2.0, label=f"{name} (median of {M.shape[0]}: {med[-1]:.4g})")
+        for a in (ax, zoom):
+            if M.shape[0] > 1:
+                a.fill_between(x, M.min(0), M.max(0), color=col, alpha=0.08, lw=0, step="post")
+                q1, q3 = np.quantile(M, [0.25, 0.75], axis=0)
+                a.fill_between(x, q1, q3, color=col, alpha=0.25, lw=0, step="post")
+            a.step(x, med, where="post", color=col, lw=2.0,
+                   label=f"{name} (median of {M.shape[0]}: {med[-1]:.4g})")
         fin = M[np.isfinite(M)]
         all_pos &= bool(np.all(fin > 0))
         lo_all, hi_all = min(lo_all, fin.min(initial=np.inf)), max(hi_all, fin.max(initial=-np.inf))
+        early = max(early, float(med[min(len(med) - 1, len(med) // 5)]))  # where each stands at a fifth
     if threshold is not None:
-        ax.axhline(threshold, color="black", ls="--", lw=1.0, label=f"threshold {threshold:.4g}")
+        for a in (ax, zoom):
+            a.axhline(threshold, color="black", ls="--", lw=1.0, label=f"threshold {threshold:.4g}")
         lo_all = min(lo_all, threshold)
     if all_pos and np.isfinite(lo_all) and lo_all > 0 and hi_all / lo_all > 20:
         ax.set_yscale("log")  # best distances spanning decades
-    ax.set_xlabel("evaluations")
+    if np.isfinite(lo_all) and np.isfinite(early) and early > lo_all:
+        pad = 0.05 * (early - lo_all)
+        zoom.set_ylim(lo_all - pad, early + pad)
+    for a in (ax, zoom):
+        a.set_xlabel("evaluations")
+        a.grid(True, which="both", lw=0.3, alpha=0.5)
     ax.set_ylabel("best distance so far")
-    ax.grid(True, which="both", lw=0.3, alpha=0.5)
+    zoom.set_title("the end game: from the lowest distance to the medians at a fifth of the budget",
+                   fontsize="small")
     ax.legend(fontsize="small", title="optimizer (final median)", title_fontsize="small")
     ax.set_title(title or "optimiser comparison (bands: interquartile and min–max over repeats)",
                  fontsize="medium")

@@ -130,3 +130,24 @@ def toy_config(tmp_path: Path, optimizer="toy-random", optimizer_settings="", ex
     p.write_text(TOY_CONFIG.format(optimizer=optimizer, optimizer_settings=optimizer_settings,
                                    executor=executor, executor_settings=executor_settings, budget=budget))
     return p
+
+
+def fit_killed_after(cfg, run_dir: Path, n: int, monkeypatch) -> None:
+    """Run ``bf.fit(cfg, run_dir)`` and kill it (a KeyboardInterrupt, as a Ctrl-C) when it is about
+    to log its evaluation ``n + 1``: the run store then holds exactly ``n`` evaluations."""
+    import bforest_core as bf
+    from bforest_core.pipeline.store import RunStore
+    real_add, calls = RunStore.add, {"n": 0}
+
+    def crashing_add(self, ev):
+        if calls["n"] == n:
+            raise KeyboardInterrupt("simulated kill")
+        calls["n"] += 1
+        real_add(self, ev)
+
+    monkeypatch.setattr(RunStore, "add", crashing_add)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            bf.fit(cfg, run_dir, progress=False)
+    finally:
+        monkeypatch.setattr(RunStore, "add", real_add)

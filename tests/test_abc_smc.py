@@ -6,7 +6,7 @@ import bforest_core as bf
 from bforest_core.interfaces import Problem
 from bforest_core.metrics import weighted_quantiles
 from bforest_optim.abc_smc import AbcSmc
-from conftest import toy_config
+from conftest import fit_killed_after, toy_config
 
 
 def _problem(simulate_distance, lo, hi, integer=None, budget=200_000, seed=1):
@@ -102,19 +102,7 @@ def test_abc_smc_in_a_fit_resumes_after_a_kill(toy_plugin, tmp_path, monkeypatch
     settings = "particles = 12\ngenerations = 4"
     cfg_path = toy_config(tmp_path, optimizer="abc-smc", optimizer_settings=settings, budget=80)
     full = bf.fit(bf.load_config(cfg_path), tmp_path / "full", progress=False)
-    real_add = RunStore.add
-    calls = {"n": 0}
-
-    def crashing_add(self, ev):
-        if calls["n"] == 30:
-            raise KeyboardInterrupt("simulated kill")
-        calls["n"] += 1
-        real_add(self, ev)
-
-    monkeypatch.setattr(RunStore, "add", crashing_add)
-    with pytest.raises(KeyboardInterrupt):
-        bf.fit(bf.load_config(cfg_path), tmp_path / "killed", progress=False)
-    monkeypatch.setattr(RunStore, "add", real_add)
+    fit_killed_after(bf.load_config(cfg_path), tmp_path / "killed", 30, monkeypatch)
     res = bf.fit(bf.load_config(cfg_path), tmp_path / "killed", resume=True, progress=False)
     ev = lambda run: [(e.params, e.distance) for e in RunStore.open(run).evaluations()]  # noqa: E731
     assert ev(tmp_path / "killed") == ev(tmp_path / "full")

@@ -14,7 +14,7 @@ import bforest_core as bf
 
 import importlib
 from bforest_core.pipeline.store import RunStore
-from conftest import TOY_DIR, toy_config
+from conftest import TOY_DIR, fit_killed_after, toy_config
 
 fit_mod = importlib.import_module("bforest_core.pipeline.fit")
 
@@ -63,20 +63,7 @@ def test_same_seed_same_result_serial_and_process(toy_plugin, tmp_path):
 
 def test_resume_after_crash_repeats_nothing_and_matches(toy_plugin, tmp_path, monkeypatch):
     full = bf.fit(bf.load_config(toy_config(tmp_path, budget=40)), tmp_path / "full", progress=False)
-    cfg = bf.load_config(toy_config(tmp_path, budget=40))
-    real_add = RunStore.add
-    calls = {"n": 0}
-
-    def crashing_add(self, ev):
-        if calls["n"] == 19:
-            raise KeyboardInterrupt("simulated crash")
-        calls["n"] += 1
-        real_add(self, ev)
-
-    monkeypatch.setattr(RunStore, "add", crashing_add)
-    with pytest.raises(KeyboardInterrupt):
-        bf.fit(cfg, tmp_path / "crashed", progress=False)
-    monkeypatch.setattr(RunStore, "add", real_add)
+    fit_killed_after(bf.load_config(toy_config(tmp_path, budget=40)), tmp_path / "crashed", 19, monkeypatch)
     assert RunStore.open(tmp_path / "crashed").count() == 19
     simulated = {"n": 0}
     real_task = fit_mod.evaluate_task

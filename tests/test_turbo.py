@@ -65,23 +65,13 @@ def test_turbo_points_stay_in_the_trust_region_around_the_best_point():
 def test_turbo_in_a_fit_resumes_after_a_kill_to_the_same_evaluations(toy_plugin, tmp_path, monkeypatch):
     """A fit killed after 17 evaluations and resumed asks for the same points and ends where an
     uninterrupted run ends (the GP fits replay on the logged distances)."""
-    from conftest import toy_config
+    from conftest import fit_killed_after, toy_config
     from bforest_core.pipeline.store import RunStore
     cfg_path = toy_config(tmp_path, optimizer="turbo", optimizer_settings="batch = 2\ncandidates = 128", budget=40)
     full = bf.fit(bf.load_config(cfg_path), tmp_path / "full", progress=False)
     assert full.n_evaluations == 40 and isinstance(full.params["segments"], int)
-    real_add, calls = RunStore.add, {"n": 0}
-
-    def crashing_add(self, ev):
-        if calls["n"] == 17:
-            raise KeyboardInterrupt("simulated kill")
-        calls["n"] += 1
-        real_add(self, ev)
-
-    monkeypatch.setattr(RunStore, "add", crashing_add)
-    with pytest.raises(KeyboardInterrupt):
-        bf.fit(bf.load_config(cfg_path), tmp_path / "killed", progress=False)
-    monkeypatch.setattr(RunStore, "add", real_add)
+    fit_killed_after(bf.load_config(cfg_path), tmp_path / "killed", 17, monkeypatch)
+    assert RunStore.open(tmp_path / "killed").count() == 17
     res = bf.fit(bf.load_config(cfg_path), tmp_path / "killed", resume=True, progress=False)
     ev = lambda run: [(e.params, e.distance) for e in RunStore.open(run).evaluations()]  # noqa: E731
     assert ev(tmp_path / "killed") == ev(tmp_path / "full")

@@ -44,9 +44,7 @@ def _exit_with(owner: int, every: float = 1.0) -> None:
             time.sleep(every)
             try:
                 os.kill(owner, 0)
-            except ProcessLookupError:
-                os._exit(1)
-            except PermissionError:  # a process of another user took the number: ours is gone
+            except (ProcessLookupError, PermissionError):  # gone (or its number now another user's)
                 os._exit(1)
 
     threading.Thread(target=watch, name="bforest-owner-watch", daemon=True).start()

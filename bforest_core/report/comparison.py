@@ -95,11 +95,10 @@ def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: 
         col = pal[c % len(pal)]
         x = np.arange(1, M.shape[1] + 1)
         med = np.median(M, axis=0)
+        bands = [(M.min(0), M.max(0), 0.08), (*np.quantile(M, [0.25, 0.75], axis=0), 0.25)] if M.shape[0] > 1 else []
         for a in (ax, zoom):
-            if M.shape[0] > 1:
-                a.fill_between(x, M.min(0), M.max(0), color=col, alpha=0.08, lw=0, step="post")
-                q1, q3 = np.quantile(M, [0.25, 0.75], axis=0)
-                a.fill_between(x, q1, q3, color=col, alpha=0.25, lw=0, step="post")
+            for low, high, alpha in bands:
+                a.fill_between(x, low, high, color=col, alpha=alpha, lw=0, step="post")
             a.step(x, med, where="post", color=col, lw=2.0,
                    label=f"{name} (median of {M.shape[0]}: {med[-1]:.4g})")
         fin = M[np.isfinite(M)]

@@ -27,11 +27,12 @@ def main(argv=None) -> int:
     ap.add_argument("configs", nargs="+", type=Path, help="configs whose objectives score them")
     ap.add_argument("--seeds", type=int, default=12, help="model seeds, one at a time (from 1000)")
     args = ap.parse_args(argv)
-    best = args.run / "best.json"
-    if not best.is_file():
-        raise SystemExit(f"term_noise: {best} not found (is {args.run} a finished run?)")
-    params = json.loads(best.read_text())["params"]
-    print(f"{args.run}: best of the fit {json.loads(best.read_text())['distance']:.4f} with its own seeds")
+    best_path = args.run / "best.json"
+    if not best_path.is_file():
+        raise SystemExit(f"term_noise: {best_path} not found (is {args.run} a finished run?)")
+    best = json.loads(best_path.read_text())
+    params = best["params"]
+    print(f"{args.run}: best of the fit {best['distance']:.4f} with its own seeds")
     for path in args.configs:
         cfg = bf.load_config(path)
         tgt = obj.build_target(cfg)

@@ -122,16 +122,17 @@ class Turbo(Optimizer):
             n_batches = 0
             while not ev.stopped and length >= s.length_min:
                 y = _finite_or_worst(f)
-                idx = _nearest(U, U[int(np.argmin(y))], gp.length_scales, s.max_train)
+                best_i = int(np.argmin(y))
+                idx = _nearest(U, U[best_i], gp.length_scales, s.max_train)
                 gp.fit(U[idx], y[idx], hyper=n_batches % s.hyper_every == 0)
-                centre = U[idx[int(np.argmin(gp.mean(U[idx])))]] if s.centre == "model" else U[int(np.argmin(y))]
+                centre = U[idx[int(np.argmin(gp.mean(U[idx])))] if s.centre == "model" else best_i]
                 w = gp.length_scales / np.exp(np.mean(np.log(gp.length_scales)))
                 half = 0.5 * length * w
                 tr_lo, tr_hi = np.clip(centre - half, 0.0, 1.0), np.clip(centre + half, 0.0, 1.0)
                 cand = _candidates(centre, tr_lo, tr_hi, s.candidates, prob_perturb, rng)
                 Unew = gp.thompson(cand, min(s.batch, ev.problem.remaining() or s.batch), rng)
                 Ubatch, fb = grow(lo + Unew * (hi - lo))
-                before = float(np.min(y))
+                before = float(y[best_i])
                 U, f = np.vstack([U, Ubatch]), np.concatenate([f, fb])
                 fin = fb[np.isfinite(fb)]
                 if fin.size and fin.min() < before - 1e-3 * abs(before):
@@ -226,11 +227,11 @@ class _GP:
     def thompson(self, cand: np.ndarray, q: int, rng: np.random.Generator) -> np.ndarray:
         """``q`` distinct candidates, each the minimum of one joint draw of the latent function
         (the noise term left out) over ``cand``."""
+        from scipy.linalg import cholesky, solve_triangular
         gp = self.model
         k_signal = gp.kernel_.k1
         Ks = k_signal(cand, gp.X_train_)
-        mean = Ks @ gp.alpha_
-        from scipy.linalg import cholesky, solve_triangular
+        mean = Ks @ gp.alpha_  # as mean(), with Ks kept for the covariance
         v = solve_triangular(gp.L_, Ks.T, lower=True)
         cov = k_signal(cand) - v.T @ v
         cov = 0.5 * (cov + cov.T)

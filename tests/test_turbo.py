@@ -45,13 +45,13 @@ def test_a_flat_objective_halves_the_trust_region_after_each_failure_tolerance_a
         assert [r["length"] for r in second] == lengths and res.n_evaluations == 6 + 2 * 21 * 2
 
 
-def test_turbo_points_stay_in_the_trust_region_around_the_best_point():
-    """After the design every point lies within half a side (shaped by the length scales, whose
-    geometric mean is 1) of the best point so far; most move only some of the coordinates when
-    the dimension exceeds 20."""
+def test_turbo_points_move_only_some_coordinates_of_the_best_point():
+    """With the box centred on the best point so far (``centre = "best"``), each point after the
+    design keeps the centre's value in every coordinate that the candidates' mask does not move:
+    above 20 dimensions each moves with probability 20 / dimension, so not all of them do."""
     f, _ = _ellipsoid(dim=25, seed=3)
     pr, asked = _problem(f, [0] * 25, [1] * 25, budget=80, seed=5)
-    res = bf.component("optimizer", "turbo", init_points=50, batch=2, **FAST).minimize(pr)
+    res = bf.component("optimizer", "turbo", init_points=50, batch=2, centre="best", **FAST).minimize(pr)
     X = np.array(asked)
     vals = np.array([f(x) for x in X])
     moved = []

@@ -68,6 +68,53 @@ def test_gaussian_location_posterior_mean_and_sd(kernel):
     assert np.all(d["distances"] <= eps)
 
 
+def test_recycled_posterior_is_the_abc_posterior_at_its_lower_tolerance():
+    """``posterior = "recycled"``: the proposals of every generation with a distance at most a
+    lower tolerance eps', weighted by multiple importance sampling, are the ABC posterior at eps':
+    for the Gaussian location N(y_obs, 1 + eps'^2 / 3) (the exact posterior widened by the
+    tolerance), narrower than the last population's N(y_obs, 1 + eps_T^2 / 3). The same run (same
+    evaluations) gives both; the last population stays in the diagnostics."""
+    out = {}
+    for post in ("population", "recycled"):
+        pr, calls = _problem(gaussian_location(seed=3), [-10.0], [10.0])
+        res = AbcSmc(particles=400, generations=40, epsilon_target=1.0, min_acceptance=0.005,
+                     posterior=post).minimize(pr)
+        out[post] = (res.diagnostics, np.concatenate(calls))
+    pop, rec = out["population"][0], out["recycled"][0]
+    assert np.array_equal(out["population"][1], out["recycled"][1])  # the same proposals
+    eps_t, eps = rec["epsilon"][-1], rec["epsilon_posterior"]
+    assert pop["epsilon_posterior"] == eps_t == pytest.approx(1.0)
+    assert eps < 0.7 * eps_t  # the earlier generations hold many proposals closer than eps_T
+    w = rec["weights"]
+    assert w.sum() == pytest.approx(1.0) and 1.0 / np.sum(w ** 2) >= 400  # a population's ESS
+    assert np.all(rec["distances"] <= eps) and rec["distances"].max() == eps
+    sd = np.sqrt(1.0 + eps ** 2 / 3)
+    post = rec["posterior"]["x0"]
+    assert post["mean"] == pytest.approx(2.0, abs=0.1 * sd)
+    assert post["std"] == pytest.approx(sd, rel=0.10)
+    assert post["std"] < pop["posterior"]["x0"]["std"]
+    assert np.array_equal(rec["population"]["particles"], pop["particles"])
+    assert np.array_equal(rec["population"]["weights"], pop["weights"])
+
+
+def test_recycled_posterior_at_a_bound_of_the_prior():
+    """Near a bound the proposals are truncated (drawn again when outside); the recycled
+    posterior is still the ABC posterior at its tolerance, p(theta) ~ Phi(y - theta + eps) -
+    Phi(y - theta - eps) on theta >= 0, integrated numerically."""
+    from scipy.stats import norm
+    pr, _ = _problem(gaussian_location(y_obs=0.3, seed=1), [0.0], [10.0])
+    d = AbcSmc(particles=400, generations=40, epsilon_target=1.0, min_acceptance=0.005,
+               posterior="recycled").minimize(pr).diagnostics
+    eps = d["epsilon_posterior"]
+    t = np.linspace(0.0, 10.0, 200_001)
+    p = norm.cdf(0.3 - t + eps) - norm.cdf(0.3 - t - eps)
+    mean = (t * p).sum() / p.sum()
+    sd = np.sqrt(((t - mean) ** 2 * p).sum() / p.sum())
+    assert eps < 0.7
+    assert d["posterior"]["x0"]["mean"] == pytest.approx(mean, abs=0.1 * sd)
+    assert d["posterior"]["x0"]["std"] == pytest.approx(sd, rel=0.10)
+
+
 def test_stops_on_min_acceptance_and_budget_keeping_the_last_complete_generation():
     pr, _ = _problem(gaussian_location(), [-10.0], [10.0])
     res = AbcSmc(particles=100, generations=60, min_acceptance=0.2).minimize(pr)

@@ -27,6 +27,17 @@ trees within a tolerance epsilon of the data, tightened generation by generation
   in docs/validation.md found the 50 % intervals covering about two thirds of the truths when the
   run stopped at 1.4 times the floor); at it a perfect model passes half the time; below it the
   acceptance rate, and so the cost, falls fast for little gain.
+* **Posterior** (``posterior``): ``"population"``, the last complete generation's particles;
+  ``"recycled"``, every proposal the run made, of every generation (the incomplete last one
+  included), with a distance at most a lower tolerance eps_post. Each generation's proposals with
+  a distance at most eps are an importance sample of the ABC posterior at eps under that
+  generation's proposal (its kernel mixture, divided by its share inside the bounds), and the
+  balance heuristic of multiple importance sampling weighs them all as drawn from the mixture of
+  the proposals, w = prior / sum_t (m_t / M) g_t. eps_post is the lowest tolerance at which they
+  still have an effective sample size of ``particles``: the posterior has a population's Monte
+  Carlo precision at a lower tolerance, so it is closer to the exact posterior (ABC's posterior
+  is the exact one widened by the tolerance; for a Gaussian location by eps^2 / 3 in variance),
+  and it costs no evaluation. ``diagnostics`` then keeps the last population too.
 * **Stops**: epsilon at or below the target; a generation that needs more than
   ``particles / min_acceptance`` proposals (the acceptance rate fell below ``min_acceptance``);
   ``generations`` done; the run's evaluation budget or wall time. The posterior is always the
@@ -41,10 +52,12 @@ concentrates around the parameters that fit best *with those seeds* and leaves t
 variation out, so its intervals are expected to be too narrow (not measured). For intervals meant
 to cover the truth use ``seed_mode = "per_evaluation"``, as the calibration study does.
 
-``diagnostics`` holds the final population (``particles``, ``weights``, ``distances``), the
-``epsilon`` schedule (and with ``epsilon_target = "noise"`` the measured target per generation,
-``epsilon_target``), the ``acceptance`` rate and effective sample size (``ess``) per generation,
-and ``posterior``: weighted mean, sd and 2.5/5/16/25/50/75/84/95/97.5 % quantiles per parameter.
+``diagnostics`` holds the posterior's particles (``particles``, ``weights``, ``distances``) and
+its tolerance ``epsilon_posterior`` (with ``posterior = "recycled"`` also the last generation's
+``population``), the ``epsilon`` schedule (and with ``epsilon_target = "noise"`` the measured
+target per generation, ``epsilon_target``), the ``acceptance`` rate and effective sample size
+(``ess``) per generation, and ``posterior``: weighted mean, sd and 2.5/5/16/25/50/75/84/95/97.5 %
+quantiles per parameter.
 """
 from __future__ import annotations
 
@@ -83,6 +96,11 @@ class AbcSmcSettings(OptimizerSettings):
                                             "the covariance of its nearest particles)")
     neighbours: int | None = Field(None, ge=2, description="particles per local covariance (local kernel; "
                                    "default max(2 * dimension + 1, particles / 5))")
+    posterior: Literal["population", "recycled"] = Field(
+        "population", description="the posterior reported: population, the last complete generation's particles; "
+        "recycled, every proposal of every generation with a distance at or below the lowest tolerance at which "
+        "they still have the effective sample size of a population, weighted by multiple importance sampling "
+        "(a lower tolerance, so closer to the exact posterior, for no extra evaluation)")
     batch: int | None = Field(None, ge=1, description="proposals per evaluation batch (default: the "
                               "expected number still needed, from the last acceptance rate, at least workers' "
                               "worth; at most particles)")
@@ -107,6 +125,54 @@ def _log_mvn(diff: np.ndarray, chol: np.ndarray) -> np.ndarray:
     return -0.5 * np.sum(z * z, axis=0) - np.sum(np.log(np.diag(chol)))
 
 
+class _Pool:
+    """Every proposal of a run with its distance and the density it was drawn from, for the
+    recycled posterior: the proposals of all generations with a distance at most epsilon are an
+    importance sample of the ABC posterior at epsilon, each generation's under its own proposal,
+    and the balance heuristic of multiple importance sampling (Veach & Guibas 1995) weighs them as
+    drawn from the mixture of all proposals: w = prior / sum_t (m_t / M) g_t."""
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray):
+        self.log_prior = -float(np.sum(np.log(hi - lo)))
+        self.X, self.d, self.sources, self.m = [], [], [], []
+
+    def add(self, X: np.ndarray, d: np.ndarray, source, inside: float) -> None:
+        """``source``: ``None`` (drawn from the prior) or ``(kernels, parents, weights)`` of a
+        generation's proposal; ``inside``: its mass inside the bounds (proposals outside are
+        drawn again, so the density is the kernel mixture divided by it)."""
+        self.X.append(np.asarray(X, float))
+        self.d.append(np.where(np.isfinite(d), d, np.inf))
+        self.sources.append((source, math.log(max(inside, 1e-300))))
+        self.m.append(len(X))
+
+    def posterior(self, eps: float, target_ess: float, log_kernel_mix):
+        """``(particles, weights, distances, tolerance)``: the proposals with a distance at most
+        the lowest tolerance (at most ``eps``) whose weights have an effective sample size of
+        ``target_ess``, or all within ``eps`` when they have less."""
+        X, d = np.vstack(self.X), np.concatenate(self.d)
+        keep = d <= eps
+        X, d = X[keep], d[keep]
+        order = np.argsort(d, kind="stable")
+        X, d = X[order], d[order]
+        M = float(sum(self.m))
+        p = X.shape[1]
+        terms = []
+        for (source, log_inside), m in zip(self.sources, self.m):
+            if source is None:
+                log_g = np.full(len(X), self.log_prior)
+            else:
+                log_g = log_kernel_mix(*source, X) - 0.5 * p * math.log(2 * math.pi) - log_inside
+            terms.append(math.log(m / M) + log_g)
+        terms = np.array(terms)
+        top = terms.max(axis=0)
+        log_q = top + np.log(np.exp(terms - top).sum(axis=0))
+        w = np.exp(self.log_prior - log_q - np.max(self.log_prior - log_q))
+        ess = np.cumsum(w) ** 2 / np.cumsum(w ** 2)
+        reach = np.flatnonzero(ess >= target_ess)
+        k = len(X) if reach.size == 0 else int(np.searchsorted(d, d[reach[0]], side="right"))
+        return X[:k], w[:k] / w[:k].sum(), d[:k], float(d[k - 1])
+
+
 class AbcSmc(Optimizer):
     """Sequential Monte Carlo ABC under a uniform prior (see the module text)."""
 
@@ -125,6 +191,9 @@ class AbcSmc(Optimizer):
         # generation 0: the prior
         theta = lo + rng.random((n, ev.dim)) * (hi - lo)
         dist = ev(theta)
+        # every proposal with its distance and the proposal it came from, for the recycled posterior
+        pool = _Pool(lo, hi)
+        pool.add(theta, dist, None, 1.0)
         weights = np.full(n, 1.0 / n)
         eps_hist, acc_hist, ess_hist, target_hist = [math.inf], [1.0], [float(n)], []
         log(ev, generation=0, epsilon=None, acceptance=1.0, ess=float(n), proposals=n)
@@ -147,6 +216,8 @@ class AbcSmc(Optimizer):
             eps = max(float(np.quantile(dist[fin], s.quantile)), target)
             kern = self._kernel(theta, weights)
             new_t, new_d, proposals, rate = [], [], 0, 1.0
+            drawn_inside = [0, 0]
+            gen_X, gen_d = [], []
             limit = int(math.ceil(n / s.min_acceptance))
             while sum(len(d) for d in new_d) < n and proposals < limit and not ev.stopped:
                 need = n - sum(len(d) for d in new_d)
@@ -154,14 +225,19 @@ class AbcSmc(Optimizer):
                 k = min(k, limit - proposals)
                 if problem.remaining() is not None:
                     k = min(k, problem.remaining())
-                X = self._propose(kern, theta, weights, k, lo, hi, rng)
+                X = self._propose(kern, theta, weights, k, lo, hi, rng, drawn_inside)
                 d = ev(X)
                 proposals += k
+                gen_X.append(X)
+                gen_d.append(d)
                 ok = np.isfinite(d) & (d <= eps)
                 new_t.append(X[ok])
                 new_d.append(d[ok])
                 rate = max(sum(len(x) for x in new_d) / proposals, 1.0 / (proposals + 1))
             got = sum(len(d) for d in new_d)
+            if gen_X:  # the share of the kernel mixture inside the bounds normalises its density
+                pool.add(np.vstack(gen_X), np.concatenate(gen_d), (kern, theta, weights),
+                         drawn_inside[1] / max(drawn_inside[0], 1))
             if got < n:
                 reason = (f"generation {t} incomplete ({got} of {n} particles): "
                           + (ev.stop_reason("stopped") if ev.stopped else
@@ -178,7 +254,16 @@ class AbcSmc(Optimizer):
             ess_hist.append(_ess(weights))
             log(ev, generation=t, epsilon=eps, acceptance=n / proposals, ess=ess_hist[-1], proposals=proposals,
                 complete=True)
+        population = (theta, weights, dist)
+        if s.posterior == "recycled" and len(eps_hist) > 1:
+            theta, weights, dist, eps_post = pool.posterior(eps_hist[-1], n, self._log_kernel_mix)
+        else:
+            eps_post = eps_hist[-1]
         diag = self._diagnostics(ev, theta, weights, dist, eps_hist, acc_hist, ess_hist)
+        diag["epsilon_posterior"] = None if not math.isfinite(eps_post) else float(eps_post)
+        if s.posterior == "recycled":
+            diag["population"] = {"particles": ev.project(population[0]), "weights": population[1],
+                                  "distances": population[2]}
         if s.epsilon_target == "noise":
             diag["epsilon_target"] = target_hist
         diag["note"] = f"{reason}; the posterior is generation {len(eps_hist) - 1}, the last complete one"
@@ -226,8 +311,9 @@ class AbcSmc(Optimizer):
         return out
 
     @staticmethod
-    def _propose(kern, theta, w, k, lo, hi, rng) -> np.ndarray:
-        """``k`` perturbed particles inside the (relaxed) bounds; parents drawn by weight."""
+    def _propose(kern, theta, w, k, lo, hi, rng, counts=None) -> np.ndarray:
+        """``k`` perturbed particles inside the (relaxed) bounds; parents drawn by weight.
+        ``counts`` (a list of two) adds the draws made and those inside the bounds."""
         out = np.empty((0, theta.shape[1]))
         while out.shape[0] < k:
             m = 2 * (k - out.shape[0])
@@ -238,6 +324,9 @@ class AbcSmc(Optimizer):
             else:
                 X = theta[parent] + np.einsum("mij,mj->mi", np.asarray(kern)[parent], z)
             inside = np.all((X >= lo) & (X <= hi), axis=1)
+            if counts is not None:
+                counts[0] += m
+                counts[1] += int(inside.sum())
             out = np.vstack([out, X[inside]])
         return out[:k]
 

@@ -231,7 +231,15 @@ def _evaluate_run(run_dir: Path, names, theta, integer, seed: int, i: int) -> di
     if got != list(names):
         row["status"] = f"posterior.csv has parameters {got}, not {list(names)}"
         return row
+    row["params"] = posterior_params(X, w, names, theta, integer, seed, i)
+    return row
+
+
+def posterior_params(X: np.ndarray, w: np.ndarray, names, theta, integer, seed: int, i: int) -> dict:
+    """Per parameter of run ``i``: truth, posterior median, central intervals and the SBC rank of
+    the truth, from weighted draws ``X`` (rows) with weights ``w``."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), _STREAM, int(i), 1]))
+    out = {}
     for j, name in enumerate(names):
         t = float(theta[j])
         p = {"truth": int(t) if integer[j] else t,
@@ -239,8 +247,8 @@ def _evaluate_run(run_dir: Path, names, theta, integer, seed: int, i: int) -> di
              "rank": sbc_rank(X[:, j], w, t, RANK_DRAWS, rng)}
         for lev in LEVELS:
             p[f"lo{lev}"], p[f"hi{lev}"] = central_interval(X[:, j], w, lev)
-        row["params"][name] = p
-    return row
+        out[name] = p
+    return out
 
 
 def _plan_runs(cfg, base: dict, out_dir: Path, n: int, overwrite: bool, names, lo, hi, integer) -> list:

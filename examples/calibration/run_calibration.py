@@ -27,13 +27,15 @@ ROOT = HERE.parents[1]
 RUNS = ROOT / "runs" / "calibration"
 DOC = ROOT / "docs" / "validation.md"
 IMG = ROOT / "docs" / "img" / "validation"
-STUDIES = ("sot_abc_smc", "sot_abc_smc_noise", "sot_emcee_noise", "sot_emcee_auto")
+STUDIES = ("sot_abc_smc", "sot_abc_smc_noise", "sot_abc_smc_recycled", "sot_emcee_noise", "sot_emcee_auto")
 BEGIN = "<!-- calibration: written by examples/calibration/run_calibration.py --doc -->"
 END = "<!-- /calibration -->"
 FIDELITY = "<!-- real-tree fidelity: written by examples/real/run_fidelity.py --doc -->"
 LABEL = {"sot_abc_smc": "abc-smc, 7 generations", "sot_abc_smc_noise": 'abc-smc, epsilon_target = "noise"',
+         "sot_abc_smc_recycled": 'abc-smc, epsilon_target = "noise", posterior = "recycled"',
          "sot_emcee_noise": 'emcee, epsilon = "noise"', "sot_emcee_auto": 'emcee, epsilon = "auto"'}
 SHORT = {"sot_abc_smc": "abc-smc (7 gen.)", "sot_abc_smc_noise": "abc-smc (noise floor)",
+         "sot_abc_smc_recycled": "abc-smc (noise floor, recycled)",
          "sot_emcee_noise": "emcee noise", "sot_emcee_auto": "emcee auto"}
 #: the acceptance bands of issue 14 (coverage in %)
 BAND = {50: (38, 62), 90: (80, 97)}
@@ -138,6 +140,29 @@ def _table(res: dict) -> list[str]:
                      f"{100 * t['coverage90']:.1f} % ({t['covered90']}/{t['runs']}) | {p} | "
                      f"{t['width50']:.3f} | {t['width90']:.3f} |")
     return lines
+
+
+def population_result(name: str, res: dict) -> dict:
+    """The coverage of a recycled-posterior study's runs had they reported their last generation
+    (``diagnostics.population`` of each run's best.json): the same fits, the other posterior."""
+    import numpy as np
+    from bforest_core.pipeline.calibrate import _read_study_config, coverage_table, posterior_params
+    names = res["names"]
+    seed = _read_study_config(HERE / f"{name}.toml").seed  # the seed of the ranks' draws, as calibrate
+    rows, ratios = [], []
+    for i, r in enumerate(res["runs"]):
+        if r["status"] != "ok":
+            continue
+        diag = json.loads((RUNS / name / r["run"] / "best.json").read_text())["diagnostics"]
+        pop = diag["population"]
+        theta = [r["params"][nm]["truth"] for nm in names]
+        rows.append({"run": r["run"], "status": "ok",
+                     "params": posterior_params(np.asarray(pop["particles"], float), np.asarray(pop["weights"], float),
+                                                names, theta, [False] * len(names), seed, int(r["run"][4:]))})
+        eps = [e for e in diag["epsilon"] if e is not None]
+        ratios.append(diag["epsilon_posterior"] / eps[-1])
+    return {"table": coverage_table(rows, names, res["lower"], res["upper"]), "units": res["units"],
+            "eps_ratio": ratios}
 
 
 def _times(name: str, res: dict) -> str:
@@ -365,6 +390,15 @@ def section(results: dict) -> str:
                                      f"{SEEDED_FROM[name]})" if name in SEEDED_FROM else "")
         out += ["", f"### {LABEL[name]}", "", cmd + " — " + times + ".", ""]
         out += _table(res)
+        if (res.get("optimizer_settings") or {}).get("posterior") == "recycled":
+            import numpy as np
+            pop = population_result(name, res)
+            r = np.array(pop["eps_ratio"])
+            out += ["", f"The recycled posterior's tolerance is {np.median(r):.3f} times the last generation's "
+                    f"(median; {np.quantile(r, 0.1):.3f}–{np.quantile(r, 0.9):.3f} for 80 % of the runs). The "
+                    "last generation of the same runs (`posterior = \"population\"`, kept in "
+                    "`diagnostics.population`):", ""]
+            out += _table(pop)
         img = IMG / f"calibration_{name}.png"
         shutil.copy(RUNS / name / "calibration.png", img)
         out += ["", f"![SBC rank histograms and intervals, {LABEL[name]}](img/validation/{img.name})"]

@@ -146,9 +146,10 @@ def population_result(name: str, res: dict) -> dict:
     """The coverage of a recycled-posterior study's runs had they reported their last generation
     (``diagnostics.population`` of each run's best.json): the same fits, the other posterior."""
     import numpy as np
-    from bforest_core.pipeline.calibrate import _read_study_config, coverage_table, posterior_params
+    from bforest_core.pipeline.calibrate import _read_study_config, _study_spec, coverage_table, posterior_params
     names = res["names"]
-    seed = _read_study_config(HERE / f"{name}.toml").seed  # the seed of the ranks' draws, as calibrate
+    cfg = _read_study_config(HERE / f"{name}.toml")
+    integer = _study_spec(cfg)[3]
     rows, ratios = [], []
     for i, r in enumerate(res["runs"]):
         if r["status"] != "ok":
@@ -158,7 +159,7 @@ def population_result(name: str, res: dict) -> dict:
         theta = [r["params"][nm]["truth"] for nm in names]
         rows.append({"run": r["run"], "status": "ok",
                      "params": posterior_params(np.asarray(pop["particles"], float), np.asarray(pop["weights"], float),
-                                                names, theta, [False] * len(names), seed, int(r["run"][4:]))})
+                                                names, theta, integer, cfg.seed, int(r["run"][4:]))})
         eps = [e for e in diag["epsilon"] if e is not None]
         ratios.append(diag["epsilon_posterior"] / eps[-1])
     return {"table": coverage_table(rows, names, res["lower"], res["upper"]), "units": res["units"],

@@ -215,13 +215,11 @@ class AbcSmc(Optimizer):
                 break
             eps = max(float(np.quantile(dist[fin], s.quantile)), target)
             kern = self._kernel(theta, weights)
-            new_t, new_d, proposals, rate = [], [], 0, 1.0
+            gen_X, gen_d, got, proposals, rate = [], [], 0, 0, 1.0
             drawn_inside = [0, 0]
-            gen_X, gen_d = [], []
             limit = int(math.ceil(n / s.min_acceptance))
-            while sum(len(d) for d in new_d) < n and proposals < limit and not ev.stopped:
-                need = n - sum(len(d) for d in new_d)
-                k = s.batch or int(min(n, max(need / max(rate, s.min_acceptance), 8)))
+            while got < n and proposals < limit and not ev.stopped:
+                k = s.batch or int(min(n, max((n - got) / max(rate, s.min_acceptance), 8)))
                 k = min(k, limit - proposals)
                 if problem.remaining() is not None:
                     k = min(k, problem.remaining())
@@ -230,11 +228,8 @@ class AbcSmc(Optimizer):
                 proposals += k
                 gen_X.append(X)
                 gen_d.append(d)
-                ok = np.isfinite(d) & (d <= eps)
-                new_t.append(X[ok])
-                new_d.append(d[ok])
-                rate = max(sum(len(x) for x in new_d) / proposals, 1.0 / (proposals + 1))
-            got = sum(len(d) for d in new_d)
+                got += int(np.sum(np.isfinite(d) & (d <= eps)))
+                rate = max(got / proposals, 1.0 / (proposals + 1))
             if gen_X:  # the share of the kernel mixture inside the bounds normalises its density
                 pool.add(np.vstack(gen_X), np.concatenate(gen_d), (kern, theta, weights),
                          drawn_inside[1] / max(drawn_inside[0], 1))
@@ -245,8 +240,9 @@ class AbcSmc(Optimizer):
                 log(ev, generation=t, epsilon=eps, acceptance=got / max(proposals, 1), ess=None,
                     proposals=proposals, complete=False)
                 break
-            cand = np.concatenate(new_t)[:n]
-            cand_d = np.concatenate(new_d)[:n]
+            X, d = np.vstack(gen_X), np.concatenate(gen_d)
+            ok = np.isfinite(d) & (d <= eps)
+            cand, cand_d = X[ok][:n], d[ok][:n]
             w = 1.0 / np.exp(self._log_kernel_mix(kern, theta, weights, cand))
             theta, dist, weights = cand, cand_d, w / w.sum()
             eps_hist.append(eps)

@@ -154,7 +154,7 @@ def population_result(name: str, res: dict) -> dict:
     cfg = _read_study_config(HERE / f"{name}.toml")
     integer = _study_spec(cfg)[3]
     rows, ratios = [], []
-    for i, r in enumerate(res["runs"]):
+    for r in res["runs"]:
         if r["status"] != "ok":
             continue
         diag = json.loads((RUNS / name / r["run"] / "best.json").read_text())["diagnostics"]

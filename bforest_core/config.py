@@ -128,7 +128,9 @@ class ObjectiveConfig(_Strict):
     model_seeds: Optional[list[int]] = Field(
         None, description="explicit model seeds held fixed for every evaluation (overrides seeds/seed_mode)")
     weights: Optional[dict[str, float]] = Field(None, description="weight per data set (default equal)")
-    penalty: float = Field(1.0, description="distance of a failed simulation")
+    penalty: float = Field(1.0, description="distance of a failed simulation, for optimisers: keep it above every "
+                           "real distance (1.0 suits statistics bounded by 1, such as KS); "
+                           "samplers that say so (abc-smc) treat a failure as inf instead")
     timeout: Optional[float] = Field(60.0, gt=0, description="seconds before a simulation is stopped (None: no limit)")
     cache: bool = Field(True, description="never simulate identical params and seeds twice")
     structure_weight: float = Field(1.0, gt=0, description="weight of the [features]/[distance] term "

@@ -325,6 +325,13 @@ class Optimizer(Component):
     #: ``bforest calibrate`` accepts it.
     gives_posterior: bool = False
 
+    #: True for a sampler to which a failed simulation (collapsed, too large, timed out) is a tree
+    #: that matches nothing: ``evaluate`` (and ``seed_spread``) then return ``inf`` for it instead of
+    #: the config's ``[objective] penalty``, which an optimiser needs as a finite value but a
+    #: sampler could accept as a good fit once its tolerance is above it (the store still logs the
+    #: penalty and the status).
+    failures_as_inf: bool = False
+
     @abc.abstractmethod
     def minimize(self, problem: Problem) -> OptimizeResult:
         """Search the box for the minimum. Must be deterministic given ``problem.seed`` and the

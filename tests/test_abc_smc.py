@@ -255,3 +255,25 @@ def test_noise_target_stops_at_the_distance_a_perfect_model_shows():
     assert res.stop_reason == "5 generations done" and res.diagnostics["epsilon_target"] == [0.0] * 4
     with pytest.raises(Exception, match="epsilon_target"):
         AbcSmc(epsilon_target=-1.0)
+
+
+@pytest.mark.parametrize("as_inf", [True, False])
+def test_failed_simulations_are_never_accepted_whatever_the_penalty(toy_plugin, tmp_path, monkeypatch, as_inf):
+    """A failed simulation matches nothing: abc-smc gets ``inf`` for it (``failures_as_inf``), so
+    even a penalty below every real distance (as 1.0 is under the sample-size-scaled KS
+    statistic) is never accepted; the store still logs the penalty with the status. Without the
+    flag (the ``False`` case, the behaviour before it) the failures are accepted as perfect fits."""
+    from bforest_core.pipeline.store import RunStore
+    monkeypatch.setattr(AbcSmc, "failures_as_inf", as_inf)
+    p = toy_config(tmp_path, optimizer="abc-smc", optimizer_settings="particles = 12\ngenerations = 4", budget=300)
+    text = p.read_text().replace('kind = "toy"\n', 'kind = "toy"\nfail_above = 50.0\n')
+    p.write_text(text + "[objective]\npenalty = 0.0\n")
+    run = tmp_path / "run"
+    res = bf.fit(bf.load_config(p), run, progress=False)
+    failed = [e for e in RunStore.open(run).evaluations() if e.status != "ok"]
+    assert failed and all(e.distance == 0.0 and e.params["angle"] > 50.0 for e in failed)
+    angle = np.asarray(res.diagnostics["particles"])[:, res.diagnostics["names"].index("angle")]
+    if as_inf:
+        assert angle.max() <= 50.0 and res.params["angle"] <= 50.0
+    else:
+        assert angle.max() > 50.0

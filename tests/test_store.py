@@ -13,7 +13,9 @@ def test_evaluations_are_committed_one_by_one(tmp_path):
     other = RunStore.open(tmp_path / "run")
     assert other.count() == 1 and other.evaluations()[0].params == {"a": 1.0}
     s.add(Evaluation(1, {"a": 2.0}, [7], 0.25, {"S1": None}, "collapsed", message="m"))
-    assert other.best().idx == 1 and other.evaluations()[1].per_set == {"S1": None}
+    assert other.count() == 2 and other.evaluations()[1].per_set == {"S1": None}
+    # the best is a grown tree, even where a failure's penalty distance is lower
+    assert other.best().idx == 0
     with pytest.raises(RunDirError, match="already holds a run"):
         RunStore.create(tmp_path / "run", "seed = 1\n")
     with pytest.raises(RunDirError, match="not a run directory"):

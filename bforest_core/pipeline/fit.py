@@ -8,6 +8,7 @@ uninterrupted one.
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,8 +43,10 @@ class FitResult:
 class Evaluator:
     """``Problem.evaluate`` of a run: replay from the store, cache, executor, stop criteria."""
 
-    def __init__(self, cfg, store: RunStore, executor, ssm, names, problem: Problem, progress=None):
+    def __init__(self, cfg, store: RunStore, executor, ssm, names, problem: Problem, progress=None,
+                 failures_as_inf: bool = False):
         self.cfg = cfg
+        self.failures_as_inf = failures_as_inf  # Optimizer.failures_as_inf
         self.store = store
         self.executor = executor
         self.names = names
@@ -71,6 +74,11 @@ class Evaluator:
     def _key(self, params, seeds):
         return (tuple(sorted(params.items())), tuple(seeds))
 
+    def _value(self, distance: float, status: str) -> float:
+        """What ``evaluate`` returns for a logged evaluation: its distance, or ``inf`` for a failed
+        simulation when the optimiser asks for that (``Optimizer.failures_as_inf``)."""
+        return math.inf if self.failures_as_inf and status != "ok" else float(distance)
+
     def _check_stop(self):
         pr, st = self.problem, self.stop
         if st.max_evaluations is not None and pr.n_evaluations >= st.max_evaluations:
@@ -88,7 +96,8 @@ class Evaluator:
         per = len(self.explicit_seeds) if self.explicit_seeds else int(self.k)
         seeds = spread_seeds(self.cfg.seed, int(k) * per)
         tasks = [(params, seeds[i * per:(i + 1) * per]) for i in range(int(k))]
-        return np.array([r["distance"] for r in self.executor.map(evaluate_task, tasks)], float)
+        return np.array([self._value(r["distance"], r["status"]) for r in self.executor.map(evaluate_task, tasks)],
+                        float)
 
     def elapsed(self) -> float:
         return self.elapsed_before + time.monotonic() - self.t0
@@ -128,10 +137,9 @@ class Evaluator:
                 if ev.params != json.loads(json.dumps(params)) or ev.seeds != seeds:
                     raise RunDirError(f"{self.store.path}: evaluation {idx} in the log has other parameters "
                                       "than this run asks for (config or code changed?); start a new run")
-                out[r] = ev.distance
-                self.cache[key] = ev.distance
+                out[r] = self.cache[key] = self._value(ev.distance, ev.status)
                 pr.n_evaluations += 1
-                self._record(x, ev.distance)
+                self._record(x, out[r])
                 if self.progress:
                     self.progress(pr, replayed=True)
                 continue
@@ -144,12 +152,11 @@ class Evaluator:
                 ev = Evaluation(idx, params, seeds, res["distance"], res["per_set"], res["status"],
                                 res["message"], res["seconds"], res["worker"], res["n_rows"])
                 self.store.add(ev)
-                out[r] = ev.distance
+                out[r] = self.cache[key] = self._value(ev.distance, ev.status)
                 for r2 in pending[key]:
-                    out[r2] = ev.distance
-                self.cache[key] = ev.distance
+                    out[r2] = out[r]
                 pr.n_evaluations += 1
-                self._record(X[r], ev.distance)
+                self._record(X[r], out[r])
                 if self.progress:
                     self.progress(pr, replayed=False)
             self.store.set_meta("elapsed", self.elapsed())
@@ -258,7 +265,8 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
                           init_upper=ihi, seed=int(cfg.seed), budget=cfg.stop.max_evaluations,
                           log=store.log)
         bar = _Progress(_expected_total(cfg, optimizer, len(names)), enabled=progress)
-        evaluator = Evaluator(cfg, store, executor, ssm, names, problem, progress=bar)
+        evaluator = Evaluator(cfg, store, executor, ssm, names, problem, progress=bar,
+                              failures_as_inf=bool(getattr(optimizer, "failures_as_inf", False)))
         problem.evaluate = evaluator
         problem.seed_spread = evaluator.seed_spread
         result = None

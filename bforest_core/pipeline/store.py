@@ -187,7 +187,9 @@ class RunStore:
         return {e.idx: e for e in self.evaluations()}
 
     def best(self) -> Evaluation | None:
-        r = self._con.execute("SELECT idx FROM evaluations ORDER BY distance, idx LIMIT 1").fetchone()
+        """The evaluation of lowest distance, a grown tree before any failure (whose distance is
+        the config's penalty, which need not exceed every real distance)."""
+        r = self._con.execute("SELECT idx FROM evaluations ORDER BY status != 'ok', distance, idx LIMIT 1").fetchone()
         if r is None:
             return None
         return next(e for e in self.evaluations() if e.idx == r[0])

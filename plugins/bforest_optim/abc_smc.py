@@ -38,6 +38,12 @@ trees within a tolerance epsilon of the data, tightened generation by generation
   Carlo precision at a lower tolerance, so it is closer to the exact posterior (ABC's posterior
   is the exact one widened by the tolerance; for a Gaussian location by eps^2 / 3 in variance),
   and it costs no evaluation. ``diagnostics`` then keeps the last population too.
+* **Failed simulations** (a tree that collapses, grows too large or times out) match nothing:
+  the sampler asks the fit for ``inf`` in their place (``failures_as_inf``), so no tolerance
+  accepts them; in a quantile (epsilon, the noise floor) they rank above every grown tree. The
+  fit's ``[objective]
+  penalty`` (logged with the status) suits optimisers only: with a distance larger than it
+  (e.g. the sliced distance with ``scale_by_sample_size``) it would look like a good fit.
 * **Stops**: epsilon at or below the target; a generation that needs more than
   ``particles / min_acceptance`` proposals (the acceptance rate fell below ``min_acceptance``);
   ``generations`` done; the run's evaluation budget or wall time. The posterior is always the
@@ -180,6 +186,7 @@ class AbcSmc(Optimizer):
     summary = "ABC-SMC sampler: a weighted posterior population and the best particle"
     Settings = AbcSmcSettings
     gives_posterior = True
+    failures_as_inf = True
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         s: AbcSmcSettings = self.settings
@@ -213,7 +220,9 @@ class AbcSmc(Optimizer):
                 reason = f"epsilon {eps_hist[-1]:.4g} at or below the target {target:.4g}" + (
                     " (the distance's noise floor)" if s.epsilon_target == "noise" else "")
                 break
-            eps = max(float(np.quantile(dist[fin], s.quantile)), target)
+            # a failure (inf) ranks above every grown tree: where the quantile falls among the
+            # failures, epsilon is the largest distance of a grown tree
+            eps = max(float(np.quantile(np.where(fin, dist, dist[fin].max()), s.quantile)), target)
             kern = self._kernel(theta, weights)
             gen_X, gen_d, got, proposals, rate = [], [], 0, 0, 1.0
             drawn_inside = [0, 0]
@@ -267,7 +276,7 @@ class AbcSmc(Optimizer):
 
     def _target(self, problem: Problem, ev: BoxEvaluator, theta: np.ndarray, w: np.ndarray) -> float:
         """The epsilon target of the next generation (see the module text); 0 where the noise
-        cannot be measured (no ``problem.seed_spread``)."""
+        cannot be measured (no ``problem.seed_spread``, or most seeds fail at both points)."""
         s = self.settings
         if s.epsilon_target != "noise":
             return float(s.epsilon_target)
@@ -278,8 +287,8 @@ class AbcSmc(Optimizer):
         # central but may fall between modes: the lower median of the two is the floor
         for x in (np.asarray(ev.best_x, float), ev.project(w @ theta)[0]):
             vals = np.asarray(problem.seed_spread(x, int(s.noise_seeds)), float)
-            vals = vals[np.isfinite(vals)]
-            if vals.size:
+            vals = vals[~np.isnan(vals)]  # a failure counts as infinitely far
+            if vals.size and math.isfinite(float(np.median(vals))):  # not when most seeds fail
                 medians.append(float(np.median(vals)))
         return min(medians) if medians else 0.0
 

@@ -41,9 +41,9 @@ trees within a tolerance epsilon of the data, tightened generation by generation
 * **Failed simulations** (a tree that collapses, grows too large or times out) match nothing:
   the sampler asks the fit for ``inf`` in their place (``failures_as_inf``), so no tolerance
   accepts them; in a quantile (epsilon, the noise floor) they rank above every grown tree. The
-  fit's ``[objective]
-  penalty`` (logged with the status) suits optimisers only: with a distance larger than it
-  (e.g. the sliced distance with ``scale_by_sample_size``) it would look like a good fit.
+  fit's ``[objective] penalty`` (logged with the status) suits optimisers only: with a distance
+  larger than it (e.g. the sliced distance with ``scale_by_sample_size``) it would look like a
+  good fit.
 * **Stops**: epsilon at or below the target; a generation that needs more than
   ``particles / min_acceptance`` proposals (the acceptance rate fell below ``min_acceptance``);
   ``generations`` done; the run's evaluation budget or wall time. The posterior is always the

@@ -52,7 +52,9 @@ def test_same_seed_same_result_serial_and_process(toy_plugin, tmp_path):
     (tmp_path / "b").mkdir()
     a = bf.fit(bf.load_config(toy_config(tmp_path / "a", budget=24)), tmp_path / "a" / "run", progress=False)
     pb = toy_config(tmp_path / "b", executor="process", executor_settings="workers = 2", budget=24)
-    pb.write_text(pb.read_text().replace('kind = "toy"\n', 'kind = "toy"\nsleep = 0.02\n', 1))
+    # each simulation sleeps long enough that the second worker has started before the first is
+    # through the 24 (0.02 s was not enough on a loaded machine: one worker did them all)
+    pb.write_text(pb.read_text().replace('kind = "toy"\n', 'kind = "toy"\nsleep = 0.1\n', 1))
     cfg_b = bf.load_config(pb)
     b = bf.fit(cfg_b, tmp_path / "b" / "run", progress=False)
     ea, eb = _evals(tmp_path / "a" / "run"), _evals(tmp_path / "b" / "run")

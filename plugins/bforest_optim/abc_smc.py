@@ -288,8 +288,9 @@ class AbcSmc(Optimizer):
         for x in (np.asarray(ev.best_x, float), ev.project(w @ theta)[0]):
             vals = np.asarray(problem.seed_spread(x, int(s.noise_seeds)), float)
             vals = vals[~np.isnan(vals)]  # a failure counts as infinitely far
-            if vals.size and math.isfinite(float(np.median(vals))):  # not when most seeds fail
-                medians.append(float(np.median(vals)))
+            median = float(np.median(vals)) if vals.size else math.inf
+            if math.isfinite(median):  # not when most seeds fail
+                medians.append(median)
         return min(medians) if medians else 0.0
 
     # ------------------------------------------------------------------ kernels

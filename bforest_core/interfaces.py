@@ -286,6 +286,14 @@ class Problem:
     #: show. Deterministic for a given ``x`` and ``k``; not logged and not counted in
     #: ``n_evaluations``. ``None`` where the caller cannot provide it.
     seed_spread: Callable[[np.ndarray, int], np.ndarray] | None = None
+    #: ``summaries(X)`` -> ``(k, m)`` summary statistics of the trees of ``k`` points the run has
+    #: evaluated, regrown with their logged model seeds (per data set of every term: the log of one
+    #: plus its rows and its columns' means, averaged over the seeds; a row of NaN where the
+    #: simulation fails); ``target_summaries`` the same ``m`` statistics of the target. For a
+    #: sampler's regression adjustment (``abc-smc``, ``adjust = "linear"``). Not logged and not
+    #: counted in ``n_evaluations``. ``None`` where the caller cannot provide them.
+    summaries: Callable[[np.ndarray], np.ndarray] | None = None
+    target_summaries: np.ndarray | None = None
 
     @property
     def dim(self) -> int:

@@ -20,7 +20,7 @@ from ..config import config_to_dict, load_config, parse_config, read_toml, secti
 from ..errors import BayesForestError, ConfigError
 from ..interfaces import Problem
 from .objective import (Target, _simulate_with_timeout, _Timeout, build_target, evaluate_task, model_seeds,
-                        progress_bar, run_executor, spread_seeds, started_workers)
+                        progress_bar, run_executor, set_summaries, spread_seeds, started_workers, summary_task)
 from ..registry import component
 from .store import Evaluation, RunDirError, RunStore
 
@@ -56,6 +56,7 @@ class Evaluator:
         self.integer = problem.integer
         self.replay = store.replay()
         self.cache: dict[tuple, float] = {}
+        self.seeds_of: dict[tuple, list[int]] = {}  # point -> model seeds of its last logged evaluation
         self.next_index = 0
         self.t0 = time.monotonic()
         self.elapsed_before = float(store.get_meta("elapsed", 0.0) or 0.0)
@@ -99,6 +100,21 @@ class Evaluator:
         return np.array([self._value(r["distance"], r["status"]) for r in self.executor.map(evaluate_task, tasks)],
                         float)
 
+    def summaries(self, X) -> np.ndarray:
+        """``Problem.summaries``: the summary statistics of the trees of points this run has
+        evaluated, regrown with their logged model seeds on the executor (not logged)."""
+        X = np.clip(np.atleast_2d(np.asarray(X, float)), self.problem.lower, self.problem.upper)
+        tasks = []
+        for x in X:
+            params = self._params(x)
+            seeds = self.seeds_of.get(tuple(sorted(params.items())))
+            if seeds is None:
+                raise ValueError(f"summaries: the point {params} was not evaluated in this run")
+            tasks.append((params, seeds))
+        got = list(self.executor.map(summary_task, tasks))
+        m = next((len(g) for g in got if g is not None), 0)
+        return np.array([np.full(m, np.nan) if g is None else g for g in got], float).reshape(len(X), m)
+
     def elapsed(self) -> float:
         return self.elapsed_before + time.monotonic() - self.t0
 
@@ -138,6 +154,7 @@ class Evaluator:
                     raise RunDirError(f"{self.store.path}: evaluation {idx} in the log has other parameters "
                                       "than this run asks for (config or code changed?); start a new run")
                 out[r] = self.cache[key] = self._value(ev.distance, ev.status)
+                self.seeds_of.setdefault(key[0], seeds)
                 pr.n_evaluations += 1
                 self._record(x, out[r])
                 if self.progress:
@@ -153,6 +170,7 @@ class Evaluator:
                                 res["message"], res["seconds"], res["worker"], res["n_rows"])
                 self.store.add(ev)
                 out[r] = self.cache[key] = self._value(ev.distance, ev.status)
+                self.seeds_of.setdefault(key[0], seeds)
                 for r2 in pending[key]:
                     out[r2] = out[r]
                 pr.n_evaluations += 1
@@ -269,6 +287,8 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
                               failures_as_inf=bool(getattr(optimizer, "failures_as_inf", False)))
         problem.evaluate = evaluator
         problem.seed_spread = evaluator.seed_spread
+        problem.summaries = evaluator.summaries
+        problem.target_summaries = set_summaries(tgt.U, list(tgt.U))
         result = None
         try:
             with started_workers(cfg, tgt, executor):

@@ -128,6 +128,12 @@ class _Timeout(Exception):
     pass
 
 
+#: what a model's simulation or feature extraction may raise besides SimulationFailed: the
+#: evaluation is then a failure with status "error", never a crash of the run
+_MODEL_ERRORS = (TreeError, BayesForestError, ValueError, FloatingPointError, ArithmeticError, MemoryError,
+                 RuntimeError, IndexError, KeyError, TypeError)
+
+
 def init_worker(cfg_dict: dict, U_data: dict, columns: dict, feature_settings: dict,
                 terms: list[dict] | None = None) -> None:
     """Executor initializer: build the components of every term once in this process and
@@ -166,6 +172,39 @@ def score_tree(tree) -> tuple[dict[str, float | None], dict[str, int]]:
         for k, v in U.items():
             n_rows[t["prefix"] + k] = int(v.shape[0])
     return per_set, n_rows
+
+
+def set_summaries(U: dict[str, np.ndarray], names) -> np.ndarray:
+    """Summary statistics of a tree's data sets ``U`` (keys as in ``Target.U``), in the order of
+    ``names``: per set the log of one plus its rows, then its columns' means (0 for an empty set).
+    What a regression adjustment regresses the parameters on (``Problem.summaries``)."""
+    out = []
+    for k in names:
+        v = np.asarray(U[k], float)
+        v = v.reshape(v.shape[0], -1) if v.ndim else v.reshape(0, 1)
+        out.append(np.log1p(v.shape[0]))
+        out.extend(v.mean(axis=0) if v.shape[0] else np.zeros(v.shape[1]))
+    return np.asarray(out, float)
+
+
+def summary_task(task: tuple[dict, list[int]]) -> np.ndarray | None:
+    """The summary statistics (:func:`set_summaries`) of one parameter vector's trees, averaged
+    over its model seeds, in an initialised worker; None when a simulation fails."""
+    params, seeds = task
+    c = _CTX
+    if not c:
+        raise RuntimeError("worker not initialised (init_worker was not run)")
+    rows = []
+    for seed in seeds:
+        try:
+            tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
+        except (SimulationFailed, _Timeout, *_MODEL_ERRORS):
+            return None
+        U = {}
+        for t in c["terms"]:
+            U.update({t["prefix"] + k: v for k, v in t["features"].extract(tree).items()})
+        rows.append(set_summaries(U, list(c["U_data"])))
+    return np.mean(rows, axis=0)
 
 
 def combine_terms(per_set: dict[str, float | None]) -> tuple[float, dict[str, float]]:
@@ -262,8 +301,7 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
         except _Timeout:
             status, message = "timeout", f"simulation exceeded {c['timeout']} s"
             break
-        except (TreeError, BayesForestError, ValueError, FloatingPointError, ArithmeticError,
-                MemoryError, RuntimeError, IndexError, KeyError, TypeError) as exc:
+        except _MODEL_ERRORS as exc:
             status = "error"
             message = f"{type(exc).__name__}: {exc}"[:500]
             break

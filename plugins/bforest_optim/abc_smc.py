@@ -107,6 +107,12 @@ class AbcSmcSettings(OptimizerSettings):
         "recycled, every proposal of every generation with a distance at or below the lowest tolerance at which "
         "they still have the effective sample size of a population, weighted by multiple importance sampling "
         "(a lower tolerance, so closer to the exact posterior, for no extra evaluation)")
+    adjust: Literal["none", "linear"] = Field(
+        "none", description="regression adjustment of the posterior (Beaumont et al. 2002): linear regresses "
+        "the parameters (logit of their place in the bounds) on the summary statistics of every proposal within "
+        "the last tolerance (Epanechnikov weights; ridge chosen by generalised cross-validation) and moves each "
+        "particle to the data's statistics, which takes out most of the width the tolerance adds; regrows those "
+        "proposals' trees once with their logged seeds (not counted as evaluations)")
     batch: int | None = Field(None, ge=1, description="proposals per evaluation batch (default: the "
                               "expected number still needed, from the last acceptance rate, at least workers' "
                               "worth; at most particles)")
@@ -177,6 +183,57 @@ class _Pool:
         reach = np.flatnonzero(ess >= target_ess)
         k = len(X) if reach.size == 0 else int(np.searchsorted(d, d[reach[0]], side="right"))
         return X[:k], w[:k] / w[:k].sum(), d[:k], float(d[k - 1])
+
+
+def regression_adjust(X: np.ndarray, w: np.ndarray, S: np.ndarray, s_obs: np.ndarray, lo, hi,
+                      penalties=np.logspace(-4, 2, 13)) -> tuple[np.ndarray, dict]:
+    """Local-linear regression adjustment of weighted ABC particles (Beaumont, Zhang & Balding
+    2002): per parameter, y = logit of its place in ``[lo, hi]`` is regressed on the standardised
+    summaries ``S - s_obs`` by weighted ridge regression (the penalty chosen by generalised
+    cross-validation among ``penalties``, in units of the summed weight), and each particle becomes
+    ``b0 + f * r``: the fit at the data's summaries plus its residual, inflated by
+    ``f = sqrt(n / (n - df))`` (``n`` the weights' effective sample size, ``df`` the trace of the
+    hat matrix) so the residuals' spread is not the fit's underestimate of it. Returns the
+    adjusted particles (inside the bounds) and per parameter the ``penalty``, ``df`` and ``r2``."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    w = np.asarray(w, float) / np.sum(w)
+    n_eff = 1.0 / np.sum(w ** 2)
+    Z = np.asarray(S, float) - np.asarray(s_obs, float)
+    sd = np.sqrt(w @ (Z - w @ Z) ** 2)
+    Z = Z[:, sd > 0] / sd[sd > 0]
+    A = np.hstack([np.ones((len(Z), 1)), Z])
+    u = np.clip((np.asarray(X, float) - lo) / (hi - lo), 1e-9, 1 - 1e-9)
+    Y = np.log(u / (1 - u))
+    WA = A * w[:, None]
+    gram = A.T @ WA
+    out = np.empty_like(Y)
+    fit = {"penalty": [], "df": [], "r2": []}
+    for j in range(Y.shape[1]):
+        best = None
+        for lam in penalties:
+            R = lam * np.eye(A.shape[1])
+            R[0, 0] = 0.0  # the intercept is not shrunk
+            M = np.linalg.solve(gram + R, WA.T)
+            beta = M @ Y[:, j]
+            r = Y[:, j] - A @ beta
+            df = float(np.sum(A * M.T))  # trace of the hat matrix A M
+            if df >= n_eff - 1:
+                continue
+            gcv = float(w @ r ** 2) / (1.0 - df / n_eff) ** 2
+            if best is None or gcv < best[0]:
+                best = (gcv, lam, beta, r, df)
+        if best is None:  # too few particles for any fit: this parameter stays unadjusted
+            out[:, j] = Y[:, j]
+            lam, df, r2 = None, 0.0, 0.0
+        else:
+            _, lam, beta, r, df = best
+            out[:, j] = beta[0] + math.sqrt(n_eff / (n_eff - df)) * r
+            tot = float(w @ (Y[:, j] - w @ Y[:, j]) ** 2)
+            lam, r2 = float(lam), (1.0 - float(w @ r ** 2) / tot if tot > 0 else 0.0)
+        fit["penalty"].append(lam)
+        fit["df"].append(df)
+        fit["r2"].append(r2)
+    return lo + (hi - lo) / (1.0 + np.exp(-out)), fit
 
 
 class AbcSmc(Optimizer):
@@ -264,8 +321,20 @@ class AbcSmc(Optimizer):
             theta, weights, dist, eps_post = pool.posterior(eps_hist[-1], n, self._log_kernel_mix)
         else:
             eps_post = eps_hist[-1]
+        adjusted, unadjusted = None, None
+        if s.adjust == "linear" and len(eps_hist) > 1:
+            adjusted = self._adjusted(problem, ev, pool, eps_hist[-1], lo, hi)
+            if "particles" in adjusted:
+                unadjusted = {"particles": ev.project(theta), "weights": weights, "distances": dist,
+                              "epsilon": eps_post}
+                theta, weights, dist, eps_post = (adjusted.pop("particles"), adjusted.pop("weights"),
+                                                  adjusted.pop("distances"), eps_hist[-1])
         diag = self._diagnostics(ev, theta, weights, dist, eps_hist, acc_hist, ess_hist)
         diag["epsilon_posterior"] = None if not math.isfinite(eps_post) else float(eps_post)
+        if adjusted is not None:
+            diag["adjustment"] = adjusted
+        if unadjusted is not None:
+            diag["unadjusted"] = unadjusted
         if s.posterior == "recycled":
             diag["population"] = {"particles": ev.project(population[0]), "weights": population[1],
                                   "distances": population[2]}
@@ -292,6 +361,25 @@ class AbcSmc(Optimizer):
             if math.isfinite(median):  # not when most seeds fail
                 medians.append(median)
         return min(medians) if medians else 0.0
+
+    def _adjusted(self, problem: Problem, ev: BoxEvaluator, pool: "_Pool", eps: float, lo, hi) -> dict:
+        """The regression-adjusted posterior (``adjust = "linear"``): ``particles``, ``weights``,
+        ``distances`` and the fit's figures, or only a ``note`` saying why there is none."""
+        if problem.summaries is None or problem.target_summaries is None:
+            return {"note": "the problem gives no summary statistics; the posterior is not adjusted"}
+        X, w, d, _ = pool.posterior(eps, math.inf, self._log_kernel_mix)
+        if len(X) < 3:
+            return {"note": f"{len(X)} proposals within the last tolerance; the posterior is not adjusted"}
+        S = np.asarray(problem.summaries(ev.project(X)), float)
+        kept = np.all(np.isfinite(S), axis=1)
+        k = w * np.clip(1.0 - (d / eps) ** 2, 0.0, None) if eps > 0 else w.copy()
+        k = np.where(kept, k, 0.0)
+        if k.sum() <= 0:
+            return {"note": "no regrown proposal has weight; the posterior is not adjusted"}
+        k /= k.sum()
+        Xa, fit = regression_adjust(X[kept], k[kept], S[kept], np.asarray(problem.target_summaries, float), lo, hi)
+        return {"method": "linear", "particles": ev.project(Xa), "weights": k[kept], "distances": d[kept],
+                "regrown": int(len(X)), "summaries": int(S.shape[1]), **fit}
 
     # ------------------------------------------------------------------ kernels
     def _kernel(self, theta: np.ndarray, w: np.ndarray) -> list[np.ndarray]:

@@ -248,3 +248,19 @@ def test_compare_keeps_earlier_runs_and_adds_an_optimiser_with_resume(toy_plugin
     assert (tmp_path / "cmp" / "ga-0" / "evaluations.sqlite").stat().st_mtime_ns == stamp
     assert [t["optimizer"] for t in res["table"]] == ["ga", "toy-random"]
     assert all(r["evaluations"] == 24 for r in res["runs"])
+
+
+def test_compare_curves_never_count_a_failed_simulation_as_a_fit(toy_plugin, tmp_path):
+    """With a penalty below every real distance (0.0), a failure is still no fit: the curves and
+    the threshold count only grown trees, and each curve ends at the run's best.json distance."""
+    import json
+    from bforest_core.pipeline.compare import compare
+    p = toy_config(tmp_path)
+    p.write_text(p.read_text().replace('kind = "toy"\n', 'kind = "toy"\nfail_above = 50.0\n') + "[objective]\npenalty = 0.0\n")
+    res = compare(p, ["toy-random"], budget=30, repeats=2, out_dir=tmp_path / "cmp")
+    for r, curve in enumerate(res["curves"]["toy-random"]):
+        evs = RunStore.open(tmp_path / "cmp" / f"toy-random-{r}").evaluations()
+        assert any(e.status != "ok" for e in evs) and any(e.status == "ok" for e in evs)
+        best = json.loads((tmp_path / "cmp" / f"toy-random-{r}" / "best.json").read_text())["distance"]
+        assert curve[-1] == best > 0.0
+    assert res["threshold"] > 0.0

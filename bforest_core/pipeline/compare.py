@@ -26,9 +26,12 @@ def _settings_for_budget(name: str, budget: int, own: dict | None = None) -> dic
 
 
 def best_so_far(run_dir: Path) -> np.ndarray:
+    """The best distance of a grown tree after each evaluation (inf until the first one): a failed
+    simulation's penalty is no fit, as in ``RunStore.best``."""
     with RunStore.open(run_dir) as store:
         evs = store.evaluations()
-    return np.minimum.accumulate(np.array([e.distance for e in evs], float)) if evs else np.array([])
+    d = np.array([e.distance if e.status == "ok" else np.inf for e in evs], float)
+    return np.minimum.accumulate(d) if evs else np.array([])
 
 
 def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None, threshold=None,

@@ -38,6 +38,20 @@ trees within a tolerance epsilon of the data, tightened generation by generation
   Carlo precision at a lower tolerance, so it is closer to the exact posterior (ABC's posterior
   is the exact one widened by the tolerance; for a Gaussian location by eps^2 / 3 in variance),
   and it costs no evaluation. ``diagnostics`` then keeps the last population too.
+* **Regression adjustment** (``adjust = "linear"``; Beaumont, Zhang & Balding 2002): any tolerance
+  above zero widens the posterior, and near the distance's noise floor a lower one costs more
+  evaluations than it is worth. The adjustment takes that width out from the evaluations already
+  made: every proposal within the last tolerance is regrown once with its logged model seeds
+  (``problem.summaries``: per data set the log of one plus its rows and its columns' means), each
+  parameter (the logit of its place in the bounds) is regressed on those statistics by weighted
+  ridge regression (weights: the multiple-importance weights above times the Epanechnikov kernel
+  1 - (D / eps)^2; penalty by generalised cross-validation), and each particle moves to the fit at
+  the data's statistics plus its residual, inflated by sqrt(n / (n - df)) so that the spread is
+  not the fit's underestimate. The adjusted particles are the posterior (``posterior`` then
+  chooses the unadjusted one kept in ``diagnostics.unadjusted``). On the calibration study of
+  docs/validation.md it turned intervals that were too wide into calibrated ones. It assumes the
+  parameters depend on the statistics about linearly within the tolerance; ``adjustment.r2`` per
+  parameter says how much of their spread the statistics explain.
 * **Failed simulations** (a tree that collapses, grows too large or times out) match nothing:
   the sampler asks the fit for ``inf`` in their place (``failures_as_inf``), so no tolerance
   accepts them; in a quantile (epsilon, the noise floor) they rank above every grown tree. The
@@ -58,7 +72,9 @@ concentrates around the parameters that fit best *with those seeds* and leaves t
 variation out, so its intervals are expected to be too narrow (not measured). For intervals meant
 to cover the truth use ``seed_mode = "per_evaluation"``, as the calibration study does.
 
-``diagnostics`` holds the posterior's particles (``particles``, ``weights``, ``distances``) and
+With ``adjust = "linear"``, ``diagnostics`` also holds ``adjustment`` (``regrown`` trees,
+``summaries`` per tree, and per parameter the ridge ``penalty``, the fit's ``df`` and ``r2``) and
+``unadjusted`` (the posterior before the adjustment). ``diagnostics`` holds the posterior's particles (``particles``, ``weights``, ``distances``) and
 its tolerance ``epsilon_posterior`` (with ``posterior = "recycled"`` also the last generation's
 ``population``), the ``epsilon`` schedule (and with ``epsilon_target = "noise"`` the measured
 target per generation, ``epsilon_target``), the ``acceptance`` rate and effective sample size

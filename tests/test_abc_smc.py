@@ -368,6 +368,9 @@ def test_adjusted_posterior_in_a_fit_regrows_logged_trees_and_resumes(toy_plugin
         sd_raw = np.sqrt(u["weights"] @ (u["particles"][:, j] - u["weights"] @ u["particles"][:, j]) ** 2)
         assert sd < sd_raw
     assert json.loads((tmp_path / "full" / "best.json").read_text())["diagnostics"]["adjustment"]["method"] == "linear"
+    from bforest_core.report.build import write_report
+    text = write_report(tmp_path / "full", figures=False, html=False).read_text()
+    assert "regression-adjusted" in text and "regressed on 3 summary statistics" in text
     fit_killed_after(bf.load_config(cfg_path), tmp_path / "killed", 100, monkeypatch)
     bf.fit(bf.load_config(cfg_path), tmp_path / "killed", resume=True, progress=False)
     assert (tmp_path / "killed" / "posterior.csv").read_text() == (tmp_path / "full" / "posterior.csv").read_text()

@@ -189,6 +189,16 @@ def section_optimizer(doc: Document, v: RunView, figs):
     if scal or arr:
         doc.p("Diagnostics reported by the optimiser:")
         doc.table(["diagnostic", "value"], scal + arr)
+    adj = diag.get("adjustment")
+    if isinstance(adj, dict) and adj.get("method"):
+        r2 = ", ".join(f"{n} {fmt(r)}" for n, r in zip(diag.get("names") or [], adj.get("r2") or []))
+        doc.p(f"The posterior is regression-adjusted (`adjust = \"{adj['method']}\"`, Beaumont et al. 2002): "
+              f"{adj.get('regrown')} proposals within the last tolerance regrown with their seeds, each parameter "
+              f"regressed on {adj.get('summaries')} summary statistics of their trees and moved to the target's; "
+              f"the share of each parameter's spread the statistics explain (R²): {r2}. The posterior before "
+              "the adjustment is `diagnostics.unadjusted` in best.json.")
+    elif isinstance(adj, dict) and adj.get("note"):
+        doc.p(f"Regression adjustment asked for but not applied: {adj['note']}.")
     post = diag.get("posterior")
     if isinstance(post, dict) and post:
         tau = diag.get("autocorr_time") if isinstance(diag.get("autocorr_time"), dict) else {}

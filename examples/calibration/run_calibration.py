@@ -27,26 +27,32 @@ ROOT = HERE.parents[1]
 RUNS = ROOT / "runs" / "calibration"
 DOC = ROOT / "docs" / "validation.md"
 IMG = ROOT / "docs" / "img" / "validation"
-STUDIES = ("sot_abc_smc", "sot_abc_smc_noise", "sot_abc_smc_recycled", "sot_abc_smc_scaled", "sot_emcee_noise",
-           "sot_emcee_auto")
+STUDIES = ("sot_abc_smc", "sot_abc_smc_noise", "sot_abc_smc_recycled", "sot_abc_smc_scaled", "sot_abc_smc_adjusted",
+           "sot_abc_smc_scaled_adjusted", "sot_emcee_noise", "sot_emcee_auto")
 BEGIN = "<!-- calibration: written by examples/calibration/run_calibration.py --doc -->"
 END = "<!-- /calibration -->"
 FIDELITY = "<!-- real-tree fidelity: written by examples/real/run_fidelity.py --doc -->"
 LABEL = {"sot_abc_smc": "abc-smc, 7 generations", "sot_abc_smc_noise": 'abc-smc, epsilon_target = "noise"',
          "sot_abc_smc_recycled": 'abc-smc, epsilon_target = "noise", posterior = "recycled"',
          "sot_abc_smc_scaled": 'abc-smc as the recycled study, KS scaled by sample size',
+         "sot_abc_smc_adjusted": 'abc-smc as the recycled study, adjust = "linear"',
+         "sot_abc_smc_scaled_adjusted": 'abc-smc as the scaled-KS study, adjust = "linear"',
          "sot_emcee_noise": 'emcee, epsilon = "noise"', "sot_emcee_auto": 'emcee, epsilon = "auto"'}
 SHORT = {"sot_abc_smc": "abc-smc (7 gen.)", "sot_abc_smc_noise": "abc-smc (noise floor)",
          "sot_abc_smc_recycled": "abc-smc (noise floor, recycled)",
          "sot_abc_smc_scaled": "abc-smc (recycled, scaled KS)",
+         "sot_abc_smc_adjusted": "abc-smc (recycled, adjusted)",
+         "sot_abc_smc_scaled_adjusted": "abc-smc (recycled, scaled KS, adjusted)",
          "sot_emcee_noise": "emcee noise", "sot_emcee_auto": "emcee auto"}
 #: the acceptance bands of issue 14 (coverage in %)
 BAND = {50: (38, 62), 90: (80, 97)}
 
 
 #: a study that starts from the evaluation logs of another: the noise-floor abc-smc proposes the
-#: same particles as the 7-generation one until its own stop rule changes a generation
-SEEDED_FROM = {"sot_abc_smc_noise": "sot_abc_smc"}
+#: same particles as the 7-generation one until its own stop rule changes a generation; an
+#: adjusted study proposes exactly those of its unadjusted one (only the posterior differs)
+SEEDED_FROM = {"sot_abc_smc_noise": "sot_abc_smc", "sot_abc_smc_adjusted": "sot_abc_smc_recycled",
+               "sot_abc_smc_scaled_adjusted": "sot_abc_smc_scaled"}
 
 
 def seed_logs(name: str, source: str, n: int) -> None:

@@ -374,3 +374,12 @@ def test_adjusted_posterior_in_a_fit_regrows_logged_trees_and_resumes(toy_plugin
     fit_killed_after(bf.load_config(cfg_path), tmp_path / "killed", 100, monkeypatch)
     bf.fit(bf.load_config(cfg_path), tmp_path / "killed", resume=True, progress=False)
     assert (tmp_path / "killed" / "posterior.csv").read_text() == (tmp_path / "full" / "posterior.csv").read_text()
+
+
+def test_set_summaries_rows_per_tree_and_column_means():
+    """The statistics the adjustment regresses on: per set log(1 + rows per tree), then the
+    columns' means; an empty set gives zeros; a target pooled over two trees counts rows per tree."""
+    from bforest_core.pipeline.objective import set_summaries
+    U = {"B": np.array([[1.0, 10.0], [3.0, 30.0], [5.0, 20.0], [7.0, 40.0]]), "S": np.empty((0, 3))}
+    assert set_summaries(U, ["B", "S"]) == pytest.approx([np.log(5.0), 4.0, 25.0, 0.0, 0.0, 0.0, 0.0])
+    assert set_summaries(U, ["S", "B"], trees=2)[4] == pytest.approx(np.log(3.0))

@@ -56,7 +56,7 @@ class Evaluator:
         self.integer = problem.integer
         self.replay = store.replay()
         self.cache: dict[tuple, float] = {}
-        self.seeds_of: dict[tuple, list[int]] = {}  # point -> model seeds of its last logged evaluation
+        self.seeds_of: dict[tuple, list[int]] = {}  # point -> model seeds of its first logged evaluation
         self.next_index = 0
         self.t0 = time.monotonic()
         self.elapsed_before = float(store.get_meta("elapsed", 0.0) or 0.0)
@@ -288,7 +288,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
         problem.evaluate = evaluator
         problem.seed_spread = evaluator.seed_spread
         problem.summaries = evaluator.summaries
-        problem.target_summaries = set_summaries(tgt.U, list(tgt.U))
+        problem.target_summaries = set_summaries(tgt.U, list(tgt.U), trees=len(tgt.trees))
         result = None
         try:
             with started_workers(cfg, tgt, executor):

@@ -174,15 +174,17 @@ def score_tree(tree) -> tuple[dict[str, float | None], dict[str, int]]:
     return per_set, n_rows
 
 
-def set_summaries(U: dict[str, np.ndarray], names) -> np.ndarray:
-    """Summary statistics of a tree's data sets ``U`` (keys as in ``Target.U``), in the order of
-    ``names``: per set the log of one plus its rows, then its columns' means (0 for an empty set).
-    What a regression adjustment regresses the parameters on (``Problem.summaries``)."""
+def set_summaries(U: dict[str, np.ndarray], names, trees: int = 1) -> np.ndarray:
+    """Summary statistics of data sets ``U`` (keys as in ``Target.U``) pooled over ``trees`` trees,
+    in the order of ``names``: per set the log of one plus its rows per tree, then its columns'
+    means (0 for an empty set). What a regression adjustment regresses the parameters on
+    (``Problem.summaries``)."""
     out = []
     for k in names:
         v = np.asarray(U[k], float)
-        v = v.reshape(v.shape[0], -1) if v.ndim else v.reshape(0, 1)
-        out.append(np.log1p(v.shape[0]))
+        if v.ndim != 2:  # a set of one column, or nothing
+            v = v.reshape(-1, 1)
+        out.append(np.log1p(v.shape[0] / max(int(trees), 1)))
         out.extend(v.mean(axis=0) if v.shape[0] else np.zeros(v.shape[1]))
     return np.asarray(out, float)
 

@@ -72,14 +72,15 @@ concentrates around the parameters that fit best *with those seeds* and leaves t
 variation out, so its intervals are expected to be too narrow (not measured). For intervals meant
 to cover the truth use ``seed_mode = "per_evaluation"``, as the calibration study does.
 
-With ``adjust = "linear"``, ``diagnostics`` also holds ``adjustment`` (``regrown`` trees,
-``summaries`` per tree, and per parameter the ridge ``penalty``, the fit's ``df`` and ``r2``) and
-``unadjusted`` (the posterior before the adjustment). ``diagnostics`` holds the posterior's particles (``particles``, ``weights``, ``distances``) and
+``diagnostics`` holds the posterior's particles (``particles``, ``weights``, ``distances``) and
 its tolerance ``epsilon_posterior`` (with ``posterior = "recycled"`` also the last generation's
 ``population``), the ``epsilon`` schedule (and with ``epsilon_target = "noise"`` the measured
 target per generation, ``epsilon_target``), the ``acceptance`` rate and effective sample size
 (``ess``) per generation, and ``posterior``: weighted mean, sd and 2.5/5/16/25/50/75/84/95/97.5 %
-quantiles per parameter.
+quantiles per parameter. With ``adjust = "linear"`` it also holds ``adjustment`` (``regrown``
+trees, ``summaries`` per tree, and per parameter the ridge ``penalty``, the fit's ``df`` and
+``r2``; or a ``note`` saying why the posterior was not adjusted) and ``unadjusted`` (the
+posterior before the adjustment).
 """
 from __future__ import annotations
 

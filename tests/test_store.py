@@ -16,6 +16,9 @@ def test_evaluations_are_committed_one_by_one(tmp_path):
     assert other.count() == 2 and other.evaluations()[1].per_set == {"S1": None}
     # the best is a grown tree, even where a failure's penalty distance is lower
     assert other.best().idx == 0
+    # the best after n evaluations looks at the first n only
+    s.add(Evaluation(2, {"a": 3.0}, [7], 0.125, {"S1": 0.125}, "ok"))
+    assert other.best().idx == 2 and other.best(before=2).idx == 0 and other.best(before=0) is None
     with pytest.raises(RunDirError, match="already holds a run"):
         RunStore.create(tmp_path / "run", "seed = 1\n")
     with pytest.raises(RunDirError, match="not a run directory"):

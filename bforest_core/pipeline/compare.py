@@ -30,8 +30,7 @@ def best_so_far(run_dir: Path) -> np.ndarray:
     simulation's penalty is no fit, as in ``RunStore.best``."""
     with RunStore.open(run_dir) as store:
         evs = store.evaluations()
-    d = np.array([e.distance if e.status == "ok" else np.inf for e in evs], float)
-    return np.minimum.accumulate(d) if evs else np.array([])
+    return np.minimum.accumulate(np.array([e.distance if e.status == "ok" else np.inf for e in evs], float))
 
 
 def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None, threshold=None,

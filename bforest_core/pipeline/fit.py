@@ -72,8 +72,12 @@ class Evaluator:
             p[name] = int(round(v)) if is_int else float(v)
         return p
 
+    @staticmethod
+    def _point(params) -> tuple:
+        return tuple(sorted(params.items()))
+
     def _key(self, params, seeds):
-        return (tuple(sorted(params.items())), tuple(seeds))
+        return (self._point(params), tuple(seeds))
 
     def _value(self, distance: float, status: str) -> float:
         """What ``evaluate`` returns for a logged evaluation: its distance, or ``inf`` for a failed
@@ -107,7 +111,7 @@ class Evaluator:
         tasks = []
         for x in X:
             params = self._params(x)
-            seeds = self.seeds_of.get(tuple(sorted(params.items())))
+            seeds = self.seeds_of.get(self._point(params))
             if seeds is None:
                 raise ValueError(f"summaries: the point {params} was not evaluated in this run")
             tasks.append((params, seeds))

@@ -186,10 +186,12 @@ class RunStore:
     def replay(self) -> dict[int, Evaluation]:
         return {e.idx: e for e in self.evaluations()}
 
-    def best(self) -> Evaluation | None:
+    def best(self, before: int | None = None) -> Evaluation | None:
         """The evaluation of lowest distance, a grown tree before any failure (whose distance is
-        the config's penalty, which need not exceed every real distance)."""
-        r = self._con.execute("SELECT idx FROM evaluations ORDER BY status != 'ok', distance, idx LIMIT 1").fetchone()
+        the config's penalty, which need not exceed every real distance); with ``before``, among
+        the evaluations of index below it (the best after that many evaluations)."""
+        r = self._con.execute("SELECT idx FROM evaluations WHERE idx < ? ORDER BY status != 'ok', distance, idx "
+                              "LIMIT 1", (2 ** 62 if before is None else int(before),)).fetchone()
         if r is None:
             return None
         return next(e for e in self.evaluations() if e.idx == r[0])

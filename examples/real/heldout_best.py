@@ -31,15 +31,6 @@ from bforest_core.pipeline.store import RunStore
 HELDOUT_SEED = 20261126
 
 
-def best_at(run: Path, n: int) -> tuple[dict, float] | None:
-    """The parameters and distance of the run's best grown tree among its first ``n`` evaluations."""
-    evs = [e for e in RunStore.open(run).evaluations() if e.idx < n and e.status == "ok"]
-    if not evs:
-        return None
-    e = min(evs, key=lambda e: (e.distance, e.idx))
-    return e.params, e.distance
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("compare_dirs", type=Path, nargs="+", help="bforest compare folders (runs <optimizer>-<repeat>) "
@@ -57,10 +48,11 @@ def main(argv=None) -> int:
     points = []  # (optimizer, repeat, n, params, own distance)
     for run in runs:
         name, rep = run.name.rsplit("-", 1)
-        for n in args.at:
-            got = best_at(run, n)
-            if got is not None:
-                points.append((name, int(rep), n, *got))
+        with RunStore.open(run) as store:
+            for n in args.at:
+                e = store.best(before=n)
+                if e is not None and e.status == "ok":  # a grown tree among the first n
+                    points.append((name, int(rep), n, e.params, e.distance))
     tgt = build_target(cfg)
     tasks = [(p[3], s) for p in points for s in sets]
     with started_workers(cfg, tgt) as ex:

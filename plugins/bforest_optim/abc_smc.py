@@ -223,19 +223,21 @@ def regression_adjust(X: np.ndarray, w: np.ndarray, S: np.ndarray, s_obs: np.nda
     Y = np.log(u / (1 - u))
     WA = A * w[:, None]
     gram = A.T @ WA
+    fits = []  # per penalty: the map from y to the coefficients, and its degrees of freedom
+    for lam in penalties:
+        R = lam * np.eye(A.shape[1])
+        R[0, 0] = 0.0  # the intercept is not shrunk
+        M = np.linalg.solve(gram + R, WA.T)
+        df = float(np.sum(A * M.T))  # trace of the hat matrix A M
+        if df < n_eff - 1:
+            fits.append((lam, M, df))
     out = np.empty_like(Y)
     fit = {"penalty": [], "df": [], "r2": []}
     for j in range(Y.shape[1]):
         best = None
-        for lam in penalties:
-            R = lam * np.eye(A.shape[1])
-            R[0, 0] = 0.0  # the intercept is not shrunk
-            M = np.linalg.solve(gram + R, WA.T)
+        for lam, M, df in fits:
             beta = M @ Y[:, j]
             r = Y[:, j] - A @ beta
-            df = float(np.sum(A * M.T))  # trace of the hat matrix A M
-            if df >= n_eff - 1:
-                continue
             gcv = float(w @ r ** 2) / (1.0 - df / n_eff) ** 2
             if best is None or gcv < best[0]:
                 best = (gcv, lam, beta, r, df)
@@ -389,7 +391,7 @@ class AbcSmc(Optimizer):
             return {"note": f"{len(X)} proposals within the last tolerance; the posterior is not adjusted"}
         S = np.asarray(problem.summaries(ev.project(X)), float)
         kept = np.all(np.isfinite(S), axis=1)
-        k = w * np.clip(1.0 - (d / eps) ** 2, 0.0, None) if eps > 0 else w.copy()
+        k = w * np.clip(1.0 - (d / eps) ** 2, 0.0, None) if eps > 0 else w
         k = np.where(kept, k, 0.0)
         if k.sum() <= 0:
             return {"note": "no regrown proposal has weight; the posterior is not adjusted"}

@@ -264,3 +264,50 @@ def test_compare_curves_never_count_a_failed_simulation_as_a_fit(toy_plugin, tmp
         best = json.loads((tmp_path / "cmp" / f"toy-random-{r}" / "best.json").read_text())["distance"]
         assert curve[-1] == best > 0.0
     assert res["threshold"] > 0.0
+
+
+def test_compare_scores_best_points_on_held_out_model_seeds(toy_plugin, tmp_path):
+    """--heldout: each run's best point (after N evaluations and final) is scored on K sets of
+    model seeds no fit used; the values are recomputed here from the model, the features and
+    the distance directly, seed by seed."""
+    import json
+    from bforest_core.pipeline.compare import compare
+    from bforest_core.pipeline.objective import build_target, heldout_seeds
+    p = toy_config(tmp_path)
+    p.write_text(p.read_text() + "[objective]\nseeds = 2\n")
+    res = compare(p, ["ga", "toy-random"], budget=24, repeats=2, out_dir=tmp_path / "cmp", threshold="ga",
+                  heldout=3, at=[8])
+    cfg = bf.load_config(p)
+    sets = heldout_seeds(cfg.seed, 3, 2)
+    own = {s for r in range(2) for name in ("ga", "toy-random")
+           for e in RunStore.open(tmp_path / "cmp" / f"{name}-{r}").evaluations() for s in e.seeds}
+    assert len({s for st in sets for s in st} | own) == 6 + len(own)  # 6 held-out seeds, none a fit's
+    ssm, feats, dist = bf.component("ssm", "toy"), bf.component("features", "toy-features"), bf.component("distance", "toy-distance")
+    target = build_target(cfg).U["L"]
+    for row in res["runs"]:
+        store = RunStore.open(tmp_path / "cmp" / f"{row['optimizer']}-{row['repeat']}")
+        for cp, before in (("8", 8), ("final", None)):
+            e = store.best(before=before)
+            want = np.mean([np.mean([dist.compute(feats.extract(ssm.simulate({**e.params, "noise": 2.0}, s))["L"], target)
+                                     for s in st]) for st in sets])
+            got = row["heldout"][cp]
+            assert got["heldout"] == pytest.approx(want, rel=1e-12)
+            assert (got["own"], got["evaluations"]) == (e.distance, e.idx + 1)
+        assert row["heldout"]["final"]["own"] == row["best"]
+    # medians over repeats, the GA's median held-out final best as the held-out threshold
+    ga_final = [r["heldout"]["final"]["heldout"] for r in res["runs"] if r["optimizer"] == "ga"]
+    assert res["heldout"]["threshold"] == pytest.approx(float(np.median(ga_final)))
+    for t in res["table"]:
+        mine = [r["heldout"]["8"]["heldout"] for r in res["runs"] if r["optimizer"] == t["optimizer"]]
+        assert t["heldout"]["8"] == pytest.approx(float(np.median(mine)))
+    held_lines = res["table_text"].split("held out:")[1].splitlines()
+    assert held_lines[2].split() == ["optimizer", "after", "8", "final"]
+    ga_line = next(l for l in held_lines if l.startswith("ga ")).split()
+    # the median of two is their mean: the lower one is at or below it, the higher one only if equal
+    thr = res["heldout"]["threshold"]
+    assert ga_line[-2:] == [f"{np.median(ga_final):.4f}", f"{sum(v <= thr for v in ga_final)}/2"]
+    saved = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert saved["heldout"]["sets"] == 3 and saved["heldout"]["model_seeds_per_set"] == 2
+    assert "held out" in (tmp_path / "cmp" / "compare.md").read_text()
+    with pytest.raises(ValueError, match="--at, which needs --heldout"):
+        compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", resume=True, at=[8])

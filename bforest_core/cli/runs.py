@@ -64,7 +64,8 @@ def cmd_compare(args):
     from ..pipeline.compare import compare
     res = compare(args.config, optimizers=[o.strip() for o in args.optimizers.split(",") if o.strip()],
                   budget=args.budget, repeats=args.repeats, out_dir=args.output, threshold=args.threshold,
-                  progress=not args.quiet, resume=args.resume, overwrite=args.overwrite)
+                  progress=not args.quiet, resume=args.resume, overwrite=args.overwrite, heldout=args.heldout,
+                  at=args.at)
     from ..report.comparison import write_compare_figure
     print(res["table_text"])
     print(f"figure: {write_compare_figure(res)}")
@@ -141,6 +142,11 @@ def add_commands(sub) -> None:
     s.add_argument("--threshold", default=None,
                    help="distance for 'evaluations to reach', or an optimiser's name: its median final best "
                         "(default: 5%% above the lower quartile of all final bests)")
+    s.add_argument("--heldout", type=int, default=0, metavar="K",
+                   help="also score each run's best point on K sets of model seeds no fit saw (what clones see; "
+                        "the fits' own distances include their seeds' luck)")
+    s.add_argument("--at", type=int, nargs="+", default=[], metavar="N",
+                   help="with --heldout: also score each run's best after N evaluations")
     s.add_argument("-o", "--output", default=None, help="output directory (default: runs/compare-<config>)")
     s.add_argument("--resume", action="store_true", help="continue the runs of an earlier comparison in -o; "
                    "finished runs are read back (so another optimiser can be added to it)")

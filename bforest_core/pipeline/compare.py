@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import config_to_dict, load_config, parse_config
-from .objective import build_target, progress_bar
+from .objective import build_target, evaluate_task, heldout_seeds, progress_bar, started_workers
 from ..registry import component_class
 from .store import RunDirError, RunStore
 
@@ -33,8 +33,86 @@ def best_so_far(run_dir: Path) -> np.ndarray:
     return np.minimum.accumulate(np.array([e.distance if e.status == "ok" else np.inf for e in evs], float))
 
 
+def score_heldout(runs, cfg, target, sets: int, at=(), progress: bool = False) -> dict:
+    """How good each run's best points are on model seeds no fit saw.
+
+    A fit with fixed model seeds keeps the point whose trees, grown with *those* seeds, score
+    best; part of that best is the seeds' luck, and an optimiser's long end game buys mostly
+    luck. Each run's best point after each ``at`` evaluations, and its final best, is scored with
+    ``sets`` held-out sets of model seeds (each as large as the fits' own, from
+    :func:`heldout_seeds` of ``cfg``'s seed), the same sets for every point, so points are
+    compared on equal terms. A set whose simulation fails scores the objective's penalty, as in a
+    fit.
+
+    ``runs`` maps an optimiser's name to its run directories (repeats). Returns the same mapping
+    to one dict per run, checkpoint (``"300"``, ..., ``"final"``) -> ``{"evaluations": index of
+    the point + 1, "own": the fit's own distance, "heldout": mean over the sets, "failed": failed
+    sets}`` (a checkpoint before the run's first grown tree is left out), and the model seeds per
+    set."""
+    points = {}  # (name, repeat, checkpoint) -> Evaluation
+    for name, dirs in runs.items():
+        for r, run in enumerate(dirs):
+            with RunStore.open(run) as store:
+                for n in [*sorted({int(n) for n in at}), None]:
+                    e = store.best(before=n)
+                    if e is not None and e.status == "ok":
+                        points[(name, r, "final" if n is None else str(n))] = e
+    out = {name: [{} for _ in dirs] for name, dirs in runs.items()}
+    if not points:
+        return out, 0
+    per = len(next(iter(points.values())).seeds)
+    seed_sets = heldout_seeds(int(cfg.seed), int(sets), per)
+    keys = list(dict.fromkeys(json.dumps(e.params, sort_keys=True) for e in points.values()))
+    tasks = [(json.loads(k), s) for k in keys for s in seed_sets]
+    bar = progress_bar(len(tasks), "held out", "eval", progress)
+    res = [None] * len(tasks)
+    with started_workers(cfg, target) as ex:
+        for i, r in ex.map_unordered(evaluate_task, tasks):
+            res[i] = r
+            bar.update(1)
+    bar.close()
+    by_key = {k: res[i * len(seed_sets):(i + 1) * len(seed_sets)] for i, k in enumerate(keys)}
+    for (name, r, cp), e in points.items():
+        rows = by_key[json.dumps(e.params, sort_keys=True)]
+        out[name][r][cp] = {"evaluations": e.idx + 1, "own": float(e.distance),
+                            "heldout": float(np.mean([x["distance"] for x in rows])),
+                            "failed": sum(x["status"] != "ok" for x in rows)}
+    return out, per
+
+
+def heldout_table(scores: dict, sets: int, per: int, threshold_name: str | None = None
+                  ) -> tuple[list[str], dict, float | None]:
+    """The held-out lines of a comparison's table (from :func:`score_heldout`), the medians over
+    repeats (optimiser -> checkpoint -> median held-out distance) and the held-out threshold:
+    with ``threshold_name`` (one of the optimisers) its median held-out final best, and each
+    cell counts the repeats at or below it."""
+    cps = sorted({cp for runs in scores.values() for run in runs for cp in run},
+                 key=lambda c: (c == "final", int(c) if c != "final" else 0))
+    medians = {name: {cp: float(np.median([run[cp]["heldout"] for run in runs if cp in run]))
+                      for cp in cps if any(cp in run for run in runs)} for name, runs in scores.items()}
+    threshold = medians.get(threshold_name, {}).get("final")
+    lines = [f"held out: each run's best point on {sets} sets of {per} model seeds no fit saw (mean distance, "
+             "median over repeats)"]
+    if threshold is not None:
+        lines.append(f"threshold {threshold:.4f} ({threshold_name}'s median final); beside each median the "
+                     "repeats at or below it")
+    lines.append(f"{'optimizer':<10}" + "".join(f"{('after ' + c) if c != 'final' else 'final':>17}" for c in cps))
+    for name, runs in scores.items():
+        cells = []
+        for cp in cps:
+            vals = [run[cp]["heldout"] for run in runs if cp in run]
+            if not vals:
+                cells.append(f"{'-':>17}")
+                continue
+            hit = f" {sum(v <= threshold for v in vals)}/{len(runs)}" if threshold is not None else ""
+            cells.append(f"{medians[name][cp]:.4f}{hit}".rjust(17))
+        lines.append(f"{name:<10}" + "".join(cells))
+    return lines, medians, threshold
+
+
 def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None, threshold=None,
-            progress: bool = False, resume: bool = False, overwrite: bool = False) -> dict:
+            progress: bool = False, resume: bool = False, overwrite: bool = False, heldout: int = 0,
+            at=()) -> dict:
     """Run each optimiser ``repeats`` times with ``budget`` evaluations; returns the table, the
     curves and the figure path.
 
@@ -45,7 +123,13 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
 
     ``threshold`` (the distance for "evaluations to reach") is a number, the name of one of the
     compared optimisers (its median final best: "how soon do the others get where it ends?"),
-    or None (5 % above the lower quartile of all final bests)."""
+    or None (5 % above the lower quartile of all final bests).
+
+    ``heldout`` > 0 also scores each run's final best point, and its best after each of ``at``
+    evaluations, on that many held-out sets of model seeds (:func:`score_heldout`): the fits' own
+    distances include their seeds' luck, the held-out ones are what clones see. With an
+    optimiser's name as ``threshold`` the held-out threshold is that optimiser's median held-out
+    final best."""
     if isinstance(threshold, str):
         try:
             threshold = float(threshold)
@@ -53,6 +137,9 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
             if threshold not in optimizers:
                 raise ValueError(f"--threshold {threshold!r} is neither a distance nor one of the compared "
                                  f"optimisers ({', '.join(optimizers)})") from None
+    if heldout < 0 or (at and not heldout) or any(int(n) < 1 for n in at):
+        raise ValueError(f"--heldout {heldout} --at {' '.join(map(str, at))}: --heldout is a number of seed sets "
+                         "(0: none) and --at, which needs --heldout, numbers of evaluations (1 or more)")
     from .fit import fit, same_config
     base = load_config(config_path)
     out_dir = Path(out_dir) if out_dir else Path("runs") / f"compare-{Path(config_path).stem}"
@@ -92,9 +179,11 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
             rows.append({"optimizer": name, "repeat": r, **row})
     bar.close()
     finals = np.array([row["best"] for row in rows])
+    threshold_name = None
     if threshold is None:
         threshold = float(np.quantile(finals, 0.25)) * 1.05
     elif isinstance(threshold, str):
+        threshold_name = threshold
         threshold = float(np.median([row["best"] for row in rows if row["optimizer"] == threshold]))
     table = []
     for name in optimizers:
@@ -116,9 +205,21 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
         e = "-" if t["evals_to_threshold"] is None else f"{t['evals_to_threshold']:.0f}"
         lines.append(f"{t['optimizer']:<10}{t['median_best']:>12.4f}{'[%.4f, %.4f]' % (t['min_best'], t['max_best']):>20}"
                      f"{e:>15}{t['reached']:>9}{t['median_seconds']:>9.1f}")
+    held = {}
+    if heldout:
+        scores, per = score_heldout({name: [out_dir / f"{name}-{r}" for r in range(repeats)] for name in optimizers},
+                                    base, target, heldout, at, progress)
+        h_lines, medians, h_thr = heldout_table(scores, heldout, per, threshold_name)
+        lines += ["", *h_lines]
+        held = {"sets": int(heldout), "model_seeds_per_set": per, "threshold": h_thr}
+        for t in table:
+            t["heldout"] = medians[t["optimizer"]]
+        for row in rows:
+            row["heldout"] = scores[row["optimizer"]][row["repeat"]]
     text = "\n".join(lines)
     (out_dir / "compare.json").write_text(json.dumps({"budget": budget, "repeats": repeats, "threshold": threshold,
+                                                      **({"heldout": held} if held else {}),
                                                       "table": table, "runs": rows}, indent=2))
     (out_dir / "compare.md").write_text(f"# Optimiser comparison\n\n```\n{text}\n```\n")
     return {"table": table, "table_text": text, "curves": curves, "runs": rows, "threshold": threshold,
-            "out_dir": out_dir}
+            "heldout": held, "out_dir": out_dir}

@@ -38,6 +38,13 @@ def spread_seeds(run_seed: int, k: int) -> list[int]:
     return [int(s.generate_state(1, np.uint32)[0]) for s in np.random.SeedSequence([int(run_seed), 4]).spawn(k)]
 
 
+def heldout_seeds(run_seed: int, sets: int, per: int) -> list[list[int]]:
+    """``sets`` sets of ``per`` model seeds that no fit, noise measurement or clone of this run
+    seed uses: for scoring best points on trees the fits never saw (``bforest compare --heldout``)."""
+    flat = [int(s.generate_state(1, np.uint32)[0]) for s in np.random.SeedSequence([int(run_seed), 5]).spawn(sets * per)]
+    return [flat[i * per:(i + 1) * per] for i in range(sets)]
+
+
 def clone_seeds(run_seed: int, n: int, base: int | None = None) -> list[int]:
     """Fresh seeds for clones (distinct from the fitting seeds)."""
     key = [int(run_seed), 3] if base is None else [int(base), 3]

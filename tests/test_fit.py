@@ -309,5 +309,7 @@ def test_compare_scores_best_points_on_held_out_model_seeds(toy_plugin, tmp_path
     saved = json.loads((tmp_path / "cmp" / "compare.json").read_text())
     assert saved["heldout"]["sets"] == 3 and saved["heldout"]["model_seeds_per_set"] == 2
     assert "held out" in (tmp_path / "cmp" / "compare.md").read_text()
+    from bforest_core.report.comparison import write_compare_figure
+    assert write_compare_figure(res).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(ValueError, match="--at, which needs --heldout"):
         compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", resume=True, at=[8])

@@ -70,7 +70,9 @@ def _pad_curves(curves: Sequence[np.ndarray]) -> np.ndarray:
 
 
 def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: float | None = None,
-                   title: str | None = None, dpi: int = 130) -> Path:
+                   title: str | None = None, dpi: int = 130,
+                   heldout: Mapping[str, Sequence[tuple[int, float]]] | None = None,
+                   heldout_threshold: float | None = None) -> Path:
     """Optimiser comparison: best-so-far distance against evaluations, median over repeats
     (line) and the interquartile and min-max spread (bands), one colour per optimiser.
 
@@ -81,6 +83,10 @@ def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: 
         evaluation; shorter runs keep their last value.
     threshold : float, optional
         A target distance drawn as a dashed line (for "evaluations to reach").
+    heldout : dict, optional
+        Optimiser name -> ``(evaluations, median held-out distance)`` points (``bforest compare
+        --heldout``), drawn as open markers joined by a dotted line in the optimiser's colour;
+        ``heldout_threshold`` as a dotted black line.
     """
     from matplotlib import colormaps
     pal = colormaps["tab10"].colors
@@ -105,6 +111,14 @@ def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: 
         all_pos &= bool(np.all(fin > 0))
         lo_all, hi_all = min(lo_all, fin.min(initial=np.inf)), max(hi_all, fin.max(initial=-np.inf))
         early = max(early, float(med[min(len(med) - 1, len(med) // 5)]))  # where each stands at a fifth
+        pts = sorted((heldout or {}).get(name, []))
+        if pts:
+            hx, hy = np.array(pts, float).T
+            ax.plot(hx, hy, color=col, ls=":", lw=1.2, marker="o", mfc="white", ms=6,
+                    label=f"{name}, best point held out ({hy[-1]:.4g})")
+            hi_all = max(hi_all, float(hy.max()))
+    if heldout_threshold is not None:
+        ax.axhline(heldout_threshold, color="black", ls=":", lw=1.0, label=f"held-out threshold {heldout_threshold:.4g}")
     if threshold is not None:
         for a in (ax, zoom):
             a.axhline(threshold, color="black", ls="--", lw=1.0, label=f"threshold {threshold:.4g}")
@@ -141,7 +155,12 @@ def write_compare_figure(res: dict) -> Path:
     """Draw ``compare.png`` of a :func:`bforest_core.pipeline.compare.compare` result and link it
     from ``compare.md``."""
     out = Path(res["out_dir"])
-    fig = compare_figure(res["curves"], out / "compare.png", threshold=res["threshold"])
+    heldout = {}
+    for t in res["table"] if res.get("heldout") else []:
+        n_end = max(len(c) for c in res["curves"][t["optimizer"]])
+        heldout[t["optimizer"]] = [(n_end if cp == "final" else min(int(cp), n_end), v) for cp, v in t["heldout"].items()]
+    fig = compare_figure(res["curves"], out / "compare.png", threshold=res["threshold"], heldout=heldout,
+                         heldout_threshold=(res.get("heldout") or {}).get("threshold"))
     md = out / "compare.md"
     if md.exists() and "](compare.png)" not in md.read_text():
         md.write_text(md.read_text() + "\n![curves](compare.png)\n")

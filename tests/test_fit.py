@@ -264,6 +264,13 @@ def test_compare_curves_never_count_a_failed_simulation_as_a_fit(toy_plugin, tmp
         best = json.loads((tmp_path / "cmp" / f"toy-random-{r}" / "best.json").read_text())["distance"]
         assert curve[-1] == best > 0.0
     assert res["threshold"] > 0.0
+    # a curve that starts at inf (a failure first) beside a grown tree draws without a warning
+    import warnings
+    from bforest_core.report.comparison import write_compare_figure
+    res["curves"]["toy-random"][0][0] = np.inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert write_compare_figure(res).exists()
 
 
 def test_compare_scores_best_points_on_held_out_model_seeds(toy_plugin, tmp_path):

@@ -101,7 +101,8 @@ def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: 
         col = pal[c % len(pal)]
         x = np.arange(1, M.shape[1] + 1)
         med = np.median(M, axis=0)
-        bands = [(M.min(0), M.max(0), 0.08), (*np.quantile(M, [0.25, 0.75], axis=0), 0.25)] if M.shape[0] > 1 else []
+        with np.errstate(invalid="ignore"):  # inf (no grown tree yet) beside a distance: no band there
+            bands = [(M.min(0), M.max(0), 0.08), (*np.quantile(M, [0.25, 0.75], axis=0), 0.25)] if M.shape[0] > 1 else []
         for a in (ax, zoom):
             for low, high, alpha in bands:
                 a.fill_between(x, low, high, color=col, alpha=alpha, lw=0, step="post")

@@ -33,7 +33,7 @@ def best_so_far(run_dir: Path) -> np.ndarray:
     return np.minimum.accumulate(np.array([e.distance if e.status == "ok" else np.inf for e in evs], float))
 
 
-def score_heldout(runs, cfg, target, sets: int, at=(), progress: bool = False) -> dict:
+def score_heldout(runs, cfg, target, sets: int, at=(), progress: bool = False) -> tuple[dict, int]:
     """How good each run's best points are on model seeds no fit saw.
 
     A fit with fixed model seeds keeps the point whose trees, grown with *those* seeds, score

@@ -176,10 +176,12 @@ class RunStore:
     def count(self) -> int:
         return self._con.execute("SELECT COUNT(*) FROM evaluations").fetchone()[0]
 
-    def evaluations(self) -> list[Evaluation]:
+    def evaluations(self, _tail: str = "ORDER BY idx", _args: tuple = ()) -> list[Evaluation]:
+        """Every logged evaluation in order (``_tail``/``_args``: another selection of them, for
+        :meth:`best`)."""
         rows = self._con.execute(
             "SELECT idx, params, seeds, distance, per_set, status, message, seconds, worker, n_rows "
-            "FROM evaluations ORDER BY idx").fetchall()
+            f"FROM evaluations {_tail}", _args).fetchall()
         return [Evaluation(r[0], json.loads(r[1]), json.loads(r[2]), r[3], json.loads(r[4]), r[5], r[6] or "",
                            r[7] or 0.0, r[8] or "", json.loads(r[9] or "{}")) for r in rows]
 
@@ -190,11 +192,9 @@ class RunStore:
         """The evaluation of lowest distance, a grown tree before any failure (whose distance is
         the config's penalty, which need not exceed every real distance); with ``before``, among
         the evaluations of index below it (the best after that many evaluations)."""
-        r = self._con.execute("SELECT idx FROM evaluations WHERE idx < ? ORDER BY status != 'ok', distance, idx "
-                              "LIMIT 1", (2 ** 62 if before is None else int(before),)).fetchone()
-        if r is None:
-            return None
-        return next(e for e in self.evaluations() if e.idx == r[0])
+        found = self.evaluations("WHERE idx < ? ORDER BY status != 'ok', distance, idx LIMIT 1",
+                                 (2 ** 62 if before is None else int(before),))
+        return found[0] if found else None
 
     # ------------------------------------------------------------------ optimiser log
     def log(self, record: dict) -> None:

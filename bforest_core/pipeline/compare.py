@@ -62,8 +62,10 @@ def score_heldout(runs, cfg, target, sets: int, at=(), progress: bool = False) -
         return out, 0
     per = len(next(iter(points.values())).seeds)
     seed_sets = heldout_seeds(int(cfg.seed), int(sets), per)
-    keys = list(dict.fromkeys(json.dumps(e.params, sort_keys=True) for e in points.values()))
-    tasks = [(json.loads(k), s) for k in keys for s in seed_sets]
+    def key(e):
+        return json.dumps(e.params, sort_keys=True)
+    unique = {key(e): e.params for e in points.values()}  # a point best at several checkpoints is scored once
+    tasks = [(params, s) for params in unique.values() for s in seed_sets]
     bar = progress_bar(len(tasks), "held out", "eval", progress)
     res = [None] * len(tasks)
     with started_workers(cfg, target) as ex:
@@ -71,9 +73,9 @@ def score_heldout(runs, cfg, target, sets: int, at=(), progress: bool = False) -
             res[i] = r
             bar.update(1)
     bar.close()
-    by_key = {k: res[i * len(seed_sets):(i + 1) * len(seed_sets)] for i, k in enumerate(keys)}
+    by_key = {k: res[i * len(seed_sets):(i + 1) * len(seed_sets)] for i, k in enumerate(unique)}
     for (name, r, cp), e in points.items():
-        rows = by_key[json.dumps(e.params, sort_keys=True)]
+        rows = by_key[key(e)]
         out[name][r][cp] = {"evaluations": e.idx + 1, "own": float(e.distance),
                             "heldout": float(np.mean([x["distance"] for x in rows])),
                             "failed": sum(x["status"] != "ok" for x in rows)}

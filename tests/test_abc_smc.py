@@ -383,3 +383,17 @@ def test_set_summaries_rows_per_tree_and_column_means():
     U = {"B": np.array([[1.0, 10.0], [3.0, 30.0], [5.0, 20.0], [7.0, 40.0]]), "S": np.empty((0, 3))}
     assert set_summaries(U, ["B", "S"]) == pytest.approx([np.log(5.0), 4.0, 25.0, 0.0, 0.0, 0.0, 0.0])
     assert set_summaries(U, ["S", "B"], trees=2)[4] == pytest.approx(np.log(3.0))
+
+
+def test_summary_task_counts_a_failing_data_set_as_a_failure_like_evaluate_task(toy_plugin, tmp_path, monkeypatch):
+    """A tree whose data sets cannot be extracted is a failed evaluation (status "error") and has
+    no summaries (None): regrowing it never crashes the adjustment."""
+    from bforest_core.pipeline.objective import build_target, evaluate_task, started_workers, summary_task
+    cfg = bf.load_config(toy_config(tmp_path))
+    task = ({"angle": 30.0, "segments": 12}, [1, 2])
+    with started_workers(cfg, build_target(cfg)):  # serial: the worker is this process
+        assert summary_task(task).shape == (3,)  # one set: log rows, two column means
+        monkeypatch.setattr(type(bf.component("features", "toy-features")), "extract",
+                            lambda self, tree: (_ for _ in ()).throw(ValueError("bad table")))
+        assert evaluate_task(task)["status"] == "error"
+        assert summary_task(task) is None

@@ -198,7 +198,8 @@ def set_summaries(U: dict[str, np.ndarray], names, trees: int = 1) -> np.ndarray
 
 def summary_task(task: tuple[dict, list[int]]) -> np.ndarray | None:
     """The summary statistics (:func:`set_summaries`) of one parameter vector's trees, averaged
-    over its model seeds, in an initialised worker; None when a simulation fails."""
+    over its model seeds, in an initialised worker; None when a simulation or its data sets fail,
+    as :func:`evaluate_task` counts them."""
     params, seeds = task
     c = _CTX
     if not c:
@@ -207,11 +208,11 @@ def summary_task(task: tuple[dict, list[int]]) -> np.ndarray | None:
     for seed in seeds:
         try:
             tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
+            U = {}
+            for t in c["terms"]:
+                U.update({t["prefix"] + k: v for k, v in t["features"].extract(tree).items()})
         except (SimulationFailed, _Timeout, *_MODEL_ERRORS):
             return None
-        U = {}
-        for t in c["terms"]:
-            U.update({t["prefix"] + k: v for k, v in t["features"].extract(tree).items()})
         rows.append(set_summaries(U, list(c["U_data"])))
     return np.mean(rows, axis=0)
 

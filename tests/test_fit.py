@@ -320,3 +320,35 @@ def test_compare_scores_best_points_on_held_out_model_seeds(toy_plugin, tmp_path
     assert write_compare_figure(res).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(ValueError, match="--at, which needs --heldout"):
         compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", resume=True, at=[8])
+
+
+def test_held_out_scores_are_kept_in_the_runs_and_not_grown_twice(toy_plugin, tmp_path, monkeypatch):
+    """The held-out scores live in each run directory: a later comparison without --heldout
+    (which rewrites compare.json) loses none of them, and --heldout again grows no tree and gives
+    the same values; a changed objective scores anew."""
+    import json
+    import bforest_core.pipeline.compare as cmp_mod
+    p = toy_config(tmp_path)
+    p.write_text(p.read_text() + "[objective]\nseeds = 2\n")
+    first = cmp_mod.compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", heldout=3, at=[8])
+    cmp_mod.compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", resume=True)
+    assert "heldout" not in json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert all((tmp_path / "cmp" / f"ga-{r}" / "heldout.json").is_file() for r in range(2))
+    grown = []
+    real = cmp_mod.evaluate_task
+    monkeypatch.setattr(cmp_mod, "evaluate_task", lambda task: grown.append(task) or real(task))
+    again = cmp_mod.compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", resume=True, heldout=3, at=[8])
+    assert grown == []
+    assert [r["heldout"] for r in again["runs"]] == [r["heldout"] for r in first["runs"]]
+    # more sets: only the new ones are grown (3 more sets of 2 seeds for each distinct point)
+    cmp_mod.compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", resume=True, heldout=6)
+    points = {json.dumps(RunStore.open(tmp_path / "cmp" / f"ga-{r}").best().params, sort_keys=True) for r in range(2)}
+    assert len(grown) == 3 * len(points)
+    # another objective is another score: grown again, the earlier scores kept beside it
+    from bforest_core.pipeline.compare import score_heldout
+    from bforest_core.pipeline.objective import build_target
+    cfg = bf.load_config(p).model_copy(update={"objective": bf.load_config(p).objective.model_copy(update={"penalty": 2.0})})
+    grown.clear()
+    score_heldout({"ga": [tmp_path / "cmp" / "ga-0"]}, cfg, build_target(cfg), 3)
+    assert len(grown) == 3
+    assert len(json.loads((tmp_path / "cmp" / "ga-0" / "heldout.json").read_text())) == 2

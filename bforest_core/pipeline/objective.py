@@ -27,28 +27,31 @@ from ..registry import component
 
 
 # ---------------------------------------------------------------------------------- seeds
+def _seed_stream(key: list[int], k: int) -> list[int]:
+    """``k`` independent 32-bit seeds of the stream ``key`` (a run seed and the stream's tag)."""
+    return [int(s.generate_state(1, np.uint32)[0]) for s in np.random.SeedSequence(key).spawn(k)]
+
+
 def model_seeds(run_seed: int, k: int, mode: str = "fixed", index: int = 0) -> list[int]:
     """The K model seeds of one evaluation."""
-    key = [int(run_seed), 1] if mode == "fixed" else [int(run_seed), 2, int(index)]
-    return [int(s.generate_state(1, np.uint32)[0]) for s in np.random.SeedSequence(key).spawn(k)]
+    return _seed_stream([int(run_seed), 1] if mode == "fixed" else [int(run_seed), 2, int(index)], k)
 
 
 def spread_seeds(run_seed: int, k: int) -> list[int]:
     """Model seeds for measuring the objective's seed noise (distinct from fitting and clone seeds)."""
-    return [int(s.generate_state(1, np.uint32)[0]) for s in np.random.SeedSequence([int(run_seed), 4]).spawn(k)]
+    return _seed_stream([int(run_seed), 4], k)
 
 
 def heldout_seeds(run_seed: int, sets: int, per: int) -> list[list[int]]:
     """``sets`` sets of ``per`` model seeds that no fit, noise measurement or clone of this run
     seed uses: for scoring best points on trees the fits never saw (``bforest compare --heldout``)."""
-    flat = [int(s.generate_state(1, np.uint32)[0]) for s in np.random.SeedSequence([int(run_seed), 5]).spawn(sets * per)]
+    flat = _seed_stream([int(run_seed), 5], sets * per)
     return [flat[i * per:(i + 1) * per] for i in range(sets)]
 
 
 def clone_seeds(run_seed: int, n: int, base: int | None = None) -> list[int]:
     """Fresh seeds for clones (distinct from the fitting seeds)."""
-    key = [int(run_seed), 3] if base is None else [int(base), 3]
-    return [int(s.generate_state(1, np.uint32)[0]) for s in np.random.SeedSequence(key).spawn(n)]
+    return _seed_stream([int(run_seed if base is None else base), 3], n)
 
 
 # ---------------------------------------------------------------------------------- target

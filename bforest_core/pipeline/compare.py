@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -47,31 +46,35 @@ class _HeldoutCache:
     """The held-out scores of a run's best points, kept in the run directory
     (``heldout.json``: scoring fingerprint -> point -> model seeds -> distance and status), so a
     later comparison, with or without ``--heldout``, loses none of them and a repeated
-    ``--heldout`` grows no tree twice. Written whole to a temporary file, then renamed."""
+    ``--heldout`` grows no tree twice."""
 
     def __init__(self, run_dir: Path, fingerprint: str):
-        self.path = Path(run_dir) / "heldout.json"
+        self.run_dir = Path(run_dir)
+        path = self.run_dir / "heldout.json"
         try:
-            self.data = json.loads(self.path.read_text(encoding="utf-8")) if self.path.is_file() else {}
+            self.data = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
         except (OSError, json.JSONDecodeError):
             self.data = {}  # an unreadable cache only costs the scoring again; it is replaced on save
         self.mine = self.data.setdefault(fingerprint, {})
         self.changed = False
 
+    @staticmethod
+    def _seeds(seeds) -> str:
+        return json.dumps(list(map(int, seeds)))
+
     def get(self, point: str, seeds) -> dict | None:
-        return self.mine.get(point, {}).get(json.dumps(list(map(int, seeds))))
+        return self.mine.get(point, {}).get(self._seeds(seeds))
 
     def put(self, point: str, seeds, hit: dict) -> None:
         if hit["status"] == "timeout":  # the machine's load, not the point: grown again next time
             return
-        self.mine.setdefault(point, {})[json.dumps(list(map(int, seeds)))] = hit
+        self.mine.setdefault(point, {})[self._seeds(seeds)] = hit
         self.changed = True
 
     def save(self) -> None:
         if self.changed:
-            tmp = self.path.with_suffix(".json.tmp")
-            tmp.write_text(json.dumps(self.data), encoding="utf-8")
-            tmp.replace(self.path)
+            with RunStore.open(self.run_dir) as store:
+                store.write_json("heldout.json", self.data)
             self.changed = False
 
 
@@ -123,13 +126,14 @@ def score_heldout(runs, cfg, target, sets: int, at=(), progress: bool = False) -
                 known[(k, tuple(s))] = hit
     bar = progress_bar(len(tasks), "held out", "eval", progress)
     try:
-        with started_workers(cfg, target) if tasks else nullcontext() as ex:
-            for i, r in ex.map_unordered(evaluate_task, [(unique[k], s) for k, s in tasks]) if tasks else ():
-                k, s = tasks[i]
-                known[(k, tuple(s))] = hit = {"distance": float(r["distance"]), "status": r["status"]}
-                for d in dirs_of[k]:
-                    caches[d].put(k, s, hit)
-                bar.update(1)
+        if tasks:
+            with started_workers(cfg, target) as ex:
+                for i, r in ex.map_unordered(evaluate_task, [(unique[k], s) for k, s in tasks]):
+                    k, s = tasks[i]
+                    known[(k, tuple(s))] = hit = {"distance": float(r["distance"]), "status": r["status"]}
+                    for d in dirs_of[k]:
+                        caches[d].put(k, s, hit)
+                    bar.update(1)
     finally:  # an interrupted scoring keeps what it grew
         bar.close()
         for c in caches.values():

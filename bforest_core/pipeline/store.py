@@ -176,14 +176,17 @@ class RunStore:
     def count(self) -> int:
         return self._con.execute("SELECT COUNT(*) FROM evaluations").fetchone()[0]
 
-    def evaluations(self, _tail: str = "ORDER BY idx", _args: tuple = ()) -> list[Evaluation]:
-        """Every logged evaluation in order (``_tail``/``_args``: another selection of them, for
-        :meth:`best`)."""
+    def _select(self, tail: str, args: tuple = ()) -> list[Evaluation]:
+        """The logged evaluations that the SQL ``tail`` (WHERE / ORDER BY / LIMIT) selects."""
         rows = self._con.execute(
             "SELECT idx, params, seeds, distance, per_set, status, message, seconds, worker, n_rows "
-            f"FROM evaluations {_tail}", _args).fetchall()
+            f"FROM evaluations {tail}", args).fetchall()
         return [Evaluation(r[0], json.loads(r[1]), json.loads(r[2]), r[3], json.loads(r[4]), r[5], r[6] or "",
                            r[7] or 0.0, r[8] or "", json.loads(r[9] or "{}")) for r in rows]
+
+    def evaluations(self) -> list[Evaluation]:
+        """Every logged evaluation, in order."""
+        return self._select("ORDER BY idx")
 
     def replay(self) -> dict[int, Evaluation]:
         return {e.idx: e for e in self.evaluations()}
@@ -192,7 +195,7 @@ class RunStore:
         """The evaluation of lowest distance, a grown tree before any failure (whose distance is
         the config's penalty, which need not exceed every real distance); with ``before``, among
         the evaluations of index below it (the best after that many evaluations)."""
-        found = self.evaluations("WHERE idx < ? ORDER BY status != 'ok', distance, idx LIMIT 1",
+        found = self._select("WHERE idx < ? ORDER BY status != 'ok', distance, idx LIMIT 1",
                                  (2 ** 62 if before is None else int(before),))
         return found[0] if found else None
 

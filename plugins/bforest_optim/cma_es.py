@@ -119,6 +119,8 @@ class CMAES(Optimizer):
         reason, generation = "cma stopped", 0
         while race.active and not ev.stopped:
             for slot in list(race.active):
+                if slot not in race.active:  # dropped by the race earlier in this round
+                    continue
                 if slot.es is None or slot.es.stop():
                     if slot.es is not None:
                         slot.finish()

@@ -29,8 +29,10 @@ def section_summary(doc: Document, v: RunView):
     b = v.best
     kind = cfg_kind(v, "ssm")
     if b is not None:
+        held = (f" (on held-out model seeds **{fmt(b['heldout_distance'])}**)"
+                if b.get("heldout_distance") is not None else "")
         doc.p(f"SSM **{kind}** fitted with **{b.get('optimizer', cfg_kind(v, 'optimizer'))}**: best distance "
-              f"**{fmt(b.get('distance'))}** after {b.get('n_evaluations', len(evs))} evaluations "
+              f"**{fmt(b.get('distance'))}**{held} after {b.get('n_evaluations', len(evs))} evaluations "
               f"({b.get('stop_reason', '')}); run time {seconds_text(b.get('seconds'))}.")
     else:
         best = v.store.best()

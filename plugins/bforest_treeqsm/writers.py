@@ -157,27 +157,13 @@ BRANCH_NAMES = ["order", "parent", "diameter (m)", "volume (L)", "area (m^2)", "
 
 
 def branch_table(tree) -> np.ndarray:
-    """TreeQSM's 10 branch columns computed from the cylinders (one row per branch).
-
-    diameter = 2 x radius of the first cylinder; volume (L) and area sum the cylinders; height =
-    z of the branch's first start point above the tree base; angle = between the first cylinder
-    and its parent cylinder; azimuth/zenith of the first cylinder's axis.
-    """
-    bt = tree.branches
-    nb = len(bt)
-    vol = np.bincount(tree.branch, weights=np.pi * tree.radius ** 2 * tree.length, minlength=nb) * 1000.0
-    area = np.bincount(tree.branch, weights=2 * np.pi * tree.radius * tree.length, minlength=nb)
-    length = np.bincount(tree.branch, weights=tree.length, minlength=nb)
-    f = bt.first
-    a = tree.axis[f]
-    pc = bt.parent_cyl
-    pa = tree.axis[np.maximum(pc, 0)]
-    ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", a, pa), -1.0, 1.0)))
-    ang = np.where(pc >= 0, ang, 0.0)
-    return np.column_stack([bt.order, _one_based(bt.parent_branch), 2 * tree.radius[f], vol, area, length,
-                            tree.start[f, 2] - tree.start[0, 2], ang,
-                            np.degrees(np.arctan2(a[:, 1], a[:, 0])),
-                            np.degrees(np.arccos(np.clip(a[:, 2], -1.0, 1.0)))])
+    """TreeQSM's 10 branch columns (:data:`BRANCH_NAMES`, one row per branch) from the kernel's
+    :func:`bforest_core.attributes.branch_table`: parent 1-based (0 for the trunk), volume in
+    litres."""
+    from bforest_core.attributes import branch_table as btab
+    b = btab(tree)
+    return np.column_stack([b["order"], _one_based(b["parent"]), b["diameter"], 1000.0 * b["volume"], b["area"],
+                            b["length"], b["height"], b["angle"], b["azimuth"], b["zenith"]])
 
 
 def write_branch_file(tree, path: Path) -> Path:
@@ -255,12 +241,160 @@ class MatSettings(ComponentSettings):
     variable: Literal["qsm", "QSM", "OptQSM"] = "qsm"
 
 
+#: TreeQSM 2.4's ``treedata`` fields in its order (``tree_data.m`` with triangulation on)
+TREEDATA_FIELDS = (
+    "TotalVolume", "TrunkVolume", "BranchVolume", "TreeHeight", "TrunkLength", "BranchLength",
+    "TotalLength", "NumberBranches", "MaxBranchOrder", "TrunkArea", "BranchArea", "TotalArea",
+    "DBHqsm", "DBHcyl", "CrownDiamAve", "CrownDiamMax", "CrownAreaConv", "CrownAreaAlpha",
+    "CrownBaseHeight", "CrownLength", "CrownRatio", "CrownVolumeConv", "CrownVolumeAlpha",
+    "DBHtri", "TriaTrunkVolume", "MixTrunkVolume", "MixTotalVolume", "TriaTrunkArea",
+    "MixTrunkArea", "MixTotalArea", "TriaTrunkLength", "location", "StemTaper", "VerticalProfile",
+    "spreads")
+#: the distributions after them, in TreeQSM's order
+DISTRIBUTION_FIELDS = tuple(
+    [f"{q}Cyl{x}" for x in ("Dia", "Hei", "Zen", "Azi") for q in ("Vol", "Are", "Len")]
+    + [f"{q}BranchOrd" for q in ("Vol", "Are", "Len", "Num")]
+    + [f"{q}Branch{one}{x}" for x in ("Dia", "Hei", "Ang", "Azi", "Zen") for q in ("Vol", "Are", "Len", "Num")
+       for one in ("", "1")])
+#: our attribute behind each scalar treedata field (volumes are converted to litres)
+_TREEDATA_FROM = {
+    "TotalVolume": "total_volume", "TrunkVolume": "trunk_volume", "BranchVolume": "branch_volume",
+    "TreeHeight": "tree_height", "TrunkLength": "trunk_length", "BranchLength": "branch_length",
+    "TotalLength": "total_length", "NumberBranches": "n_branches", "MaxBranchOrder": "max_branch_order",
+    "TrunkArea": "trunk_area", "BranchArea": "branch_area", "TotalArea": "total_area", "DBHqsm": "dbh",
+    "DBHcyl": "dbh", "CrownDiamAve": "crown_diameter_mean", "CrownDiamMax": "crown_diameter_max",
+    "CrownAreaConv": "crown_area_conv", "CrownAreaAlpha": "crown_area_alpha",
+    "CrownBaseHeight": "crown_base_height", "CrownLength": "crown_length", "CrownRatio": "crown_ratio",
+    "CrownVolumeConv": "crown_volume_conv", "CrownVolumeAlpha": "crown_volume_alpha",
+    # without a point cloud there is no triangulation: TreeQSM then repeats the cylinder values
+    "DBHtri": "dbh", "TriaTrunkVolume": "trunk_volume", "MixTrunkVolume": "trunk_volume",
+    "MixTotalVolume": "total_volume", "TriaTrunkArea": "trunk_area", "MixTrunkArea": "trunk_area",
+    "MixTotalArea": "total_area",
+}
+#: TreeQSM 2.4's reconstruction inputs (``rundata.inputs``): NaN, as no reconstruction made the tree
+TREEQSM_INPUTS = ("PatchDiam1", "PatchDiam2Min", "PatchDiam2Max", "BallRad1", "BallRad2", "nmin1", "nmin2",
+                  "OnlyTree", "Tria", "Dist", "MinCylRad", "ParentCor", "TaperCor", "GrowthVolCor",
+                  "GrowthVolFac")
+TREEQSM_FILTER_INPUTS = ("k", "radius", "nsigma", "PatchDiam1", "BallRad1", "ncomp", "EdgeLength", "plot")
+PMDISTANCE_FIELDS = ("CylDist", "median", "mean", "max", "std") + tuple(
+    f"{p}{s}" for p in ("Trunk", "Branch", "Branch1", "Branch2") for s in ("Median", "Mean", "Max", "Std"))
+
+
+def _uint(a) -> np.ndarray:
+    """Non-negative integers as a column in the smallest unsigned class TreeQSM uses."""
+    a = np.asarray(a).reshape(-1, 1)
+    top = int(a.max()) if a.size else 0
+    dt = np.uint8 if top < 2 ** 8 else np.uint16 if top < 2 ** 16 else np.uint32
+    return a.astype(dt)
+
+
+def _col(a, dtype=np.float64) -> np.ndarray:
+    return np.ascontiguousarray(np.asarray(a, dtype=dtype).reshape(-1, 1))
+
+
+def _single(v) -> np.ndarray:
+    """A treedata value as MATLAB single: scalars 1x1, vectors 1 x n (TreeQSM's row vectors)."""
+    a = np.asarray(v, dtype=np.float32)
+    return a.reshape(1, 1) if a.ndim == 0 else a.reshape(1, -1) if a.ndim == 1 else a
+
+
+def treeqsm_struct(tree, provenance: Optional[dict] = None) -> dict:
+    """The TreeQSM 2.4 struct of a tree: ``cylinder``, ``branch``, ``treedata``, ``rundata``,
+    ``pmdistance``, ``triangulation`` with TreeQSM's field names, shapes, classes and units.
+
+    Cylinder geometry is written in double precision (our reader gives the same table back);
+    ids are TreeQSM's unsigned classes (1-based, 0 = none); ``branch`` and ``treedata`` are
+    single like TreeQSM's, volumes in litres. There is no point cloud behind a model tree, so
+    ``pmdistance`` holds NaN and ``triangulation`` is TreeQSM's empty one (the triangulation
+    fields of ``treedata`` repeat the cylinder values, as TreeQSM writes them then).
+    ``rundata.bforest`` records where the tree came from (``provenance``, else the tree's
+    metadata: model, parameters, seed, source file) and the Bayes Forest version.
+    """
+    from bforest_core import __version__
+    from bforest_core.attributes import branch_table as btab, crown_points, crown_spreads
+    from bforest_core.attributes import distributions, stem_taper, tree_attributes
+    c = treeqsm_columns(tree)
+    n = tree.n
+    cyl = {}
+    for k in ("radius", "length", "start", "axis", "parent", "extension", "added", "UnmodRadius", "branch",
+              "SurfCov", "mad", "BranchOrder", "PositionInBranch"):
+        v = np.asarray(c[k])
+        if k in ("parent", "extension", "added", "branch", "BranchOrder", "PositionInBranch"):
+            cyl[k] = _uint(v)
+        else:
+            cyl[k] = np.ascontiguousarray(np.asarray(v, dtype=np.float64).reshape(n, -1))
+    b = btab(tree)
+    branch = {"order": _uint(b["order"]), "parent": _uint(_one_based(b["parent"])),
+              "diameter": _col(b["diameter"], np.float32), "volume": _col(1000.0 * b["volume"], np.float32),
+              "area": _col(b["area"], np.float32), "length": _col(b["length"], np.float32),
+              "angle": _col(b["angle"], np.float32), "height": _col(b["height"], np.float32),
+              "azimuth": _col(b["azimuth"], np.float32), "zenith": _col(b["zenith"], np.float32)}
+    P = crown_points(tree)
+    att = tree_attributes(tree, P)
+    spreads = crown_spreads(tree, P)
+    td = {}
+    for k in TREEDATA_FIELDS:
+        if k in _TREEDATA_FROM:
+            v = att[_TREEDATA_FROM[k]]
+            td[k] = _single(1000.0 * v if k.endswith("Volume") and not k.startswith("Crown") else v)
+        elif k == "TriaTrunkLength":
+            td[k] = _single(0.0)
+        elif k == "location":
+            td[k] = _single(tree.start[0])
+        elif k == "StemTaper":
+            td[k] = stem_taper(tree).astype(np.float32)
+        elif k == "VerticalProfile":
+            td[k] = spreads.mean(axis=1).astype(np.float32).reshape(-1, 1)
+        elif k == "spreads":
+            td[k] = spreads.astype(np.float32)
+    dist = distributions(tree)
+    for k in DISTRIBUTION_FIELDS:
+        v = dist[k]
+        td[k] = _single(1000.0 * v if k.startswith("Vol") else v)
+    md = dict(tree.metadata)
+    prov = {"model": md.get("model"), "params": md.get("params"), "seed": md.get("seed"),
+            "source": md.get("source")}
+    prov.update(provenance or {})
+    bf = {"version": str(__version__), "created": _now_iso()}
+    for k, v in prov.items():
+        if v is None:
+            continue
+        if k == "params" and isinstance(v, dict):
+            bf["params"] = {str(p): (float(x) if isinstance(x, (int, float, np.number)) else str(x))
+                            for p, x in v.items()}
+        elif isinstance(v, (int, float, np.number)) and not isinstance(v, bool):
+            bf[k] = float(v)
+        else:
+            bf[k] = json.dumps(jsonable(v)) if isinstance(v, (dict, list, tuple)) else str(v)
+    name = Path(str(md.get("source") or prov.get("model") or "tree")).stem
+    inputs = {k: np.array([[np.nan]]) for k in TREEQSM_INPUTS}
+    inputs["filter"] = {k: np.array([[np.nan]]) for k in TREEQSM_FILTER_INPUTS}
+    inputs.update(name=name, tree=1.0, model=1.0, savemat=0.0, savetxt=0.0, plot=0.0, disp=0.0, metric="")
+    rundata = {"inputs": inputs,
+               "time": np.zeros((12, 1), np.float32), "date": np.zeros((2, 6), np.float32),
+               "version": f"bforest {__version__} (TreeQSM 2.4.1 layout)", "bforest": bf}
+    nan = np.float64("nan")
+    pmd = {k: (np.full((n, 1), np.nan, np.float32) if k == "CylDist" else np.array([[nan]])) for k in PMDISTANCE_FIELDS}
+    tri = {"vert": np.zeros((0, 3)), "facet": np.zeros((0, 3)), "fvd": np.zeros((0, 1))}
+    tri.update({k: np.array([[0.0]]) for k in ("volume", "SideArea", "BottomArea", "TopArea", "bottom", "top",
+                                                "triah", "triaw", "cylind")})
+    return {"cylinder": cyl, "branch": branch, "treedata": td, "rundata": rundata, "pmdistance": pmd,
+            "triangulation": tri}
+
+
+def _now_iso() -> str:
+    import datetime
+    return datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0).isoformat()
+
+
 class TreeQSMMatWriter(QSMWriter):
-    """A MAT v5 file with a struct ``qsm`` holding the TreeQSM 2.4 ``cylinder`` fields (for
-    rTwig, ITSMe); ids 1-based, written as doubles (``scipy.io.savemat``)."""
+    """A MAT v5 file with the TreeQSM 2.4 struct ``qsm`` (``cylinder``, ``branch``,
+    ``treedata``, ``rundata``, ``pmdistance``, ``triangulation``; :func:`treeqsm_struct`) that
+    rTwig, ITSMe and TreeQSM's own plotting read; ``rundata.bforest`` records the model,
+    parameters, seed and Bayes Forest version."""
 
     name = "treeqsm-mat"
-    summary = "TreeQSM 2.4 .mat struct qsm.cylinder (scipy.io.savemat)"
+    summary = "TreeQSM 2.4 .mat struct qsm (cylinder, branch, treedata, rundata, pmdistance, triangulation)"
     suffixes = (".mat",)
     Settings = MatSettings
     priority = 10
@@ -269,11 +403,8 @@ class TreeQSMMatWriter(QSMWriter):
         import scipy.io as sio
         o = _options(self, options)
         path = Path(path)
-        c = treeqsm_columns(tree)
-        cyl = {k: np.ascontiguousarray(np.asarray(c[k], dtype=np.float64).reshape(tree.n, -1))
-               for k in ("radius", "length", "start", "axis", "parent", "extension", "added",
-                         "UnmodRadius", "branch", "SurfCov", "mad", "BranchOrder", "PositionInBranch")}
-        sio.savemat(str(path), {o.variable: {"cylinder": cyl}}, do_compression=True, oned_as="column")
+        sio.savemat(str(path), {o.variable: treeqsm_struct(tree)}, do_compression=True,
+                    oned_as="column")
         return path
 
 

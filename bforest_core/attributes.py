@@ -1,0 +1,393 @@
+"""TreeQSM's tree attributes and distributions, one implementation for QSMs and model trees.
+
+What a TreeQSM user reads first (TreeQSM 2.4, Raumonen et al. 2013, Remote Sensing 5:491-520;
+its ``treedata`` and ``branch`` structs): volume, length and surface area of the trunk and the
+branches, the crown's diameters, area, volume, length and ratio, the per-branch table and the
+distributions of wood by cylinder diameter, height, zenith and azimuth and of branches by
+diameter, height, angle, azimuth, zenith and order. The definitions, and where they differ from
+TreeQSM 2.4's, are stated in ``docs/tree-attributes.md``; in short:
+
+* SI units throughout (m, m^2, m^3; angles in degrees). TreeQSM gives volumes in litres; the
+  ``.mat`` writer converts.
+* The trunk is branch 0 of the tree's own topology (TreeQSM's branch 1).
+* Height, DBH and the crown base are the kernel's (:mod:`bforest_core.metrics`): one definition
+  of each in the project.
+* Crown points: every cylinder's start and end point plus points on the cylinder surface (four
+  around the middle of a branch cylinder, rings of twelve at 1/4 ... 4/4 of a trunk cylinder),
+  as TreeQSM samples its cylinder model.
+
+Every function takes a :class:`~bforest_core.tree.Tree` and is vectorised over cylinders and
+branches (loops run over classes, layers or sectors only).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .metrics import classical_metrics, crown_base_height
+
+__all__ = ["branch_table", "tree_attributes", "distributions", "crown_points", "ATTRIBUTE_UNITS",
+           "BRANCH_COLUMNS", "DISTRIBUTION_UNITS", "stem_taper", "crown_spreads"]
+
+#: per-branch columns of :func:`branch_table` with their units (TreeQSM's ``qsm.branch``)
+BRANCH_COLUMNS = {"order": "", "parent": "", "diameter": "m", "volume": "m^3", "area": "m^2",
+                  "length": "m", "angle": "deg", "height": "m", "azimuth": "deg", "zenith": "deg"}
+
+#: units of :func:`tree_attributes`
+ATTRIBUTE_UNITS = {
+    "total_volume": "m^3", "trunk_volume": "m^3", "branch_volume": "m^3",
+    "tree_height": "m", "trunk_length": "m", "branch_length": "m", "total_length": "m",
+    "n_branches": "", "max_branch_order": "", "trunk_area": "m^2", "branch_area": "m^2",
+    "total_area": "m^2", "dbh": "m", "crown_diameter_mean": "m", "crown_diameter_max": "m",
+    "crown_area_conv": "m^2", "crown_area_alpha": "m^2", "crown_base_height": "m",
+    "crown_length": "m", "crown_ratio": "", "crown_volume_conv": "m^3", "crown_volume_alpha": "m^3",
+}
+
+#: unit of each distribution quantity (the first three letters of a distribution's name)
+DISTRIBUTION_UNITS = {"vol": "m^3", "are": "m^2", "len": "m", "num": ""}
+
+
+# ------------------------------------------------------------------------------------------
+# branches
+# ------------------------------------------------------------------------------------------
+
+def branch_table(tree) -> dict[str, np.ndarray]:
+    """One row per branch (branch 0 = the trunk), TreeQSM's ``qsm.branch`` in SI units.
+
+    Returns
+    -------
+    dict of (n_branches,) arrays
+        ``order``; ``parent`` (parent branch, -1 for the trunk); ``diameter`` (m, 2 x the radius
+        of the branch's first cylinder); ``volume`` (m^3), ``area`` (m^2, lateral surface) and
+        ``length`` (m) summed over the branch's cylinders; ``angle`` (deg) between the branch's
+        first cylinder and its parent cylinder (0 for the trunk; when the first cylinder is a
+        gap-filling ``added`` one, the second cylinder's axis, as TreeQSM does); ``height`` (m,
+        the first cylinder's start above the tree's base point); ``azimuth`` (deg, -180...180,
+        ``atan2(a_y, a_x)``) and ``zenith`` (deg, 0 = straight up) of the first cylinder's axis
+        (added or not, as TreeQSM).
+    """
+    bt = tree.branches
+    nb = len(bt)
+    vol = np.bincount(tree.branch, weights=np.pi * tree.radius ** 2 * tree.length, minlength=nb)
+    area = np.bincount(tree.branch, weights=2 * np.pi * tree.radius * tree.length, minlength=nb)
+    length = np.bincount(tree.branch, weights=tree.length, minlength=nb)
+    f = bt.first
+    # the direction cylinder: the second one when the first fills a gap and there is a second
+    second = bt.cylinders[np.minimum(bt.ptr[:-1] + 1, bt.ptr[1:] - 1)]
+    fc = np.where(tree.added[f] & (bt.n_cyl > 1), second, f)
+    a = tree.axis[fc]
+    a0 = tree.axis[f]
+    pc = bt.parent_cyl
+    pa = tree.axis[np.maximum(pc, 0)]
+    ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", a, pa), -1.0, 1.0)))
+    ang = np.where(pc >= 0, ang, 0.0)
+    return {"order": bt.order.astype(np.int64), "parent": bt.parent_branch.astype(np.int64),
+            "diameter": 2.0 * tree.radius[f], "volume": vol, "area": area, "length": length,
+            "angle": ang, "height": tree.start[f, 2] - tree.start[0, 2],
+            "azimuth": np.degrees(np.arctan2(a0[:, 1], a0[:, 0])),
+            "zenith": np.degrees(np.arccos(np.clip(a0[:, 2], -1.0, 1.0)))}
+
+
+# ------------------------------------------------------------------------------------------
+# crown geometry
+# ------------------------------------------------------------------------------------------
+
+def _frames(axis: np.ndarray):
+    """Two unit vectors u, w orthogonal to each axis and to each other."""
+    e = np.eye(3)[np.argmin(np.abs(axis), axis=1)]
+    u = np.cross(axis, e)
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    return u, np.cross(axis, u)
+
+
+def crown_points(tree) -> np.ndarray:
+    """(k, 3) points sampling the cylinder model (m): every start and end point, four points
+    around the middle of each branch cylinder and rings of twelve points at 1/4, 2/4, 3/4 and 4/4
+    of the length of each trunk cylinder (on the cylinder surface; duplicates removed)."""
+    u, w = _frames(tree.axis)
+    trunk = tree.branch == 0
+    parts = [tree.start, tree.end]
+    br = ~trunk
+    if br.any():
+        t = np.arange(4) * (np.pi / 2)
+        mid = tree.start[br] + 0.5 * tree.length[br, None] * tree.axis[br]
+        ring = (np.cos(t)[None, :, None] * u[br][:, None, :] + np.sin(t)[None, :, None] * w[br][:, None, :])
+        parts.append((mid[:, None, :] + tree.radius[br, None, None] * ring).reshape(-1, 3))
+    if trunk.any():
+        t = np.arange(12) * (np.pi / 6)
+        ring = (np.cos(t)[None, :, None] * u[trunk][:, None, :] + np.sin(t)[None, :, None] * w[trunk][:, None, :])
+        ring = tree.radius[trunk, None, None] * ring  # (m, 12, 3)
+        for k in (1, 2, 3, 4):
+            c = tree.start[trunk] + (k / 4) * tree.length[trunk, None] * tree.axis[trunk]
+            parts.append((c[:, None, :] + ring).reshape(-1, 3))
+    return np.unique(np.concatenate(parts), axis=0)
+
+
+def _hull2d(xy: np.ndarray):
+    """(vertices in order, area, centroid) of the convex hull of 2-D points; None when the points
+    span no area."""
+    from scipy.spatial import ConvexHull, QhullError
+    xy = np.unique(xy, axis=0)
+    if xy.shape[0] < 3:
+        return None
+    try:
+        h = ConvexHull(xy)
+    except (QhullError, ValueError):
+        return None
+    v = xy[h.vertices]
+    x, y = v[:, 0], v[:, 1]
+    x1, y1 = np.roll(x, -1), np.roll(y, -1)
+    cross = x * y1 - x1 * y
+    a = cross.sum() / 2.0
+    if a <= 0:
+        return None
+    c = np.array([((x + x1) * cross).sum(), ((y + y1) * cross).sum()]) / (6.0 * a)
+    return v, float(a), c
+
+
+def _sector_diameters(xy: np.ndarray, centre: np.ndarray, n: int = 18) -> np.ndarray:
+    """Diameters through ``centre`` in ``n`` directions (each covers 180/n deg): the farthest
+    point in a sector plus the farthest in the opposite sector (0 for an empty sector)."""
+    v = xy - centre
+    ang = np.arctan2(v[:, 1], v[:, 0]) + np.pi            # 0 ... 2 pi
+    sec = np.minimum((ang / (np.pi / n)).astype(np.int64), 2 * n - 1)
+    far = np.zeros(2 * n)
+    np.maximum.at(far, sec, np.hypot(v[:, 0], v[:, 1]))
+    return far[:n] + far[n:]
+
+
+def crown_spreads(tree, points: np.ndarray | None = None) -> np.ndarray:
+    """(layers, 18) crown diameters (m) in horizontal layers (TreeQSM's ``spreads``).
+
+    The points' height range is cut into 20 layers (tree taller than 10 m), 10 (taller than 2 m)
+    or 5; in each layer with more than five points the diameters in 18 directions pass through
+    the centroid of the layer's convex hull (:func:`_sector_diameters`); a layer with fewer
+    points, or points on one line, gets zeros. Its row means are TreeQSM's ``VerticalProfile``.
+    """
+    P = crown_points(tree) if points is None else points
+    bot, top = P[:, 2].min(), P[:, 2].max()
+    hei = top - bot
+    m = 20 if hei > 10 else 10 if hei > 2 else 5
+    layer = np.minimum(((P[:, 2] - bot) / max(hei, 1e-12) * m).astype(np.int64), m - 1)
+    out = np.zeros((m, 18))
+    for j in range(m):  # one loop over layers, not points
+        X = P[layer == j]
+        if X.shape[0] <= 5:
+            continue
+        h = _hull2d(X[:, :2])
+        if h is not None:
+            out[j] = _sector_diameters(X[:, :2], h[2])
+    return out
+
+
+def _alpha_measure(pts: np.ndarray, alpha: float) -> float:
+    """Area (2-D) or volume (3-D) of the alpha shape of ``pts``: the Delaunay triangles
+    (tetrahedra) whose circumradius is at most ``alpha``."""
+    from scipy.spatial import Delaunay, QhullError
+    d = pts.shape[1]
+    if pts.shape[0] < d + 1:
+        return 0.0
+    try:
+        tri = Delaunay(pts)
+    except (QhullError, ValueError):
+        return 0.0
+    s = pts[tri.simplices]                       # (k, d+1, d)
+    e = s[:, 1:, :] - s[:, :1, :]                # edge vectors from vertex 0
+    det = np.linalg.det(e)
+    size = np.abs(det) / (2.0 if d == 2 else 6.0)
+    # circumcentre c solves 2 e c = |e|^2 (relative to vertex 0)
+    rhs = 0.5 * np.einsum("kij,kij->ki", e, e)
+    ok = np.abs(det) > 1e-15
+    r = np.full(det.shape, np.inf)
+    if ok.any():
+        c = np.linalg.solve(e[ok], rhs[ok][..., None])[..., 0]
+        r[ok] = np.linalg.norm(c, axis=1)
+    return float(size[r <= alpha].sum())
+
+
+def _hull3d_volume(pts: np.ndarray) -> float:
+    from scipy.spatial import ConvexHull, QhullError
+    if pts.shape[0] < 4:
+        return 0.0
+    try:
+        return float(ConvexHull(pts).volume)
+    except (QhullError, ValueError):
+        return 0.0
+
+
+def stem_taper(tree) -> np.ndarray:
+    """(2, n_trunk + 1) TreeQSM's ``StemTaper``: distance along the trunk from its base (m) and
+    the trunk diameter there (m): the first cylinder's diameter at 0, then each cylinder's at its
+    start, the last one's again at the tip."""
+    bt = tree.branches
+    c = bt.cylinders[bt.ptr[0]:bt.ptr[1]]
+    d = 2.0 * tree.radius[c]
+    dist = np.concatenate([[0.0], np.cumsum(tree.length[c])])
+    diam = np.concatenate([d[:1], d[1:], d[-1:]])
+    return np.vstack([dist, diam])
+
+
+# ------------------------------------------------------------------------------------------
+# tree attributes
+# ------------------------------------------------------------------------------------------
+
+def tree_attributes(tree, points: np.ndarray | None = None) -> dict[str, float]:
+    """TreeQSM's tree attributes in SI units (:data:`ATTRIBUTE_UNITS`).
+
+    Returns
+    -------
+    dict
+        ``total_volume``, ``trunk_volume``, ``branch_volume`` (m^3: sum of pi r^2 l over all,
+        trunk, non-trunk cylinders); ``tree_height`` (m, :func:`~bforest_core.metrics.classical_metrics`);
+        ``trunk_length``, ``branch_length``, ``total_length`` (m, sums of cylinder lengths);
+        ``n_branches`` (branches other than the trunk), ``max_branch_order``; ``trunk_area``,
+        ``branch_area``, ``total_area`` (m^2, sums of 2 pi r l); ``dbh`` (m, the kernel's);
+        ``crown_diameter_mean`` (m: mean of 18 diameters through the centroid of the convex hull
+        of the crown points' horizontal projection, each the farthest cylinder tip in a 10 deg
+        sector plus the farthest in the opposite sector); ``crown_diameter_max`` (m, the largest
+        distance between two vertices of that hull); ``crown_area_conv`` (m^2, the hull's area);
+        ``crown_area_alpha`` (m^2, the 2-D alpha shape with alpha = max(0.5 m, mean diameter / 10));
+        ``crown_base_height`` (m, :func:`~bforest_core.metrics.crown_base_height`);
+        ``crown_length`` = height - crown base height; ``crown_ratio`` = crown length / height;
+        ``crown_volume_conv`` (m^3, the 3-D convex hull of the crown points at or above the crown
+        base) and ``crown_volume_alpha`` (m^3, their alpha shape with alpha = max(0.5 m, mean
+        diameter / 5)). A tree without first-order branches has crown base = height and zero
+        crown length, ratio and volumes (as TreeQSM).
+    """
+    P = crown_points(tree) if points is None else points
+    vol = np.pi * tree.radius ** 2 * tree.length
+    area = 2 * np.pi * tree.radius * tree.length
+    trunk = tree.branch == 0
+    m = classical_metrics(tree)
+    h = m["height"]
+    out = {"total_volume": float(vol.sum()), "trunk_volume": float(vol[trunk].sum()),
+           "branch_volume": float(vol[~trunk].sum()), "tree_height": h,
+           "trunk_length": float(tree.length[trunk].sum()), "branch_length": float(tree.length[~trunk].sum()),
+           "total_length": float(tree.length.sum()), "n_branches": float(tree.n_branches - 1),
+           "max_branch_order": float(tree.max_order), "trunk_area": float(area[trunk].sum()),
+           "branch_area": float(area[~trunk].sum()), "total_area": float(area.sum()), "dbh": m["dbh"]}
+    hull = _hull2d(P[:, :2])
+    if hull is None:
+        out.update(crown_diameter_mean=0.0, crown_diameter_max=0.0, crown_area_conv=0.0, crown_area_alpha=0.0)
+    else:
+        v, a, c = hull
+        out["crown_diameter_mean"] = float(_sector_diameters(tree.end[:, :2], c).mean())
+        dv = v[:, None, :] - v[None, :, :]
+        out["crown_diameter_max"] = float(np.sqrt((dv ** 2).sum(-1)).max())
+        out["crown_area_conv"] = a
+        out["crown_area_alpha"] = _alpha_measure(np.unique(P[:, :2], axis=0),
+                                                 max(0.5, out["crown_diameter_mean"] / 10))
+    cbh = crown_base_height(tree)
+    if not np.isfinite(cbh):
+        out.update(crown_base_height=h, crown_length=0.0, crown_ratio=0.0, crown_volume_conv=0.0,
+                   crown_volume_alpha=0.0)
+        return out
+    out["crown_base_height"] = cbh
+    out["crown_length"] = h - cbh
+    out["crown_ratio"] = (h - cbh) / h if h > 0 else 0.0
+    X = P[P[:, 2] >= tree.start[0, 2] + cbh]
+    out["crown_volume_conv"] = _hull3d_volume(X)
+    out["crown_volume_alpha"] = _alpha_measure(X, max(0.5, out["crown_diameter_mean"] / 5))
+    return out
+
+
+# ------------------------------------------------------------------------------------------
+# distributions
+# ------------------------------------------------------------------------------------------
+
+#: a value this close below a class edge (in class widths) is on the edge: QSMs store single
+#: precision (0.005 m is 0.00499999989 in float32), and TreeQSM compares in single precision
+_EDGE_TOL = 1e-6
+
+
+def _classes(par: np.ndarray, width: float, n: int | None = None) -> tuple[np.ndarray, int]:
+    """0-based class ``floor(par / width)`` of half-open classes ``[k w, (k+1) w)`` and the
+    number of classes (enough for the largest value unless ``n`` is given)."""
+    k = np.floor(par / width + _EDGE_TOL).astype(np.int64) if par.size else np.zeros(0, np.int64)
+    if n is None:
+        n = int(k.max()) + 1 if k.size else 0
+    return k, n
+
+
+def _sums(k: np.ndarray, n: int, weights: dict) -> dict[str, np.ndarray]:
+    keep = (k >= 0) & (k < n)
+    return {name: np.bincount(k[keep], weights=None if w is None else w[keep], minlength=n)[:n].astype(float)
+            for name, w in weights.items()}
+
+
+def _height_overlap(b: np.ndarray, t: np.ndarray, n: int) -> np.ndarray:
+    """(n_cyl, n) share of each cylinder (from height b to t, m above the bottom) in each 1 m
+    height class; a level cylinder lies wholly in the class of its height."""
+    lo, hi = np.minimum(b, t), np.maximum(b, t)
+    edges = np.arange(n + 1, dtype=float)
+    ov = np.clip(np.minimum(hi[:, None], edges[None, 1:]) - np.maximum(lo[:, None], edges[None, :-1]), 0, None)
+    span = hi - lo
+    share = np.zeros_like(ov)
+    tall = span > 1e-12
+    share[tall] = ov[tall] / span[tall, None]
+    flat = np.flatnonzero(~tall)
+    if flat.size:
+        share[flat, np.clip(np.floor(lo[flat]).astype(np.int64), 0, n - 1)] = 1.0
+    return share
+
+
+def distributions(tree) -> dict[str, np.ndarray]:
+    """TreeQSM's distributions, SI units (volumes m^3, areas m^2, lengths m, counts).
+
+    Cylinders (wood parts): ``VolCylDia``/``AreCylDia``/``LenCylDia`` per 1 cm cylinder-diameter
+    class (class k holds diameters in [k, k+1) cm, k = 0, 1, ...); ``...CylHei`` per 1 m height
+    class above the lowest cylinder start (a cylinder counts in each class with the share of its
+    vertical extent inside it); ``...CylZen`` per 10 deg zenith class (18); ``...CylAzi`` per
+    10 deg azimuth class (36, from -180 deg).
+
+    Branches (the trunk left out): ``VolBranch<X>``, ``AreBranch<X>``, ``LenBranch<X>``,
+    ``NumBranch<X>`` and the same for first-order branches only (``VolBranch1<X>``...) with X =
+    ``Dia`` (1 cm base-diameter classes), ``Hei`` (1 m classes of the branch's base height),
+    ``Ang`` (10 deg branching-angle classes, 18), ``Azi`` (10 deg, 36, from -180 deg), ``Zen``
+    (10 deg, 18); and per branch order 1 ... max: ``VolBranchOrd``, ``AreBranchOrd``,
+    ``LenBranchOrd``, ``NumBranchOrd``.
+
+    The names are TreeQSM 2.4's ``treedata`` names; the values are in SI units (TreeQSM gives
+    volumes in litres). Class k of every array is element k (0-based).
+    """
+    out: dict[str, np.ndarray] = {}
+    r, l, ax = tree.radius, tree.length, tree.axis
+    cw = {"Vol": np.pi * r ** 2 * l, "Are": 2 * np.pi * r * l, "Len": l}
+    k, n = _classes(2 * r, 0.01)
+    for q, v in _sums(k, n, cw).items():
+        out[f"{q}CylDia"] = v
+    bot = tree.start[:, 2].min()
+    top = max(tree.start[:, 2].max(), tree.end[:, 2].max())
+    nh = max(int(np.ceil(top - bot - 1e-9)), 1)
+    share = _height_overlap(tree.start[:, 2] - bot, tree.end[:, 2] - bot, nh)
+    for q, w in cw.items():
+        out[f"{q}CylHei"] = w @ share
+    zen = np.degrees(np.arccos(np.clip(ax[:, 2], -1, 1)))
+    k, _ = _classes(zen, 10.0, 18)
+    for q, v in _sums(np.minimum(k, 17), 18, cw).items():
+        out[f"{q}CylZen"] = v
+    azi = np.degrees(np.arctan2(ax[:, 1], ax[:, 0])) + 180.0
+    k, _ = _classes(azi, 10.0, 36)
+    for q, v in _sums(np.minimum(k, 35), 36, cw).items():
+        out[f"{q}CylAzi"] = v
+
+    b = branch_table(tree)
+    sel = np.arange(b["order"].size) > 0          # the trunk is branch 0
+    bw = {"Vol": b["volume"][sel], "Are": b["area"][sel], "Len": b["length"][sel], "Num": None}
+    first = b["order"][sel] == 1
+    pars = {"Dia": (b["diameter"][sel], 0.01, None), "Hei": (b["height"][sel], 1.0, nh),
+            "Ang": (b["angle"][sel], 10.0, 18), "Azi": (b["azimuth"][sel] + 180.0, 10.0, 36),
+            "Zen": (b["zenith"][sel], 10.0, 18)}
+    for name, (par, width, n) in pars.items():
+        k, n = _classes(par, width, n)
+        if name in ("Ang", "Azi", "Zen"):
+            k = np.minimum(k, n - 1)  # the closed upper end (180 deg) belongs to the last class
+        all_ = _sums(k, n, bw)
+        one = _sums(np.where(first, k, -1), n, bw)
+        for q in bw:
+            out[f"{q}Branch{name}"] = all_[q]
+            out[f"{q}Branch1{name}"] = one[q]
+    no = int(b["order"].max()) if b["order"].size else 0
+    k = b["order"][sel] - 1
+    for q, v in _sums(k, max(no, 1), bw).items():
+        out[f"{q}BranchOrd"] = v
+    return out

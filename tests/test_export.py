@@ -55,3 +55,19 @@ def test_export_command(run, tmp_path):
     assert r.returncode == 0 and "wrote 3 files" in r.stdout and (tmp_path / "o" / "clone_000.obj").exists()
     r = subprocess.run([exe, "export", str(run)], capture_output=True, text=True)
     assert r.returncode == 2 and "at least one --format" in r.stderr
+
+
+def test_exported_mat_and_csv_record_model_parameters_and_seed(run, tmp_path):
+    import json
+
+    import scipy.io as sio
+    summary = json.loads((run / "clones" / "summary.json").read_text())
+    row = next(r for r in summary["rows"] if r["file"] == "clone_001.txt")
+    export_trees(run, ["mat", "csv"], tmp_path / "p", what=("clones",))
+    rd = sio.loadmat(str(tmp_path / "p" / "clone_001.mat"), squeeze_me=True, struct_as_record=False)["qsm"].rundata
+    prov = rd.bforest
+    assert prov.model == "toy" and int(prov.seed) == row["seed"] and prov.version == bf.__version__
+    assert float(prov.params.angle) == pytest.approx(row["params"]["angle"])
+    assert float(prov.fixed.noise) == 2.0 and prov.role == "clone 1"
+    side = json.loads((tmp_path / "p" / "clone_001.json").read_text())
+    assert side["model"] == "toy" and side["seed"] == row["seed"] and side["params"] == row["params"]

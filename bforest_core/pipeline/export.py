@@ -75,11 +75,50 @@ def export_trees(run_dir, formats: list[str], out_dir=None, what: tuple[str, ...
     if existing and not overwrite:
         raise ExportError(f"{existing[0]} exists ({len(existing)} files would be replaced); pass --overwrite to "
                           "replace them or choose another -o")
+    prov = run_provenance(run_dir)
     out = []
     for src, name, dst in plan:
         tree = read_qsm(src)
-        out.append(write_tree(tree[0] if isinstance(tree, list) else tree, dst, format=name))
+        tree = tree[0] if isinstance(tree, list) else tree
+        tree.metadata.update(prov.get(src.name, {}))
+        out.append(write_tree(tree, dst, format=name))
     return out
+
+
+def run_provenance(run_dir) -> dict[str, dict]:
+    """Where each tree file of a run came from: ``{file name: {model, params, fixed, seed, run}}``
+    for ``best_tree.txt`` (the answer's parameters and first model seed, ``best.json``) and every
+    clone (its parameters and seed, ``clones/summary.json``); writers record it (``.mat``
+    ``rundata.bforest``, the CSV sidecar). Files the run does not describe are left out."""
+    import json
+    import tomllib
+    run_dir = Path(run_dir)
+    try:
+        raw = tomllib.loads((run_dir / "config.toml").read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError):
+        raw = {}
+    ssm = raw.get("ssm") if isinstance(raw.get("ssm"), dict) else {}
+    base = {"model": ssm.get("kind"), "run": str(run_dir.resolve())}
+    if isinstance(ssm.get("fixed"), dict) and ssm["fixed"]:
+        base["fixed"] = dict(ssm["fixed"])
+    out: dict[str, dict] = {}
+
+    def _read(p):
+        try:
+            return json.loads(p.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+    best = _read(run_dir / "best.json")
+    if isinstance(best, dict) and best.get("params") is not None:
+        seeds = best.get("seeds") or []
+        out["best_tree.txt"] = {**base, "params": best["params"], "seed": seeds[0] if seeds else None,
+                                "role": "best fit"}
+    summary = _read(run_dir / "clones" / "summary.json")
+    for r in (summary or {}).get("rows", []) if isinstance(summary, dict) else []:
+        if r.get("status") == "ok" and r.get("file"):
+            out[r["file"]] = {**base, "params": r.get("params"), "seed": r.get("seed"),
+                              "role": f"clone {r.get('index')}"}
+    return {k: {kk: vv for kk, vv in v.items() if vv is not None} for k, v in out.items()}
 
 
 def export_evaluations(run_dir, path, overwrite: bool = False) -> int:

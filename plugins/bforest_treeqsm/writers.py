@@ -352,15 +352,14 @@ def treeqsm_struct(tree, provenance: Optional[dict] = None) -> dict:
         v = dist[k]
         td[k] = _single(1000.0 * v if k.startswith("Vol") else v)
     md = dict(tree.metadata)
-    prov = {"model": md.get("model"), "params": md.get("params"), "seed": md.get("seed"),
-            "source": md.get("source")}
+    prov = {k: md.get(k) for k in ("model", "params", "fixed", "seed", "role", "run", "source")}
     prov.update(provenance or {})
     bf = {"version": str(__version__), "created": _now_iso()}
     for k, v in prov.items():
         if v is None:
             continue
-        if k == "params" and isinstance(v, dict):
-            bf["params"] = {str(p): (float(x) if isinstance(x, (int, float, np.number)) else str(x))
+        if k in ("params", "fixed") and isinstance(v, dict):
+            bf[k] = {str(p): (float(x) if isinstance(x, (int, float, np.number)) else str(x))
                             for p, x in v.items()}
         elif isinstance(v, (int, float, np.number)) and not isinstance(v, bool):
             bf[k] = float(v)

@@ -190,3 +190,41 @@ def test_distributions_agree_with_treeqsm_treedata(coffee):
             ref = ref.copy()
             ref[18 if k.endswith("Azi") else 0] -= empty.sum()
         assert got.shape == ref.shape and got == pytest.approx(ref, rel=1e-4, abs=1e-6), k
+
+
+# ------------------------------------------------------------------------------------------
+# bforest info
+# ------------------------------------------------------------------------------------------
+
+def test_info_shows_attributes_and_distributions(capsys):
+    import csv
+    import io
+    import json
+
+    from bforest_core.cli.main import main
+    p = str(qsm_path("pine_ruotsinkyla_3.mat"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        t = __import__("bforest_core").read_qsm(p)
+        a = tree_attributes(t)
+        assert main(["info", p]) == 0
+        out = capsys.readouterr().out
+        assert f"trunk volume                {a['trunk_volume']:.4g} m^3" in out
+        assert f"crown ratio                 {a['crown_ratio']:.4g}\n" in out
+        assert "branches by branching angle (10 deg classes)" in out and "wood by height (1 m classes)" in out
+        assert main(["info", p, "--json"]) == 0
+        js = json.loads(capsys.readouterr().out)
+        assert js["attributes"]["crown_length"] == pytest.approx(a["crown_length"])
+        assert js["attribute_units"]["crown_volume_conv"] == "m^3" and js["distribution_units"]["VolCylDia"] == "m^3"
+        assert sum(js["distributions"]["NumBranchOrd"]) == t.n_branches - 1
+        assert main(["info", p, "--csv", "--table", "branches"]) == 0
+        rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+        assert len(rows) == t.n_branches == 300
+        assert list(rows[0])[:5] == ["reconstruction", "branch", "order", "parent", "diameter_m"]
+        assert float(rows[0]["volume_m^3"]) == pytest.approx(a["trunk_volume"])
+        assert main(["info", p, "--csv", "--table", "attributes"]) == 0
+        rows = {r["attribute"]: r for r in csv.DictReader(io.StringIO(capsys.readouterr().out))}
+        assert float(rows["branch_area"]["value"]) == pytest.approx(a["branch_area"]) and rows["branch_area"]["unit"] == "m^2"
+        assert main(["info", p, "--csv", "--table", "distributions"]) == 0
+        rows = [r for r in csv.DictReader(io.StringIO(capsys.readouterr().out)) if r["distribution"] == "NumBranchAng"]
+        assert len(rows) == 18 and rows[3]["class_lower"] == "30.0" and rows[3]["class_unit"] == "deg"

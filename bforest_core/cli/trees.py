@@ -35,6 +35,8 @@ def cmd_info(args):
             ang = "–" if r["mean_angle_deg"] != r["mean_angle_deg"] else f"{r['mean_angle_deg']:.1f}"
             print(f"  {r['order']:>5} {r['n_branches']:>9} {r['length_m']:>11.2f} {r['volume_m3']:>13.5f} {ang:>17} "
                   f"{r['mean_base_diameter_m']:>15.4f}")
+        from .tree_tables import info_text
+        print("\n".join(info_text(t)))
     return 0
 
 
@@ -44,8 +46,18 @@ def _info_table(args, trees) -> int:
     import csv
     import sys
     from ..metrics import classical_metrics, order_summary
+    from .tree_tables import csv_rows, info_json
+    if args.csv and args.table != "orders":
+        w = csv.writer(sys.stdout)
+        for k, t in enumerate(trees):
+            head, rows = csv_rows(t, args.table)
+            if k == 0:
+                w.writerow(["reconstruction"] + head)
+            w.writerows([k] + r for r in rows)
+        return 0
     out = [{"file": str(args.tree), "reconstruction": k, "cylinders": t.n, "branches": t.n_branches,
-            "metrics_m": classical_metrics(t), "orders": order_summary(t)} for k, t in enumerate(trees)]
+            "metrics_m": classical_metrics(t), "orders": order_summary(t), **info_json(t)}
+           for k, t in enumerate(trees)]
     if args.json:
         print(json_text(out if len(out) > 1 else out[0]))
         return 0
@@ -166,5 +178,9 @@ def add_commands(sub) -> None:
                    help="branch topology rule (default: the reader's)")
     out = s.add_mutually_exclusive_group()
     out.add_argument("--json", action="store_true", help="metrics and the per-order table as JSON")
-    out.add_argument("--csv", action="store_true", help="the per-order table as CSV (one row per order)")
+    out.add_argument("--csv", action="store_true", help="a table as CSV (--table; default the per-order table)")
+    s.add_argument("--table", default="orders", choices=["orders", "attributes", "distributions", "branches"],
+                   help="with --csv: per order (default), TreeQSM's tree attributes, its distributions, or one row "
+                        "per branch like TreeQSM's qsm.branch (order, parent, diameter, volume, area, length, angle, "
+                        "height, azimuth, zenith)")
     s.set_defaults(func=cmd_info)

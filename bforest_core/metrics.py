@@ -18,7 +18,7 @@ from typing import Literal, Mapping
 import numpy as np
 
 __all__ = ["classical_metrics", "relative_errors", "crown_spread", "dbh", "tree_summary", "order_summary",
-           "SUMMARY_UNITS", "summary_unit"]
+           "SUMMARY_UNITS", "summary_unit", "summary_label"]
 
 BREAST_HEIGHT = 1.3  # m
 _RHO_EPS = 1e-9      # m; points closer than this to the vertical through the base have no direction
@@ -158,8 +158,8 @@ def relative_errors(data_metrics: Mapping[str, float], model_metrics: Mapping[st
 # ------------------------------------------------------------------------------ tree summary
 #: unit of each summary statistic, by name prefix (longest prefix wins)
 SUMMARY_UNITS = {"height": "m", "dbh": "m", "base_diameter": "m", "crown_spread": "m",
-                 "crown_base_height": "m", "stem_length": "m", "n_branches": "", "length": "m",
-                 "volume": "m^3", "profile_n": "", "profile_len": "m", "n_all_branches": ""}
+                 "crown_base_height": "m", "stem_length": "m", "n_branches": "count", "length": "m",
+                 "volume": "m^3", "profile_n": "count", "profile_len": "m", "n_all_branches": "count"}
 #: share of the living first-order branch length that may lie below the crown base
 CROWN_BASE_SHARE = 0.05
 #: base diameter (m) below which a branch is left out of the branch counts, lengths and profile:
@@ -172,6 +172,29 @@ def summary_unit(name: str) -> str:
     """Unit of a summary statistic (``"length_o2"`` -> ``"m"``)."""
     best = max((k for k in SUMMARY_UNITS if name == k or name.startswith(k + "_")), key=len, default=None)
     return SUMMARY_UNITS[best] if best is not None else ""
+
+
+def summary_label(name: str, bands: int = 5) -> str:
+    """What a summary statistic is, in words (``"profile_n_b0"`` -> ``"order-1 branches based at
+    0-20 % of the height"``); the name itself for one this function does not know."""
+    fixed = {"height": "height", "dbh": "DBH (1.3 m)", "base_diameter": "base diameter",
+             "crown_spread": "crown spread", "crown_base_height": "crown base height", "stem_length": "stem length"}
+    if name in fixed:
+        return fixed[name]
+    head, _, tail = name.rpartition("_")
+    if not tail[1:].isdigit():
+        return name
+    k = int(tail[1:])
+    if tail[0] == "o":
+        return {"n_branches": f"branches of order {k} (base >= {100 * DETECTION_DIAMETER:g} cm)",
+                "n_all_branches": f"branches of order {k} (all)",
+                "length": f"length of order-{k} branches (base >= {100 * DETECTION_DIAMETER:g} cm)",
+                "volume": "stem wood volume" if k == 0 else f"wood volume of order {k}"}.get(head, name)
+    if tail[0] == "b" and head in ("profile_n", "profile_len"):
+        lo, hi = 100 * k / bands, 100 * (k + 1) / bands
+        what = "order-1 branches" if head == "profile_n" else "length of order-1 branches"
+        return f"{what} based at {lo:g}-{hi:g} % of the height"
+    return name
 
 
 def _living(tree) -> np.ndarray:

@@ -21,16 +21,37 @@ def test_fidelity_table_known_answers():
     assert rows["dbh"]["error"] == pytest.approx(0.5)
     assert rows["n_branches_o1"]["error"] is None  # a target of 0 has no relative error
     warns = fidelity_warnings(list(rows.values()))
-    assert len(warns) == 1 and "dbh" in warns[0] and "+50 %" in warns[0]
+    assert warns == ["clones miss the target's DBH (1.3 m) [dbh]: mean 0.3 m vs 0.2 m (+50.0 %, limit ±20 %)"]
     text = fidelity_text(list(rows.values()), [], warns)
-    assert "WARNING: clones miss the target's dbh" in text and "+50.0%" in text
+    assert "WARNING: clones miss the target's DBH (1.3 m) [dbh]" in text
+    # one convention: percent with its limit, and a mark on the row beyond it
+    assert "DBH (1.3 m)" in text and "+50.0 %   ±20 % !" in text
 
 
 def test_warning_limit_is_twenty_percent_of_height_dbh_and_crown():
     rows = fidelity_table({"height": 10.0, "crown_spread": 4.0, "length_o1": 100.0},
                           [{"height": 8.1, "crown_spread": 5.2, "length_o1": 10.0}])
     warns = fidelity_warnings(rows)
-    assert len(warns) == 1 and "crown_spread" in warns[0]  # height -19 % passes; length is no key statistic
+    assert len(warns) == 1 and "[crown_spread]" in warns[0]  # height -19 % passes; length has no limit
+
+
+def test_crown_base_and_branch_counts_have_limits_and_every_row_a_unit():
+    from bforest_core.metrics import SUMMARY_UNITS
+    target = {"crown_base_height": 2.0, "n_branches_o1": 50.0, "n_branches_o2": 100.0, "length_o1": 40.0,
+              "volume_o0": 0.04, "profile_n_b0": 4.0}
+    clone = {"crown_base_height": 2.5, "n_branches_o1": 20.0, "n_branches_o2": 75.0, "length_o1": 20.0,
+             "volume_o0": 0.05, "profile_n_b0": 1.0}
+    rows = {r["statistic"]: r for r in fidelity_table(target, [clone], SUMMARY_UNITS)}
+    # crown base +25 % within its 30 %; first-order branches -60 % beyond it; second order -25 % within
+    assert [rows[k]["warn"] for k in ("crown_base_height", "n_branches_o1", "n_branches_o2")] == [False, True, False]
+    assert rows["length_o1"]["limit"] is None and not rows["length_o1"]["warn"]
+    assert [rows[k]["unit"] for k in target] == ["m", "count", "count", "m", "m^3", "count"]
+    assert rows["profile_n_b0"]["label"] == "order-1 branches based at 0-20 % of the height"
+    warns = fidelity_warnings(list(rows.values()))
+    assert warns == ["clones miss the target's branches of order 1 (base >= 1 cm) [n_branches_o1]: mean 20 vs 50 "
+                     "(-60.0 %, limit ±30 %)"]
+    rows["crown_base_height"]["error"] = -0.35
+    assert len(fidelity_warnings(list(rows.values()))) == 2
 
 
 def test_bound_flags():
@@ -107,3 +128,21 @@ def test_fidelity_and_references_of_a_run(toy_fit, tmp_path):
     from bforest_core.report import write_report
     text = write_report(run, figures=False, html=False).read_text()
     assert "Fidelity: do the clones look like the target?" in text and "ref.txt" in text
+
+
+def test_what_a_user_reads_says_base_diameter_and_percent(toy_fit, tmp_path, capsys):
+    from bforest_core.cli.main import main
+    from bforest_core.report import write_report
+    run = tmp_path / "run"
+    shutil.copytree(toy_fit, run)
+    assert main(["clones", str(run), "-n", "2", "--no-report", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "girth" not in out.lower() and "base diameter (m)" in out and "height error (%)" in out
+    assert "limit" in out and " %" in out
+    text = write_report(run, figures=False, html=False).read_text()
+    assert "girth" not in text.lower() and "base diameter (m)" in text
+    assert "height error d_h (%)" in text and "| error | limit |" in text and "| ±30 % |" in text
+    tgt = str(run / "target.txt")
+    assert main(["distance", tgt, tgt, "--lines", "16"]) == 0
+    out = capsys.readouterr().out
+    assert "girth" not in out.lower() and "base diameter (m)" in out and "0.0 %" in out

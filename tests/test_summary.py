@@ -83,7 +83,7 @@ def test_summary_of_a_real_pine_against_an_independent_count():
     assert s["height"] == pytest.approx(9.936, abs=1e-3)
     assert sum(s[f"profile_n_b{k}"] for k in range(5)) == 72
     assert 1.0 < s["crown_base_height"] < 6.0
-    assert summary_unit("length_o2") == "m" and summary_unit("volume_o0") == "m^3" and summary_unit("n_branches_o1") == ""
+    assert summary_unit("length_o2") == "m" and summary_unit("volume_o0") == "m^3" and summary_unit("n_branches_o1") == "count"
 
 
 # ------------------------------------------------------------------------------ the components

@@ -38,10 +38,14 @@ def cmd_clones(args):
     print(f"{s['grown']} clones grown, {kept} kept: {s['ok']} of {s['count']} clones ok in {where}"
           + ("" if s["requested"] >= s["count"] else f" (asked for {s['requested']}; nothing is deleted "
                                                     "without --replace)"))
-    for key in ("distance", "height", "girth", "crown_spread", "d_h", "d_g", "d_c"):
+    for key, label, scale in (("distance", "distance D", 1), ("height", "height (m)", 1),
+                              ("girth", "base diameter (m)", 1), ("crown_spread", "crown spread (m)", 1),
+                              ("d_h", "height error (%)", 100), ("d_g", "base diam. error (%)", 100),
+                              ("d_c", "crown error (%)", 100)):
         if key in s:
-            v = s[key]
-            print(f"  {key:<13} mean {v['mean']:.4f}  sd {v['sd']:.4f}  [{v['min']:.4f}, {v['max']:.4f}]")
+            v = {k: scale * s[key][k] for k in ("mean", "sd", "min", "max")}
+            d = 1 if scale == 100 else 4
+            print(f"  {label:<21} mean {v['mean']:.{d}f}  sd {v['sd']:.{d}f}  [{v['min']:.{d}f}, {v['max']:.{d}f}]")
     fid = s.get("fidelity") or {}
     if fid.get("table"):
         print("\nfidelity: the clones against the target on every summary statistic")

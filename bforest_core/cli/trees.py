@@ -1,6 +1,8 @@
 """Commands on single trees: info, simulate, distance."""
 from __future__ import annotations
 
+import numpy as np
+
 from ..pipeline.store import json_text
 from .common import UsageError, parse_set, read, select_arg, split_sets
 
@@ -22,7 +24,7 @@ def cmd_info(args):
         print(f"  branches      {t.n_branches} (topology {t.topology})")
         print(f"  max order     {t.max_order}")
         print(f"  height        {m['height']:.2f} m")
-        print(f"  base diameter {m['base_diameter']:.3f} m  (the papers' 'girth')")
+        print(f"  base diameter {m['base_diameter']:.3f} m")
         if m.get("dbh") is not None and m["dbh"] == m["dbh"]:
             print(f"  DBH (1.3 m)   {m['dbh']:.3f} m")
         print(f"  crown spread  {m['crown_spread']:.2f} m")
@@ -84,7 +86,7 @@ def cmd_simulate(args):
     tree = ssm.simulate(params, args.seed)
     m = classical_metrics(tree)
     print(f"{args.ssm} seed {args.seed}: {tree.n} cylinders, {tree.n_branches} branches, "
-          f"height {m['height']:.2f} m, girth {m['girth']:.3f} m, crown spread {m['crown_spread']:.2f} m")
+          f"height {m['height']:.2f} m, base diameter {m['base_diameter']:.3f} m, crown spread {m['crown_spread']:.2f} m")
     if args.output:
         p = write_tree(tree, args.output)
         print(f"wrote {p}")
@@ -128,9 +130,11 @@ def cmd_distance(args):
         print(f"  {k:<10} {'skipped' if v is None else f'{v:.4f}'}  (rows A {Ua[k].shape[0]}, B {Ub[k].shape[0]})")
     ma, mb = classical_metrics(a), classical_metrics(b)
     err = relative_errors(mb, ma)
-    print(f"{'metric':<14}{'A':>10}{'B':>10}{'rel. error':>12}")
-    for key, ek in (("height", "d_h"), ("girth", "d_g"), ("crown_spread", "d_c")):
-        print(f"{key:<14}{ma[key]:>10.3f}{mb[key]:>10.3f}{err[ek]:>12.3f}")
+    print(f"{'metric':<18}{'A':>10}{'B':>10}{'rel. error':>12}")
+    for key, label, ek in (("height", "height (m)", "d_h"), ("girth", "base diameter (m)", "d_g"),
+                           ("crown_spread", "crown spread (m)", "d_c")):
+        e = "–" if not np.isfinite(err[ek]) else f"{100 * err[ek]:.1f} %"
+        print(f"{label:<18}{ma[key]:>10.3f}{mb[key]:>10.3f}{e:>12}")
     if args.test:
         if not hasattr(dist, "permutation_test"):
             raise UsageError(f"distance '{args.distance}' offers no permutation test")

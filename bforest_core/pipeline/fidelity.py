@@ -4,7 +4,8 @@ The structural distance compares distributions of branch and segment rows; it do
 tall a tree is, how many branches it has or where its crown starts. These pure functions put the
 clones beside the target on every tree-level summary statistic
 (:func:`bforest_core.metrics.tree_summary`), flag fitted parameters that ended at a bound of
-their search box, and warn loudly when the clones miss the target's height, DBH or crown spread.
+their search box, and warn loudly on every statistic that has a limit (:data:`LIMITS`) when the
+clones miss it. Errors are shown in percent; the JSON keeps the fraction under ``error``.
 """
 from __future__ import annotations
 
@@ -13,10 +14,34 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from ..metrics import summary_label, summary_unit
+
 #: the statistics a forester checks first, and the relative error above which clones are not
 #: taken as clones of the tree
 KEY_STATISTICS = ("height", "dbh", "crown_spread")
 WARN_ABOVE = 0.20
+#: relative-error limit of every statistic that has one: 20 % for height, DBH and crown spread
+#: (the papers' traditional metrics), 30 % for the crown base height and for the branch count of
+#: every order (the limits the SOT real-tree recipe must meet for crown base and first-order
+#: branches)
+LIMITS = {"height": WARN_ABOVE, "dbh": WARN_ABOVE, "crown_spread": WARN_ABOVE, "crown_base_height": 0.30}
+BRANCH_COUNT_LIMIT = 0.30
+
+
+def limit_of(name: str):
+    """The relative-error limit of a statistic (fraction), or None when it has none."""
+    if name in LIMITS:
+        return LIMITS[name]
+    if name.startswith("n_branches_o"):
+        return BRANCH_COUNT_LIMIT
+    return None
+
+
+def percent(fraction, digits: int = 1) -> str:
+    """A relative error as the one convention every table uses: ``+12.3 %`` (``–`` for None)."""
+    if fraction is None or not math.isfinite(fraction):
+        return "–"
+    return f"{100 * fraction:+.{digits}f} %"
 #: a fitted parameter within this fraction of its search box from a bound is flagged
 BOUND_FRACTION = 0.05
 
@@ -32,13 +57,15 @@ def fidelity_table(target: Mapping[str, float], clones: Sequence[Mapping[str, fl
     clones : sequence of mappings
         Summary statistics of each clone (statistics missing from a clone are skipped).
     units : mapping, optional
-        Unit of each statistic (shown beside its name).
+        Unit of each statistic (shown beside its name); a statistic not in it gets
+        :func:`~bforest_core.metrics.summary_unit`.
 
     Returns
     -------
     list of dict
-        ``statistic``, ``unit``, ``target``, ``mean``, ``sd``, ``n``, ``error`` (relative error of
-        the mean, ``(mean - target) / target``; ``None`` when the target is 0).
+        ``statistic``, ``label`` (in words), ``unit``, ``target``, ``mean``, ``sd``, ``n``,
+        ``error`` (relative error of the mean, ``(mean - target) / target``, a fraction; ``None``
+        when the target is 0), ``limit`` (fraction, or None) and ``warn`` (error beyond the limit).
     """
     units = dict(units or {})
     rows = []
@@ -48,9 +75,13 @@ def fidelity_table(target: Mapping[str, float], clones: Sequence[Mapping[str, fl
         if tv is None or not np.isfinite(tv) or x.size == 0:
             continue
         mean = float(x.mean())
-        rows.append({"statistic": name, "unit": units.get(name, ""), "target": float(tv), "mean": mean,
-                     "sd": float(x.std(ddof=1)) if x.size > 1 else 0.0, "n": int(x.size),
-                     "error": (mean - tv) / tv if tv != 0 else None})
+        err = (mean - tv) / tv if tv != 0 else None
+        lim = limit_of(name)
+        rows.append({"statistic": name, "label": summary_label(name),
+                     "unit": units[name] if name in units else summary_unit(name), "target": float(tv),
+                     "mean": mean, "sd": float(x.std(ddof=1)) if x.size > 1 else 0.0, "n": int(x.size),
+                     "error": err, "limit": lim,
+                     "warn": bool(err is not None and lim is not None and abs(err) > lim)})
     return rows
 
 
@@ -71,24 +102,30 @@ def bound_flags(params: Mapping[str, float], bounds: Mapping[str, tuple[float, f
     return out
 
 
-def fidelity_warnings(rows: Sequence[Mapping], keys: Sequence[str] = KEY_STATISTICS,
-                      limit: float = WARN_ABOVE) -> list[str]:
-    """A warning for each key statistic whose clone mean is off the target by more than ``limit``."""
+def fidelity_warnings(rows: Sequence[Mapping], limits: Mapping[str, float] | None = None) -> list[str]:
+    """A warning for every statistic whose clone mean is off the target by more than its limit
+    (``limits``, else :func:`limit_of`)."""
     out = []
     for r in rows:
-        if r["statistic"] in keys and r["error"] is not None and abs(r["error"]) > limit:
-            out.append(f"clones miss the target's {r['statistic']}: mean {r['mean']:.3g} {r['unit']} vs "
-                       f"{r['target']:.3g} {r['unit']} ({100 * r['error']:+.0f} %, limit ±{100 * limit:.0f} %)")
+        lim = (limits or {}).get(r["statistic"], limit_of(r["statistic"]))
+        if lim is not None and r["error"] is not None and abs(r["error"]) > lim:
+            u = f" {r['unit']}" if r.get("unit") and r["unit"] != "count" else ""
+            out.append(f"clones miss the target's {r.get('label') or summary_label(r['statistic'])} "
+                       f"[{r['statistic']}]: mean {r['mean']:.3g}{u} vs {r['target']:.3g}{u} "
+                       f"({percent(r['error'])}, limit ±{100 * lim:g} %)")
     return out
 
 
 def fidelity_text(rows: Sequence[Mapping], flags: Sequence[str] = (), warnings: Sequence[str] = ()) -> str:
-    """The table as fixed-width text (for the terminal), then the flags and warnings."""
-    lines = [f"{'statistic':<22}{'unit':>6}{'target':>11}{'clones mean':>13}{'sd':>10}{'error':>9}"]
+    """The table as fixed-width text (for the terminal), then the flags and warnings; ``!`` marks
+    a row beyond its limit."""
+    w = max([22] + [len(r.get("label") or r["statistic"]) + 1 for r in rows])
+    lines = [f"{'statistic':<{w}}{'unit':>6}{'target':>11}{'clones mean':>13}{'sd':>10}{'error':>10}{'limit':>8}"]
     for r in rows:
-        err = "–" if r["error"] is None else f"{100 * r['error']:+.1f}%"
-        lines.append(f"{r['statistic']:<22}{r['unit']:>6}{_num(r['target']):>11}{_num(r['mean']):>13}"
-                     f"{_num(r['sd']):>10}{err:>9}")
+        lim = r.get("limit", limit_of(r["statistic"]))
+        mark = " !" if r.get("warn") else ""
+        lines.append(f"{r.get('label') or r['statistic']:<{w}}{r['unit']:>6}{_num(r['target']):>11}{_num(r['mean']):>13}"
+                     f"{_num(r['sd']):>10}{percent(r['error']):>10}{'' if lim is None else f'±{100 * lim:g} %':>8}{mark}")
     lines += [f"note: {f} of the search box" for f in flags]
     lines += [f"WARNING: {w}" for w in warnings]
     return "\n".join(lines)

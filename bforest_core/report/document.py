@@ -18,7 +18,7 @@ if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
 
 
 
-METRIC_ROWS = (("height", "height (m)", "d_h"), ("girth", "girth (m)", "d_g"),
+METRIC_ROWS = (("height", "height (m)", "d_h"), ("girth", "base diameter (m)", "d_g"),
                 ("crown_spread", "crown spread (m)", "d_c"), ("dbh", "DBH at 1.3 m (m)", None))
 
 

@@ -154,7 +154,9 @@ def section_fit(doc: Document, v: RunView, figs):
         rows = []
         for key, label, ek in METRIC_ROWS:
             if key in tm or key in mm:
-                rows.append([label, tm.get(key), mm.get(key), rel.get(ek) if ek else None])
+                e = rel.get(ek) if ek else None
+                rows.append([label, tm.get(key), mm.get(key),
+                             "–" if e is None or not np.isfinite(e) else f"{100 * e:.1f} %"])
         doc.p("Classical metrics (best-fit tree grown with the first model seed):")
         doc.table(["metric", "target", "best fit", "relative error"], rows)
     for rel_path, cap in figs.made.get("trees", []):
@@ -281,9 +283,10 @@ def section_clones(doc: Document, v: RunView, figs):
           + (f" ({', '.join(f'{n} {s}' for s, n in failed.items())})" if failed else "") + ".")
     tm = v.target_metrics or {}
     table = []
-    for key, label in (("distance", "distance D"), ("height", "height (m)"), ("girth", "girth (m)"),
-                       ("crown_spread", "crown spread (m)"), ("d_h", "d_h"), ("d_g", "d_g"), ("d_c", "d_c")):
-        x = np.array([r.get(key, np.nan) for r in ok], float)
+    for key, label in (("distance", "distance D"), ("height", "height (m)"), ("girth", "base diameter (m)"),
+                       ("crown_spread", "crown spread (m)"), ("d_h", "height error d_h (%)"),
+                       ("d_g", "base diameter error d_g (%)"), ("d_c", "crown spread error d_c (%)")):
+        x = np.array([r.get(key, np.nan) for r in ok], float) * (100.0 if key.startswith("d_") else 1.0)
         x = x[np.isfinite(x)]
         if not x.size:
             continue
@@ -306,9 +309,16 @@ def section_fidelity(doc: Document, v: RunView):
     doc.h(3, "Fidelity: do the clones look like the target?")
     for w in fid.get("warnings", []):
         doc.p(f"**WARNING: {w}.**")
-    doc.table(["statistic", "unit", "target", "clones mean", "sd", "error"],
-              [[r["statistic"], r["unit"], r["target"], r["mean"], r["sd"],
-                "–" if r["error"] is None else f"{100 * r['error']:+.1f} %"] for r in fid["table"]])
+    from ..pipeline.fidelity import limit_of, percent
+    from ..metrics import summary_label, summary_unit
+    rows = []
+    for r in fid["table"]:
+        lim = r.get("limit", limit_of(r["statistic"]))
+        warn = r.get("warn", lim is not None and r["error"] is not None and abs(r["error"]) > lim)
+        rows.append([r.get("label") or summary_label(r["statistic"]), r.get("unit") or summary_unit(r["statistic"]),
+                     r["target"], r["mean"], r["sd"], percent(r["error"]) + (" **!**" if warn else ""),
+                     "–" if lim is None else f"±{100 * lim:g} %"])
+    doc.table(["statistic", "unit", "target", "clones mean", "sd", "error", "limit"], rows)
     if fid.get("flags"):
         doc.p("Fitted parameters at a bound of their search box (the optimum may lie outside it):")
         doc.items(fid["flags"])

@@ -185,7 +185,7 @@ def _tree_caption(tree) -> str:
         from ..metrics import classical_metrics
         m = classical_metrics(tree)
         return (f"{tree.n} cylinders, {tree.n_branches} branches, height {m['height']:.2f} m, "
-                f"girth {m['girth']:.3f} m, crown spread {m['crown_spread']:.2f} m")
+                f"base diameter {m['base_diameter']:.3f} m, crown spread {m['crown_spread']:.2f} m")
     except Exception:
         return f"{tree.n} cylinders, {tree.n_branches} branches, max order {tree.max_order}"
 
@@ -326,14 +326,14 @@ def clones_figure(target, clones: Sequence[tuple[str, object]], path, title: str
 
 _METRIC_PANELS = (("height", "height (m)"), ("girth", "base diameter (m)"), ("crown_spread", "crown spread (m)"),
                   ("distance", "structural distance D"),
-                  ("d_h", "$d_h$ (height, rel. error)"), ("d_g", "$d_g$ (base diameter, rel. error)"),
-                  ("d_c", "$d_c$ (crown spread, rel. error)"), ("n_cylinders", "cylinders"))
+                  ("d_h", "$d_h$: height error (%)"), ("d_g", "$d_g$: base diameter error (%)"),
+                  ("d_c", "$d_c$: crown spread error (%)"), ("n_cylinders", "cylinders"))
 
 
 def clone_metrics_figure(values: Mapping[str, np.ndarray], path, target: Mapping[str, float] | None = None,
                          best: Mapping[str, float] | None = None, title: str | None = None,
                          dpi: int = 130) -> Path:
-    """Distributions over the clones of height, girth, crown spread, distance and the relative
+    """Distributions over the clones of height, base diameter, crown spread, distance and the relative
     errors d_h, d_g, d_c (GigaScience Fig. 5D); the target's value is a black line, the best-fit
     tree's a red dashed line."""
     panels = [(k, lab) for k, lab in _METRIC_PANELS if k in values and np.isfinite(values[k]).any()]
@@ -343,7 +343,8 @@ def clone_metrics_figure(values: Mapping[str, np.ndarray], path, target: Mapping
     axes = fig.subplots(nrow, ncol, squeeze=False).ravel()
     target, best = dict(target or {}), dict(best or {})
     for ax, (key, lab) in zip(axes, panels):
-        x = np.asarray(values[key], float)
+        pct = 100.0 if key in ("d_h", "d_g", "d_c") else 1.0  # errors in percent, as every table
+        x = np.asarray(values[key], float) * pct
         x = x[np.isfinite(x)]
         bins = min(30, max(5, int(np.sqrt(x.size)) + 2))
         ax.hist(x, bins=bins, color="#9bbcd9", edgecolor="#4a6f94", lw=0.6)
@@ -358,6 +359,7 @@ def clone_metrics_figure(values: Mapping[str, np.ndarray], path, target: Mapping
             ax.axvline(tv, color=TARGET_LINE, lw=1.8, label="target")
         bv = best.get(key)
         if bv is not None and np.isfinite(bv):
+            bv = bv * pct
             ax.axvline(bv, color=MODEL_COLOR, lw=1.5, ls="--", label="best fit")
         ax.set_title(f"median {np.median(x):.3g}, n = {x.size}", fontsize="small")
     for ax in axes[len(panels):]:
@@ -431,6 +433,6 @@ def fig_clones(v: "RunView"):
         bm["n_cylinders"] = v.best_tree.n
     out.append((clone_metrics_figure(values, v.path / "figures" / "clone_metrics.png", target=tm, best=bm,
                                      title=f"Classical metrics of {len(ok)} clones"),
-                "Distributions over the clones: height, girth, crown spread, structural distance and the "
+                "Distributions over the clones: height, base diameter, crown spread, structural distance and the "
                 "relative errors d_h, d_g, d_c; black: target, red dashed: best-fit tree"))
     return out

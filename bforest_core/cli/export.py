@@ -1,7 +1,7 @@
 """``bforest export``: the best fit and the clones in other formats, the evaluation log as CSV."""
 from __future__ import annotations
 
-from .common import UsageError
+from .common import UsageError, parse_set
 
 
 def cmd_export(args):
@@ -17,7 +17,13 @@ def cmd_export(args):
         bad = [w for w in what if w not in ("best", "clones")]
         if bad:
             raise UsageError(f"export: --what takes best and/or clones (got {', '.join(bad)})")
-        files = export_trees(args.run_dir, formats, args.output, what, overwrite=args.overwrite)
+        scan = parse_set(args.scan)
+        if "scanner" in scan and isinstance(scan["scanner"], str):
+            try:
+                scan["scanner"] = [float(v) for v in scan["scanner"].split(",")]
+            except ValueError:
+                raise UsageError(f"--scan scanner expects x,y,z in m, got {scan['scanner']!r}") from None
+        files = export_trees(args.run_dir, formats, args.output, what, overwrite=args.overwrite, scan=scan)
         where = files[0].parent if files else args.output
         print(f"wrote {len(files)} files to {where}")
     return 0
@@ -34,5 +40,8 @@ def add_commands(sub) -> None:
     s.add_argument("--what", default="best,clones", help="trees to export: best, clones or both (default)")
     s.add_argument("-o", "--output", default=None, help="folder of the tree files (default: RUN/export)")
     s.add_argument("--evaluations", metavar="FILE.csv", help="also flatten evaluations.sqlite into this CSV")
+    s.add_argument("--scan", action="append", metavar="NAME=VALUE",
+                   help="synthetic-scan setting for las/laz/xyz, repeatable: density=POINTS_PER_M2 (2000), "
+                        "mode=uniform|scanner, scanner=X,Y,Z (m), reference_range=M (10), noise=SD_M (0), seed=N (0)")
     s.add_argument("--overwrite", action="store_true", help="replace files that exist")
     s.set_defaults(func=cmd_export)

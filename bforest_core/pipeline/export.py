@@ -20,6 +20,10 @@ class ExportError(BayesForestError):
     """An export cannot be written as asked (unknown format, existing file, nothing to export)."""
 
 
+#: writers that take the synthetic-scan settings
+SCAN_WRITERS = ("las", "xyz")
+
+
 def _writer(fmt: str):
     """(writer name, suffix) of a format given as a writer name or a suffix."""
     from ..registry import discover
@@ -50,8 +54,11 @@ def run_trees(run_dir: Path, what: tuple[str, ...] = ("best", "clones")) -> list
 
 
 def export_trees(run_dir, formats: list[str], out_dir=None, what: tuple[str, ...] = ("best", "clones"),
-                 overwrite: bool = False) -> list[Path]:
+                 overwrite: bool = False, scan: dict | None = None) -> list[Path]:
     """Write the run's trees in each of ``formats`` into ``out_dir`` (default ``RUN/export``).
+
+    ``scan`` holds settings of the synthetic-scan writers (``las``, ``xyz``: density, mode,
+    scanner, reference_range, noise, seed); the other writers do not take them.
 
     Raises
     ------
@@ -81,7 +88,8 @@ def export_trees(run_dir, formats: list[str], out_dir=None, what: tuple[str, ...
         tree = read_qsm(src)
         tree = tree[0] if isinstance(tree, list) else tree
         tree.metadata.update(prov.get(src.name, {}))
-        out.append(write_tree(tree, dst, format=name))
+        opts = dict(scan or {}) if name in SCAN_WRITERS else {}
+        out.append(write_tree(tree, dst, format=name, **opts))
     return out
 
 

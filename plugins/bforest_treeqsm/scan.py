@@ -20,6 +20,7 @@ Extra dimensions of a LAS file: ``cylinder_id`` (row of the tree's cylinder tabl
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -29,7 +30,10 @@ from pydantic import Field
 from bforest_core.errors import QSMFormatError
 from bforest_core.interfaces import ComponentSettings, QSMWriter
 
-from .writers import _options, format_rows
+from .writers import _options, format_rows, provenance, provenance_line
+
+#: ASPRS class of every point: 5 = high vegetation (the points are a tree's wood)
+LAS_CLASS = 5
 
 
 class ScanSettings(ComponentSettings):
@@ -100,7 +104,12 @@ def scan_points(tree, density: float = 2000.0, mode: str = "uniform", scanner=No
 
 
 class LASWriter(QSMWriter):
-    """Synthetic laser scan as LAS 1.4 (point format 6, mm precision) or LAZ, through laspy."""
+    """Synthetic laser scan as LAS 1.4 (point format 6, mm precision) or LAZ, through laspy.
+
+    Every point is a single return (return number 1 of 1: LAS 1.4 forbids 0) of class 5, high
+    vegetation; the header's generating software names Bayes Forest and a VLR (user id
+    ``BayesForest``, record 1) holds the provenance as JSON: model, parameters, seed, version and
+    the scan settings."""
 
     name = "las"
     summary = "synthetic laser scan of the cylinder surfaces (LAS/LAZ via laspy; cylinder, branch, order kept)"
@@ -121,8 +130,17 @@ class LASWriter(QSMWriter):
         xyz = pts["xyz"]
         header.offsets = np.floor(xyz.min(axis=0)) if xyz.size else np.zeros(3)
         header.scales = np.array([0.001, 0.001, 0.001])
+        header.generating_software = provenance(tree)["software"][:32]
+        header.system_identifier = "synthetic scan (cylinder QSM)"
+        info = json.dumps(provenance(tree, scan=o.model_dump()), separators=(",", ":"), allow_nan=False)
+        header.vlrs.append(laspy.VLR(user_id="BayesForest", record_id=1, description="provenance (JSON)",
+                                     record_data=info.encode("utf-8")))
         las = laspy.LasData(header)
         las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+        n = xyz.shape[0]
+        las.return_number = np.ones(n, np.uint8)
+        las.number_of_returns = np.ones(n, np.uint8)
+        las.classification = np.full(n, LAS_CLASS, np.uint8)
         for k in ("cylinder_id", "branch_id", "branch_order"):
             las[k] = pts[k]
         las.write(str(path))
@@ -144,5 +162,6 @@ class XYZWriter(QSMWriter):
         table = np.column_stack([pts["xyz"], pts["cylinder_id"], pts["branch_order"], pts["branch_id"]])
         with open(path, "w", newline="\n") as fh:
             fh.write("# x y z cylinder_id branch_order branch_id (m; synthetic scan, Bayes Forest)\n")
+            fh.write(f"# {provenance_line(tree, scan=o.model_dump())}\n")
             fh.write(format_rows(table.astype(float), ["%.4f"] * 3 + ["%d"] * 3, sep=" "))
         return path

@@ -73,6 +73,25 @@ def jsonable(obj, depth: int = 0):
     return str(obj)
 
 
+def provenance(tree, **extra) -> dict:
+    """Where a tree came from, for the file that holds it: the Bayes Forest version and, when the
+    tree's metadata has them, model, parameters, fixed parameters, seed, role, run folder and
+    source file (``extra`` adds e.g. scan settings). JSON-ready."""
+    from bforest_core import __version__
+    md = tree.metadata
+    out = {"software": f"Bayes Forest {__version__}"}
+    for k in ("model", "params", "fixed", "seed", "role", "run", "source"):
+        if md.get(k) is not None:
+            out[k] = jsonable(md[k])
+    out.update(jsonable(extra))
+    return out
+
+
+def provenance_line(tree, **extra) -> str:
+    """:func:`provenance` as one line of compact JSON (for PLY, OBJ and XYZ comments)."""
+    return "provenance " + json.dumps(provenance(tree, **extra), separators=(",", ":"), allow_nan=False)
+
+
 # ------------------------------------------------------------------------------------------
 # TreeQSM text
 # ------------------------------------------------------------------------------------------
@@ -527,6 +546,7 @@ class PLYWriter(QSMWriter):
         header = ["ply", f"format {'ascii' if o.ascii else 'binary_little_endian'} 1.0",
                   f"comment Bayes Forest cylinder mesh: {tree.n} cylinders, {o.sides} sides, "
                   f"caps {'on' if o.caps else 'off'}, colour by {o.color_by}",
+                  "comment " + provenance_line(tree),
                   f"element vertex {v.shape[0]}",
                   f"property {ftype} x", f"property {ftype} y", f"property {ftype} z",
                   "property uchar red", "property uchar green", "property uchar blue",
@@ -570,6 +590,7 @@ class OBJWriter(QSMWriter):
         f, order = f[srt], order[srt]
         with open(path, "w", encoding="ascii", newline="\n") as fh:
             fh.write(f"# Bayes Forest cylinder mesh: {tree.n} cylinders, {o.sides} sides\n")
+            fh.write(f"# {provenance_line(tree)}\n")
             fh.write(format_rows(v, ["v %.9g", "%.9g", "%.9g"], sep=" "))
             bounds = np.flatnonzero(np.diff(order)) + 1
             for chunk, w in zip(np.split(f + 1, bounds), order[np.concatenate([[0], bounds])] if f.size else []):

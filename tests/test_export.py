@@ -71,3 +71,26 @@ def test_exported_mat_and_csv_record_model_parameters_and_seed(run, tmp_path):
     assert float(prov.fixed.noise) == 2.0 and prov.role == "clone 1"
     side = json.loads((tmp_path / "p" / "clone_001.json").read_text())
     assert side["model"] == "toy" and side["seed"] == row["seed"] and side["params"] == row["params"]
+
+
+def test_posterior_clones_are_exported_with_their_own_names_and_provenance(run, tmp_path):
+    import json
+
+    import scipy.io as sio
+    r = tmp_path / "run"
+    shutil.copytree(run, r)
+    # the posterior clones of `bforest clones --posterior` (here: the clone set under that name)
+    shutil.copytree(r / "clones", r / "clones_posterior")
+    s = json.loads((r / "clones_posterior" / "summary.json").read_text())
+    s["rows"][1]["seed"] = 4242
+    (r / "clones_posterior" / "summary.json").write_text(json.dumps(s))
+    files = export_trees(r, ["mat"], tmp_path / "o", what=("clones", "posterior"))
+    assert sorted(p.name for p in files) == ["clone_000.mat", "clone_001.mat", "posterior_clone_000.mat",
+                                             "posterior_clone_001.mat"]
+    prov = sio.loadmat(str(tmp_path / "o" / "posterior_clone_001.mat"), squeeze_me=True,
+                       struct_as_record=False)["qsm"].rundata.bforest
+    assert prov.role == "posterior clone 1" and int(prov.seed) == 4242
+    exe = shutil.which("bforest") or str(Path(sys.executable).with_name("bforest"))
+    res = subprocess.run([exe, "export", str(r), "--what", "posteriors", "--format", "ply"], capture_output=True,
+                         text=True)
+    assert res.returncode == 2 and "best, clones and/or posterior" in res.stderr

@@ -14,9 +14,9 @@ def cmd_export(args):
     if args.format:
         formats = [f.strip() for f in ",".join(args.format).split(",") if f.strip()]
         what = tuple(w.strip() for w in args.what.split(",") if w.strip())
-        bad = [w for w in what if w not in ("best", "clones")]
+        bad = [w for w in what if w not in ("best", "clones", "posterior")]
         if bad:
-            raise UsageError(f"export: --what takes best and/or clones (got {', '.join(bad)})")
+            raise UsageError(f"export: --what takes best, clones and/or posterior (got {', '.join(bad)})")
         scan = parse_set(args.scan)
         if "scanner" in scan and isinstance(scan["scanner"], str):
             try:
@@ -37,7 +37,9 @@ def add_commands(sub) -> None:
                    help="writer name or suffix, repeatable or comma separated: txt (TreeQSM text), mat (TreeQSM "
                         ".mat), csv (native), simpleforest-csv, archi-csv, ply, obj, las, laz, xyz (synthetic "
                         "laser scans), or any installed writer (bforest plugins)")
-    s.add_argument("--what", default="best,clones", help="trees to export: best, clones or both (default)")
+    s.add_argument("--what", default="best,clones",
+                   help="trees to export, comma separated: best, clones, posterior (the posterior clones of "
+                        "bforest clones --posterior, written as posterior_clone_*) (default best,clones)")
     s.add_argument("-o", "--output", default=None, help="folder of the tree files (default: RUN/export)")
     s.add_argument("--evaluations", metavar="FILE.csv", help="also flatten evaluations.sqlite into this CSV")
     s.add_argument("--scan", action="append", metavar="NAME=VALUE",

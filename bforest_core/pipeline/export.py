@@ -44,13 +44,21 @@ def _writer(fmt: str):
 
 
 def run_trees(run_dir: Path, what: tuple[str, ...] = ("best", "clones")) -> list[Path]:
-    """The tree files of a run: ``best_tree.txt`` and ``clones/clone_*.txt``."""
+    """The tree files of a run: ``best_tree.txt``, ``clones/clone_*.txt`` and (``posterior``)
+    the posterior clones ``clones_posterior/clone_*.txt``."""
     files = []
     if "best" in what and (run_dir / "best_tree.txt").exists():
         files.append(run_dir / "best_tree.txt")
     if "clones" in what:
         files += sorted((run_dir / "clones").glob("clone_*.txt"))
+    if "posterior" in what:
+        files += sorted((run_dir / "clones_posterior").glob("clone_*.txt"))
     return files
+
+
+def _stem(src: Path) -> str:
+    """Export name of a run's tree file: posterior clones get a ``posterior_`` prefix."""
+    return f"posterior_{src.stem}" if src.parent.name == "clones_posterior" else src.stem
 
 
 def export_trees(run_dir, formats: list[str], out_dir=None, what: tuple[str, ...] = ("best", "clones"),
@@ -76,7 +84,7 @@ def export_trees(run_dir, formats: list[str], out_dir=None, what: tuple[str, ...
         raise ExportError(f"{run_dir}: no trees to export ({' or '.join(what)}: run the fit / bforest clones first)")
     shared = {sfx for _, sfx in writers if [w[1] for w in writers].count(sfx) > 1}
     # two formats with one suffix (csv and simpleforest-csv) get the writer's name in the file name
-    plan = [(src, name, out_dir / (f"{src.stem}_{name}{suffix}" if suffix in shared else f"{src.stem}{suffix}"))
+    plan = [(src, name, out_dir / (f"{_stem(src)}_{name}{suffix}" if suffix in shared else f"{_stem(src)}{suffix}"))
             for src in files for name, suffix in writers]
     existing = [dst for _, _, dst in plan if dst.exists()]
     if existing and not overwrite:
@@ -87,17 +95,19 @@ def export_trees(run_dir, formats: list[str], out_dir=None, what: tuple[str, ...
     for src, name, dst in plan:
         tree = read_qsm(src)
         tree = tree[0] if isinstance(tree, list) else tree
-        tree.metadata.update(prov.get(src.name, {}))
+        tree.metadata.update(prov.get(src.relative_to(run_dir).as_posix(), {}))
         opts = dict(scan or {}) if name in SCAN_WRITERS else {}
         out.append(write_tree(tree, dst, format=name, **opts))
     return out
 
 
 def run_provenance(run_dir) -> dict[str, dict]:
-    """Where each tree file of a run came from: ``{file name: {model, params, fixed, seed, run}}``
-    for ``best_tree.txt`` (the answer's parameters and first model seed, ``best.json``) and every
-    clone (its parameters and seed, ``clones/summary.json``); writers record it (``.mat``
-    ``rundata.bforest``, the CSV sidecar). Files the run does not describe are left out."""
+    """Where each tree file of a run came from: ``{path in the run: {model, params, fixed, seed,
+    role, run}}`` for ``best_tree.txt`` (the answer's parameters and first model seed,
+    ``best.json``) and every clone and posterior clone (its parameters and seed,
+    ``clones/summary.json``, ``clones_posterior/summary.json``); writers record it (``.mat``
+    ``rundata.bforest``, the CSV sidecar, comments, the LAS VLR). Files the run does not describe
+    are left out."""
     import json
     import tomllib
     run_dir = Path(run_dir)
@@ -121,11 +131,12 @@ def run_provenance(run_dir) -> dict[str, dict]:
         seeds = best.get("seeds") or []
         out["best_tree.txt"] = {**base, "params": best["params"], "seed": seeds[0] if seeds else None,
                                 "role": "best fit"}
-    summary = _read(run_dir / "clones" / "summary.json")
-    for r in (summary or {}).get("rows", []) if isinstance(summary, dict) else []:
-        if r.get("status") == "ok" and r.get("file"):
-            out[r["file"]] = {**base, "params": r.get("params"), "seed": r.get("seed"),
-                              "role": f"clone {r.get('index')}"}
+    for folder, role in (("clones", "clone"), ("clones_posterior", "posterior clone")):
+        summary = _read(run_dir / folder / "summary.json")
+        for r in (summary or {}).get("rows", []) if isinstance(summary, dict) else []:
+            if r.get("status") == "ok" and r.get("file"):
+                out[f"{folder}/{r['file']}"] = {**base, "params": r.get("params"), "seed": r.get("seed"),
+                                                "role": f"{role} {r.get('index')}"}
     return {k: {kk: vv for kk, vv in v.items() if vv is not None} for k, v in out.items()}
 
 

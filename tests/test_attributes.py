@@ -228,3 +228,16 @@ def test_info_shows_attributes_and_distributions(capsys):
         assert main(["info", p, "--csv", "--table", "distributions"]) == 0
         rows = [r for r in csv.DictReader(io.StringIO(capsys.readouterr().out)) if r["distribution"] == "NumBranchAng"]
         assert len(rows) == 18 and rows[3]["class_lower"] == "30.0" and rows[3]["class_unit"] == "deg"
+
+
+def test_clone_band_and_distributions_figure(tmp_path):
+    from bforest_core.report.attributes import band, distributions_figure
+    med, lo, hi = band([np.array([1.0, 2.0]), np.array([3.0]), np.array([5.0, 4.0, 1.0])])
+    # a clone without a class counts 0 there; numpy's linear percentiles of (1, 3, 5), (2, 0, 4), (0, 0, 1)
+    assert med.tolist() == [3.0, 2.0, 0.0]
+    assert lo == pytest.approx([1.2, 0.2, 0.0]) and hi == pytest.approx([4.8, 3.8, 0.9])
+    t = hand_tree()
+    p = distributions_figure(t, [t, _cross_tree()], tmp_path / "d.png", dpi=60)
+    from PIL import Image
+    im = np.asarray(Image.open(p).convert("L"))
+    assert im.shape[1] > 600 and im.std() > 5   # drawn, not blank

@@ -27,6 +27,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from .attributes import fig_distributions
 from .convergence import fig_convergence
 from .datasets import fig_sets
 from .document import Document, slug
@@ -68,7 +69,8 @@ class _Figures:
 #: about half as long: the two groups cost about the same
 _SIDE = [("sets", "data sets", fig_sets)]
 _MAIN = [("trees", "trees", fig_trees), ("convergence", "convergence", fig_convergence),
-         ("mcmc", "MCMC", fig_mcmc), ("clones", "clones", fig_clones)]
+         ("mcmc", "MCMC", fig_mcmc), ("clones", "clones", fig_clones),
+         ("clones", "distributions", fig_distributions)]
 
 
 def _side_figures(run_dir, strict: bool):

@@ -19,13 +19,14 @@ def test_fidelity_table_known_answers():
     assert rows["height"]["mean"] == 10.0 and rows["height"]["error"] == 0.0
     assert rows["height"]["sd"] == pytest.approx(np.std([9, 11], ddof=1)) and rows["height"]["unit"] == "m"
     assert rows["dbh"]["error"] == pytest.approx(0.5)
+    assert (rows["height"]["p5"], rows["height"]["p95"]) == pytest.approx((9.1, 10.9))  # linear percentiles
     assert rows["n_branches_o1"]["error"] is None  # a target of 0 has no relative error
     warns = fidelity_warnings(list(rows.values()))
     assert warns == ["clones miss the target's DBH (1.3 m) [dbh]: mean 0.3 m vs 0.2 m (+50.0 %, limit ±20 %)"]
     text = fidelity_text(list(rows.values()), [], warns)
     assert "WARNING: clones miss the target's DBH (1.3 m) [dbh]" in text
     # one convention: percent with its limit, and a mark on the row beyond it
-    assert "DBH (1.3 m)" in text and "+50.0 %   ±20 % !" in text
+    assert "DBH (1.3 m)" in text and "+50.0 %   ±20 % !" in text and "9.1–10.9" in text
 
 
 def test_warning_limit_is_twenty_percent_of_height_dbh_and_crown():
@@ -141,7 +142,7 @@ def test_what_a_user_reads_says_base_diameter_and_percent(toy_fit, tmp_path, cap
     assert "limit" in out and " %" in out
     text = write_report(run, figures=False, html=False).read_text()
     assert "girth" not in text.lower() and "base diameter (m)" in text
-    assert "height error d_h (%)" in text and "| error | limit |" in text and "| ±30 % |" in text
+    assert "height error d_h (%)" in text and "| clones 5–95 % | error | limit |" in text and "| ±30 % |" in text
     tgt = str(run / "target.txt")
     assert main(["distance", tgt, tgt, "--lines", "16"]) == 0
     out = capsys.readouterr().out

@@ -63,7 +63,8 @@ def fidelity_table(target: Mapping[str, float], clones: Sequence[Mapping[str, fl
     Returns
     -------
     list of dict
-        ``statistic``, ``label`` (in words), ``unit``, ``target``, ``mean``, ``sd``, ``n``,
+        ``statistic``, ``label`` (in words), ``unit``, ``target``, ``mean``, ``sd``, ``p5`` and
+        ``p95`` (the clones' 5-95 % band, numpy's linear percentiles), ``n``,
         ``error`` (relative error of the mean, ``(mean - target) / target``, a fraction; ``None``
         when the target is 0), ``limit`` (fraction, or None) and ``warn`` (error beyond the limit).
     """
@@ -79,7 +80,8 @@ def fidelity_table(target: Mapping[str, float], clones: Sequence[Mapping[str, fl
         lim = limit_of(name)
         rows.append({"statistic": name, "label": summary_label(name),
                      "unit": units[name] if name in units else summary_unit(name), "target": float(tv),
-                     "mean": mean, "sd": float(x.std(ddof=1)) if x.size > 1 else 0.0, "n": int(x.size),
+                     "mean": mean, "sd": float(x.std(ddof=1)) if x.size > 1 else 0.0,
+                     "p5": float(np.percentile(x, 5)), "p95": float(np.percentile(x, 95)), "n": int(x.size),
                      "error": err, "limit": lim,
                      "warn": bool(err is not None and lim is not None and abs(err) > lim)})
     return rows
@@ -120,15 +122,22 @@ def fidelity_text(rows: Sequence[Mapping], flags: Sequence[str] = (), warnings: 
     """The table as fixed-width text (for the terminal), then the flags and warnings; ``!`` marks
     a row beyond its limit."""
     w = max([22] + [len(r.get("label") or r["statistic"]) + 1 for r in rows])
-    lines = [f"{'statistic':<{w}}{'unit':>6}{'target':>11}{'clones mean':>13}{'sd':>10}{'error':>10}{'limit':>8}"]
+    lines = [f"{'statistic':<{w}}{'unit':>6}{'target':>11}{'clones mean':>13}{'sd':>10}{'5-95 % band':>21}"
+             f"{'error':>10}{'limit':>8}"]
     for r in rows:
         lim = r.get("limit", limit_of(r["statistic"]))
         mark = " !" if r.get("warn") else ""
         lines.append(f"{r.get('label') or r['statistic']:<{w}}{r['unit']:>6}{_num(r['target']):>11}{_num(r['mean']):>13}"
-                     f"{_num(r['sd']):>10}{percent(r['error']):>10}{'' if lim is None else f'±{100 * lim:g} %':>8}{mark}")
+                     f"{_num(r['sd']):>10}{_band(r):>21}{percent(r['error']):>10}{'' if lim is None else f'±{100 * lim:g} %':>8}{mark}")
     lines += [f"note: {f} of the search box" for f in flags]
     lines += [f"WARNING: {w}" for w in warnings]
     return "\n".join(lines)
+
+
+def _band(r: Mapping) -> str:
+    if r.get("p5") is None or r.get("p95") is None:  # a table written before the band was kept
+        return "–"
+    return f"{_num(r['p5'])}–{_num(r['p95'])}"
 
 
 def _num(v: float) -> str:

@@ -315,10 +315,11 @@ def section_fidelity(doc: Document, v: RunView):
     for r in fid["table"]:
         lim = r.get("limit", limit_of(r["statistic"]))
         warn = r.get("warn", lim is not None and r["error"] is not None and abs(r["error"]) > lim)
+        band = "–" if r.get("p5") is None else f"{fmt(r['p5'])}–{fmt(r['p95'])}"
         rows.append([r.get("label") or summary_label(r["statistic"]), r.get("unit") or summary_unit(r["statistic"]),
-                     r["target"], r["mean"], r["sd"], percent(r["error"]) + (" **!**" if warn else ""),
+                     r["target"], r["mean"], r["sd"], band, percent(r["error"]) + (" **!**" if warn else ""),
                      "–" if lim is None else f"±{100 * lim:g} %"])
-    doc.table(["statistic", "unit", "target", "clones mean", "sd", "error", "limit"], rows)
+    doc.table(["statistic", "unit", "target", "clones mean", "sd", "clones 5–95 %", "error", "limit"], rows)
     if fid.get("flags"):
         doc.p("Fitted parameters at a bound of their search box (the optimum may lie outside it):")
         doc.items(fid["flags"])

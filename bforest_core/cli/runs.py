@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..pipeline.rundir import run_lock
 from .common import report
 
 
@@ -13,6 +14,11 @@ def cmd_fit(args):
     if args.max_evaluations:
         cfg.stop.max_evaluations = args.max_evaluations
     out = Path(args.output) if args.output else Path("runs") / Path(args.config).stem
+    with run_lock(out, create=not args.resume):  # the whole command, its report included
+        return _fit_and_report(args, cfg, out, fit)
+
+
+def _fit_and_report(args, cfg, out, fit):
     res = fit(cfg, out, resume=args.resume, progress=not args.quiet, overwrite=args.overwrite)
     if res.already_finished:
         print(f"{out}: this run had already finished; nothing was simulated (grow clones with "
@@ -31,6 +37,11 @@ def cmd_fit(args):
 
 
 def cmd_clones(args):
+    with run_lock(args.run_dir, create=False):  # the whole command, its report included
+        return _clones_and_report(args)
+
+
+def _clones_and_report(args):
     from ..pipeline.clones import clones
     s = clones(args.run_dir, n=args.n, progress=not args.quiet, replace=args.replace, posterior=args.posterior)
     where = Path(args.run_dir) / ("clones_posterior" if args.posterior else "clones")
@@ -97,7 +108,7 @@ def cmd_calibrate(args):
 
 def cmd_demo(args):
     from .demo import run_demo
-    return run_demo(Path(args.output), quick=args.quick, progress=not args.quiet)
+    return run_demo(Path(args.output), quick=args.quick, progress=not args.quiet, overwrite=args.overwrite)
 
 
 def add_commands(sub) -> None:
@@ -105,6 +116,8 @@ def add_commands(sub) -> None:
     s = sub.add_parser("demo", help="the main job on the embedded default target, end to end")
     s.add_argument("-o", "--output", default="demo-run", help="run directory (default: demo-run)")
     s.add_argument("--quick", action="store_true", help="a smaller fit (for tests)")
+    s.add_argument("--overwrite", action="store_true", help="replace a run in -o, and the file -o.toml beside it, "
+                   "that an earlier demo did not write (a demo's own are replaced without it)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=cmd_demo)
 

@@ -23,6 +23,7 @@ from ..errors import BayesForestError, SimulationFailed
 from .fidelity import bound_flags, fidelity_table, fidelity_text, fidelity_warnings
 from .objective import _CTX, build_target, clone_seeds, combine_terms, progress_bar, score_tree, started_workers, \
     with_term_values
+from .rundir import holding_run_lock
 from .store import RunStore
 
 METRIC_KEYS = ("height", "girth", "crown_spread")
@@ -100,6 +101,7 @@ def _existing(out_dir: Path, store: RunStore, params: dict) -> list[dict]:
     return [r for r in old.get("rows", []) if (out_dir / r.get("file", "-")).exists() or r.get("status") != "ok"]
 
 
+@holding_run_lock
 def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, replace: bool = False,
            posterior: bool = False) -> dict:
     """Grow clones of a finished fit until the set holds ``n``; writes ``clones/clone_NNN.txt``,

@@ -22,6 +22,7 @@ from ..interfaces import Problem
 from .objective import (Target, _simulate_with_timeout, _Timeout, build_target, evaluate_task, model_seeds,
                         progress_bar, run_executor, set_summaries, spread_seeds, started_workers, summary_task)
 from ..registry import component
+from .rundir import holding_run_lock
 from .store import Evaluation, RunDirError, RunStore
 
 
@@ -246,6 +247,7 @@ def _free_specs(cfg, ssm):
     return names, np.array(lo), np.array(hi), np.array(ilo), np.array(ihi), np.array(integer, bool)
 
 
+@holding_run_lock
 def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bool = False,
         target=None) -> FitResult:
     """Fit the SSM of ``cfg`` to its target; everything is written to ``run_dir``.

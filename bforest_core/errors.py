@@ -28,6 +28,9 @@ class TreeError(BayesForestError, ValueError):
         self.rows = [int(r) for r in rows]
         super().__init__(problem)
 
+    def __reduce__(self):
+        return (type(self), (self.problem, self.rows))
+
 
 class QSMFormatError(BayesForestError, ValueError):
     """A QSM file cannot be read: names the file and the problem."""
@@ -37,6 +40,9 @@ class QSMFormatError(BayesForestError, ValueError):
         self.problem = problem
         self.rows = [int(r) for r in rows]
         super().__init__(f"{self.path}: {problem}")
+
+    def __reduce__(self):  # pickled back from a worker as itself
+        return (type(self), (self.path, self.problem, self.rows))
 
 
 class ConfigError(BayesForestError, ValueError):
@@ -62,7 +68,11 @@ class SimulationFailed(BayesForestError):
     def __init__(self, status: str, message: str = "", tree=None):
         self.status = status
         self.tree = tree
+        self.message = message
         super().__init__(f"simulation failed ({status})" + (f": {message}" if message else ""))
+
+    def __reduce__(self):  # pickled back from a worker as itself (the partial tree stays behind)
+        return (type(self), (self.status, self.message))
 
 
 def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = None) -> str:

@@ -21,7 +21,7 @@ import numpy as np
 from ..config import load_config
 from ..errors import BayesForestError, SimulationFailed
 from .fidelity import bound_flags, fidelity_table, fidelity_text, fidelity_warnings
-from .objective import _CTX, build_target, clone_seeds, combine_terms, progress_bar, score_tree, started_workers, \
+from .objective import _CTX, _MODEL_ERRORS, _simulate_with_timeout, _Timeout, build_target, clone_seeds, combine_terms, progress_bar, score_tree, started_workers, \
     with_term_values
 from .rundir import holding_run_lock
 from .store import RunStore
@@ -43,9 +43,13 @@ def _clone_task(task):
     i, params, seed, out_dir = task
     c = _CTX
     try:
-        tree = c["ssm"].simulate(params, seed)
+        tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
     except SimulationFailed as exc:
         return dict(index=i, seed=seed, status=exc.status, message=str(exc), params=params)
+    except _Timeout:
+        return dict(index=i, seed=seed, status="timeout", message=f"simulation exceeded {c['timeout']} s", params=params)
+    except _MODEL_ERRORS as exc:
+        return dict(index=i, seed=seed, status="error", message=f"{type(exc).__name__}: {exc}"[:500], params=params)
     path = Path(out_dir) / f"clone_{i:03d}.txt"
     write_tree(tree, path)
     per_set, _ = score_tree(tree)
@@ -53,6 +57,15 @@ def _clone_task(task):
     return dict(index=i, seed=seed, status="ok", message="", file=path.name, distance=total,
                 per_set=with_term_values(per_set, values), n_cylinders=tree.n, summary=tree_summary(tree),
                 params=params, **classical_metrics(tree))
+
+
+def _lost_clone(task, status, message):
+    """The row of a clone whose worker died or was stopped (the process executor's stand-in)."""
+    i, params, seed, _ = task
+    return dict(index=i, seed=seed, status=status, message=message, params=params)
+
+
+_clone_task.lost_result = _lost_clone
 
 
 def _reference_task(task):

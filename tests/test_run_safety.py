@@ -139,3 +139,44 @@ def test_demo_never_replaces_a_run_or_a_file_it_did_not_write(toy_plugin, tmp_pa
     assert main(["demo", "-o", str(tmp_path / "y"), "--quick", "-q"]) == 2
     assert "is not a demo's config" in capsys.readouterr().err
     assert sibling.read_text() == "# mine\n" and not (tmp_path / "y" / "config.toml").exists()
+
+
+# ------------------------------------------------------------------------------ clones can be continued
+@pytest.mark.skipif(os.name != "posix", reason="kill -9")
+def test_a_killed_clones_call_is_continued_without_regrowing_its_clones(toy_plugin, tmp_path):
+    import signal
+    from bforest_core.pipeline.clones import clones
+    run = tmp_path / "run"
+    p = _slow(toy_config(tmp_path, budget=4), 0.3)
+    bf.fit(bf.load_config(p), run, progress=False)
+    proc = subprocess.Popen(EXE + ["clones", str(run), "-n", "8", "-q", "--no-report"], env=_env(toy_plugin),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    summary, deadline, rows = run / "clones" / "summary.json", time.monotonic() + 60, []
+    while time.monotonic() < deadline and len(rows) < 2:
+        try:
+            rows = json.loads(summary.read_text())["rows"] if summary.exists() else []
+        except ValueError:
+            rows = []
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    kept = json.loads(summary.read_text())
+    assert kept["complete"] is False and 2 <= kept["count"] < 8  # every finished clone listed as it was grown
+    stamps = {r["file"]: (run / "clones" / r["file"]).stat().st_mtime_ns for r in kept["rows"]}
+    s = clones(run, n=8, progress=False)
+    assert s["complete"] and s["count"] == 8 and s["grown"] == 8 - kept["count"]
+    assert {f: (run / "clones" / f).stat().st_mtime_ns for f in stamps} == stamps  # not regrown
+
+
+def test_a_missing_reference_file_loses_no_clone(toy_plugin, tmp_path, capsys):
+    from bforest_core.cli import main
+    p = toy_config(tmp_path, budget=4)
+    p.write_text(p.read_text().replace("[target.generate]", 'seed = 3\n[target]\nreferences = ["gone.txt"]\n[target.generate]', 1)
+                 .replace("seed = 3\n", "", 1))
+    run = tmp_path / "run"
+    bf.fit(bf.load_config(p), run, progress=False)
+    assert main(["clones", str(run), "-n", "3", "-q", "--no-report"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: reference" in err and "gone.txt" in err
+    s = json.loads((run / "clones" / "summary.json").read_text())
+    assert s["count"] == 3 and s["references"] == [] and "gone.txt" in s["reference_errors"][0]["file"]

@@ -1,6 +1,7 @@
 """Commands that run or read a fit: demo, fit, clones, report, compare, profile, calibrate."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from ..pipeline.rundir import run_lock
@@ -59,6 +60,8 @@ def _clones_and_report(args):
         print(fid["text"])
     for r in s.get("references", []):
         print(f"reference {r['file']}: distance to the target {r['distance']:.4f}")
+    for r in s.get("reference_errors", []):
+        print(f"warning: reference {r['file']} could not be scored: {r['error']}", file=sys.stderr)
     if not args.no_report:
         report(args.run_dir)
     return 0

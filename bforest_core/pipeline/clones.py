@@ -160,8 +160,11 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
         tasks = [(i, posterior_draw(run_dir, best["params"], seeds[i]) if posterior else best["params"], seeds[i],
                   str(out_dir)) for i in want]
         refs = list(cfg.target.references)
-        new_rows, references = [], []
+        new_rows, references, ref_errors = [], [], []
         if tasks or refs:
+            # written before the first clone and after each one: a killed call is continued by the
+            # next, which keeps every clone listed here and grows only the others
+            _write_progress(store, out_dir, rows, tgt, best, tm)
             bar = progress_bar(len(tasks), "clones", "clone", progress and bool(tasks))
             with started_workers(cfg, tgt, executor) as ex:
                 for _, res in ex.map_unordered(_clone_task, tasks):
@@ -169,21 +172,34 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
                         from ..metrics import relative_errors
                         res.update(relative_errors(tm, {k: res[k] for k in METRIC_KEYS}))
                     new_rows.append(res)
+                    _write_progress(store, out_dir, rows + new_rows, tgt, best, tm)
                     bar.update(1)
                 bar.close()
-                if refs:
-                    references = ex.map(_reference_task, refs)
+                for r in refs:
+                    try:
+                        references.append(ex.map(_reference_task, [r])[0])
+                    except (BayesForestError, OSError) as exc:  # one bad reference file loses nothing else
+                        ref_errors.append({"file": str(r), "error": f"{type(exc).__name__}: {exc}"})
         rows = sorted(rows + new_rows, key=lambda r: r["index"])
         summary = _summarise(rows, tgt, best, tm)
         summary["grown"] = len(new_rows)
         summary["requested"] = n
         summary["fidelity"] = _fidelity(cfg, tgt, best, rows)
         summary["references"] = references
+        summary["reference_errors"] = ref_errors
         summary["posterior"] = bool(posterior)
+        summary["complete"] = True
         _write_csv(out_dir / "clones.csv", rows, tgt)
         store.write_json(f"{out_dir.name}/fidelity.json", summary["fidelity"])
         store.write_json(f"{out_dir.name}/summary.json", summary)
         return summary
+
+
+def _write_progress(store: RunStore, out_dir: Path, rows, tgt, best, tm) -> None:
+    """``summary.json`` of the clones grown so far (``complete`` false until the call ends)."""
+    summary = _summarise(sorted(rows, key=lambda r: r["index"]), tgt, best, tm)
+    summary["complete"] = False
+    store.write_json(f"{out_dir.name}/summary.json", summary)
 
 
 def _fidelity(cfg, tgt, best, rows) -> dict:

@@ -37,7 +37,7 @@ class WorkerLost(BayesForestError):
     no stand-in result (the executor's ``on_lost`` hook gave none), or while starting."""
 
 
-class WorkerError(Exception):
+class WorkerError(BayesForestError):
     """An exception raised in a worker that could not be sent back as itself (it could not be
     pickled): its type name and message as text."""
 

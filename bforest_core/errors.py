@@ -75,11 +75,17 @@ class SimulationFailed(BayesForestError):
         return (type(self), (self.status, self.message))
 
 
-def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = None) -> str:
-    """One readable clause per problem: ``key.path: message (got value)``."""
+def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = None, hint=None,
+                          skip: tuple = ()) -> str:
+    """One readable clause per problem: ``key.path: message (got value)``. ``hint(loc)`` may add
+    a suggestion to an unknown key (e.g. "did you mean ..."); errors under a top-level key in
+    ``skip`` are left out (reported otherwise)."""
     parts = []
     for e in exc.errors():
+        if e["loc"] and str(e["loc"][0]) in skip:
+            continue
         loc = [str(x) for x in e["loc"]]
+        raw_loc = tuple(loc)
         # drop the union tag pydantic inserts after a discriminated section name
         if tags and len(loc) > 1 and loc[0] in tags and loc[1] == tags[loc[0]]:
             loc = [loc[0]] + loc[2:]
@@ -91,6 +97,8 @@ def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = Non
             model = e.get("ctx", {}).get("allowed")
             if model:
                 msg += f" (allowed: {model})"
+            if hint is not None:
+                msg += hint(raw_loc)
         if msg.startswith("Value error, "):
             msg = msg[len("Value error, "):]
         inp = e.get("input")

@@ -174,7 +174,9 @@ def test_a_missing_reference_file_loses_no_clone(toy_plugin, tmp_path, capsys):
     p.write_text(p.read_text().replace("[target.generate]", 'seed = 3\n[target]\nreferences = ["gone.txt"]\n[target.generate]', 1)
                  .replace("seed = 3\n", "", 1))
     run = tmp_path / "run"
+    (tmp_path / "gone.txt").write_text("")  # there when the fit checked it, gone by the clones
     bf.fit(bf.load_config(p), run, progress=False)
+    (tmp_path / "gone.txt").unlink()
     assert main(["clones", str(run), "-n", "3", "-q", "--no-report"]) == 0
     err = capsys.readouterr().err
     assert "warning: reference" in err and "gone.txt" in err

@@ -34,7 +34,22 @@ def _fit_and_report(args, cfg, out, fit):
     print(f"run directory: {out}")
     if cfg.report.enabled and not args.no_report:
         report(out)
-    return 0
+    return _all_failed(out)
+
+
+def _all_failed(out) -> int:
+    """1 with a loud line when no evaluation of the run succeeded (its "best" fits nothing), else 0."""
+    from collections import Counter
+    from ..pipeline.store import RunStore
+    with RunStore.open(out) as store:
+        evs = store.evaluations()
+    if not evs or any(e.ok for e in evs):
+        return 0
+    counts = ", ".join(f"{k} {v}" for k, v in Counter(e.status for e in evs).most_common())
+    print(f"error: every one of the {len(evs)} evaluations failed ({counts}; the first: {evs[0].message or '-'}); "
+          "the parameters above fit nothing: check the model on its own (bforest simulate) and the bounds",
+          file=sys.stderr)
+    return 1
 
 
 def cmd_clones(args):

@@ -22,6 +22,7 @@ from ..interfaces import Problem
 from .objective import (Target, _simulate_with_timeout, _Timeout, build_target, evaluate_task, model_seeds,
                         progress_bar, run_executor, set_summaries, spread_seeds, started_workers, summary_task)
 from ..registry import component
+from .checks import preflight
 from .rundir import holding_run_lock
 from .store import Evaluation, RunDirError, RunStore
 
@@ -267,6 +268,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     run_dir = Path(run_dir)
     cfg_dict = config_to_dict(cfg)
     text = tomli_w.dumps(cfg_dict)
+    tgt = preflight(cfg, target)  # every check before the run directory is touched
     store = RunStore.open(run_dir) if resume else RunStore.create(run_dir, text, overwrite=overwrite)
     with store:
         if resume:
@@ -279,7 +281,6 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
             store.clear_log()
         else:
             finished = False
-        tgt = target if target is not None else build_target(cfg)
         _save_target(store, tgt, cfg)
         ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
         names, lo, hi, ilo, ihi, integer = _free_specs(cfg, ssm)

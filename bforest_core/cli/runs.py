@@ -5,14 +5,16 @@ import sys
 from pathlib import Path
 
 from ..pipeline.rundir import run_lock
-from .common import report
+from .common import UsageError, report
 
 
 def cmd_fit(args):
     from ..config import load_config
     from ..pipeline.fit import fit
     cfg = load_config(args.config)
-    if args.max_evaluations:
+    if args.max_evaluations is not None:
+        if args.max_evaluations < 1:
+            raise UsageError(f"--max-evaluations must be at least 1 (got {args.max_evaluations})")
         cfg.stop.max_evaluations = args.max_evaluations
     out = Path(args.output) if args.output else Path("runs") / Path(args.config).stem
     with run_lock(out, create=not args.resume):  # the whole command, its report included

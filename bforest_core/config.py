@@ -277,7 +277,8 @@ def check_ssm_parameters(cfg) -> None:
     from .registry import component
     ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
     specs = {p.name: p for p in ssm.parameters}
-    problems = []
+    problems = [f"ssm '{cfg.ssm.kind}': the plugin's parameter name {n!r} is not a Python identifier (it is a "
+                "TOML key, a column name and a report label)" for n in specs if not _identifier(n)]
     for name, val in cfg.ssm.fixed.items():
         if name not in specs:
             problems.append(f"ssm.fixed.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
@@ -298,6 +299,11 @@ def check_ssm_parameters(cfg) -> None:
                             f"[{s.lower}, {s.upper}] {s.unit}".rstrip())
     if problems:
         raise ConfigError("; ".join(problems))
+
+
+def _identifier(name) -> bool:
+    import keyword
+    return isinstance(name, str) and name.isidentifier() and not keyword.iskeyword(name)
 
 
 def check_generated_target(cfg) -> None:

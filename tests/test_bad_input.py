@@ -47,3 +47,27 @@ def test_terminal_escapes_in_a_file_name_are_not_echoed_raw(tmp_path, capsys):
     assert main(["info", str(name)]) == 2
     err = capsys.readouterr().err
     assert "\x1b" not in err and "\x07" not in err and "\\x1b[2J\\x07" in err
+
+
+def test_report_markdown_carries_no_raw_html():
+    from bforest_core.report.document import Document
+    doc = Document()
+    doc.h(2, "tree <script>alert(1)</script>.txt")
+    doc.p("target <img src=x onerror=alert(1)>.mat; a < b and 3<4 stay as written")
+    doc.table(["file"], [["</td><script>"]])
+    md = doc.markdown()
+    assert "<script" not in md and "<img" not in md and "</" not in md
+    assert "&lt;script>alert(1)&lt;/script>" in md and "a < b and 3<4 stay" in md
+
+
+
+def test_a_plugins_parameter_names_must_be_identifiers(toy_plugin, tmp_path, monkeypatch, capsys):
+    from bforest_core import ParameterSpec
+    from bforest_toy import ToySSM
+    p = toy_config(tmp_path, budget=4)
+    real = ToySSM.parameters.fget
+    monkeypatch.setattr(ToySSM, "parameters", property(lambda self: real(self) + [
+        ParameterSpec("<img src=x onerror=alert(1)>", 1.0, 0.0, 2.0)]))
+    assert main(["config", "check", str(p)]) == 2
+    err = _err(capsys)
+    assert len(err) == 1 and "parameter name '<img src=x onerror=alert(1)>' is not a Python identifier" in err[0]

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import difflib
 import functools
+import math
 import tomllib
 import types
 import typing
@@ -33,7 +34,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union
 
 import pydantic
-from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
+from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
 from .errors import ConfigError, PluginError, validation_error_text
 from .registry import discover
@@ -98,8 +99,12 @@ class TargetConfig(_Strict):
         return self
 
 
-#: a data set's weight in the objective: a finite number, not negative
-Weight = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+def _check_weights(weights):
+    """Weights of data sets: finite numbers, none negative (the error names the set)."""
+    for k, w in (weights or {}).items():
+        if not math.isfinite(w) or w < 0:
+            raise ValueError(f"the weight of {k!r} must be a finite number >= 0 (got {w})")
+    return weights
 
 
 class TermConfig(_Strict):
@@ -115,7 +120,9 @@ class TermConfig(_Strict):
     weight: float = Field(1.0, gt=0, description="weight of the term in the objective")
     features: dict[str, Any] = Field(..., description="feature set: { kind = NAME, settings... }")
     distance: dict[str, Any] = Field(..., description="distance: { kind = NAME, settings... }")
-    weights: Optional[dict[str, Weight]] = Field(None, description="weight per data set within the term")
+    weights: Optional[dict[str, float]] = Field(None, description="weight per data set within the term")
+
+    _weights = field_validator("weights")(lambda cls, v: _check_weights(v))
 
     @model_validator(mode="after")
     def _kinds(self):
@@ -132,9 +139,9 @@ class ObjectiveConfig(_Strict):
     seed_mode: Literal["fixed", "per_evaluation"] = Field(
         "fixed", description="fixed: the same model seed(s) for every evaluation (the paper); "
                              "per_evaluation: from the run seed and the evaluation index")
-    model_seeds: Optional[list[Annotated[int, Field(ge=0)]]] = Field(
+    model_seeds: Optional[list[int]] = Field(
         None, description="explicit model seeds held fixed for every evaluation (overrides seeds/seed_mode)")
-    weights: Optional[dict[str, Weight]] = Field(None, description="weight per data set (default equal)")
+    weights: Optional[dict[str, float]] = Field(None, description="weight per data set (default equal)")
     penalty: float = Field(1.0, ge=0, allow_inf_nan=False, description="distance of a failed simulation, for optimisers: keep it above every "
                            "real distance (1.0 suits statistics bounded by 1, such as KS); "
                            "samplers that say so (abc-smc) treat a failure as inf instead")
@@ -144,6 +151,15 @@ class ObjectiveConfig(_Strict):
                                     "when [[objective.terms]] adds others")
     terms: list[TermConfig] = Field(default_factory=list, description="more terms of the objective, e.g. a "
                                     "summary-statistics term beside the structural distance")
+
+    _weights = field_validator("weights")(lambda cls, v: _check_weights(v))
+
+    @field_validator("model_seeds")
+    @classmethod
+    def _seeds(cls, v):
+        if v is not None and any(s < 0 for s in v):
+            raise ValueError(f"seeds must be >= 0 (got {v})")
+        return v
 
     @model_validator(mode="after")
     def _unique_terms(self):

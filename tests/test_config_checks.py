@@ -27,7 +27,7 @@ CASES = [  # (replace, by, words of the one-line error)
      "ssm.free: no free parameters to fit"),
     ("[clones]", "[objective]\npenalty = nan\n[clones]", "objective.penalty: Input should be a finite number"),
     ("[clones]", "[objective]\npenalty = -1\n[clones]", "objective.penalty: Input should be greater than or equal to 0"),
-    ("[clones]", "[objective]\nweights = { L = -1.0 }\n[clones]", "objective.weights.L: Input should be greater than or equal to 0"),
+    ("[clones]", "[objective]\nweights = { L = -1.0 }\n[clones]", "objective.weights: the weight of 'L' must be a finite number >= 0 (got -1.0)"),
     ("[clones]", "[objective]\nweights = { LL = 1.0 }\n[clones]", "objective.weights.LL: no data set 'LL' (did you mean 'L'?)"),
     ("[clones]", '[target]\nreferences = ["gone.txt"]\n[clones]', "target.references[0]: file not found"),
 ]

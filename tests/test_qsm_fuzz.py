@@ -277,3 +277,38 @@ def test_special_files_and_huge_values_are_one_clear_error(tmp_path):
             bf.read_qsm(path)
         except QSMFormatError as exc:
             assert words in str(exc), (path.name, str(exc))
+
+
+def test_a_bad_native_csv_sidecar_is_an_error_not_ignored(tmp_path):
+    import json
+    from conftest import hand_tree
+    p = tmp_path / "t.csv"
+    bf.write_tree(hand_tree(), p)
+    side = p.with_suffix(".json")
+    good = json.loads(side.read_text())
+    assert bf.read_qsm(p).n == 7
+    for bad, words in (({**good, "topology": "sideways"}, "topology 'sideways' is not one of"),
+                       ({**good, "metadata": [1, 2]}, "metadata is not a JSON object")):
+        side.write_text(json.dumps(bad))
+        failures: list[str] = []
+        assert _check(p, "sidecar", failures) == "error", failures
+        try:
+            bf.read_qsm(p)
+        except QSMFormatError as exc:
+            assert words in str(exc) and str(exc).startswith(str(side))
+
+
+def test_a_nan_added_flag_is_an_error_not_true(tmp_path, qsm_dir):
+    import scipy.io as sio
+    m = {k: v for k, v in sio.loadmat(str(qsm_dir / "itsme_qsm_tree_v200.mat")).items() if not k.startswith("__")}
+    assert "Added" in m
+    m["Added"] = m["Added"].astype(float)
+    m["Added"].flat[1] = np.nan
+    p = tmp_path / "nan_added.mat"
+    sio.savemat(str(p), m)
+    failures: list[str] = []
+    assert _check(p, "nan added", failures) == "error" and not failures, failures
+    try:
+        bf.read_qsm(p)
+    except QSMFormatError as exc:
+        assert "non-finite values in 'added'" in str(exc)

@@ -176,6 +176,18 @@ class StopConfig(_Strict):
     target_distance: Optional[float] = Field(None, description="stop once the best distance is at or below this")
 
 
+class SelectConfig(_Strict):
+    """How the answer of a fit is chosen: on model seeds the search never used."""
+
+    top: int = Field(0, ge=0, description="best distinct points of the search re-scored on held-out model seeds "
+                     "at the end of the fit; the answer is the one of lowest held-out distance (0: the answer "
+                     "is the point of lowest own distance, with no re-scoring)")
+    sets: int = Field(8, ge=1, description="sets of held-out model seeds per candidate, each as large as an "
+                      "evaluation's ([objective] seeds)")
+    spacing: float = Field(0.02, ge=0, le=1, description="candidates differ by more than this fraction of a "
+                           "parameter's range in at least one parameter (distinct points, not near-copies)")
+
+
 class ClonesConfig(_Strict):
     count: int = Field(100, ge=1)
     seed: Optional[int] = Field(None, ge=0, description="seed of the clone seeds (default: derived from the run seed)")
@@ -219,6 +231,7 @@ def _run_config_model(registry_id: int):
         target=(TargetConfig, ...),
         objective=(ObjectiveConfig, Field(default_factory=ObjectiveConfig)),
         stop=(StopConfig, Field(default_factory=StopConfig)),
+        select=(SelectConfig, Field(default_factory=SelectConfig)),
         clones=(ClonesConfig, Field(default_factory=ClonesConfig)),
         report=(ReportConfig, Field(default_factory=ReportConfig)),
         **fields)

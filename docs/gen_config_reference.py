@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from bforest_core.config import (ClonesConfig, FreeParameter, GeneratedTarget, ObjectiveConfig, ReportConfig,
-                                 StopConfig, TargetConfig, SECTIONS)
+                                 SelectConfig, StopConfig, TargetConfig, SECTIONS)
 from bforest_core.registry import discover
 
 
@@ -39,7 +39,8 @@ def main() -> str:
     out += ["## Top level", "", "| key | type | default | meaning |", "|---|---|---|---|",
             "| `seed` | int | 1 | run seed: every evaluation seed and clone seed derives from it |", ""]
     for title, model in (("[target]", TargetConfig), ("[target.generate]", GeneratedTarget),
-                         ("[objective]", ObjectiveConfig), ("[stop]", StopConfig), ("[clones]", ClonesConfig),
+                         ("[objective]", ObjectiveConfig), ("[stop]", StopConfig), ("[select]", SelectConfig),
+                         ("[clones]", ClonesConfig),
                          ("[report]", ReportConfig), ("[ssm] free.NAME", FreeParameter)):
         out += [f"## `{title}`", "", (model.__doc__ or "").strip().split("\n")[0], ""] + _fields_table(model) + [""]
     for section, kind in SECTIONS.items():

@@ -179,3 +179,34 @@ def test_lq_surrogate_is_deterministic_and_grows_every_point_of_a_noise_only_obj
         runs.append(asked)
         assert all(r["grown"] == r["population"] for r in res.history[2:])
     assert runs[0] == runs[1]
+
+
+def test_raced_starts_begin_apart_and_successive_halving_drops_the_worse_half_at_equal_shares():
+    pr, _ = _problem(sphere, [-5] * 4, [5] * 4, budget=616)
+    res = bf.component("optimizer", "cma", init_design=16, starts=4, population=8).minimize(pr)
+    starts = res.diagnostics["starts"]
+    assert len(starts) == 4
+    U = (np.array([s["x0"] for s in starts]) + 5) / 10
+    assert all(np.max(np.abs(U[i] - U[j])) >= 0.25 for i in range(4) for j in range(i))
+    # the 600 evaluations after the design in three equal parts: two starts dropped after the
+    # first 200 (within one generation of 8), one after 400, the best one runs to the end
+    dropped = sorted(s["dropped_after"] for s in starts if s["dropped_after"] is not None)
+    assert len(dropped) == 3
+    assert 216 <= dropped[0] == dropped[1] < 216 + 8 and 416 <= dropped[2] < 416 + 8
+    winner = next(s for s in starts if s["dropped_after"] is None)
+    assert winner["best"] == min(s["best"] for s in starts)
+    # every generation names its start; the dropped ones stop asking after their drop
+    recs = [r for r in res.history if r.get("run", -1) >= 0]
+    for s in starts:
+        if s["dropped_after"] is not None:
+            assert max(r["n_evaluations"] for r in recs if r["start"] == s["start"]) <= s["dropped_after"]
+    assert res.fun < 1e-4 and res.n_evaluations == 616
+
+
+def test_one_start_is_the_plain_ipop_search():
+    a, _ = _problem(sphere, [-5] * 4, [5] * 4, budget=300)
+    b, _ = _problem(sphere, [-5] * 4, [5] * 4, budget=300)
+    ra = bf.component("optimizer", "cma").minimize(a)
+    rb = bf.component("optimizer", "cma", starts=1).minimize(b)
+    assert ra.fun == rb.fun and "starts" not in ra.diagnostics
+    assert all("start" not in r for r in ra.history)

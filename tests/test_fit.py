@@ -333,10 +333,14 @@ def test_held_out_scores_are_kept_in_the_runs_and_not_grown_twice(toy_plugin, tm
     first = cmp_mod.compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", heldout=3, at=[8])
     cmp_mod.compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", resume=True)
     assert "heldout" not in json.loads((tmp_path / "cmp" / "compare.json").read_text())
-    assert all((tmp_path / "cmp" / f"ga-{r}" / "heldout.json").is_file() for r in range(2))
+    from bforest_core.pipeline.heldout import scoring_fingerprint
+    for r in range(2):
+        with RunStore.open(tmp_path / "cmp" / f"ga-{r}") as store:
+            assert store.heldout_scores(scoring_fingerprint(bf.load_config(p)))
     grown = []
-    real = cmp_mod.evaluate_task
-    monkeypatch.setattr(cmp_mod, "evaluate_task", lambda task: grown.append(task) or real(task))
+    import bforest_core.pipeline.heldout as heldout_mod
+    real = heldout_mod.evaluate_task
+    monkeypatch.setattr(heldout_mod, "evaluate_task", lambda task: grown.append(task) or real(task))
     again = cmp_mod.compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", resume=True, heldout=3, at=[8])
     assert grown == []
     assert [r["heldout"] for r in again["runs"]] == [r["heldout"] for r in first["runs"]]
@@ -351,4 +355,5 @@ def test_held_out_scores_are_kept_in_the_runs_and_not_grown_twice(toy_plugin, tm
     grown.clear()
     score_heldout({"ga": [tmp_path / "cmp" / "ga-0"]}, cfg, build_target(cfg), 3)
     assert len(grown) == 3
-    assert len(json.loads((tmp_path / "cmp" / "ga-0" / "heldout.json").read_text())) == 2
+    with RunStore.open(tmp_path / "cmp" / "ga-0") as store:
+        assert len(store._con.execute("SELECT DISTINCT scoring FROM heldout").fetchall()) == 2

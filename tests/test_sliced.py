@@ -9,7 +9,8 @@ from scipy import stats
 
 import bforest_core as bf
 from bforest_core import ConfigError
-from bforest_sliced.directions import directions, net_points
+from bforest_sliced.directions import directions, make_directions, net_points
+from bforest_sliced.grid import DIRECTION_BITS, VALUE_BITS, snap
 from bforest_sliced.sliced import fit_normalization, holm
 from bforest_sliced.stats import ks_encoded, ks_sorted, merge_sorted, stat_from_labels, stat_sorted
 from conftest import read_sample
@@ -65,20 +66,25 @@ def one(x, y, stat, scaled=False):
 @pytest.mark.parametrize("net", NETS)
 def test_directions_unit_finite_for_every_dimension(net):
     for d in range(2, 11):
-        A = directions(d, 200, net)
+        A = make_directions(d, 200, net)
         assert A.shape == (200, d)
         assert np.all(np.isfinite(A))
         np.testing.assert_allclose(np.linalg.norm(A, axis=1), 1.0, atol=1e-12)
+        # the distance's directions: the same net on the grid of 2^-20, unit to about 1e-6
+        G = directions(d, 200, net)
+        np.testing.assert_array_equal(G * 2.0 ** DIRECTION_BITS, np.rint(G * 2.0 ** DIRECTION_BITS))
+        assert np.abs(G - A).max() <= 2.0 ** -(DIRECTION_BITS + 1)
+        np.testing.assert_allclose(np.linalg.norm(G, axis=1), 1.0, atol=4e-6)
 
 
 def test_gp2_parity_vectors():
     c = net_points("gp2", 1, 3)
     np.testing.assert_allclose(c[0], [0.189207115003, 0.414213562373, 0.681792830507], atol=1e-12)
-    np.testing.assert_allclose(directions(4, 7)[0], [-0.373306397597, 0.223269900604, -0.374186916140,
+    np.testing.assert_allclose(make_directions(4, 7)[0], [-0.373306397597, 0.223269900604, -0.374186916140,
                                                      -0.819009790410], atol=1e-11)
-    np.testing.assert_allclose(directions(5, 7)[0], [0.191245058474, -0.491658349415, -0.048709746455,
+    np.testing.assert_allclose(make_directions(5, 7)[0], [0.191245058474, -0.491658349415, -0.048709746455,
                                                      -0.047397025580, -0.846804745869], atol=1e-11)
-    A = directions(2, 4)
+    A = make_directions(2, 4)
     np.testing.assert_allclose(np.degrees(np.arctan2(A[:, 1], A[:, 0])), [22.5, 67.5, 112.5, 157.5], atol=1e-12)
     np.testing.assert_array_equal(directions(1, 100), [[1.0]])
 
@@ -87,7 +93,7 @@ def test_parity_indexing_differs_only_for_odd_d_from_7():
     for d in (3, 4, 5, 6, 8):
         np.testing.assert_array_equal(directions(d, 50, parity=True), directions(d, 50))
     assert not np.allclose(directions(7, 50, parity=True), directions(7, 50))
-    np.testing.assert_allclose(np.linalg.norm(directions(9, 50, parity=True), axis=1), 1, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(make_directions(9, 50, parity=True), axis=1), 1, atol=1e-12)
 
 
 @pytest.mark.parametrize("net", ["sobol", "halton"])
@@ -206,8 +212,8 @@ def test_sliced_equals_per_line_scipy_loop(stat):
     val = D.compute(um, ud)
     A = D.directions(5)
     ref = []
-    for a in A:
-        x, y = ud @ a, um @ a
+    for a in A:  # the statistic of the values the distance sees (on its grid: normalize = none)
+        x, y = snap(ud, VALUE_BITS) @ a, snap(um, VALUE_BITS) @ a
         ref.append({"ks": lambda: stats.ks_2samp(x, y).statistic,
                     "cvm": lambda: stats.cramervonmises_2samp(x, y).statistic,
                     "ad": lambda: scipy_A2(x, y),
@@ -227,8 +233,8 @@ def test_sliced_ks_with_rows_repeated_across_sides():
     ud[40:45] = -0.0
     D = dist(lines=48, normalize="zscore", return_lines=True)
     D.compute(um, ud)
-    A = D.directions(4) / ud.std(axis=0)
-    ref = [stats.ks_2samp(ud @ a, um @ a).statistic for a in A]
+    z = [snap((u - ud.mean(axis=0)) / ud.std(axis=0), VALUE_BITS) for u in (ud, um)]
+    ref = [stats.ks_2samp(z[0] @ a, z[1] @ a).statistic for a in D.directions(4)]
     np.testing.assert_allclose(D.last_lines[None], ref, rtol=0, atol=1e-12)
 
 
@@ -493,3 +499,53 @@ def test_real_pine3_normalisation_table(normalize, angles, expected):
     # 0.280, 0.131, 0.182; no numpy quantile method or wrap convention gives all three) while the
     # other nine cells agree to 0.001 -- reported as a spec discrepancy.
     np.testing.assert_allclose(got, expected, atol=0.005 if normalize == "robust" else 0.002)
+
+
+# ------------------------------------------------------------------------------ invariance (round-off)
+
+def renumbered(tree, seed=0):
+    """The same tree with its cylinders in another order (parents and children permuted)."""
+    from bforest_core import Tree
+    perm = np.random.default_rng(seed).permutation(tree.n)   # new row i holds old row perm[i]
+    inv = np.empty(tree.n, dtype=np.int64)
+    inv[perm] = np.arange(tree.n)
+    relink = lambda a: np.where(a[perm] >= 0, inv[np.maximum(a[perm], 0)], -1)
+    return Tree(tree.start[perm], tree.axis[perm], tree.length[perm], tree.radius[perm],
+                relink(tree.parent), relink(tree.extension), topology=tree.topology)
+
+
+@pytest.mark.parametrize("which", ["hand", "pine3"])
+def test_distance_is_blind_to_numbering_position_and_machine_round_off(which):
+    from conftest import hand_tree
+    tree = hand_tree() if which == "hand" else read_sample("pine_ruotsinkyla_3.mat")
+    sets = ["S0", "S1", "B1", "S0,1"] if which == "hand" else ["S0", "S1", "S2", "B1", "B2", "S0,1", "B1,2"]
+    fs = bf.component("features", "branch-segment", sets=sets, min_rows=0, small_sets="keep")
+    fs.prepare([tree])
+    U = fs.extract(tree)
+    D = dist(lines=128)
+    D.prepare(U, {k: fs.columns(k) for k in fs.set_names})
+    copies = {"itself": tree, "renumbered": renumbered(tree, 1), "renumbered again": renumbered(tree, 2),
+              "translated by 100 m": tree.translated([100.0, 100.0, 100.0])}
+    for name, other in copies.items():
+        Um = fs.extract(other)
+        for k in U:  # the same rows, in another order
+            np.testing.assert_allclose(np.sort(Um[k], axis=0), np.sort(U[k], axis=0), rtol=0, atol=1e-9)
+        assert D.compute_per_set(Um, U) == {k: 0.0 for k in U}, name
+        test = D.permutation_test(Um, U, max_draws=100)
+        assert test.d0 == D.compute_sets(Um, U) == 0.0, name
+    # a tree against another: D0 of the test is the distance that is printed
+    other = renumbered(tree.translated([3.0, -2.0, 0.5]), 3)
+    if which == "pine3":
+        other = read_sample("pine_ruotsinkyla_1.mat")
+    fs1 = bf.component("features", "branch-segment", sets=sets, min_rows=0, small_sets="keep", orders=fs.settings.orders)
+    Um = fs1.extract(other)
+    assert D.permutation_test(Um, U, max_draws=100).d0 == pytest.approx(D.compute_sets(Um, U), rel=1e-12)
+
+
+def test_segment_lengths_are_summed_per_branch():
+    # L of a cylinder is the sum of the lengths before it on its own branch, whatever comes first
+    from bforest_features.branch_segment import along_branch
+    from conftest import hand_tree
+    t = hand_tree()
+    L = along_branch(t.branches, t.length[t.branches.cylinders])
+    np.testing.assert_array_equal(L, [0.0, 1.0, 2.0, 0.0, 0.8, 0.0, 0.0])

@@ -1,14 +1,15 @@
 """``bforest compare``: optimisers on equal evaluation budgets, repeated with different seeds."""
 from __future__ import annotations
 
-import hashlib
+import contextlib
 import json
 from pathlib import Path
 
 import numpy as np
 
 from ..config import config_to_dict, load_config, parse_config
-from .objective import build_target, evaluate_task, heldout_seeds, progress_bar, started_workers
+from .heldout import heldout_mean, point_key, score_points, scoring_fingerprint
+from .objective import build_target, heldout_seeds, progress_bar, started_workers
 from ..registry import component_class
 from .store import RunDirError, RunStore
 
@@ -34,50 +35,6 @@ def best_so_far(run_dir: Path) -> np.ndarray:
     return np.minimum.accumulate(np.array([e.distance if e.status == "ok" else np.inf for e in evs], float))
 
 
-def _scoring_fingerprint(cfg) -> str:
-    """What a held-out score depends on besides the point and the seeds: the target, the model
-    and the objective (not the optimiser, the budget, the run seed or the executor)."""
-    raw = config_to_dict(cfg)
-    part = {k: raw.get(k) for k in ("target", "ssm", "features", "distance", "objective")}
-    return hashlib.sha256(json.dumps(part, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-class _HeldoutCache:
-    """The held-out scores of a run's best points, kept in the run directory
-    (``heldout.json``: scoring fingerprint -> point -> model seeds -> distance and status), so a
-    later comparison, with or without ``--heldout``, loses none of them and a repeated
-    ``--heldout`` grows no tree twice."""
-
-    def __init__(self, run_dir: Path, fingerprint: str):
-        self.run_dir = Path(run_dir)
-        path = self.run_dir / "heldout.json"
-        try:
-            self.data = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
-        except (OSError, json.JSONDecodeError):
-            self.data = {}  # an unreadable cache only costs the scoring again; it is replaced on save
-        self.mine = self.data.setdefault(fingerprint, {})
-        self.changed = False
-
-    @staticmethod
-    def _seeds(seeds) -> str:
-        return json.dumps(list(map(int, seeds)))
-
-    def get(self, point: str, seeds) -> dict | None:
-        return self.mine.get(point, {}).get(self._seeds(seeds))
-
-    def put(self, point: str, seeds, hit: dict) -> None:
-        if hit["status"] == "timeout":  # the machine's load, not the point: grown again next time
-            return
-        self.mine.setdefault(point, {})[self._seeds(seeds)] = hit
-        self.changed = True
-
-    def save(self) -> None:
-        if self.changed:
-            with RunStore.open(self.run_dir) as store:
-                store.write_json("heldout.json", self.data)
-            self.changed = False
-
-
 def score_heldout(runs, cfg, target, sets: int, at=(), progress: bool = False) -> tuple[dict, int]:
     """How good each run's best points are on model seeds no fit saw.
 
@@ -93,8 +50,8 @@ def score_heldout(runs, cfg, target, sets: int, at=(), progress: bool = False) -
     to one dict per run, checkpoint (``"300"``, ..., ``"final"``) -> ``{"evaluations": index of
     the point + 1, "own": the fit's own distance, "heldout": mean over the sets, "failed": failed
     sets}`` (a checkpoint before the run's first grown tree is left out), and the model seeds per
-    set. The scores are kept in each run directory (``heldout.json``, for this target, model and
-    objective): scoring the same points and sets again grows no tree."""
+    set. The scores are kept in each run directory (its ``evaluations.sqlite``, for this target,
+    model and objective: :mod:`.heldout`): scoring the same points and sets again grows no tree."""
     points = {}  # (name, repeat, checkpoint) -> Evaluation
     for name, dirs in runs.items():
         for r, run in enumerate(dirs):
@@ -108,41 +65,17 @@ def score_heldout(runs, cfg, target, sets: int, at=(), progress: bool = False) -
         return out, 0
     per = len(next(iter(points.values())).seeds)
     seed_sets = heldout_seeds(int(cfg.seed), int(sets), per)
-    def key(e):
-        return json.dumps(e.params, sort_keys=True)
-    unique = {key(e): e.params for e in points.values()}  # a point best at several checkpoints is scored once
-    dirs_of = {}  # point key -> the run directories whose best points it is (their caches hold its scores)
+    unique = {point_key(e.params): e.params for e in points.values()}  # a point best at several checkpoints: once
+    dirs_of = {}  # point key -> the run directories whose best points it is (they keep its scores)
     for (name, r, _), e in points.items():
-        dirs_of.setdefault(key(e), set()).add(Path(runs[name][r]))
-    fingerprint = _scoring_fingerprint(cfg)
-    caches = {d: _HeldoutCache(d, fingerprint) for ds in dirs_of.values() for d in ds}
-    known, tasks = {}, []  # (point key, seeds) -> {"distance", "status"}; what is still to grow
-    for k in unique:
-        for s in seed_sets:
-            hit = next((h for d in dirs_of[k] if (h := caches[d].get(k, s)) is not None), None)
-            if hit is None:
-                tasks.append((k, s))
-            else:
-                known[(k, tuple(s))] = hit
-    bar = progress_bar(len(tasks), "held out", "eval", progress)
-    try:
-        if tasks:
-            with started_workers(cfg, target) as ex:
-                for i, r in ex.map_unordered(evaluate_task, [(unique[k], s) for k, s in tasks]):
-                    k, s = tasks[i]
-                    known[(k, tuple(s))] = hit = {"distance": float(r["distance"]), "status": r["status"]}
-                    for d in dirs_of[k]:
-                        caches[d].put(k, s, hit)
-                    bar.update(1)
-    finally:  # an interrupted scoring keeps what it grew
-        bar.close()
-        for c in caches.values():
-            c.save()
+        dirs_of.setdefault(point_key(e.params), set()).add(Path(runs[name][r]))
+    with contextlib.ExitStack() as stack:
+        open_ = {d: stack.enter_context(RunStore.open(d)) for ds in dirs_of.values() for d in ds}
+        known = score_points(unique, seed_sets, {k: [open_[d] for d in sorted(ds)] for k, ds in dirs_of.items()},
+                             scoring_fingerprint(cfg), lambda: started_workers(cfg, target), progress)
     for (name, r, cp), e in points.items():
-        rows = [known[(key(e), tuple(s))] for s in seed_sets]
-        out[name][r][cp] = {"evaluations": e.idx + 1, "own": float(e.distance),
-                            "heldout": float(np.mean([x["distance"] for x in rows])),
-                            "failed": sum(x["status"] != "ok" for x in rows)}
+        h, failed = heldout_mean(known, point_key(e.params), seed_sets)
+        out[name][r][cp] = {"evaluations": e.idx + 1, "own": float(e.distance), "heldout": h, "failed": failed}
     return out, per
 
 

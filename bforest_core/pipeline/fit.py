@@ -23,6 +23,7 @@ from .objective import (Target, _simulate_with_timeout, _Timeout, build_target, 
                         progress_bar, run_executor, set_summaries, spread_seeds, started_workers, summary_task)
 from ..registry import component
 from .checks import preflight
+from .heldout import select_answer
 from .rundir import holding_run_lock
 from .store import Evaluation, RunDirError, RunStore
 
@@ -200,6 +201,9 @@ class _Progress:
         self.bar.set_postfix_str(f"best={pr.best_f:.4f}" + (" (replay)" if replayed else ""), refresh=False)
 
     def close(self, reason: str = ""):
+        if getattr(self, "closed", False):
+            return
+        self.closed = True
         if reason:  # the bar ends with why the fit stopped (budget, the optimiser's own stop, ...)
             self.bar.set_postfix_str(f"{getattr(self.bar, 'postfix', '') or ''} stopped: {reason}".strip(), refresh=True)
         self.bar.close()
@@ -296,17 +300,20 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
         problem.seed_spread = evaluator.seed_spread
         problem.summaries = evaluator.summaries
         problem.target_summaries = set_summaries(tgt.U, list(tgt.U), trees=len(tgt.trees))
-        result = None
+        result = selection = None
         try:
             with started_workers(cfg, tgt, executor):
                 result = optimizer.minimize(problem)
+                bar.close(problem.stop_reason or getattr(result, "stop_reason", "") or "")
+                if store.count():
+                    selection = select_answer(cfg, store, executor, progress)
         finally:
             bar.close(problem.stop_reason or getattr(result, "stop_reason", "") or "")
             store.set_meta("elapsed", evaluator.elapsed())
         stop_reason = problem.stop_reason or result.stop_reason or "optimiser finished"
         if store.count() == 0:
             raise BayesForestError(f"{run_dir}: the optimiser evaluated nothing ({stop_reason})")
-        out = finish_fit(cfg, store, tgt, stop_reason, evaluator.elapsed(), result, ssm)
+        out = finish_fit(cfg, store, tgt, stop_reason, evaluator.elapsed(), result, ssm, selection)
         return FitResult(params=out["params"], distance=out["distance"], per_set=out["per_set"],
                          n_evaluations=store.count(), stop_reason=stop_reason, run_dir=run_dir,
                          history=store.log_records(), diagnostics=result.diagnostics, already_finished=finished)
@@ -338,18 +345,23 @@ def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
         pass
 
 
-def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: float, result, ssm) -> dict:
-    """Write ``best.json`` (the best logged evaluation, classical metrics of target and best
-    tree) and ``best_tree.txt`` (the best parameters regrown with the first model seed)."""
+def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: float, result, ssm,
+               selection: dict | None = None) -> dict:
+    """Write ``best.json`` (the answer: the best logged evaluation, or the candidate chosen on
+    held-out seeds when there is a ``selection``; classical metrics of target and answer tree)
+    and ``best_tree.txt`` (the answer regrown with its first model seed)."""
     from ..metrics import classical_metrics, relative_errors
     from ..io import write_tree
-    ev = store.best()
+    ev = store.evaluation(selection["chosen"]) if selection else store.best()
     target_metrics = classical_metrics(tgt.trees[0])
     best = {"params": ev.params, "distance": ev.distance, "per_set": ev.per_set, "status": ev.status,
             "evaluation": ev.idx, "seeds": ev.seeds, "stop_reason": stop_reason,
             "n_evaluations": store.count(), "seconds": seconds,
             "target_metrics": target_metrics, "optimizer": cfg.optimizer.kind,
             "diagnostics": _jsonable(store.write_diagnostics(getattr(result, "diagnostics", {}) or {}))}
+    if selection:
+        best["heldout_distance"] = next(c["heldout"] for c in selection["candidates"] if c["evaluation"] == ev.idx)
+        best["selection"] = selection
     from .posterior import posterior_outputs
     diag = getattr(result, "diagnostics", {}) or {}
     table = posterior_outputs(store.path, diag, list(diag.get("names") or ev.params))

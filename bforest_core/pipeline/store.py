@@ -3,7 +3,8 @@
 Layout (DESIGN.md)::
 
     RUN/config.toml          the resolved configuration
-    RUN/evaluations.sqlite   every evaluation, written as soon as it finishes
+    RUN/evaluations.sqlite   every evaluation, written as soon as it finishes; the held-out
+                             scores of candidate points (table ``heldout``), likewise
     RUN/best.json            best parameters, per-set distances, classical metrics
     RUN/target.txt           the target tree (TreeQSM text) when generated or for the report
     RUN/best_tree.txt        the best-fit tree
@@ -47,6 +48,14 @@ CREATE TABLE IF NOT EXISTS log (
     record TEXT NOT NULL            -- JSON: one optimiser generation/iteration record
 );
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT);
+CREATE TABLE IF NOT EXISTS heldout (
+    scoring   TEXT NOT NULL,        -- fingerprint of what a score depends on (target, model, objective)
+    point     TEXT NOT NULL,        -- JSON {name: value}, keys sorted
+    seeds     TEXT NOT NULL,        -- JSON list of held-out model seeds
+    distance  REAL NOT NULL,
+    status    TEXT NOT NULL,
+    PRIMARY KEY (scoring, point, seeds)
+);
 """
 
 
@@ -197,6 +206,13 @@ class RunStore:
     def replay(self) -> dict[int, Evaluation]:
         return {e.idx: e for e in self.evaluations()}
 
+    def evaluation(self, idx: int) -> Evaluation:
+        """The logged evaluation of index ``idx``."""
+        found = self._select("WHERE idx = ?", (int(idx),))
+        if not found:
+            raise RunDirError(f"{self.path}: no evaluation {idx} in the log")
+        return found[0]
+
     def best(self, before: int | None = None) -> Evaluation | None:
         """The evaluation of lowest distance, a grown tree before any failure (whose distance is
         the config's penalty, which need not exceed every real distance); with ``before``, among
@@ -204,6 +220,19 @@ class RunStore:
         found = self._select("WHERE idx < ? ORDER BY status != 'ok', distance, idx LIMIT 1",
                                  (2 ** 62 if before is None else int(before),))
         return found[0] if found else None
+
+    # ------------------------------------------------------------------ held-out scores
+    def heldout_scores(self, scoring: str) -> dict[tuple[str, str], dict]:
+        """Every kept held-out score of this scoring: ``(point, seeds)`` (both JSON text) ->
+        ``{"distance", "status"}``."""
+        rows = self._con.execute("SELECT point, seeds, distance, status FROM heldout WHERE scoring = ?",
+                                 (scoring,)).fetchall()
+        return {(r[0], r[1]): {"distance": r[2], "status": r[3]} for r in rows}
+
+    def add_heldout(self, scoring: str, point: str, seeds: str, distance: float, status: str) -> None:
+        """Keep one held-out score as soon as it is known (a killed scoring loses nothing)."""
+        self._con.execute("INSERT OR REPLACE INTO heldout VALUES (?,?,?,?,?)",
+                          (scoring, point, seeds, float(distance), status))
 
     # ------------------------------------------------------------------ optimiser log
     def log(self, record: dict) -> None:

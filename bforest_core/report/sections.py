@@ -29,8 +29,10 @@ def section_summary(doc: Document, v: RunView):
     b = v.best
     kind = cfg_kind(v, "ssm")
     if b is not None:
+        held = (f" (on held-out model seeds **{fmt(b['heldout_distance'])}**)"
+                if b.get("heldout_distance") is not None else "")
         doc.p(f"SSM **{kind}** fitted with **{b.get('optimizer', cfg_kind(v, 'optimizer'))}**: best distance "
-              f"**{fmt(b.get('distance'))}** after {b.get('n_evaluations', len(evs))} evaluations "
+              f"**{fmt(b.get('distance'))}**{held} after {b.get('n_evaluations', len(evs))} evaluations "
               f"({b.get('stop_reason', '')}); run time {seconds_text(b.get('seconds'))}.")
     else:
         best = v.store.best()
@@ -144,6 +146,7 @@ def section_fit(doc: Document, v: RunView, figs):
         if v.cfg is not None:
             ds = v.raw_config.get("distance", {})
             doc.p(f"Distance `{ds.get('kind')}` ({settings_text(ds)}); every number here uses these settings.")
+        section_selection(doc, b)
     tm, mm = v.target_metrics, v.model_metrics
     if tm and mm:
         from ..metrics import relative_errors
@@ -160,6 +163,26 @@ def section_fit(doc: Document, v: RunView, figs):
         doc.h(3, "Data sets: data against model")
         for rel_path, cap in figs.made["sets"]:
             doc.fig(rel_path, cap)
+
+
+def section_selection(doc: Document, b: dict) -> None:
+    """The candidates re-scored on held-out model seeds (``[select]``): own and held-out distance
+    of each, the answer marked, so the reader sees how much of a best distance was the seeds' luck."""
+    sel = b.get("selection")
+    if not sel:
+        return
+    doc.h(3, "The answer, chosen on held-out model seeds")
+    own_best = min(sel["candidates"], key=lambda c: (c["own"], c["evaluation"]))["evaluation"]
+    doc.p(f"The {len(sel['candidates'])} best distinct points of the search were grown again with "
+          f"{sel['sets']} sets of {sel['model_seeds_per_set']} model seeds that no evaluation used; the answer "
+          f"is the one of lowest held-out distance (evaluation {sel['chosen']}, held out "
+          f"**{fmt(b.get('heldout_distance'))}**, own {fmt(b.get('distance'))})"
+          + ("." if sel["chosen"] == own_best else
+             f", not the point of lowest own distance (evaluation {own_best}), whose best was partly its "
+             "seeds' luck."))
+    rows = [[c["evaluation"], c["own"], c["heldout"], c["heldout"] - c["own"], c["failed"],
+             "answer" if c["evaluation"] == sel["chosen"] else ""] for c in sel["candidates"]]
+    doc.table(["evaluation", "own distance", "held-out distance", "held out - own", "failed sets", ""], rows)
 
 
 def section_optimizer(doc: Document, v: RunView, figs):

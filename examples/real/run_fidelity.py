@@ -1,20 +1,27 @@
-"""Fidelity of the real-tree recipes: fit each recipe to each pine, grow clones, and check them.
+"""Fidelity of the real-tree recipes over pines and run seeds: fit, grow clones, check, verdict.
 
-For every recipe (``pine_sot.toml``, ``pine_lignum.toml``) and every pine of the Ruotsinkylä
-stand, the recipe is used exactly as a user would: only its ``[target] qsm`` line changes. The
-script fits, grows 30 clones, and records
+For every recipe (``pine_sot.toml``, ``pine_lignum.toml``), every pine of the Ruotsinkylä stand
+and every run seed, the recipe is used exactly as a user would: only its ``[target] qsm`` line
+and its run ``seed`` change. The script fits, grows 30 clones, and records
 
 * the fidelity table (height, DBH, crown spread, crown base height, first-order branch count, ...:
   the clones' mean against the pine);
 * a fixed judge the recipes do not optimise: S¹ and B¹, sliced KS, z-score, 256 gp2 lines,
   subtree topology; the median judge distance from the pine to its clones beside the judge
   distance from the pine to the other pines of the stand;
-* the wall time of the fit;
-* a figure of the pine beside 5 of its clones on one scale.
+* the wall time of the fit and the answer's distances (own and, with ``[select]``, held out);
+* a verdict per fit against :data:`ACCEPT` (height 7.5 %, DBH 20 %, crown spread 25 %, crown
+  base and first-order branches 30 %, judge no larger than the median stand-mate distance), and
+  per pine the spread of the answer's held-out distance over the run seeds (max/min <= 1.15);
+* figures of the pine beside 5 clones on one scale (with ``--figures``: the best and the worst
+  run seed of each pine and recipe, by the judge).
 
 Usage (from the repository root; the pines are read from ../shared/data/qsm)::
 
-    .venv/bin/python examples/real/run_fidelity.py --out runs/fidelity [--recipes sot lignum] [--pines 3 1 2]
+    .venv/bin/python examples/real/run_fidelity.py --out runs/fidelity [--recipes sot lignum] [--pines 3 1 2] [--seeds 1 2 3 4 5]
+
+Finished fits are kept in ``OUT/fidelity.json`` and not refitted (``--again`` refits them), so a
+stopped study continues where it stopped.
 
 ``--recipes`` also takes the path of a recipe file (``my_pine.toml``): a variant is checked on the
 three pines without editing the shipped recipe.
@@ -43,8 +50,12 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 DATA = ROOT.parent / "shared" / "data" / "qsm"
 PINES = {k: DATA / f"pine_ruotsinkyla_{k}.mat" for k in (1, 2, 3)}
-#: the limits of the acceptance (pine 3) and the relaxed ones (the other pines)
+#: a forester's tolerances, which the LIGNUM recipe's summary weights are the inverse of
 LIMITS = {"height": 0.05, "dbh": 0.15, "crown_spread": 0.20, "crown_base_height": 0.25, "n_branches_o1": 0.25}
+#: what every fit of a recipe must meet, on every pine and run seed (docs/validation.md, section 4)
+ACCEPT = {"height": 0.075, "dbh": 0.20, "crown_spread": 0.25, "crown_base_height": 0.30, "n_branches_o1": 0.30}
+#: the largest ratio of the answers' held-out distances over the run seeds of one pine
+SPREAD = 1.15
 
 
 def judge():
@@ -62,49 +73,64 @@ def judge_distance(tree_model, tree_data) -> float:
     return float(dist.compute_sets(fs.extract(tree_model), Ud))
 
 
-def recipe_for(recipe: Path, pine: Path, out: Path) -> Path:
-    """The recipe with only its [target] qsm line changed (written into the run's folder)."""
+def recipe_for(recipe: Path, pine: Path, out: Path, seed: int) -> Path:
+    """The recipe with only its [target] qsm line and its run seed changed (written into OUT)."""
     text = recipe.read_text()
-    new, n = re.subn(r'(?m)^qsm\s*=\s*".*"$', f'qsm = "{pine.as_posix()}"', text)
+    new, n = re.subn(r'(?m)^qsm\s*=\s*".*"$', f'qsm = "{pine.resolve().as_posix()}"', text)
     if n != 1:
         raise SystemExit(f"{recipe}: expected exactly one 'qsm = ...' line, found {n}")
+    cut = re.search(r"(?m)^\[", new)
+    head, tail = (new[:cut.start()], new[cut.start():]) if cut else (new, "")
+    head, n = re.subn(r"(?m)^seed\s*=\s*\d+", f"seed = {int(seed)}", head, count=1)
+    new = head + tail
+    if n != 1:
+        raise SystemExit(f"{recipe}: expected a top-level 'seed = N' line before the first [section]")
     out.mkdir(parents=True, exist_ok=True)
-    p = out / f"{recipe.stem}_{pine.stem}.toml"
+    p = out / f"{recipe.stem}_{pine.stem}_seed{seed}.toml"
     p.write_text(new)
     return p
 
 
-def run_one(recipe: Path, k: int, out: Path, n_clones: int, figures: bool) -> dict:
-    run = out / f"{recipe.stem}_pine{k}"
-    cfg_path = recipe_for(recipe, PINES[k], out)
+def run_one(recipe: Path, k: int, seed: int, out: Path, n_clones: int) -> dict:
+    run = out / f"{recipe.stem}_pine{k}_seed{seed}"
+    cfg_path = recipe_for(recipe, PINES[k], out, seed)
     t0 = time.monotonic()
     res = bf.fit(bf.load_config(cfg_path), run, overwrite=True, progress=False)
     fit_seconds = time.monotonic() - t0
+    best = json.loads((run / "best.json").read_text())
     s = clones(run, n=n_clones, replace=True, progress=False)
     fid = {r["statistic"]: r for r in s["fidelity"]["table"]}
     pine = bf.read_qsm(PINES[k])
     clone_trees = [bf.read_qsm(run / "clones" / r["file"]) for r in s["rows"] if r["status"] == "ok"]
     d_clones = [judge_distance(t, pine) for t in clone_trees]
     d_mates = {j: judge_distance(bf.read_qsm(PINES[j]), pine) for j in PINES if j != k}
-    row = {"recipe": recipe.stem, "pine": k, "fit_seconds": fit_seconds, "evaluations": res.n_evaluations,
-           "best_distance": res.distance, "params": res.params, "stop_reason": res.stop_reason,
+    row = {"recipe": recipe.stem, "pine": k, "seed": seed, "run": str(run), "fit_seconds": fit_seconds,
+           "evaluations": res.n_evaluations, "best_distance": res.distance,
+           "heldout_distance": best.get("heldout_distance"), "params": res.params, "stop_reason": res.stop_reason,
            "clones_ok": s["ok"], "errors": {name: fid[name]["error"] for name in LIMITS if name in fid},
            "target": {name: fid[name]["target"] for name in LIMITS if name in fid},
            "clones_mean": {name: fid[name]["mean"] for name in LIMITS if name in fid},
            "judge_clones_median": float(np.median(d_clones)) if d_clones else None,
            "judge_stand_mates": d_mates, "warnings": s["fidelity"]["warnings"],
            "flags": s["fidelity"]["flags"]}
-    if figures and clone_trees:
-        shown = [(f"clone {i}", t) for i, t in enumerate(clone_trees[:5])]
-        clones_figure(pine, shown, ROOT / "docs" / "img" / "validation" / f"fidelity_{recipe.stem}_pine{k}.png",
-                      title=f"Pine {k} (left) and 5 clones of the {recipe.stem} recipe, one scale")
     return row
 
 
+def figure(row: dict, which: str) -> str:
+    """The pine beside 5 clones of one fit, at one scale; returns the image's path in docs/."""
+    run, k = Path(row["run"]), row["pine"]
+    summary = json.loads((run / "clones" / "summary.json").read_text())
+    trees = [bf.read_qsm(run / "clones" / r["file"]) for r in summary["rows"] if r["status"] == "ok"][:5]
+    name = f"img/validation/fidelity_{row['recipe']}_pine{k}_{which}.png"
+    clones_figure(bf.read_qsm(PINES[k]), [(f"clone {i}", t) for i, t in enumerate(trees)], DOC.parent / name,
+                  title=f"Pine {k} (left) and 5 clones, {row['recipe']} recipe, run seed {row['seed']} "
+                        f"({which} of the run seeds by the judge), one scale")
+    return name
+
+
 def verdict(row: dict) -> str:
-    relax = 1.0 if row["pine"] == 3 else 1.5
     bad = [f"{k} {100 * v:+.0f}%" for k, v in row["errors"].items()
-           if v is None or abs(v) > relax * LIMITS[k]]
+           if v is None or abs(v) > ACCEPT[k]]
     mates = np.median(list(row["judge_stand_mates"].values()))
     if row["judge_clones_median"] is not None and row["judge_clones_median"] > mates:
         bad.append(f"judge {row['judge_clones_median']:.3f} > stand-mates {mates:.3f}")
@@ -118,45 +144,67 @@ NAMES = {"height": "height", "dbh": "DBH", "crown_spread": "crown spread",
          "crown_base_height": "crown base", "n_branches_o1": "1st-order branches"}
 
 
-def doc_section(results: dict) -> str:
+def spread(results: dict) -> dict[tuple[str, int], tuple[float, int]]:
+    """(recipe, pine) -> (max/min of the answers' held-out distances over its run seeds, seeds)."""
+    by: dict[tuple[str, int], list[float]] = {}
+    for r in results.values():
+        if r.get("heldout_distance") is not None:
+            by.setdefault((r["recipe"], r["pine"]), []).append(r["heldout_distance"])
+    return {k: (max(v) / min(v), len(v)) for k, v in by.items()}
+
+
+def doc_section(results: dict, figures: dict | None = None) -> str:
     """The fidelity section of docs/validation.md from the rows of fidelity.json."""
-    head = ("| recipe | pine | fit | evaluations | " + " | ".join(NAMES.values())
+    head = ("| recipe | pine | run seed | fit | distance own / held out | " + " | ".join(NAMES.values())
             + " | judge: clones (median) | judge: stand-mates | verdict |")
-    lines = [MARKER, "", "## 4. Real trees: clones that look like the scanned pine", "",
+    lines = [MARKER, "", "## 4. Real trees: clones that look like the scanned pine, over run seeds", "",
              "The real-tree recipes `examples/real/pine_sot.toml` and `examples/real/pine_lignum.toml` "
-             "fitted to each pine of the Ruotsinkylä stand with only the `[target] qsm` line changed; "
-             "30 clones per fit. Errors are those of the clones' mean against the QSM; branch counts "
-             "leave out branches thinner than 1 cm at the base in both (the scan's detection limit). "
-             "The judge is a distance no recipe optimises (S¹ and B¹, sliced KS, z-score, 256 gp2 lines, "
-             "subtree topology): the median over clones of their distance to the pine, beside the "
-             "pine's distance to the other two pines. Limits: height 5 %, DBH 15 %, crown spread 20 %, "
-             "crown base and first-order branches 25 % on pine 3; half as much again on pines 1 and 2. "
-             "Fit times are the wall times of these runs on the 2-core machine (shared with other jobs "
-             "when they were made: quiet-machine timings are in performance.md).", "",
-             "```", ".venv/bin/python examples/real/run_fidelity.py --out runs/fidelity --figures --doc", "```",
-             "", head, "|" + "---|" * (head.count("|") - 1)]
-    for key in sorted(results, key=lambda k: (results[k]["recipe"], [3, 1, 2].index(results[k]["pine"]))):
+             "fitted to each pine of the Ruotsinkylä stand with only the `[target] qsm` line and the run "
+             "`seed` changed; 30 clones per fit. Errors are those of the clones' mean against the QSM; "
+             "branch counts leave out branches thinner than 1 cm at the base in both (the scan's detection "
+             "limit). The judge is a distance no recipe optimises (S¹ and B¹, sliced KS, z-score, 256 gp2 "
+             "lines, subtree topology): the median over clones of their distance to the pine, beside the "
+             "pine's distance to the other two pines. A fit meets the limits when height is within 7.5 %, "
+             "DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %, and the judge is no "
+             "larger than the median of the stand-mate distances; every fit must. The answer of a fit is "
+             "chosen on held-out model seeds (`[select]`); its held-out distance must vary by at most 15 % "
+             f"(max/min <= {SPREAD}) over the run seeds of one pine. Fit times are wall times on the 2-core "
+             "machine, shared with other work when these runs were made (quiet-machine timings: "
+             "performance.md).", "",
+             "```", ".venv/bin/python examples/real/run_fidelity.py --out runs/fidelity --seeds 1 2 3 4 5 --figures --doc",
+             "```", "", head, "|" + "---|" * (head.count("|") - 1)]
+    order = lambda k: (results[k]["recipe"], [3, 1, 2].index(results[k]["pine"]), results[k].get("seed", 1))
+    for key in sorted(results, key=order):
         r = results[key]
         errs = " | ".join("–" if r["errors"].get(n) is None else f"{100 * r['errors'][n]:+.1f} %" for n in NAMES)
         mates = ", ".join(f"{v:.3f}" for v in r["judge_stand_mates"].values())
         judge = "–" if r["judge_clones_median"] is None else f"{r['judge_clones_median']:.3f}"
-        lines.append(f"| {r['recipe']} | {r['pine']} | {r['fit_seconds']:.0f} s | {r['evaluations']} | {errs} | "
-                     f"{judge} | {mates} | {verdict(r)} |")
+        held = "–" if r.get("heldout_distance") is None else f"{r['heldout_distance']:.4f}"
+        lines.append(f"| {r['recipe']} | {r['pine']} | {r.get('seed', 1)} | {r['fit_seconds']:.0f} s | "
+                     f"{r['best_distance']:.4f} / {held} | {errs} | {judge} | {mates} | {verdict(r)} |")
+    n_ok = {}
+    for r in results.values():
+        n = n_ok.setdefault(r["recipe"], [0, 0])
+        n[0] += verdict(r) == "meets the limits"
+        n[1] += 1
+    lines += ["", "| recipe | fits meeting the limits |", "|---|---|"]
+    lines += [f"| {k} | {v[0]} of {v[1]} |" for k, v in sorted(n_ok.items())]
+    lines += ["", "| recipe | pine | run seeds | held-out distance of the answer, max/min | within 15 % |",
+              "|---|---|---|---|---|"]
+    for (rec, k), (ratio, n) in sorted(spread(results).items()):
+        lines.append(f"| {rec} | {k} | {n} | {ratio:.3f} | {'yes' if ratio <= SPREAD else 'no'} |")
     lines.append("")
-    for key in sorted(results):
-        r = results[key]
-        img = f"img/validation/fidelity_{r['recipe']}_pine{r['pine']}.png"
-        if (DOC.parent / img).exists():
-            lines += [f"![pine {r['pine']} and 5 clones, {r['recipe']}]({img})", ""]
+    for (rec, k, which), img in sorted((figures or {}).items()):
+        lines += [f"![pine {k}: 5 clones of the {which} run seed, {rec}]({img})", ""]
     return "\n".join(lines)
 
 
-def write_doc(results: dict) -> None:
+def write_doc(results: dict, figures: dict | None = None) -> None:
     text = DOC.read_text(encoding="utf-8")
     keep = text.split(MARKER)[0].rstrip() + "\n\n"
     notes = text.split(MARKER)[1].split("<!-- notes -->", 1) if MARKER in text else []
     tail = ("\n<!-- notes -->" + notes[1]) if len(notes) == 2 else ""
-    DOC.write_text(keep + doc_section(results) + tail, encoding="utf-8")
+    DOC.write_text(keep + doc_section(results, figures) + tail, encoding="utf-8")
     print(f"wrote {DOC}")
 
 
@@ -167,8 +215,11 @@ def main(argv=None) -> int:
                     help="recipes: sot, lignum (examples/real/pine_<name>.toml) or the path of your own .toml")
     ap.add_argument("--pines", nargs="*", type=int, default=[3, 1, 2],
                     help="pines of the stand (1, 2, 3); none with --doc only rewrites the page")
+    ap.add_argument("--seeds", nargs="+", type=int, default=[1], help="run seeds of each recipe and pine")
     ap.add_argument("--clones", type=int, default=30, help="clones per fit")
-    ap.add_argument("--figures", action="store_true", help="write docs/img/validation/fidelity_*.png")
+    ap.add_argument("--again", action="store_true", help="refit fits already in OUT/fidelity.json")
+    ap.add_argument("--figures", action="store_true",
+                    help="write docs/img/validation/fidelity_<recipe>_pine<k>_{best,worst}.png")
     ap.add_argument("--doc", action="store_true", help="rewrite the fidelity section of docs/validation.md")
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore", category=RuntimeWarning)
@@ -181,16 +232,37 @@ def main(argv=None) -> int:
             raise SystemExit(f"run_fidelity: no recipe file {recipe}")
         name = recipe.stem.removeprefix("pine_")
         for k in args.pines:
-            row = run_one(recipe, k, out, args.clones, args.figures)
-            results[f"{name}_pine{k}"] = row
-            result_path.write_text(json.dumps(results, indent=2))
-            errs = ", ".join(f"{key} {100 * v:+.1f}%" for key, v in row["errors"].items() if v is not None)
-            print(f"{name} pine {k}: fit {row['fit_seconds']:.0f} s ({row['evaluations']} evaluations); {errs}; "
-                  f"judge clones {row['judge_clones_median']:.3f} vs stand-mates "
-                  f"{', '.join(f'{v:.3f}' for v in row['judge_stand_mates'].values())} -> {verdict(row)}",
-                  flush=True)
+            for seed in args.seeds:
+                key = f"{name}_pine{k}_seed{seed}"
+                if key in results and not args.again:
+                    continue
+                row = run_one(recipe, k, seed, out, args.clones)
+                results[key] = row
+                result_path.write_text(json.dumps(results, indent=2))
+                errs = ", ".join(f"{key} {100 * v:+.1f}%" for key, v in row["errors"].items() if v is not None)
+                held = row["heldout_distance"]
+                print(f"{name} pine {k} seed {seed}: fit {row['fit_seconds']:.0f} s ({row['evaluations']} "
+                      f"evaluations), distance {row['best_distance']:.4f}"
+                      + (f" (held out {held:.4f})" if held is not None else "") + f"; {errs}; judge clones "
+                      f"{row['judge_clones_median']:.3f} vs stand-mates "
+                      f"{', '.join(f'{v:.3f}' for v in row['judge_stand_mates'].values())} -> {verdict(row)}",
+                      flush=True)
+    for (rec, k), (ratio, n) in sorted(spread(results).items()):
+        print(f"{rec} pine {k}: held-out distance of the answer over {n} run seeds, max/min {ratio:.3f} "
+              f"({'within' if ratio <= SPREAD else 'NOT within'} {SPREAD})")
+    figures = {}
+    if args.figures:  # the best and the worst run seed of each recipe and pine, by the judge
+        groups: dict[tuple[str, int], list[dict]] = {}
+        for r in results.values():
+            if r.get("judge_clones_median") is not None and Path(r.get("run", "")).is_dir():
+                groups.setdefault((r["recipe"], r["pine"]), []).append(r)
+        for (rec, k), rows in groups.items():
+            if len(rows) > 1:
+                rows.sort(key=lambda r: r["judge_clones_median"])
+                for which, r in (("best", rows[0]), ("worst", rows[-1])):
+                    figures[(rec, k, which)] = figure(r, which)
     if args.doc:
-        write_doc(results)
+        write_doc(results, figures)
     return 0
 
 

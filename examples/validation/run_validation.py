@@ -229,6 +229,31 @@ which fits (or resumes) each run into `runs/validation/<name>/` and rewrites thi
 run: `bforest fit examples/validation/<name>.toml -o runs/validation/<name>`. Distances: sliced KS,
 256 gp2 lines, z-scored on the data side, circular angles, `subtree` topology on both sides.
 
+## What the distance resolves
+
+The sliced distance compares trees through their tables after z-scoring each column on the data
+tree. Before projecting, every z-scored value is snapped to a grid of 2⁻²⁰ (about 10⁻⁶) of its
+column's spread and every direction component to a grid of 2⁻²⁰
+(`plugins/bforest_sliced/grid.py`): for the pines' S¹ tables that is 2·10⁻⁸ m of radius, 2 µm of
+position along a branch and 3·10⁻⁵ degrees of angle, far below what a scan or a QSM measures. A
+projection of such values is a sum of exact multiples of 2⁻⁴⁰; while it stays below 2¹³ in size
+(a row whose z-scores add up to less than 8 192) float64 holds every partial sum exactly, so the
+result does not depend on the order a BLAS kernel adds in. Equal rows therefore give equal
+projections on every CPU, ties stay ties, and the exact KS statistic (which turns any difference
+between otherwise equal values into a step of about 1/n) sees no round-off. Positions along a
+branch (L, L_t) are summed per branch from its base, so a renumbered tree has the same values to
+the bit. A tree against itself, against a copy with its cylinders renumbered and against a copy
+moved by 100 m gives 0 on every set (tests on pine 3 and the hand-built tree;
+`tests/test_sliced.py`), and the permutation test's D0 is the printed distance. Before, pine 3
+against a renumbered copy gave D(S¹) = 0.0028 and D(B²) = 0.008, a copy moved by 100 m D(B¹) =
+0.015, and the test printed D0 = 0.0012 for pine 3 against itself. Recorded distances did not
+move: the distance atlas regenerated with the grid is identical to three decimals, and the known
+answers of the spec's hand-built tree are unchanged. What the grid does not remove: a
+`.mat` and its TreeQSM text export, rounded to 0.1 mm by TreeQSM's exporter, still differ
+(`itsme_qsm_tree_v240.mat` against `itsme_tree_v240_cylinder.txt`: D(S¹) = 0.0035, D(B¹) = 0.051,
+one step of 1/20 with 20 branches), since a rounding of 10⁻⁴ m is far above the grid: that is a
+real difference in the data, not round-off.
+
 ## 1. Synthetic recovery, simplified LIGNUM (Silva Fennica Table 2 protocol)
 
 Target: LIGNUM with preset `sf_synthetic` (Perttunen set, R = 30, S_max = 10, S_L = 0.55 m,

@@ -27,7 +27,7 @@ from pydantic import Field, field_validator
 from bforest_core.errors import ConfigError
 from bforest_core.interfaces import ComponentSettings, FeatureSet
 
-__all__ = ["BranchSegmentFeatures", "SetSpec", "parse_set", "branch_table", "segment_table",
+__all__ = ["BranchSegmentFeatures", "SetSpec", "parse_set", "branch_table", "segment_table", "along_branch",
            "azimuth_frame", "B_COLUMNS", "S_COLUMNS"]
 
 B_COLUMNS = ("beta", "alpha", "L_t", "R_f", "L_a")
@@ -162,6 +162,28 @@ def _segment_angles(p: np.ndarray, t: np.ndarray):
     return gamma, zeta
 
 
+def along_branch(bt, ln: np.ndarray) -> np.ndarray:
+    """Distance from each branch's base to the start of each of its cylinders (m).
+
+    ``ln`` holds the cylinder lengths in the order of ``bt.cylinders`` (branch by branch, base
+    to tip). Each branch is summed on its own from its base, one cylinder after another, so the
+    value of a cylinder is the same float whatever the numbering of the tree (a difference of
+    one cumulative sum over the whole tree would carry the round-off of every branch before it).
+    Vectorised over branches: one step per position along the longest branch.
+    """
+    L = np.zeros(ln.shape[0])
+    if not ln.size:
+        return L
+    order = np.argsort(-bt.n_cyl, kind="stable")
+    first = bt.ptr[:-1][order]
+    counts = bt.n_cyl[order]                       # longest branch first
+    active = np.searchsorted(-counts, -np.arange(int(counts[0])), side="left")  # branches longer than k
+    for k in range(1, int(counts[0])):
+        i = first[:active[k]] + k
+        L[i] = L[i - 1] + ln[i - 1]
+    return L
+
+
 def segment_table(tree):
     """The segment features of every cylinder, rows in branch order.
 
@@ -179,10 +201,7 @@ def segment_table(tree):
     """
     bt = tree.branches
     rows = bt.cylinders
-    ln = tree.length[rows]
-    cs = np.cumsum(ln)
-    before = cs - ln
-    L = before - np.repeat(before[bt.ptr[:-1]], bt.n_cyl)
+    L = along_branch(bt, tree.length[rows])
     gamma = np.zeros(rows.size)
     zeta = np.zeros(rows.size)
     inner = tree.position_in_branch[rows] > 0
@@ -227,7 +246,8 @@ def branch_table(tree, clip_la: bool = True, seg_L: np.ndarray | None = None):
     v, w = azimuth_frame(ap)
     alpha = np.degrees(np.arctan2(_rowdot(af, w), _rowdot(af, v)))
     alpha = np.where(alpha <= -180.0, 180.0, alpha)  # range (-180, 180]
-    Lt = np.bincount(tree.branch, weights=tree.length, minlength=nb)[1:]
+    last = bt.cylinders[bt.ptr[2:] - 1]             # tip cylinder of each lateral branch
+    Lt = seg_L[last] + tree.length[last]            # summed base to tip, as L
     Rf = tree.radius[f]
     proj = _rowdot(tree.start[f] - tree.start[p], ap)
     if clip_la:

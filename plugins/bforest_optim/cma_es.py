@@ -6,7 +6,10 @@ their continuous relaxation (the box widened by half a step at each end, so ever
 gets the same share) and the point is rounded to the nearest whole number when it is evaluated;
 repeats are answered by the fit's cache. Each generation is one batch through
 ``problem.evaluate`` (so it runs on the executor in parallel). Restarts double the population
-(IPOP-CMA-ES, Auger & Hansen 2005). Everything is seeded from ``problem.seed``: given the same
+(IPOP-CMA-ES, Auger & Hansen 2005). ``starts`` > 1 races several independent runs from distinct
+points of the design with successive halving (:class:`_Race`): on a noisy distance one run can
+settle in a poor basin on one machine and a good one on another; racing several keeps the answer
+from hinging on one trajectory. Everything is seeded from ``problem.seed``: given the same
 returned values the run asks for the same points, so a resumed fit replays.
 
 ``surrogate = "lq"`` is lq-CMA-ES (Hansen 2019, GECCO; cma's ``fitness_models.LQModel``): a
@@ -46,6 +49,10 @@ class CMASettings(OptimizerSettings):
     init_design: int = Field(0, ge=0, description="points of a scrambled Sobol' design over the initial box "
                              "evaluated first; CMA-ES then starts at the best of them instead of the box's "
                              "centre (0: no design)")
+    starts: int = Field(1, ge=1, description="independent CMA-ES runs raced against each other: they start at "
+                        "the best distinct points of the init_design (then at Sobol' points of the initial box), "
+                        "take turns generation by generation, and successive halving drops the worse half at "
+                        "equal shares of the budget, so the answer does not hinge on one trajectory (1: one run)")
     surrogate: Literal["none", "lq"] = Field("none", description="'lq': lq-CMA-ES, a quadratic regression of "
                                              "the distance adds its optimum to every generation and, where it "
                                              "ranks points as the truth does, stands in for growing them (see "
@@ -60,11 +67,12 @@ class CMASettings(OptimizerSettings):
 
 
 class CMAES(Optimizer):
-    """Covariance matrix adaptation evolution strategy with IPOP restarts.
+    """Covariance matrix adaptation evolution strategy with IPOP restarts and raced starts.
 
     Log records (one per generation): ``generation``, ``run`` (restart index), ``population``,
-    ``sigma`` (cma's step size in the unit cube), ``mean``, ``median``, ``best``; with an
-    ``init_design``, generation 0 (run -1, no sigma) is the design.
+    ``sigma`` (cma's step size in the unit cube), ``mean``, ``median``, ``best``; with
+    ``starts`` > 1 also ``start``; with an ``init_design``, generation 0 (run -1, no sigma) is the
+    design.
     """
 
     name = "cma"
@@ -76,10 +84,9 @@ class CMAES(Optimizer):
         if s.max_generations is None or s.surrogate != "none":
             return None
         pop = s.population or 4 + int(3 * math.log(dim))
-        return s.init_design + sum(pop * 2 ** r * s.max_generations for r in range(s.restarts + 1))
+        return s.init_design + s.starts * sum(pop * 2 ** r * s.max_generations for r in range(s.restarts + 1))
 
     def minimize(self, problem: Problem) -> OptimizeResult:
-        import cma
         s: CMASettings = self.settings
         ev = BoxEvaluator(problem)
         log = History(problem)
@@ -88,12 +95,11 @@ class CMAES(Optimizer):
         ilo, ihi = ev.relaxed_bounds("init")
         x0 = ((ilo + ihi) / 2 - lo) / (hi - lo)
         pop0 = s.population or 4 + int(3 * math.log(ev.dim))
-        surrogate = _LQSurrogate(s.surrogate_batch) if s.surrogate == "lq" else None
 
         def grow(U):  # unit cube -> parameters -> distances
             return ev(lo + U * (hi - lo))
 
-        reason, generation, runs = "cma stopped", 0, []
+        X = f = None
         if s.init_design:
             # generation 0: a space-filling look at the initial box, so the search starts in its
             # best region rather than at a centre that may be poor (the points count in the budget)
@@ -102,34 +108,148 @@ class CMAES(Optimizer):
             log(ev, generation=0, run=-1, population=len(X), sigma=None, **finite_stats(f, "mean", "median"))
             if np.isfinite(f).any():
                 x0 = (X[int(np.argmin(f))] - lo) / (hi - lo)
-        for run in range(s.restarts + 1):
-            opts = {"bounds": [0.0, 1.0], "popsize": pop0 * 2 ** run, "seed": int(problem.seed) * 1009 + run + 1,
-                    "verbose": -9, "tolfun": s.tolfun, "tolx": 1e-6}
-            if s.max_generations is not None:
-                opts["maxiter"] = s.max_generations
-            es = cma.CMAEvolutionStrategy(x0, s.sigma0, opts)
-            while not es.stop() and not ev.stopped:
-                U = np.asarray(es.ask())
-                f, extra = surrogate(U, grow) if surrogate else (grow(U), {})
-                finite = f[np.isfinite(f)]
-                worst = finite.max() + 1.0 if finite.size else 1e6
-                es.tell(list(U), list(np.where(np.isfinite(f), f, worst)))
-                if surrogate and surrogate.model.size > ev.dim:
-                    es.inject([np.clip(surrogate.model.xopt, 0.0, 1.0)])  # the model's optimum, as lq-CMA-ES
+        if s.starts > 1:
+            U0 = None if X is None else (X - lo) / (hi - lo)
+            starts = _start_points(U0, f, s.starts, ilo, ihi, lo, hi, int(problem.seed))
+        else:
+            starts = [x0]
+        slots = [_Start(j, u, _LQSurrogate(s.surrogate_batch) if s.surrogate == "lq" else None)
+                 for j, u in enumerate(starts)]
+        race = _Race(slots, problem)
+        reason, generation = "cma stopped", 0
+        while race.active and not ev.stopped:
+            for slot in list(race.active):
+                if slot not in race.active:  # dropped by the race earlier in this round
+                    continue
+                if slot.es is None or slot.es.stop():
+                    if slot.es is not None:
+                        slot.finish()
+                        if slot.run >= s.restarts:
+                            race.active.remove(slot)
+                            continue
+                        slot.run += 1
+                    slot.es = self._es(slot, pop0, int(problem.seed))
                 generation += 1
-                log(ev, generation=generation, run=run, population=len(U), sigma=float(es.sigma),
-                    **extra, **finite_stats(f, "mean", "median"))
+                self._generation(slot, grow, ev, log, generation)
                 if stop(ev):
                     reason = stop.reason
                     break
-            runs.append({"run": run, "population": pop0 * 2 ** run, "generations": int(es.countiter),
-                         "stop": {k: (float(v) if isinstance(v, (int, float)) else str(v))
-                                  for k, v in dict(es.stop()).items()}})
+                if ev.stopped:
+                    break
+                race.halve()
             if stop.reason or ev.stopped:
                 break
-            reason = f"cma converged ({', '.join(dict(es.stop())) or 'stopped'}) after {run + 1} run(s)"
-        return make_result(ev, log, reason, {"generations": generation, "runs": runs,
-                                             "seed_noise": stop.noise})
+        else:
+            done = [sl for sl in slots if sl.runs]
+            last = dict(done[-1].es.stop()) if done and done[-1].es is not None else {}
+            reason = (f"cma converged ({', '.join(last) or 'stopped'}) after "
+                      f"{sum(len(sl.runs) for sl in slots)} run(s)")
+        for slot in slots:
+            if slot.es is not None and (not slot.runs or slot.runs[-1]["run"] != slot.run):
+                slot.finish()
+        runs = [r for sl in slots for r in sl.runs]
+        diag = {"generations": generation, "runs": runs, "seed_noise": stop.noise}
+        if s.starts > 1:
+            diag["starts"] = [{"start": sl.j, "x0": (lo + sl.x0 * (hi - lo)).tolist(), "best": sl.best_f,
+                               "dropped_after": sl.dropped_after} for sl in slots]
+        return make_result(ev, log, reason, diag)
+
+    def _es(self, slot: "_Start", pop0: int, seed: int):
+        import cma
+        s = self.settings
+        opts = {"bounds": [0.0, 1.0], "popsize": pop0 * 2 ** slot.run, "seed": seed * 1009 + slot.run + 1 + 7919 * slot.j,
+                "verbose": -9, "tolfun": s.tolfun, "tolx": 1e-6}
+        if s.max_generations is not None:
+            opts["maxiter"] = s.max_generations
+        return cma.CMAEvolutionStrategy(slot.x0, s.sigma0, opts)
+
+    def _generation(self, slot: "_Start", grow, ev: BoxEvaluator, log: History, generation: int) -> None:
+        """One generation of one start: ask, grow (or let the surrogate rank), tell, log."""
+        es, surrogate = slot.es, slot.surrogate
+        U = np.asarray(es.ask())
+        f, extra = surrogate(U, grow) if surrogate else (grow(U), {})
+        finite = f[np.isfinite(f)]
+        worst = finite.max() + 1.0 if finite.size else 1e6
+        es.tell(list(U), list(np.where(np.isfinite(f), f, worst)))
+        if surrogate and surrogate.model.size > ev.dim:
+            es.inject([np.clip(surrogate.model.xopt, 0.0, 1.0)])  # the model's optimum, as lq-CMA-ES
+        if finite.size:
+            slot.best_f = min(slot.best_f, float(finite.min()))
+        if self.settings.starts > 1:
+            extra = {"start": slot.j, **extra}
+        log(ev, generation=generation, run=slot.run, population=len(U), sigma=float(es.sigma),
+            **extra, **finite_stats(f, "mean", "median"))
+
+
+class _Start:
+    """One start of the search: its point in the unit cube, its current CMA-ES (IPOP restarts
+    from the same point with a doubled population), its surrogate and its best distance."""
+
+    def __init__(self, j: int, x0: np.ndarray, surrogate):
+        self.j, self.x0, self.surrogate = j, np.asarray(x0, float), surrogate
+        self.es = None
+        self.run = 0
+        self.runs: list[dict] = []
+        self.best_f = math.inf
+        self.dropped_after: int | None = None
+
+    def finish(self) -> None:
+        es = self.es
+        self.runs.append({"start": self.j, "run": self.run, "population": int(es.popsize),
+                          "generations": int(es.countiter),
+                          "stop": {k: (float(v) if isinstance(v, (int, float)) else str(v))
+                                   for k, v in dict(es.stop()).items()}})
+
+
+class _Race:
+    """Successive halving over the starts (Jamieson & Talwalkar 2016; the racing of restarts in
+    Hutter et al.'s configurators): the evaluation budget left after the design is cut into
+    ``R + 1`` equal parts, ``R = ceil(log2(starts))``; at the end of each of the first ``R`` the
+    worse half of the starts still racing (by their best distance) is dropped, so the best start
+    spends the last part alone. Without a budget every start runs until it converges."""
+
+    def __init__(self, slots: list[_Start], problem: Problem):
+        self.active = list(slots)
+        self.problem = problem
+        n0 = int(problem.n_evaluations)
+        rungs = math.ceil(math.log2(len(slots))) if len(slots) > 1 else 0
+        left = None if problem.budget is None else max(int(problem.budget) - n0, 0)
+        self.marks = [] if left is None else [n0 + left * (r + 1) / (rungs + 1) for r in range(rungs)]
+
+    def halve(self) -> None:
+        n = int(self.problem.n_evaluations)
+        while self.marks and n >= self.marks[0]:
+            self.marks.pop(0)
+            if len(self.active) > 1:
+                ranked = sorted(self.active, key=lambda sl: (sl.best_f, sl.j))
+                for sl in ranked[(len(ranked) + 1) // 2:]:
+                    sl.dropped_after = n
+                    self.active.remove(sl)
+
+
+def _start_points(U: np.ndarray | None, f: np.ndarray | None, k: int, ilo, ihi, lo, hi, seed: int) -> list[np.ndarray]:
+    """``k`` start points in the unit cube: the best points of the design, each at least a quarter
+    of the cube's side from those taken before it (in the largest coordinate), then points of a
+    scrambled Sobol' sequence over the initial box, equally spread, where the design has too few."""
+    from scipy.stats import qmc
+    out: list[np.ndarray] = []
+    if U is not None and f is not None:
+        for i in np.argsort(np.where(np.isfinite(f), f, np.inf), kind="stable"):
+            if not np.isfinite(f[i]):
+                break
+            if all(np.max(np.abs(U[i] - u)) >= 0.25 for u in out):
+                out.append(np.clip(U[i], 0.0, 1.0))
+            if len(out) == k:
+                return out
+    V = qmc.Sobol(len(lo), scramble=True, rng=np.random.default_rng([seed, 0x57A7])).random_base2(
+        max(0, math.ceil(math.log2(2 * k))))
+    for v in V:
+        u = np.clip((ilo + v * (ihi - ilo) - lo) / (hi - lo), 0.0, 1.0)
+        if all(np.max(np.abs(u - w)) >= 0.25 for w in out) or len(V) - len(out) <= k:
+            out.append(u)
+        if len(out) == k:
+            break
+    return out
 
 
 class _LQSurrogate:

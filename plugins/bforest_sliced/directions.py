@@ -11,6 +11,8 @@ import threading
 
 import numpy as np
 
+from .grid import DIRECTION_BITS, snap
+
 NETS = ("gp2", "sobol", "halton", "random")
 
 _cache: dict[tuple, np.ndarray] = {}
@@ -112,7 +114,9 @@ def make_directions(d: int, lines: int, net: str = "gp2", *, scramble: bool = Fa
 
 def directions(d: int, lines: int, net: str = "gp2", *, scramble: bool = False, seed: int = 0,
                parity: bool = False) -> np.ndarray:
-    """Cached, read-only ``(lines, d)`` unit directions (one line for d = 1).
+    """Cached, read-only ``(lines, d)`` unit directions (one line for d = 1), each component
+    snapped to the distance's grid of ``2**-DIRECTION_BITS`` (:mod:`.grid`: the projections
+    are then exact).
 
     Parameters
     ----------
@@ -133,7 +137,7 @@ def directions(d: int, lines: int, net: str = "gp2", *, scramble: bool = False, 
     with _lock:
         a = _cache.get(key)
     if a is None:
-        a = make_directions(d, lines, net, scramble=scramble, seed=seed, parity=parity)
+        a = snap(make_directions(d, lines, net, scramble=scramble, seed=seed, parity=parity), DIRECTION_BITS)
         a = np.ascontiguousarray(a, dtype=np.float64)
         a.flags.writeable = False
         with _lock:

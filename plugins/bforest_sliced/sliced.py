@@ -7,6 +7,10 @@ Spec ``shared/spec/features-distance.md`` §3-§4 and §6 (GS Methods IV; SF §2
 Both tables are normalised with a transform fitted on the data table, projected on L unit
 directions and compared line by line with a two-sample statistic K.
 
+Resolution (:mod:`.grid`): normalised values and directions are snapped to grids of about 1e-6
+before projecting, which makes every projection exact: the same on every CPU, equal for equal
+rows, blind to round-off from the tree's numbering or position.
+
 Performance (§6): the directions are cached; the data side of a pair is projected and sorted
 once (``prepare``, or the first ``compute`` with that data array); an evaluation projects the
 model table on every line at once, sorts each line and evaluates KS with ``np.searchsorted``.
@@ -32,6 +36,7 @@ from pydantic import AliasChoices, Field, field_validator, model_validator
 from bforest_core.interfaces import ComponentSettings, Distance
 
 from .directions import directions as _directions
+from .grid import VALUE_BITS, snap
 from .stats import ALIASES, ks_encoded, stat_from_labels, stat_sorted
 
 __all__ = ["SlicedDistance", "SlicedSettings", "Normalization", "fit_normalization",
@@ -41,7 +46,7 @@ _CIRC_RE = re.compile(r"^(sin|cos)\((.+)\)$")
 
 
 # ----------------------------------------------------------------------------------------------
-# normalisation (§3)
+# normalisation (§3) and the resolution the distance sees
 # ----------------------------------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -55,6 +60,11 @@ class Normalization:
 
     def apply(self, u: np.ndarray) -> np.ndarray:
         return (u - self.center) / self.scale
+
+    def snapped(self, u: np.ndarray) -> np.ndarray:
+        """The normalised table on the distance's grid (:data:`VALUE_BITS`), transposed to
+        ``(d, n)`` and contiguous, ready to be projected."""
+        return np.ascontiguousarray(snap(self.apply(u), VALUE_BITS).T)
 
     def to_dict(self) -> dict[str, Any]:
         return {"method": self.method, "center": self.center.tolist(), "scale": self.scale.tolist(),
@@ -176,8 +186,7 @@ class SlicedSettings(ComponentSettings):
 @dataclass
 class _PairState:
     norm: Normalization
-    A: np.ndarray               # (L, d) unit directions
-    A_eff: np.ndarray           # directions divided by the scales: u @ A_eff.T = normalised projection
+    A: np.ndarray               # (L, d) directions on their grid: A @ norm.snapped(u) = exact projections
     data: np.ndarray            # the raw data table (reference)
     sorted_data: np.ndarray | None = None  # (L, n) sorted projections, when within the memory limit
     digest: str = ""
@@ -302,7 +311,8 @@ class SlicedDistance(Distance):
 
     # ------------------------------------------------------------------ directions
     def directions(self, d: int) -> np.ndarray:
-        """The cached read-only ``(lines, d)`` unit directions (``(1, 1)`` for d = 1)."""
+        """The cached read-only ``(lines, d)`` directions on the distance's grid (``(1, 1)`` for
+        d = 1): unit vectors to about 1e-6 (:mod:`.grid`)."""
         s = self.settings
         return _directions(d, s.lines, s.net, scramble=s.scramble, seed=s.seed, parity=s.parity)
 
@@ -351,15 +361,14 @@ class SlicedDistance(Distance):
     def _make_state(self, ud: np.ndarray, norm: Normalization, digest: str = "", set_name=None) -> _PairState:
         d = ud.shape[1]
         A = self.directions(d)
-        A_eff = np.ascontiguousarray(A / norm.scale[None, :])
-        st = _PairState(norm=norm, A=A, A_eff=A_eff, data=ud, digest=digest)
+        st = _PairState(norm=norm, A=A, data=ud, digest=digest)
         n = ud.shape[0]
         if n and A.shape[0] * n * 8 <= self.settings.presort_memory_limit:
             srt = np.empty((A.shape[0], n))
-            udT = np.ascontiguousarray(ud.T)  # (d, n): a strided operand makes BLAS ~7x slower here
+            udT = norm.snapped(ud)  # (d, n) contiguous: a strided operand makes BLAS ~7x slower here
 
             def job(lo, hi):
-                blk = A_eff[lo:hi] @ udT
+                blk = A[lo:hi] @ udT
                 blk.sort(axis=1)
                 blk += 0.0  # -0.0 -> +0.0 (bit-level label encoding of ks_encoded)
                 srt[lo:hi] = blk
@@ -410,11 +419,11 @@ class SlicedDistance(Distance):
     # ------------------------------------------------------------------ evaluation
     def _line_values(self, st: _PairState, um: np.ndarray) -> np.ndarray:
         s = self.settings
-        A_eff = st.A_eff
-        L = A_eff.shape[0]
+        A = st.A
+        L = A.shape[0]
         out = np.empty(L)
-        umT = np.ascontiguousarray(um.T)  # (d, m) contiguous: see _make_state
-        udT = np.ascontiguousarray(st.data.T) if st.sorted_data is None else None
+        umT = st.norm.snapped(um)  # (d, m) contiguous: see _make_state
+        udT = st.norm.snapped(st.data) if st.sorted_data is None else None
         stat, scaled = s.statistic, s.scale_by_sample_size
 
         nd, nm = st.data.shape[0], um.shape[0]
@@ -423,14 +432,14 @@ class SlicedDistance(Distance):
             if st.sorted_data is not None:
                 X = st.sorted_data[lo:hi]
             else:
-                X = A_eff[lo:hi] @ udT
+                X = A[lo:hi] @ udT
                 X.sort(axis=1)
                 X += 0.0
             if stat == "ks":
-                D = ks_encoded(X, A=A_eff[lo:hi], UT=umT)
+                D = ks_encoded(X, A=A[lo:hi], UT=umT)
                 out[lo:hi] = np.sqrt(nd * nm / (nd + nm)) * D if scaled else D
             else:
-                Y = A_eff[lo:hi] @ umT
+                Y = A[lo:hi] @ umT
                 Y.sort(axis=1)
                 out[lo:hi] = stat_sorted(X, Y, stat, scaled)
         self._run_blocks(L, job)
@@ -568,7 +577,7 @@ class SlicedDistance(Distance):
                 continue
             _check_finite(um, "model", k)
             st = self._state(k, ud)
-            P = st.A_eff @ np.concatenate([ud, um]).T        # (L, N)
+            P = st.A @ st.norm.snapped(np.concatenate([ud, um]))   # (L, N), as in compute
             order = np.argsort(P, axis=1, kind="stable")
             Z = np.take_along_axis(P, order, axis=1)
             N = nd + nm

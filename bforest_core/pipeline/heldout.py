@@ -1,0 +1,151 @@
+"""Scores on held-out model seeds: how good a point is on trees no fit saw.
+
+A fit with fixed model seeds keeps the point whose trees, grown with *those* seeds, score best;
+part of that best is the seeds' luck (GigaScience 2017 grows its clones with fresh seeds, and so
+does :mod:`.clones`). Here a point is grown again with sets of model seeds from a stream of their
+own (:func:`~.objective.heldout_seeds`), each set as large as an evaluation's, and scored with the
+fit's objective; a set whose simulation fails scores the objective's penalty, as in a fit.
+
+Two users: the end of a fit, which re-scores its best candidates and answers with the best of
+them on held-out seeds (:func:`select_answer`, ``[select]`` in the config), and ``bforest compare
+--heldout``. Every score is written to the run's ``evaluations.sqlite`` (table ``heldout``) as
+soon as it is known, keyed by what it depends on (:func:`scoring_fingerprint`), so a killed
+scoring loses nothing and no tree is grown twice.
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+from typing import Callable
+
+import numpy as np
+
+from ..config import config_to_dict
+from .objective import evaluate_task, heldout_seeds, progress_bar
+from .store import Evaluation, RunStore
+
+__all__ = ["scoring_fingerprint", "point_key", "score_points", "candidates", "select_answer"]
+
+
+def scoring_fingerprint(cfg) -> str:
+    """What a held-out score depends on besides the point and the seeds: the target, the model
+    and the objective (not the optimiser, the budget, the run seed or the executor)."""
+    raw = config_to_dict(cfg)
+    part = {k: raw.get(k) for k in ("target", "ssm", "features", "distance", "objective")}
+    return hashlib.sha256(json.dumps(part, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def point_key(params: dict) -> str:
+    """A point as text: the key of its held-out scores."""
+    return json.dumps(params, sort_keys=True)
+
+
+def _seeds_key(seeds) -> str:
+    return json.dumps([int(s) for s in seeds])
+
+
+def score_points(points: dict[str, dict], seed_sets: list[list[int]], stores: dict[str, list[RunStore]],
+                 scoring: str, workers: Callable[[], contextlib.AbstractContextManager],
+                 progress: bool = False) -> dict[tuple[str, tuple], dict]:
+    """The held-out score of every point on every seed set.
+
+    Parameters
+    ----------
+    points : dict
+        Point key (:func:`point_key`) -> parameters.
+    seed_sets : list of list of int
+        The held-out model seeds, one list per set.
+    stores : dict
+        Point key -> the open run stores that keep its scores (read first, written as each
+        score arrives; a timeout is not kept: it is the machine's load, not the point's).
+    scoring : str
+        :func:`scoring_fingerprint` of the config.
+    workers : callable
+        Returns a context manager giving an executor; entered only when a tree must be grown.
+
+    Returns
+    -------
+    dict
+        ``(point key, tuple of seeds)`` -> ``{"distance", "status"}``.
+    """
+    kept = {id(s): s.heldout_scores(scoring) for ss in stores.values() for s in ss}
+    known, tasks = {}, []
+    for k in points:
+        for seeds in seed_sets:
+            sk = _seeds_key(seeds)
+            hit = next((kept[id(s)][(k, sk)] for s in stores[k] if (k, sk) in kept[id(s)]), None)
+            if hit is None:
+                tasks.append((k, seeds))
+            else:
+                known[(k, tuple(seeds))] = hit
+    if tasks:
+        bar = progress_bar(len(tasks), "held out", "eval", progress)
+        try:
+            with workers() as ex:
+                for i, r in ex.map_unordered(evaluate_task, [(points[k], s) for k, s in tasks]):
+                    k, seeds = tasks[i]
+                    known[(k, tuple(seeds))] = hit = {"distance": float(r["distance"]), "status": r["status"]}
+                    if hit["status"] != "timeout":
+                        for s in stores[k]:
+                            s.add_heldout(scoring, k, _seeds_key(seeds), hit["distance"], hit["status"])
+                    bar.update(1)
+        finally:
+            bar.close()
+    return known
+
+
+def heldout_mean(known: dict, key: str, seed_sets) -> tuple[float, int]:
+    """Mean held-out distance of one point over the sets, and how many sets failed."""
+    rows = [known[(key, tuple(s))] for s in seed_sets]
+    return float(np.mean([r["distance"] for r in rows])), sum(r["status"] != "ok" for r in rows)
+
+
+def candidates(evaluations: list[Evaluation], top: int, lower, upper, names, spacing: float) -> list[Evaluation]:
+    """The ``top`` best grown points of a log, best first, each at least ``spacing`` (a fraction of
+    every parameter's range, in the largest coordinate) from those kept before it: distinct
+    points, not the many near-copies a converged search leaves around its best."""
+    lo, width = np.asarray(lower, float), np.maximum(np.asarray(upper, float) - np.asarray(lower, float), 1e-300)
+    ok = sorted((e for e in evaluations if e.status == "ok"), key=lambda e: (e.distance, e.idx))
+    kept, xs = [], []
+    for e in ok:
+        x = (np.array([float(e.params[n]) for n in names]) - lo) / width
+        if all(np.max(np.abs(x - y)) > spacing for y in xs):
+            kept.append(e)
+            xs.append(x)
+            if len(kept) == top:
+                break
+    return kept
+
+
+def select_answer(cfg, store: RunStore, executor, progress: bool = False) -> dict | None:
+    """The answer of a fit chosen on held-out seeds (``[select]``; None when ``top = 0``).
+
+    The ``top`` best distinct points of the log are each scored on ``sets`` sets of held-out
+    model seeds; the answer is the one of lowest mean held-out distance (ties: the lower own
+    distance). Returns ``{"sets", "model_seeds_per_set", "spacing", "chosen": evaluation index,
+    "candidates": [{"evaluation", "params", "own", "heldout", "failed"}, ...]}``, candidates in
+    the order of their own distance.
+    """
+    sel = cfg.select
+    if not sel.top:
+        return None
+    names = list(cfg.ssm.free)
+    lower = [cfg.ssm.free[n].lower for n in names]
+    upper = [cfg.ssm.free[n].upper for n in names]
+    cands = candidates(store.evaluations(), sel.top, lower, upper, names, sel.spacing)
+    if not cands:
+        return None
+    per = len(cands[0].seeds)
+    seed_sets = heldout_seeds(int(cfg.seed), int(sel.sets), per)
+    points = {point_key(e.params): e.params for e in cands}
+    known = score_points(points, seed_sets, {k: [store] for k in points}, scoring_fingerprint(cfg),
+                         lambda: contextlib.nullcontext(executor), progress)
+    rows = []
+    for e in cands:
+        h, failed = heldout_mean(known, point_key(e.params), seed_sets)
+        rows.append({"evaluation": e.idx, "params": e.params, "own": float(e.distance), "heldout": h,
+                     "failed": failed})
+    best = min(rows, key=lambda r: (r["heldout"], r["own"], r["evaluation"]))
+    return {"sets": int(sel.sets), "model_seeds_per_set": per, "spacing": float(sel.spacing),
+            "chosen": best["evaluation"], "candidates": rows}

@@ -24,13 +24,17 @@ third-party plugin's settings are validated exactly like a bundled one's. Exampl
 """
 from __future__ import annotations
 
+import difflib
 import functools
+import math
 import tomllib
+import types
+import typing
 from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union
 
 import pydantic
-from pydantic import BaseModel, ConfigDict, Field, create_model, model_validator
+from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
 from .errors import ConfigError, PluginError, validation_error_text
 from .registry import discover
@@ -70,7 +74,7 @@ class GeneratedTarget(_Strict):
     """A target grown by a registered SSM (no external file needed)."""
 
     ssm: str
-    seed: int = 1
+    seed: int = Field(1, ge=0)
     params: dict[str, float] = Field(default_factory=dict)
     settings: dict[str, Any] = Field(default_factory=dict, description="the SSM's component settings (e.g. preset)")
 
@@ -95,6 +99,14 @@ class TargetConfig(_Strict):
         return self
 
 
+def _check_weights(weights):
+    """Weights of data sets: finite numbers, none negative (the error names the set)."""
+    for k, w in (weights or {}).items():
+        if not math.isfinite(w) or w < 0:
+            raise ValueError(f"the weight of {k!r} must be a finite number >= 0 (got {w})")
+    return weights
+
+
 class TermConfig(_Strict):
     """One more term of the objective: its own feature set and distance, and a weight.
 
@@ -109,6 +121,8 @@ class TermConfig(_Strict):
     features: dict[str, Any] = Field(..., description="feature set: { kind = NAME, settings... }")
     distance: dict[str, Any] = Field(..., description="distance: { kind = NAME, settings... }")
     weights: Optional[dict[str, float]] = Field(None, description="weight per data set within the term")
+
+    _weights = field_validator("weights")(lambda cls, v: _check_weights(v))
 
     @model_validator(mode="after")
     def _kinds(self):
@@ -128,7 +142,7 @@ class ObjectiveConfig(_Strict):
     model_seeds: Optional[list[int]] = Field(
         None, description="explicit model seeds held fixed for every evaluation (overrides seeds/seed_mode)")
     weights: Optional[dict[str, float]] = Field(None, description="weight per data set (default equal)")
-    penalty: float = Field(1.0, description="distance of a failed simulation, for optimisers: keep it above every "
+    penalty: float = Field(1.0, ge=0, allow_inf_nan=False, description="distance of a failed simulation, for optimisers: keep it above every "
                            "real distance (1.0 suits statistics bounded by 1, such as KS); "
                            "samplers that say so (abc-smc) treat a failure as inf instead")
     timeout: Optional[float] = Field(60.0, gt=0, description="seconds before a simulation is stopped (None: no limit)")
@@ -137,6 +151,15 @@ class ObjectiveConfig(_Strict):
                                     "when [[objective.terms]] adds others")
     terms: list[TermConfig] = Field(default_factory=list, description="more terms of the objective, e.g. a "
                                     "summary-statistics term beside the structural distance")
+
+    _weights = field_validator("weights")(lambda cls, v: _check_weights(v))
+
+    @field_validator("model_seeds")
+    @classmethod
+    def _seeds(cls, v):
+        if v is not None and any(s < 0 for s in v):
+            raise ValueError(f"seeds must be >= 0 (got {v})")
+        return v
 
     @model_validator(mode="after")
     def _unique_terms(self):
@@ -167,7 +190,7 @@ class SelectConfig(_Strict):
 
 class ClonesConfig(_Strict):
     count: int = Field(100, ge=1)
-    seed: Optional[int] = Field(None, description="seed of the clone seeds (default: derived from the run seed)")
+    seed: Optional[int] = Field(None, ge=0, description="seed of the clone seeds (default: derived from the run seed)")
 
 
 class ReportConfig(_Strict):
@@ -204,7 +227,7 @@ def _run_config_model(registry_id: int):
         fields[section] = (union, ...)  # parse_config fills the default kinds first
     return create_model(
         "RunConfig", __base__=_Strict,
-        seed=(int, Field(1, description="run seed: every evaluation seed and clone seed derives from it")),
+        seed=(int, Field(1, ge=0, description="run seed: every evaluation seed and clone seed derives from it")),
         target=(TargetConfig, ...),
         objective=(ObjectiveConfig, Field(default_factory=ObjectiveConfig)),
         stop=(StopConfig, Field(default_factory=StopConfig)),
@@ -233,27 +256,106 @@ def _fill_defaults(raw: dict) -> dict:
     return raw
 
 
+def did_you_mean(word, options) -> str:
+    """`` (did you mean 'x'?)`` for the option closest to ``word``, or nothing."""
+    close = difflib.get_close_matches(str(word), [str(o) for o in options], n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def _model_in(ann, data):
+    """The pydantic model a value of annotation ``ann`` is validated by (the member of a
+    discriminated union that ``data``'s kind selects), or None."""
+    if isinstance(ann, type) and issubclass(ann, BaseModel):
+        return ann
+    origin, args = typing.get_origin(ann), typing.get_args(ann)
+    if origin is Annotated:
+        return _model_in(args[0], data)
+    if origin in (Union, types.UnionType):
+        models = [m for m in (_model_in(a, data) for a in args) if m is not None]
+        kind = data.get("kind") if isinstance(data, dict) else None
+        for m in models:
+            f = m.model_fields.get("kind")
+            if f is not None and typing.get_args(f.annotation) == (kind,):
+                return m
+        return models[0] if len(models) == 1 else None
+    return None
+
+
+def _allowed_keys(model, raw, loc) -> list[str]:
+    """The keys allowed beside the last part of ``loc`` (a validation error's location)."""
+    cur, data, in_dict = model, raw, False
+    for part in loc[:-1]:
+        if in_dict:  # the key of a dict of models (ssm.free.NAME)
+            data, in_dict = data.get(part) if isinstance(data, dict) else None, False
+            continue
+        if cur is None or not isinstance(data, dict):
+            return []
+        if part in cur.model_fields:
+            ann, data = cur.model_fields[part].annotation, data.get(part)
+            if typing.get_origin(ann) is dict:
+                cur, in_dict = _model_in(typing.get_args(ann)[1], None), True
+            else:
+                cur = _model_in(ann, data)
+        elif data.get("kind") != part:  # (a union's tag is skipped)
+            return []
+    return list(cur.model_fields) if cur is not None else []
+
+
 def check_ssm_parameters(cfg) -> None:
     """``fixed`` and ``free`` entries must name parameters of the SSM, within its ranges."""
     from .registry import component
     ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
     specs = {p.name: p for p in ssm.parameters}
-    problems = []
+    problems = [f"ssm '{cfg.ssm.kind}': the plugin's parameter name {n!r} is not a Python identifier (it is a "
+                "TOML key, a column name and a report label)" for n in specs if not _identifier(n)]
     for name, val in cfg.ssm.fixed.items():
         if name not in specs:
-            problems.append(f"ssm.fixed.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})")
+            problems.append(f"ssm.fixed.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
+                            f"{did_you_mean(name, specs)}")
         elif not specs[name].lower <= val <= specs[name].upper:
             s = specs[name]
             problems.append(f"ssm.fixed.{name}: {val} is outside the allowed range [{s.lower}, {s.upper}] {s.unit}".rstrip())
     for name, fp in cfg.ssm.free.items():
         if name not in specs:
-            problems.append(f"ssm.free.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})")
+            problems.append(f"ssm.free.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
+                            f"{did_you_mean(name, specs)}")
             continue
         s = specs[name]
         if name in cfg.ssm.fixed:
             problems.append(f"ssm.free.{name}: also listed in ssm.fixed")
         if fp.lower < s.lower or fp.upper > s.upper:
             problems.append(f"ssm.free.{name}: bounds [{fp.lower}, {fp.upper}] exceed the allowed range "
+                            f"[{s.lower}, {s.upper}] {s.unit}".rstrip())
+    if problems:
+        raise ConfigError("; ".join(problems))
+
+
+def _identifier(name) -> bool:
+    import keyword
+    return isinstance(name, str) and name.isidentifier() and not keyword.iskeyword(name)
+
+
+def check_generated_target(cfg) -> None:
+    """``[target.generate]`` names an installed SSM, its parameters and settings."""
+    from .registry import component
+    gen = cfg.target.generate
+    if gen is None:
+        return
+    try:
+        ssm = component("ssm", gen.ssm, **gen.settings)
+    except PluginError as exc:
+        raise ConfigError(f"target.generate.ssm: {exc}{did_you_mean(gen.ssm, discover().names('ssm'))}") from None
+    except ConfigError as exc:
+        raise ConfigError(f"target.generate.settings: {exc}") from None
+    specs = {p.name: p for p in ssm.parameters}
+    problems = []
+    for name, val in gen.params.items():
+        s = specs.get(name)
+        if s is None:
+            problems.append(f"target.generate.params.{name}: unknown parameter of '{gen.ssm}' "
+                            f"(known: {', '.join(specs)}){did_you_mean(name, specs)}")
+        elif not s.lower <= val <= s.upper:
+            problems.append(f"target.generate.params.{name}: {val} is outside the allowed range "
                             f"[{s.lower}, {s.upper}] {s.unit}".rstrip())
     if problems:
         raise ConfigError("; ".join(problems))
@@ -276,38 +378,55 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
                           "(relative to this file), or [target.generate] ssm = \"sot\" for a model-grown target")
     raw = _fill_defaults(raw)
     reg = discover()
+    problems, bad = [], set()  # every problem of the file, reported at once
     for section, kind in SECTIONS.items():
         sec = raw.get(section)
         if isinstance(sec, dict) and "kind" in sec and sec["kind"] not in reg.names(kind):
             known = ", ".join(reg.names(kind)) or "none installed"
-            raise ConfigError(f"{source}: {section}.kind: unknown {kind} {sec['kind']!r} (known: {known})")
+            problems.append(f"{section}.kind: unknown {kind} {sec['kind']!r} (known: {known})"
+                            f"{did_you_mean(sec['kind'], reg.names(kind))}")
+            bad.add(section)
     tags = {s: raw.get(s, {}).get("kind") for s in SECTIONS if isinstance(raw.get(s), dict)}
+    cfg = None
     try:
-        cfg = model.model_validate(raw)
+        cfg = model.model_validate({k: v for k, v in raw.items() if k not in bad})
     except pydantic.ValidationError as exc:
-        raise ConfigError(f"{source}: {validation_error_text(exc, tags)}") from None
+        text = validation_error_text(exc, tags, skip=tuple(bad),
+                                     hint=lambda loc: did_you_mean(loc[-1], _allowed_keys(model, raw, loc)))
+        if text:
+            problems.append(text)
+    if cfg is None or problems:
+        raise ConfigError(f"{source}: " + "; ".join(problems))
     if base_dir is not None:
         if cfg.target.qsm is not None:
             cfg.target.qsm = _resolve(cfg.target.qsm, base_dir)
         cfg.target.references = [_resolve(r, base_dir) for r in cfg.target.references]
-    try:
-        check_ssm_parameters(cfg)
-        check_terms(cfg)
-    except ConfigError as exc:
-        raise ConfigError(f"{source}: {exc}") from None
+    for check in (check_ssm_parameters, check_terms, check_generated_target):
+        try:
+            check(cfg)
+        except ConfigError as exc:
+            problems.append(str(exc))
+    if problems:
+        raise ConfigError(f"{source}: " + "; ".join(problems))
     return cfg
 
 
 def check_terms(cfg) -> None:
     """Every ``[[objective.terms]]`` entry names installed components with valid settings."""
     from .registry import component
+    problems = []
     for i, t in enumerate(cfg.objective.terms):
         for kind, part in (("features", t.features), ("distance", t.distance)):
             settings = {k: v for k, v in part.items() if k != "kind"}
             try:
                 component(kind, part["kind"], **settings)
-            except (ConfigError, PluginError) as exc:
-                raise ConfigError(f"objective.terms[{i}] ({t.name}).{kind}: {exc}") from None
+            except PluginError as exc:
+                problems.append(f"objective.terms[{i}] ({t.name}).{kind}: {exc}"
+                                f"{did_you_mean(part['kind'], discover().names(kind))}")
+            except ConfigError as exc:
+                problems.append(f"objective.terms[{i}] ({t.name}).{kind}: {exc}")
+    if problems:
+        raise ConfigError("; ".join(problems))
 
 
 def _resolve(path: str, base_dir: Path) -> str:

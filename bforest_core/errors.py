@@ -28,6 +28,9 @@ class TreeError(BayesForestError, ValueError):
         self.rows = [int(r) for r in rows]
         super().__init__(problem)
 
+    def __reduce__(self):
+        return (type(self), (self.problem, self.rows))
+
 
 class QSMFormatError(BayesForestError, ValueError):
     """A QSM file cannot be read: names the file and the problem."""
@@ -37,6 +40,9 @@ class QSMFormatError(BayesForestError, ValueError):
         self.problem = problem
         self.rows = [int(r) for r in rows]
         super().__init__(f"{self.path}: {problem}")
+
+    def __reduce__(self):  # pickled back from a worker as itself
+        return (type(self), (self.path, self.problem, self.rows))
 
 
 class ConfigError(BayesForestError, ValueError):
@@ -62,14 +68,24 @@ class SimulationFailed(BayesForestError):
     def __init__(self, status: str, message: str = "", tree=None):
         self.status = status
         self.tree = tree
+        self.message = message
         super().__init__(f"simulation failed ({status})" + (f": {message}" if message else ""))
 
+    def __reduce__(self):  # pickled back from a worker as itself (the partial tree stays behind)
+        return (type(self), (self.status, self.message))
 
-def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = None) -> str:
-    """One readable clause per problem: ``key.path: message (got value)``."""
+
+def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = None, hint=None,
+                          skip: tuple = ()) -> str:
+    """One readable clause per problem: ``key.path: message (got value)``. ``hint(loc)`` may add
+    a suggestion to an unknown key (e.g. "did you mean ..."); errors under a top-level key in
+    ``skip`` are left out (reported otherwise)."""
     parts = []
     for e in exc.errors():
+        if e["loc"] and str(e["loc"][0]) in skip:
+            continue
         loc = [str(x) for x in e["loc"]]
+        raw_loc = tuple(loc)
         # drop the union tag pydantic inserts after a discriminated section name
         if tags and len(loc) > 1 and loc[0] in tags and loc[1] == tags[loc[0]]:
             loc = [loc[0]] + loc[2:]
@@ -81,6 +97,8 @@ def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = Non
             model = e.get("ctx", {}).get("allowed")
             if model:
                 msg += f" (allowed: {model})"
+            if hint is not None:
+                msg += hint(raw_loc)
         if msg.startswith("Value error, "):
             msg = msg[len("Value error, "):]
         inp = e.get("input")

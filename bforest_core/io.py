@@ -12,6 +12,29 @@ def _readers():
     return [reg.get("qsm_reader", n) for n in reg.names("qsm_reader")]
 
 
+def _check_regular_file(path: Path) -> None:
+    """A QSM path must be a regular file: not missing, a folder, a FIFO (reading one waits for a
+    writer for ever), a device or a loop of symbolic links (each named as such)."""
+    import errno
+    import os
+    import stat
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise QSMFormatError(path, "symbolic link loop (the link points back to itself)") from None
+        if os.path.islink(path):
+            raise QSMFormatError(path, "broken symbolic link (its target does not exist)") from None
+        if exc.errno == errno.ENOENT:
+            raise QSMFormatError(path, "file not found") from None
+        raise QSMFormatError(path, f"cannot be read ({exc.strerror})") from None
+    if stat.S_ISDIR(mode):
+        raise QSMFormatError(path, "is a folder, not a QSM file")
+    if not stat.S_ISREG(mode):
+        kind = "a FIFO (named pipe)" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
+        raise QSMFormatError(path, f"is {kind}, not a regular file")
+
+
 def read_qsm(path, reader: str | None = None, **options):
     """Read a QSM file into a :class:`~bforest_core.Tree`.
 
@@ -32,10 +55,7 @@ def read_qsm(path, reader: str | None = None, **options):
         Naming the file and the problem.
     """
     path = Path(path)
-    if not path.exists():
-        raise QSMFormatError(path, "file not found")
-    if path.is_dir():
-        raise QSMFormatError(path, "is a folder, not a QSM file")
+    _check_regular_file(path)
     if reader is not None:
         cls = component_class("qsm_reader", reader)
         return cls().read(path, **options)

@@ -297,16 +297,21 @@ def order_summary(tree) -> list[dict]:
     cosang = np.full(len(br), np.nan)
     cosang[has_parent] = np.einsum("ij,ij->i", tree.axis[br.first[has_parent]], tree.axis[br.parent_cyl[has_parent]])
     angle = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
+    if not len(br):
+        return []
+    order = np.asarray(br.order, dtype=np.int64)  # one pass per sum: linear in branches, whatever the orders
+    count = np.bincount(order)
+    has_angle = np.isfinite(angle)
+    n_angle = np.bincount(order, weights=has_angle.astype(float), minlength=count.size)
+    sum_angle = np.bincount(order, weights=np.where(has_angle, angle, 0.0), minlength=count.size)
+    sums = {k: np.bincount(order, weights=v, minlength=count.size)
+            for k, v in (("length_m", blen), ("volume_m3", bvol), ("base", 2.0 * tree.radius[br.first]))}
     rows = []
-    for w in range(int(br.order.max()) + 1 if len(br) else 0):
-        sel = br.order == w
-        if not sel.any():
-            continue
-        a = angle[sel]
-        rows.append({"order": w, "n_branches": int(sel.sum()), "length_m": float(blen[sel].sum()),
-                     "volume_m3": float(bvol[sel].sum()),
-                     "mean_angle_deg": float(np.nanmean(a)) if np.isfinite(a).any() else float("nan"),
-                     "mean_base_diameter_m": float(2.0 * tree.radius[br.first[sel]].mean())})
+    for w in np.flatnonzero(count):
+        rows.append({"order": int(w), "n_branches": int(count[w]), "length_m": float(sums["length_m"][w]),
+                     "volume_m3": float(sums["volume_m3"][w]),
+                     "mean_angle_deg": float(sum_angle[w] / n_angle[w]) if n_angle[w] else float("nan"),
+                     "mean_base_diameter_m": float(sums["base"][w] / count[w])})
     return rows
 
 

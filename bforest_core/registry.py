@@ -113,7 +113,10 @@ def discover(refresh: bool = False) -> Registry:
                     raise PluginError("registered no components (no @hookimpl bforest_components?)")
                 for cls in classes:
                     reg.add(cls, ep.name, dist, version)
-            except Exception as exc:  # one plugin never takes the others down
+            except KeyboardInterrupt:
+                raise
+            except BaseException as exc:  # noqa: BLE001 - one plugin never takes the others down, not even
+                # with sys.exit() at import (which would end every command silently with exit 0)
                 msg = f"{type(exc).__name__}: {exc}"
                 reg.errors.append(LoadError(ep.name, dist, msg))
                 if _strict():

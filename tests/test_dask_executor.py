@@ -152,3 +152,13 @@ def test_missing_dask_gives_a_clear_import_error(monkeypatch):
             monkeypatch.delitem(sys.modules, mod)
     with pytest.raises(ImportError, match=r"pip install 'bayesforest\[dask\]'"):
         importlib.import_module("bforest_dask.plugin")
+
+
+def test_no_http_port_unless_asked_and_then_on_loopback(executor):
+    """The scheduler of a local cluster serves HTTP whatever it is told; with no dashboard_address
+    nothing listens, and a dashboard address without a host binds to 127.0.0.1, not every
+    interface."""
+    from bforest_dask.executor import dashboard_address
+    assert all(sock.fileno() == -1 for sock in executor._cluster.scheduler.http_server._sockets.values())
+    assert dashboard_address(":8787") == "127.0.0.1:8787" and dashboard_address("8787") == "127.0.0.1:8787"
+    assert dashboard_address("0.0.0.0:8787") == "0.0.0.0:8787"  # an address that says otherwise

@@ -242,3 +242,73 @@ def test_fuzz_readers_only_raise_qsmformaterror(tmp_path, qsm_dir):
     assert not failures, f"{len(failures)} of {k} cases failed:\n" + "\n".join(failures[:30])
     # the mutations must exercise both outcomes
     assert outcomes["tree"] > 20 and outcomes["error"] > 100, outcomes
+
+
+def _hand_file(tmp_path: Path, radius: float = 0.1) -> Path:
+    """A small TreeQSM text file of the hand-built tree, its first radius set to ``radius``."""
+    from conftest import hand_tree
+    t = hand_tree()
+    r = t.radius.copy()
+    r[0] = radius
+    p = tmp_path / f"hand_{radius:g}.txt"
+    bf.write_tree(Tree(t.start, t.axis, t.length, r, t.parent, t.extension), p)
+    return p
+
+
+def test_special_files_and_huge_values_are_one_clear_error(tmp_path):
+    """A FIFO (reading one would wait for ever), a symbolic link loop, a broken link and a radius
+    of 1e300 (an infinite volume) each give a QSMFormatError naming the problem, never a hang."""
+    import os
+    cases = []
+    if hasattr(os, "mkfifo"):
+        os.mkfifo(tmp_path / "pipe.txt")
+        cases.append((tmp_path / "pipe.txt", "is a FIFO"))
+    if hasattr(os, "symlink"):
+        os.symlink(tmp_path / "loop_b.txt", tmp_path / "loop_a.txt")
+        os.symlink(tmp_path / "loop_a.txt", tmp_path / "loop_b.txt")
+        os.symlink(tmp_path / "nowhere.txt", tmp_path / "broken.txt")
+        cases += [(tmp_path / "loop_a.txt", "symbolic link loop"), (tmp_path / "broken.txt", "broken symbolic link")]
+    cases.append((_hand_file(tmp_path, 1e300), "too large to compute with"))
+    assert bf.read_qsm(_hand_file(tmp_path, 0.2)).n == 7
+    for path, words in cases:
+        failures: list[str] = []
+        assert _check(path, path.name, failures) == "error", failures
+        try:
+            bf.read_qsm(path)
+        except QSMFormatError as exc:
+            assert words in str(exc), (path.name, str(exc))
+
+
+def test_a_bad_native_csv_sidecar_is_an_error_not_ignored(tmp_path):
+    import json
+    from conftest import hand_tree
+    p = tmp_path / "t.csv"
+    bf.write_tree(hand_tree(), p)
+    side = p.with_suffix(".json")
+    good = json.loads(side.read_text())
+    assert bf.read_qsm(p).n == 7
+    for bad, words in (({**good, "topology": "sideways"}, "topology 'sideways' is not one of"),
+                       ({**good, "metadata": [1, 2]}, "metadata is not a JSON object")):
+        side.write_text(json.dumps(bad))
+        failures: list[str] = []
+        assert _check(p, "sidecar", failures) == "error", failures
+        try:
+            bf.read_qsm(p)
+        except QSMFormatError as exc:
+            assert words in str(exc) and str(exc).startswith(str(side))
+
+
+def test_a_nan_added_flag_is_an_error_not_true(tmp_path, qsm_dir):
+    import scipy.io as sio
+    m = {k: v for k, v in sio.loadmat(str(qsm_dir / "itsme_qsm_tree_v200.mat")).items() if not k.startswith("__")}
+    assert "Added" in m
+    m["Added"] = m["Added"].astype(float)
+    m["Added"].flat[1] = np.nan
+    p = tmp_path / "nan_added.mat"
+    sio.savemat(str(p), m)
+    failures: list[str] = []
+    assert _check(p, "nan added", failures) == "error" and not failures, failures
+    try:
+        bf.read_qsm(p)
+    except QSMFormatError as exc:
+        assert "non-finite values in 'added'" in str(exc)

@@ -69,6 +69,21 @@ def test_order_summary_of_the_hand_built_tree():
     assert rows[1]["mean_base_diameter_m"] == pytest.approx(2 * (0.05 + 0.04 + 0.03) / 3)
 
 
+def test_order_summary_of_a_degenerate_chain_one_order_per_cylinder():
+    """Every cylinder a lateral of the one below: as many orders as cylinders (one pass per
+    sum, not one per order: a 1M-cylinder chain took minutes)."""
+    n = 3000
+    z = np.arange(n, dtype=float)
+    t = bf.Tree(np.c_[np.zeros(n), np.zeros(n), z], np.tile([0, 0, 1.0], (n, 1)), np.ones(n),
+                np.linspace(0.3, 0.01, n), np.r_[-1, np.arange(n - 1)], np.full(n, -1))
+    rows = order_summary(t)
+    assert [r["order"] for r in rows] == list(range(n))
+    assert all(r["n_branches"] == 1 and r["length_m"] == pytest.approx(1.0) for r in rows)
+    assert math.isnan(rows[0]["mean_angle_deg"]) and rows[5]["mean_angle_deg"] == pytest.approx(0.0)
+    assert rows[-1]["mean_base_diameter_m"] == pytest.approx(0.02)
+    assert rows[7]["volume_m3"] == pytest.approx(np.pi * t.radius[7] ** 2)
+
+
 def test_summary_of_a_real_pine_against_an_independent_count():
     t = read_sample("pine_ruotsinkyla_3.mat")
     s = tree_summary(t)

@@ -17,7 +17,7 @@ from .common import EXIT_USAGE, Parser, UsageError
 
 
 def _warning_line(message, category, filename, lineno, file=None, line=None):
-    print(f"warning: {message}", file=sys.stderr)
+    print(f"warning: {_printable(message)}", file=sys.stderr)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -59,18 +59,28 @@ def main(argv=None) -> int:
               "(its message is above) or it was killed, e.g. out of memory; finished evaluations are "
               "saved: continue with --resume", file=sys.stderr)
         return EXIT_USAGE
-    except ValueError as exc:  # e.g. an SSM rejecting a parameter value
+    except (ValueError, OSError) as exc:  # an SSM rejecting a value; a path that cannot be written
         if args.debug:
             raise
         print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_USAGE
+    except MemoryError:
+        if args.debug:
+            raise
+        print("error: out of memory (ask for less: fewer lines, clones or workers)", file=sys.stderr)
         return EXIT_USAGE
     finally:
         warnings.showwarning = old_show
 
 
 def _one_line(exc) -> str:
-    text = str(exc).strip() or type(exc).__name__
-    return " ".join(text.split("\n"))
+    """The message on one line, control characters (terminal escapes in a file name) shown as
+    escapes, never sent to the terminal."""
+    return _printable(" ".join((str(exc).strip() or type(exc).__name__).split("\n")))
+
+
+def _printable(text) -> str:
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
 
 
 if __name__ == "__main__":

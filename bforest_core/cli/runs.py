@@ -1,18 +1,27 @@
 """Commands that run or read a fit: demo, fit, clones, report, compare, profile, calibrate."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
-from .common import report
+from ..pipeline.rundir import run_lock
+from .common import UsageError, report
 
 
 def cmd_fit(args):
     from ..config import load_config
     from ..pipeline.fit import fit
     cfg = load_config(args.config)
-    if args.max_evaluations:
+    if args.max_evaluations is not None:
+        if args.max_evaluations < 1:
+            raise UsageError(f"--max-evaluations must be at least 1 (got {args.max_evaluations})")
         cfg.stop.max_evaluations = args.max_evaluations
     out = Path(args.output) if args.output else Path("runs") / Path(args.config).stem
+    with run_lock(out, create=not args.resume):  # the whole command, its report included
+        return _fit_and_report(args, cfg, out, fit)
+
+
+def _fit_and_report(args, cfg, out, fit):
     res = fit(cfg, out, resume=args.resume, progress=not args.quiet, overwrite=args.overwrite)
     if res.already_finished:
         print(f"{out}: this run had already finished; nothing was simulated (grow clones with "
@@ -27,10 +36,30 @@ def cmd_fit(args):
     print(f"run directory: {out}")
     if cfg.report.enabled and not args.no_report:
         report(out)
-    return 0
+    return _all_failed(out)
+
+
+def _all_failed(out) -> int:
+    """1 with a loud line when no evaluation of the run succeeded (its "best" fits nothing), else 0."""
+    from collections import Counter
+    from ..pipeline.store import RunStore
+    with RunStore.open(out) as store:
+        evs = store.evaluations()
+    if not evs or any(e.ok for e in evs):
+        return 0
+    counts = ", ".join(f"{k} {v}" for k, v in Counter(e.status for e in evs).most_common())
+    print(f"error: every one of the {len(evs)} evaluations failed ({counts}; the first: {evs[0].message or '-'}); "
+          "the parameters above fit nothing: check the model on its own (bforest simulate) and the bounds",
+          file=sys.stderr)
+    return 1
 
 
 def cmd_clones(args):
+    with run_lock(args.run_dir, create=False):  # the whole command, its report included
+        return _clones_and_report(args)
+
+
+def _clones_and_report(args):
     from ..pipeline.clones import clones
     s = clones(args.run_dir, n=args.n, progress=not args.quiet, replace=args.replace, posterior=args.posterior)
     where = Path(args.run_dir) / ("clones_posterior" if args.posterior else "clones")
@@ -52,6 +81,8 @@ def cmd_clones(args):
         print(fid["text"])
     for r in s.get("references", []):
         print(f"reference {r['file']}: distance to the target {r['distance']:.4f}")
+    for r in s.get("reference_errors", []):
+        print(f"warning: reference {r['file']} could not be scored: {r['error']}", file=sys.stderr)
     if not args.no_report:
         report(args.run_dir)
     return 0
@@ -101,7 +132,7 @@ def cmd_calibrate(args):
 
 def cmd_demo(args):
     from .demo import run_demo
-    return run_demo(Path(args.output), quick=args.quick, progress=not args.quiet)
+    return run_demo(Path(args.output), quick=args.quick, progress=not args.quiet, overwrite=args.overwrite)
 
 
 def add_commands(sub) -> None:
@@ -109,6 +140,8 @@ def add_commands(sub) -> None:
     s = sub.add_parser("demo", help="the main job on the embedded default target, end to end")
     s.add_argument("-o", "--output", default="demo-run", help="run directory (default: demo-run)")
     s.add_argument("--quick", action="store_true", help="a smaller fit (for tests)")
+    s.add_argument("--overwrite", action="store_true", help="replace a run in -o, and the file -o.toml beside it, "
+                   "that an earlier demo did not write (a demo's own are replaced without it)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=cmd_demo)
 

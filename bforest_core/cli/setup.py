@@ -29,25 +29,20 @@ def cmd_plugins(args):
 
 def cmd_config(args):
     from ..config import config_schema, load_config
+    from ..errors import ConfigError
+    from ..pipeline.checks import preflight
     if args.action == "schema":
         print(json.dumps(config_schema(), indent=2))
         return 0
     cfg = load_config(args.file)
-    check_files(cfg, args.file)
+    try:
+        preflight(cfg)  # what fit checks before its first evaluation, the same code
+    except ConfigError as exc:
+        raise ConfigError(f"{args.file}: {exc}") from None
     print(f"{args.file}: ok (ssm {cfg.ssm.kind}, {len(cfg.ssm.free)} free parameters, "
           f"features {cfg.features.kind}, distance {cfg.distance.kind}, optimizer {cfg.optimizer.kind}, "
           f"executor {cfg.executor.kind})")
     return 0
-
-
-def check_files(cfg, source) -> None:
-    """The files a config names must exist (``config check`` says which key names a missing one)."""
-    from ..errors import ConfigError
-    named = [("target.qsm", cfg.target.qsm)] if cfg.target.qsm else []
-    named += [(f"target.references[{i}]", r) for i, r in enumerate(cfg.target.references)]
-    for key, path in named:
-        if not Path(path).is_file():
-            raise ConfigError(f"{source}: {key}: file not found: {path}")
 
 
 def add_commands(sub) -> None:

@@ -83,6 +83,7 @@ def cmd_simulate(args):
         settings["preset"] = args.preset
     ssm = component("ssm", args.ssm, **settings)
     params = parse_set(args.set)
+    _check_ranges(ssm, params)
     tree = ssm.simulate(params, args.seed)
     m = classical_metrics(tree)
     print(f"{args.ssm} seed {args.seed}: {tree.n} cylinders, {tree.n_branches} branches, "
@@ -97,12 +98,30 @@ def cmd_simulate(args):
     return 0
 
 
+def _check_ranges(ssm, params: dict) -> None:
+    """``--set`` values within the model's allowed ranges (as a config's are)."""
+    specs = {p.name: p for p in ssm.parameters}
+    for name, v in params.items():
+        s = specs.get(name)
+        if s is not None and isinstance(v, (int, float)) and not s.lower <= v <= s.upper:
+            raise UsageError(f"--set {name}={v}: outside the allowed range [{s.lower}, {s.upper}] {s.unit}".rstrip())
+
+
+#: most projection lines `bforest distance` draws (each line holds both trees' projections)
+MAX_LINES = 1 << 16
+
+
 def cmd_distance(args):
     from ..metrics import classical_metrics, relative_errors
     from ..registry import component
     a, b = read(args.tree_a), read(args.tree_b)
     a = a[0] if isinstance(a, list) else a
     b = b[0] if isinstance(b, list) else b
+    if not 1 <= args.lines <= MAX_LINES:
+        raise UsageError(f"--lines must be between 1 and {MAX_LINES} (got {args.lines})")
+    if args.empty_cost is None and args.distance == "sliced" and args.statistic.lower() != "ks":
+        raise UsageError(f"--statistic {args.statistic} needs --empty-cost X: the distance of a set that one tree "
+                         "lacks (1.0, the default, is the maximum of KS only)")
     fs_settings = {"sets": split_sets(args.sets)}
     if args.topology:
         fs_settings["topology"] = args.topology
@@ -112,6 +131,8 @@ def cmd_distance(args):
     dset = {"statistic": args.statistic, "lines": args.lines}
     if args.normalize:
         dset["normalize"] = args.normalize
+    if args.empty_cost is not None:
+        dset["empty_cost"] = args.empty_cost
     dist = component("distance", args.distance, **dset)
     dist.prepare(Ub, {k: fs.columns(k) for k in fs.set_names})
     per = dist.compute_per_set(Ua, Ub)
@@ -155,6 +176,8 @@ def add_commands(sub) -> None:
     s.add_argument("--statistic", default="ks", help="two-sample statistic per line: ks, cvm, ad, w1, energy (default ks)")
     s.add_argument("--lines", type=int, default=256, help="projection lines (default 256)")
     s.add_argument("--normalize", default=None, help="column normalisation (default: the distance's, zscore)")
+    s.add_argument("--empty-cost", type=float, default=None, metavar="X",
+                   help="distance of a set one tree lacks (needed by every statistic but ks, whose maximum is 1)")
     s.add_argument("--topology", default=None, choices=["source", "subtree", "thickest"],
                    help="branch topology rule (default: the feature set's, subtree)")
     s.add_argument("--features", default="branch-segment", help="feature set plugin (default branch-segment)")

@@ -21,8 +21,9 @@ import numpy as np
 from ..config import load_config
 from ..errors import BayesForestError, SimulationFailed
 from .fidelity import bound_flags, fidelity_table, fidelity_text, fidelity_warnings
-from .objective import _CTX, build_target, clone_seeds, combine_terms, progress_bar, score_tree, started_workers, \
+from .objective import _CTX, _MODEL_ERRORS, _simulate_with_timeout, _Timeout, build_target, clone_seeds, combine_terms, progress_bar, score_tree, started_workers, \
     with_term_values
+from .rundir import holding_run_lock
 from .store import RunStore
 
 METRIC_KEYS = ("height", "girth", "crown_spread")
@@ -42,9 +43,13 @@ def _clone_task(task):
     i, params, seed, out_dir = task
     c = _CTX
     try:
-        tree = c["ssm"].simulate(params, seed)
+        tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
     except SimulationFailed as exc:
         return dict(index=i, seed=seed, status=exc.status, message=str(exc), params=params)
+    except _Timeout:
+        return dict(index=i, seed=seed, status="timeout", message=f"simulation exceeded {c['timeout']} s", params=params)
+    except _MODEL_ERRORS as exc:
+        return dict(index=i, seed=seed, status="error", message=f"{type(exc).__name__}: {exc}"[:500], params=params)
     path = Path(out_dir) / f"clone_{i:03d}.txt"
     write_tree(tree, path)
     per_set, _ = score_tree(tree)
@@ -52,6 +57,15 @@ def _clone_task(task):
     return dict(index=i, seed=seed, status="ok", message="", file=path.name, distance=total,
                 per_set=with_term_values(per_set, values), n_cylinders=tree.n, summary=tree_summary(tree),
                 params=params, **classical_metrics(tree))
+
+
+def _lost_clone(task, status, message):
+    """The row of a clone whose worker died or was stopped (the process executor's stand-in)."""
+    i, params, seed, _ = task
+    return dict(index=i, seed=seed, status=status, message=message, params=params)
+
+
+_clone_task.lost_result = _lost_clone
 
 
 def _reference_task(task):
@@ -100,6 +114,7 @@ def _existing(out_dir: Path, store: RunStore, params: dict) -> list[dict]:
     return [r for r in old.get("rows", []) if (out_dir / r.get("file", "-")).exists() or r.get("status") != "ok"]
 
 
+@holding_run_lock
 def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, replace: bool = False,
            posterior: bool = False) -> dict:
     """Grow clones of a finished fit until the set holds ``n``; writes ``clones/clone_NNN.txt``,
@@ -145,8 +160,11 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
         tasks = [(i, posterior_draw(run_dir, best["params"], seeds[i]) if posterior else best["params"], seeds[i],
                   str(out_dir)) for i in want]
         refs = list(cfg.target.references)
-        new_rows, references = [], []
+        new_rows, references, ref_errors = [], [], []
         if tasks or refs:
+            # written before the first clone and after each one: a killed call is continued by the
+            # next, which keeps every clone listed here and grows only the others
+            _write_progress(store, out_dir, rows, tgt, best, tm)
             bar = progress_bar(len(tasks), "clones", "clone", progress and bool(tasks))
             with started_workers(cfg, tgt, executor) as ex:
                 for _, res in ex.map_unordered(_clone_task, tasks):
@@ -154,21 +172,34 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
                         from ..metrics import relative_errors
                         res.update(relative_errors(tm, {k: res[k] for k in METRIC_KEYS}))
                     new_rows.append(res)
+                    _write_progress(store, out_dir, rows + new_rows, tgt, best, tm)
                     bar.update(1)
                 bar.close()
-                if refs:
-                    references = ex.map(_reference_task, refs)
+                for r in refs:
+                    try:
+                        references.append(ex.map(_reference_task, [r])[0])
+                    except (BayesForestError, OSError) as exc:  # one bad reference file loses nothing else
+                        ref_errors.append({"file": str(r), "error": f"{type(exc).__name__}: {exc}"})
         rows = sorted(rows + new_rows, key=lambda r: r["index"])
         summary = _summarise(rows, tgt, best, tm)
         summary["grown"] = len(new_rows)
         summary["requested"] = n
         summary["fidelity"] = _fidelity(cfg, tgt, best, rows)
         summary["references"] = references
+        summary["reference_errors"] = ref_errors
         summary["posterior"] = bool(posterior)
+        summary["complete"] = True
         _write_csv(out_dir / "clones.csv", rows, tgt)
         store.write_json(f"{out_dir.name}/fidelity.json", summary["fidelity"])
         store.write_json(f"{out_dir.name}/summary.json", summary)
         return summary
+
+
+def _write_progress(store: RunStore, out_dir: Path, rows, tgt, best, tm) -> None:
+    """``summary.json`` of the clones grown so far (``complete`` false until the call ends)."""
+    summary = _summarise(sorted(rows, key=lambda r: r["index"]), tgt, best, tm)
+    summary["complete"] = False
+    store.write_json(f"{out_dir.name}/summary.json", summary)
 
 
 def _fidelity(cfg, tgt, best, rows) -> dict:

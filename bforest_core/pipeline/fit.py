@@ -22,7 +22,9 @@ from ..interfaces import Problem
 from .objective import (Target, _simulate_with_timeout, _Timeout, build_target, evaluate_task, model_seeds,
                         progress_bar, run_executor, set_summaries, spread_seeds, started_workers, summary_task)
 from ..registry import component
+from .checks import preflight
 from .heldout import select_answer
+from .rundir import holding_run_lock
 from .store import Evaluation, RunDirError, RunStore
 
 
@@ -250,6 +252,7 @@ def _free_specs(cfg, ssm):
     return names, np.array(lo), np.array(hi), np.array(ilo), np.array(ihi), np.array(integer, bool)
 
 
+@holding_run_lock
 def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bool = False,
         target=None) -> FitResult:
     """Fit the SSM of ``cfg`` to its target; everything is written to ``run_dir``.
@@ -269,6 +272,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     run_dir = Path(run_dir)
     cfg_dict = config_to_dict(cfg)
     text = tomli_w.dumps(cfg_dict)
+    tgt = preflight(cfg, target)  # every check before the run directory is touched
     store = RunStore.open(run_dir) if resume else RunStore.create(run_dir, text, overwrite=overwrite)
     with store:
         if resume:
@@ -281,7 +285,6 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
             store.clear_log()
         else:
             finished = False
-        tgt = target if target is not None else build_target(cfg)
         _save_target(store, tgt, cfg)
         ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
         names, lo, hi, ilo, ihi, integer = _free_specs(cfg, ssm)

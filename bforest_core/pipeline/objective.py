@@ -12,6 +12,7 @@ never from worker state, so results do not depend on the executor or the number 
 """
 from __future__ import annotations
 
+import functools
 import os
 import signal
 import socket
@@ -22,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import BayesForestError, SimulationFailed, TreeError
+from ..errors import SimulationFailed
 from ..registry import component
 
 
@@ -139,9 +140,9 @@ class _Timeout(Exception):
 
 
 #: what a model's simulation or feature extraction may raise besides SimulationFailed: the
-#: evaluation is then a failure with status "error", never a crash of the run
-_MODEL_ERRORS = (TreeError, BayesForestError, ValueError, FloatingPointError, ArithmeticError, MemoryError,
-                 RuntimeError, IndexError, KeyError, TypeError)
+#: evaluation is then a failure with status "error", never a crash of the run. A plugin's code
+#: may raise anything (AttributeError, its own exception classes, even SystemExit from sys.exit()).
+_MODEL_ERRORS = (Exception, SystemExit)
 
 
 def init_worker(cfg_dict: dict, U_data: dict, columns: dict, feature_settings: dict,
@@ -251,6 +252,10 @@ def started_workers(cfg, tgt: Target, executor=None):
     context manager: the target's tables travel to each worker once."""
     from ..config import config_to_dict
     ex = run_executor(cfg) if executor is None else executor
+    if hasattr(ex, "on_lost"):  # the process executor: what a dead or stuck worker's task becomes
+        ex.on_lost = functools.partial(_lost_task, cfg.objective.penalty, list(tgt.U))
+        timeout = cfg.objective.timeout
+        ex.time_limit = None if timeout is None else functools.partial(_task_limit, timeout)
     return ex.started(init_worker, (config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms))
 
 
@@ -281,14 +286,44 @@ def _simulate_with_timeout(ssm, params, seed, timeout):
     use_alarm = (timeout is not None and hasattr(signal, "setitimer")
                  and threading.current_thread() is threading.main_thread())
     if not use_alarm:
-        return ssm.simulate(params, seed)
+        return _checked_tree(ssm, ssm.simulate(params, seed))
     old = signal.signal(signal.SIGALRM, _alarm)
     signal.setitimer(signal.ITIMER_REAL, float(timeout))
     try:
-        return ssm.simulate(params, seed)
+        tree = ssm.simulate(params, seed)
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, old)
+    return _checked_tree(ssm, tree)
+
+
+def _checked_tree(ssm, tree):
+    """What ``simulate`` returned, when it is a :class:`Tree` (a plugin may return None)."""
+    from ..tree import Tree
+    if not isinstance(tree, Tree):
+        raise TypeError(f"ssm '{getattr(ssm, 'name', '?')}': simulate returned {type(tree).__name__}, not a Tree")
+    return tree
+
+
+def _task_limit(timeout: float, item) -> float:
+    """Seconds a task of ``item`` may run before the process executor stops its worker: each
+    of its simulations' ``[objective] timeout`` (the worker's own alarm stops one that runs
+    Python code; this stops one stuck in C) plus a margin for scoring."""
+    seeds = item[1] if isinstance(item, tuple) and len(item) == 2 and isinstance(item[1], (list, tuple)) else (0,)
+    return max(1, len(seeds)) * float(timeout) + max(2.0, float(timeout))
+
+
+def _lost_task(penalty: float, names: list, fn, item, status: str, message: str):
+    """The result of a task whose worker died or was stopped (the process executor's
+    ``on_lost``): a failed evaluation with the penalty, no summaries, or the task's own
+    ``lost_result``; ``NotImplemented`` (the executor raises) for any other task."""
+    if fn is evaluate_task:
+        return dict(distance=float(penalty), per_set={k: None for k in names}, status=status, message=message[:500],
+                    seconds=0.0, worker="", n_rows={})
+    if fn is summary_task:
+        return None
+    hook = getattr(fn, "lost_result", None)
+    return NotImplemented if hook is None else hook(item, status, message)
 
 
 def evaluate_task(task: tuple[dict, list[int]]) -> dict:

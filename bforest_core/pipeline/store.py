@@ -126,17 +126,23 @@ class RunStore:
     def create(cls, path, config_text: str, overwrite: bool = False) -> "RunStore":
         """A new run directory holding ``config_text`` as ``config.toml``.
 
-        Refuses a directory that already holds evaluations unless ``overwrite``.
+        Refuses a directory that already holds evaluations unless ``overwrite``, which then removes
+        everything the old run wrote (clones, report, figures, exports too); refuses a folder
+        holding files of a run's names that no run wrote (a user's ``config.toml``).
         """
+        from .rundir import clear_derived, foreign_files
         path = Path(path)
         db = path / "evaluations.sqlite"
+        foreign = foreign_files(path)
+        if foreign:
+            raise RunDirError(f"{path}: holds {', '.join(foreign)}, not written by a run, which a run would "
+                              "overwrite; choose another -o (a new or empty folder)")
         if db.exists() and not overwrite and cls.held(path) > 0:
             raise RunDirError(f"{path}: already holds a run; continue it with --resume, replace it with "
                               "--overwrite, or choose another -o")
         path.mkdir(parents=True, exist_ok=True)
-        if overwrite:
-            for f in (db, path / "evaluations.sqlite-wal", path / "evaluations.sqlite-shm", path / "best.json"):
-                f.unlink(missing_ok=True)
+        if db.exists():  # --overwrite, or a run that failed before its first evaluation: nothing of it is kept
+            clear_derived(path)
         for sub in ("clones", "figures"):
             (path / sub).mkdir(exist_ok=True)
         (path / "config.toml").write_text(config_text, encoding="utf-8")

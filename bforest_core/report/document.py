@@ -50,6 +50,8 @@ def seconds_text(s) -> str:
 
 
 # ---------------------------------------------------------------------------------- document
+_TAG_START = re.compile(r"<(?=[A-Za-z/!?])")
+
 @dataclass
 class Document:
     """A tiny document model rendered to both Markdown and HTML."""
@@ -76,25 +78,32 @@ class Document:
         self.blocks.append(("code", text))
 
     # ----------------------------------------------------------------- markdown
+    @staticmethod
+    def _md(text) -> str:
+        """Text for Markdown with no raw HTML: a ``<`` that would open a tag (``<script>``,
+        ``<img``, ``</``, ``<!``) from a file or parameter name is written as ``&lt;``."""
+        return _TAG_START.sub("&lt;", str(text))
+
     def markdown(self) -> str:
         out = []
+        md = self._md
         for b in self.blocks:
             kind = b[0]
             if kind == "h":
-                out.append("#" * b[1] + " " + b[2])
+                out.append("#" * b[1] + " " + md(b[2]))
             elif kind == "p":
-                out.append(b[1])
+                out.append(md(b[1]))
             elif kind == "list":
-                out.append("\n".join(f"- {x}" for x in b[1]))
+                out.append("\n".join(f"- {md(x)}" for x in b[1]))
             elif kind == "table":
                 header, rows = b[1], b[2]
-                esc = lambda c: str(c).replace("|", "\\|").replace("\n", " ")
+                esc = lambda c: md(c).replace("|", "\\|").replace("\n", " ")
                 lines = ["| " + " | ".join(esc(c) for c in header) + " |",
                          "|" + "|".join("---" for _ in header) + "|"]
                 lines += ["| " + " | ".join(esc(c) for c in r) + " |" for r in rows]
                 out.append("\n".join(lines))
             elif kind == "fig":
-                out.append(f"![{b[2]}]({b[1]})\n\n*{b[2]}*")
+                out.append(f"![{md(b[2])}]({b[1]})\n\n*{md(b[2])}*")
             elif kind == "code":
                 out.append("```\n" + b[1] + "\n```")
         return "\n\n".join(out) + "\n"

@@ -44,7 +44,29 @@ class DaskSettings(ComponentSettings):
                                 "are connected (default 1)")
     timeout: float = Field(120.0, gt=0, description="seconds to wait for the scheduler and its workers")
     dashboard_address: str | None = Field(None, description="local cluster: where to serve the Dask "
-                                          "dashboard (e.g. ':8787'; needs bokeh); none: no dashboard")
+                                          "dashboard (e.g. ':8787', on 127.0.0.1 unless a host is given; "
+                                          "needs bokeh); none: no dashboard and no HTTP port")
+
+
+def dashboard_address(address: str | None) -> str:
+    """Where the local cluster's scheduler serves HTTP: ``address`` on 127.0.0.1 unless it names
+    a host (``":8787"`` or ``"8787"`` would otherwise listen on every interface); without one, a
+    free loopback port, closed at once (:func:`_stop_http_server`)."""
+    if address is None:
+        return "127.0.0.1:0"
+    text = str(address).strip()
+    if text.isdigit():
+        return f"127.0.0.1:{text}"
+    if text.startswith(":"):
+        return f"127.0.0.1{text}"
+    return text
+
+
+async def _stop_http_server(scheduler) -> None:
+    """Close the scheduler's HTTP server (dashboard, health, metrics): nobody asked for it."""
+    server = getattr(scheduler, "http_server", None)
+    if server is not None:
+        server.stop()
 
 
 class DaskExecutor(Executor):
@@ -101,8 +123,10 @@ class DaskExecutor(Executor):
         else:
             n = s.workers or max(1, os.cpu_count() or 1)
             self._cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                         dashboard_address=s.dashboard_address,
+                                         dashboard_address=dashboard_address(s.dashboard_address),
                                          silence_logs=logging.WARNING)
+            if s.dashboard_address is None:  # the scheduler starts an HTTP server whatever it is told
+                self._cluster.sync(_stop_http_server, self._cluster.scheduler)  # on the cluster's event loop
             client = Client(self._cluster, set_as_default=False)
             n_wait = n
         self._client = client

@@ -484,6 +484,15 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
         if v.shape[:1] == (n,):
             extras[k] = v[file_rows]
 
+    # ---- sizes whose volume or end point overflows (radius 1e300): no tree, in any unit
+    with np.errstate(over="ignore", invalid="ignore"):
+        finite = np.isfinite(np.pi * radius ** 2 * length) & np.isfinite(start + axis * length[:, None]).all(axis=1)
+    if not finite.all():
+        bad = file_rows[np.flatnonzero(~finite)] + 1
+        raise QSMFormatError(path, f"cylinder sizes too large to compute with (volume or end point not a finite "
+                             f"number; largest radius {radius.max():.4g}, length {length.max():.4g}) at rows "
+                             f"{rows_text(bad)}", bad)
+
     meta = {"source": str(path), "format": fmt, "version": version, "units": "m",
             "n_file_rows": n, "repairs": repairs}
     meta.update(metadata or {})

@@ -417,7 +417,7 @@ def cylinder_struct_to_raw(path, cyl, label: str):
                  if "extension" in fields else None)
     added = None
     if "added" in fields:
-        added = float_column(path, f"{label}.added", cyl.added, n) != 0
+        added = float_column(path, f"{label}.added", cyl.added, n)  # NaN is refused in build_tree, not taken for True
     branch = labels_to_int(path, f"{label}.branch", cyl.branch, n) if "branch" in fields else None
     order = labels_to_int(path, f"{label}.BranchOrder", cyl.BranchOrder, n) if "BranchOrder" in fields else None
     used = {"radius", "length", "start", "axis", "parent", "extension", "added", "branch",
@@ -464,7 +464,7 @@ class TreeQSMFlatReader(_MatReader):
         axis = float_column(path, "Axe", a["Axe"], n, 3)
         parent = ids_to_rows(path, "CPar", a["CPar"], n, 1, what="parent (CPar)")
         extension = ids_to_rows(path, "CExt", a["CExt"], n, 1, what="extension (CExt)") if "CExt" in a else None
-        added = float_column(path, "Added", a["Added"], n) != 0 if "Added" in a else None
+        added = float_column(path, "Added", a["Added"], n) if "Added" in a else None  # 0/1; NaN refused later
         branch = order = None
         meta = {"container": "MAT v5" if kind == "v5" else "MAT v7.3 (HDF5)", "model_index": 0, "n_models": 1}
         version = None

@@ -535,7 +535,9 @@ class NativeCSVReader(_CSVReader):
         ext = lookup_ids(path, ext_col, srt, sids, "extension", -1)
         rule = side.get("topology", "source")
         if rule not in ("source", "subtree", "thickest"):
-            rule = "source"
+            raise QSMFormatError(sp, f"sidecar: topology {rule!r} is not one of source, subtree, thickest")
+        if not isinstance(side.get("metadata") or {}, dict):
+            raise QSMFormatError(sp, "sidecar: metadata is not a JSON object")
         src_ext = None
         if "source_extension" in cols:
             se = labels_to_int(path, "source_extension", cols["source_extension"], n)

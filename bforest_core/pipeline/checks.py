@@ -1,0 +1,71 @@
+"""Every check a fit makes before its first evaluation, in one place.
+
+:func:`preflight` is what ``fit`` runs before it touches the run directory and what
+``bforest config check`` runs, so a config that passes the check is one the fit accepts. The
+static checks (keys, kinds, values, the SSM's parameters) are :func:`bforest_core.load_config`'s;
+these need the installed components and the data: the files the config names, the target read or
+grown and its data sets resolved, the weights naming those sets. Every problem is reported at
+once, in one :class:`ConfigError`.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..config import did_you_mean, section_settings
+from ..errors import BayesForestError, ConfigError, PluginError
+from ..registry import component
+from .objective import Target, build_target
+
+
+def _named_files(cfg) -> list[tuple[str, str]]:
+    named = [("target.qsm", cfg.target.qsm)] if cfg.target.qsm else []
+    return named + [(f"target.references[{i}]", r) for i, r in enumerate(cfg.target.references)]
+
+
+def preflight(cfg, target: Target | None = None) -> Target:
+    """Check ``cfg`` as a fit would, and return its target (``target`` when given).
+
+    Raises
+    ------
+    ConfigError
+        Naming every key and value at fault, separated by ``;``.
+    """
+    problems = []
+    if not cfg.ssm.free:
+        problems.append("ssm.free: no free parameters to fit (add e.g. free.NAME = { lower = ..., upper = ... })")
+    for section in ("optimizer", "executor", "distance"):
+        try:
+            component(section, getattr(cfg, section).kind, **section_settings(cfg, section))
+        except (ConfigError, PluginError) as exc:
+            problems.append(f"{section}: {exc}")
+    missing = False
+    for key, path in _named_files(cfg):
+        if not Path(path).is_file():
+            problems.append(f"{key}: {'not a file' if Path(path).exists() else 'file not found'}: {path}")
+            missing = missing or key == "target.qsm"
+    tgt = target
+    if tgt is None and not missing:
+        try:
+            tgt = build_target(cfg)
+        except BayesForestError as exc:  # names its own file or key
+            problems.append(str(exc))
+        except (ValueError, TypeError, KeyError, OSError) as exc:  # a plugin's own complaint
+            problems.append(f"target: {type(exc).__name__}: {exc}")
+    if tgt is not None:
+        problems += _weight_problems(tgt)
+    if problems:
+        raise ConfigError("; ".join(problems))
+    return tgt
+
+
+def _weight_problems(tgt: Target) -> list[str]:
+    """Weights that name no data set of their term (after the feature set resolved its sets)."""
+    out = []
+    for i, t in enumerate(tgt.terms or []):
+        pre = t["prefix"]
+        sets = [k[len(pre):] for k in tgt.U if k.startswith(pre) and (pre or "/" not in k)]
+        key = "objective.weights" if not pre else f"objective.terms[{i - 1}].weights"
+        for name in (t.get("set_weights") or {}):
+            if name not in sets:
+                out.append(f"{key}.{name}: no data set {name!r}{did_you_mean(name, sets)} (sets: {', '.join(sets)})")
+    return out

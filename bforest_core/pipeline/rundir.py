@@ -1,0 +1,178 @@
+"""Ownership and clean-up of a run directory.
+
+A run directory is owned by one process at a time: :func:`run_lock` takes an OS lock
+(``fcntl.flock``) on ``RUN/.bforest.lock`` for the whole command (fit, resume, clones, demo), and a
+second process asking for it gets a :class:`RunDirError` naming the holder (its pid and command).
+The lock is the kernel's: it goes with the process however that ends (kill -9 included), so a
+stale lock file never blocks anyone. Within one process the lock is re-entrant (``demo`` holds it
+while its ``fit`` and ``clones`` take it again).
+
+:data:`DERIVED` names everything a run writes into its directory; ``--overwrite`` removes exactly
+those (:func:`clear_derived`), and :func:`foreign_files` finds files of those names that no run
+wrote (a user's own ``config.toml`` in ``-o .``), which no command may overwrite.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import sys
+import threading
+import time
+from pathlib import Path
+
+from .store import RunDirError
+
+LOCK_NAME = ".bforest.lock"
+
+#: files and folders a run writes into its directory (globs), all derived from its config
+DERIVED = ("config.toml", "evaluations.sqlite", "evaluations.sqlite-wal", "evaluations.sqlite-shm",
+           "evaluations.sqlite-journal", "best.json", "best.json.tmp", "best_tree.txt", "target.txt",
+           "target_sets.npz", "distance.json", "directions.npz", "diagnostics.npz", "posterior.csv",
+           "posterior.nc", "heldout.json", "heldout.json.tmp", "profile_*.csv", "report.md", "report.html",
+           "clones", "clones_posterior", "figures", "export")
+
+_held: dict[str, list] = {}   # resolved path -> [fd, depth] of the locks this process holds
+_guard = threading.Lock()
+
+
+def _holder_text(path: Path) -> str:
+    try:
+        info = json.loads(path.read_text(encoding="utf-8") or "{}")
+    except (OSError, ValueError):
+        info = {}
+    if not info:
+        return "another process"
+    return f"pid {info.get('pid', '?')}, {info.get('command', '?')}"
+
+
+def _command_line() -> str:
+    prog = os.path.basename(sys.argv[0] or "python")
+    argv = ["bforest" if prog == "__main__.py" else prog] + sys.argv[1:]
+    text = " ".join(argv)
+    return text if len(text) <= 200 else text[:197] + "..."
+
+
+@contextlib.contextmanager
+def run_lock(run_dir, create: bool = True):
+    """Hold the lock of ``run_dir`` for the ``with`` block.
+
+    Parameters
+    ----------
+    run_dir : path
+        The run directory (created when ``create``; otherwise a missing one is not a run
+        directory and raises :class:`RunDirError`).
+
+    Raises
+    ------
+    RunDirError
+        Another process holds the lock (names its pid and command).
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        if not create:
+            raise RunDirError(f"{run_dir}: not a run directory (no config.toml)")
+        if run_dir.exists():
+            raise RunDirError(f"{run_dir}: exists and is not a folder; choose another -o")
+        run_dir.mkdir(parents=True, exist_ok=True)
+    key = str(run_dir.resolve())
+    with _guard:
+        if key in _held:
+            _held[key][1] += 1
+            fd = None
+        else:
+            fd = _acquire(run_dir / LOCK_NAME, run_dir)
+            _held[key] = [fd, 1]
+    try:
+        yield run_dir
+    finally:
+        with _guard:
+            entry = _held[key]
+            entry[1] -= 1
+            if entry[1] == 0:
+                del _held[key]
+                _release(entry[0])
+
+
+def _acquire(path: Path, run_dir: Path):
+    if os.name != "posix":  # no flock: the run folder is unguarded (documented)
+        return None
+    import fcntl
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise RunDirError(f"{run_dir}: in use by another bforest command ({_holder_text(path)}); wait for it "
+                          "to end, or choose another -o") from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, json.dumps({"pid": os.getpid(), "command": _command_line(), "since": time.time()}).encode(), 0)
+    return fd
+
+
+def _release(fd) -> None:
+    if fd is None:
+        return
+    import fcntl
+    try:
+        os.ftruncate(fd, 0)
+        fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
+
+
+def derived_paths(run_dir) -> list[Path]:
+    """The paths of ``run_dir`` that a run wrote (or would write), existing ones only."""
+    run_dir = Path(run_dir)
+    out = []
+    for pattern in DERIVED:
+        out.extend(sorted(run_dir.glob(pattern)))
+    return out
+
+
+def is_run_dir(run_dir) -> bool:
+    """Whether ``run_dir`` holds a run (its evaluation log), as opposed to a user's folder."""
+    return (Path(run_dir) / "evaluations.sqlite").exists()
+
+
+def foreign_files(run_dir) -> list[str]:
+    """Names of files in ``run_dir`` that a run would write but no run wrote there: a folder
+    without an evaluation log that holds e.g. the user's own ``config.toml`` (``-o .``)."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir() or is_run_dir(run_dir):
+        return []
+    found = []
+    for p in derived_paths(run_dir):
+        if p.is_dir() and not any(p.iterdir()):
+            continue  # an empty clones/ or figures/ holds nothing to lose
+        found.append(p.name)
+    return found
+
+
+def clear_derived(run_dir) -> None:
+    """Remove everything the old run of ``run_dir`` wrote (log, results, clones, report,
+    figures, exports); other files are left alone."""
+    for p in derived_paths(run_dir):
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink(missing_ok=True)
+
+
+def holding_run_lock(fn):
+    """Decorate a pipeline stage whose arguments name a run directory (``run_dir``): it runs
+    holding that directory's lock (created unless the call resumes or reads an existing run)."""
+    import functools
+    import inspect
+    sig = inspect.signature(fn)
+    creates = fn.__name__ == "fit"
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        bound = sig.bind_partial(*args, **kwargs)
+        bound.apply_defaults()
+        create = creates and not bound.arguments.get("resume", False)
+        with run_lock(bound.arguments["run_dir"], create=create):
+            return fn(*args, **kwargs)
+    return wrapper

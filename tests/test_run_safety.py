@@ -1,0 +1,184 @@
+"""A run folder nothing can corrupt: one owner at a time, --overwrite that clears the old run,
+no command overwriting a file it did not write, clones that can be continued."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import bforest_core as bf
+from bforest_core.pipeline.store import RunDirError, RunStore
+from conftest import TOY_DIR, toy_config
+
+EXE = [sys.executable, "-m", "bforest_core.cli"]
+
+
+def _env(toy_site, *more):
+    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(toy_site), str(TOY_DIR), *map(str, more),
+                                                         os.environ.get("PYTHONPATH", "")])}
+
+
+def _slow(p: Path, sleep: float) -> Path:
+    """The toy config with a model that sleeps per simulation (the target grows at once)."""
+    p.write_text(p.read_text().replace('kind = "toy"\n', f'kind = "toy"\nsleep = {sleep}\n', 1)
+                 .replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = { sleep = 0.0 }'))
+    return p
+
+
+# ------------------------------------------------------------------------------ one owner
+@pytest.mark.skipif(os.name != "posix", reason="flock")
+def test_two_fits_into_one_folder_exactly_one_runs(toy_plugin, tmp_path):
+    """Two `bforest fit` of different configs into one folder at once: one runs, the other exits 2
+    with one line naming the holder, and the folder holds the winner's run only."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    a = _slow(toy_config(tmp_path / "a", budget=16), 0.25)
+    b = toy_config(tmp_path / "b", budget=8)
+    b.write_text(b.read_text().replace("seed = 3", "seed = 4", 1))
+    run, env = tmp_path / "run", _env(toy_plugin)
+    first = subprocess.Popen(EXE + ["fit", str(a), "-o", str(run), "-q", "--no-report"], env=env,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (run / "evaluations.sqlite").exists():
+        time.sleep(0.05)
+    others = [subprocess.Popen(EXE + args + ["-q", "--no-report"], env=env, stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+              for args in (["fit", str(b), "-o", str(run)], ["fit", str(run / "config.toml"), "-o", str(run), "--resume"])]
+    out, err = first.communicate(timeout=120)
+    assert first.returncode == 0, err
+    for r in others:
+        _, stderr = r.communicate(timeout=60)
+        assert r.returncode == 2, stderr
+        lines = [ln for ln in stderr.strip().splitlines() if not ln.startswith("warning: bforest plugin 'broken'")]
+        assert len(lines) == 1 and "in use by another bforest command" in lines[0], r.stderr
+        assert f"pid {first.pid}" in lines[0] and "bforest fit" in lines[0]
+    assert bf.load_config(run / "config.toml").seed == 3  # the winner's config beside the winner's evaluations
+    with RunStore.open(run) as s:
+        assert s.count() == 16
+    assert json.loads((run / "best.json").read_text())["n_evaluations"] == 16
+
+
+def test_the_lock_is_reentrant_in_a_process_and_freed_after(toy_plugin, tmp_path):
+    from bforest_core.pipeline.rundir import LOCK_NAME, run_lock
+    with run_lock(tmp_path / "r"):
+        with run_lock(tmp_path / "r"):  # demo holds it while its fit takes it again
+            pass
+        info = json.loads((tmp_path / "r" / LOCK_NAME).read_text())
+        assert info["pid"] == os.getpid()
+        # another process cannot take it meanwhile
+        code = ("import sys; from bforest_core.pipeline.rundir import run_lock\n"
+                "try:\n    run_lock(sys.argv[1]).__enter__()\nexcept Exception as e:\n    print(e); sys.exit(2)\n")
+        r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "r")], capture_output=True, text=True)
+        assert r.returncode == 2 and f"pid {os.getpid()}" in r.stdout
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "r")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout  # released at the end of the block
+    with pytest.raises(RunDirError, match="not a run directory"):
+        with run_lock(tmp_path / "missing", create=False):
+            pass
+    assert not (tmp_path / "missing").exists()
+
+
+# ------------------------------------------------------------------------------ --overwrite, foreign files
+def test_overwrite_clears_everything_the_old_run_wrote(toy_plugin, tmp_path):
+    from bforest_core.pipeline.clones import clones
+    run = tmp_path / "run"
+    cfg = bf.load_config(toy_config(tmp_path, budget=8))
+    bf.fit(cfg, run, progress=False)
+    clones(run, n=2, progress=False)
+    for name in ("report.md", "report.html", "figures/trees.png", "export/clone_000.ply", "clones_posterior/x.txt"):
+        (run / name).parent.mkdir(exist_ok=True)
+        (run / name).write_text("old")
+    (run / "notes.txt").write_text("mine")  # not the run's: kept
+    cfg.seed = 5
+    bf.fit(cfg, run, progress=False, overwrite=True)
+    left = sorted(p.relative_to(run).as_posix() for p in run.rglob("*") if p.is_file())
+    assert "notes.txt" in left
+    assert not [p for p in left if p.startswith(("clones/", "clones_posterior", "export", "figures/", "report"))], left
+    assert bf.load_config(run / "config.toml").seed == 5
+
+
+def test_overwrite_keeps_the_old_run_when_the_new_config_is_invalid(toy_plugin, tmp_path):
+    from bforest_core.cli import main
+    run = tmp_path / "run"
+    p = toy_config(tmp_path, budget=8)
+    assert main(["fit", str(p), "-o", str(run), "-q", "--no-report"]) == 0
+    bad = tmp_path / "bad.toml"
+    bad.write_text(p.read_text().replace("upper = 80.0", "upper = 800.0"))
+    assert main(["fit", str(bad), "-o", str(run), "-q", "--overwrite", "--no-report"]) == 2
+    assert (run / "best.json").exists() and RunStore.held(run) == 8
+
+
+def test_fit_into_the_configs_own_folder_never_overwrites_the_users_config(toy_plugin, tmp_path, capsys):
+    from bforest_core.cli import main
+    p = toy_config(tmp_path, budget=8)
+    mine = tmp_path / "config.toml"
+    mine.write_text("# my notes\n" + p.read_text())
+    before = mine.read_bytes()
+    for extra in ([], ["--overwrite"]):
+        assert main(["fit", str(mine), "-o", str(tmp_path), "-q", "--no-report", *extra]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "config.toml, not written by a run" in err[0], err
+    assert mine.read_bytes() == before
+    assert not (tmp_path / "evaluations.sqlite").exists()
+
+
+def test_demo_never_replaces_a_run_or_a_file_it_did_not_write(toy_plugin, tmp_path, capsys):
+    from bforest_core.cli import main
+    run = tmp_path / "x"
+    bf.fit(bf.load_config(toy_config(tmp_path, budget=8)), run, progress=False)
+    assert main(["demo", "-o", str(run), "--quick", "-q"]) == 2
+    assert "holds a run that is not a demo's" in capsys.readouterr().err
+    assert RunStore.held(run) == 8
+    sibling = tmp_path / "y.toml"
+    sibling.write_text("# mine\n")
+    assert main(["demo", "-o", str(tmp_path / "y"), "--quick", "-q"]) == 2
+    assert "is not a demo's config" in capsys.readouterr().err
+    assert sibling.read_text() == "# mine\n" and not (tmp_path / "y" / "config.toml").exists()
+
+
+# ------------------------------------------------------------------------------ clones can be continued
+@pytest.mark.skipif(os.name != "posix", reason="kill -9")
+def test_a_killed_clones_call_is_continued_without_regrowing_its_clones(toy_plugin, tmp_path):
+    import signal
+    from bforest_core.pipeline.clones import clones
+    run = tmp_path / "run"
+    p = _slow(toy_config(tmp_path, budget=4), 0.3)
+    bf.fit(bf.load_config(p), run, progress=False)
+    proc = subprocess.Popen(EXE + ["clones", str(run), "-n", "8", "-q", "--no-report"], env=_env(toy_plugin),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    summary, deadline, rows = run / "clones" / "summary.json", time.monotonic() + 60, []
+    while time.monotonic() < deadline and len(rows) < 2:
+        try:
+            rows = json.loads(summary.read_text())["rows"] if summary.exists() else []
+        except ValueError:
+            rows = []
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    kept = json.loads(summary.read_text())
+    assert kept["complete"] is False and 2 <= kept["count"] < 8  # every finished clone listed as it was grown
+    stamps = {r["file"]: (run / "clones" / r["file"]).stat().st_mtime_ns for r in kept["rows"]}
+    s = clones(run, n=8, progress=False)
+    assert s["complete"] and s["count"] == 8 and s["grown"] == 8 - kept["count"]
+    assert {f: (run / "clones" / f).stat().st_mtime_ns for f in stamps} == stamps  # not regrown
+
+
+def test_a_missing_reference_file_loses_no_clone(toy_plugin, tmp_path, capsys):
+    from bforest_core.cli import main
+    p = toy_config(tmp_path, budget=4)
+    p.write_text(p.read_text().replace("[target.generate]", 'seed = 3\n[target]\nreferences = ["gone.txt"]\n[target.generate]', 1)
+                 .replace("seed = 3\n", "", 1))
+    run = tmp_path / "run"
+    (tmp_path / "gone.txt").write_text("")  # there when the fit checked it, gone by the clones
+    bf.fit(bf.load_config(p), run, progress=False)
+    (tmp_path / "gone.txt").unlink()
+    assert main(["clones", str(run), "-n", "3", "-q", "--no-report"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: reference" in err and "gone.txt" in err
+    s = json.loads((run / "clones" / "summary.json").read_text())
+    assert s["count"] == 3 and s["references"] == [] and "gone.txt" in s["reference_errors"][0]["file"]

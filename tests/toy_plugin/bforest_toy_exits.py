@@ -1,0 +1,2 @@
+import sys
+sys.exit()  # a plugin that ends the process when imported (tests: discovery survives it)

@@ -211,7 +211,9 @@ def test_info_shows_attributes_and_distributions(capsys):
         out = capsys.readouterr().out
         assert f"trunk volume                {a['trunk_volume']:.4g} m^3" in out
         assert f"crown ratio                 {a['crown_ratio']:.4g}\n" in out
-        assert "branches by branching angle (10 deg classes)" in out and "wood by height (1 m classes)" in out
+        assert "branches by branching angle (10 deg classes; empty ones left out)" in out
+        assert "wood by height (1 m classes; empty ones left out)" in out
+        assert "\n       10-20             0" not in out     # pine 3 has no branch at 10-20 deg
         assert main(["info", p, "--json"]) == 0
         js = json.loads(capsys.readouterr().out)
         assert js["attributes"]["crown_length"] == pytest.approx(a["crown_length"])

@@ -68,10 +68,9 @@ def info_text(tree) -> list[str]:
         nz = [k for k in range(n) if any(d[x][k] != 0 for x in names)]
         if not nz:
             continue
-        top = nz[-1] + 1
-        lines.append(f"  {title}" + (f" ({width:g} {unit} classes)" if unit else ""))
+        lines.append(f"  {title}" + (f" ({width:g} {unit} classes; empty ones left out)" if unit else ""))
         lines.append("    " + f"{'class':>9}" + "".join(f"{_HEAD[x[:3]]:>14}" for x in names))
-        for k in range(top):
+        for k in nz:
             lo, hi, _u = class_bounds(names[0], k)
             cls = f"{int(lo)}" if names[0].endswith("Ord") else f"{lo:g}-{hi:g}"
             cells = "".join(f"{int(d[x][k]):>14}" if x.startswith("Num") else f"{d[x][k]:>14.4g}" for x in names)

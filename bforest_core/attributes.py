@@ -23,10 +23,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .metrics import classical_metrics, crown_base_height
+from .metrics import classical_metrics, crown_base_height, tree_summary
 
 __all__ = ["branch_table", "tree_attributes", "distributions", "crown_points", "ATTRIBUTE_UNITS",
-           "BRANCH_COLUMNS", "DISTRIBUTION_UNITS", "stem_taper", "crown_spreads"]
+           "BRANCH_COLUMNS", "DISTRIBUTION_UNITS", "stem_taper", "crown_spreads", "fidelity_statistics",
+           "FIDELITY_ATTRIBUTES"]
 
 #: per-branch columns of :func:`branch_table` with their units (TreeQSM's ``qsm.branch``)
 BRANCH_COLUMNS = {"order": "", "parent": "", "diameter": "m", "volume": "m^3", "area": "m^2",
@@ -230,8 +231,10 @@ def stem_taper(tree) -> np.ndarray:
 # tree attributes
 # ------------------------------------------------------------------------------------------
 
-def tree_attributes(tree, points: np.ndarray | None = None) -> dict[str, float]:
+def tree_attributes(tree, points: np.ndarray | None = None, alpha: bool = True) -> dict[str, float]:
     """TreeQSM's tree attributes in SI units (:data:`ATTRIBUTE_UNITS`).
+
+    ``alpha=False`` leaves the alpha shapes out (NaN): they cost a Delaunay triangulation.
 
     Returns
     -------
@@ -274,8 +277,8 @@ def tree_attributes(tree, points: np.ndarray | None = None) -> dict[str, float]:
         dv = v[:, None, :] - v[None, :, :]
         out["crown_diameter_max"] = float(np.sqrt((dv ** 2).sum(-1)).max())
         out["crown_area_conv"] = a
-        out["crown_area_alpha"] = _alpha_measure(np.unique(P[:, :2], axis=0),
-                                                 max(0.5, out["crown_diameter_mean"] / 10))
+        out["crown_area_alpha"] = (_alpha_measure(np.unique(P[:, :2], axis=0),
+                                                  max(0.5, out["crown_diameter_mean"] / 10)) if alpha else np.nan)
     cbh = crown_base_height(tree)
     if not np.isfinite(cbh):
         out.update(crown_base_height=h, crown_length=0.0, crown_ratio=0.0, crown_volume_conv=0.0,
@@ -286,7 +289,23 @@ def tree_attributes(tree, points: np.ndarray | None = None) -> dict[str, float]:
     out["crown_ratio"] = (h - cbh) / h if h > 0 else 0.0
     X = P[P[:, 2] >= tree.start[0, 2] + cbh]
     out["crown_volume_conv"] = _hull3d_volume(X)
-    out["crown_volume_alpha"] = _alpha_measure(X, max(0.5, out["crown_diameter_mean"] / 5))
+    out["crown_volume_alpha"] = _alpha_measure(X, max(0.5, out["crown_diameter_mean"] / 5)) if alpha else np.nan
+    return out
+
+
+#: TreeQSM attributes in the clones' fidelity table: volumes and crown measures (branch length and
+#: area are left out: a model tree holds twigs no scan resolves, and the table's branch lengths
+#: already apply the detection limit; the alpha shapes cost a triangulation per clone)
+FIDELITY_ATTRIBUTES = ("trunk_volume", "branch_volume", "crown_diameter_mean", "crown_area_conv", "crown_length",
+                       "crown_ratio", "crown_volume_conv")
+
+
+def fidelity_statistics(tree) -> dict[str, float]:
+    """The statistics the clones' fidelity table compares: :func:`~bforest_core.metrics.tree_summary`
+    and the :data:`FIDELITY_ATTRIBUTES` (units: :func:`~bforest_core.metrics.summary_unit`)."""
+    out = tree_summary(tree)
+    a = tree_attributes(tree, alpha=False)
+    out.update({k: a[k] for k in FIDELITY_ATTRIBUTES})
     return out
 
 

@@ -159,7 +159,9 @@ def relative_errors(data_metrics: Mapping[str, float], model_metrics: Mapping[st
 #: unit of each summary statistic, by name prefix (longest prefix wins)
 SUMMARY_UNITS = {"height": "m", "dbh": "m", "base_diameter": "m", "crown_spread": "m",
                  "crown_base_height": "m", "stem_length": "m", "n_branches": "count", "length": "m",
-                 "volume": "m^3", "profile_n": "count", "profile_len": "m", "n_all_branches": "count"}
+                 "volume": "m^3", "profile_n": "count", "profile_len": "m", "n_all_branches": "count",
+                 "trunk_volume": "m^3", "branch_volume": "m^3", "crown_diameter_mean": "m", "crown_area_conv": "m^2",
+                 "crown_length": "m", "crown_ratio": "fraction", "crown_volume_conv": "m^3"}
 #: share of the living first-order branch length that may lie below the crown base
 CROWN_BASE_SHARE = 0.05
 #: base diameter (m) below which a branch is left out of the branch counts, lengths and profile:
@@ -178,7 +180,11 @@ def summary_label(name: str, bands: int = 5) -> str:
     """What a summary statistic is, in words (``"profile_n_b0"`` -> ``"order-1 branches based at
     0-20 % of the height"``); the name itself for one this function does not know."""
     fixed = {"height": "height", "dbh": "DBH (1.3 m)", "base_diameter": "base diameter",
-             "crown_spread": "crown spread", "crown_base_height": "crown base height", "stem_length": "stem length"}
+             "crown_spread": "crown spread", "crown_base_height": "crown base height", "stem_length": "stem length",
+             "trunk_volume": "trunk volume", "branch_volume": "branch volume",
+             "crown_diameter_mean": "crown diameter, mean", "crown_area_conv": "crown area (convex hull)",
+             "crown_length": "crown length", "crown_ratio": "crown ratio",
+             "crown_volume_conv": "crown volume (convex hull)"}
     if name in fixed:
         return fixed[name]
     head, _, tail = name.rpartition("_")

@@ -105,6 +105,17 @@ def test_crown_measures_of_a_cross():
     assert 0 < a["crown_area_alpha"] <= a["crown_area_conv"] + 1e-9
 
 
+def test_fidelity_statistics_add_volumes_and_crown_to_the_summary():
+    from bforest_core.attributes import FIDELITY_ATTRIBUTES, fidelity_statistics
+    from bforest_core.metrics import summary_label, summary_unit, tree_summary
+    t = _cross_tree()
+    f, a = fidelity_statistics(t), tree_attributes(t)
+    assert set(f) == set(tree_summary(t)) | set(FIDELITY_ATTRIBUTES)
+    assert f["crown_volume_conv"] == pytest.approx(a["crown_volume_conv"]) and f["crown_ratio"] == pytest.approx(0.5)
+    assert all(summary_unit(k) and summary_label(k) != k for k in FIDELITY_ATTRIBUTES)
+    assert np.isnan(tree_attributes(t, alpha=False)["crown_volume_alpha"])
+
+
 def test_trunk_only_tree_has_no_crown():
     t = Tree([[0, 0, 0], [0, 0, 1]], [[0, 0, 1]] * 2, [1, 1], [0.1, 0.08], [-1, 0], [1, -1])
     a = tree_attributes(t)

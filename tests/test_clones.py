@@ -123,6 +123,9 @@ def test_fidelity_and_references_of_a_run(toy_fit, tmp_path):
     fid = s["fidelity"]
     stats = {r["statistic"]: r for r in fid["table"]}
     assert {"height", "dbh", "crown_spread", "crown_base_height", "n_branches_o1"} <= set(stats)
+    # TreeQSM's volumes and crown measures too, each with its unit
+    assert {"trunk_volume", "branch_volume", "crown_length", "crown_ratio", "crown_volume_conv"} <= set(stats)
+    assert (stats["crown_volume_conv"]["unit"], stats["crown_ratio"]["unit"]) == ("m^3", "fraction")
     assert stats["height"]["n"] == 3
     assert json.loads((run / "clones" / "fidelity.json").read_text())["table"] == fid["table"]
     assert len(s["references"]) == 1 and s["references"][0]["distance"] == pytest.approx(0.0, abs=1e-6)  # text file precision

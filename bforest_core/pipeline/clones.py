@@ -39,7 +39,8 @@ class ClonesError(BayesForestError):
 def _clone_task(task):
     """Grow one clone in a worker, write it, and score it against the target."""
     from ..io import write_tree
-    from ..metrics import classical_metrics, tree_summary
+    from ..attributes import fidelity_statistics
+    from ..metrics import classical_metrics
     i, params, seed, out_dir = task
     c = _CTX
     try:
@@ -55,7 +56,7 @@ def _clone_task(task):
     per_set, _ = score_tree(tree)
     total, values = combine_terms(per_set)
     return dict(index=i, seed=seed, status="ok", message="", file=path.name, distance=total,
-                per_set=with_term_values(per_set, values), n_cylinders=tree.n, summary=tree_summary(tree),
+                per_set=with_term_values(per_set, values), n_cylinders=tree.n, summary=fidelity_statistics(tree),
                 params=params, **classical_metrics(tree))
 
 
@@ -71,14 +72,14 @@ _clone_task.lost_result = _lost_clone
 def _reference_task(task):
     """Score a reference tree of the stand against the target, like a clone."""
     from ..io import read_qsm
-    from ..metrics import tree_summary
+    from ..attributes import fidelity_statistics
     path = task
     tree = read_qsm(path)
     tree = tree[0] if isinstance(tree, list) else tree
     per_set, _ = score_tree(tree)
     total, values = combine_terms(per_set)
     return dict(file=str(path), distance=total, per_set=with_term_values(per_set, values),
-                summary=tree_summary(tree))
+                summary=fidelity_statistics(tree))
 
 
 def posterior_draw(run_dir: Path, base: dict, seed: int) -> dict:
@@ -203,8 +204,9 @@ def _write_progress(store: RunStore, out_dir: Path, rows, tgt, best, tm) -> None
 
 
 def _fidelity(cfg, tgt, best, rows) -> dict:
-    from ..metrics import SUMMARY_UNITS, tree_summary
-    target = tree_summary(tgt.trees[0])
+    from ..attributes import fidelity_statistics
+    from ..metrics import SUMMARY_UNITS
+    target = fidelity_statistics(tgt.trees[0])
     ok = [r["summary"] for r in rows if r.get("status") == "ok" and r.get("summary")]
     table = fidelity_table(target, ok, SUMMARY_UNITS)
     bounds = {k: (fp.lower, fp.upper) for k, fp in cfg.ssm.free.items()}

@@ -65,3 +65,16 @@ def test_export_scan_settings_on_the_command_line(toy_plugin, tmp_path_factory):
     assert pv["model"] == "toy" and pv["role"] == "best fit"
     assert main(["export", str(base / "run"), "--what", "best", "--format", "xyz", "-o", str(out / "b"),
                  "--scan", "scanner=a,b"]) == 2
+
+
+def test_simulate_takes_scan_settings(tmp_path, capsys):
+    from bforest_core.cli.main import main
+    out = tmp_path / "t.xyz"
+    assert main(["simulate", "--ssm", "sot", "--set", "max_iter=8", "--seed", "2", "-o", str(out),
+                 "--scan", "density=50", "--scan", "noise=0.002"]) == 0
+    pv = _prov(out.read_text().splitlines()[1])
+    assert pv["scan"]["density"] == 50 and pv["scan"]["noise"] == 0.002
+    assert (pv["model"], pv["seed"], pv["params"]["max_iter"]) == ("sot", 2, 8)
+    assert main(["simulate", "--ssm", "sot", "--set", "max_iter=8", "-o", str(tmp_path / "t.ply"),
+                 "--scan", "density=50"]) == 2
+    assert "--scan applies to a synthetic scan output" in capsys.readouterr().err

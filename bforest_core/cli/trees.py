@@ -76,8 +76,16 @@ def cmd_simulate(args):
     from ..io import write_tree, writer_for
     from ..metrics import classical_metrics
     from ..registry import component
+    scan = parse_set(args.scan)
     if args.output:
         writer_for(args.output)  # a wrong output name fails before the tree is grown
+    if scan and not str(args.output or "").lower().endswith((".las", ".laz", ".xyz")):
+        raise UsageError(f"--scan applies to a synthetic scan output (-o x.las, .laz, .xyz), not {args.output}")
+    if isinstance(scan.get("scanner"), str):
+        try:
+            scan["scanner"] = [float(v) for v in scan["scanner"].split(",")]
+        except ValueError:
+            raise UsageError(f"--scan scanner expects x,y,z in m, got {scan['scanner']!r}") from None
     settings = parse_set(args.setting)
     if args.preset:
         settings["preset"] = args.preset
@@ -89,7 +97,7 @@ def cmd_simulate(args):
     print(f"{args.ssm} seed {args.seed}: {tree.n} cylinders, {tree.n_branches} branches, "
           f"height {m['height']:.2f} m, base diameter {m['base_diameter']:.3f} m, crown spread {m['crown_spread']:.2f} m")
     if args.output:
-        p = write_tree(tree, args.output)
+        p = write_tree(tree, args.output, **scan)
         print(f"wrote {p}")
     if args.png:
         from ..report.trees import save_tree_figure
@@ -194,6 +202,9 @@ def add_commands(sub) -> None:
     s.add_argument("--setting", action="append", metavar="NAME=VALUE", help="component setting (repeatable)")
     s.add_argument("--preset", default=None, help="parameter preset (LIGNUM)")
     s.add_argument("-o", "--output", help="tree file (.txt TreeQSM text, .csv, .ply, .obj)")
+    s.add_argument("--scan", action="append", metavar="NAME=VALUE",
+                   help="synthetic-scan setting for a .las/.laz/.xyz output, repeatable: density=POINTS_PER_M2, "
+                        "mode=uniform|scanner, scanner=X,Y,Z (m), reference_range=M, noise=SD_M, seed=N")
     s.add_argument("--png", help="figure of the tree")
     s.set_defaults(func=cmd_simulate)
 

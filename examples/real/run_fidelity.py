@@ -13,8 +13,8 @@ and its run ``seed`` change. The script fits, grows 30 clones, and records
 * a verdict per fit against :data:`ACCEPT` (height 7.5 %, DBH 20 %, crown spread 25 %, crown
   base and first-order branches 30 %, judge no larger than the median stand-mate distance), and
   per pine the spread of the answer's held-out distance over the run seeds (max/min <= 1.15);
-* figures of the pine beside 5 clones on one scale (with ``--figures``: the best and the worst
-  run seed of each pine and recipe, by the judge).
+* figures of pine 3 beside 5 clones on one scale (with ``--figures``: the best and the worst
+  run seed of each recipe, by the judge).
 
 Usage (from the repository root; the pines are read from ../shared/data/qsm)::
 
@@ -219,7 +219,8 @@ def main(argv=None) -> int:
     ap.add_argument("--clones", type=int, default=30, help="clones per fit")
     ap.add_argument("--again", action="store_true", help="refit fits already in OUT/fidelity.json")
     ap.add_argument("--figures", action="store_true",
-                    help="write docs/img/validation/fidelity_<recipe>_pine<k>_{best,worst}.png")
+                    help="write docs/img/validation/fidelity_<recipe>_pine3_{best,worst}.png (pine 3: the "
+                         "best and the worst run seed by the judge)")
     ap.add_argument("--doc", action="store_true", help="rewrite the fidelity section of docs/validation.md")
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore", category=RuntimeWarning)
@@ -251,10 +252,10 @@ def main(argv=None) -> int:
         print(f"{rec} pine {k}: held-out distance of the answer over {n} run seeds, max/min {ratio:.3f} "
               f"({'within' if ratio <= SPREAD else 'NOT within'} {SPREAD})")
     figures = {}
-    if args.figures:  # the best and the worst run seed of each recipe and pine, by the judge
+    if args.figures:  # the best and the worst run seed of each recipe on pine 3, by the judge
         groups: dict[tuple[str, int], list[dict]] = {}
         for r in results.values():
-            if r.get("judge_clones_median") is not None and Path(r.get("run", "")).is_dir():
+            if r["pine"] == 3 and r.get("judge_clones_median") is not None and Path(r.get("run", "")).is_dir():
                 groups.setdefault((r["recipe"], r["pine"]), []).append(r)
         for (rec, k), rows in groups.items():
             if len(rows) > 1:

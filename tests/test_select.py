@@ -110,3 +110,15 @@ def test_select_off_keeps_the_best_own_distance(toy_plugin, tmp_path):
         assert best["evaluation"] == store.best().idx
     assert "selection" not in best and "heldout_distance" not in best
     assert point_key({"b": 1, "a": 2}) == '{"a": 2, "b": 1}'
+
+
+def test_compare_reports_each_search_by_its_best_own_distance(toy_plugin, tmp_path):
+    """compare compares searches: a recipe's [select] does not replace a run's best by a candidate
+    chosen on held-out seeds (compare --heldout scores runs on fresh seeds itself)."""
+    from bforest_core.pipeline.compare import compare
+    p = noisy_config(tmp_path)
+    res = compare(p, ["toy-random"], budget=20, repeats=1, out_dir=tmp_path / "cmp")
+    best = json.loads((tmp_path / "cmp" / "toy-random-0" / "best.json").read_text())
+    with RunStore.open(tmp_path / "cmp" / "toy-random-0") as store:
+        assert best["evaluation"] == store.best().idx
+    assert "selection" not in best and res["runs"][0]["best"] == best["distance"]

@@ -155,6 +155,9 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
             own = raw.get("optimizer") if raw.get("optimizer", {}).get("kind") == name else None
             cfg_raw["optimizer"] = {"kind": name, **_settings_for_budget(name, budget, own)}
             cfg_raw["stop"] = {**raw.get("stop", {}), "max_evaluations": int(budget)}
+            # the comparison is of the searches: each run's answer is its best own distance (the
+            # recipe's [select] re-scoring would replace it); --heldout scores runs on fresh seeds
+            cfg_raw["select"] = {**raw.get("select", {}), "top": 0}
             cfg = parse_config(cfg_raw, source=f"compare/{name}")
             run = out_dir / f"{name}-{r}"
             state = "new" if overwrite else RunStore.state(run)

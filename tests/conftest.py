@@ -50,6 +50,24 @@ def hand_tree(topology: str = "source"):
     return Tree(start, axis, length, radius, parent, extension, topology=topology)
 
 
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie waiting for its parent counts as gone; Linux)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def gone_within(pids, seconds: float) -> bool:
+    """Wait up to ``seconds`` for every process of ``pids`` to end; whether they all did."""
+    import time
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline and any(pid_alive(p) for p in pids):
+        time.sleep(0.1)
+    return not any(pid_alive(p) for p in pids)
+
+
 TOY_DIR = Path(__file__).resolve().parent / "toy_plugin"
 
 

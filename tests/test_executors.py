@@ -9,6 +9,7 @@ import pytest
 
 import bforest_core as bf
 from bforest_core.pipeline.objective import clone_seeds, model_seeds
+from conftest import gone_within, pid_alive
 
 _STATE = {}
 
@@ -47,15 +48,6 @@ def test_model_seeds_depend_only_on_run_seed_and_index():
     assert len(set(clone_seeds(1, 50))) == 50 and set(clone_seeds(1, 5)).isdisjoint(model_seeds(1, 5))
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    with open(f"/proc/{pid}/stat") as fh:  # a zombie waiting for its parent counts as gone
-        return fh.read().split(")")[-1].split()[0] != "Z"
-
-
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_workers_end_when_the_process_that_owns_the_pool_is_killed(tmp_path):
     """A fit killed with SIGKILL leaves no worker waiting for tasks for ever (each would hold its
@@ -74,12 +66,9 @@ def test_workers_end_when_the_process_that_owns_the_pool_is_killed(tmp_path):
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True, env=env)
     try:
         pids = [int(p) for p in proc.stdout.readline().split()]
-        assert pids and all(_pid_alive(p) for p in pids)
+        assert pids and all(pid_alive(p) for p in pids)
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
-        deadline = time.monotonic() + 15
-        while time.monotonic() < deadline and any(_pid_alive(p) for p in pids):
-            time.sleep(0.2)
-        assert not any(_pid_alive(p) for p in pids), "workers outlived the killed owner"
+        assert gone_within(pids, 15), "workers outlived the killed owner"
     finally:
         proc.kill()

@@ -15,7 +15,7 @@ import pytest
 
 import bforest_core as bf
 from bforest_core.pipeline.store import RunStore
-from conftest import TOY_DIR, toy_config
+from conftest import TOY_DIR, gone_within, toy_config
 
 EXE = [sys.executable, "-m", "bforest_core.cli"]
 linux = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="signals, /proc and prctl")
@@ -143,14 +143,6 @@ def test_a_simulation_stuck_in_c_is_stopped_and_the_fit_finishes(faulty, tmp_pat
     assert took < 120, took
 
 
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            return fh.read().split(")")[-1].split()[0] != "Z"
-    except FileNotFoundError:
-        return False
-
-
 @linux
 def test_no_worker_outlives_a_killed_fit_even_stuck_in_c(faulty, tmp_path):
     """kill -9 of `bforest fit` while both workers are blocked in C holding the interpreter lock
@@ -171,10 +163,7 @@ def test_no_worker_outlives_a_killed_fit_even_stuck_in_c(faulty, tmp_path):
         time.sleep(0.3)  # both now blocked in C
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
-        deadline = time.monotonic() + 5
-        while time.monotonic() < deadline and any(_alive(w) for w in workers):
-            time.sleep(0.1)
-        assert not any(_alive(w) for w in workers), "a worker outlived its killed fit"
+        assert gone_within(workers, 5), "a worker outlived its killed fit"
     finally:
         proc.kill()
         for f in pids.iterdir():

@@ -211,3 +211,21 @@ def test_a_dead_worker_pool_is_one_line_that_says_resume(tmp_path, monkeypatch, 
     assert len(err) == 1, err
     assert err[0].startswith("error: the worker processes stopped (A process in the process pool was terminated")
     assert "continue with --resume" in err[0]
+
+
+def test_output_cut_short_by_the_reader_is_no_error():
+    """`bforest info ... | head -1`: the reader closes the pipe after one line of a 190 KB table;
+    bforest stops quietly (exit 0, nothing on stderr but the reader's warnings about the file)."""
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+    from conftest import qsm_path
+    exe = shutil.which("bforest") or str(Path(sys.executable).with_name("bforest"))
+    p = subprocess.Popen([exe, "info", str(qsm_path("wytham_tf1.mat")), "--csv", "--table", "branches"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert p.stdout.readline().startswith("reconstruction,branch,order")
+    p.stdout.close()  # the reader is gone; the rest of the table (> the pipe's 64 KB) cannot be written
+    err = p.stderr.read()
+    assert p.wait(60) == 0, err
+    assert "Broken pipe" not in err and "Traceback" not in err and "error" not in err

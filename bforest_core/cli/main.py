@@ -8,6 +8,7 @@ clones, report, compare, profile, calibrate), ``trees`` (info, simulate, distanc
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import warnings
 from concurrent.futures import BrokenExecutor
@@ -47,6 +48,9 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted (finished evaluations are saved; continue with --resume)", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader of the output has gone (`bforest info ... | head`): not an error
+        _quiet_stdout()
+        return 0
     except (BayesForestError, UsageError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
         if args.debug:
             raise
@@ -71,6 +75,16 @@ def main(argv=None) -> int:
         return EXIT_USAGE
     finally:
         warnings.showwarning = old_show
+
+
+def _quiet_stdout() -> None:
+    """Point standard output at the null device, so the interpreter's final flush of a closed pipe
+    prints nothing (Python's documented way of leaving quietly on SIGPIPE)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
 
 
 def _one_line(exc) -> str:

@@ -52,7 +52,6 @@ def test_las_points_are_valid_single_returns_with_provenance(tmp_path):
 
 def test_export_scan_settings_on_the_command_line(toy_plugin, tmp_path_factory):
     from bforest_core.cli.main import main
-    from bforest_core.pipeline.clones import clones
     from conftest import toy_config
     base = tmp_path_factory.mktemp("scanexport")
     bf.fit(bf.load_config(toy_config(base, budget=8)), base / "run", progress=False)

@@ -19,7 +19,7 @@ import numpy as np
 from ..config import config_to_dict, load_config, parse_config, read_toml, section_settings, ssm_settings
 from ..errors import BayesForestError, ConfigError
 from ..interfaces import Problem
-from .objective import (Target, _simulate_with_timeout, _Timeout, build_target, evaluate_task, model_seeds,
+from .objective import (Target, _simulate_with_timeout, _Timeout, evaluate_task, model_seeds,
                         progress_bar, run_executor, set_summaries, spread_seeds, started_workers, summary_task)
 from ..registry import component
 from .checks import preflight

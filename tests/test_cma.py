@@ -210,3 +210,11 @@ def test_one_start_is_the_plain_ipop_search():
     rb = bf.component("optimizer", "cma", starts=1).minimize(b)
     assert ra.fun == rb.fun and "starts" not in ra.diagnostics
     assert all("start" not in r for r in ra.history)
+
+
+def test_there_are_as_many_starts_as_asked_even_where_few_points_lie_apart():
+    from bforest_optim.cma_es import _start_points
+    lo, hi = np.zeros(1), np.ones(1)
+    for seed in range(1, 6):   # one parameter: at most 4 points of [0, 1] lie 0.25 apart
+        pts = _start_points(None, None, 6, lo, hi, lo, hi, seed)
+        assert len(pts) == 6 and all(0 <= p[0] <= 1 for p in pts)

@@ -243,9 +243,10 @@ def _start_points(U: np.ndarray | None, f: np.ndarray | None, k: int, ilo, ihi, 
                 return out
     V = qmc.Sobol(len(lo), scramble=True, rng=np.random.default_rng([seed, 0x57A7])).random_base2(
         max(0, math.ceil(math.log2(2 * k))))
-    for v in V:
+    for i, v in enumerate(V):
         u = np.clip((ilo + v * (ihi - ilo) - lo) / (hi - lo), 0.0, 1.0)
-        if all(np.max(np.abs(u - w)) >= 0.25 for w in out) or len(V) - len(out) <= k:
+        # apart from those taken, unless the points left are only as many as the starts missing
+        if all(np.max(np.abs(u - w)) >= 0.25 for w in out) or len(V) - i <= k - len(out):
             out.append(u)
         if len(out) == k:
             break

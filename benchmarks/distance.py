@@ -26,6 +26,7 @@ from _timing import median_time
 from scipy import stats
 
 import bforest_core as bf
+from bforest_sliced.grid import VALUE_BITS, snap
 
 
 
@@ -102,9 +103,7 @@ def bench_distance(lines: int, n: int, repeats: int) -> None:
     (t_ours, m_ours), (t_ours1, m_ours1), (t_floor, m_floor) = T["ours"], T["ours1"], T["floor"]
 
     t0 = time.perf_counter()
-    zd, zm = ud, um
-    if hasattr(dist, "_prepared") and hasattr(dist._prepared["U"].norm, "snapped"):  # the values the distance sees
-        zd, zm = dist._prepared["U"].norm.snapped(ud).T, dist._prepared["U"].norm.snapped(um).T
+    zd, zm = snap(ud, VALUE_BITS), snap(um, VALUE_BITS)  # the values the distance sees (normalize = none)
     ref = np.array([stats.ks_2samp(zd @ a, zm @ a).statistic for a in A])
     t_scipy = time.perf_counter() - t0
 

@@ -201,9 +201,6 @@ class _Progress:
         self.bar.set_postfix_str(f"best={pr.best_f:.4f}" + (" (replay)" if replayed else ""), refresh=False)
 
     def close(self, reason: str = ""):
-        if getattr(self, "closed", False):
-            return
-        self.closed = True
         if reason:  # the bar ends with why the fit stopped (budget, the optimiser's own stop, ...)
             self.bar.set_postfix_str(f"{getattr(self.bar, 'postfix', '') or ''} stopped: {reason}".strip(), refresh=True)
         self.bar.close()
@@ -303,12 +300,13 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
         result = selection = None
         try:
             with started_workers(cfg, tgt, executor):
-                result = optimizer.minimize(problem)
-                bar.close(problem.stop_reason or getattr(result, "stop_reason", "") or "")
+                try:
+                    result = optimizer.minimize(problem)
+                finally:  # the search's bar ends before the re-scoring's starts
+                    bar.close(problem.stop_reason or getattr(result, "stop_reason", "") or "")
                 if store.count():
                     selection = select_answer(cfg, store, executor, progress)
         finally:
-            bar.close(problem.stop_reason or getattr(result, "stop_reason", "") or "")
             store.set_meta("elapsed", evaluator.elapsed())
         stop_reason = problem.stop_reason or result.stop_reason or "optimiser finished"
         if store.count() == 0:

@@ -70,7 +70,7 @@ def test_parameter_table_complete():
                 "init_lambda", "targ_lambda", "delay", "transition", "depth", "spread", "shadow_a",
                 "shadow_b", "branch_angle", "phyllotaxis", "nonplanar_twist", "node_length",
                 "voxel_size", "span", "branch_angle_sd", "phyllotaxis_sd", "lambda_sd", "tropism_sd",
-                "stand_shade", "heading_sd"}  # the last two are additions to the spec, off by default
+                "stand_shade", "heading_sd", "leader_death", "death_delay"}  # the last four are additions, off by default
     assert set(names) == expected and len(names) == len(expected)
     by = {p.name: p for p in PARAMETERS}
     # calibrated defaults of B.4 and clone noise of E
@@ -542,3 +542,108 @@ def test_cached_initial_field_gives_the_same_trees(ssm):
     for seed in range(30, 36):
         ssm.simulate({"max_iter": 2}, seed)
     assert len(light._INITIAL) == light._INITIAL_KEEP
+
+
+# ------------------------------------------------------------------------------ growth forms (additions)
+#: the default tree at 14 cycles, recorded from the model before the growth forms were added
+#: (seed: cylinders, branches, total length m, sum of radii m, sum of start heights m, sum of axis x)
+DEFAULT_TREES = {1: (944, 360, 242.566928, 16.511129, 4472.327294, -79.893762),
+                 2: (1074, 412, 278.805355, 18.763092, 4833.032427, -33.109388)}
+
+
+def _digest(t):
+    return (t.n, t.n_branches, round(float(t.length.sum()), 6), round(float(t.radius.sum()), 6),
+            round(float(t.start[:, 2].sum()), 6), round(float(t.axis[:, 0].sum()), 6))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_growth_forms_off_leave_the_papers_tree_as_it_was(seed):
+    # the options at their defaults draw nothing and add no node: the tree recorded before them
+    for ssm_, params in [(SOT(), {}), (SOT(buds_per_node=1), {"leader_death": 0.0, "death_delay": 3.0})]:
+        assert _digest(ssm_.simulate({"max_iter": 14, **params}, seed)) == DEFAULT_TREES[seed]
+
+
+#: a tree whose geometry can be checked by hand: no noise, no light-seeking, no tropism
+HAND = {"max_iter": 3, "phyllotaxis": 90.0, **NO_NOISE, "tropism": 0.0, "reorient": 0.0, "ran": 0.0,
+        "init_lambda": 0.5, "targ_lambda": 0.5, "alpha0": 3.0, "max_grow": 4.0, "drop_thresh": 0.05,
+        "branch_angle": 65.0}
+
+
+def _nodes(t):
+    """{cylinder: its lateral children} for cylinders bearing more than one child."""
+    out = {}
+    for i in range(t.n):
+        kids = np.flatnonzero(t.parent == i)
+        lat = [k for k in kids if t.axis[k] @ t.axis[i] < 0.99]
+        if len(kids) > 1:
+            out[i] = lat
+    return out
+
+
+def test_opposite_buds_grow_pairs_on_opposite_sides_decussate():
+    t = SOT(buds_per_node=2).simulate(HAND, 1)
+    nodes = _nodes(t)
+    assert len(nodes) >= 3
+    sides = []
+    for i, lat in nodes.items():
+        assert len(lat) == 2  # two laterals at every node
+        a, b = t.axis[lat[0]], t.axis[lat[1]]
+        for x in (a, b):  # each at the branch angle from its (vertical) bearing metamer
+            assert math.degrees(math.acos(x @ t.axis[i])) == pytest.approx(65.0, abs=1e-9)
+        ha, hb = a[:2] / np.linalg.norm(a[:2]), b[:2] / np.linalg.norm(b[:2])
+        assert ha @ hb == pytest.approx(-1.0, abs=1e-9)  # opposite sides
+        sides.append((t.start[i, 2], ha))
+    sides.sort(key=lambda s: s[0])
+    for (_, u), (_, v) in zip(sides, sides[1:]):  # successive pairs cross at 90 deg: decussate
+        assert abs(u @ v) == pytest.approx(0.0, abs=1e-9)
+    # one bud per node (the default) grows a single lateral per node
+    assert all(len(lat) == 1 for lat in _nodes(SOT().simulate(HAND, 1)).values())
+
+
+def test_whorl_of_three_buds_spreads_them_at_120_degrees():
+    t = SOT(buds_per_node=3).simulate({**HAND, "alpha0": 5.0}, 1)
+    nodes = _nodes(t)
+    # buds whose share of the vigor is below one metamer stay buds; the others are 120 deg apart
+    assert all(len(lat) <= 3 for lat in nodes.values()) and any(len(lat) == 3 for lat in nodes.values())
+    for lat in nodes.values():
+        h = [t.axis[k][:2] / np.linalg.norm(t.axis[k][:2]) for k in lat]
+        for u, v in itertools.combinations(h, 2):
+            assert u @ v == pytest.approx(-0.5, abs=1e-9)
+
+
+def test_bud_nodes_keep_the_pipe_model_and_the_axis_share_of_lambda():
+    p = {**HAND, "max_iter": 12, "drop_thresh": 0.2}
+    t = SOT(buds_per_node=2).simulate(p, 3)
+    assert np.isclose(t.length, 0.0).sum() == 0  # bud nodes are folded away
+    n = p.get("pipe_exp", 2.6)
+    own = (2 * t.radius) ** n
+    kids = np.bincount(t.parent[1:], weights=own[1:], minlength=t.n)
+    has = np.bincount(t.parent[1:], minlength=t.n) > 0
+    # d^n = the children's sum, plus the stubs of shed branches where there are some
+    assert np.all(own[has] >= kids[has] * (1 - 1e-12))
+    assert np.mean(np.isclose(own[has], kids[has], rtol=1e-9)) > 0.8
+    # with lambda = 1 every lateral bud of a node gets nothing, as with one bud per node
+    solo = SOT(buds_per_node=2).simulate({**p, "init_lambda": 1.0, "targ_lambda": 1.0}, 3)
+    assert solo.n_branches == 1
+
+
+def test_leader_death_makes_every_shoot_fork_after_its_delay():
+    def continued(t):  # ages of straight continuations built in a later cycle than their parent
+        c = np.flatnonzero(t.parent >= 0)
+        straight = np.einsum("ij,ij->i", t.axis[c], t.axis[t.parent[c]]) > 0.99
+        later = t.extras["age"][c] < t.extras["age"][t.parent[c]]
+        return t.extras["age"][c[straight & later]]
+
+    p = {**HAND, "max_iter": 8}
+    ssm = SOT(buds_per_node=2)
+    assert continued(ssm.simulate(p, 1)).size > 0
+    # every apical bud dies: no axis goes on past the cycle that built it; the laterals take over
+    forked = ssm.simulate({**p, "leader_death": 1.0}, 1)
+    assert continued(forked).size == 0
+    assert forked.n_branches > 1  # the laterals took over
+    # from cycle death_delay + 1 on: continuations only from the cycles before (age = 8 - cycle)
+    late = ssm.simulate({**p, "leader_death": 1.0, "death_delay": 4.0}, 1)
+    assert continued(late).size > 0 and continued(late).min() >= 8 - 4
+    # a probability draws per growing apical bud: seeds differ, a seed repeats
+    a, b = (ssm.simulate({**p, "leader_death": 0.3}, s) for s in (1, 2))
+    assert _same_tree(a, ssm.simulate({**p, "leader_death": 0.3}, 1)) and not _same_tree(a, b)

@@ -227,6 +227,7 @@ _FIELDS = {
     "api_state": (np.int8, 0), "lat_state": (np.int8, 0),
     "api_child": (np.int64, 0), "lat_child": (np.int64, 0),
     "api_stub_w": (np.float64, 0), "lat_stub_w": (np.float64, 0),
+    "twin": (np.bool_, 0),
 }
 
 
@@ -313,11 +314,13 @@ class SOTGrowth:
     :class:`GrowthFailure` and leave the state in place for the partial tree."""
 
     def __init__(self, p: dict, seed: int, *, max_live_segments: int = 200_000,
-                 sympodial: bool = False, on_step: Callable | None = None, record: bool = False):
+                 sympodial: bool = False, buds_per_node: int = 1, on_step: Callable | None = None,
+                 record: bool = False):
         self.p = p
         self.seed = seed
         self.max_live = int(max_live_segments)
         self.sympodial = bool(sympodial)
+        self.buds_per_node = int(buds_per_node)
         self.on_step = on_step
         self.record = record or on_step is not None
         self.rng = np.random.Generator(np.random.PCG64(seed))
@@ -354,7 +357,12 @@ class SOTGrowth:
         s.lat_state[0] = BUD
         s.api_child[0] = s.lat_child[0] = -1
         s.n = 1
-        self.created = 1
+        if self.buds_per_node > 1:
+            s.reserve(self.buds_per_node)
+            last = self._add_bud_nodes(1, np.zeros(1, np.int64), s.start[:1] + s.length[0] * s.h[:1],
+                                       s.h[:1], s.u[:1], s.order[:1])
+            s.api_state[last] = BUD
+        self.created = s.n
         self.field.cast(s.start[:1])  # falls below ground: no effect
 
     # -------------------------------------------------------------- passes on the living set
@@ -401,6 +409,11 @@ class SOTGrowth:
         z_lam = rng.standard_normal()
         lam = float(np.clip(lam + p["lambda_sd"] * z_lam, 0.0, 1.0))
         self.lam = lam
+        if self.buds_per_node > 1:
+            # a node of k buds is k Borchert-Honda splits in a row (see _add_bud_nodes): each takes
+            # lambda^(1/k), so the axis keeps the share lambda of a node that the papers' model
+            # gives it and the node's lateral buds share the rest
+            lam = lam ** (1.0 / self.buds_per_node)
         if p["stand_shade"] > 0.0:  # the stand's canopy grows with the tree: its top is the tree's
             live = s.live
             self.field.z_top = float((s.start[live, 2] + s.length[live] * s.h[live, 2]).max())
@@ -432,6 +445,8 @@ class SOTGrowth:
             s.api_stub_w[pg[~lat_top]] = width[top[~lat_top]]
             gone = ids[dead]
             s.alive[gone] = False
+            if self.buds_per_node > 1:  # bud nodes cast no shadow (see _add_bud_nodes)
+                gone = gone[~s.twin[gone]]
             self.field.remove(s.start[gone])
 
         # 5. bud vigor (uncapped values kept for inspection)
@@ -453,6 +468,14 @@ class SOTGrowth:
         vL = np.minimum(vL_raw, mg)
         grow_a = keep & (api_state0 == BUD) & (np.floor(vA) >= 1.0)
         grow_l = keep & (lat_state0 == BUD) & (vL > 1.0)
+        if p["leader_death"] > 0.0 and c > p["death_delay"]:
+            # draw 1b (an addition): a growing apical bud dies with probability leader_death; the
+            # lateral buds at its node take over (with opposite buds: a fork). Drawn only when
+            # the probability is positive, so trees without it keep their draws.
+            ga = np.flatnonzero(grow_a)
+            died = ga[rng.random(ga.size) < p["leader_death"]]
+            s.api_state[ids[died]] = EMPTY
+            grow_a[died] = False
         if self.sympodial:
             s.api_state[ids[keep & (api_state0 == BUD)]] = EMPTY
             grow_a[:] = False
@@ -468,6 +491,8 @@ class SOTGrowth:
         bearing = ids[sl]
         planned = np.floor(vig).astype(np.int64)
         n_live = int(ids.size - np.count_nonzero(dead))
+        if self.buds_per_node > 1:  # bud nodes are not segments of the tree
+            n_live -= int(np.count_nonzero(s.twin[ids] & ~dead))
         if n_live + int(planned.sum()) > self.max_live:
             raise GrowthFailure("too_many_segments",
                                 f"cycle {c} would grow {int(planned.sum())} metamers on {n_live} "
@@ -507,7 +532,7 @@ class SOTGrowth:
         stopped = np.zeros(m, dtype=bool)
         half = 0.5 * p["span"]
         total = int(planned.sum())
-        s.reserve(s.n + total)
+        s.reserve(s.n + total * self.buds_per_node)
         new_starts = []
         for k in range(int(math.floor(p["max_grow"]))):
             want = (planned > k) & ~stopped
@@ -585,6 +610,8 @@ class SOTGrowth:
             last[act] = nid
             built[act] += 1
             s.n += act.size
+            if self.buds_per_node > 1:
+                last[act] = self._add_bud_nodes(c, nid, pos[act], ha, ua, order[act])
         tips = last[last >= 0]
         s.api_state[tips] = BUD
         self.created = s.n
@@ -595,6 +622,45 @@ class SOTGrowth:
             self.last_shoots = ShootRecord(bearing=bearing, lateral=lateral, vigor=vig, planned=planned,
                                            built=built, first=first, metamer_length=seg_len,
                                            branch_angle=ang, target=that, tau=tau)
+
+    def _add_bud_nodes(self, c, nid, end, h, u, order) -> np.ndarray:
+        """Further lateral buds at the ends of the metamers ``nid`` (``buds_per_node`` > 1, an
+        addition to the papers' model): a chain of ``buds_per_node - 1`` zero-length *bud nodes*
+        on each metamer's apical slot, each holding one lateral bud whose up vector is the
+        metamer's rolled by ``360 * j / buds_per_node`` degrees about the heading, so the buds
+        of a node point to evenly spaced sides (2: opposite; 3 or more: a whorl). The axis goes
+        on from the last bud node. Bud nodes take part in the light, allocation and pipe-model
+        passes like segments (the Borchert-Honda split is applied at each of them in turn), cast
+        no shadow and are folded away in the output tree. Returns the last node of each chain."""
+        s = self.s
+        prev = nid
+        m = nid.size
+        for j in range(1, self.buds_per_node):
+            tid = s.n + np.arange(m)
+            new = slice(s.n, s.n + m)
+            s.start[new] = end
+            s.h[new] = h
+            s.u[new] = rotate(u, h, np.full(m, 2.0 * math.pi * j / self.buds_per_node))
+            s.length[new] = 0.0
+            s.width[new] = self.p["init_width"]
+            s.parent[new] = prev
+            s.is_lateral[new] = False
+            s.order[new] = order
+            s.depth[new] = s.depth[prev] + 1
+            s.alive[new] = True
+            s.born[new] = c
+            s.api_state[new] = EMPTY
+            s.lat_state[new] = BUD
+            s.api_child[new] = -1
+            s.lat_child[new] = -1
+            s.api_stub_w[new] = 0.0
+            s.lat_stub_w[new] = 0.0
+            s.twin[new] = True
+            s.api_state[prev] = CHILD
+            s.api_child[prev] = tid
+            s.n += m
+            prev = tid
+        return prev
 
     # -------------------------------------------------------------- driver
     def run(self, max_iter: int) -> None:
@@ -667,11 +733,23 @@ def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
     if run.s.n == 0 or not s.alive[0]:
         raise GrowthFailure("no_root", "the tree has no living segments")
     ids, width = run.widths()
+    par = s.parent[ids]
+    ext_g = np.where(s.api_state[ids] == CHILD, s.api_child[ids], -1)
+    if run.buds_per_node > 1:
+        # fold the bud nodes away: a segment's parent is its nearest segment ancestor, and a
+        # metamer continues into the metamer after its bud nodes (or nothing, if the axis ends)
+        for _ in range(run.buds_per_node - 1):
+            up = (par >= 0) & s.twin[np.maximum(par, 0)]
+            par = np.where(up, s.parent[np.maximum(par, 0)], par)
+            on = (ext_g >= 0) & s.twin[np.maximum(ext_g, 0)]
+            nxt = np.where(s.api_state[np.maximum(ext_g, 0)] == CHILD, s.api_child[np.maximum(ext_g, 0)], -1)
+            ext_g = np.where(on, nxt, ext_g)
+        keep = ~s.twin[ids]
+        ids, width, par, ext_g = ids[keep], width[keep], par[keep], ext_g[keep]
     loc = np.full(s.n, -1, dtype=np.int64)
     loc[ids] = np.arange(ids.size)
-    par = s.parent[ids]
     parent = np.where(par >= 0, loc[np.maximum(par, 0)], -1)
-    ext = np.where(s.api_state[ids] == CHILD, loc[np.maximum(s.api_child[ids], 0)], -1)
+    ext = np.where(ext_g >= 0, loc[np.maximum(ext_g, 0)], -1)
     settings = getattr(run, "settings", None)
     order_mode = getattr(settings, "order_mode", "growth")
     meta = {

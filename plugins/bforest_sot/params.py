@@ -55,6 +55,11 @@ PARAMETERS: list[ParameterSpec] = [
     P("tropism_sd", 0.0, 0.0, 0.05, False, "", "clone noise: sd of the tropism, per shoot", "V"),
     P("heading_sd", 0.0, 0.0, 20.0, False, "deg", "clone noise (an addition): sd of a bend of each branch metamer "
       "about its up vector, so that branches wind as scanned ones do (the stem stays straight); 0 = smooth axes", "V"),
+    P("leader_death", 0.0, 0.0, 1.0, False, "", "an addition: probability per cycle that a growing apical bud "
+      "dies (terminal flowering, frost, damage), so the lateral buds below it take over; with opposite buds a "
+      "fork (sympodial growth of many broadleaved trees; 1 = every shoot forks); 0 = the papers' model (no draws)", "V"),
+    P("death_delay", 0.0, 0.0, 30.0, False, "cycles", "an addition: apical buds die (leader_death) from cycle "
+      "death_delay + 1 on, e.g. from the onset of flowering", "V"),
     # ---- fixed geometry (GS)
     P("node_length", 0.2, 0.1, 0.3, False, "m", "internode length (1 node unit of vigor; one lateral bud per "
       "internode, so it sets how many branches a metre of stem can carry); GS: 0.2 m", "fixed"),

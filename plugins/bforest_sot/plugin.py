@@ -29,6 +29,10 @@ class SOTSettings(ComponentSettings):
         "multiplicative", description="light field: multiplicative shadow propagation (LPFG-SOT)")
     max_live_segments: int = Field(200_000, ge=1, description="status 'too_many_segments' above this")
     sympodial: bool = Field(False, description="remove apical buds (sympodial branching)")
+    buds_per_node: int = Field(1, ge=1, le=6, description=(
+        "lateral buds per node, an addition to the papers' model: 1 = one bud per node in a spiral "
+        "(the papers' model), 2 = opposite buds (maples, ash; phyllotaxis 90 makes them decussate), "
+        "3 or more = a whorl; see docs/growth-forms.md"))
 
 
 class SOT(SSM):
@@ -46,6 +50,7 @@ class SOT(SSM):
     light_model : "multiplicative"
     max_live_segments : int (200 000)
     sympodial : bool (False)
+    buds_per_node : int (1)
     """
 
     name = "sot"
@@ -94,7 +99,7 @@ class SOT(SSM):
         seed = int(seed)
         st = self.settings
         run = SOTGrowth(p, seed, max_live_segments=st.max_live_segments, sympodial=st.sympodial,
-                        on_step=on_step)
+                        buds_per_node=st.buds_per_node, on_step=on_step)
         run.settings = st
         try:
             run.run(p["max_iter"])

@@ -12,7 +12,7 @@ from .errors import (BayesForestError, ConfigError, PluginError, QSMFormatError,
                      TreeError)
 from .tree import TOPOLOGY_RULES, BranchTable, Tree
 from .interfaces import (KINDS, SSM, Component, ComponentSettings, Distance, Executor, FeatureSet,
-                         OptimizeResult, Optimizer, ParameterSpec, Problem, QSMReader, QSMWriter)
+                         OptimizeResult, Optimizer, ParameterSpec, Problem, QSMReader, QSMWriter, RecipeDraft)
 from .registry import component, component_class, discover
 from .io import read_qsm, write_tree
 from .config import load_config

@@ -17,6 +17,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 if TYPE_CHECKING:
+    from .metrics import TreeMeasures
     from .tree import Tree
 
 KINDS = ("qsm_reader", "qsm_writer", "ssm", "features", "distance", "optimizer", "executor")
@@ -102,6 +103,36 @@ class ParameterSpec:
     group: str = ""
 
 
+@dataclass
+class RecipeDraft:
+    """A growth model's part of a recipe for one tree (:meth:`SSM.draft_recipe`).
+
+    Attributes
+    ----------
+    suits : float
+        How well the model suits the tree, 0-1 (``bforest init`` without ``--model`` takes the
+        model that suits it best).
+    why : str
+        One sentence saying why the model does or does not suit the tree.
+    settings, fixed : list of (name, value, comment)
+        Component settings and fixed parameter values.
+    free : list of (name, lower, upper, comment)
+        Bounds of the fitted parameters.
+    timeout : float
+        Seconds one growth may take before it counts as a failure.
+    notes : list of str
+        What the user should know about this tree's recipe (printed and written as comments).
+    """
+
+    suits: float
+    why: str
+    settings: list = field(default_factory=list)
+    fixed: list = field(default_factory=list)
+    free: list = field(default_factory=list)
+    timeout: float = 20.0
+    notes: list = field(default_factory=list)
+
+
 class SSM(Component):
     """A stochastic structure (growth) model."""
 
@@ -136,6 +167,24 @@ class SSM(Component):
         SimulationFailed
             For any non-ok status.
         """
+
+    def draft_recipe(self, measures: "TreeMeasures") -> "RecipeDraft | None":
+        """Optional (``bforest init``): this model's part of a recipe for a measured tree.
+
+        Parameters
+        ----------
+        measures : TreeMeasures
+            What the tree measures (height, crown, branch angles, crown form; see
+            :func:`bforest_core.metrics.measure_tree`).
+
+        Returns
+        -------
+        RecipeDraft or None
+            Settings, fixed values and free bounds, each with the comment saying what in the
+            tree set it, and how well the model suits the tree; None (the default) when the
+            model writes no recipes.
+        """
+        return None
 
     def parameter_spec(self, name: str) -> ParameterSpec:
         for p in self.parameters:

@@ -13,12 +13,13 @@ cylinder; point set = all cylinder start and end points.
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from typing import Literal, Mapping
 
 import numpy as np
 
 __all__ = ["classical_metrics", "relative_errors", "crown_spread", "dbh", "tree_summary", "order_summary",
-           "SUMMARY_UNITS", "summary_unit", "summary_label"]
+           "SUMMARY_UNITS", "summary_unit", "summary_label", "TreeMeasures", "measure_tree", "DECURRENT_LIMB_RATIO"]
 
 BREAST_HEIGHT = 1.3  # m
 _RHO_EPS = 1e-9      # m; points closer than this to the vertical through the base have no direction
@@ -333,3 +334,109 @@ def weighted_quantiles(x: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
     ws = ws / ws.sum()
     cdf = np.cumsum(ws) - 0.5 * ws
     return np.interp(np.asarray(qs, float) / 100.0, cdf, x[o])
+
+
+# ------------------------------------------------------------------------------------------
+# what a recipe is scaled from (`bforest init`)
+# ------------------------------------------------------------------------------------------
+
+#: wood of the three largest limbs over the stem's wood in the crown above which a crown is
+#: decurrent (the stem divides into limbs, like a maple's) rather than excurrent (a leader to
+#: the top, like a pine's): Scots pines 0.34-0.48, broadleaved trees of Wytham Woods 1.7-2.4
+DECURRENT_LIMB_RATIO = 1.0
+
+
+@dataclass(frozen=True)
+class TreeMeasures:
+    """What a recipe for a tree is scaled from (:func:`measure_tree`; lengths in m, angles in deg).
+
+    Attributes
+    ----------
+    height, dbh, crown_spread, crown_base_height, crown_length : float
+        As :func:`tree_summary` (crown length = height - crown base height).
+    n_branches_o1 : int
+        Living first-order branches (every one, whatever its diameter).
+    max_order : int
+        Highest branch order.
+    branch_spacing : float
+        Crown length per first-order branch (m): how far apart along the stem limbs arise.
+    beta_q10, beta_q50, beta_q90 : float
+        10, 50 and 90 % quantiles of the first-order branches' angles to their parent cylinder.
+    limb_ratio : float
+        Wood volume of the three largest first-order limbs (each with every branch it bears)
+        over the stem's wood volume in the crown; above :data:`DECURRENT_LIMB_RATIO` the crown
+        is decurrent.
+    longest_limb : float
+        Length (m) of the longest first-order branch.
+    thinnest_branch : float
+        Smallest base diameter (m) of a branch: a QSM simplified for its use (twigs removed)
+        has a floor here.
+    stem_rise : float
+        Vertical component of the stem's first cylinder (1 = straight up).
+    """
+
+    height: float
+    dbh: float
+    crown_spread: float
+    crown_base_height: float
+    crown_length: float
+    n_branches_o1: int
+    max_order: int
+    branch_spacing: float
+    beta_q10: float
+    beta_q50: float
+    beta_q90: float
+    limb_ratio: float
+    longest_limb: float
+    thinnest_branch: float
+    stem_rise: float
+
+    @property
+    def decurrent(self) -> bool:
+        """True when the stem divides into limbs (see :data:`DECURRENT_LIMB_RATIO`)."""
+        return self.limb_ratio > DECURRENT_LIMB_RATIO
+
+
+def measure_tree(tree) -> TreeMeasures:
+    """The measures a recipe is scaled from (see :class:`TreeMeasures`).
+
+    Raises
+    ------
+    ValueError
+        For a tree that cannot be fitted, saying why: no stem rising from the base (a QSM
+        without a trunk), or no first-order branch.
+    """
+    s = tree_summary(tree, min_diameter=0.0)
+    br = tree.branches
+    stem = tree.order == 0
+    h = s["height"]
+    rise = float(tree.axis[0, 2])
+    stem_top = float((tree.start[stem, 2] + tree.length[stem] * tree.axis[stem, 2]).max() - tree.start[0, 2])
+    if rise < 0.5 or stem_top < 0.5 * h:
+        raise ValueError(f"no trunk: the stem's first cylinder rises at {rise:.2f} (1 = vertical; "
+                         f"needs >= 0.5) and the stem reaches {stem_top:.2f} m of the tree's {h:.2f} m "
+                         "(needs half): a growth model grows a tree from one upright stem")
+    o1 = np.flatnonzero((br.order == 1) & _living(tree))
+    if o1.size == 0:
+        raise ValueError("no first-order branch: a stem alone gives a growth model nothing to fit")
+    vol = np.pi * tree.radius ** 2 * tree.length
+    sub = np.bincount(tree.branch, weights=vol, minlength=len(br))
+    for b in np.argsort(-br.order, kind="stable"):  # each branch's wood into its parent's, deepest first
+        if br.parent_branch[b] >= 0 and br.order[b] > 1:
+            sub[br.parent_branch[b]] += sub[b]
+    cb = s["crown_base_height"]
+    zmid = tree.start[:, 2] + 0.5 * tree.length * tree.axis[:, 2] - tree.start[0, 2]
+    stem_crown = float(vol[stem & (zmid >= cb)].sum())
+    limbs = np.sort(sub[o1])[::-1][:3].sum()
+    blen = np.bincount(tree.branch, weights=tree.length, minlength=len(br))
+    pc = br.parent_cyl[o1]
+    a = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", tree.axis[br.first[o1]], tree.axis[pc]), -1, 1)))
+    q10, q50, q90 = (float(v) for v in np.percentile(a, [10, 50, 90]))
+    crown_length = max(h - cb, 1e-9)
+    return TreeMeasures(
+        height=h, dbh=s["dbh"], crown_spread=s["crown_spread"], crown_base_height=cb,
+        crown_length=h - cb, n_branches_o1=int(o1.size), max_order=int(br.order.max()),
+        branch_spacing=crown_length / o1.size, beta_q10=q10, beta_q50=q50, beta_q90=q90,
+        limb_ratio=float(limbs / stem_crown) if stem_crown > 0 else float("inf"),
+        longest_limb=float(blen[o1].max()), thinnest_branch=float(2.0 * tree.radius[br.first[1:]].min()),
+        stem_rise=rise)

@@ -13,7 +13,7 @@ import sys
 import warnings
 from concurrent.futures import BrokenExecutor
 
-from . import export, runs, setup, trees
+from . import export, init, runs, setup, trees
 from .common import EXIT_USAGE, Parser, UsageError
 
 
@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"bforest {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
-    for group in (runs, trees, export, setup):
+    for group in (runs, init, trees, export, setup):
         group.add_commands(sub)
     return p
 

@@ -10,6 +10,7 @@ from bforest_core.tree import Tree
 
 from . import params as P
 from .model import _Simulation
+from .recipe import lignum_recipe
 
 
 class LignumSettings(ComponentSettings):
@@ -49,6 +50,10 @@ class LignumSSM(SSM):
     def parameters(self) -> list[ParameterSpec]:
         """Parameter specs of A.3 with the current preset's values as defaults."""
         return P.parameter_specs(self.settings.preset)
+
+    def draft_recipe(self, measures):
+        """LIGNUM's recipe for a measured tree (:func:`bforest_lignum.recipe.lignum_recipe`)."""
+        return lignum_recipe(measures)
 
     def resolve_params(self, params: Mapping[str, object]) -> dict:
         """Preset defaults overridden by ``params`` (categorical spellings mapped to codes);

@@ -61,9 +61,11 @@ PARAMETERS: list[ParameterSpec] = [
     P("death_delay", 0.0, 0.0, 30.0, False, "cycles", "an addition: apical buds die (leader_death) from cycle "
       "death_delay + 1 on, e.g. from the onset of flowering", "V"),
     # ---- fixed geometry (GS)
-    P("node_length", 0.2, 0.1, 0.3, False, "m", "internode length (1 node unit of vigor; one lateral bud per "
-      "internode, so it sets how many branches a metre of stem can carry); GS: 0.2 m", "fixed"),
-    P("voxel_size", 0.2, 0.2, 0.2, False, "m", "light voxel edge", "fixed"),
+    P("node_length", 0.2, 0.1, 0.6, False, "m", "internode length (1 node unit of vigor; one lateral bud per "
+      "internode, so it sets how many branches a metre of stem can carry); GS: 0.2 m; up to 0.6 m for trees of "
+      "18-20 m", "fixed"),
+    P("voxel_size", 0.2, 0.2, 0.5, False, "m", "light voxel edge; GS: 0.2 m; coarser for large trees, "
+      "whose internodes are longer (the field's cost grows with (span / voxel_size)^3)", "fixed"),
     P("span", 12.0, 12.0, 30.0, False, "m", "edge of the world cube (tree at the XY centre, Z up); GS: 12 m, "
       "larger for trees taller than about 11 m", "fixed"),
 ]

@@ -18,6 +18,7 @@ from bforest_core.tree import Tree
 
 from .model import MODEL_VERSION, GrowthFailure, SOTGrowth, build_tree
 from .params import PARAMETERS, validate
+from .recipe import sot_recipe
 
 class SOTSettings(ComponentSettings):
     """Switches of the SOT model (not fitted)."""
@@ -60,6 +61,10 @@ class SOT(SSM):
     @property
     def parameters(self) -> list[ParameterSpec]:
         return list(PARAMETERS)
+
+    def draft_recipe(self, measures):
+        """SOT's recipe for a measured tree (:func:`bforest_sot.recipe.sot_recipe`)."""
+        return sot_recipe(measures)
 
     def simulate(self, params: Mapping[str, float], seed: int,
                  on_step: Callable[[int, Any], None] | None = None) -> Tree:

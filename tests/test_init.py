@@ -1,0 +1,158 @@
+"""`bforest init`: a tree is measured and gets a recipe with bounds scaled to it (issue 31).
+
+Hand-built trees with known heights, angles and crown forms: an excurrent one (a leader to the
+top carrying short branches, like a pine) and a decurrent one (a short bole that divides into
+three heavy limbs, like a maple), and a QSM without a trunk.
+"""
+from __future__ import annotations
+
+import math
+import tomllib
+
+import numpy as np
+import pytest
+
+import bforest_core as bf
+from bforest_core.cli.main import main
+from bforest_core.metrics import measure_tree
+from bforest_core.pipeline.recipe import write_recipe
+
+
+def _axis(zenith_deg: float, azimuth_deg: float) -> np.ndarray:
+    z, a = math.radians(zenith_deg), math.radians(azimuth_deg)
+    return np.array([math.sin(z) * math.cos(a), math.sin(z) * math.sin(a), math.cos(z)])
+
+
+class Builder:
+    """Cylinders appended one axis at a time (parents before children)."""
+
+    def __init__(self):
+        self.start, self.axis, self.length, self.radius, self.parent = [], [], [], [], []
+
+    def axis_of(self, parent: int, at, direction, n: int, piece: float, r0: float, r1: float) -> list[int]:
+        ids, p = [], np.asarray(at, float)
+        for k in range(n):
+            self.start.append(p.copy())
+            self.axis.append(np.asarray(direction, float))
+            self.length.append(piece)
+            self.radius.append(r0 + (r1 - r0) * k / max(n - 1, 1))
+            self.parent.append(parent if k == 0 else ids[-1])
+            ids.append(len(self.start) - 1)
+            p = p + piece * np.asarray(direction, float)
+        return ids
+
+    def end(self, i: int) -> np.ndarray:
+        return self.start[i] + self.length[i] * self.axis[i]
+
+    def tree(self) -> bf.Tree:
+        return bf.Tree(np.array(self.start), np.array(self.axis), np.array(self.length),
+                       np.array(self.radius), np.array(self.parent), topology="thickest")
+
+
+def excurrent_tree() -> bf.Tree:
+    """A 10 m leader (20 cylinders of 0.5 m, 10 -> 2 cm radius) with 16 branches of 1 m, 1 cm
+    thick, from 3 m up, at 50, 60, 70 or 80 deg to the stem (four of each)."""
+    b = Builder()
+    stem = b.axis_of(-1, (0, 0, 0), (0, 0, 1), 20, 0.5, 0.10, 0.02)
+    for j, c in enumerate(stem[6:-2]):
+        ang = (50, 60, 70, 80)[j % 4]
+        b.axis_of(c, b.end(c), _axis(ang, 137.5 * j), 2, 0.5, 0.005, 0.004)
+    return b.tree()
+
+
+def decurrent_tree() -> bf.Tree:
+    """A 3 m bole (radius 15 cm) dividing at its top into three limbs of 6 m (12 cm radius) at
+    30 deg to the vertical, each bearing four 1.5 m branches (3 cm) at 45 deg: 8.2 m tall."""
+    b = Builder()
+    bole = b.axis_of(-1, (0, 0, 0), (0, 0, 1), 6, 0.5, 0.15, 0.14)
+    top = bole[-1]
+    b.axis_of(top, b.end(top), (0, 0, 1), 2, 0.25, 0.06, 0.05)  # the stem's short continuation
+    for k in range(3):
+        d = _axis(30, 120 * k)
+        limb = b.axis_of(top, b.end(top), d, 12, 0.5, 0.12, 0.04)
+        for j, c in enumerate(limb[2:10:2]):
+            b.axis_of(c, b.end(c), _axis(45 + 30, 120 * k + 90 * (-1) ** j), 3, 0.5, 0.015, 0.012)
+    return b.tree()
+
+
+def _recipe(tmp_path, tree, name, model=None):
+    src = tmp_path / f"{name}.txt"
+    bf.write_tree(tree, src)
+    out = tmp_path / f"{name}.toml"
+    r = write_recipe(src, out, model)
+    return r, tomllib.loads(out.read_text(encoding="utf-8"))
+
+
+def test_measures_of_the_hand_trees():
+    ex, de = measure_tree(excurrent_tree()), measure_tree(decurrent_tree())
+    assert ex.height == pytest.approx(10.0) and ex.n_branches_o1 == 12
+    assert not ex.decurrent and ex.limb_ratio < 0.1
+    assert (ex.beta_q10, ex.beta_q90) == (pytest.approx(50.0), pytest.approx(80.0))
+    assert ex.thinnest_branch == pytest.approx(0.01)
+    # the thickest child continues the stem: one limb is the stem's crown part; the other two
+    # limbs with their branches and the stem's short continuation are the three largest limbs
+    def vol(r0, r1, n):
+        return sum(math.pi * (r0 + (r1 - r0) * k / (n - 1)) ** 2 * 0.5 for k in range(n))
+    limb, sub, cont = vol(0.12, 0.04, 12), 4 * vol(0.015, 0.012, 3), vol(0.06, 0.05, 2) / 2
+    assert de.decurrent and de.limb_ratio == pytest.approx((2 * (limb + sub) + cont) / limb)
+    assert de.height == pytest.approx(3.0 + 6 * math.cos(math.radians(30)))
+    assert de.longest_limb == pytest.approx(6.0)
+
+
+def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path):
+    r, cfg = _recipe(tmp_path, excurrent_tree(), "pine")
+    assert r.model == "lignum" and cfg["ssm"]["kind"] == "lignum"
+    free = cfg["ssm"]["free"]
+    assert free["years"] == {"lower": 15, "upper": 40}  # 1.5 years per m of a 10 m tree
+    # angles 50-80 deg: initial angle from 15 (50 - 35) to 85 (median 65 + 20), final from 35
+    # (65 - 30) to 75 (80 - 5), each within the parameter's allowed range (17.5-90, 40-105 deg)
+    assert free["beta_init"] == {"lower": 17.5, "upper": 85.0}
+    assert free["beta_max"] == {"lower": 40.0, "upper": 75.0}
+    assert cfg["target"]["qsm"] == "pine.txt"
+    assert cfg["select"] == {"top": 8, "sets": 8} and cfg["optimizer"]["starts"] == 4
+    bf.load_config(tmp_path / "pine.toml")  # a valid run config as written
+    # asked for SOT: excurrent apical control, one bud per node, the box scaled to 10 m
+    r, cfg = _recipe(tmp_path, excurrent_tree(), "pine_sot", model="sot")
+    s = cfg["ssm"]
+    assert s["free"]["init_lambda"] == {"lower": 0.6, "upper": 0.9}
+    assert "buds_per_node" not in s and s["fixed"]["span"] == 18.0
+    assert s["free"]["node_length"] == {"lower": 0.1, "upper": 0.3}
+    assert s["free"]["branch_angle"] == {"lower": 30.0, "upper": 80.0}
+
+
+def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp_path):
+    r, cfg = _recipe(tmp_path, decurrent_tree(), "maple")
+    assert r.model == "sot"
+    s = cfg["ssm"]
+    assert s["buds_per_node"] == 2 and s["fixed"]["phyllotaxis"] == 90.0
+    assert s["free"]["init_lambda"] == {"lower": 0.35, "upper": 0.8}
+    assert s["free"]["leader_death"]["upper"] > 0
+    h = 3.0 + 6 * math.cos(math.radians(30))
+    assert s["fixed"]["span"] == 2 * math.ceil(0.9 * h) or s["fixed"]["span"] == 12.0
+    assert s["free"]["init_width"]["lower"] == pytest.approx(0.03)  # its thinnest branch: 3 cm
+    text = (tmp_path / "maple.toml").read_text()
+    assert "decurrent" in text and "Not lignum" in text
+    bf.load_config(tmp_path / "maple.toml")
+
+
+def test_a_tree_without_a_trunk_gets_one_clear_line(tmp_path, capsys):
+    b = Builder()
+    b.axis_of(-1, (0, 0, 0.5), (1, 0, 0), 6, 0.5, 0.05, 0.03)  # a lying log with a twig
+    b.axis_of(2, b.end(2), _axis(45, 90), 2, 0.5, 0.01, 0.01)
+    src = tmp_path / "log.txt"
+    bf.write_tree(b.tree(), src)
+    assert main(["init", str(src), "-o", str(tmp_path / "log.toml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "log.txt" in err[0] and "no trunk" in err[0]
+    assert not (tmp_path / "log.toml").exists()
+
+
+def test_init_never_replaces_a_recipe_without_overwrite(tmp_path, capsys):
+    src = tmp_path / "pine.txt"
+    bf.write_tree(excurrent_tree(), src)
+    out = tmp_path / "pine.toml"
+    out.write_text("# my edits\n")
+    assert main(["init", str(src), "-o", str(out)]) == 2
+    assert out.read_text() == "# my edits\n" and "--overwrite" in capsys.readouterr().err
+    assert main(["init", str(src), "-o", str(out), "--overwrite"]) == 0
+    assert "lignum" in capsys.readouterr().out and "years" in out.read_text()

@@ -122,6 +122,9 @@ class RecipeDraft:
         Seconds one growth may take before it counts as a failure.
     notes : list of str
         What the user should know about this tree's recipe (printed and written as comments).
+    size_weights : dict
+        Weights of the size term's statistics where the model has its own calibrated balance
+        (empty: the recipe's default, the inverse of the errors a forester tolerates).
     """
 
     suits: float
@@ -131,6 +134,7 @@ class RecipeDraft:
     free: list = field(default_factory=list)
     timeout: float = 20.0
     notes: list = field(default_factory=list)
+    size_weights: dict = field(default_factory=dict)
 
 
 class SSM(Component):

@@ -17,6 +17,8 @@ from bforest_core.cli.main import main
 from bforest_core.metrics import measure_tree
 from bforest_core.pipeline.recipe import write_recipe
 
+from conftest import ROOT, qsm_path as sample
+
 
 def _axis(zenith_deg: float, azimuth_deg: float) -> np.ndarray:
     z, a = math.radians(zenith_deg), math.radians(azimuth_deg)
@@ -156,3 +158,25 @@ def test_init_never_replaces_a_recipe_without_overwrite(tmp_path, capsys):
     assert out.read_text() == "# my edits\n" and "--overwrite" in capsys.readouterr().err
     assert main(["init", str(src), "-o", str(out), "--overwrite"]) == 0
     assert "lignum" in capsys.readouterr().out and "years" in out.read_text()
+
+
+def test_init_on_pine_3_is_the_shipped_lignum_recipe(tmp_path):
+    # the shipped recipe is init's output for pine 3, value for value and in the same order (so
+    # the same search): its fits over run seeds (docs/validation.md section 4) are init's
+    src = sample("pine_ruotsinkyla_3.mat")
+    out = tmp_path / "pine3.toml"
+    write_recipe(src, out)
+    shipped = tmp_path / "shipped.toml"
+    text = (ROOT / "examples" / "real" / "pine_lignum.toml").read_text()
+    shipped.write_text(text.replace('qsm = "../../../shared/data/qsm/pine_ruotsinkyla_3.mat"', f'qsm = "{src}"'))
+    a, b = bf.load_config(out).model_dump(), bf.load_config(shipped).model_dump()
+    assert a == b and list(a["ssm"]["free"]) == list(b["ssm"]["free"])
+
+
+@pytest.mark.parametrize("name, model, form", [("wytham_tf1.mat", "sot", "decurrent"),
+                                               ("coffeetree_treeqsm_optqsm.mat", "sot", "decurrent"),
+                                               ("pine_ruotsinkyla_1.mat", "lignum", "excurrent")])
+def test_init_on_the_sample_trees_picks_the_model_for_their_crown_form(tmp_path, name, model, form):
+    r = write_recipe(sample(name), tmp_path / "r.toml")
+    assert r.model == model and (r.measures.decurrent == (form == "decurrent"))
+    bf.load_config(tmp_path / "r.toml")

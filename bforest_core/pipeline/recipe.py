@@ -140,12 +140,13 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
           _line("seeds = 3", "the mean over 3 model seeds: clones vary, the fit must not chase one"),
           _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take"),
           _line("structure_weight = 2.0", "structure and size weigh alike"), "",
-          "# The headline statistics weigh by the inverse of the error a forester tolerates (height 7.5 %,",
-          "# DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %).",
+          ("# The headline statistics weigh as the model's recipes calibrated them." if d.size_weights else
+           "# The headline statistics weigh by the inverse of the error a forester tolerates (height 7.5 %,\n"
+           "# DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %)."),
           "[[objective.terms]]", 'name = "size"', "weight = 2.0",
           'features = { kind = "tree-summary", min_branch_diameter = 0.0 }',
           'distance = { kind = "summary", form = "logratio", weights = { '
-          + ", ".join(f"{k} = {v}" for k, v in SIZE_WEIGHTS.items()) + " } }", "",
+          + ", ".join(f"{k} = {v}" for k, v in (d.size_weights or SIZE_WEIGHTS).items()) + " } }", "",
           "# A search that does not hinge on one trajectory: 32 Sobol' points over the box, four lq-CMA-ES",
           "# runs from the best distinct ones raced by successive halving, each restarting with a doubled",
           "# population once it converges.",

@@ -52,4 +52,6 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         suits=suits, why=why,
         settings=[("preset", "sf_real", "the papers' real-tree values for what is not fitted")],
         fixed=[("piece_length", 0.15, "drawn as a scan's QSM draws a tree: shoots as cylinders of at most 15 cm")],
-        free=free, timeout=60.0)
+        free=free, timeout=60.0,
+        # the calibrated balance of the pine recipe (examples/real/pine_lignum.toml)
+        size_weights={"height": 8.0, "dbh": 2.7, "crown_spread": 2.0, "crown_base_height": 1.6, "n_branches_o1": 1.6})

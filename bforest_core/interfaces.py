@@ -120,6 +120,8 @@ class RecipeDraft:
         Bounds of the fitted parameters.
     timeout : float
         Seconds one growth may take before it counts as a failure.
+    wall_time : float
+        Seconds the search may take (``[stop] wall_time``); the answer's re-scoring comes after.
     notes : list of str
         What the user should know about this tree's recipe (printed and written as comments).
     size_weights : dict
@@ -133,6 +135,7 @@ class RecipeDraft:
     fixed: list = field(default_factory=list)
     free: list = field(default_factory=list)
     timeout: float = 20.0
+    wall_time: float = 840.0
     notes: list = field(default_factory=list)
     size_weights: dict = field(default_factory=dict)
 

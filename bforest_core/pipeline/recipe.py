@@ -153,7 +153,7 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
           "[optimizer]", 'kind = "cma"', "population = 16", "restarts = 4", "sigma0 = 0.15", 'surrogate = "lq"',
           "surrogate_batch = 2", "init_design = 32", "starts = 4", "",
           "[stop]", "max_evaluations = 1200",
-          _line("wall_time = 840.0", "seconds: a safety net"), "",
+          _line(f"wall_time = {d.wall_time:.1f}", "seconds the search may take (the answer's re-scoring comes after)"), "",
           "# The answer is chosen on model seeds the search never used: the 8 best distinct points are each",
           "# grown again with 8 sets of held-out seeds; the lowest held-out distance is the answer.",
           "[select]", "top = 8", "sets = 8", "",

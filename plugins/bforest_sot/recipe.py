@@ -83,4 +83,4 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         notes.append(f"the QSM has no branch thinner than {100 * m.thinnest_branch:.1f} cm (a simplified "
                      "QSM?): the model's shoots start that thick, so both sides show the same branches")
     return RecipeDraft(suits=suits, why=why, settings=settings, fixed=fixed, free=free,
-                       timeout=60.0 if big else 20.0, notes=notes)
+                       timeout=60.0 if big else 20.0, wall_time=480.0 if big else 840.0, notes=notes)

@@ -180,3 +180,18 @@ def test_init_on_the_sample_trees_picks_the_model_for_their_crown_form(tmp_path,
     r = write_recipe(sample(name), tmp_path / "r.toml")
     assert r.model == model and (r.measures.decurrent == (form == "decurrent"))
     bf.load_config(tmp_path / "r.toml")
+
+
+def test_every_value_init_writes_lies_in_its_allowed_range(tmp_path):
+    # a 19.7 m tree: voxels of 0.39 m would put the light probe (1.6 voxels) at 0.63 m, beyond
+    # sample_rad's 0.6; the written recipe keeps each fixed value and bound within its range
+    b = Builder()
+    stem = b.axis_of(-1, (0, 0, 0), (0, 0, 1), 40, 0.5, 0.2, 0.03)
+    for j, c in enumerate(stem[16:-4]):
+        b.axis_of(c, b.end(c), _axis(60, 137.5 * j), 3, 0.5, 0.012, 0.01)
+    r, cfg = _recipe(tmp_path, b.tree(), "tall", model="sot")
+    spec = {p.name: p for p in bf.component("ssm", "sot").parameters}
+    for k, v in cfg["ssm"]["fixed"].items():
+        assert spec[k].lower <= v <= spec[k].upper, k
+    assert cfg["ssm"]["fixed"]["sample_rad"] == 0.6
+    bf.load_config(tmp_path / "tall.toml")

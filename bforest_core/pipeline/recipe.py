@@ -63,8 +63,14 @@ def draft_recipes(measures: TreeMeasures, model: str | None = None) -> list[tupl
                                   "knows the models whose plugin drafts one)")
             continue
         draft.free = [_within(ssm.parameter_spec(k), lo, hi, c) for k, lo, hi, c in draft.free]
+        draft.fixed = [(k, _clip(ssm.parameter_spec(k), v), c) for k, v, c in draft.fixed]
         out.append((name, draft))
     return sorted(out, key=lambda nd: -nd[1].suits)
+
+
+def _clip(spec, v):
+    """A fixed value within the parameter's allowed range."""
+    return (int if spec.integer else float)(min(max(v, spec.lower), spec.upper))
 
 
 def _within(spec, lo, hi, comment):

@@ -23,19 +23,17 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 import bforest_core as bf
-from bforest_core.pipeline.clones import clones
 from bforest_core.pipeline.recipe import write_recipe
 from bforest_core.report.trees import clones_figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_fidelity import ACCEPT, DATA, DOC, judge_distance  # noqa: E402  (the same judge and limits)
+from run_fidelity import ACCEPT, DATA, DOC, fit_and_judge, judge_distance  # noqa: E402  (the same judge and limits)
 
 WYTHAM = [f"wytham_tf{k}" for k in range(1, 6)]
 PINES = [f"pine_ruotsinkyla_{k}" for k in (1, 2, 3)]
@@ -68,15 +66,8 @@ def run_one(tree: str, seed: int, out: Path, n_clones: int) -> dict:
     if seed != 1:  # the run seed: the recipe's one top-level line
         rec.write_text(rec.read_text().replace("\nseed = 1\n", f"\nseed = {seed}\n", 1))
     run = out / f"{tree}_seed{seed}"
-    t0 = time.monotonic()
-    res = bf.fit(bf.load_config(rec), run, overwrite=True, progress=False)
-    fit_seconds = time.monotonic() - t0
-    best = json.loads((run / "best.json").read_text())
-    s = clones(run, n=n_clones, replace=True, progress=False)
-    fid = {row["statistic"]: row for row in s["fidelity"]["table"]}
+    res, fit_seconds, best, s, fid, d_clones = fit_and_judge(rec, run, path_of(tree), n_clones)
     target = bf.read_qsm(path_of(tree))
-    trees = [bf.read_qsm(run / "clones" / row["file"]) for row in s["rows"] if row["status"] == "ok"]
-    d_clones = [judge_distance(t, target) for t in trees]
     d_near = {n: judge_distance(bf.read_qsm(path_of(n)), target) for n in neighbours(tree)}
     return {"tree": tree, "seed": seed, "model": r.model, "run": str(run), "fit_seconds": fit_seconds,
             "evaluations": res.n_evaluations, "best_distance": res.distance,

@@ -91,18 +91,26 @@ def recipe_for(recipe: Path, pine: Path, out: Path, seed: int) -> Path:
     return p
 
 
-def run_one(recipe: Path, k: int, seed: int, out: Path, n_clones: int) -> dict:
-    run = out / f"{recipe.stem}_pine{k}_seed{seed}"
-    cfg_path = recipe_for(recipe, PINES[k], out, seed)
+def fit_and_judge(cfg_path: Path, run: Path, target: Path, n_clones: int):
+    """Fit the recipe into ``run``, grow ``n_clones`` clones and judge each against the tree:
+    ``(fit result, fit seconds, best.json, clones summary, fidelity rows by statistic, judge
+    distances of the clones)``."""
     t0 = time.monotonic()
     res = bf.fit(bf.load_config(cfg_path), run, overwrite=True, progress=False)
     fit_seconds = time.monotonic() - t0
     best = json.loads((run / "best.json").read_text())
     s = clones(run, n=n_clones, replace=True, progress=False)
     fid = {r["statistic"]: r for r in s["fidelity"]["table"]}
-    pine = bf.read_qsm(PINES[k])
+    tree = bf.read_qsm(target)
     clone_trees = [bf.read_qsm(run / "clones" / r["file"]) for r in s["rows"] if r["status"] == "ok"]
-    d_clones = [judge_distance(t, pine) for t in clone_trees]
+    return res, fit_seconds, best, s, fid, [judge_distance(t, tree) for t in clone_trees]
+
+
+def run_one(recipe: Path, k: int, seed: int, out: Path, n_clones: int) -> dict:
+    run = out / f"{recipe.stem}_pine{k}_seed{seed}"
+    cfg_path = recipe_for(recipe, PINES[k], out, seed)
+    res, fit_seconds, best, s, fid, d_clones = fit_and_judge(cfg_path, run, PINES[k], n_clones)
+    pine = bf.read_qsm(PINES[k])
     d_mates = {j: judge_distance(bf.read_qsm(PINES[j]), pine) for j in PINES if j != k}
     row = {"recipe": recipe.stem, "pine": k, "seed": seed, "run": str(run), "fit_seconds": fit_seconds,
            "evaluations": res.n_evaluations, "best_distance": res.distance,

@@ -252,6 +252,27 @@ class SegmentStore:
             setattr(self, name, new)
         self.cap = cap
 
+    def append(self, new: slice, start, h, u, length, width, parent, is_lateral, order, born) -> None:
+        """Fill the rows ``new`` (the next ones, reserved) as living metamers without children:
+        an EMPTY apical slot and a lateral BUD."""
+        self.start[new] = start
+        self.h[new] = h
+        self.u[new] = u
+        self.length[new] = length
+        self.width[new] = width
+        self.parent[new] = parent
+        self.is_lateral[new] = is_lateral
+        self.order[new] = order
+        self.depth[new] = self.depth[parent] + 1
+        self.alive[new] = True
+        self.born[new] = born
+        self.api_state[new] = EMPTY
+        self.lat_state[new] = BUD
+        self.api_child[new] = -1
+        self.lat_child[new] = -1
+        self.api_stub_w[new] = 0.0
+        self.lat_stub_w[new] = 0.0
+
     @property
     def live(self) -> np.ndarray:
         """Ids of the living segments in creation (parent-before-child) order."""
@@ -578,23 +599,8 @@ class SOTGrowth:
             nid = s.n + np.arange(act.size)
             new = slice(s.n, s.n + act.size)  # the rows nid, as a slice (cheaper to write)
             par = bearing[act] if k == 0 else last[act]
-            s.start[new] = pos[act]
-            s.h[new] = ha
-            s.u[new] = ua
-            s.length[new] = seg_len[act]
-            s.width[new] = p["init_width"]
-            s.parent[new] = par
-            s.is_lateral[new] = lateral[act] & (k == 0)
-            s.order[new] = order[act]
-            s.depth[new] = s.depth[par] + 1
-            s.alive[new] = True
-            s.born[new] = c
-            s.api_state[new] = EMPTY
-            s.lat_state[new] = BUD
-            s.api_child[new] = -1
-            s.lat_child[new] = -1
-            s.api_stub_w[new] = 0.0
-            s.lat_stub_w[new] = 0.0
+            s.append(new, pos[act], ha, ua, seg_len[act], p["init_width"], par, lateral[act] & (k == 0),
+                     order[act], c)
             if k == 0:
                 la = lateral[act]
                 s.lat_state[par[la]] = CHILD
@@ -638,23 +644,8 @@ class SOTGrowth:
         for j in range(1, self.buds_per_node):
             tid = s.n + np.arange(m)
             new = slice(s.n, s.n + m)
-            s.start[new] = end
-            s.h[new] = h
-            s.u[new] = rotate(u, h, np.full(m, 2.0 * math.pi * j / self.buds_per_node))
-            s.length[new] = 0.0
-            s.width[new] = self.p["init_width"]
-            s.parent[new] = prev
-            s.is_lateral[new] = False
-            s.order[new] = order
-            s.depth[new] = s.depth[prev] + 1
-            s.alive[new] = True
-            s.born[new] = c
-            s.api_state[new] = EMPTY
-            s.lat_state[new] = BUD
-            s.api_child[new] = -1
-            s.lat_child[new] = -1
-            s.api_stub_w[new] = 0.0
-            s.lat_stub_w[new] = 0.0
+            s.append(new, end, h, rotate(u, h, np.full(m, 2.0 * math.pi * j / self.buds_per_node)), 0.0,
+                     self.p["init_width"], prev, False, order, c)
             s.twin[new] = True
             s.api_state[prev] = CHILD
             s.api_child[prev] = tid

@@ -156,7 +156,7 @@ def summary_pair(M, groups):
 
 
 def normalisation_table(tree):
-    """Spec §3: D of pine 3's S^1 (source topology, 100 gp2 lines) to modified copies of itself."""
+    """docs/features-and-distance.md §3: D of pine 3's S^1 (source topology, 100 gp2 lines) to modified copies of itself."""
     fs = bf.component("features", "branch-segment", sets=["S1"], topology="source", angles="linear", min_rows=0)
     S1 = fs.extract(tree)["S1"]
     mods = {"radii x 2": S1 * [2, 1, 1, 1], "L x 2": S1 * [1, 2, 1, 1], "gamma + 10 deg": S1 + [0, 0, 10, 0]}
@@ -243,7 +243,7 @@ def write_doc(path: Path, names, groups, trees, res, S, lines: int, norm_res=Non
         L.append("## Evidence for the default normalisation (`zscore`, circular angles)\n")
     if table3:
         labels, nrows, vals = table3
-        L.append(f"Sensitivity (spec §3): D between pine_ruotsinkyla_3's S^1 ({nrows} rows, topology `source`, "
+        L.append(f"Sensitivity (docs/features-and-distance.md §3): D between pine_ruotsinkyla_3's S^1 ({nrows} rows, topology `source`, "
                  "KS, 100 gp2 lines) and a modified copy of itself. A good scaling lets every feature count: "
                  "doubling all radii or all lengths is a large change and should move D at least as much "
                  "as turning every heading by 10 degrees.\n")
@@ -257,8 +257,8 @@ def write_doc(path: Path, names, groups, trees, res, S, lines: int, norm_res=Non
                  "`robust` scales by the IQR, which is zero or tiny for columns dominated by the exact zeros "
                  "of first segments (L = gamma = zeta = 0): 63 % of wytham_tf3's S^3 rows are first segments "
                  "and the IQR of gamma and zeta is exactly 0 there (checked), so their scale falls back to 1 "
-                 "degree and the angles swamp the table. The robust linear row differs from the spec's "
-                 "quoted figures (0.280, 0.131, 0.182) by up to 0.004; the other rows agree to 0.001.\n")
+                 "degree and the angles swamp the table. The robust linear row differs from the "
+                 "figures quoted in docs/features-and-distance.md §3 (0.280, 0.131, 0.182) by up to 0.004; the other rows agree to 0.001.\n")
     if norm_res:
         L.append("Separation of the pines from the broadleaf trees in the atlas (subtree, KS, "
                  f"{lines} lines) under each normalisation (circular angles):\n")
@@ -288,7 +288,7 @@ def write_doc(path: Path, names, groups, trees, res, S, lines: int, norm_res=Non
     L.append("* `thickest` (the toolbox rule) lets thin-but-slightly-thicker twigs take over stems on the "
              "pines (pine_ruotsinkyla_1: max order 12), which is why `subtree` is the default; `source` "
              "uses each reconstruction's own branching and is not comparable across QSM software.")
-    L.append("* Distances use 256 lines; 1000 lines move them by a few hundredths (spec §4.1), so compare "
+    L.append("* Distances use 256 lines; 1000 lines move them by a few hundredths (docs/features-and-distance.md §4.1), so compare "
              "only numbers computed with the same L and net.")
     L.append("* The number of rows differs by an order of magnitude between trees; KS compares "
              "distributions, not counts, so a small tree is not far from a large one merely by size.")

@@ -1,4 +1,4 @@
-"""Benchmark of the sliced distance and of feature extraction (spec features-distance.md §6).
+"""Benchmark of the sliced distance and of feature extraction (docs/features-and-distance.md §6).
 
 Run:  .venv/bin/python benchmarks/distance.py [--lines 1000] [--n 5000] [--cylinders 100000]
 

@@ -1,4 +1,4 @@
-"""Benchmarks of the two structure growth models (spec ssm-models.md A.12 and B.9).
+"""Benchmarks of the two structure growth models (docs/models.md A.12 and B.9).
 
     .venv/bin/python benchmarks/ssm.py [--repeats 5] [--full]
 

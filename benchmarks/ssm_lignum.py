@@ -1,4 +1,4 @@
-"""Benchmark and size check of the simplified stochastic LIGNUM (spec ssm-models.md A.10, A.12).
+"""Benchmark and size check of the simplified stochastic LIGNUM (docs/models.md A.10, A.12).
 
     .venv/bin/python benchmarks/ssm_lignum.py [--repeats 5] [--sizes] [--markdown]
 
@@ -35,7 +35,7 @@ from _timing import timed  # noqa: E402
 _ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(_ROOT / "plugins"))
 
-# spec A.10: (preset, T) -> (live segments, created, height m, base diameter cm)
+# docs/models.md A.10: (preset, T) -> (live segments, created, height m, base diameter cm)
 SPEC_A10 = {
     ("sf_synthetic", 8): ("~0.66 k", "-", "3.0", "-"),
     ("sf_synthetic", 12): ("~2.4 k", "-", "5.2", "-"),
@@ -45,7 +45,7 @@ SPEC_A10 = {
     ("sf_real", 32): ("2.3-2.5 k (90-100 dead)", "5.8-6.3 k", "9.8-9.9", "13.7-14.4"),
     ("sf_test16", 12): ("1.15-1.19 k", "~1.2 k", "5.0-5.1", "-"),
 }
-# spec D.6 (sf_synthetic, T = 15): q_mean -> (H/crown, height, live segments)
+# docs/models.md D.6 (sf_synthetic, T = 15): q_mean -> (H/crown, height, live segments)
 SPEC_D6 = {0.05: (2.4, 4.2, "4.5 k"), 0.20: (3.6, 7.3, "-"), 0.35: (5.7, 11.8, "2.5 k")}
 SEEDS = (1, 2, 3, 4, 5)
 
@@ -57,7 +57,7 @@ def _ssm(preset: str):
 
 
 def sizes(tree) -> dict:
-    """Sizes by the spec's measurement rules (height and crown radius from segment end points)."""
+    """Sizes by the measurement conventions of docs/models.md (before D) (height and crown radius from segment end points)."""
     e = tree.end
     base = tree.start[0]
     return {"live": tree.n, "created": tree.metadata["segments_created"],
@@ -152,7 +152,7 @@ def size_table(markdown: bool = False) -> None:
 
     if markdown:
         print("| preset | T | live segments | dead | created | height m | crown radius m | base Ø cm "
-              "| spec live | spec created | spec height | spec base Ø |")
+              "| A.10 live | A.10 created | A.10 height | A.10 base Ø |")
         print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for preset, T, ss, spec in rows:
         cells = [rng_([s["live"] for s in ss], "{:.0f}"), rng_([s["dead"] for s in ss], "{:.0f}"),
@@ -162,11 +162,11 @@ def size_table(markdown: bool = False) -> None:
             print(f"| `{preset}` | {T} | " + " | ".join(cells) + " | " + " | ".join(spec) + " |")
         else:
             print(f"{preset:13s} T={T:2d}: live {cells[0]}, dead {cells[1]}, created {cells[2]}, "
-                  f"height {cells[3]} m, crown {cells[4]} m, base {cells[5]} cm | spec: live {spec[0]}, "
+                  f"height {cells[3]} m, crown {cells[4]} m, base {cells[5]} cm | A.10: live {spec[0]}, "
                   f"created {spec[1]}, height {spec[2]} m, base {spec[3]} cm")
     print()
     if markdown:
-        print("| q_mean | H / crown radius | height m | live segments | spec H/crown | spec height | spec live |")
+        print("| q_mean | H / crown radius | height m | live segments | D.6 H/crown | D.6 height | D.6 live |")
         print("|---|---|---|---|---|---|---|")
     ssm = _ssm("sf_synthetic")
     for q, spec in SPEC_D6.items():
@@ -177,7 +177,7 @@ def size_table(markdown: bool = False) -> None:
         if markdown:
             print(f"| {q:.2f} | {ratio:.2f} | {h:.2f} | {n:.0f} | {spec[0]} | {spec[1]} | {spec[2]} |")
         else:
-            print(f"q_mean {q:.2f}: H/crown {ratio:.2f}, height {h:.2f} m, live {n:.0f} | spec: "
+            print(f"q_mean {q:.2f}: H/crown {ratio:.2f}, height {h:.2f} m, live {n:.0f} | D.6: "
                   f"{spec[0]}, {spec[1]} m, {spec[2]}")
 
 

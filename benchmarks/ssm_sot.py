@@ -1,4 +1,4 @@
-"""Benchmark and size check of the SOT growth model (spec ssm-models.md B.4, B.9).
+"""Benchmark and size check of the SOT growth model (docs/models.md B.4, B.9).
 
 Run ``python benchmarks/ssm_sot.py [--repeats 5] [--full]`` (or through ``benchmarks/ssm.py``).
 Prints:
@@ -20,14 +20,14 @@ import argparse
 import os
 import warnings
 
-# single core, as the spec's targets (set before numpy loads its BLAS)
+# single core, as the targets of docs/models.md B.9 (set before numpy loads its BLAS)
 for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
 import numpy as np  # noqa: E402
 from _timing import timed  # noqa: E402
 
-# spec B.4: cycles -> (live segments, height m, crown radius m, base diameter m, time budget s)
+# docs/models.md B.4: cycles -> (live segments, height m, crown radius m, base diameter m, time budget s)
 SPEC_B4 = {8: ("~130", 4.3, 1.4, 0.07, 0.05), 12: ("~0.6 k", 6.7, 2.5, 0.14, 0.1),
            16: ("~2.4 k", 8.6, 3.6, 0.27, 0.2), 18: ("4.0-4.6 k", 9.3, 4.0, 0.36, 0.2),
            30: ("~40 k", 12.0, 7.0, 1.1, 4.0)}
@@ -41,7 +41,7 @@ def _model():
 
 
 def sizes(tree) -> tuple[int, float, float, float]:
-    """(live segments, height, crown radius, base diameter) by the spec's measurement rules."""
+    """(live segments, height, crown radius, base diameter) by the measurement conventions of docs/models.md (before D)."""
     e = tree.end
     base = tree.start[0]
     return (tree.n, float(e[:, 2].max() - base[2]),
@@ -127,9 +127,9 @@ def bench_sot(repeats: int = 5, full: bool = False, seeds=(1, 2, 3, 4, 5)) -> di
             results["timings"].append({"case": f"{label}, {kind}", "segments": tree.n, "median_s": med,
                                        "min_s": mn, "target_s": target})
 
-    print(f"\nSizes over seeds {list(seeds)} (mean; range of segments) vs spec B.4 (no clone noise):")
-    print(f"  {'cycles':>6s} {'noise':>6s} {'segments':>13s} {'spec':>10s} {'height':>7s} {'spec':>5s} "
-          f"{'crown r':>7s} {'spec':>5s} {'base d':>7s} {'spec':>5s}")
+    print(f"\nSizes over seeds {list(seeds)} (mean; range of segments) vs docs/models.md B.4 (no clone noise):")
+    print(f"  {'cycles':>6s} {'noise':>6s} {'segments':>13s} {'B.4':>10s} {'height':>7s} {'B.4':>5s} "
+          f"{'crown r':>7s} {'B.4':>5s} {'base d':>7s} {'B.4':>5s}")
     cycles = [8, 12, 16, 18] + ([30] if full else [])
     for T in cycles:
         for noise, extra in (("none", NO_CLONE_NOISE), ("clone", {})):

@@ -1,6 +1,6 @@
 """Bayes Forest core: the cylinder tree, component interfaces, registry, config and pipeline.
 
-Public names (see ``DESIGN.md``)::
+Public names (see docs/architecture.md)::
 
     import bforest_core as bf
     tree = bf.read_qsm(path)

@@ -300,7 +300,7 @@ class Distance(Component):
         return num / den if den > 0 else 0.0
 
     def compute_sets(self, U_model, U_data, weights=None) -> float:
-        """Weighted mean distance over sets (spec §4.5)."""
+        """Weighted mean distance over sets (docs/features-and-distance.md §4.5)."""
         return self.combine(self.compute_per_set(U_model, U_data), weights)
 
     def directions(self, d: int) -> np.ndarray:

@@ -6,7 +6,7 @@ per-order table of branches (:func:`order_summary`).
 circumference; :func:`classical_metrics` returns it as ``base_diameter`` and keeps ``girth`` as
 an alias of it for the papers' d_g.
 
-Spec ``shared/spec/features-distance.md`` §5 (GS Methods IV "traditional metrics", after the
+Reference: docs/features-and-distance.md §5 (GS Methods IV "traditional metrics", after the
 toolbox's ``tree_basic_metrics.m`` with its defects fixed). Base point = start of the root
 cylinder; point set = all cylinder start and end points.
 """
@@ -98,7 +98,7 @@ def dbh(tree, breast_height: float = BREAST_HEIGHT, warn: bool = True) -> float:
 
 def classical_metrics(tree, girth: Literal["base", "dbh"] = "base", spoke_step: float = 10.0,
                       empty_sectors: Literal["zero", "drop"] = "zero") -> dict[str, float]:
-    """Height, girth, DBH and crown spread of a tree, in metres (spec §5).
+    """Height, girth, DBH and crown spread of a tree, in metres (docs/features-and-distance.md §5).
 
     Parameters
     ----------

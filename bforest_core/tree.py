@@ -1,6 +1,6 @@
 """The cylinder tree: the one structure every QSM reader and every growth model returns.
 
-Columns follow ``shared/spec/features-distance.md`` §1: numpy arrays, metres, 0-based ids,
+Columns follow docs/features-and-distance.md §1: numpy arrays, metres, 0-based ids,
 ``-1`` for "none". ``branch``, ``order`` and ``position_in_branch`` are always recomputed
 from ``parent`` + ``extension`` by :func:`derive_branches`; a *topology rule* only chooses
 ``extension`` (:func:`choose_extension`).
@@ -96,7 +96,7 @@ def children_csr(parent: np.ndarray):
 
 
 def choose_extension(parent, extension, radius, length, rule: str) -> np.ndarray:
-    """Pick the continuing child of every cylinder under a topology rule (spec §1.1).
+    """Pick the continuing child of every cylinder under a topology rule (docs/features-and-distance.md §1.1).
 
     ``source`` returns ``extension`` unchanged. ``thickest`` takes the child with the largest
     radius, ``subtree`` the child whose subtree holds the most wood (sum of pi r^2 L); ties go
@@ -208,7 +208,7 @@ def parent_first_order(parent: np.ndarray):
 
 @dataclass(frozen=True)
 class BranchTable:
-    """One row per branch (spec §1; ``gen_scatter2.m``).
+    """One row per branch (docs/features-and-distance.md §1; ``gen_scatter2.m``).
 
     ``cylinders[ptr[b]:ptr[b+1]]`` are the cylinders of branch b from base to tip.
     """
@@ -264,7 +264,7 @@ def _parent_first(start, axis, length, radius, parent, extension, added, source_
 
 
 class Tree:
-    """A tree as a table of cylinders with parent links (spec §1).
+    """A tree as a table of cylinders with parent links (docs/features-and-distance.md §1).
 
     Parameters
     ----------
@@ -280,7 +280,7 @@ class Tree:
         The child continuing the same branch, -1 for none. Required for ``topology="source"``
         unless absent, in which case every child starts a new branch (use another rule then).
     topology : {"source", "subtree", "thickest"}
-        Rule choosing ``extension`` (spec §1.1).
+        Rule choosing ``extension`` (docs/features-and-distance.md §1.1).
     added : (n,) bool, optional
         QSM gap-filling cylinders.
     extras : dict of (n,) arrays, optional

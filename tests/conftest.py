@@ -33,7 +33,7 @@ def qsm_dir() -> Path:
 
 
 def hand_tree(topology: str = "source"):
-    """The hand-built tree of spec features-distance.md §7 (trunk of 3 vertical cylinders and
+    """The hand-built tree of docs/features-and-distance.md §7 (trunk of 3 vertical cylinders and
     three laterals with known beta/alpha/L_t/R_f/L_a)."""
     from bforest_core import Tree
 

@@ -1,4 +1,4 @@
-"""B^w / S^w feature tables (spec features-distance.md §2, §7): hand-built trees with known
+"""B^w / S^w feature tables (docs/features-and-distance.md §2, §7): hand-built trees with known
 answers, invariances, set parsing and preparation, and real-data regressions."""
 import warnings
 
@@ -103,7 +103,7 @@ def test_branch_alpha_on_plus_x_parent():
 
 
 def test_la_clip_and_parity():
-    # child starting beyond the parent's end: clipped to l_p (spec), unclipped in parity mode
+    # child starting beyond the parent's end: clipped to l_p (docs/features-and-distance.md §2.1), unclipped in parity mode
     start = [[0, 0, 0], [0, 0, 1.2]]
     t = Tree(start, [[0, 0, 1], [1, 0, 0]], [1, 1], [0.1, 0.05], [-1, 0], [-1, -1])
     assert feats(sets=["B1"]).extract(t)["B1"][0, 4] == pytest.approx(1.0, abs=1e-12)
@@ -436,7 +436,7 @@ def test_real_tables_are_finite():
                                            ("coffeetree_treeqsm_optqsm.mat", 82),
                                            ("itsme_qsm_tree_v240.mat", 410), ("itsme_qsm_trunk.mat", 1)])
 def test_real_source_topology_branch_counts(name, branches):
-    # spec §7: 'source' reproduces TreeQSM's branch count (after detached fragments are removed)
+    # docs/features-and-distance.md §7: 'source' reproduces TreeQSM's branch count (after detached fragments are removed)
     assert read_sample(name).with_topology("source").n_branches == branches
 
 
@@ -444,7 +444,7 @@ def test_real_source_topology_branch_counts(name, branches):
                                                      ("wytham_tf1.mat", 39, 35), ("itsme_qsm_tree_v240.mat", 20, 20),
                                                      ("coffeetree_treeqsm_optqsm.mat", 18, 18)])
 def test_real_fork_shares_where_thickest_is_not_the_qsm_continuation(name, share, share_stored):
-    # spec §1.1: share of forks (>= 2 children) whose thickest child is not TreeQSM's continuation
+    # docs/features-and-distance.md §1.1: share of forks (>= 2 children) whose thickest child is not TreeQSM's continuation
     t = read_sample(name).with_topology("source")
     th = t.with_topology("thickest")
     forks = np.flatnonzero(np.bincount(t.parent[1:], minlength=t.n) >= 2)

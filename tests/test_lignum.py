@@ -1,6 +1,6 @@
-"""Tests of the simplified stochastic LIGNUM SSM (spec ssm-models.md part A, sanity properties D).
+"""Tests of the simplified stochastic LIGNUM SSM (docs/models.md part A, sanity properties D).
 
-Deliberately NOT asserted (the spec warns they are false): monotone taper along branches, trunk
+Deliberately NOT asserted (docs/models.md D warns they are false): monotone taper along branches, trunk
 radii never increasing upwards, crown radius <= R_env, the beta_max cap for order >= 2.
 """
 from __future__ import annotations
@@ -547,7 +547,7 @@ def test_poisson_shedding_leaves_dead_remnants_at_order1_bases(real32):
     ext = tree.extension[dead]
     assert np.all(dead[ext[ext >= 0]])
     assert np.all(tree.extras["foliage_mass"][dead] == 0)
-    # magnitudes of spec A.10 (sf_real, T = 32): about 10 m, 2.3-2.5 k live, ~14 cm base
+    # magnitudes of docs/models.md A.10 (sf_real, T = 32): about 10 m, 2.3-2.5 k live, ~14 cm base
     h, _ = _height_crown(tree)
     assert 8.5 < h < 11.5 and 1800 < tree.n < 3200 and 0.11 < 2 * tree.radius[0] < 0.17
 
@@ -556,13 +556,13 @@ def test_poisson_shedding_leaves_dead_remnants_at_order1_bases(real32):
 def test_sf_synthetic_magnitudes(synth12):
     tree, _, _ = synth12
     h, crown = _height_crown(tree)
-    assert 4.2 < h < 6.2  # spec: ~5.2 m at T = 12
+    assert 4.2 < h < 6.2  # docs/models.md D.4: ~5.2 m at T = 12
     assert 1000 < tree.n < 3500
     assert crown > 1.33  # bending swings segments beyond R_env (not asserted the other way)
 
 
 def test_apical_dominance_trend(ssm):
-    """D.6: mean H / crown radius rises with Q (sf_synthetic, T = 15; spec 2.4 / 3.6 / 5.7)."""
+    """D.6: mean H / crown radius rises with Q (sf_synthetic, T = 15; docs/models.md D.6: 2.4 / 3.6 / 5.7)."""
     ratios, heights, counts = [], [], []
     for q in (0.05, 0.20, 0.35):
         hc = []

@@ -1,4 +1,4 @@
-"""Classical metrics (spec features-distance.md §5): height, girth/DBH, crown spread, relative errors."""
+"""Classical metrics (docs/features-and-distance.md §5): height, girth/DBH, crown spread, relative errors."""
 import numpy as np
 import pytest
 

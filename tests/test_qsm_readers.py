@@ -1,6 +1,6 @@
 """QSM readers (plugin bforest_treeqsm) on the real samples and on small hand-made bad files.
 
-Known numbers come from ``shared/data/README.md`` and ``shared/spec/qsm-formats.md`` (cylinder
+Known numbers come from docs/qsm-formats.md (the sample files of §11 and the formats; cylinder
 counts, branch counts, heights) or are read independently from the raw file in the test.
 Branch counts are under the file's own (``source``) topology after fragment removal.
 """
@@ -181,7 +181,7 @@ def test_ruotsinkyla_orders_from_bord_and_topologies():
     sub = read_quiet(p, topology="subtree")
     assert sub.topology == "subtree" and sub.n_branches < 300
     assert sub.with_topology("source").equals(t, atol=1e-12)
-    # features-distance.md §1.1: the thickest rule inflates orders on pine 1 (12 instead of 6)
+    # docs/features-and-distance.md §1.1: the thickest rule inflates orders on pine 1 (12 instead of 6)
     t1 = read_quiet(qsm_path("pine_ruotsinkyla_1.mat"))
     assert t1.max_order == 6
     assert read_quiet(qsm_path("pine_ruotsinkyla_1.mat"), topology="thickest").max_order == 12
@@ -214,7 +214,7 @@ def test_simpleforest_ids_extension_and_extras():
     ch = np.bincount(t.parent[t.parent >= 0], minlength=t.n)
     forks = np.flatnonzero(ch >= 2)
     th = t.with_topology("thickest")
-    assert forks.size == 64 and np.count_nonzero(th.extension[forks] != t.extension[forks]) == 17  # spec §6
+    assert forks.size == 64 and np.count_nonzero(th.extension[forks] != t.extension[forks]) == 17  # docs/qsm-formats.md §6
 
 
 def test_archi_ids_orders_and_untrusted_extension_id():
@@ -223,7 +223,7 @@ def test_archi_ids_orders_and_untrusted_extension_id():
     data = np.genfromtxt(p, delimiter=",", names=True)
     assert np.array_equal(t.order, data["branching_order"].astype(int)[t.source_row] - 1)
     assert len(np.unique(data["axis_ID"])) == t.n_branches
-    assert t.metadata["extension_ID_disagreements"] == 64  # spec §7
+    assert t.metadata["extension_ID_disagreements"] == 64  # docs/qsm-formats.md §7
     assert t.extras["volume"][0] == pytest.approx(np.pi * t.radius[0] ** 2 * t.length[0], rel=1e-6)
 
 
@@ -231,7 +231,7 @@ def test_struct_extras_versions_and_empty_branch_entries():
     t = read_quiet(qsm_path("coffeetree_treeqsm_optqsm.mat"))
     assert {"UnmodRadius", "SurfCov", "mad"} <= set(t.extras)
     assert t.metadata["variable"] == "OptQSM"
-    assert t.start[0] == pytest.approx([0.768, -16.361, 253.887], abs=1e-3)  # file frame kept (spec: 0.76, -16.36, 253.9)
+    assert t.start[0] == pytest.approx([0.768, -16.361, 253.887], abs=1e-3)  # file frame kept (docs/qsm-formats.md §0: 0.76, -16.36, 253.9)
     t23 = read_quiet(qsm_path("itsme_qsm_tree_v230_notria.mat"))
     assert "SurfCov" not in t23.extras and t23.metadata["version"] == "2.3.x"
     trunk = read_quiet(qsm_path("itsme_qsm_trunk.mat"))
@@ -319,7 +319,7 @@ def test_mat73_struct_and_struct_array_written_with_h5py(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------
-# bad input (spec §10) on small files
+# bad input (docs/qsm-formats.md §10) on small files
 # ------------------------------------------------------------------------------------------
 
 def _write_text17(path, tree, mutate=None):

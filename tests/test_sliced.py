@@ -1,4 +1,4 @@
-"""The sliced distance (spec features-distance.md §3, §4, §7): directions, exact statistics
+"""The sliced distance (docs/features-and-distance.md §3, §4, §7): directions, exact statistics
 against SciPy, normalisation, set rules, caching, and the permutation test."""
 import pickle
 import warnings
@@ -130,7 +130,7 @@ def test_statistics_equal_scipy(n, m):
     assert one(x, y, "energy") == pytest.approx(stats.energy_distance(x, y) ** 2, abs=1e-12)
     assert one(x, y, "l1") == pytest.approx(brute(x, y, "l1"), abs=1e-9)
     assert one(x, y, "l2") == pytest.approx(brute(x, y, "l2"), abs=1e-9)
-    # unscaled/scaled relations of the spec table
+    # unscaled/scaled relations of the table of docs/features-and-distance.md §4.3
     N = n + m
     assert one(x, y, "cvm") * n * m / N == pytest.approx(one(x, y, "cvm", True), rel=1e-12)
     assert one(x, y, "l2") == pytest.approx(N * one(x, y, "cvm"), rel=1e-12)
@@ -420,7 +420,7 @@ def test_holm():
 
 
 def test_permutation_null_level():
-    # spec: 200 seeds; here 60 seeds x 32 lines to keep the suite fast (same property)
+    # docs/features-and-distance.md §7: 200 seeds; here 60 seeds x 32 lines to keep the suite fast (same property)
     D = dist(lines=32)
     hits, draws = 0, []
     for s in range(60):
@@ -493,11 +493,11 @@ def test_real_pine3_normalisation_table(normalize, angles, expected):
     emb = _embed if angles == "circular" else (lambda a: a)
     D = dist(lines=100, normalize=normalize)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # robust: zero IQR of gamma/zeta (spec §3)
+        warnings.simplefilter("ignore", RuntimeWarning)  # robust: zero IQR of gamma/zeta (docs/features-and-distance.md §3)
         got = [D.compute(emb(m), emb(S), columns=cols) for m in mods]
-    # spec: +-0.002. The robust row reproduces only to 0.005 (0.2786, 0.1324, 0.1776 against
+    # docs/features-and-distance.md §7: +-0.002. The robust row reproduces only to 0.005 (0.2786, 0.1324, 0.1776 against
     # 0.280, 0.131, 0.182; no numpy quantile method or wrap convention gives all three) while the
-    # other nine cells agree to 0.001 -- reported as a spec discrepancy.
+    # other nine cells agree to 0.001 -- noted in docs/features-and-distance.md §3.
     np.testing.assert_allclose(got, expected, atol=0.005 if normalize == "robust" else 0.002)
 
 

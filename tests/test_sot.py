@@ -1,4 +1,4 @@
-"""Tests of the SOT growth model plugin (spec ssm-models.md part B; sanity properties D 1-5, 15-21)."""
+"""Tests of the SOT growth model plugin (docs/models.md part B; sanity properties D 1-5, 15-21)."""
 from __future__ import annotations
 
 import copy
@@ -414,7 +414,7 @@ def test_taller_with_more_cycles(ssm):
         assert np.all(np.diff(h) >= 0)
         hs[seed] = h
     mean = np.mean(list(hs.values()), axis=0)
-    # spec B.4 / D4: about 4.3 / 6.7 / 8.6 m at 8 / 12 / 16 cycles (+-25 % indicative)
+    # docs/models.md B.4 / D.4: about 4.3 / 6.7 / 8.6 m at 8 / 12 / 16 cycles (+-25 % indicative)
     for c, target in ((8, 4.3), (12, 6.7), (16, 8.6)):
         assert abs(mean[c - 1] - target) < 0.25 * target
 

@@ -24,7 +24,7 @@ def test_hand_tree_branches():
 
 
 def test_thickest_rule_continues_lateral_when_no_extension():
-    # spec §7: under thickest the third lateral continues the trunk (its parent has no extension)
+    # docs/features-and-distance.md §7: under thickest the third lateral continues the trunk (its parent has no extension)
     t = hand_tree("thickest")
     assert t.n_branches == 3
     assert t.branch[6] == 0 and t.order[6] == 0

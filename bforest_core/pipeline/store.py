@@ -1,6 +1,6 @@
 """Run directory and its SQLite evaluation log.
 
-Layout (DESIGN.md)::
+Layout (docs/architecture.md)::
 
     RUN/config.toml          the resolved configuration
     RUN/evaluations.sqlite   every evaluation, written as soon as it finishes; the held-out

@@ -24,7 +24,7 @@ VIEWS = {"xz": (0, 2, 1, -1.0), "yz": (1, 2, 0, 1.0), "xy": (0, 1, 2, 1.0)}
 _AXIS_NAMES = "xyz"
 _VIEW_TITLES = {"xz": "side view (XZ)", "yz": "side view (YZ)", "xy": "top view (XY)"}
 
-#: units of the branch-segment feature columns (spec features-distance §2)
+#: units of the branch-segment feature columns (docs/features-and-distance.md §2)
 COLUMN_UNITS = {"beta": "deg", "alpha": "deg", "gamma": "deg", "zeta": "deg", "L_t": "m", "R_f": "m",
                 "L_a": "m", "R": "m", "L": "m", "angle": "deg", "length": "m"}
 _GREEK = {"beta": r"$\beta$", "alpha": r"$\alpha$", "gamma": r"$\gamma$", "zeta": r"$\zeta$",

@@ -248,7 +248,7 @@ moved by 100 m gives 0 on every set (tests on pine 3 and the hand-built tree;
 against a renumbered copy gave D(S¹) = 0.0028 and D(B²) = 0.008, a copy moved by 100 m D(B¹) =
 0.015, and the test printed D0 = 0.0012 for pine 3 against itself. Recorded distances did not
 move: the distance atlas regenerated with the grid is identical to three decimals, and the known
-answers of the spec's hand-built tree are unchanged. What the grid does not remove: a
+answers of the hand-built tree of docs/features-and-distance.md §7 are unchanged. What the grid does not remove: a
 `.mat` and its TreeQSM text export, rounded to 0.1 mm by TreeQSM's exporter, still differ
 (`itsme_qsm_tree_v240.mat` against `itsme_tree_v240_cylinder.txt`: D(S¹) = 0.0035, D(B¹) = 0.051,
 one step of 1/20 with 20 branches), since a rounding of 10⁻⁴ m is far above the grid: that is a

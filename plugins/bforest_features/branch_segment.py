@@ -1,6 +1,6 @@
 """Structural data sets B^w (branches) and S^w (segments) of a cylinder tree.
 
-Implements ``shared/spec/features-distance.md`` §2 (GS Methods III, Table 1). One code path
+Implements docs/features-and-distance.md §2 (GS Methods III, Table 1). One code path
 serves QSM and growth-model trees: every quantity is computed from the cylinders, after the
 topology rule of the feature set has chosen the branches.
 
@@ -33,7 +33,7 @@ __all__ = ["BranchSegmentFeatures", "SetSpec", "parse_set", "branch_table", "seg
 B_COLUMNS = ("beta", "alpha", "L_t", "R_f", "L_a")
 S_COLUMNS = ("R", "L", "gamma", "zeta")
 _CIRCULAR = {"alpha", "gamma", "zeta"}
-_TAU = 1e-6  # horizontal-projection threshold of the segment angles (spec §2.2)
+_TAU = 1e-6  # horizontal-projection threshold of the segment angles (docs/features-and-distance.md §2.2)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -118,7 +118,7 @@ def azimuth_frame(p: np.ndarray):
     """Reference vectors ``v, w`` of the branch azimuth for unit parent axes ``p`` (k, 3).
 
     ``v`` and ``w`` are the global Y and Z axes carried by the minimal rotation taking +X onto
-    ``p`` (spec §2.1; the toolbox construction with the rotation axis normalised). For a parent
+    ``p`` (docs/features-and-distance.md §2.1; the toolbox construction with the rotation axis normalised). For a parent
     along -X (``1 + p_x < 1e-12``) ``v = (0, -1, 0)``, ``w = (0, 0, 1)``.
     """
     p = np.asarray(p, dtype=np.float64)
@@ -139,7 +139,7 @@ def _rowdot(a, b):
 
 
 def _segment_angles(p: np.ndarray, t: np.ndarray):
-    """gamma, zeta (degrees) of segments with unit axis ``t`` following unit axis ``p`` (spec §2.2)."""
+    """gamma, zeta (degrees) of segments with unit axis ``t`` following unit axis ``p`` (docs/features-and-distance.md §2.2)."""
     hp = np.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2)
     ht = np.sqrt(t[:, 0] ** 2 + t[:, 1] ** 2)
     use_p = hp >= _TAU
@@ -261,7 +261,7 @@ def branch_table(tree, clip_la: bool = True, seg_L: np.ndarray | None = None):
 # ----------------------------------------------------------------------------------------------
 
 class BranchSegmentSettings(ComponentSettings):
-    """Settings of the ``branch-segment`` feature set (spec §2-§3)."""
+    """Settings of the ``branch-segment`` feature set (docs/features-and-distance.md §2-§3)."""
 
     sets: list[str] = Field(default_factory=lambda: ["S1"],
                             description="data sets, e.g. ['S0,1', 'B2,3,4'], 'B2-4', 'B2+'")

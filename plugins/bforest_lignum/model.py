@@ -1,4 +1,4 @@
-"""Simplified stochastic LIGNUM (spec ssm-models.md part A; Potapov et al. 2016, Silva Fennica).
+"""Simplified stochastic LIGNUM (docs/models.md part A; Potapov et al. 2016, Silva Fennica).
 
 One iteration is one year (A.5): ageing, respiration, receiver-only shadow and light,
 photosynthesis, bud fate with apical dominance, provisional shoots with whorls, the growth
@@ -25,7 +25,7 @@ index; nothing is drawn at t = T, so a T-year run is a prefix of a longer one):
 Shoots discarded at any later point (l° <= 0, lambda solve, ground, ``min_len``, collision) have
 consumed their draws; draws are never undone (futile years included).
 
-Implementation choices where the spec leaves room (all documented in docs/lignum-sizes.md):
+Implementation choices where docs/models.md leaves room (all documented in docs/lignum-sizes.md):
 
 * the shadow S is evaluated only at foliated receivers (a bare segment's light is 0 whatever S
   is, so the model is unchanged; ``LignumView.shadow`` is NaN there); every segment casts shadow;
@@ -64,7 +64,7 @@ EX = np.array([1.0, 0.0, 0.0])
 
 # ------------------------------------------------------------------------------------ helpers
 def tn_inverse_cdf(u: np.ndarray, mean: float, sd: float) -> np.ndarray:
-    """Truncated Normal TN(mean, sd) (>= 0) from uniforms u by the inverse CDF (spec section 1).
+    """Truncated Normal TN(mean, sd) (>= 0) from uniforms u by the inverse CDF (docs/models.md section 1).
 
     ``x = m + s * ndtri(c + u (1 - c))`` with ``c = ndtr(-m/s)``, the argument clipped to
     [1e-16, 1 - 1e-16]; 0 where c rounds to 1; ``mean`` when ``sd == 0``.

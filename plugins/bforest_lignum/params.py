@@ -1,6 +1,6 @@
-"""Parameters and presets of the simplified stochastic LIGNUM model (spec ssm-models.md A.3, A.4).
+"""Parameters and presets of the simplified stochastic LIGNUM model (docs/models.md A.3, A.4).
 
-Every parameter has one snake_case name. The Normal ``(mean, sd)`` pairs of the spec (``lr``,
+Every parameter has one snake_case name. The Normal ``(mean, sd)`` pairs of docs/models.md A.3 (``lr``,
 ``q``, ``r_env``) are flat parameters ``lr_mean``/``lr_sd``, ``q_mean``/``q_sd`` and
 ``r_env_mean``/``r_env_sd``. The two categorical settings of the table are integer codes so that
 every parameter fits :class:`~bforest_core.interfaces.ParameterSpec`:
@@ -49,13 +49,13 @@ _TABLE = [
          "mean of TN R_env: buds farther from the stem axis die (1 draw per bud per year)", "space"),
     _Par("r_env_sd", "R_env sd", "m", 0.0, 0.3, False, "sd of TN R_env", "space"),
     _Par("lr_mean", "L_R mean", "", 0.0045, 0.025, False,
-         "mean of TN L_R, radius:length of a new shoot (1 draw per shoot; the spec's range stops at "
+         "mean of TN L_R, radius:length of a new shoot (1 draw per shoot; the published range (docs/models.md A.3) stops at "
          "0.0135, scanned pines' first-order branches have base radius:length 0.011-0.024)", "shoot"),
     _Par("lr_sd", "L_R sd", "", 0.0, 0.003, False, "sd of TN L_R", "shoot"),
     _Par("q_mean", "Q mean", "", 0.0, 0.4, False,
          "mean of TN Q, apical dominance 1 - w*Q (1 draw per bud + 1 per shoot)", "shoot"),
     _Par("q_sd", "Q sd", "", 0.0, 0.05, False, "sd of TN Q", "shoot"),
-    _Par("beta_init", "beta_init", "deg", 17.5, 90, False, "angle of a new lateral to its parent (the spec's range stops at 60; scanned pines' first-order branches leave the stem at 55-120 deg)", "angles"),
+    _Par("beta_init", "beta_init", "deg", 17.5, 90, False, "angle of a new lateral to its parent (the published range (docs/models.md A.3) stops at 60; scanned pines' first-order branches leave the stem at 55-120 deg)", "angles"),
     _Par("beta_incr", "Delta beta", "deg", 0, 15, False, "mean yearly bending (mean of delta)", "angles"),
     _Par("beta_max", "beta_max", "deg", 40, 105, False, "bending cap vs the mother segment", "angles"),
     _Par("zeta_sd", "Delta zeta", "deg", 0, 10, False, "sd of delta ~ N(Delta beta, Delta zeta)", "angles"),
@@ -146,7 +146,7 @@ for _name, _vals in PRESET_VALUES.items():  # every preset sets every parameter
 def parameter_specs(preset: str) -> list[ParameterSpec]:
     """The :class:`ParameterSpec` list of one preset (defaults = the preset's values).
 
-    The description starts with the spec's symbol, e.g. ``"[S_L] shadow depth"``.
+    The description starts with the symbol of docs/models.md A.3, e.g. ``"[S_L] shadow depth"``.
     """
     if preset not in PRESET_VALUES:
         raise ValueError(f"unknown LIGNUM preset {preset!r} (choose from {', '.join(PRESETS)})")
@@ -161,7 +161,7 @@ def normalise_inputs(params: Mapping[str, object]) -> dict:
     categorical spellings to their integer codes (``bud_table="s08"`` -> 1, ``collision=True``
     -> 1); other values are passed through."""
     out = dict(params)
-    for pair in PAIRS:  # the spec's (mean, sd) spelling: lr=(0.009, 0.001)
+    for pair in PAIRS:  # the (mean, sd) spelling of docs/models.md A.3: lr=(0.009, 0.001)
         if pair in out:
             v = out.pop(pair)
             try:

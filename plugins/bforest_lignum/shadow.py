@@ -1,4 +1,4 @@
-"""Receiver-only pyramid shadow of the simplified LIGNUM (spec ssm-models.md A.6).
+"""Receiver-only pyramid shadow of the simplified LIGNUM (docs/models.md A.6).
 
 Every segment midpoint sits in a voxel (X, Y, Z) = floor(p / V_S) of an unbounded lattice anchored
 at the origin. A source voxel j shades a receiver voxel i with S_max (1 - dZ / q_max) when

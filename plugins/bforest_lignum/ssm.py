@@ -1,4 +1,4 @@
-"""The ``lignum`` SSM component: simplified stochastic LIGNUM (spec ssm-models.md part A)."""
+"""The ``lignum`` SSM component: simplified stochastic LIGNUM (docs/models.md part A)."""
 from __future__ import annotations
 
 from typing import Callable, Literal, Mapping
@@ -19,7 +19,7 @@ class LignumSettings(ComponentSettings):
     Attributes
     ----------
     preset : {"sf_synthetic", "sf_real", "p98", "s08", "sf_test16"}
-        Parameter defaults (spec A.4); ``sf_synthetic`` (SF Table 2) by default.
+        Parameter defaults (docs/models.md A.4); ``sf_synthetic`` (SF Table 2) by default.
     order_mode : {"growth", "thickest"}
         Output topology: the growth (bud) rule with the apical child as extension (``source``
         topology), or QSM-like ``thickest`` (largest-radius child continues the branch).

@@ -1,4 +1,4 @@
-"""Projection directions of the sliced distance (spec features-distance.md §4.1).
+"""Projection directions of the sliced distance (docs/features-and-distance.md §4.1).
 
 Quasi-random nets on ``[0, 1)^(d-1)`` mapped onto the unit sphere with the Fang-Wang
 construction (*Number-theoretic methods in statistics*, pp. 167-170; toolbox
@@ -54,7 +54,7 @@ def fang_wang(c: np.ndarray, d: int, parity: bool = False) -> np.ndarray:
     """
     c = np.asarray(c, dtype=np.float64)
     L = c.shape[0]
-    col = lambda j: c[:, j - 1]  # 1-based column access, as in the spec
+    col = lambda j: c[:, j - 1]  # 1-based column access, as in docs/features-and-distance.md §4.1
     a = np.empty((L, d))
     two_pi = 2.0 * np.pi
     if d % 2 == 0:

@@ -1,6 +1,6 @@
 """The sliced (tomographic) structural distance and its permutation test.
 
-Spec ``shared/spec/features-distance.md`` §3-§4 and §6 (GS Methods IV; SF §2.3):
+Reference: docs/features-and-distance.md §3-§4 and §6 (GS Methods IV; SF §2.3):
 
     D_S(U_m, U_d) = aggregate_i K[P(U_m, a_i), P(U_d, a_i)],   i = 1 ... L
 
@@ -153,7 +153,7 @@ def holm(p: Mapping[str, float]) -> dict[str, float]:
 # ----------------------------------------------------------------------------------------------
 
 class SlicedSettings(ComponentSettings):
-    """Settings of the ``sliced`` distance (spec §3-§4)."""
+    """Settings of the ``sliced`` distance (docs/features-and-distance.md §3-§4)."""
 
     statistic: Literal["ks", "cvm", "ad", "w1", "energy", "l1", "l2"] = "ks"
     lines: int = Field(256, ge=1)
@@ -179,7 +179,7 @@ class SlicedSettings(ComponentSettings):
     def _empty_cost_needed(self):
         if self.empty_cost is None and self.statistic != "ks":
             raise ValueError(f"empty_cost must be set for statistic '{self.statistic}': 1.0 is the "
-                             "maximum of unscaled KS only (spec §4.5)")
+                             "maximum of unscaled KS only (docs/features-and-distance.md §4.5)")
         return self
 
 
@@ -194,7 +194,7 @@ class _PairState:
 
 @dataclass
 class PermutationResult:
-    """Outcome of :meth:`SlicedDistance.permutation_test` (spec §4.6)."""
+    """Outcome of :meth:`SlicedDistance.permutation_test` (docs/features-and-distance.md §4.6)."""
 
     p_value: float
     draws: int
@@ -523,7 +523,7 @@ class SlicedDistance(Distance):
     def permutation_test(self, U_model, U_data, weights=None, *, seed: int = 0, max_draws: int = 500,
                          min_draws: int = 100, se_max: float = 0.025, cv_max: float = 0.5,
                          alpha: float = 0.05, parity: bool = False) -> PermutationResult:
-        """Is the model tree distinguishable from the data tree? (spec §4.6)
+        """Is the model tree distinguishable from the data tree? (docs/features-and-distance.md §4.6)
 
         Every pair's pooled rows are shuffled and split into ``n_d`` and ``n_m`` rows; ``D_b``
         is the weighted distance of the shuffled pairs with the same directions, statistic and

@@ -1,4 +1,4 @@
-"""One-dimensional two-sample statistics on sorted arrays (spec features-distance.md §4.2-§4.3).
+"""One-dimensional two-sample statistics on sorted arrays (docs/features-and-distance.md §4.2-§4.3).
 
 All functions work on a block of lines at once: rows are lines, columns are points.
 ``F1`` is the data ECDF, ``F2`` the model ECDF, both right-continuous; the pooled sorted values
@@ -65,7 +65,7 @@ def ks_sorted(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     -----
     With ``r_k = #{x <= y_k}`` and ``l_k = #{x < y_k}`` the supremum is the largest of
     ``|r_k/n - k/m|`` over the last ``k`` of every run of equal ``y`` and
-    ``|l_k/n - (k-1)/m|`` over the first ``k`` of every run (spec §6). ``l_k`` differs from
+    ``|l_k/n - (k-1)/m|`` over the first ``k`` of every run (docs/features-and-distance.md §6). ``l_k`` differs from
     ``r_k`` only where ``y_k`` equals some ``x``; it is searched only for rows with such a tie.
     """
     B, n = X.shape

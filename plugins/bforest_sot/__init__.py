@@ -1,7 +1,7 @@
 """Bundled Bayes Forest plugin `bforest_sot`: the self-organizing tree (SOT) growth model.
 
 Palubicki et al. (2009) with multiplicative shadow propagation, as used by Potapov et al. (2017),
-implemented after ``shared/spec/ssm-models.md`` part B in vectorised numpy:
+implemented after docs/models.md part B in vectorised numpy:
 
 - :mod:`bforest_sot.light`  -- the voxel light field (log storage, batched shadow pyramids,
   trilinear exposure, gradient probes);
@@ -16,7 +16,7 @@ Usage::
     import bforest_core as bf
     tree = bf.component("ssm", "sot").simulate({"max_iter": 18}, seed=1)
 
-Deviations from the original LPFG code are those of spec B.8 (gradients after drops, one shadow
+Deviations from the original LPFG code are those of docs/models.md B.8 (gradients after drops, one shadow
 batch per cycle, clean trilinear interpolation, a final width update, the general slot rule,
 clone noise, growth stopping at the walls). Only the multiplicative light model is offered.
 """

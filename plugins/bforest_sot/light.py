@@ -1,4 +1,4 @@
-"""The multiplicative shadow-propagation light field of the SOT model (spec ssm-models.md B.6).
+"""The multiplicative shadow-propagation light field of the SOT model (docs/models.md B.6).
 
 The field is a cube of ``n_vox**3`` voxels over x, y in [-span/2, span/2] and z in [0, span]
 (Z up). Each voxel holds an exposure E in [0, 1]. A segment casts a *shadow pyramid* from the

@@ -1,11 +1,11 @@
-"""The self-organizing tree (SOT) growth engine (spec ssm-models.md part B).
+"""The self-organizing tree (SOT) growth engine (docs/models.md part B).
 
 Structure of arrays, one row per segment (metamer) ever created; rows are never reused, so the
 creation order is a parent-before-child order. Every per-cycle computation is vectorised over
 segments, buds or shoots; Python loops run only over cycles, depth levels (basipetal pass),
 pointer-jumping rounds (acropetal pass) and metamer steps (shoot construction).
 
-Random draws, all from one ``numpy.random.Generator(PCG64(seed))`` (spec B.7):
+Random draws, all from one ``numpy.random.Generator(PCG64(seed))`` (docs/models.md B.7):
 
 * init: ``n_vox**3`` uniforms for ``ran`` in C order of (i, j, k) (drawn even when ran = 0;
   skipped with ``advance`` when the initial field of this seed is cached: the same stream after)
@@ -16,7 +16,7 @@ Random draws, all from one ``numpy.random.Generator(PCG64(seed))`` (spec B.7):
   3. one standard normal per growing shoot (``tropism_sd``);
   4. at each metamer step k, one standard normal per shoot still active after the wall check
      (``phyllotaxis_sd``), then, only when ``heading_sd`` > 0, one more per such shoot
-     (``heading_sd``, an addition to the spec: trees without it keep their old draws).
+     (``heading_sd``, an addition to docs/models.md B.7, see B.10: trees without it keep their old draws).
 
   Shoots are ordered by bearing segment, the apical shoot before the lateral one. A block is
   drawn even when its sd is 0; no draw depends on ``max_iter``, so a run of length t equals the

@@ -1,9 +1,9 @@
-"""Parameters of the SOT model (spec ssm-models.md B.3, calibrated defaults of B.4, clone noise of E).
+"""Parameters of the SOT model (docs/models.md B.3, calibrated defaults of B.4, clone noise of E).
 
-Groups I-V follow the spec's *proposal* (I initial growth, limits, pipe model; II environment;
+Groups I-V follow the *proposal* of docs/models.md B.3 (I initial growth, limits, pipe model; II environment;
 III apical dominance; IV shadow propagation; V angles/branching); the geometry constants
 ``node_length``, ``voxel_size`` and ``span`` are in group ``"fixed"`` with ``lower == upper``.
-Ranges of the clone-noise sds are project choices (the spec gives only their defaults).
+Ranges of the clone-noise sds are project choices (docs/models.md E gives only their defaults).
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ PARAMETERS: list[ParameterSpec] = [
     P("init_width", 0.02, 0.01, 0.04, False, "m", "diameter of a terminal segment", "I"),
     P("pipe_exp", 2.6, 2.0, 3.0, False, "", "pipe-model exponent n: d^n = sum of children's d_i^n", "I"),
     P("nonlinear", 1.0, 0.5, 2.0, False, "",
-      "light exponent kappa of the Borchert-Honda allocation (1 = linear BH; spec groups it I/III)", "I"),
+      "light exponent kappa of the Borchert-Honda allocation (1 = linear BH; docs/models.md B.3 groups it I/III)", "I"),
     # ---- II: environment
     P("reorient", 0.4, 0.0, 1.0, False, "", "weight xi of the light gradient in the shoot target direction", "II"),
     P("redir_strength", 0.4, 0.0, 1.0, False, "", "cap of the fraction of the angle turned per metamer", "II"),

@@ -2,7 +2,7 @@
 
 ``bf.component("ssm", "sot").simulate(params, seed)`` grows one tree with the SOT model of
 Palubicki et al. (2009) with multiplicative shadow propagation, as used by Potapov et al. (2017),
-following ``shared/spec/ssm-models.md`` part B (calibrated for the 12 m cube of B.4).
+following docs/models.md part B (calibrated for the 12 m cube of B.4).
 """
 from __future__ import annotations
 

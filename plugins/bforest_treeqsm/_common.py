@@ -2,7 +2,7 @@
 
 Every reader turns its file into a :class:`RawCylinders` table (file row order, 0-based ids,
 -1 = none) and hands it to :func:`build_tree`, which applies the rules of
-``shared/spec/qsm-formats.md`` §0 in one place: always-errors (non-finite values, negative
+docs/qsm-formats.md §0 in one place: always-errors (non-finite values, negative
 radii, zero axes, cycles, out-of-range ids, extensions that are not children), the default
 repairs (detached fragments, zero-length cylinders) with one warning each, axis
 renormalisation, the check of the stored branch/order against the recomputed ones, and the
@@ -23,7 +23,7 @@ from bforest_core.errors import ConfigError, QSMFormatError, TreeError
 from bforest_core.interfaces import ComponentSettings, QSMReader
 from bforest_core.tree import Tree
 
-#: a deviation of the axis norm from 1 above this is reported (spec §0)
+#: a deviation of the axis norm from 1 above this is reported (docs/qsm-formats.md §0)
 AXIS_WARN_TOL = 1e-3
 MAX_ROWS_SHOWN = 10
 
@@ -84,7 +84,7 @@ class ReaderSettings(ComponentSettings):
         Reconstruction(s) to read from a file holding several (``QSMs``); 0-based.
         ``None`` takes the first with a warning.
     topology : {"source", "subtree", "thickest"} or None
-        Topology rule (``features-distance.md`` §1.1). ``None`` means ``"source"``, except for
+        Topology rule (docs/features-and-distance.md §1.1). ``None`` means ``"source"``, except for
         the native CSV, where it means the rule recorded in its JSON sidecar.
     fragments : {"drop", "error"}
         Detached parts (extra parentless cylinders): drop them with a warning, or raise.
@@ -303,7 +303,7 @@ def _resolve_through(mask: np.ndarray, link: np.ndarray, values: np.ndarray) -> 
 
 def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, metadata=None,
                zero_length_hint: str = "", row_offset: int = 0, default_topology: str = "source") -> Tree:
-    """Validate and repair a raw cylinder table and build the :class:`Tree` (spec §0).
+    """Validate and repair a raw cylinder table and build the :class:`Tree` (docs/qsm-formats.md §0).
 
     Parameters
     ----------

@@ -270,7 +270,7 @@ def struct_elements(path, f_kind, value, label: str):
 
 
 # ------------------------------------------------------------------------------------------
-# detection (spec §8, .mat)
+# detection (docs/qsm-formats.md §8, .mat)
 # ------------------------------------------------------------------------------------------
 
 @dataclass
@@ -335,7 +335,7 @@ class StructSettings(ReaderSettings):
 
 
 class TreeQSMMatReader(_MatReader):
-    """TreeQSM 2.3/2.4 structs ``qsm``, ``QSM``, ``OptQSM`` and ``QSMs`` (spec §1), in MAT v5
+    """TreeQSM 2.3/2.4 structs ``qsm``, ``QSM``, ``OptQSM`` and ``QSMs`` (docs/qsm-formats.md §1), in MAT v5
     or v7.3 (HDF5) files.
 
     ``select`` picks reconstructions of a ``QSMs`` struct array or cell (0-based int, list,
@@ -442,8 +442,8 @@ def cylinder_struct_to_raw(path, cyl, label: str):
 
 class TreeQSMFlatReader(_MatReader):
     """Flat cylinder variables ``Rad``, ``Len``, ``Sta``, ``Axe``, ``CPar``, ``CExt``, ``BoC``,
-    ``Added``: TreeQSM 2.0 (``BoC`` n x 3, spec §2) and the older layout with ``BoC`` = branch
-    index and ``BOrd`` per branch (the Ruotsinkylä pines, MAT v7.3, spec §3)."""
+    ``Added``: TreeQSM 2.0 (``BoC`` n x 3, docs/qsm-formats.md §2) and the older layout with ``BoC`` = branch
+    index and ``BOrd`` per branch (the Ruotsinkylä pines, MAT v7.3, docs/qsm-formats.md §3)."""
 
     name = "treeqsm-flat"
     summary = "TreeQSM 2.0 and older flat variables Rad/Len/Sta/Axe/CPar/CExt/BoC (MAT v5 and v7.3)"
@@ -502,7 +502,7 @@ class CylDataSettings(ReaderSettings):
 
 
 class CylDataMatReader(_MatReader):
-    """One n x 14 ``CylData`` matrix in a MAT-file (spec §4; the Wytham files hold
+    """One n x 14 ``CylData`` matrix in a MAT-file (docs/qsm-formats.md §4; the Wytham files hold
     ``CylData_updated``): radius, length, start, axis, parent, extension, branch, order,
     position, added (1-based ids, 0 = none)."""
 

@@ -1,5 +1,5 @@
 """Text readers: TreeQSM cylinder text (17 columns with header, 15-column headerless layouts,
-14-column CylData; spec §4, §5), SimpleForest CSV (§6), aRchi CSV (§7) and the native CSV (§9).
+14-column CylData; docs/qsm-formats.md §4, §5), SimpleForest CSV (§6), aRchi CSV (§7) and the native CSV (§9).
 
 Parsing is vectorised: the field count of every line comes from byte masks (so a ragged line is
 reported by its number), the numbers from one ``np.loadtxt`` call.
@@ -171,7 +171,7 @@ LAYOUT_VERSION = {"treeqsm17": "2.4.x", "treeqsm15-cyldata": "2.3.x", "treeqsm15
 
 
 class TreeQSMTextReader(BaseReader):
-    """TreeQSM cylinder text files (spec §5a, §5b, §4 text).
+    """TreeQSM cylinder text files (docs/qsm-formats.md §5a, §5b, §4 text).
 
     * ``treeqsm17``: ``save_model_text`` 1.1.0 (TreeQSM 2.4), 13-name header and 17 columns
       (also accepted without the header);
@@ -249,7 +249,7 @@ class TreeQSMTextReader(BaseReader):
 
 
 def detect_15(path, values: np.ndarray) -> str:
-    """Column order of a headerless 15-column file (spec §5b), from which columns are integral."""
+    """Column order of a headerless 15-column file (docs/qsm-formats.md §5b), from which columns are integral."""
     integ = [is_integral(values[:, c]) for c in range(15)]
     # 0-based: struct -> 12..14 integral, 11 (UnmodRadius) not; cyldata -> 10..13 integral, 14 not
     struct = integ[12] and integ[13] and integ[14] and not integ[11]
@@ -313,7 +313,7 @@ def csv_header_names(first_line: str) -> list[str]:
 
 
 def detect_csv(head: bytes) -> Optional[str]:
-    """Which CSV layout the header line names (spec §8), or ``None``."""
+    """Which CSV layout the header line names (docs/qsm-formats.md §8), or ``None``."""
     if looks_binary(head):
         return None
     if head[:3] == b"\xef\xbb\xbf":
@@ -434,7 +434,7 @@ def extension_by_label(path, parent: np.ndarray, label: np.ndarray, what: str) -
 
 
 class SimpleForestCSVReader(_CSVReader):
-    """SimpleForest CSV (spec §6): 0-based ``ID``/``parentID`` (-1 = none), end points instead of
+    """SimpleForest CSV (docs/qsm-formats.md §6): 0-based ``ID``/``parentID`` (-1 = none), end points instead of
     axis and length; extension = the child with its parent's ``branchOrder``."""
 
     name = "simpleforest-csv"
@@ -460,7 +460,7 @@ class SimpleForestCSVReader(_CSVReader):
 
 
 class ArchiCSVReader(_CSVReader):
-    """aRchi CSV (spec §7): 1-based ``cyl_ID``/``parent_ID`` (0 = none), trunk order 1, branch =
+    """aRchi CSV (docs/qsm-formats.md §7): 1-based ``cyl_ID``/``parent_ID`` (0 = none), trunk order 1, branch =
     ``axis_ID``; extension = the child on its parent's axis (``extension_ID`` is not trusted)."""
 
     name = "archi-csv"
@@ -498,7 +498,7 @@ class ArchiCSVReader(_CSVReader):
 
 
 class NativeCSVReader(_CSVReader):
-    """The native CSV of :class:`~bforest_treeqsm.writers.CSVWriter` (spec §9): 0-based ids,
+    """The native CSV of :class:`~bforest_treeqsm.writers.CSVWriter` (docs/qsm-formats.md §9): 0-based ids,
     -1 = none, named columns, optional JSON sidecar ``<name>.json`` with the metadata.
 
     Without an explicit ``topology`` the rule recorded in the sidecar is used, so a written tree

@@ -1,4 +1,4 @@
-"""Writers of the CSV layouts of other QSM tools: SimpleForest and aRchi (spec qsm-formats.md §6,
+"""Writers of the CSV layouts of other QSM tools: SimpleForest and aRchi (docs/qsm-formats.md §6,
 §7), so that clones open where those tools' users work. Written back through the bundled readers
 they give the same cylinder table (at ``%.9g``, about 1e-6 m)."""
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Writers for ``bf.write_tree`` (spec §9): TreeQSM text, native CSV + JSON sidecar, TreeQSM
+"""Writers for ``bf.write_tree`` (docs/qsm-formats.md §9): TreeQSM text, native CSV + JSON sidecar, TreeQSM
 ``.mat`` struct, PLY and OBJ cylinder meshes.
 
 Text output is produced by one ``%`` formatting of a repeated row template over the flattened
@@ -117,7 +117,7 @@ def treeqsm_columns(tree) -> dict[str, np.ndarray]:
 
 
 class TreeQSMTextWriter(QSMWriter):
-    """TreeQSM cylinder text (``save_model_text`` 1.1.0 layout, spec §5a/§9): the 13-name header
+    """TreeQSM cylinder text (``save_model_text`` 1.1.0 layout, docs/qsm-formats.md §5a/§9): the 13-name header
     and 17 tab-separated columns, LF; ``layout="treeqsm15-struct"`` writes the headerless
     15-column file that aRchi reads. ``mad`` = 0, ``SurfCov`` = 1 and ``UnmodRadius`` = radius
     unless the tree carries them as extras."""
@@ -203,7 +203,7 @@ class CSVSettings(ComponentSettings):
 
 
 class CSVWriter(QSMWriter):
-    """Native CSV (spec §9): named columns, 0-based ids, -1 = none, floats at ``repr``
+    """Native CSV (docs/qsm-formats.md §9): named columns, 0-based ids, -1 = none, floats at ``repr``
     precision (``%.17g``), plus 1-D numeric extras as further columns and, for a tree under a
     non-source topology, its ``source_extension``; a JSON sidecar keeps format version, units,
     topology rule, source, model, parameters and seed. Read back it gives the same tree."""
@@ -445,7 +445,7 @@ class MeshSettings(ComponentSettings):
 
 def cylinder_mesh(tree, sides: int = 12, caps: bool = True, min_radius: float = 0.0,
                   translate_to_base: bool = False):
-    """Triangle mesh of every cylinder as a ``sides``-sided prism (spec §9).
+    """Triangle mesh of every cylinder as a ``sides``-sided prism (docs/qsm-formats.md §9).
 
     Frame: u = normalise(a x e) with e the coordinate axis least aligned with a, w = a x u; ring
     vertices s + r(u cos t + w sin t), top ring shifted by l a. Faces are counter-clockwise seen

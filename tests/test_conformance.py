@@ -3,6 +3,7 @@ and shown to catch deliberately broken components with a message naming componen
 from __future__ import annotations
 
 import re
+from pathlib import Path
 import threading
 import warnings
 
@@ -69,7 +70,8 @@ def test_bundled_reader(name):
         warnings.simplefilter("ignore")  # readers warn about repaired rows of the real files
         rep = check_reader(bf.component_class("qsm_reader", name), paths, foreign=[qsm_path(p) for p in foreign],
                            registered="bayesforest")
-    assert rep.passed == ["class", "settings", "registered", "suffixes", "sniff", "read", "determinism", "pickle"]
+    assert rep.passed == ["class", "settings", "registered", "suffixes", "priority", "sniff", "read", "determinism",
+                          "pickle"]
 
 
 @pytest.mark.parametrize("name", ["bforest-csv", "treeqsm-text", "treeqsm-mat", "obj", "ply"])
@@ -402,6 +404,70 @@ def test_broken_optimizers_are_caught():
     _fails(UnseededOptimizer, "determinism", r"the same seed and objective gave a different sequence")
     rep = check_optimizer(GreedyOptimizer, raise_on_failure=False)
     assert [f.check for f in rep.failures] == ["minimize"]  # deterministic and picklable, just greedy
+
+
+class CappedOptimizer(GreedyOptimizer):
+    """Stops after its own two rounds and does not lift them for a budget (the default)."""
+
+    name = "capped"
+
+    def expected_evaluations(self, dim):
+        return 16
+
+    def minimize(self, problem):
+        rng = np.random.default_rng(problem.seed)
+        for _ in range(2):
+            if problem.stopped:
+                break
+            problem.evaluate(problem.lower + (problem.upper - problem.lower) * rng.random((8, problem.dim)))
+        return OptimizeResult(x=problem.best_x, fun=problem.best_f, n_evaluations=problem.n_evaluations)
+
+
+class LiftingOptimizer(CappedOptimizer):
+    name = "lifting"
+
+    @classmethod
+    def budget_settings(cls, settings, budget):
+        settings["rounds"] = budget  # writes into the caller's mapping, and a key Settings forbids
+        return settings
+
+
+def test_optimiser_limits_the_budget_cannot_lift_are_caught():
+    _fails(CappedOptimizer, "budget", r"with budget_settings for 600 evaluations the optimiser plans only 16")
+    err = _fails(LiftingOptimizer, "budget", r"budget_settings\(settings, 600\) gave settings the class rejects")
+    assert err.checks == ["budget"]
+
+
+class BadPriorityWriter(bf.QSMWriter):
+    name = "bad-priority"
+    suffixes = (".bad",)
+    priority = "high"
+
+    def write(self, tree, path, **options):
+        Path(path).write_text("x")
+        return Path(path)
+
+
+class MislinedDistance(OffsetDistance):
+    """Per-line values that match no direction."""
+
+    name = "mislined"
+
+    def compute(self, u_model, u_data):
+        return float(np.abs(u_model.mean(0) - u_data.mean(0)).sum()) if len(u_model) else 1.0
+
+    def directions(self, d):
+        return np.eye(d)
+
+    def line_values(self, u_model, u_data, set_name=None):
+        return np.zeros(d + 1) if (d := u_data.shape[1]) else None
+
+
+def test_declared_capabilities_are_checked(tmp_path):
+    _fails(BadPriorityWriter, "priority", r"priority is 'high', expected an int", out_dir=tmp_path)
+    _fails(MislinedDistance, "capabilities", r"line_values of set '.*' has shape \(\d+,\), expected \(\d+,\) finite")
+    rep = check_distance(OffsetDistance, raise_on_failure=False)  # the defaults: no lines, no transforms
+    assert next(r for r in rep.results if r.check == "capabilities").note == "statistic 'ks'; no per-line values"
 
 
 def test_feature_check_on_the_hand_tree():

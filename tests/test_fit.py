@@ -204,6 +204,18 @@ def test_compare_optimizers_on_equal_budgets(toy_plugin, tmp_path):
     assert "median best" in res["table_text"] and (tmp_path / "cmp" / "compare.json").exists()
 
 
+def test_compare_lets_each_optimiser_lift_its_own_limits_for_the_budget(toy_plugin, tmp_path):
+    """A plugin's optimiser with a length limit of its own (toy-random's ``batches``) spends the
+    whole budget in a comparison through its ``budget_settings``; a fit keeps the limit."""
+    from bforest_core.pipeline.compare import compare
+    p = toy_config(tmp_path, optimizer_settings="batch = 4\nbatches = 2", budget=40)
+    assert bf.fit(bf.load_config(p), tmp_path / "fit", progress=False).n_evaluations == 8
+    res = compare(p, ["toy-random"], budget=22, repeats=1, out_dir=tmp_path / "cmp")
+    assert [r["evaluations"] for r in res["runs"]] == [22]
+    run_cfg = bf.load_config(tmp_path / "cmp" / "toy-random-0" / "config.toml")
+    assert run_cfg.optimizer.batch == 4 and run_cfg.optimizer.batches == 6  # the config's batch is kept
+
+
 def test_a_fit_that_failed_before_its_first_evaluation_does_not_block_the_retry(toy_plugin, tmp_path):
     bad = toy_config(tmp_path, budget=4)
     text = bad.read_text()

@@ -167,7 +167,7 @@ def _read_study_config(path: Path):
 def _check_sampler(cfg, source: str) -> None:
     from ..registry import component_class
     cls = component_class("optimizer", cfg.optimizer.kind)
-    if not getattr(cls, "gives_posterior", False):
+    if not cls.gives_posterior:
         raise ConfigError(f"{source}: optimizer.kind: calibrate needs a sampler whose result is a posterior "
                           f"(e.g. abc-smc, emcee); {cfg.optimizer.kind!r} gives a best fit only")
 

@@ -208,9 +208,8 @@ class _Progress:
 
 def _expected_total(cfg, optimizer, dim: int) -> int | None:
     """Evaluations the progress bar counts to: the budget, or what the optimiser plans
-    (``expected_evaluations``, duck-typed), whichever is smaller."""
-    plan = getattr(optimizer, "expected_evaluations", None)
-    planned = plan(dim) if callable(plan) else None
+    (``Optimizer.expected_evaluations``), whichever is smaller."""
+    planned = optimizer.expected_evaluations(dim)
     totals = [t for t in (cfg.stop.max_evaluations, planned) if t]
     return min(totals) if totals else None
 
@@ -292,7 +291,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
                           log=store.log)
         bar = _Progress(_expected_total(cfg, optimizer, len(names)), enabled=progress)
         evaluator = Evaluator(cfg, store, executor, ssm, names, problem, progress=bar,
-                              failures_as_inf=bool(getattr(optimizer, "failures_as_inf", False)))
+                              failures_as_inf=bool(optimizer.failures_as_inf))
         problem.evaluate = evaluator
         problem.seed_spread = evaluator.seed_spread
         problem.summaries = evaluator.summaries
@@ -328,8 +327,9 @@ def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
         dist.prepare(own, cols)
         frozen = {"distance": cfg.distance.kind, "settings": section_settings(cfg, "distance"),
                   "columns": cols}
-        if hasattr(dist, "normalizations"):
-            frozen["normalization"] = dist.normalizations()
+        norms = dist.normalizations()
+        if norms:  # a distance that compares the tables in their own units has none
+            frozen["normalization"] = norms
         store.write_json("distance.json", frozen)
         dims = sorted({u.shape[1] for u in own.values() if u.ndim == 2})
         try:

@@ -252,10 +252,11 @@ def started_workers(cfg, tgt: Target, executor=None):
     context manager: the target's tables travel to each worker once."""
     from ..config import config_to_dict
     ex = run_executor(cfg) if executor is None else executor
-    if hasattr(ex, "on_lost"):  # the process executor: what a dead or stuck worker's task becomes
-        ex.on_lost = functools.partial(_lost_task, cfg.objective.penalty, list(tgt.U))
-        timeout = cfg.objective.timeout
-        ex.time_limit = None if timeout is None else functools.partial(_task_limit, timeout)
+    # Executor.on_lost/time_limit: what a dead or stuck worker's task becomes, and when a task is
+    # stuck (honoured by an executor that can stop a worker, ignored by the others)
+    ex.on_lost = functools.partial(_lost_task, cfg.objective.penalty, list(tgt.U))
+    timeout = cfg.objective.timeout
+    ex.time_limit = None if timeout is None else functools.partial(_task_limit, timeout)
     return ex.started(init_worker, (config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms))
 
 

@@ -246,26 +246,18 @@ def distance_view(dist, name: str, um: np.ndarray, ud: np.ndarray):
 
     Returns ``(um, ud, line_values or None, statistic, normalised)``.
     """
-    stat = str(getattr(getattr(dist, "settings", None), "statistic", "ks"))
-    lines = None
-    fn = getattr(dist, "line_values", None)
-    if callable(fn):
-        try:
-            lines = np.asarray(fn(um, ud, set_name=name), float).reshape(-1)
-        except (TypeError, ValueError, NotImplementedError):
-            lines = None
+    stat = str(dist.statistic)
+    try:
+        lines = np.asarray(dist.line_values(um, ud, set_name=name), float).reshape(-1)
+    except (TypeError, ValueError, NotImplementedError):
+        lines = None
     normalised = False
-    norms = getattr(dist, "normalizations", None)
-    if callable(norms):
-        try:
-            nd = norms().get(name)
-        except Exception:
-            nd = None
-        if nd and nd.get("method", "none") != "none":
-            c = np.asarray(nd["center"], float)
-            sc = np.asarray(nd["scale"], float)
-            if c.shape == (ud.shape[1],) and sc.shape == (ud.shape[1],):
-                um, ud, normalised = (um - c) / sc, (ud - c) / sc, True
+    nd = dist.normalizations().get(name)
+    if nd and nd.get("method", "none") != "none":
+        c = np.asarray(nd["center"], float)
+        sc = np.asarray(nd["scale"], float)
+        if c.shape == (ud.shape[1],) and sc.shape == (ud.shape[1],):
+            um, ud, normalised = (um - c) / sc, (ud - c) / sc, True
     return um, ud, lines, stat, normalised
 
 

@@ -322,6 +322,15 @@ def _common_checks(cls, inst, settings, label, kind, registered, make_error="") 
     return checks
 
 
+def _priority_check(cls, label) -> Check:
+    """``priority`` (``QSMReader``/``QSMWriter``, default 0) is a whole number."""
+    def c_priority():
+        p = cls.priority
+        _require(isinstance(p, int) and not isinstance(p, bool), f"priority is {p!r}, expected an int (default 0)")
+        return f"priority {p}"
+    return Check(label, "priority", c_priority)
+
+
 def _need(inst, make_error):
     _require(inst is not None, make_error or "could not be instantiated")
     return inst

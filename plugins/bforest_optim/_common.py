@@ -26,6 +26,11 @@ from bforest_core.interfaces import ComponentSettings, OptimizeResult, Problem
 SamplingName = Literal["halton", "sobol", "lhs", "random"]
 
 
+#: a length limit (generations, iterations) high enough that the evaluation budget ends the run
+#: first (``Optimizer.budget_settings``)
+UNLIMITED = 10**6
+
+
 class StopOptimization(Exception):
     """Raised inside a library callback to unwind an optimiser when the problem has stopped."""
 

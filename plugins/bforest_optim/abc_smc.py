@@ -94,7 +94,7 @@ from scipy.spatial import cKDTree
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 from bforest_core.metrics import weighted_quantiles
 
-from ._common import BoxEvaluator, History, OptimizerSettings, make_result
+from ._common import UNLIMITED, BoxEvaluator, History, OptimizerSettings, make_result
 
 QUANTILES = (2.5, 5.0, 16.0, 25.0, 50.0, 75.0, 84.0, 95.0, 97.5)
 
@@ -263,6 +263,11 @@ class AbcSmc(Optimizer):
     Settings = AbcSmcSettings
     gives_posterior = True
     failures_as_inf = True
+
+    @classmethod
+    def budget_settings(cls, settings, budget):
+        """No generation limit: the budget ends the run."""
+        return {**settings, "generations": UNLIMITED}
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         s: AbcSmcSettings = self.settings

@@ -13,7 +13,7 @@ from pydantic import Field
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import BoxEvaluator, History, OptimizerSettings, SamplingName, StopOptimization, finite_stats, \
+from ._common import UNLIMITED, BoxEvaluator, History, OptimizerSettings, SamplingName, StopOptimization, finite_stats, \
     make_result, sampling_field
 
 Strategy = Literal["best1bin", "best1exp", "rand1bin", "rand1exp", "rand2bin", "rand2exp", "randtobest1bin",
@@ -52,6 +52,11 @@ class DifferentialEvolution(Optimizer):
     name = "de"
     summary = "scipy differential evolution (vectorised generations, integrality)"
     Settings = DESettings
+
+    @classmethod
+    def budget_settings(cls, settings, budget):
+        """No generation limit (``maxiter``): the budget ends the run."""
+        return {**settings, "maxiter": UNLIMITED}
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         from scipy.optimize import differential_evolution

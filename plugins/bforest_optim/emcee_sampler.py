@@ -117,6 +117,12 @@ class EmceeSampler(Optimizer):
     Settings = EmceeSettings
     gives_posterior = True
 
+    @classmethod
+    def budget_settings(cls, settings, budget):
+        """As many ``steps`` as the budget: every step evaluates at least one walker, so the
+        budget ends the run."""
+        return {**settings, "steps": int(budget)}
+
     def minimize(self, problem: Problem) -> OptimizeResult:
         import emcee
 

@@ -110,6 +110,11 @@ class NloptOptimizer(Optimizer):
     summary = "NLopt derivative-free algorithms (CRS2, ISRES, ESCH, DIRECT, SBPLX, BOBYQA, ...)"
     Settings = NloptSettings
 
+    @classmethod
+    def budget_settings(cls, settings, budget):
+        """The main run's ``maxeval`` is the budget."""
+        return {**settings, "maxeval": int(budget)}
+
     def minimize(self, problem: Problem) -> OptimizeResult:
         import nlopt
 

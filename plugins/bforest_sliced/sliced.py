@@ -309,6 +309,11 @@ class SlicedDistance(Distance):
             self._pool.shutdown(wait=True)
             self._pool = None
 
+    @property
+    def statistic(self) -> str:
+        """The per-line statistic of the settings (``Distance.statistic``)."""
+        return self.settings.statistic
+
     # ------------------------------------------------------------------ directions
     def directions(self, d: int) -> np.ndarray:
         """The cached read-only ``(lines, d)`` directions on the distance's grid (``(1, 1)`` for

@@ -102,6 +102,14 @@ class ToyRandomSearch(Optimizer):
     name = "toy-random"
     Settings = ToyRandomSettings
 
+    def expected_evaluations(self, dim):
+        return self.settings.batch * self.settings.batches
+
+    @classmethod
+    def budget_settings(cls, settings, budget):
+        # a field name the core does not know: only this class lifts it for a comparison
+        return {**settings, "batches": -(-int(budget) // settings.get("batch", 8))}
+
     def minimize(self, problem):
         rng = np.random.default_rng(problem.seed)
         lo, hi = problem.init_box()

@@ -169,3 +169,11 @@ def fit_killed_after(cfg, run_dir: Path, n: int, monkeypatch) -> None:
             bf.fit(cfg, run_dir, progress=False)
     finally:
         monkeypatch.setattr(RunStore, "add", real_add)
+
+
+def pytest_terminal_summary(terminalreporter):
+    """The conformance kit's coverage (test_conformance records it) at the end of the run."""
+    for rep in terminalreporter.stats.get("passed", []):
+        for key, value in getattr(rep, "user_properties", []):
+            if key == "conformance_components":
+                terminalreporter.write_line(f"conformance kit: {value}")

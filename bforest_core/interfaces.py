@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import abc
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, ClassVar, Iterator, Mapping, Sequence
@@ -506,6 +507,23 @@ class Executor(Component):
 
     def shutdown(self) -> None:
         """Stop workers."""
+
+    @staticmethod
+    def limit_worker_threads() -> None:
+        """One BLAS/OpenMP thread in this process.
+
+        An executor whose workers together keep every core busy calls it in each worker before
+        the initializer (the ``process`` and ``dask`` executors do): a worker's own thread pools
+        would only compete with the other workers.
+        """
+        for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+                  "VECLIB_MAXIMUM_THREADS", "BLIS_NUM_THREADS"):
+            os.environ[v] = "1"
+        try:  # effective even after numpy is imported, when threadpoolctl is present
+            from threadpoolctl import threadpool_limits
+            threadpool_limits(1)
+        except Exception:
+            pass
 
     def started(self, initializer: Callable | None = None, initargs: tuple = ()):
         return _Started(self, initializer, initargs)

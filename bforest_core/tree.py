@@ -31,7 +31,7 @@ def _rows_text(rows, limit: int = 10) -> str:
 # vectorised topology kernels
 # ----------------------------------------------------------------------------------------------
 
-def _jump_to_head(link: np.ndarray, is_head: np.ndarray):
+def jump_to_head(link: np.ndarray, is_head: np.ndarray):
     """Pointer jumping: for each node, the head of its chain and the number of links to it.
 
     ``link[i]`` is the predecessor of i (ignored where ``is_head``). Returns ``(head, dist)``.
@@ -53,7 +53,7 @@ def _jump_to_head(link: np.ndarray, is_head: np.ndarray):
 
 def depth_of(parent: np.ndarray) -> np.ndarray:
     """Number of links from each cylinder to the root (root 0)."""
-    _, d = _jump_to_head(parent, parent < 0)
+    _, d = jump_to_head(parent, parent < 0)
     return d
 
 
@@ -136,14 +136,14 @@ def derive_branches(parent: np.ndarray, extension: np.ndarray):
     has_parent = parent >= 0
     is_first = np.ones(n, dtype=bool)
     is_first[has_parent] = extension[parent[has_parent]] != rows[has_parent]
-    head, position = _jump_to_head(parent, is_first)
+    head, position = jump_to_head(parent, is_first)
     firsts = np.flatnonzero(is_first)  # increasing rows: branch ids by first row
     bid_of_first = np.full(n, -1, dtype=np.int64)
     bid_of_first[firsts] = np.arange(firsts.size)
     branch = bid_of_first[head]
     parent_cyl = parent[firsts]
     parent_branch = np.where(parent_cyl >= 0, branch[np.maximum(parent_cyl, 0)], -1)
-    _, border = _jump_to_head(parent_branch, parent_branch < 0)
+    _, border = jump_to_head(parent_branch, parent_branch < 0)
     order = border[branch]
     return branch, order.astype(np.int64), position.astype(np.int64), firsts, parent_cyl, parent_branch, border
 

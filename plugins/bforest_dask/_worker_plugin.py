@@ -6,7 +6,7 @@ from typing import Callable
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from bforest_core.pipeline.executors import limit_threads
+from bforest_core.interfaces import Executor
 
 
 class RunInitializer(WorkerPlugin):
@@ -22,6 +22,6 @@ class RunInitializer(WorkerPlugin):
         self.name = name
 
     def setup(self, worker) -> None:
-        limit_threads()
+        Executor.limit_worker_threads()
         if self.initializer is not None:
             self.initializer(*self.initargs)

@@ -46,7 +46,7 @@ from ..config import config_to_dict, parse_config, read_toml
 from ..errors import BayesForestError, ConfigError
 from ..metrics import weighted_quantiles
 from .fit import _free_specs, fit, same_config
-from .store import RunDirError, RunStore, json_text
+from .store import RunDirError, RunFiles, RunStore, json_text
 
 __all__ = ["calibrate", "central_interval", "sbc_rank", "prior_draw", "coverage_table", "rank_counts",
            "uniform_band", "rank_bins", "LEVELS", "RANK_DRAWS"]
@@ -215,7 +215,8 @@ def _held_runs(out_dir: Path) -> list[Path]:
 def _evaluate_run(run_dir: Path, names, theta, integer, seed: int, i: int) -> dict:
     """The row of one finished run: truth, intervals, median and rank per parameter."""
     from .posterior import read_posterior_csv
-    best = json.loads((run_dir / "best.json").read_text(encoding="utf-8"))
+    files = RunFiles(run_dir)
+    best = files.read_best()
     diag = best.get("diagnostics") or {}
     eps = diag.get("epsilon")
     if isinstance(eps, list):
@@ -224,12 +225,12 @@ def _evaluate_run(run_dir: Path, names, theta, integer, seed: int, i: int) -> di
            "seconds": best.get("seconds"), "stop_reason": best.get("stop_reason"), "epsilon": eps,
            "best_distance": best.get("distance"), "params": {}}
     try:
-        got, X, w = read_posterior_csv(run_dir / "posterior.csv")
+        got, X, w = read_posterior_csv(files.posterior_csv_path)
     except RunDirError as exc:
         row["status"] = f"no posterior ({exc})"
         return row
     if got != list(names):
-        row["status"] = f"posterior.csv has parameters {got}, not {list(names)}"
+        row["status"] = f"{RunFiles.POSTERIOR_CSV} has parameters {got}, not {list(names)}"
         return row
     row["params"] = posterior_params(X, w, names, theta, integer, seed, i)
     return row

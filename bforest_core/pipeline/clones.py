@@ -24,7 +24,7 @@ from .fidelity import bound_flags, fidelity_table, fidelity_text, fidelity_warni
 from .objective import _CTX, _MODEL_ERRORS, _simulate_with_timeout, _Timeout, build_target, clone_seeds, combine_terms, progress_bar, score_tree, started_workers, \
     with_term_values
 from .rundir import holding_run_lock
-from .store import RunStore
+from .store import RunFiles, RunStore
 
 METRIC_KEYS = ("height", "girth", "crown_spread")
 #: clones.csv column of each per-clone value (units in the header; girth is the base diameter)
@@ -85,9 +85,9 @@ def _reference_task(task):
 def posterior_draw(run_dir: Path, base: dict, seed: int) -> dict:
     """The parameters of one posterior-predictive clone: ``base`` (the best fit, for the fixed
     parameters) with the fitted ones drawn from ``posterior.csv`` by weight."""
-    path = Path(run_dir) / "posterior.csv"
+    path = RunFiles(run_dir).posterior_csv_path
     if not path.exists():
-        raise ClonesError(f"{run_dir}: no posterior.csv; posterior clones need a sampler's run "
+        raise ClonesError(f"{run_dir}: no {path.name}; posterior clones need a sampler's run "
                           "(optimizer kind abc-smc or emcee)")
     with path.open(newline="", encoding="utf-8") as fh:
         rows = list(csv.reader(fh))
@@ -103,12 +103,12 @@ def posterior_draw(run_dir: Path, base: dict, seed: int) -> dict:
 
 def _existing(out_dir: Path, store: RunStore, params: dict) -> list[dict]:
     """The rows of the clones already in ``out_dir`` (checked to be clones of ``params``)."""
-    if not (out_dir / "summary.json").exists():
+    if not (out_dir / RunFiles.CLONE_SUMMARY).exists():
         if any(out_dir.glob("clone_*.txt")):
-            raise ClonesError(f"{out_dir}: holds clone files but no summary.json; regrow them with --replace, "
+            raise ClonesError(f"{out_dir}: holds clone files but no {RunFiles.CLONE_SUMMARY}; regrow them with --replace, "
                               "or move the folder to keep them")
         return []
-    old = store.read_json(f"{out_dir.name}/summary.json")
+    old = store.read_json(f"{out_dir.name}/{RunFiles.CLONE_SUMMARY}")
     if old.get("best_params") != params:
         raise ClonesError(f"{out_dir}: holds clones of other parameters ({old.get('best_params')}); "
                           "regrow them with --replace, or move the folder to keep them")
@@ -144,11 +144,11 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
     run_dir = Path(run_dir)
     with RunStore.open(run_dir) as store:
         cfg = load_config(store.config_path)
-        best = store.read_json("best.json")
+        best = store.read_best()
         n = cfg.clones.count if n is None else int(n)
         if n < 0:
             raise ClonesError(f"clones: n must be at least 0 (got {n})")
-        out_dir = run_dir / ("clones_posterior" if posterior else "clones")
+        out_dir = store.clones_dir(posterior)
         if replace and out_dir.exists():
             shutil.rmtree(out_dir)
         out_dir.mkdir(exist_ok=True)
@@ -190,9 +190,9 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
         summary["reference_errors"] = ref_errors
         summary["posterior"] = bool(posterior)
         summary["complete"] = True
-        _write_csv(out_dir / "clones.csv", rows, tgt)
-        store.write_json(f"{out_dir.name}/fidelity.json", summary["fidelity"])
-        store.write_json(f"{out_dir.name}/summary.json", summary)
+        _write_csv(out_dir / RunFiles.CLONE_TABLE, rows, tgt)
+        store.write_json(f"{out_dir.name}/{RunFiles.CLONE_FIDELITY}", summary["fidelity"])
+        store.write_json(f"{out_dir.name}/{RunFiles.CLONE_SUMMARY}", summary)
         return summary
 
 
@@ -200,7 +200,7 @@ def _write_progress(store: RunStore, out_dir: Path, rows, tgt, best, tm) -> None
     """``summary.json`` of the clones grown so far (``complete`` false until the call ends)."""
     summary = _summarise(sorted(rows, key=lambda r: r["index"]), tgt, best, tm)
     summary["complete"] = False
-    store.write_json(f"{out_dir.name}/summary.json", summary)
+    store.write_json(f"{out_dir.name}/{RunFiles.CLONE_SUMMARY}", summary)
 
 
 def _fidelity(cfg, tgt, best, rows) -> dict:

@@ -11,7 +11,7 @@ from ..config import config_to_dict, load_config, parse_config
 from .heldout import heldout_mean, point_key, score_points, scoring_fingerprint
 from .objective import build_target, heldout_seeds, progress_bar, started_workers
 from ..registry import component_class
-from .store import RunDirError, RunStore
+from .store import RunDirError, RunFiles, RunStore
 
 def _settings_for_budget(raw: dict, name: str, budget: int) -> dict:
     """The settings of optimiser ``name`` in a comparison: the config's own when the config names
@@ -167,7 +167,7 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
             if state != "finished":
                 fit(cfg, run, resume=state == "partial", progress=False, overwrite=overwrite, target=target)
             # the result as the run recorded it (its clock sums the sessions of a resumed run)
-            best = json.loads((run / "best.json").read_text(encoding="utf-8"))
+            best = RunFiles(run).read_best()
             row = {"best": best["distance"], "evaluations": best["n_evaluations"], "seconds": best["seconds"],
                    "stop_reason": best["stop_reason"]}
             bar.update(int(budget))  # a run that stopped early still takes its share of the total

@@ -25,7 +25,7 @@ from ..registry import component
 from .checks import preflight
 from .heldout import select_answer
 from .rundir import holding_run_lock
-from .store import Evaluation, RunDirError, RunStore
+from .store import Evaluation, RunDirError, RunFiles, RunStore
 
 
 @dataclass
@@ -225,7 +225,7 @@ def _result_relevant(cfg) -> dict:
 def same_config(run_dir, cfg) -> bool:
     """Whether the run in ``run_dir`` was made with ``cfg`` (up to the executor and the report,
     which do not change results); False when its config.toml is missing or unreadable."""
-    path = Path(run_dir) / "config.toml"
+    path = RunFiles(run_dir).config_path
     try:
         old = parse_config(read_toml(path), source=str(path))
     except (OSError, BayesForestError):
@@ -273,9 +273,9 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     with store:
         if resume:
             if not same_config(run_dir, cfg):
-                raise RunDirError(f"{run_dir}: the config differs from the run's config.toml; "
-                                  "resume with the run's own config (bforest fit RUN/config.toml -o RUN --resume)")
-            finished = (store.path / "best.json").exists()  # resuming it replays the log, simulates nothing
+                raise RunDirError(f"{run_dir}: the config differs from the run's {store.CONFIG}; resume with the "
+                                  f"run's own config (bforest fit RUN/{store.CONFIG} -o RUN --resume)")
+            finished = store.finished()  # resuming it replays the log, simulates nothing
             # the executor may change between sessions (results never depend on it)
             store.config_path.write_text(text, encoding="utf-8")
             store.clear_log()
@@ -319,7 +319,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
 def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
     """The data tables, and the distance's frozen data-side transforms and directions, so every
     number of the run can be recomputed from the run directory."""
-    np.savez_compressed(store.path / "target_sets.npz", **tgt.U)
+    np.savez_compressed(store.target_sets_path, **tgt.U)
     if cfg is not None:
         dist = component("distance", cfg.distance.kind, **section_settings(cfg, "distance"))
         own = {k: v for k, v in tgt.U.items() if "/" not in k}  # the [distance] term's sets
@@ -330,15 +330,15 @@ def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
         norms = dist.normalizations()
         if norms:  # a distance that compares the tables in their own units has none
             frozen["normalization"] = norms
-        store.write_json("distance.json", frozen)
+        store.write_json(store.DISTANCE, frozen)
         dims = sorted({u.shape[1] for u in own.values() if u.ndim == 2})
         try:
-            np.savez_compressed(store.path / "directions.npz", **{f"d{d}": dist.directions(d) for d in dims})
+            np.savez_compressed(store.directions_path, **{f"d{d}": dist.directions(d) for d in dims})
         except NotImplementedError:
             pass
     try:
         from ..io import write_tree
-        write_tree(tgt.trees[0], store.path / "target.txt")
+        write_tree(tgt.trees[0], store.target_tree_path)
     except Exception:  # writing a copy of the target is a convenience, never fatal
         pass
 
@@ -365,22 +365,22 @@ def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: flo
     table = posterior_outputs(store.path, diag, list(diag.get("names") or ev.params))
     if table is not None:
         best["posterior_summary"] = table
-        best["posterior_files"] = ["posterior.csv", "posterior.nc"]
+        best["posterior_files"] = [store.POSTERIOR_CSV, store.POSTERIOR_NC]
     if ev.status != "ok":
         best["model_metrics"] = None
         best["note"] = f"no evaluation succeeded (best status: {ev.status})"
-        store.write_json("best.json", best)
+        store.write_json(store.BEST, best)
         return best
     try:
         tree = _simulate_with_timeout(ssm, ev.params, ev.seeds[0], cfg.objective.timeout)
         m = classical_metrics(tree)
         best["model_metrics"] = m
         best["relative_errors"] = relative_errors(target_metrics, m)
-        write_tree(tree, store.path / "best_tree.txt")
+        write_tree(tree, store.best_tree_path)
     except (BayesForestError, _Timeout) as exc:
         best["model_metrics"] = None
         best["note"] = f"best tree could not be regrown or written: {exc or 'timeout'}"
-    store.write_json("best.json", best)
+    store.write_json(store.BEST, best)
     return best
 
 

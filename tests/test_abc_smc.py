@@ -379,7 +379,7 @@ def test_adjusted_posterior_in_a_fit_regrows_logged_trees_and_resumes(toy_plugin
 def test_set_summaries_rows_per_tree_and_column_means():
     """The statistics the adjustment regresses on: per set log(1 + rows per tree), then the
     columns' means; an empty set gives zeros; a target pooled over two trees counts rows per tree."""
-    from bforest_core.pipeline.objective import set_summaries
+    from bforest_core.pipeline.scoring import set_summaries
     U = {"B": np.array([[1.0, 10.0], [3.0, 30.0], [5.0, 20.0], [7.0, 40.0]]), "S": np.empty((0, 3))}
     assert set_summaries(U, ["B", "S"]) == pytest.approx([np.log(5.0), 4.0, 25.0, 0.0, 0.0, 0.0, 0.0])
     assert set_summaries(U, ["S", "B"], trees=2)[4] == pytest.approx(np.log(3.0))
@@ -388,7 +388,8 @@ def test_set_summaries_rows_per_tree_and_column_means():
 def test_summary_task_counts_a_failing_data_set_as_a_failure_like_evaluate_task(toy_plugin, tmp_path, monkeypatch):
     """A tree whose data sets cannot be extracted is a failed evaluation (status "error") and has
     no summaries (None): regrowing it never crashes the adjustment."""
-    from bforest_core.pipeline.objective import build_target, evaluate_task, started_workers, summary_task
+    from bforest_core.pipeline.target import build_target
+    from bforest_core.pipeline.worker import evaluate_task, started_workers, summary_task
     cfg = bf.load_config(toy_config(tmp_path))
     task = ({"angle": 30.0, "segments": 12}, [1, 2])
     with started_workers(cfg, build_target(cfg)):  # serial: the worker is this process

@@ -14,8 +14,7 @@ from pydantic import ConfigDict
 import bforest_core as bf
 from bforest_core import SSM, ComponentSettings, Distance, FeatureSet, OptimizeResult, Optimizer, ParameterSpec, Tree
 from bforest_core.testing import (ConformanceError, check_component, check_distance, check_feature_set,
-                                  check_optimizer, check_reader, check_ssm, check_tree, check_writer,
-                                  component_checks, run_all, sample_tables, sample_tree, ssm_checks)
+                                  check_optimizer, check_ssm, check_tree, run_all, sample_tables, sample_tree, ssm_checks)
 from conftest import qsm_path
 
 

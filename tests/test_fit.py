@@ -291,7 +291,8 @@ def test_compare_scores_best_points_on_held_out_model_seeds(toy_plugin, tmp_path
     the distance directly, seed by seed."""
     import json
     from bforest_core.pipeline.compare import compare
-    from bforest_core.pipeline.objective import build_target, heldout_seeds
+    from bforest_core.pipeline.seeds import heldout_seeds
+    from bforest_core.pipeline.target import build_target
     p = toy_config(tmp_path)
     p.write_text(p.read_text() + "[objective]\nseeds = 2\n")
     res = compare(p, ["ga", "toy-random"], budget=24, repeats=2, out_dir=tmp_path / "cmp", threshold="ga",
@@ -362,7 +363,7 @@ def test_held_out_scores_are_kept_in_the_runs_and_not_grown_twice(toy_plugin, tm
     assert len(grown) == 3 * len(points)
     # another objective is another score: grown again, the earlier scores kept beside it
     from bforest_core.pipeline.compare import score_heldout
-    from bforest_core.pipeline.objective import build_target
+    from bforest_core.pipeline.target import build_target
     cfg = bf.load_config(p).model_copy(update={"objective": bf.load_config(p).objective.model_copy(update={"penalty": 2.0})})
     grown.clear()
     score_heldout({"ga": [tmp_path / "cmp" / "ga-0"]}, cfg, build_target(cfg), 3)

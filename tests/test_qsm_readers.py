@@ -17,8 +17,8 @@ from bforest_core import QSMFormatError, Tree
 
 from conftest import hand_tree, qsm_path
 
-from bforest_treeqsm import _common
-from bforest_treeqsm._common import QSMReadWarning
+from bforest_treeqsm import raw_cylinders
+from bforest_treeqsm.raw_cylinders import QSMReadWarning
 
 
 def read_quiet(path, **kw):
@@ -545,8 +545,8 @@ def test_invalid_options_are_config_errors():
 def test_ids_helper_rejects_wraparound_and_reports_range():
     v = np.array([0, 1, 2, 9], dtype=np.uint8)
     with pytest.raises(QSMFormatError, match=r"parent 9 at row 4 is outside 1\.\.\.4 \(0 = none\)"):
-        _common.ids_to_rows("f.mat", "parent", v, 4, 1)
-    out = _common.ids_to_rows("f.mat", "parent", v[:3], 3, 1)
+        raw_cylinders.ids_to_rows("f.mat", "parent", v, 4, 1)
+    out = raw_cylinders.ids_to_rows("f.mat", "parent", v[:3], 3, 1)
     assert out.dtype == np.int64 and out.tolist() == [-1, 0, 1]
 
 

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import copy
 import csv
-import json
 import math
 import time
 from pathlib import Path
@@ -173,7 +172,7 @@ def _check_sampler(cfg, source: str) -> None:
 
 
 def _fixed_model_seeds(cfg) -> set[int]:
-    from .objective import model_seeds
+    from .seeds import model_seeds
     o = cfg.objective
     if o.model_seeds:
         return {int(s) for s in o.model_seeds}
@@ -297,7 +296,7 @@ def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite
         99 % band of a bin's count), ``counts`` (fitted / resumed / read back), ``wall_seconds``
         (summed fit time of the runs), ``json``/``csv`` paths, ``out_dir``.
     """
-    from .objective import progress_bar
+    from .progress import progress_bar
     config_path = Path(config_path)
     if int(n) < 1:
         raise ConfigError(f"calibrate: -n must be at least 1 (got {n})")

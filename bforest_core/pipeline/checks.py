@@ -14,7 +14,7 @@ from pathlib import Path
 from ..config import did_you_mean, section_settings
 from ..errors import BayesForestError, ConfigError, PluginError
 from ..registry import component
-from .objective import Target, build_target
+from .target import Target, build_target
 
 
 def _named_files(cfg) -> list[tuple[str, str]]:

@@ -21,8 +21,11 @@ import numpy as np
 from ..config import load_config
 from ..errors import BayesForestError, SimulationFailed
 from .fidelity import bound_flags, fidelity_table, fidelity_text, fidelity_warnings
-from .objective import _CTX, _MODEL_ERRORS, _simulate_with_timeout, _Timeout, build_target, clone_seeds, combine_terms, progress_bar, score_tree, started_workers, \
-    with_term_values
+from .progress import progress_bar
+from .scoring import _MODEL_ERRORS, _simulate_with_timeout, _Timeout, combine_terms, score_tree, with_term_values
+from .seeds import clone_seeds
+from .target import build_target
+from .worker import started_workers, worker_context
 from .rundir import holding_run_lock
 from .store import RunFiles, RunStore
 
@@ -42,7 +45,7 @@ def _clone_task(task):
     from ..attributes import fidelity_statistics
     from ..metrics import classical_metrics
     i, params, seed, out_dir = task
-    c = _CTX
+    c = worker_context()
     try:
         tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
     except SimulationFailed as exc:
@@ -53,8 +56,8 @@ def _clone_task(task):
         return dict(index=i, seed=seed, status="error", message=f"{type(exc).__name__}: {exc}"[:500], params=params)
     path = Path(out_dir) / f"clone_{i:03d}.txt"
     write_tree(tree, path)
-    per_set, _ = score_tree(tree)
-    total, values = combine_terms(per_set)
+    per_set, _ = score_tree(tree, c)
+    total, values = combine_terms(per_set, c)
     return dict(index=i, seed=seed, status="ok", message="", file=path.name, distance=total,
                 per_set=with_term_values(per_set, values), n_cylinders=tree.n, summary=fidelity_statistics(tree),
                 params=params, **classical_metrics(tree))
@@ -76,8 +79,9 @@ def _reference_task(task):
     path = task
     tree = read_qsm(path)
     tree = tree[0] if isinstance(tree, list) else tree
-    per_set, _ = score_tree(tree)
-    total, values = combine_terms(per_set)
+    c = worker_context()
+    per_set, _ = score_tree(tree, c)
+    total, values = combine_terms(per_set, c)
     return dict(file=str(path), distance=total, per_set=with_term_values(per_set, values),
                 summary=fidelity_statistics(tree))
 

@@ -9,7 +9,10 @@ import numpy as np
 
 from ..config import config_to_dict, load_config, parse_config
 from .heldout import heldout_mean, point_key, score_points, scoring_fingerprint
-from .objective import build_target, heldout_seeds, progress_bar, started_workers
+from .progress import progress_bar
+from .seeds import heldout_seeds
+from .target import build_target
+from .worker import started_workers
 from ..registry import component_class
 from .store import RunDirError, RunFiles, RunStore
 

@@ -19,8 +19,11 @@ import numpy as np
 from ..config import config_to_dict, load_config, parse_config, read_toml, section_settings, ssm_settings
 from ..errors import BayesForestError, ConfigError
 from ..interfaces import Problem
-from .objective import (Target, _simulate_with_timeout, _Timeout, evaluate_task, model_seeds,
-                        progress_bar, run_executor, set_summaries, spread_seeds, started_workers, summary_task)
+from .progress import progress_bar
+from .scoring import _simulate_with_timeout, _Timeout, set_summaries
+from .seeds import model_seeds, spread_seeds
+from .target import Target
+from .worker import evaluate_task, run_executor, started_workers, summary_task
 from ..registry import component
 from .checks import preflight
 from .heldout import select_answer

@@ -22,7 +22,9 @@ from typing import Callable
 import numpy as np
 
 from ..config import config_to_dict
-from .objective import evaluate_task, heldout_seeds, progress_bar
+from .progress import progress_bar
+from .seeds import heldout_seeds
+from .worker import evaluate_task
 from .store import Evaluation, RunStore
 
 __all__ = ["scoring_fingerprint", "point_key", "score_points", "candidates", "select_answer"]

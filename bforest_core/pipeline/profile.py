@@ -85,7 +85,10 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
         ``distances`` (k, seeds), ``status`` (k, seeds), ``best_value``, ``best_distance``.
     """
     from ..config import load_config, ssm_settings
-    from .objective import build_target, evaluate_task, model_seeds, progress_bar, started_workers
+    from .progress import progress_bar
+    from .seeds import model_seeds
+    from .target import build_target
+    from .worker import evaluate_task, started_workers
     from ..registry import component
     from .store import RunFiles, RunStore, slug
 

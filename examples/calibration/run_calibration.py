@@ -239,7 +239,9 @@ def noise_floors(name: str = "sot_abc_smc", seeds: int = 20) -> dict[str, float]
     import numpy as np
     import bforest_core as bf
     from bforest_core.config import config_to_dict
-    from bforest_core.pipeline.objective import build_target, evaluate_task, init_worker, spread_seeds
+    from bforest_core.pipeline.seeds import spread_seeds
+    from bforest_core.pipeline.target import build_target
+    from bforest_core.pipeline.worker import evaluate_task, init_worker
     cache = RUNS / "floors.json"
     floors = json.loads(cache.read_text()) if cache.exists() else {}
     for run in sorted((RUNS / name).glob("run_*")):

@@ -153,7 +153,7 @@ def real_tree_section(name: str = "lignum_pine3") -> str:
 def stand_mates_section(out, cfg, summ) -> list[str]:
     """Distances of the clones to pine 3 against those of its two stand-mates (same features,
     distance and data-side normalisation as the fit)."""
-    from bforest_core.pipeline.objective import build_target
+    from bforest_core.pipeline.target import build_target
     tgt = build_target(cfg)
     fs = bf.component("features", cfg.features.kind, **tgt.feature_settings)
     dist = bf.component("distance", cfg.distance.kind, **cfg.distance.model_dump(exclude={"kind"}))

@@ -94,7 +94,7 @@ from scipy.spatial import cKDTree
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 from bforest_core.metrics import weighted_quantiles
 
-from ._common import UNLIMITED, BoxEvaluator, History, OptimizerSettings, make_result
+from .box import UNLIMITED, BoxEvaluator, History, OptimizerSettings, make_result
 
 QUANTILES = (2.5, 5.0, 16.0, 25.0, 50.0, 75.0, 84.0, 95.0, 97.5)
 

@@ -36,7 +36,7 @@ from pydantic import Field
 
 from bforest_core.interfaces import OptimizeResult, Optimizer, Problem
 
-from ._common import (BoxEvaluator, History, NoiseStop, OptimizerSettings, finite_stats, make_result,
+from .box import (BoxEvaluator, History, NoiseStop, OptimizerSettings, finite_stats, make_result,
                       noise_stop_fields)
 
 _NOISE = noise_stop_fields()

@@ -13,7 +13,7 @@ from pydantic import Field
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import UNLIMITED, BoxEvaluator, History, OptimizerSettings, SamplingName, StopOptimization, finite_stats, \
+from .box import UNLIMITED, BoxEvaluator, History, OptimizerSettings, SamplingName, StopOptimization, finite_stats, \
     make_result, sampling_field
 
 Strategy = Literal["best1bin", "best1exp", "rand1bin", "rand1exp", "rand2bin", "rand2exp", "randtobest1bin",

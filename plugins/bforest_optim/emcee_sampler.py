@@ -38,7 +38,7 @@ from pydantic import Field, model_validator
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import (BoxEvaluator, History, OptimizerSettings, SamplingName, finite_or_none, make_result,
+from .box import (BoxEvaluator, History, OptimizerSettings, SamplingName, finite_or_none, make_result,
                       sampling_field, seed_noise)
 
 PERCENTILES = (2.5, 16.0, 50.0, 84.0, 97.5)

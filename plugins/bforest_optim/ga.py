@@ -33,7 +33,7 @@ from pydantic import Field, model_validator
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import (UNLIMITED, BoxEvaluator, History, NoiseStop, OptimizerSettings, SamplingName, finite_stats, make_result,
+from .box import (UNLIMITED, BoxEvaluator, History, NoiseStop, OptimizerSettings, SamplingName, finite_stats, make_result,
                       noise_stop_fields, sampling_field)
 
 _NOISE = noise_stop_fields()

@@ -13,7 +13,7 @@ from pydantic import Field, field_validator
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import BoxEvaluator, History, OptimizerSettings, make_result
+from .box import BoxEvaluator, History, OptimizerSettings, make_result
 
 #: algorithms that need a local optimiser (``set_local_optimizer``)
 _NEEDS_LOCAL = {"GN_MLSL", "GN_MLSL_LDS", "G_MLSL", "G_MLSL_LDS"}

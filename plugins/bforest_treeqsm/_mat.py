@@ -11,7 +11,7 @@ import numpy as np
 
 from bforest_core.errors import QSMFormatError
 
-from ._common import (BaseReader, RawCylinders, ReaderSettings, build_tree, float_column,
+from .raw_cylinders import (BaseReader, RawCylinders, ReaderSettings, build_tree, float_column,
                       ids_to_rows, labels_to_int, select_models, sniff_safely)
 
 HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"

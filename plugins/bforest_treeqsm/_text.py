@@ -16,7 +16,7 @@ import numpy as np
 
 from bforest_core.errors import QSMFormatError
 
-from ._common import (BaseReader, RawCylinders, ReaderSettings, build_tree, ids_to_rows,
+from .raw_cylinders import (BaseReader, RawCylinders, ReaderSettings, build_tree, ids_to_rows,
                       labels_to_int, plural, rows_text, select_models, sniff_safely, warn)
 from ._mat import cyldata14_to_raw, mat_kind
 

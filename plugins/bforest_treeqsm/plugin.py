@@ -19,7 +19,7 @@ tools' CSV layouts ``simpleforest-csv`` and ``archi-csv`` (by name), and the syn
 """
 from bforest_core.hookspecs import hookimpl
 
-from ._common import QSMReadWarning
+from .raw_cylinders import QSMReadWarning
 from ._mat import CylDataMatReader, TreeQSMFlatReader, TreeQSMMatReader
 from ._text import ArchiCSVReader, NativeCSVReader, SimpleForestCSVReader, TreeQSMTextReader
 from .foreign_csv import ArchiCSVWriter, SimpleForestCSVWriter

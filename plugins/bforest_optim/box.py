@@ -1,4 +1,5 @@
-"""Pieces shared by the optimisers: the checked box, the evaluation wrapper, logging, results.
+"""The box an optimiser searches, as the optimisers of this plugin see it: the checked box, the
+evaluation wrapper, logging, results, the noise-aware stop.
 
 Every optimiser of this plugin talks to its :class:`~bforest_core.interfaces.Problem` through a
 :class:`BoxEvaluator`, which

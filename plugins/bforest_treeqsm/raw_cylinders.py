@@ -1,8 +1,8 @@
-"""Shared reader machinery: option handling, id conversion, validation, repairs, Tree building.
+"""The raw cylinder table every reader makes, and how it becomes a Tree: option handling, id
+conversion, validation, repairs, Tree building.
 
 Every reader turns its file into a :class:`RawCylinders` table (file row order, 0-based ids,
--1 = none) and hands it to :func:`build_tree`, which applies the rules of
-``shared/spec/qsm-formats.md`` §0 in one place: always-errors (non-finite values, negative
+-1 = none) and hands it to :func:`build_tree`, which applies the format rules in one place: always-errors (non-finite values, negative
 radii, zero axes, cycles, out-of-range ids, extensions that are not children), the default
 repairs (detached fragments, zero-length cylinders) with one warning each, axis
 renormalisation, the check of the stored branch/order against the recomputed ones, and the

@@ -37,7 +37,9 @@ def measure(recipe: str, points: int, seed: int, run: str | None = None) -> dict
     from bforest_core.config import config_to_dict, load_config
     from bforest_core.pipeline.fit import _free_specs
     try:  # the objective's modules since issue 34 (--against may run a revision before the split)
-        from bforest_core.pipeline import seeds as sd_mod, target as tg_mod, worker as ob
+        from bforest_core.pipeline import seeds as sd_mod
+        from bforest_core.pipeline import target as tg_mod
+        from bforest_core.pipeline import worker as ob
     except ImportError:
         from bforest_core.pipeline import objective as ob
         sd_mod = tg_mod = ob

@@ -10,9 +10,10 @@ from __future__ import annotations
 import abc
 import math
 import os
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, ClassVar, Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
@@ -72,7 +73,7 @@ class QSMReader(Component):
         """True when the file (whose first 4096 bytes are ``head``) is in this layout."""
 
     @abc.abstractmethod
-    def read(self, path: Path, **options) -> "Tree | list[Tree]":
+    def read(self, path: Path, **options) -> Tree | list[Tree]:
         """Read the file; options of :func:`read_qsm` (``select``, ``topology``, ``fragments``,
         ``drop_degenerate``) are passed through. Raises ``QSMFormatError``."""
 
@@ -121,7 +122,7 @@ class SSM(Component):
         """The model's parameter specs (for the current preset, if any)."""
 
     @abc.abstractmethod
-    def simulate(self, params: Mapping[str, float], seed: int) -> "Tree":
+    def simulate(self, params: Mapping[str, float], seed: int) -> Tree:
         """Grow one tree.
 
         Parameters
@@ -190,7 +191,7 @@ class FeatureSet(Component):
     def set_names(self) -> list[str]:
         """Names of the data sets this feature set produces, in order."""
 
-    def prepare(self, data_trees: "Sequence[Tree]") -> None:
+    def prepare(self, data_trees: Sequence[Tree]) -> None:
         """Resolve data-dependent choices (e.g. ``"2+"`` orders) and check minimum sizes on the
         data tree(s), once at set-up. Default: nothing to do."""
 
@@ -204,7 +205,7 @@ class FeatureSet(Component):
     def extract(self, tree) -> dict[str, np.ndarray]:
         """Set name -> ``(n_i, d_i)`` float64 array (rows with NaN dropped per ``nan_policy``)."""
 
-    def extract_pooled(self, trees: "Sequence[Tree]") -> dict[str, np.ndarray]:
+    def extract_pooled(self, trees: Sequence[Tree]) -> dict[str, np.ndarray]:
         """Rows of several trees pooled per set (repeated reconstructions)."""
         parts = [self.extract(t) for t in trees]
         return {k: np.concatenate([p[k] for p in parts], axis=0) for k in self.set_names}

@@ -440,7 +440,7 @@ class Tree:
         return bt
 
     # ------------------------------------------------------------------ derived trees
-    def with_topology(self, rule: str) -> "Tree":
+    def with_topology(self, rule: str) -> Tree:
         """The same cylinders with branches chosen by another topology rule.
 
         ``source`` restores the tree's own stored branching when this tree was built from it.
@@ -455,7 +455,7 @@ class Tree:
                     extras["_source_extension"], topology=rule, added=self.added,
                     source_row=self.source_row, extras=extras, metadata=self.metadata)
 
-    def subset(self, keep) -> "Tree":
+    def subset(self, keep) -> Tree:
         """The tree restricted to rows ``keep`` (a bool mask or indices) that must be closed under
         ``parent`` (every kept row's parent is kept)."""
         keep = np.asarray(keep)
@@ -473,7 +473,7 @@ class Tree:
                     added=self.added[rows], source_row=self.source_row[rows],
                     extras={k: v[rows] for k, v in self.extras.items()}, metadata=self.metadata)
 
-    def translated(self, offset) -> "Tree":
+    def translated(self, offset) -> Tree:
         """A copy moved by ``offset`` (m)."""
         return Tree(self.start + np.asarray(offset, float), self.axis, self.length, self.radius,
                     self.parent, self.extension, topology=self.topology, added=self.added,
@@ -493,7 +493,7 @@ class Tree:
         return (f"Tree({self.n} cylinders, {self.n_branches} branches, max order {self.max_order}, "
                 f"topology={self.topology!r}{', ' + str(src) if src else ''})")
 
-    def equals(self, other: "Tree", atol: float = 0.0) -> bool:
+    def equals(self, other: Tree, atol: float = 0.0) -> bool:
         """True when both trees have the same columns (geometry within ``atol``)."""
         if self.n != other.n:
             return False

@@ -177,6 +177,7 @@ def test_posterior_csv_of_abc_smc_and_emcee_runs(toy_plugin, tmp_path):
 
 def test_inference_data_and_summary_round_trip(toy_plugin, tmp_path):
     import json
+
     import arviz as az
     for kind, settings in (("abc-smc", "particles = 10\ngenerations = 3"), ("emcee", "walkers = 8\nsteps = 6\nburn_in = 2")):
         run = tmp_path / kind
@@ -328,7 +329,7 @@ def test_regression_adjustment_known_linear_model_and_degrees_of_freedom():
     rng = np.random.default_rng(7)
     n, lo, hi = 80, np.array([0.0, 0.0]), np.array([1.0, 1.0])
     sds = {"inflated": [], "raw": []}
-    for rep in range(40):
+    for _ in range(40):
         S = rng.standard_normal((n, 21))
         e = rng.standard_normal(n)
         z = np.c_[0.3 + S[:, 0] + 0.1 * e, 0.5 * rng.standard_normal(n)]

@@ -1,4 +1,5 @@
 """The fit pipeline on the toy plugin: store, seeds, executors, resume, failures, clones."""
+import importlib
 import json
 import os
 import signal
@@ -11,8 +12,6 @@ import numpy as np
 import pytest
 
 import bforest_core as bf
-
-import importlib
 from bforest_core.pipeline.store import RunStore
 from conftest import TOY_DIR, fit_killed_after, toy_config
 
@@ -193,7 +192,7 @@ def test_compare_optimizers_on_equal_budgets(toy_plugin, tmp_path):
                   out_dir=tmp_path / "cmp")
     assert [t["optimizer"] for t in res["table"]] == ["ga", "de", "emcee", "toy-random"]
     assert len(res["runs"]) == 8 and all(r["evaluations"] == 100 for r in res["runs"])
-    for name, curves in res["curves"].items():
+    for curves in res["curves"].values():
         assert len(curves) == 2 and all(len(c) == 100 and (np.diff(c) <= 0).all() for c in curves)
     # repeats use different run seeds, so their evaluation sequences differ
     assert not np.array_equal(res["curves"]["ga"][0], res["curves"]["ga"][1])
@@ -231,8 +230,9 @@ def test_a_fit_that_failed_before_its_first_evaluation_does_not_block_the_retry(
 
 
 def test_compare_threshold_by_name_and_the_configs_own_settings(toy_plugin, tmp_path):
-    from bforest_core.pipeline.compare import compare
     import tomllib
+
+    from bforest_core.pipeline.compare import compare
     cfg = toy_config(tmp_path, optimizer="ga", optimizer_settings="population = 6")
     res = compare(cfg, ["ga", "toy-random"], budget=24, repeats=2, out_dir=tmp_path / "cmp", threshold="ga")
     ga_best = [r["best"] for r in res["runs"] if r["optimizer"] == "ga"]
@@ -266,6 +266,7 @@ def test_compare_curves_never_count_a_failed_simulation_as_a_fit(toy_plugin, tmp
     """With a penalty below every real distance (0.0), a failure is still no fit: the curves and
     the threshold count only grown trees, and each curve ends at the run's best.json distance."""
     import json
+
     from bforest_core.pipeline.compare import compare
     p = toy_config(tmp_path)
     p.write_text(p.read_text().replace('kind = "toy"\n', 'kind = "toy"\nfail_above = 50.0\n') + "[objective]\npenalty = 0.0\n")
@@ -278,6 +279,7 @@ def test_compare_curves_never_count_a_failed_simulation_as_a_fit(toy_plugin, tmp
     assert res["threshold"] > 0.0
     # a curve that starts at inf (a failure first) beside a grown tree draws without a warning
     import warnings
+
     from bforest_core.report.comparison import write_compare_figure
     res["curves"]["toy-random"][0][0] = np.inf
     with warnings.catch_warnings():
@@ -290,6 +292,7 @@ def test_compare_scores_best_points_on_held_out_model_seeds(toy_plugin, tmp_path
     model seeds no fit used; the values are recomputed here from the model, the features and
     the distance directly, seed by seed."""
     import json
+
     from bforest_core.pipeline.compare import compare
     from bforest_core.pipeline.seeds import heldout_seeds
     from bforest_core.pipeline.target import build_target
@@ -340,6 +343,7 @@ def test_held_out_scores_are_kept_in_the_runs_and_not_grown_twice(toy_plugin, tm
     (which rewrites compare.json) loses none of them, and --heldout again grows no tree and gives
     the same values; a changed objective scores anew."""
     import json
+
     import bforest_core.pipeline.compare as cmp_mod
     p = toy_config(tmp_path)
     p.write_text(p.read_text() + "[objective]\nseeds = 2\n")

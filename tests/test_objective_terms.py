@@ -6,8 +6,8 @@ import pytest
 
 import bforest_core as bf
 from bforest_core.pipeline import scoring, worker
-from bforest_core.pipeline.target import build_target
 from bforest_core.pipeline.store import RunStore
+from bforest_core.pipeline.target import build_target
 from conftest import toy_config
 
 TERM = """

@@ -14,11 +14,9 @@ import pytest
 
 import bforest_core as bf
 from bforest_core import QSMFormatError, Tree
-
-from conftest import hand_tree, qsm_path
-
 from bforest_treeqsm import raw_cylinders
 from bforest_treeqsm.raw_cylinders import QSMReadWarning
+from conftest import hand_tree, qsm_path
 
 
 def read_quiet(path, **kw):
@@ -563,7 +561,7 @@ def test_unsorted_rows_are_resorted_and_keep_file_rows(tmp_path):
     for c in (8, 9):                                  # parent, extension (1-based, 0 = none)
         w[:, c] = np.where(w[:, c] > 0, new_of_old[np.maximum(w[:, c].astype(int) - 1, 0)] + 1, 0)
     q = tmp_path / "shuffled.txt"
-    q.write_text(p.read_text().split("\n", 1)[0] + "\n" + "\n".join("\t".join("%.9g" % x for x in row) for row in w))
+    q.write_text(p.read_text().split("\n", 1)[0] + "\n" + "\n".join("\t".join(f"{x:.9g}" for x in row) for row in w))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         u = bf.read_qsm(q)

@@ -146,6 +146,7 @@ def test_demo_never_replaces_a_run_or_a_file_it_did_not_write(toy_plugin, tmp_pa
 @pytest.mark.skipif(os.name != "posix", reason="kill -9")
 def test_a_killed_clones_call_is_continued_without_regrowing_its_clones(toy_plugin, tmp_path):
     import signal
+
     from bforest_core.pipeline.clones import clones
     run = tmp_path / "run"
     p = _slow(toy_config(tmp_path, budget=4), 0.3)

@@ -50,8 +50,8 @@ def test_a_fit_writes_the_files_runfiles_names(toy_plugin, tmp_path):
     import fnmatch
 
     import bforest_core as bf
-    from conftest import toy_config
     from bforest_core.pipeline.store import RunFiles
+    from conftest import toy_config
     bf.fit(bf.load_config(toy_config(tmp_path, budget=8)), tmp_path / "run", progress=False)
     run = RunFiles(tmp_path / "run")
     for p in (run.config_path, run.evaluations_path, run.best_path, run.best_tree_path, run.target_tree_path,
@@ -73,6 +73,7 @@ PENDING = {"report", "pipeline/posterior.py"}
 def test_run_folder_file_names_are_spelled_only_in_the_store():
     import ast
     from pathlib import Path
+
     from bforest_core.pipeline.store import RunFiles
     names = {v for k, v in vars(RunFiles).items() if k.isupper() and isinstance(v, str)}
     core = Path(__file__).resolve().parents[1] / "bforest_core"

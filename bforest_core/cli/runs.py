@@ -43,6 +43,7 @@ def _fit_and_report(args, cfg, out, fit):
 def _all_failed(out) -> int:
     """1 with a loud line when no evaluation of the run succeeded (its "best" fits nothing), else 0."""
     from collections import Counter
+
     from ..pipeline.store import RunStore
     with RunStore.open(out) as store:
         evs = store.evaluations()

@@ -47,6 +47,7 @@ def _info_table(args, trees) -> int:
     (the per-order table, one row per reconstruction and order)."""
     import csv
     import sys
+
     from ..metrics import classical_metrics, order_summary
     from .tree_tables import csv_rows, info_json
     if args.csv and args.table != "orders":

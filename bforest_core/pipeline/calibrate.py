@@ -345,7 +345,7 @@ def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite
             bar.update(1)
     finally:
         bar.close()
-    for (i, theta, *_), row in zip(plans, rows):
+    for (_, theta, *_), row in zip(plans, rows):
         row.setdefault("truth", {nm: float(v) for nm, v in zip(names, theta)})
     if not any(r["status"] == "ok" for r in rows):
         raise BayesForestError(f"calibrate: no run gave a posterior ({rows[0]['run']}: {rows[0]['status']})")

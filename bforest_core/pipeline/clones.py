@@ -22,12 +22,12 @@ from ..config import load_config
 from ..errors import BayesForestError, SimulationFailed
 from .fidelity import bound_flags, fidelity_table, fidelity_text, fidelity_warnings
 from .progress import progress_bar
+from .rundir import holding_run_lock
 from .scoring import _MODEL_ERRORS, _simulate_with_timeout, _Timeout, combine_terms, score_tree, with_term_values
 from .seeds import clone_seeds
+from .store import RunFiles, RunStore
 from .target import build_target
 from .worker import started_workers, worker_context
-from .rundir import holding_run_lock
-from .store import RunFiles, RunStore
 
 METRIC_KEYS = ("height", "girth", "crown_spread")
 #: clones.csv column of each per-clone value (units in the header; girth is the base diameter)
@@ -41,8 +41,8 @@ class ClonesError(BayesForestError):
 
 def _clone_task(task):
     """Grow one clone in a worker, write it, and score it against the target."""
-    from ..io import write_tree
     from ..attributes import fidelity_statistics
+    from ..io import write_tree
     from ..metrics import classical_metrics
     i, params, seed, out_dir = task
     c = worker_context()
@@ -74,8 +74,8 @@ _clone_task.lost_result = _lost_clone
 
 def _reference_task(task):
     """Score a reference tree of the stand against the target, like a clone."""
-    from ..io import read_qsm
     from ..attributes import fidelity_statistics
+    from ..io import read_qsm
     path = task
     tree = read_qsm(path)
     tree = tree[0] if isinstance(tree, list) else tree

@@ -8,13 +8,14 @@ from pathlib import Path
 import numpy as np
 
 from ..config import config_to_dict, load_config, parse_config
+from ..registry import component_class
 from .heldout import heldout_mean, point_key, score_points, scoring_fingerprint
 from .progress import progress_bar
 from .seeds import heldout_seeds
+from .store import RunDirError, RunFiles, RunStore
 from .target import build_target
 from .worker import started_workers
-from ..registry import component_class
-from .store import RunDirError, RunFiles, RunStore
+
 
 def _settings_for_budget(raw: dict, name: str, budget: int) -> dict:
     """The settings of optimiser ``name`` in a comparison: the config's own when the config names
@@ -203,7 +204,8 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
              f"{'optimizer':<10}{'median best':>12}{'range':>20}{'evals to thr.':>15}{'reached':>9}{'wall s':>9}"]
     for t in table:
         e = "-" if t["evals_to_threshold"] is None else f"{t['evals_to_threshold']:.0f}"
-        lines.append(f"{t['optimizer']:<10}{t['median_best']:>12.4f}{'[%.4f, %.4f]' % (t['min_best'], t['max_best']):>20}"
+        spread = f"[{t['min_best']:.4f}, {t['max_best']:.4f}]"
+        lines.append(f"{t['optimizer']:<10}{t['median_best']:>12.4f}{spread:>20}"
                      f"{e:>15}{t['reached']:>9}{t['median_seconds']:>9.1f}")
     held = {}
     if heldout:

@@ -23,7 +23,6 @@ import sys
 import time
 from collections import deque
 from multiprocessing.connection import wait as _wait
-
 from typing import Literal
 
 from pydantic import Field

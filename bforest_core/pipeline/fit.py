@@ -19,16 +19,16 @@ import numpy as np
 from ..config import config_to_dict, load_config, parse_config, read_toml, section_settings, ssm_settings
 from ..errors import BayesForestError, ConfigError
 from ..interfaces import Problem
-from .progress import progress_bar
-from .scoring import _simulate_with_timeout, _Timeout, set_summaries
-from .seeds import model_seeds, spread_seeds
-from .target import Target
-from .worker import evaluate_task, run_executor, started_workers, summary_task
 from ..registry import component
 from .checks import preflight
 from .heldout import select_answer
+from .progress import progress_bar
 from .rundir import holding_run_lock
+from .scoring import _simulate_with_timeout, _Timeout, set_summaries
+from .seeds import model_seeds, spread_seeds
 from .store import Evaluation, RunDirError, RunFiles, RunStore
+from .target import Target
+from .worker import evaluate_task, run_executor, started_workers, summary_task
 
 
 @dataclass
@@ -351,8 +351,8 @@ def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: flo
     """Write ``best.json`` (the answer: the best logged evaluation, or the candidate chosen on
     held-out seeds when there is a ``selection``; classical metrics of target and answer tree)
     and ``best_tree.txt`` (the answer regrown with its first model seed)."""
-    from ..metrics import classical_metrics, relative_errors
     from ..io import write_tree
+    from ..metrics import classical_metrics, relative_errors
     ev = store.evaluation(selection["chosen"]) if selection else store.best()
     target_metrics = classical_metrics(tgt.trees[0])
     best = {"params": ev.params, "distance": ev.distance, "per_set": ev.per_set, "status": ev.status,

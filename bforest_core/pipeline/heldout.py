@@ -17,15 +17,15 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
 from ..config import config_to_dict
 from .progress import progress_bar
 from .seeds import heldout_seeds
-from .worker import evaluate_task
 from .store import Evaluation, RunStore
+from .worker import evaluate_task
 
 __all__ = ["scoring_fingerprint", "point_key", "score_points", "candidates", "select_answer"]
 

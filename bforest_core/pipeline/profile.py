@@ -9,8 +9,8 @@ seed, so its curve passes through the best fit. Writes ``figures/profile_<param>
 from __future__ import annotations
 
 import csv
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -85,12 +85,12 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
         ``distances`` (k, seeds), ``status`` (k, seeds), ``best_value``, ``best_distance``.
     """
     from ..config import load_config, ssm_settings
+    from ..registry import component
     from .progress import progress_bar
     from .seeds import model_seeds
+    from .store import RunFiles, RunStore, slug
     from .target import build_target
     from .worker import evaluate_task, started_workers
-    from ..registry import component
-    from .store import RunFiles, RunStore, slug
 
     run_dir = Path(run_dir)
     with RunStore.open(run_dir) as store:

@@ -259,7 +259,7 @@ class RunStore(RunFiles):
 
     # ------------------------------------------------------------------ creation
     @classmethod
-    def create(cls, path, config_text: str, overwrite: bool = False) -> "RunStore":
+    def create(cls, path, config_text: str, overwrite: bool = False) -> RunStore:
         """A new run directory holding ``config_text`` as ``config.toml``.
 
         Refuses a directory that already holds evaluations unless ``overwrite``, which then removes
@@ -308,7 +308,7 @@ class RunStore(RunFiles):
         return "new"
 
     @classmethod
-    def open(cls, path) -> "RunStore":
+    def open(cls, path) -> RunStore:
         path = Path(path)
         if not RunFiles(path).config_path.exists():
             raise RunDirError(f"{path}: not a run directory (no {RunFiles.CONFIG})")
@@ -443,7 +443,7 @@ class RunStore(RunFiles):
         command reading the run)."""
         self._con.close()
 
-    def __enter__(self) -> "RunStore":
+    def __enter__(self) -> RunStore:
         return self
 
     def __exit__(self, *exc) -> None:

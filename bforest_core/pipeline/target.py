@@ -11,7 +11,6 @@ import numpy as np
 
 from ..registry import component
 
-
 #: name of the [features]/[distance] term when the objective has more than one
 STRUCTURE = "structure"
 

@@ -16,8 +16,16 @@ import numpy as np
 
 from ..errors import SimulationFailed
 from ..registry import component
-from .scoring import (_MODEL_ERRORS, _simulate_with_timeout, _Timeout, build_scoring, combine_terms, score_tree,
-                      set_summaries, with_term_values)
+from .scoring import (
+    _MODEL_ERRORS,
+    _simulate_with_timeout,
+    _Timeout,
+    build_scoring,
+    combine_terms,
+    score_tree,
+    set_summaries,
+    with_term_values,
+)
 from .target import Target
 
 #: this worker's scoring context (:func:`~.scoring.build_scoring`), set by :func:`init_worker`

@@ -2,17 +2,16 @@
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import re
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.lines import Line2D
 
+from .canvas import DATA_COLOR, MODEL_COLOR, capped_size, column_label, new_figure, save_figure
 from .document import slug
-from .canvas import DATA_COLOR, MODEL_COLOR, capped_size, new_figure, save_figure, column_label
 
 if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
     from .run_view import RunView
@@ -261,7 +260,7 @@ def distance_view(dist, name: str, um: np.ndarray, ud: np.ndarray):
     return um, ud, lines, stat, normalised
 
 
-def fig_sets(v: "RunView"):
+def fig_sets(v: RunView):
     out = []
     if not v.U_data:
         return out

@@ -4,8 +4,9 @@ from __future__ import annotations
 import json
 import pickle
 import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import pydantic
@@ -131,7 +132,7 @@ class Report:
     def passed(self) -> list[str]:
         return [r.check for r in self.results if r.passed]
 
-    def raise_for_failures(self) -> "Report":
+    def raise_for_failures(self) -> Report:
         """Raise :class:`ConformanceError` listing every failed check (else return self)."""
         if self.failures:
             raise ConformanceError(self.component, [(r.check, r.problem) for r in self.failures])

@@ -1,11 +1,7 @@
 """Conformance checks of an executor."""
 from __future__ import annotations
 
-
-
-
-from ._base import (Check, Report, _common_checks, _instance, _label, _need, _require, _roundtrip, _run)
-
+from ._base import Check, Report, _common_checks, _instance, _label, _need, _require, _roundtrip, _run
 
 _WORKER_OFFSET = None
 

@@ -1,15 +1,27 @@
 """Conformance checks of QSM readers and writers."""
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from ..tree import Tree
-
-from ._base import (Check, Report, _common_checks, _instance, _label, _need, _priority_check, _require, _roundtrip, _run,
-                    _tree_diff, check_tree)
+from ._base import (
+    Check,
+    Report,
+    _common_checks,
+    _instance,
+    _label,
+    _need,
+    _priority_check,
+    _require,
+    _roundtrip,
+    _run,
+    _tree_diff,
+    check_tree,
+)
 from .samples import sample_tree
 
 

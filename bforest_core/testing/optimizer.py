@@ -7,8 +7,7 @@ from typing import Any
 import numpy as np
 
 from ..interfaces import OptimizeResult, Problem
-
-from ._base import (Check, Report, _Fail, _common_checks, _instance, _label, _need, _require, _roundtrip, _run)
+from ._base import Check, Report, _common_checks, _Fail, _instance, _label, _need, _require, _roundtrip, _run
 
 
 class _Harness:

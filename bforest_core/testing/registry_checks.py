@@ -2,12 +2,11 @@
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any, Iterable, Mapping
-
+from typing import Any
 
 from ..interfaces import KINDS
-
 from ._base import Check, ConformanceError, Report, _run
 from .distance import distance_checks
 from .executor import executor_checks
@@ -16,7 +15,6 @@ from .io import reader_checks, writer_checks
 from .optimizer import optimizer_checks
 from .samples import sample_tree
 from .ssm import ssm_checks
-
 
 _CHECKS = {"ssm": ssm_checks, "features": feature_set_checks, "distance": distance_checks,
            "qsm_reader": reader_checks, "qsm_writer": writer_checks, "optimizer": optimizer_checks,

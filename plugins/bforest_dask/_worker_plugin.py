@@ -2,7 +2,7 @@
 dask run starts, so discovering the plugin does not import ``distributed``)."""
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 from distributed.diagnostics.plugin import WorkerPlugin
 

@@ -386,7 +386,7 @@ class AbcSmc(Optimizer):
                 medians.append(median)
         return min(medians) if medians else 0.0
 
-    def _adjusted(self, problem: Problem, ev: BoxEvaluator, pool: "_Pool", eps: float, lo, hi) -> dict:
+    def _adjusted(self, problem: Problem, ev: BoxEvaluator, pool: _Pool, eps: float, lo, hi) -> dict:
         """The regression-adjusted posterior (``adjust = "linear"``): ``particles``, ``weights``,
         ``distances`` and the fit's figures, or only a ``note`` saying why there is none."""
         if problem.summaries is None or problem.target_summaries is None:

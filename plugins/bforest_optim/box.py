@@ -306,10 +306,10 @@ class NoiseStop:
         self.since = 0           # generations since then
         self.reason = ""
 
-    def _measure(self, ev: "BoxEvaluator") -> float:
+    def _measure(self, ev: BoxEvaluator) -> float:
         return 0.0 if ev.best_x is None else seed_noise(self.problem, ev.best_x, self.k)
 
-    def __call__(self, ev: "BoxEvaluator") -> bool:
+    def __call__(self, ev: BoxEvaluator) -> bool:
         """Call once per generation; True when the run should stop (``reason`` says why).
 
         Generations are judged in windows of ``patience``: at the end of a window the noise is

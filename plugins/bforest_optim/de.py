@@ -13,8 +13,17 @@ from pydantic import Field
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from .box import UNLIMITED, BoxEvaluator, History, OptimizerSettings, SamplingName, StopOptimization, finite_stats, \
-    make_result, sampling_field
+from .box import (
+    UNLIMITED,
+    BoxEvaluator,
+    History,
+    OptimizerSettings,
+    SamplingName,
+    StopOptimization,
+    finite_stats,
+    make_result,
+    sampling_field,
+)
 
 Strategy = Literal["best1bin", "best1exp", "rand1bin", "rand1exp", "rand2bin", "rand2exp", "randtobest1bin",
                    "randtobest1exp", "currenttobest1bin", "currenttobest1exp", "best2bin", "best2exp"]

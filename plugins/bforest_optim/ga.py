@@ -33,8 +33,18 @@ from pydantic import Field, model_validator
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from .box import (UNLIMITED, BoxEvaluator, History, NoiseStop, OptimizerSettings, SamplingName, finite_stats, make_result,
-                      noise_stop_fields, sampling_field)
+from .box import (
+    UNLIMITED,
+    BoxEvaluator,
+    History,
+    NoiseStop,
+    OptimizerSettings,
+    SamplingName,
+    finite_stats,
+    make_result,
+    noise_stop_fields,
+    sampling_field,
+)
 
 _NOISE = noise_stop_fields()
 

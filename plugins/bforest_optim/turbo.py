@@ -41,7 +41,7 @@ from typing import Literal, Optional, Union
 import numpy as np
 from pydantic import Field
 
-from bforest_core.interfaces import OptimizeResult, Optimizer, Problem
+from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
 from .box import BoxEvaluator, History, NoiseStop, OptimizerSettings, finite_stats, make_result, noise_stop_fields
 

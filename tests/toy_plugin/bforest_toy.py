@@ -13,8 +13,17 @@ import time
 import numpy as np
 from pydantic import Field
 
-from bforest_core import (SSM, ComponentSettings, Distance, FeatureSet, OptimizeResult, Optimizer,
-                          ParameterSpec, SimulationFailed, Tree)
+from bforest_core import (
+    SSM,
+    ComponentSettings,
+    Distance,
+    FeatureSet,
+    Optimizer,
+    OptimizeResult,
+    ParameterSpec,
+    SimulationFailed,
+    Tree,
+)
 from bforest_core.hookspecs import hookimpl
 
 

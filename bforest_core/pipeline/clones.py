@@ -237,7 +237,7 @@ def _summarise(rows, tgt, best, tm) -> dict:
 
 
 def _set_columns(tgt) -> list[str]:
-    return list(tgt.U) + ([f"term:{t['name']}" for t in tgt.terms] if len(tgt.terms or []) > 1 else [])
+    return list(tgt.U) + ([f"term:{t.name}" for t in tgt.terms] if len(tgt.terms or []) > 1 else [])
 
 
 def _write_csv(path: Path, rows, tgt) -> None:

@@ -12,12 +12,25 @@ import os
 import signal
 import socket
 import threading
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
+from ..interfaces import Distance, FeatureSet
 from ..registry import component
-from .target import feature_set_for, term_specs
+from .target import Term, feature_set_for, term_specs
+
+
+@dataclass
+class PreparedTerm:
+    """A term of the objective ready to score model trees: its model-side feature set and its
+    distance prepared on the term's data sets."""
+
+    term: Term
+    features: FeatureSet
+    distance: Distance
+    U_data: dict[str, np.ndarray]
 
 
 class _Timeout(Exception):
@@ -42,14 +55,13 @@ def build_scoring(cfg, U_data: dict, columns: dict, feature_settings: dict,
         The target's data tables and their column names (``Target.U``, ``Target.columns``).
     feature_settings : dict
         The data-side feature set's resolved settings (``Target.feature_settings``).
-    terms : list of dict, optional
+    terms : list of Term, optional
         ``Target.terms``; rebuilt from the config when None (a run written before they were kept).
 
     Returns
     -------
     dict
-        ``ssm``; ``terms`` (per term: ``name``, ``prefix``, ``weight``, ``set_weights``, its
-        model-side ``features``, its ``distance`` prepared on its data sets, its ``U_data``);
+        ``ssm``; ``terms`` (a :class:`PreparedTerm` per term);
         ``features``/``distance`` of the first term; ``U_data``, ``weights``, ``penalty``,
         ``timeout`` and ``worker`` (host:pid).
     """
@@ -58,20 +70,16 @@ def build_scoring(cfg, U_data: dict, columns: dict, feature_settings: dict,
         cfg = parse_config(cfg)
     if terms is None:  # rebuilt from the config (a report reading an older or partial run)
         terms = term_specs(cfg)
-        terms[0]["features"] = feature_settings
+        terms[0] = replace(terms[0], features=feature_settings)
     built = []
     for spec in terms:
-        pre = spec["prefix"]
-        Ud = {k[len(pre):]: v for k, v in U_data.items() if k.startswith(pre) and (pre or "/" not in k)}
-        cd = {k[len(pre):]: v for k, v in columns.items() if k.startswith(pre) and (pre or "/" not in k)}
-        dist = component("distance", spec["distance_kind"], **spec["distance"])
-        dist.prepare(Ud, cd)
-        built.append(dict(name=spec["name"], prefix=pre, weight=spec["weight"], set_weights=spec["set_weights"],
-                          features=feature_set_for(cfg, "model", spec["features"], spec["features_kind"]),
-                          distance=dist, U_data=Ud))
+        Ud = spec.own(U_data)
+        dist = component("distance", spec.distance_kind, **spec.distance)
+        dist.prepare(Ud, spec.own(columns))
+        built.append(PreparedTerm(spec, feature_set_for(cfg, "model", spec.features, spec.features_kind), dist, Ud))
     return dict(
         ssm=component("ssm", cfg.ssm.kind, **ssm_settings(cfg)),
-        features=built[0]["features"], distance=built[0]["distance"], terms=built,
+        features=built[0].features, distance=built[0].distance, terms=built,
         U_data=U_data, weights=cfg.objective.weights, penalty=cfg.objective.penalty,
         timeout=cfg.objective.timeout, worker=f"{socket.gethostname()}:{os.getpid()}")
 
@@ -81,11 +89,11 @@ def score_tree(tree, scoring: dict) -> tuple[dict[str, float | None], dict[str, 
     set, for one tree (``scoring`` from :func:`build_scoring`)."""
     per_set, n_rows = {}, {}
     for t in scoring["terms"]:
-        U = t["features"].extract(tree)
-        for k, v in t["distance"].compute_per_set(U, t["U_data"]).items():
-            per_set[t["prefix"] + k] = v
+        U = t.features.extract(tree)
+        for k, v in t.distance.compute_per_set(U, t.U_data).items():
+            per_set[t.term.prefix + k] = v
         for k, v in U.items():
-            n_rows[t["prefix"] + k] = int(v.shape[0])
+            n_rows[t.term.prefix + k] = int(v.shape[0])
     return per_set, n_rows
 
 
@@ -93,11 +101,10 @@ def combine_terms(per_set: dict[str, float | None], scoring: dict) -> tuple[floa
     """The objective (weighted mean of the terms) and each term's own value."""
     values, num, den = {}, 0.0, 0.0
     for t in scoring["terms"]:
-        pre = t["prefix"]
-        mine = {k[len(pre):]: v for k, v in per_set.items() if k.startswith(pre) and (pre or "/" not in k)}
-        values[t["name"]] = float(t["distance"].combine(mine, t["set_weights"]))
-        num += t["weight"] * values[t["name"]]
-        den += t["weight"]
+        term = t.term
+        values[term.name] = float(t.distance.combine(term.own(per_set), term.set_weights))
+        num += term.weight * values[term.name]
+        den += term.weight
     return num / den, values
 
 

@@ -26,14 +26,14 @@ from .scoring import (
     set_summaries,
     with_term_values,
 )
-from .target import Target
+from .target import Target, Term
 
 #: this worker's scoring context (:func:`~.scoring.build_scoring`), set by :func:`init_worker`
 _CTX: dict[str, Any] = {}
 
 
 def init_worker(cfg_dict: dict, U_data: dict, columns: dict, feature_settings: dict,
-                terms: list[dict] | None = None) -> None:
+                terms: list[Term] | None = None) -> None:
     """Executor initializer: build the components of every term once in this process and
     prepare each distance on its data sets."""
     ctx = build_scoring(cfg_dict, U_data, columns, feature_settings, terms)
@@ -60,7 +60,7 @@ def summary_task(task: tuple[dict, list[int]]) -> np.ndarray | None:
             tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
             U = {}
             for t in c["terms"]:
-                U.update({t["prefix"] + k: v for k, v in t["features"].extract(tree).items()})
+                U.update({t.term.prefix + k: v for k, v in t.features.extract(tree).items()})
         except (SimulationFailed, _Timeout, *_MODEL_ERRORS):
             return None
         rows.append(set_summaries(U, list(c["U_data"])))

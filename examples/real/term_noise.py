@@ -43,7 +43,7 @@ def main(argv=None) -> int:
         if bad:
             raise SystemExit(f"term_noise: {path}: {len(bad)} seed(s) failed: {bad[0]}")
         total = np.array([r["distance"] for r in rows])
-        weights = {t["name"]: t["weight"] for t in term_specs(cfg)}
+        weights = {t.name: t.weight for t in term_specs(cfg)}
         parts = [f"objective {total.mean():.4f} ± {total.std(ddof=1):.4f}"]
         for name, w in weights.items():
             v = np.array([r["per_set"].get(f"term:{name}", r["distance"]) for r in rows])

@@ -1,3 +1,4 @@
+import json
 
 import numpy as np
 import pytest
@@ -92,3 +93,14 @@ def test_run_folder_file_names_are_spelled_only_in_the_store():
                 if hits:
                     found.append(f"{rel}:{node.lineno}: {', '.join(sorted(hits))}")
     assert not found, "run-folder file names spelled outside pipeline/store.py:\n" + "\n".join(found)
+
+
+def test_json_default_writes_numpy_and_paths_and_only_loosely_anything_else(tmp_path):
+    from pathlib import Path
+
+    from bforest_core.pipeline.store import json_default
+    data = {"a": np.float32(0.5), "b": np.arange(3), "c": np.int64(7), "p": Path("x") / "y"}
+    assert json.loads(json.dumps(data, default=json_default)) == {"a": 0.5, "b": [0, 1, 2], "c": 7, "p": "x/y"}
+    with pytest.raises(TypeError, match="not JSON serialisable: object"):
+        json.dumps({"o": object()}, default=json_default)
+    assert json.dumps(1j, default=lambda o: json_default(o, loose=True)) == '"1j"'

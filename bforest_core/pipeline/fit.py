@@ -7,6 +7,7 @@ uninterrupted one.
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 import time
@@ -26,7 +27,7 @@ from .progress import progress_bar
 from .rundir import holding_run_lock
 from .scoring import _simulate_with_timeout, _Timeout, set_summaries
 from .seeds import model_seeds, spread_seeds
-from .store import Evaluation, RunDirError, RunFiles, RunStore
+from .store import Evaluation, RunDirError, RunFiles, RunStore, json_default
 from .target import Target
 from .worker import evaluate_task, run_executor, started_workers, summary_task
 
@@ -388,11 +389,14 @@ def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: flo
 
 
 def _jsonable(d):
+    """Diagnostics as plain JSON values (``json_default``, loose); an entry that cannot be written
+    at all (a mapping with tuple keys, say) as its text."""
+    default = functools.partial(json_default, loose=True)
     out = {}
     for k, v in d.items():
         try:
-            json.dumps(v, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+            json.dumps(v, default=default)
             out[k] = v
         except Exception:
             out[k] = str(v)
-    return json.loads(json.dumps(out, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+    return json.loads(json.dumps(out, default=default))

@@ -389,7 +389,7 @@ class RunStore(RunFiles):
     def write_json(self, name: str, data) -> Path:
         p = self.path / name
         tmp = p.with_suffix(p.suffix + ".tmp")
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=_default), encoding="utf-8")
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=json_default), encoding="utf-8")
         tmp.replace(p)
         return p
 
@@ -450,15 +450,17 @@ class RunStore(RunFiles):
         self.close()
 
 
-def _default(o):
-    try:
-        import numpy as np
-        if isinstance(o, np.generic):
-            return o.item()
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-    except ImportError:
-        pass
-    if isinstance(o, Path):
+def json_default(o, loose: bool = False):
+    """``json.dumps``'s ``default`` for the run folder's files.
+
+    Numpy scalars become Python numbers, numpy arrays lists, paths text; anything else raises
+    ``TypeError``, or with ``loose`` (an optimiser's free-form diagnostics) becomes its text.
+    """
+    import numpy as np
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path) or loose:
         return str(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")

@@ -2,7 +2,9 @@
 """Set-up and entry commands of Bayes Forest: needs only Python >= 3.11 and pip.
 
     python3 dev.py demo     fit a growth model to the embedded default target (writes ./demo-run)
-    python3 dev.py test     run the whole test suite (arguments go to pytest)
+    python3 dev.py test     run the whole test suite (arguments go to pytest); with
+                            [tool.bforest] lint = true in pyproject.toml, first ruff check
+                            and ruff format --check
     python3 dev.py env      only create or refresh .venv (then use .venv/bin/bforest, .venv/bin/python)
 
 Each creates (or reuses) the virtual environment ``.venv`` beside this file and installs the
@@ -35,7 +37,7 @@ def _fingerprint() -> str:
 
 
 def ensure_env() -> Path:
-    if sys.version_info < (3, 11):
+    if sys.version_info < (3, 11):  # noqa: UP036 - dev.py runs on the system's python3, maybe older
         sys.exit(f"Bayes Forest needs Python >= 3.11 (this is {sys.version.split()[0]})")
     py = BIN / ("python.exe" if os.name == "nt" else "python")
     if not py.exists():
@@ -52,6 +54,23 @@ def ensure_env() -> Path:
     return py
 
 
+def lint_enabled() -> bool:
+    """``[tool.bforest] lint`` of pyproject.toml: whether ``test`` runs ruff before pytest."""
+    import tomllib
+    conf = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+    return bool(conf.get("tool", {}).get("bforest", {}).get("lint", False))
+
+
+def lint() -> int:
+    """``ruff check`` and ``ruff format --check`` over the repository (rules in pyproject.toml)."""
+    ruff = str(BIN / "ruff")
+    for args in (["check", "."], ["format", "--check", "."]):
+        rc = subprocess.call([ruff, *args], cwd=ROOT)
+        if rc:
+            return rc
+    return 0
+
+
 def main(argv: list[str]) -> int:
     if not argv or argv[0] not in ("demo", "test", "env"):
         print(__doc__)
@@ -62,6 +81,10 @@ def main(argv: list[str]) -> int:
         return 0
     if cmd == "demo":
         return subprocess.call([str(BIN / "bforest"), "demo", *rest])
+    if lint_enabled():
+        rc = lint()
+        if rc:
+            return rc
     # tests: pytest exit code 5 (no tests collected) is a failure here too
     rc = subprocess.call([str(py), "-m", "pytest", *rest], cwd=ROOT)
     return 1 if rc == 5 else rc

@@ -63,7 +63,7 @@ def main():
         res_s, wall_s, inside_s, evs_s = _run(raw, tmp / "serial", args.generations, {"kind": "serial"})
         n = len(evs_s)
         setup_t0 = time.perf_counter()
-        from bforest_core.pipeline.objective import build_target
+        from bforest_core.pipeline.target import build_target
         build_target(base)
         setup = time.perf_counter() - setup_t0
         loop = wall_s - inside_s - setup

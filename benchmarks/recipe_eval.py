@@ -35,14 +35,20 @@ def measure(recipe: str, points: int, seed: int, run: str | None = None) -> dict
     from scipy.stats import qmc
 
     from bforest_core.config import config_to_dict, load_config
-    from bforest_core.pipeline import objective as ob
     from bforest_core.pipeline.fit import _free_specs
+    try:  # the objective's modules since issue 34 (--against may run a revision before the split)
+        from bforest_core.pipeline import seeds as sd_mod
+        from bforest_core.pipeline import target as tg_mod
+        from bforest_core.pipeline import worker as ob
+    except ImportError:
+        from bforest_core.pipeline import objective as ob
+        sd_mod = tg_mod = ob
 
     cfg = load_config(recipe)
-    tgt = ob.build_target(cfg)
+    tgt = tg_mod.build_target(cfg)
     ob.init_worker(config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
     names, lo, hi, _, _, integer = _free_specs(cfg, ob._CTX["ssm"])
-    seeds = ob.model_seeds(int(cfg.seed), cfg.objective.seeds)
+    seeds = sd_mod.model_seeds(int(cfg.seed), cfg.objective.seeds)
     if run:
         from bforest_core.pipeline.store import RunStore
         evs = RunStore.open(run).evaluations()

@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import abc
 import math
+import os
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, ClassVar, Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
@@ -62,13 +64,17 @@ class QSMReader(Component):
     kind = "qsm_reader"
     #: file suffixes this reader may handle, lower case with the dot (".mat", ".txt", ...)
     suffixes: ClassVar[tuple[str, ...]] = ()
+    #: Order among the readers of one suffix (optional, default 0): ``read_qsm`` tries the
+    #: readers of a file's suffix from the highest priority down, so a reader of a specific
+    #: layout goes before a lenient one of the same suffix.
+    priority: ClassVar[int] = 0
 
     @abc.abstractmethod
     def sniff(self, path: Path, head: bytes) -> bool:
         """True when the file (whose first 4096 bytes are ``head``) is in this layout."""
 
     @abc.abstractmethod
-    def read(self, path: Path, **options) -> "Tree | list[Tree]":
+    def read(self, path: Path, **options) -> Tree | list[Tree]:
         """Read the file; options of :func:`read_qsm` (``select``, ``topology``, ``fragments``,
         ``drop_degenerate``) are passed through. Raises ``QSMFormatError``."""
 
@@ -77,7 +83,10 @@ class QSMWriter(Component):
     """Writes a tree to one file format (chosen by suffix or ``format=`` name)."""
 
     kind = "qsm_writer"
+    #: file suffixes this writer may write, lower case with the dot
     suffixes: ClassVar[tuple[str, ...]] = ()
+    #: Which writer a suffix chooses when several write it (optional, default 0): the highest.
+    priority: ClassVar[int] = 0
 
     @abc.abstractmethod
     def write(self, tree, path: Path, **options) -> Path:
@@ -151,7 +160,7 @@ class SSM(Component):
         """The model's parameter specs (for the current preset, if any)."""
 
     @abc.abstractmethod
-    def simulate(self, params: Mapping[str, float], seed: int) -> "Tree":
+    def simulate(self, params: Mapping[str, float], seed: int) -> Tree:
         """Grow one tree.
 
         Parameters
@@ -238,7 +247,7 @@ class FeatureSet(Component):
     def set_names(self) -> list[str]:
         """Names of the data sets this feature set produces, in order."""
 
-    def prepare(self, data_trees: "Sequence[Tree]") -> None:
+    def prepare(self, data_trees: Sequence[Tree]) -> None:
         """Resolve data-dependent choices (e.g. ``"2+"`` orders) and check minimum sizes on the
         data tree(s), once at set-up. Default: nothing to do."""
 
@@ -252,7 +261,7 @@ class FeatureSet(Component):
     def extract(self, tree) -> dict[str, np.ndarray]:
         """Set name -> ``(n_i, d_i)`` float64 array (rows with NaN dropped per ``nan_policy``)."""
 
-    def extract_pooled(self, trees: "Sequence[Tree]") -> dict[str, np.ndarray]:
+    def extract_pooled(self, trees: Sequence[Tree]) -> dict[str, np.ndarray]:
         """Rows of several trees pooled per set (repeated reconstructions)."""
         parts = [self.extract(t) for t in trees]
         return {k: np.concatenate([p[k] for p in parts], axis=0) for k in self.set_names}
@@ -306,6 +315,80 @@ class Distance(Component):
     def directions(self, d: int) -> np.ndarray:
         """The ``(lines, d)`` unit vectors a sliced distance projects on (if it has any)."""
         raise NotImplementedError(f"distance '{self.name}' does not project on directions")
+
+    # Optional capabilities of a distance that projects on lines; the run folder and the report
+    # use them where a distance has them (the defaults say it has none).
+
+    @property
+    def statistic(self) -> str:
+        """Name of the one-dimensional statistic compared on each line (optional).
+
+        Returns
+        -------
+        str
+            Default ``"ks"``: the report then computes the Kolmogorov-Smirnov gap per line itself.
+        """
+        return "ks"
+
+    def line_values(self, u_model: np.ndarray, u_data: np.ndarray, set_name: str | None = None) -> np.ndarray:
+        """Per-line values of the statistic for one pair of tables (optional).
+
+        Parameters
+        ----------
+        u_model, u_data : ndarray
+            ``(n, d)`` tables, both non-empty (data side second, as in :meth:`compute`).
+        set_name : str, optional
+            The set the pair belongs to, so a prepared set's frozen transform is used.
+
+        Returns
+        -------
+        ndarray
+            ``(lines,)`` values, one per row of :meth:`directions`.
+
+        Raises
+        ------
+        NotImplementedError
+            By default: the distance does not compare tables line by line.
+        """
+        raise NotImplementedError(f"distance '{self.name}' has no per-line values")
+
+    def normalizations(self) -> dict[str, dict]:
+        """The frozen data-side transforms of the prepared sets (optional).
+
+        Returns
+        -------
+        dict
+            Set name -> ``{"method", "center", "scale", ...}`` as fitted by :meth:`prepare`
+            (the fit keeps it in the run folder). Default ``{}``: the distance compares the
+            tables in their own units.
+        """
+        return {}
+
+    def permutation_test(self, U_model: Mapping[str, np.ndarray], U_data: Mapping[str, np.ndarray],
+                         weights: Mapping[str, float] | None = None, *, seed: int = 0):
+        """Whether the model tables can be told from the data tables (optional).
+
+        Parameters
+        ----------
+        U_model, U_data : mapping
+            Tables by set name.
+        weights : mapping, optional
+            Set weights, as in :meth:`compute_sets`.
+        seed : int
+            Seeds the shuffles.
+
+        Returns
+        -------
+        object
+            With ``summary()`` (one line), ``per_set`` and ``per_set_holm`` (set -> p-value).
+
+        Raises
+        ------
+        NotImplementedError
+            By default: the distance offers no permutation test (``bforest distance --test``
+            then says so).
+        """
+        raise NotImplementedError(f"distance '{self.name}' offers no permutation test")
 
 
 # ------------------------------------------------------------------------------------ optimiser
@@ -381,9 +464,6 @@ class Optimizer(Component):
 
     kind = "optimizer"
 
-    # Optional (duck-typed): ``expected_evaluations(dim) -> int | None``, the evaluations a run
-    # plans when no stop comes first (the fit's progress bar counts to it).
-
     #: True for a sampler whose result's diagnostics carry a posterior sample (weighted
     #: ``particles``/``weights`` or an MCMC ``chain``): the fit writes posterior.csv, and
     #: ``bforest calibrate`` accepts it.
@@ -401,6 +481,46 @@ class Optimizer(Component):
         """Search the box for the minimum. Must be deterministic given ``problem.seed`` and the
         values returned by ``problem.evaluate`` (the run store replays evaluations on resume)."""
 
+    def expected_evaluations(self, dim: int) -> int | None:
+        """The evaluations a run plans when no stop comes first (optional).
+
+        Parameters
+        ----------
+        dim : int
+            Number of free parameters.
+
+        Returns
+        -------
+        int or None
+            What the settings let a run evaluate at most (the fit's progress bar counts to the
+            smaller of it and ``Problem.budget``). Default ``None``: unknown in advance.
+        """
+        return None
+
+    @classmethod
+    def budget_settings(cls, settings: Mapping[str, Any], budget: int) -> dict[str, Any]:
+        """Settings under which ``Problem.budget``, not the optimiser's own length limits, ends a run.
+
+        ``bforest compare`` runs every optimiser on the same evaluation budget: each optimiser
+        lifts (or sets to the budget) its own limits, such as a number of generations,
+        iterations or steps, and keeps every other setting, so the compared runs are the
+        configured searches cut at equal budgets.
+
+        Parameters
+        ----------
+        settings : mapping
+            The optimiser's settings (without ``kind``), as a config gives them.
+        budget : int
+            The evaluations each run may spend.
+
+        Returns
+        -------
+        dict
+            The settings to run with. Default: ``settings`` unchanged (an optimiser whose only
+            length limit is ``Problem.budget``).
+        """
+        return dict(settings)
+
 
 # ------------------------------------------------------------------------------------ executor
 class Executor(Component):
@@ -415,8 +535,17 @@ class Executor(Component):
 
     kind = "executor"
 
+    #: Optional hooks, honoured by an executor that can stop a worker stuck in a task (the
+    #: ``process`` executor) and ignored by others; the fit sets them before :meth:`start`.
+    #: ``time_limit(item)`` -> seconds the task of ``item`` may run (None: no limit).
+    time_limit: Callable[[Any], float | None] | None = None
+    #: ``on_lost(fn, item, status, message)`` -> the stand-in result of a task whose worker died
+    #: or was stopped, or ``NotImplemented`` (the executor then raises ``WorkerLost``).
+    on_lost: Callable[..., Any] | None = None
+
     @property
     def workers(self) -> int:
+        """Evaluations that run at once (default 1)."""
         return 1
 
     @abc.abstractmethod
@@ -435,6 +564,23 @@ class Executor(Component):
 
     def shutdown(self) -> None:
         """Stop workers."""
+
+    @staticmethod
+    def limit_worker_threads() -> None:
+        """One BLAS/OpenMP thread in this process.
+
+        An executor whose workers together keep every core busy calls it in each worker before
+        the initializer (the ``process`` and ``dask`` executors do): a worker's own thread pools
+        would only compete with the other workers.
+        """
+        for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+                  "VECLIB_MAXIMUM_THREADS", "BLIS_NUM_THREADS"):
+            os.environ[v] = "1"
+        try:  # effective even after numpy is imported, when threadpoolctl is present
+            from threadpoolctl import threadpool_limits
+            threadpool_limits(1)
+        except Exception:
+            pass
 
     def started(self, initializer: Callable | None = None, initargs: tuple = ()):
         return _Started(self, initializer, initargs)

@@ -60,7 +60,7 @@ def read_qsm(path, reader: str | None = None, **options):
         cls = component_class("qsm_reader", reader)
         return cls().read(path, **options)
     suffix = path.suffix.lower()
-    readers = sorted(_readers(), key=lambda c: -getattr(c, "priority", 0))
+    readers = sorted(_readers(), key=lambda c: -c.priority)
     if not readers:
         raise PluginError("no QSM reader plugin is installed (see 'bforest plugins')")
     supported = sorted({s for c in readers for s in c.suffixes})
@@ -93,7 +93,7 @@ def writer_for(path, format: str | None = None):
     if not cands:
         known = sorted({s for n in reg.names("qsm_writer") for s in reg.get("qsm_writer", n).suffixes})
         raise QSMFormatError(path, f"no writer for '{path.suffix}' (known: {', '.join(known) or 'none'})")
-    cands.sort(key=lambda c: -getattr(c, "priority", 0))
+    cands.sort(key=lambda c: -c.priority)
     return cands[0]
 
 

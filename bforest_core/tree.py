@@ -31,7 +31,7 @@ def _rows_text(rows, limit: int = 10) -> str:
 # vectorised topology kernels
 # ----------------------------------------------------------------------------------------------
 
-def _jump_to_head(link: np.ndarray, is_head: np.ndarray):
+def jump_to_head(link: np.ndarray, is_head: np.ndarray):
     """Pointer jumping: for each node, the head of its chain and the number of links to it.
 
     ``link[i]`` is the predecessor of i (ignored where ``is_head``). Returns ``(head, dist)``.
@@ -53,7 +53,7 @@ def _jump_to_head(link: np.ndarray, is_head: np.ndarray):
 
 def depth_of(parent: np.ndarray) -> np.ndarray:
     """Number of links from each cylinder to the root (root 0)."""
-    _, d = _jump_to_head(parent, parent < 0)
+    _, d = jump_to_head(parent, parent < 0)
     return d
 
 
@@ -136,14 +136,14 @@ def derive_branches(parent: np.ndarray, extension: np.ndarray):
     has_parent = parent >= 0
     is_first = np.ones(n, dtype=bool)
     is_first[has_parent] = extension[parent[has_parent]] != rows[has_parent]
-    head, position = _jump_to_head(parent, is_first)
+    head, position = jump_to_head(parent, is_first)
     firsts = np.flatnonzero(is_first)  # increasing rows: branch ids by first row
     bid_of_first = np.full(n, -1, dtype=np.int64)
     bid_of_first[firsts] = np.arange(firsts.size)
     branch = bid_of_first[head]
     parent_cyl = parent[firsts]
     parent_branch = np.where(parent_cyl >= 0, branch[np.maximum(parent_cyl, 0)], -1)
-    _, border = _jump_to_head(parent_branch, parent_branch < 0)
+    _, border = jump_to_head(parent_branch, parent_branch < 0)
     order = border[branch]
     return branch, order.astype(np.int64), position.astype(np.int64), firsts, parent_cyl, parent_branch, border
 
@@ -440,7 +440,7 @@ class Tree:
         return bt
 
     # ------------------------------------------------------------------ derived trees
-    def with_topology(self, rule: str) -> "Tree":
+    def with_topology(self, rule: str) -> Tree:
         """The same cylinders with branches chosen by another topology rule.
 
         ``source`` restores the tree's own stored branching when this tree was built from it.
@@ -455,7 +455,7 @@ class Tree:
                     extras["_source_extension"], topology=rule, added=self.added,
                     source_row=self.source_row, extras=extras, metadata=self.metadata)
 
-    def subset(self, keep) -> "Tree":
+    def subset(self, keep) -> Tree:
         """The tree restricted to rows ``keep`` (a bool mask or indices) that must be closed under
         ``parent`` (every kept row's parent is kept)."""
         keep = np.asarray(keep)
@@ -473,7 +473,7 @@ class Tree:
                     added=self.added[rows], source_row=self.source_row[rows],
                     extras={k: v[rows] for k, v in self.extras.items()}, metadata=self.metadata)
 
-    def translated(self, offset) -> "Tree":
+    def translated(self, offset) -> Tree:
         """A copy moved by ``offset`` (m)."""
         return Tree(self.start + np.asarray(offset, float), self.axis, self.length, self.radius,
                     self.parent, self.extension, topology=self.topology, added=self.added,
@@ -493,7 +493,7 @@ class Tree:
         return (f"Tree({self.n} cylinders, {self.n_branches} branches, max order {self.max_order}, "
                 f"topology={self.topology!r}{', ' + str(src) if src else ''})")
 
-    def equals(self, other: "Tree", atol: float = 0.0) -> bool:
+    def equals(self, other: Tree, atol: float = 0.0) -> bool:
         """True when both trees have the same columns (geometry within ``atol``)."""
         if self.n != other.n:
             return False

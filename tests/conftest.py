@@ -75,6 +75,7 @@ def install_toy_plugin(tmp_dir: Path, broken: bool = True) -> Path:
     """Make the toy plugin discoverable through a real entry point: a ``.dist-info`` folder with
     ``entry_points.txt`` on ``sys.path`` (what ``pip install`` of a plugin creates)."""
     import sys
+
     from bforest_core import registry
 
     dist = tmp_dir / "bforest_toy-1.2.3.dist-info"
@@ -93,7 +94,8 @@ def install_toy_plugin(tmp_dir: Path, broken: bool = True) -> Path:
 
 def uninstall_toy_plugin(tmp_dir: Path) -> None:
     import sys
-    from bforest_core import registry, config
+
+    from bforest_core import config, registry
     for p in (str(tmp_dir), str(TOY_DIR)):
         while p in sys.path:
             sys.path.remove(p)
@@ -169,3 +171,11 @@ def fit_killed_after(cfg, run_dir: Path, n: int, monkeypatch) -> None:
             bf.fit(cfg, run_dir, progress=False)
     finally:
         monkeypatch.setattr(RunStore, "add", real_add)
+
+
+def pytest_terminal_summary(terminalreporter):
+    """The conformance kit's coverage (test_conformance records it) at the end of the run."""
+    for rep in terminalreporter.stats.get("passed", []):
+        for key, value in getattr(rep, "user_properties", []):
+            if key == "conformance_components":
+                terminalreporter.write_line(f"conformance kit: {value}")

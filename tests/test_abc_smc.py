@@ -177,6 +177,7 @@ def test_posterior_csv_of_abc_smc_and_emcee_runs(toy_plugin, tmp_path):
 
 def test_inference_data_and_summary_round_trip(toy_plugin, tmp_path):
     import json
+
     import arviz as az
     for kind, settings in (("abc-smc", "particles = 10\ngenerations = 3"), ("emcee", "walkers = 8\nsteps = 6\nburn_in = 2")):
         run = tmp_path / kind
@@ -328,7 +329,7 @@ def test_regression_adjustment_known_linear_model_and_degrees_of_freedom():
     rng = np.random.default_rng(7)
     n, lo, hi = 80, np.array([0.0, 0.0]), np.array([1.0, 1.0])
     sds = {"inflated": [], "raw": []}
-    for rep in range(40):
+    for _ in range(40):
         S = rng.standard_normal((n, 21))
         e = rng.standard_normal(n)
         z = np.c_[0.3 + S[:, 0] + 0.1 * e, 0.5 * rng.standard_normal(n)]
@@ -379,7 +380,7 @@ def test_adjusted_posterior_in_a_fit_regrows_logged_trees_and_resumes(toy_plugin
 def test_set_summaries_rows_per_tree_and_column_means():
     """The statistics the adjustment regresses on: per set log(1 + rows per tree), then the
     columns' means; an empty set gives zeros; a target pooled over two trees counts rows per tree."""
-    from bforest_core.pipeline.objective import set_summaries
+    from bforest_core.pipeline.scoring import set_summaries
     U = {"B": np.array([[1.0, 10.0], [3.0, 30.0], [5.0, 20.0], [7.0, 40.0]]), "S": np.empty((0, 3))}
     assert set_summaries(U, ["B", "S"]) == pytest.approx([np.log(5.0), 4.0, 25.0, 0.0, 0.0, 0.0, 0.0])
     assert set_summaries(U, ["S", "B"], trees=2)[4] == pytest.approx(np.log(3.0))
@@ -388,7 +389,8 @@ def test_set_summaries_rows_per_tree_and_column_means():
 def test_summary_task_counts_a_failing_data_set_as_a_failure_like_evaluate_task(toy_plugin, tmp_path, monkeypatch):
     """A tree whose data sets cannot be extracted is a failed evaluation (status "error") and has
     no summaries (None): regrowing it never crashes the adjustment."""
-    from bforest_core.pipeline.objective import build_target, evaluate_task, started_workers, summary_task
+    from bforest_core.pipeline.target import build_target
+    from bforest_core.pipeline.worker import evaluate_task, started_workers, summary_task
     cfg = bf.load_config(toy_config(tmp_path))
     task = ({"angle": 30.0, "segments": 12}, [1, 2])
     with started_workers(cfg, build_target(cfg)):  # serial: the worker is this process

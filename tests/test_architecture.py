@@ -3,8 +3,12 @@
 Imports point down only: the kernel (the modules at the top of ``bforest_core``) imports nothing of
 the subpackages; ``pipeline`` imports the kernel; ``report`` reads runs through the pipeline;
 ``cli`` may use everything; ``testing`` (the conformance kit) stands on the kernel alone. The core
-never imports a plugin, and a plugin imports the core and itself, never another plugin. Every
-import counts, also those inside functions.
+never imports a plugin, and a plugin imports itself and the core's public face (``bforest_core``,
+its kernel modules and the conformance kit), never another plugin nor the core's pipeline, report
+or cli. Every import counts, also those inside functions; so do dynamic loads
+(``importlib.import_module``, ``__import__``) of the project's modules, which only the registry
+makes (through entry points). A private name (``_x``) is imported only within its layer (or
+package): another layer uses the public names.
 """
 from __future__ import annotations
 
@@ -26,6 +30,10 @@ ALLOWED = {
     "cli": {"kernel", "pipeline", "report", "testing", "cli", "facade"},
 }
 SUBPACKAGES = ("pipeline", "report", "cli", "testing")
+#: what a plugin may import of the core: its public face
+PLUGIN_ALLOWED = {"facade", "kernel", "testing"}
+#: the one module that loads plugins (through entry points)
+REGISTRY = "registry"
 
 
 def module_name(path: Path, top: Path) -> str:
@@ -36,26 +44,52 @@ def module_name(path: Path, top: Path) -> str:
     return ".".join(parts)
 
 
-def imported_modules(path: Path, name: str) -> list[tuple[int, str]]:
-    """(line, absolute module) of every import in a file, relative imports resolved."""
+def _private(name: str) -> bool:
+    return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+
+
+def _dynamic_target(node: ast.AST) -> str | None:
+    """The target of ``importlib.import_module(...)``/``import_module(...)``/``__import__(...)``:
+    the module name when it is a string constant, ``"?"`` when it is computed; None for any other
+    expression."""
+    if not isinstance(node, ast.Call) or not node.args:
+        return None
+    f = node.func
+    name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else None
+    if name not in ("import_module", "__import__"):
+        return None
+    arg = node.args[0]
+    return arg.value if isinstance(arg, ast.Constant) and isinstance(arg.value, str) else "?"
+
+
+def imports(path: Path, name: str) -> list[tuple[int, str, list[str], bool]]:
+    """``(line, absolute module, names imported from it, dynamic)`` of every import in a file
+    (relative imports resolved; ``dynamic``: a call of ``import_module``/``__import__``)."""
     is_pkg = path.name == "__init__.py"
     package = name if is_pkg else name.rpartition(".")[0]
     out = []
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
         if isinstance(node, ast.Import):
-            out += [(node.lineno, a.name) for a in node.names]
+            out += [(node.lineno, a.name, [], False) for a in node.names]
         elif isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.split(".")
                 base = base[:len(base) - (node.level - 1)]
                 mod = ".".join(base + ([node.module] if node.module else []))
                 if node.module is None:  # from . import x: x may be a module
-                    out += [(node.lineno, f"{mod}.{a.name}") for a in node.names]
+                    out += [(node.lineno, f"{mod}.{a.name}", [], False) for a in node.names]
                     continue
             else:
                 mod = node.module
-            out.append((node.lineno, mod))
+            out.append((node.lineno, mod, [a.name for a in node.names], False))
+        elif (target := _dynamic_target(node)) is not None:
+            out.append((node.lineno, target, [], True))
     return out
+
+
+def imported_modules(path: Path, name: str) -> list[tuple[int, str]]:
+    """(line, absolute module) of every import in a file, relative imports resolved."""
+    return [(line, mod) for line, mod, _, _ in imports(path, name)]
 
 
 def _module_or_package(mod: str, top: Path) -> str:
@@ -79,6 +113,14 @@ def core_layer(module: str, core: str = CORE) -> str | None:
     return "kernel"
 
 
+def _dynamic_problem(where: str, mod: str, dynamic: bool) -> str | None:
+    """A dynamic load of the project's modules (or of a computed name) outside the registry."""
+    if dynamic and (mod == "?" or mod.split(".")[0].startswith("bforest")):
+        what = "a computed module name" if mod == "?" else mod
+        return f"{where}: dynamic import of {what} outside the registry (import it, or register it)"
+    return None
+
+
 def violations(core_dir: Path, plugin_dirs: list[Path]) -> list[str]:
     """Every import that breaks the layering, as ``file:line: problem``."""
     out = []
@@ -86,24 +128,46 @@ def violations(core_dir: Path, plugin_dirs: list[Path]) -> list[str]:
     for f in sorted(core_dir.rglob("*.py")):
         name = module_name(f, core_dir.parent)
         mine = core_layer(name, core)
-        for line, mod in imported_modules(f, name):
+        for line, mod, names, dynamic in imports(f, name):
+            where = f"{f.relative_to(core_dir.parent)}:{line}"
+            if dynamic and name == f"{core}.{REGISTRY}":
+                continue  # the registry is where plugins are loaded
+            problem = _dynamic_problem(where, mod, dynamic)
+            if problem or mod == "?":
+                out += [problem] if problem else []
+                continue
             mod = _module_or_package(mod, core_dir.parent)
             top = mod.split(".")[0]
-            where = f"{f.relative_to(core_dir.parent)}:{line}"
             if top.startswith("bforest_") and top != core:
                 out.append(f"{where}: the core imports the plugin {mod}")
                 continue
             theirs = core_layer(mod, core)
             if theirs is not None and theirs not in ALLOWED[mine]:
                 out.append(f"{where}: {mine} imports {theirs} ({mod})")
+            elif theirs is not None and theirs != mine and any(map(_private, names)):
+                out.append(f"{where}: {mine} imports the private name(s) {', '.join(filter(_private, names))} "
+                           f"of {theirs} ({mod})")
     for pdir in plugin_dirs:
         own = pdir.name
         for f in sorted(pdir.rglob("*.py")):
             name = module_name(f, pdir.parent)
-            for line, mod in imported_modules(f, name):
+            for line, mod, names, dynamic in imports(f, name):
+                where = f"{f.relative_to(pdir.parent)}:{line}"
+                problem = _dynamic_problem(where, mod, dynamic)
+                if problem or mod == "?":
+                    out += [problem] if problem else []
+                    continue
                 top = mod.split(".")[0]
                 if top.startswith("bforest_") and top not in (own, core):
-                    out.append(f"{f.relative_to(pdir.parent)}:{line}: plugin {own} imports plugin {mod}")
+                    out.append(f"{where}: plugin {own} imports plugin {mod}")
+                elif top == core:
+                    layer = core_layer(_module_or_package(mod, core_dir.parent), core)
+                    if layer not in PLUGIN_ALLOWED:
+                        out.append(f"{where}: plugin {own} imports the core's {layer} ({mod}); plugins use the "
+                                   "public face (bforest_core, its kernel modules, bforest_core.testing)")
+                    elif any(map(_private, names)):
+                        out.append(f"{where}: plugin {own} imports the private name(s) "
+                                   f"{', '.join(filter(_private, names))} of the core ({mod})")
     return out
 
 
@@ -134,18 +198,52 @@ GOOD = {
     "bforest_core/pipeline/store.py": "x = 1\n",
     "bforest_core/report/__init__.py": "from ..pipeline.store import x\nfrom .. import __version__\n",
     "bforest_core/cli/__init__.py": "from ..report import y\n",
-    "plugins/bforest_a/__init__.py": "import bforest_core as bf\nfrom .m import z\n",
-    "plugins/bforest_a/m.py": "z = 1\n",
+    "bforest_core/registry.py": "import importlib\nmod = importlib.import_module('bforest_a.m')\n",
+    "bforest_core/testing/__init__.py": "from ..tree import Tree\nfrom ._base import _x\n",
+    "bforest_core/testing/_base.py": "_x = 1\n",
+    "plugins/bforest_a/__init__.py": "import bforest_core as bf\nfrom .m import z\nfrom bforest_core.testing import check\n",
+    "plugins/bforest_a/m.py": "from ._own import _q\nfrom bforest_core.tree import Tree\nz = 1\n",
+    "plugins/bforest_a/_own.py": "_q = 1\n",
 }
+#: a module of each layer of the planted project, and what a module of that layer imports
+MODULE = {"kernel": ("bforest_core/tree.py", "bforest_core.tree"), "pipeline": ("bforest_core/pipeline/store.py",
+          "bforest_core.pipeline.store"), "report": ("bforest_core/report/__init__.py", "bforest_core.report"),
+          "cli": ("bforest_core/cli/__init__.py", "bforest_core.cli"), "testing": (
+          "bforest_core/testing/_base.py", "bforest_core.testing._base"), "facade": ("bforest_core/__init__.py",
+          "bforest_core")}
+LAYER_RULES = [(mine, theirs) for mine in ALLOWED for theirs in ALLOWED if theirs not in ALLOWED[mine]]
+
+
+@pytest.mark.parametrize("mine, theirs", LAYER_RULES, ids=[f"{m}->{t}" for m, t in LAYER_RULES])
+def test_the_check_finds_every_upward_import(tmp_path, mine, theirs):
+    """Each pair of layers the rules forbid, planted as an import inside a function."""
+    _write(tmp_path, GOOD)
+    _write(tmp_path, {MODULE[mine][0]: f"def f():\n    import {MODULE[theirs][1]}\n"})
+    found = violations(tmp_path / "bforest_core", [tmp_path / "plugins" / "bforest_a"])
+    assert len(found) == 1 and f"{mine} imports {theirs}" in found[0], found
 
 
 @pytest.mark.parametrize("rel, text, expected", [
-    ("bforest_core/tree.py", "def f():\n    from .pipeline.fit import fit\n", "kernel imports pipeline"),
-    ("bforest_core/pipeline/store.py", "from ..report import y\n", "pipeline imports report"),
-    ("bforest_core/pipeline/store.py", "import bforest_core.cli\n", "pipeline imports cli"),
-    ("bforest_core/pipeline/store.py", "from .. import fit\n", "pipeline imports facade"),
     ("bforest_core/tree.py", "import bforest_a\n", "the core imports the plugin bforest_a"),
     ("plugins/bforest_a/m.py", "from bforest_b.x import y\n", "plugin bforest_a imports plugin bforest_b.x"),
+    # dynamic loads outside the registry: in the core, in a plugin, of a computed name
+    ("bforest_core/pipeline/store.py", "import importlib\nm = importlib.import_module('bforest_a.m')\n",
+     "dynamic import of bforest_a.m outside the registry"),
+    ("plugins/bforest_a/m.py", "m = __import__('bforest_core.cli')\n",
+     "dynamic import of bforest_core.cli outside the registry"),
+    ("bforest_core/report/__init__.py", "from importlib import import_module\nm = import_module('bforest_' + 'a')\n",
+     "dynamic import of a computed module name outside the registry"),
+    # plugins use the core's public face only
+    ("plugins/bforest_a/m.py", "from bforest_core.pipeline.store import x\n", "plugin bforest_a imports the core's pipeline"),
+    ("plugins/bforest_a/m.py", "def f():\n    import bforest_core.report\n", "plugin bforest_a imports the core's report"),
+    ("plugins/bforest_a/m.py", "from bforest_core.cli import main\n", "plugin bforest_a imports the core's cli"),
+    # private names across layers, and from a plugin into the core
+    ("bforest_core/cli/__init__.py", "from ..pipeline.store import _secret\n",
+     "cli imports the private name(s) _secret of pipeline"),
+    ("bforest_core/pipeline/store.py", "from ..tree import _helper, Tree\n",
+     "pipeline imports the private name(s) _helper of kernel"),
+    ("plugins/bforest_a/m.py", "from bforest_core.tree import _helper\n",
+     "plugin bforest_a imports the private name(s) _helper of the core"),
 ])
 def test_the_check_finds_each_kind_of_violation(tmp_path, rel, text, expected):
     _write(tmp_path, GOOD)

@@ -5,51 +5,45 @@ from __future__ import annotations
 import re
 import threading
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 from pydantic import ConfigDict
 
 import bforest_core as bf
-from bforest_core import SSM, ComponentSettings, Distance, FeatureSet, OptimizeResult, Optimizer, ParameterSpec, Tree
-from bforest_core.testing import (ConformanceError, check_component, check_distance, check_feature_set,
-                                  check_optimizer, check_reader, check_ssm, check_tree, check_writer,
-                                  component_checks, run_all, sample_tables, sample_tree, ssm_checks)
+from bforest_core import SSM, ComponentSettings, Distance, FeatureSet, Optimizer, OptimizeResult, ParameterSpec, Tree
+from bforest_core.testing import (
+    ConformanceError,
+    check_component,
+    check_distance,
+    check_feature_set,
+    check_optimizer,
+    check_ssm,
+    check_tree,
+    run_all,
+    sample_tables,
+    sample_tree,
+    ssm_checks,
+)
 from conftest import qsm_path
 
-
-# ----------------------------------------------------------------------------- bundled components
-def _cases(kind, name, tag="", **options):
-    """One pytest param per check of a registered component, or one skipped param saying why."""
-    if name not in bf.discover().names(kind):
-        return [pytest.param(None, id=f"{kind} '{name}'", marks=pytest.mark.skip(
-            reason=f"{kind} '{name}' is not registered (its plugin is not installed or not written yet)"))]
-    checks = component_checks(bf.component_class(kind, name), registered="bayesforest", **options)
-    return [pytest.param(c, id=c.id + (f" [{tag}]" if tag else "")) for c in checks]
-
-
-BUNDLED = (
-    _cases("ssm", "sot", params={"max_iter": 8})
-    + _cases("ssm", "lignum", params={"years": 6})
-    + _cases("features", "branch-segment", settings={"sets": ["S0,1", "B1", "B2"]})
-    + _cases("features", "branch-segment", "linear", settings={"sets": ["S1"], "angles": "linear"})
-    + _cases("distance", "sliced")
-    + _cases("distance", "sliced", "wasserstein", settings={"statistic": "wasserstein", "lines": 32, "empty_cost": 3.0})
-    + _cases("optimizer", "ga", settings={"population": 8})
-    + _cases("optimizer", "de")
-    + _cases("optimizer", "nlopt")
-    + _cases("optimizer", "emcee")
-    + _cases("executor", "serial")
-)
-
-
-@pytest.mark.parametrize("check", BUNDLED)
-def test_bundled_component(check):
-    check()
-
-
-# sample file(s) in each reader's layout, and files of other layouts with the same suffix
-READERS = {
+# ----------------------------------------------------------------------------- every registered component
+#: Options that make a registered component's checks fast or give a reader its sample files (own
+#: layout, and files of other layouts with the same suffix that it must not claim). A component
+#: not named here is checked with the kit's defaults: a new plugin is checked without a test edit
+#: (a reader without samples reads the sample tree as the writer of its name writes it).
+OPTIONS = {
+    ("ssm", "sot"): {"params": {"max_iter": 8}},
+    ("ssm", "lignum"): {"params": {"years": 6}},
+    ("features", "branch-segment"): {"settings": {"sets": ["S0,1", "B1", "B2"]}},
+    ("optimizer", "ga"): {"settings": {"population": 8}},
+    ("optimizer", "turbo"): {"settings": {"batch": 6, "candidates": 128, "hyper_every": 20}},
+    ("qsm_writer", "bforest-csv"): {"roundtrip": True},
+    ("qsm_writer", "treeqsm-text"): {"roundtrip": True},
+    ("qsm_writer", "treeqsm-mat"): {"roundtrip": True},
+}
+READER_SAMPLES = {
     "treeqsm-mat": (["itsme_qsm_tree_v230.mat", "itsme_qsms_tree_v230.mat"], ["wytham_tf3.mat", "pine_ruotsinkyla_3.mat"]),
     "treeqsm-flat": (["pine_ruotsinkyla_3.mat"], ["wytham_tf3.mat", "itsme_qsm_tree_v230.mat"]),
     "cyldata-mat": (["wytham_tf3.mat"], ["itsme_qsm_tree_v230.mat"]),
@@ -57,30 +51,59 @@ READERS = {
     "archi-csv": (["coffeetree_archi.csv"], ["coffeetree_simpleforest.csv"]),
     "simpleforest-csv": (["coffeetree_simpleforest.csv"], ["coffeetree_archi.csv"]),
 }
+#: further settings of some components, checked besides their defaults
+VARIANTS = [
+    ("features", "branch-segment", "linear", {"settings": {"sets": ["S1"], "angles": "linear"}}),
+    ("distance", "sliced", "wasserstein", {"settings": {"statistic": "wasserstein", "lines": 32, "empty_cost": 3.0}}),
+]
+#: the test suite's own plugin, installed for the session by the toy_plugin fixture (checked by
+#: test_toy_plugin_conforms), so not among the components installed when the tests are collected
+TOY = "bforest-toy"
+REGISTERED = sorted(k for k, e in bf.discover().components.items() if e.distribution != TOY)
 
 
-@pytest.mark.parametrize("name", sorted(READERS))
-def test_bundled_reader(name):
-    if name not in bf.discover().names("qsm_reader"):
-        pytest.skip(f"qsm_reader '{name}' is not registered")
-    own, foreign = READERS[name]
-    paths = [qsm_path(p) for p in own]
+def _options(kind, name, tmp_path, extra=None):
+    opts = dict(extra if extra is not None else OPTIONS.get((kind, name), {}))
+    if kind == "qsm_writer":
+        opts["out_dir"] = tmp_path
+    if kind == "qsm_reader" and name in READER_SAMPLES:
+        own, foreign = READER_SAMPLES[name]
+        opts.update(paths=[qsm_path(p) for p in own], foreign=[qsm_path(p) for p in foreign])
+    return opts
+
+
+@pytest.mark.parametrize("kind,name", REGISTERED, ids=[f"{k}:{n}" for k, n in REGISTERED])
+def test_registered_component(kind, name, tmp_path):
+    """The kit's checks of every component the registry discovers (bundled and installed plugins)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # readers warn about repaired rows of the real files
-        rep = check_reader(bf.component_class("qsm_reader", name), paths, foreign=[qsm_path(p) for p in foreign],
-                           registered="bayesforest")
-    assert rep.passed == ["class", "settings", "registered", "suffixes", "sniff", "read", "determinism", "pickle"]
+        rep = run_all(kinds=[kind], names=[name], options={(kind, name): _options(kind, name, tmp_path)})[(kind, name)]
+    assert not rep.skipped, rep.skipped
+    assert rep.ok and "registered" in rep.passed and len(rep.passed) >= 4, str(rep)
 
 
-@pytest.mark.parametrize("name", ["bforest-csv", "treeqsm-text", "treeqsm-mat", "obj", "ply"])
-def test_bundled_writer(name, tmp_path):
-    if name not in bf.discover().names("qsm_writer"):
-        pytest.skip(f"qsm_writer '{name}' is not registered")
-    readable = name in ("bforest-csv", "treeqsm-text", "treeqsm-mat")
-    rep = check_writer(bf.component_class("qsm_writer", name), tmp_path, roundtrip=readable)
-    assert rep.ok and "write" in rep.passed
-    if name == "bforest-csv" and "bforest-csv" in bf.discover().names("qsm_reader"):
-        check_reader(bf.component_class("qsm_reader", "bforest-csv"), [tmp_path / "conformance_bforest-csv.csv"])
+@pytest.mark.parametrize("kind,name,tag,extra", VARIANTS, ids=[f"{k}:{n}[{t}]" for k, n, t, _ in VARIANTS])
+def test_registered_component_variant(kind, name, tag, extra, tmp_path):
+    if (kind, name) not in REGISTERED:
+        pytest.skip(f"{kind} '{name}' is not registered")
+    run_all(kinds=[kind], names=[name], options={(kind, name): _options(kind, name, tmp_path, extra)})
+
+
+def test_the_kit_covers_every_registered_component(record_property):
+    """Every registered component is a case of test_registered_component (the parametrisation is
+    the registry itself) and the kit finds checks for each of them; the count goes to the report."""
+    reg = bf.discover()
+    installed = sorted(k for k, e in reg.components.items() if e.distribution != TOY)  # not the session's toy
+    assert REGISTERED == installed and len(REGISTERED) >= 32
+    assert {"bforest-example-ssm"} <= {e.distribution for e in reg.components.values()}, \
+        "the example plugin (docs/examples/bforest-example-ssm) is not installed: python3 dev.py env"
+    record_property("conformance_components", f"{len(REGISTERED)} of {len(installed)} registered (100 %)")
+    print(f"conformance kit: {len(REGISTERED)} of {len(installed)} registered components (100 %)")
+
+
+def test_readers_are_checked_on_their_writers_output_when_they_have_no_samples():
+    reps = run_all(kinds=["qsm_reader"], names=["bforest-csv", "treeqsm-text"])
+    assert all(r.ok and "read" in r.passed for r in reps.values()), reps
 
 
 # ----------------------------------------------------------------------------- toy plugin
@@ -105,9 +128,9 @@ def test_toy_ssm_failing_at_bounds_is_fine_when_it_raises_simulation_failed(toy_
     assert "angle = 90 (upper): collapsed" in note and "all at upper bounds: collapsed" in note
 
 
-def test_run_all_skips_readers_without_samples_and_names_unknown_distribution():
-    reps = run_all(kinds=["qsm_reader"])
-    assert reps and all("needs sample files" in r.skipped for r in reps.values())
+def test_run_all_skips_readers_without_samples_or_writer_and_names_unknown_distribution():
+    reps = run_all(kinds=["qsm_reader"], names=["cyldata-mat", "treeqsm-flat"])
+    assert len(reps) == 2 and all("needs sample files" in r.skipped for r in reps.values())
     with pytest.raises(ConformanceError, match="'no-such-dist'.*registers no components"):
         run_all(distribution="no-such-dist")
 
@@ -402,6 +425,70 @@ def test_broken_optimizers_are_caught():
     _fails(UnseededOptimizer, "determinism", r"the same seed and objective gave a different sequence")
     rep = check_optimizer(GreedyOptimizer, raise_on_failure=False)
     assert [f.check for f in rep.failures] == ["minimize"]  # deterministic and picklable, just greedy
+
+
+class CappedOptimizer(GreedyOptimizer):
+    """Stops after its own two rounds and does not lift them for a budget (the default)."""
+
+    name = "capped"
+
+    def expected_evaluations(self, dim):
+        return 16
+
+    def minimize(self, problem):
+        rng = np.random.default_rng(problem.seed)
+        for _ in range(2):
+            if problem.stopped:
+                break
+            problem.evaluate(problem.lower + (problem.upper - problem.lower) * rng.random((8, problem.dim)))
+        return OptimizeResult(x=problem.best_x, fun=problem.best_f, n_evaluations=problem.n_evaluations)
+
+
+class LiftingOptimizer(CappedOptimizer):
+    name = "lifting"
+
+    @classmethod
+    def budget_settings(cls, settings, budget):
+        settings["rounds"] = budget  # writes into the caller's mapping, and a key Settings forbids
+        return settings
+
+
+def test_optimiser_limits_the_budget_cannot_lift_are_caught():
+    _fails(CappedOptimizer, "budget", r"with budget_settings for 600 evaluations the optimiser plans only 16")
+    err = _fails(LiftingOptimizer, "budget", r"budget_settings\(settings, 600\) gave settings the class rejects")
+    assert err.checks == ["budget"]
+
+
+class BadPriorityWriter(bf.QSMWriter):
+    name = "bad-priority"
+    suffixes = (".bad",)
+    priority = "high"
+
+    def write(self, tree, path, **options):
+        Path(path).write_text("x")
+        return Path(path)
+
+
+class MislinedDistance(OffsetDistance):
+    """Per-line values that match no direction."""
+
+    name = "mislined"
+
+    def compute(self, u_model, u_data):
+        return float(np.abs(u_model.mean(0) - u_data.mean(0)).sum()) if len(u_model) else 1.0
+
+    def directions(self, d):
+        return np.eye(d)
+
+    def line_values(self, u_model, u_data, set_name=None):
+        return np.zeros(d + 1) if (d := u_data.shape[1]) else None
+
+
+def test_declared_capabilities_are_checked(tmp_path):
+    _fails(BadPriorityWriter, "priority", r"priority is 'high', expected an int", out_dir=tmp_path)
+    _fails(MislinedDistance, "capabilities", r"line_values of set '.*' has shape \(\d+,\), expected \(\d+,\) finite")
+    rep = check_distance(OffsetDistance, raise_on_failure=False)  # the defaults: no lines, no transforms
+    assert next(r for r in rep.results if r.check == "capabilities").note == "statistic 'ks'; no per-line values"
 
 
 def test_feature_check_on_the_hand_tree():

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 import bforest_core as bf
-from bforest_core.pipeline.objective import clone_seeds, model_seeds
+from bforest_core.pipeline.seeds import clone_seeds, model_seeds
 from conftest import gone_within, pid_alive
 
 _STATE = {}

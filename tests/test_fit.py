@@ -1,4 +1,5 @@
 """The fit pipeline on the toy plugin: store, seeds, executors, resume, failures, clones."""
+import importlib
 import json
 import os
 import signal
@@ -11,8 +12,6 @@ import numpy as np
 import pytest
 
 import bforest_core as bf
-
-import importlib
 from bforest_core.pipeline.store import RunStore
 from conftest import TOY_DIR, fit_killed_after, toy_config
 
@@ -193,7 +192,7 @@ def test_compare_optimizers_on_equal_budgets(toy_plugin, tmp_path):
                   out_dir=tmp_path / "cmp")
     assert [t["optimizer"] for t in res["table"]] == ["ga", "de", "emcee", "toy-random"]
     assert len(res["runs"]) == 8 and all(r["evaluations"] == 100 for r in res["runs"])
-    for name, curves in res["curves"].items():
+    for curves in res["curves"].values():
         assert len(curves) == 2 and all(len(c) == 100 and (np.diff(c) <= 0).all() for c in curves)
     # repeats use different run seeds, so their evaluation sequences differ
     assert not np.array_equal(res["curves"]["ga"][0], res["curves"]["ga"][1])
@@ -202,6 +201,18 @@ def test_compare_optimizers_on_equal_budgets(toy_plugin, tmp_path):
     assert fig.exists() and fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "](compare.png)" in (tmp_path / "cmp" / "compare.md").read_text()
     assert "median best" in res["table_text"] and (tmp_path / "cmp" / "compare.json").exists()
+
+
+def test_compare_lets_each_optimiser_lift_its_own_limits_for_the_budget(toy_plugin, tmp_path):
+    """A plugin's optimiser with a length limit of its own (toy-random's ``batches``) spends the
+    whole budget in a comparison through its ``budget_settings``; a fit keeps the limit."""
+    from bforest_core.pipeline.compare import compare
+    p = toy_config(tmp_path, optimizer_settings="batch = 4\nbatches = 2", budget=40)
+    assert bf.fit(bf.load_config(p), tmp_path / "fit", progress=False).n_evaluations == 8
+    res = compare(p, ["toy-random"], budget=22, repeats=1, out_dir=tmp_path / "cmp")
+    assert [r["evaluations"] for r in res["runs"]] == [22]
+    run_cfg = bf.load_config(tmp_path / "cmp" / "toy-random-0" / "config.toml")
+    assert run_cfg.optimizer.batch == 4 and run_cfg.optimizer.batches == 6  # the config's batch is kept
 
 
 def test_a_fit_that_failed_before_its_first_evaluation_does_not_block_the_retry(toy_plugin, tmp_path):
@@ -219,8 +230,9 @@ def test_a_fit_that_failed_before_its_first_evaluation_does_not_block_the_retry(
 
 
 def test_compare_threshold_by_name_and_the_configs_own_settings(toy_plugin, tmp_path):
-    from bforest_core.pipeline.compare import compare
     import tomllib
+
+    from bforest_core.pipeline.compare import compare
     cfg = toy_config(tmp_path, optimizer="ga", optimizer_settings="population = 6")
     res = compare(cfg, ["ga", "toy-random"], budget=24, repeats=2, out_dir=tmp_path / "cmp", threshold="ga")
     ga_best = [r["best"] for r in res["runs"] if r["optimizer"] == "ga"]
@@ -254,6 +266,7 @@ def test_compare_curves_never_count_a_failed_simulation_as_a_fit(toy_plugin, tmp
     """With a penalty below every real distance (0.0), a failure is still no fit: the curves and
     the threshold count only grown trees, and each curve ends at the run's best.json distance."""
     import json
+
     from bforest_core.pipeline.compare import compare
     p = toy_config(tmp_path)
     p.write_text(p.read_text().replace('kind = "toy"\n', 'kind = "toy"\nfail_above = 50.0\n') + "[objective]\npenalty = 0.0\n")
@@ -266,6 +279,7 @@ def test_compare_curves_never_count_a_failed_simulation_as_a_fit(toy_plugin, tmp
     assert res["threshold"] > 0.0
     # a curve that starts at inf (a failure first) beside a grown tree draws without a warning
     import warnings
+
     from bforest_core.report.comparison import write_compare_figure
     res["curves"]["toy-random"][0][0] = np.inf
     with warnings.catch_warnings():
@@ -278,8 +292,10 @@ def test_compare_scores_best_points_on_held_out_model_seeds(toy_plugin, tmp_path
     model seeds no fit used; the values are recomputed here from the model, the features and
     the distance directly, seed by seed."""
     import json
+
     from bforest_core.pipeline.compare import compare
-    from bforest_core.pipeline.objective import build_target, heldout_seeds
+    from bforest_core.pipeline.seeds import heldout_seeds
+    from bforest_core.pipeline.target import build_target
     p = toy_config(tmp_path)
     p.write_text(p.read_text() + "[objective]\nseeds = 2\n")
     res = compare(p, ["ga", "toy-random"], budget=24, repeats=2, out_dir=tmp_path / "cmp", threshold="ga",
@@ -327,6 +343,7 @@ def test_held_out_scores_are_kept_in_the_runs_and_not_grown_twice(toy_plugin, tm
     (which rewrites compare.json) loses none of them, and --heldout again grows no tree and gives
     the same values; a changed objective scores anew."""
     import json
+
     import bforest_core.pipeline.compare as cmp_mod
     p = toy_config(tmp_path)
     p.write_text(p.read_text() + "[objective]\nseeds = 2\n")
@@ -350,7 +367,7 @@ def test_held_out_scores_are_kept_in_the_runs_and_not_grown_twice(toy_plugin, tm
     assert len(grown) == 3 * len(points)
     # another objective is another score: grown again, the earlier scores kept beside it
     from bforest_core.pipeline.compare import score_heldout
-    from bforest_core.pipeline.objective import build_target
+    from bforest_core.pipeline.target import build_target
     cfg = bf.load_config(p).model_copy(update={"objective": bf.load_config(p).objective.model_copy(update={"penalty": 2.0})})
     grown.clear()
     score_heldout({"ga": [tmp_path / "cmp" / "ga-0"]}, cfg, build_target(cfg), 3)

@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 import bforest_core as bf
-from bforest_core.pipeline import objective
+from bforest_core.pipeline import scoring, worker
 from bforest_core.pipeline.store import RunStore
+from bforest_core.pipeline.target import build_target
 from conftest import toy_config
 
 TERM = """
@@ -57,19 +58,25 @@ def test_the_weights_change_the_objective(toy_plugin, tmp_path):
         assert e.distance == pytest.approx(e.per_set["L"], rel=1e-6)
 
 
-def test_score_tree_and_combine_terms_in_a_worker(toy_plugin, tmp_path):
+def test_score_tree_and_combine_terms(toy_plugin, tmp_path):
     cfg = bf.load_config(_config(tmp_path))
-    tgt = objective.build_target(cfg)
-    saved = dict(objective._CTX)
-    try:
-        objective.init_worker(bf.config.config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
-        per_set, rows = objective.score_tree(tgt.trees[0])
-        total, values = objective.combine_terms(per_set)
-    finally:
-        objective._CTX.clear()
-        objective._CTX.update(saved)
+    tgt = build_target(cfg)
+    ctx = scoring.build_scoring(cfg, tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
+    per_set, rows = scoring.score_tree(tgt.trees[0], ctx)
+    total, values = scoring.combine_terms(per_set, ctx)
     assert total == pytest.approx(0.0) and values == {"structure": 0.0, "extra": 0.0}  # the target scores 0
     assert rows == {"L": 12, "extra/A": 12, "extra/B": 12}
+    # a grown tree scores above 0, and a worker built from the config's dict scores it the same
+    tree = ctx["ssm"].simulate({}, 5)
+    per_set, _ = scoring.score_tree(tree, ctx)
+    assert scoring.combine_terms(per_set, ctx)[0] > 0
+    saved = dict(worker._CTX)
+    try:
+        worker.init_worker(bf.config.config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
+        assert scoring.score_tree(tree, worker.worker_context())[0] == per_set
+    finally:
+        worker._CTX.clear()
+        worker._CTX.update(saved)
 
 
 @pytest.mark.parametrize("term, message", [

@@ -14,11 +14,9 @@ import pytest
 
 import bforest_core as bf
 from bforest_core import QSMFormatError, Tree
-
+from bforest_treeqsm import raw_cylinders
+from bforest_treeqsm.raw_cylinders import QSMReadWarning
 from conftest import hand_tree, qsm_path
-
-from bforest_treeqsm import _common
-from bforest_treeqsm._common import QSMReadWarning
 
 
 def read_quiet(path, **kw):
@@ -545,8 +543,8 @@ def test_invalid_options_are_config_errors():
 def test_ids_helper_rejects_wraparound_and_reports_range():
     v = np.array([0, 1, 2, 9], dtype=np.uint8)
     with pytest.raises(QSMFormatError, match=r"parent 9 at row 4 is outside 1\.\.\.4 \(0 = none\)"):
-        _common.ids_to_rows("f.mat", "parent", v, 4, 1)
-    out = _common.ids_to_rows("f.mat", "parent", v[:3], 3, 1)
+        raw_cylinders.ids_to_rows("f.mat", "parent", v, 4, 1)
+    out = raw_cylinders.ids_to_rows("f.mat", "parent", v[:3], 3, 1)
     assert out.dtype == np.int64 and out.tolist() == [-1, 0, 1]
 
 
@@ -563,7 +561,7 @@ def test_unsorted_rows_are_resorted_and_keep_file_rows(tmp_path):
     for c in (8, 9):                                  # parent, extension (1-based, 0 = none)
         w[:, c] = np.where(w[:, c] > 0, new_of_old[np.maximum(w[:, c].astype(int) - 1, 0)] + 1, 0)
     q = tmp_path / "shuffled.txt"
-    q.write_text(p.read_text().split("\n", 1)[0] + "\n" + "\n".join("\t".join("%.9g" % x for x in row) for row in w))
+    q.write_text(p.read_text().split("\n", 1)[0] + "\n" + "\n".join("\t".join(f"{x:.9g}" for x in row) for row in w))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         u = bf.read_qsm(q)

@@ -64,11 +64,12 @@ def test_two_fits_into_one_folder_exactly_one_runs(toy_plugin, tmp_path):
 
 
 def test_the_lock_is_reentrant_in_a_process_and_freed_after(toy_plugin, tmp_path):
-    from bforest_core.pipeline.rundir import LOCK_NAME, run_lock
+    from bforest_core.pipeline.rundir import run_lock
+    from bforest_core.pipeline.store import RunFiles
     with run_lock(tmp_path / "r"):
         with run_lock(tmp_path / "r"):  # demo holds it while its fit takes it again
             pass
-        info = json.loads((tmp_path / "r" / LOCK_NAME).read_text())
+        info = json.loads(RunFiles(tmp_path / "r").lock_path.read_text())
         assert info["pid"] == os.getpid()
         # another process cannot take it meanwhile
         code = ("import sys; from bforest_core.pipeline.rundir import run_lock\n"
@@ -145,6 +146,7 @@ def test_demo_never_replaces_a_run_or_a_file_it_did_not_write(toy_plugin, tmp_pa
 @pytest.mark.skipif(os.name != "posix", reason="kill -9")
 def test_a_killed_clones_call_is_continued_without_regrowing_its_clones(toy_plugin, tmp_path):
     import signal
+
     from bforest_core.pipeline.clones import clones
     run = tmp_path / "run"
     p = _slow(toy_config(tmp_path, budget=4), 0.3)

@@ -9,8 +9,10 @@ import pytest
 import bforest_core as bf
 from bforest_core.pipeline import heldout as heldout_mod
 from bforest_core.pipeline.heldout import candidates, point_key
-from bforest_core.pipeline.objective import build_target, evaluate_task, heldout_seeds, started_workers
+from bforest_core.pipeline.seeds import heldout_seeds
 from bforest_core.pipeline.store import Evaluation, RunStore
+from bforest_core.pipeline.target import build_target
+from bforest_core.pipeline.worker import evaluate_task, started_workers
 from conftest import toy_config
 
 #: a noisy toy objective (lateral angles scattered by 20 deg per tree): with run seed 3 the point

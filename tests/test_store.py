@@ -45,3 +45,62 @@ def test_large_diagnostics_go_to_npz(tmp_path):
     back = s.read_diagnostics()
     np.testing.assert_array_equal(back["chain"], chain)
     assert back["names"] == ["a", "b", "c"] and "arrays" not in back
+
+
+def test_a_fit_writes_the_files_runfiles_names(toy_plugin, tmp_path):
+    import fnmatch
+
+    import bforest_core as bf
+    from bforest_core.pipeline.store import RunFiles
+    from conftest import toy_config
+    bf.fit(bf.load_config(toy_config(tmp_path, budget=8)), tmp_path / "run", progress=False)
+    run = RunFiles(tmp_path / "run")
+    for p in (run.config_path, run.evaluations_path, run.best_path, run.best_tree_path, run.target_tree_path,
+              run.target_sets_path, run.distance_path, run.clones_dir(), run.figures_dir):
+        assert p.exists(), p
+    assert run.finished() and run.read_best()["n_evaluations"] == 8
+    unnamed = [p.name for p in run.path.iterdir()
+               if p.name != RunFiles.LOCK and not any(fnmatch.fnmatch(p.name, g) for g in RunFiles.DERIVED)]
+    assert not unnamed, f"files of a run that RunFiles does not name: {unnamed}"
+    with pytest.raises(RunDirError, match="no best.json"):
+        RunFiles(tmp_path).read_best()
+
+
+#: modules that still spell run-folder file names (the report's reading of runs is being moved
+#: onto RunFiles in a parallel change of issue 34); remove an entry once its module is done
+PENDING = {"report", "pipeline/posterior.py"}
+
+
+def test_run_folder_file_names_are_spelled_only_in_the_store():
+    import ast
+    from pathlib import Path
+
+    from bforest_core.pipeline.store import RunFiles
+    names = {v for k, v in vars(RunFiles).items() if k.isupper() and isinstance(v, str)}
+    core = Path(__file__).resolve().parents[1] / "bforest_core"
+    found = []
+    for f in sorted(core.rglob("*.py")):
+        rel = f.relative_to(core).as_posix()
+        if rel == "pipeline/store.py" or rel in PENDING or rel.split("/")[0] in PENDING:
+            continue
+        tree = ast.parse(f.read_text(encoding="utf-8"))
+        docs = {id(n.body[0].value) for n in ast.walk(tree) if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef))
+                and n.body and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docs:
+                # file names (folder names such as "clones" are also the words of commands)
+                hits = [n for n in names if "." in n and n in node.value]
+                if hits:
+                    found.append(f"{rel}:{node.lineno}: {', '.join(sorted(hits))}")
+    assert not found, "run-folder file names spelled outside pipeline/store.py:\n" + "\n".join(found)
+
+
+def test_json_default_writes_numpy_and_paths_and_only_loosely_anything_else(tmp_path):
+    from pathlib import Path
+
+    from bforest_core.pipeline.store import json_default
+    data = {"a": np.float32(0.5), "b": np.arange(3), "c": np.int64(7), "p": Path("x") / "y"}
+    assert json.loads(json.dumps(data, default=json_default)) == {"a": 0.5, "b": [0, 1, 2], "c": 7, "p": "x/y"}
+    with pytest.raises(TypeError, match="not JSON serialisable: object"):
+        json.dumps({"o": object()}, default=json_default)
+    assert json.dumps(1j, default=lambda o: json_default(o, loose=True)) == '"1j"'

@@ -1,6 +1,7 @@
 """``bforest export``: the best fit and the clones in other formats, the evaluation log as CSV."""
 from __future__ import annotations
 
+from ..pipeline.store import RunFiles
 from .common import UsageError, parse_set
 
 
@@ -41,7 +42,7 @@ def add_commands(sub) -> None:
                    help="trees to export, comma separated: best, clones, posterior (the posterior clones of "
                         "bforest clones --posterior, written as posterior_clone_*) (default best,clones)")
     s.add_argument("-o", "--output", default=None, help="folder of the tree files (default: RUN/export)")
-    s.add_argument("--evaluations", metavar="FILE.csv", help="also flatten evaluations.sqlite into this CSV")
+    s.add_argument("--evaluations", metavar="FILE.csv", help=f"also flatten {RunFiles.EVALUATIONS} into this CSV")
     s.add_argument("--scan", action="append", metavar="NAME=VALUE",
                    help="synthetic-scan setting for las/laz/xyz, repeatable: density=POINTS_PER_M2 (2000), "
                         "mode=uniform|scanner, scanner=X,Y,Z (m), reference_range=M (10), noise=SD_M (0), seed=N (0)")

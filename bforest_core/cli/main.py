@@ -3,7 +3,7 @@
 Every error a user can cause prints one line ``error: ...`` and exits with code 2; ``--debug``
 shows the traceback instead. The subcommands live in one module per group: ``runs`` (demo, fit,
 clones, report, compare, profile, calibrate), ``trees`` (info, simulate, distance), ``export``,
-``setup`` (plugins, config).
+``plugins_config`` (plugins, config).
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import sys
 import warnings
 from concurrent.futures import BrokenExecutor
 
-from . import export, init, runs, setup, trees
+from . import export, init, plugins_config, runs, trees
 from .common import EXIT_USAGE, Parser, UsageError
 
 
@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"bforest {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
-    for group in (runs, init, trees, export, setup):
+    for group in (runs, init, trees, export, plugins_config):
         group.add_commands(sub)
     return p
 

@@ -5,6 +5,7 @@ import sys
 from pathlib import Path
 
 from ..pipeline.rundir import run_lock
+from ..pipeline.store import RunFiles
 from .common import UsageError, report
 
 
@@ -42,6 +43,7 @@ def _fit_and_report(args, cfg, out, fit):
 def _all_failed(out) -> int:
     """1 with a loud line when no evaluation of the run succeeded (its "best" fits nothing), else 0."""
     from collections import Counter
+
     from ..pipeline.store import RunStore
     with RunStore.open(out) as store:
         evs = store.evaluations()
@@ -62,7 +64,7 @@ def cmd_clones(args):
 def _clones_and_report(args):
     from ..pipeline.clones import clones
     s = clones(args.run_dir, n=args.n, progress=not args.quiet, replace=args.replace, posterior=args.posterior)
-    where = Path(args.run_dir) / ("clones_posterior" if args.posterior else "clones")
+    where = RunFiles(args.run_dir).clones_dir(args.posterior)
     kept = s["count"] - s["grown"]
     print(f"{s['grown']} clones grown, {kept} kept: {s['ok']} of {s['count']} clones ok in {where}"
           + ("" if s["requested"] >= s["count"] else f" (asked for {s['requested']}; nothing is deleted "
@@ -162,7 +164,7 @@ def add_commands(sub) -> None:
     s.add_argument("--replace", action="store_true", help="delete the existing clones and grow the set anew")
     s.add_argument("--posterior", action="store_true",
                    help="posterior-predictive clones (abc-smc or emcee runs): each clone's parameters are one "
-                        "draw from posterior.csv; written to RUN/clones_posterior")
+                        f"draw from {RunFiles.POSTERIOR_CSV}; written to RUN/{RunFiles.CLONES_POSTERIOR}")
     s.add_argument("--no-report", action="store_true", help="do not update the report afterwards")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_clones)

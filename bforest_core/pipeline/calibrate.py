@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import copy
 import csv
-import json
 import math
 import time
 from pathlib import Path
@@ -46,7 +45,7 @@ from ..config import config_to_dict, parse_config, read_toml
 from ..errors import BayesForestError, ConfigError
 from ..metrics import weighted_quantiles
 from .fit import _free_specs, fit, same_config
-from .store import RunDirError, RunStore, json_text
+from .store import RunDirError, RunFiles, RunStore, json_text
 
 __all__ = ["calibrate", "central_interval", "sbc_rank", "prior_draw", "coverage_table", "rank_counts",
            "uniform_band", "rank_bins", "LEVELS", "RANK_DRAWS"]
@@ -167,13 +166,13 @@ def _read_study_config(path: Path):
 def _check_sampler(cfg, source: str) -> None:
     from ..registry import component_class
     cls = component_class("optimizer", cfg.optimizer.kind)
-    if not getattr(cls, "gives_posterior", False):
+    if not cls.gives_posterior:
         raise ConfigError(f"{source}: optimizer.kind: calibrate needs a sampler whose result is a posterior "
                           f"(e.g. abc-smc, emcee); {cfg.optimizer.kind!r} gives a best fit only")
 
 
 def _fixed_model_seeds(cfg) -> set[int]:
-    from .objective import model_seeds
+    from .seeds import model_seeds
     o = cfg.objective
     if o.model_seeds:
         return {int(s) for s in o.model_seeds}
@@ -215,7 +214,8 @@ def _held_runs(out_dir: Path) -> list[Path]:
 def _evaluate_run(run_dir: Path, names, theta, integer, seed: int, i: int) -> dict:
     """The row of one finished run: truth, intervals, median and rank per parameter."""
     from .posterior import read_posterior_csv
-    best = json.loads((run_dir / "best.json").read_text(encoding="utf-8"))
+    files = RunFiles(run_dir)
+    best = files.read_best()
     diag = best.get("diagnostics") or {}
     eps = diag.get("epsilon")
     if isinstance(eps, list):
@@ -224,12 +224,12 @@ def _evaluate_run(run_dir: Path, names, theta, integer, seed: int, i: int) -> di
            "seconds": best.get("seconds"), "stop_reason": best.get("stop_reason"), "epsilon": eps,
            "best_distance": best.get("distance"), "params": {}}
     try:
-        got, X, w = read_posterior_csv(run_dir / "posterior.csv")
+        got, X, w = read_posterior_csv(files.posterior_csv_path)
     except RunDirError as exc:
         row["status"] = f"no posterior ({exc})"
         return row
     if got != list(names):
-        row["status"] = f"posterior.csv has parameters {got}, not {list(names)}"
+        row["status"] = f"{RunFiles.POSTERIOR_CSV} has parameters {got}, not {list(names)}"
         return row
     row["params"] = posterior_params(X, w, names, theta, integer, seed, i)
     return row
@@ -296,7 +296,7 @@ def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite
         99 % band of a bin's count), ``counts`` (fitted / resumed / read back), ``wall_seconds``
         (summed fit time of the runs), ``json``/``csv`` paths, ``out_dir``.
     """
-    from .objective import progress_bar
+    from .progress import progress_bar
     config_path = Path(config_path)
     if int(n) < 1:
         raise ConfigError(f"calibrate: -n must be at least 1 (got {n})")
@@ -345,7 +345,7 @@ def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite
             bar.update(1)
     finally:
         bar.close()
-    for (i, theta, *_), row in zip(plans, rows):
+    for (_, theta, *_), row in zip(plans, rows):
         row.setdefault("truth", {nm: float(v) for nm, v in zip(names, theta)})
     if not any(r["status"] == "ok" for r in rows):
         raise BayesForestError(f"calibrate: no run gave a posterior ({rows[0]['run']}: {rows[0]['status']})")

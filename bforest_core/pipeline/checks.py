@@ -14,7 +14,7 @@ from pathlib import Path
 from ..config import did_you_mean, section_settings
 from ..errors import BayesForestError, ConfigError, PluginError
 from ..registry import component
-from .objective import Target, build_target
+from .target import Target, build_target
 
 
 def _named_files(cfg) -> list[tuple[str, str]]:
@@ -62,10 +62,9 @@ def _weight_problems(tgt: Target) -> list[str]:
     """Weights that name no data set of their term (after the feature set resolved its sets)."""
     out = []
     for i, t in enumerate(tgt.terms or []):
-        pre = t["prefix"]
-        sets = [k[len(pre):] for k in tgt.U if k.startswith(pre) and (pre or "/" not in k)]
-        key = "objective.weights" if not pre else f"objective.terms[{i - 1}].weights"
-        for name in (t.get("set_weights") or {}):
+        sets = list(t.own(tgt.U))
+        key = "objective.weights" if not t.prefix else f"objective.terms[{i - 1}].weights"
+        for name in (t.set_weights or {}):
             if name not in sets:
                 out.append(f"{key}.{name}: no data set {name!r}{did_you_mean(name, sets)} (sets: {', '.join(sets)})")
     return out

@@ -21,10 +21,13 @@ import numpy as np
 from ..config import load_config
 from ..errors import BayesForestError, SimulationFailed
 from .fidelity import bound_flags, fidelity_table, fidelity_text, fidelity_warnings
-from .objective import _CTX, _MODEL_ERRORS, _simulate_with_timeout, _Timeout, build_target, clone_seeds, combine_terms, progress_bar, score_tree, started_workers, \
-    with_term_values
+from .progress import progress_bar
 from .rundir import holding_run_lock
-from .store import RunStore
+from .scoring import _MODEL_ERRORS, _simulate_with_timeout, _Timeout, combine_terms, score_tree, with_term_values
+from .seeds import clone_seeds
+from .store import RunFiles, RunStore
+from .target import build_target
+from .worker import started_workers, worker_context
 
 METRIC_KEYS = ("height", "girth", "crown_spread")
 #: clones.csv column of each per-clone value (units in the header; girth is the base diameter)
@@ -38,11 +41,11 @@ class ClonesError(BayesForestError):
 
 def _clone_task(task):
     """Grow one clone in a worker, write it, and score it against the target."""
-    from ..io import write_tree
     from ..attributes import fidelity_statistics
+    from ..io import write_tree
     from ..metrics import classical_metrics
     i, params, seed, out_dir = task
-    c = _CTX
+    c = worker_context()
     try:
         tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
     except SimulationFailed as exc:
@@ -53,8 +56,8 @@ def _clone_task(task):
         return dict(index=i, seed=seed, status="error", message=f"{type(exc).__name__}: {exc}"[:500], params=params)
     path = Path(out_dir) / f"clone_{i:03d}.txt"
     write_tree(tree, path)
-    per_set, _ = score_tree(tree)
-    total, values = combine_terms(per_set)
+    per_set, _ = score_tree(tree, c)
+    total, values = combine_terms(per_set, c)
     return dict(index=i, seed=seed, status="ok", message="", file=path.name, distance=total,
                 per_set=with_term_values(per_set, values), n_cylinders=tree.n, summary=fidelity_statistics(tree),
                 params=params, **classical_metrics(tree))
@@ -71,13 +74,14 @@ _clone_task.lost_result = _lost_clone
 
 def _reference_task(task):
     """Score a reference tree of the stand against the target, like a clone."""
-    from ..io import read_qsm
     from ..attributes import fidelity_statistics
+    from ..io import read_qsm
     path = task
     tree = read_qsm(path)
     tree = tree[0] if isinstance(tree, list) else tree
-    per_set, _ = score_tree(tree)
-    total, values = combine_terms(per_set)
+    c = worker_context()
+    per_set, _ = score_tree(tree, c)
+    total, values = combine_terms(per_set, c)
     return dict(file=str(path), distance=total, per_set=with_term_values(per_set, values),
                 summary=fidelity_statistics(tree))
 
@@ -85,9 +89,9 @@ def _reference_task(task):
 def posterior_draw(run_dir: Path, base: dict, seed: int) -> dict:
     """The parameters of one posterior-predictive clone: ``base`` (the best fit, for the fixed
     parameters) with the fitted ones drawn from ``posterior.csv`` by weight."""
-    path = Path(run_dir) / "posterior.csv"
+    path = RunFiles(run_dir).posterior_csv_path
     if not path.exists():
-        raise ClonesError(f"{run_dir}: no posterior.csv; posterior clones need a sampler's run "
+        raise ClonesError(f"{run_dir}: no {path.name}; posterior clones need a sampler's run "
                           "(optimizer kind abc-smc or emcee)")
     with path.open(newline="", encoding="utf-8") as fh:
         rows = list(csv.reader(fh))
@@ -103,12 +107,12 @@ def posterior_draw(run_dir: Path, base: dict, seed: int) -> dict:
 
 def _existing(out_dir: Path, store: RunStore, params: dict) -> list[dict]:
     """The rows of the clones already in ``out_dir`` (checked to be clones of ``params``)."""
-    if not (out_dir / "summary.json").exists():
+    if not (out_dir / RunFiles.CLONE_SUMMARY).exists():
         if any(out_dir.glob("clone_*.txt")):
-            raise ClonesError(f"{out_dir}: holds clone files but no summary.json; regrow them with --replace, "
+            raise ClonesError(f"{out_dir}: holds clone files but no {RunFiles.CLONE_SUMMARY}; regrow them with --replace, "
                               "or move the folder to keep them")
         return []
-    old = store.read_json(f"{out_dir.name}/summary.json")
+    old = store.read_json(f"{out_dir.name}/{RunFiles.CLONE_SUMMARY}")
     if old.get("best_params") != params:
         raise ClonesError(f"{out_dir}: holds clones of other parameters ({old.get('best_params')}); "
                           "regrow them with --replace, or move the folder to keep them")
@@ -144,11 +148,11 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
     run_dir = Path(run_dir)
     with RunStore.open(run_dir) as store:
         cfg = load_config(store.config_path)
-        best = store.read_json("best.json")
+        best = store.read_best()
         n = cfg.clones.count if n is None else int(n)
         if n < 0:
             raise ClonesError(f"clones: n must be at least 0 (got {n})")
-        out_dir = run_dir / ("clones_posterior" if posterior else "clones")
+        out_dir = store.clones_dir(posterior)
         if replace and out_dir.exists():
             shutil.rmtree(out_dir)
         out_dir.mkdir(exist_ok=True)
@@ -190,9 +194,9 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
         summary["reference_errors"] = ref_errors
         summary["posterior"] = bool(posterior)
         summary["complete"] = True
-        _write_csv(out_dir / "clones.csv", rows, tgt)
-        store.write_json(f"{out_dir.name}/fidelity.json", summary["fidelity"])
-        store.write_json(f"{out_dir.name}/summary.json", summary)
+        _write_csv(out_dir / RunFiles.CLONE_TABLE, rows, tgt)
+        store.write_json(f"{out_dir.name}/{RunFiles.CLONE_FIDELITY}", summary["fidelity"])
+        store.write_json(f"{out_dir.name}/{RunFiles.CLONE_SUMMARY}", summary)
         return summary
 
 
@@ -200,7 +204,7 @@ def _write_progress(store: RunStore, out_dir: Path, rows, tgt, best, tm) -> None
     """``summary.json`` of the clones grown so far (``complete`` false until the call ends)."""
     summary = _summarise(sorted(rows, key=lambda r: r["index"]), tgt, best, tm)
     summary["complete"] = False
-    store.write_json(f"{out_dir.name}/summary.json", summary)
+    store.write_json(f"{out_dir.name}/{RunFiles.CLONE_SUMMARY}", summary)
 
 
 def _fidelity(cfg, tgt, best, rows) -> dict:
@@ -233,7 +237,7 @@ def _summarise(rows, tgt, best, tm) -> dict:
 
 
 def _set_columns(tgt) -> list[str]:
-    return list(tgt.U) + ([f"term:{t['name']}" for t in tgt.terms] if len(tgt.terms or []) > 1 else [])
+    return list(tgt.U) + ([f"term:{t.name}" for t in tgt.terms] if len(tgt.terms or []) > 1 else [])
 
 
 def _write_csv(path: Path, rows, tgt) -> None:

@@ -8,23 +8,23 @@ from pathlib import Path
 import numpy as np
 
 from ..config import config_to_dict, load_config, parse_config
-from .heldout import heldout_mean, point_key, score_points, scoring_fingerprint
-from .objective import build_target, heldout_seeds, progress_bar, started_workers
 from ..registry import component_class
-from .store import RunDirError, RunStore
+from .heldout import heldout_mean, point_key, score_points, scoring_fingerprint
+from .progress import progress_bar
+from .seeds import heldout_seeds
+from .store import RunDirError, RunFiles, RunStore
+from .target import build_target
+from .worker import started_workers
 
-def _settings_for_budget(name: str, budget: int, own: dict | None = None) -> dict:
-    """Settings that let the shared evaluation budget, not the optimiser's own length limits,
-    end each run; ``own`` (the config's settings when the config names this optimiser) is kept
-    otherwise, so the recipe's population, restarts or noise stop are what is compared."""
-    fields = component_class("optimizer", name).Settings.model_fields
-    out = {k: v for k, v in (own or {}).items() if k != "kind"}
-    out.update({k: 10**6 for k in ("generations", "maxiter", "stall_generations") if k in fields})
-    if "maxeval" in fields:
-        out["maxeval"] = budget
-    if "steps" in fields:  # MCMC: every step evaluates at least one walker, so this spends the budget
-        out["steps"] = int(budget)
-    return out
+
+def _settings_for_budget(raw: dict, name: str, budget: int) -> dict:
+    """The settings of optimiser ``name`` in a comparison: the config's own when the config names
+    this optimiser (so the recipe's population, restarts or noise stop are what is compared),
+    else its defaults, with its own length limits lifted so that the shared evaluation budget
+    ends each run (``Optimizer.budget_settings``)."""
+    own = raw.get("optimizer") or {}
+    settings = {k: v for k, v in own.items() if k != "kind"} if own.get("kind") == name else {}
+    return component_class("optimizer", name).budget_settings(settings, budget)
 
 
 def best_so_far(run_dir: Path) -> np.ndarray:
@@ -152,8 +152,7 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
         for r in range(repeats):
             cfg_raw = dict(raw)
             cfg_raw["seed"] = int(base.seed) + r
-            own = raw.get("optimizer") if raw.get("optimizer", {}).get("kind") == name else None
-            cfg_raw["optimizer"] = {"kind": name, **_settings_for_budget(name, budget, own)}
+            cfg_raw["optimizer"] = {"kind": name, **_settings_for_budget(raw, name, int(budget))}
             cfg_raw["stop"] = {**raw.get("stop", {}), "max_evaluations": int(budget)}
             # the comparison is of the searches: each run's answer is its best own distance (the
             # recipe's [select] re-scoring would replace it); --heldout scores runs on fresh seeds
@@ -172,7 +171,7 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
             if state != "finished":
                 fit(cfg, run, resume=state == "partial", progress=False, overwrite=overwrite, target=target)
             # the result as the run recorded it (its clock sums the sessions of a resumed run)
-            best = json.loads((run / "best.json").read_text(encoding="utf-8"))
+            best = RunFiles(run).read_best()
             row = {"best": best["distance"], "evaluations": best["n_evaluations"], "seconds": best["seconds"],
                    "stop_reason": best["stop_reason"]}
             bar.update(int(budget))  # a run that stopped early still takes its share of the total
@@ -205,7 +204,8 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
              f"{'optimizer':<10}{'median best':>12}{'range':>20}{'evals to thr.':>15}{'reached':>9}{'wall s':>9}"]
     for t in table:
         e = "-" if t["evals_to_threshold"] is None else f"{t['evals_to_threshold']:.0f}"
-        lines.append(f"{t['optimizer']:<10}{t['median_best']:>12.4f}{'[%.4f, %.4f]' % (t['min_best'], t['max_best']):>20}"
+        spread = f"[{t['min_best']:.4f}, {t['max_best']:.4f}]"
+        lines.append(f"{t['optimizer']:<10}{t['median_best']:>12.4f}{spread:>20}"
                      f"{e:>15}{t['reached']:>9}{t['median_seconds']:>9.1f}")
     held = {}
     if heldout:

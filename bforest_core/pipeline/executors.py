@@ -23,7 +23,6 @@ import sys
 import time
 from collections import deque
 from multiprocessing.connection import wait as _wait
-
 from typing import Literal
 
 from pydantic import Field
@@ -40,21 +39,6 @@ class WorkerLost(BayesForestError):
 class WorkerError(BayesForestError):
     """An exception raised in a worker that could not be sent back as itself (it could not be
     pickled): its type name and message as text."""
-
-_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-                "VECLIB_MAXIMUM_THREADS", "BLIS_NUM_THREADS")
-
-
-def limit_threads() -> None:
-    """One BLAS/OpenMP thread in this process (a worker of a pool)."""
-    for v in _THREAD_VARS:
-        os.environ[v] = "1"
-    try:  # effective even after numpy is imported, when threadpoolctl is present
-        from threadpoolctl import threadpool_limits
-        threadpool_limits(1)
-    except Exception:
-        pass
-
 
 def _exit_with(owner: int, every: float = 1.0) -> None:
     """End this worker when the process that owns its pool is gone.
@@ -106,7 +90,7 @@ def _release_forkserver() -> None:
 
 
 def _worker_init(initializer, initargs, owner=None):
-    limit_threads()
+    Executor.limit_worker_threads()
     if owner is not None and os.name == "posix":
         _exit_with(owner)
     if initializer is not None:

@@ -13,7 +13,7 @@ import csv
 from pathlib import Path
 
 from ..errors import BayesForestError
-from .store import RunStore
+from .store import RunFiles, RunStore
 
 
 class ExportError(BayesForestError):
@@ -46,19 +46,19 @@ def _writer(fmt: str):
 def run_trees(run_dir: Path, what: tuple[str, ...] = ("best", "clones")) -> list[Path]:
     """The tree files of a run: ``best_tree.txt``, ``clones/clone_*.txt`` and (``posterior``)
     the posterior clones ``clones_posterior/clone_*.txt``."""
-    files = []
-    if "best" in what and (run_dir / "best_tree.txt").exists():
-        files.append(run_dir / "best_tree.txt")
+    files, run = [], RunFiles(run_dir)
+    if "best" in what and run.best_tree_path.exists():
+        files.append(run.best_tree_path)
     if "clones" in what:
-        files += sorted((run_dir / "clones").glob("clone_*.txt"))
+        files += sorted(run.clones_dir().glob("clone_*.txt"))
     if "posterior" in what:
-        files += sorted((run_dir / "clones_posterior").glob("clone_*.txt"))
+        files += sorted(run.clones_dir(posterior=True).glob("clone_*.txt"))
     return files
 
 
 def _stem(src: Path) -> str:
     """Export name of a run's tree file: posterior clones get a ``posterior_`` prefix."""
-    return f"posterior_{src.stem}" if src.parent.name == "clones_posterior" else src.stem
+    return f"posterior_{src.stem}" if src.parent.name == RunFiles.CLONES_POSTERIOR else src.stem
 
 
 def export_trees(run_dir, formats: list[str], out_dir=None, what: tuple[str, ...] = ("best", "clones"),
@@ -77,7 +77,7 @@ def export_trees(run_dir, formats: list[str], out_dir=None, what: tuple[str, ...
     from ..io import read_qsm, write_tree
     run_dir = Path(run_dir)
     RunStore.open(run_dir).close()  # a run directory, or a clear error
-    out_dir = Path(out_dir) if out_dir is not None else run_dir / "export"
+    out_dir = Path(out_dir) if out_dir is not None else RunFiles(run_dir).export_dir
     writers = [_writer(f) for f in formats]
     files = run_trees(run_dir, what)
     if not files:
@@ -111,8 +111,9 @@ def run_provenance(run_dir) -> dict[str, dict]:
     import json
     import tomllib
     run_dir = Path(run_dir)
+    run = RunFiles(run_dir)
     try:
-        raw = tomllib.loads((run_dir / "config.toml").read_text(encoding="utf-8"))
+        raw = tomllib.loads(run.config_path.read_text(encoding="utf-8"))
     except (OSError, tomllib.TOMLDecodeError):
         raw = {}
     ssm = raw.get("ssm") if isinstance(raw.get("ssm"), dict) else {}
@@ -126,13 +127,13 @@ def run_provenance(run_dir) -> dict[str, dict]:
             return json.loads(p.read_text(encoding="utf-8"))
         except (OSError, ValueError):
             return None
-    best = _read(run_dir / "best.json")
+    best = _read(run.best_path)
     if isinstance(best, dict) and best.get("params") is not None:
         seeds = best.get("seeds") or []
-        out["best_tree.txt"] = {**base, "params": best["params"], "seed": seeds[0] if seeds else None,
+        out[RunFiles.BEST_TREE] = {**base, "params": best["params"], "seed": seeds[0] if seeds else None,
                                 "role": "best fit"}
-    for folder, role in (("clones", "clone"), ("clones_posterior", "posterior clone")):
-        summary = _read(run_dir / folder / "summary.json")
+    for folder, role in ((RunFiles.CLONES, "clone"), (RunFiles.CLONES_POSTERIOR, "posterior clone")):
+        summary = _read(run_dir / folder / RunFiles.CLONE_SUMMARY)
         for r in (summary or {}).get("rows", []) if isinstance(summary, dict) else []:
             if r.get("status") == "ok" and r.get("file"):
                 out[f"{folder}/{r['file']}"] = {**base, "params": r.get("params"), "seed": r.get("seed"),

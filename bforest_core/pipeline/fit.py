@@ -7,6 +7,7 @@ uninterrupted one.
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 import time
@@ -19,13 +20,16 @@ import numpy as np
 from ..config import config_to_dict, load_config, parse_config, read_toml, section_settings, ssm_settings
 from ..errors import BayesForestError, ConfigError
 from ..interfaces import Problem
-from .objective import (Target, _simulate_with_timeout, _Timeout, evaluate_task, model_seeds,
-                        progress_bar, run_executor, set_summaries, spread_seeds, started_workers, summary_task)
 from ..registry import component
 from .checks import preflight
 from .heldout import select_answer
+from .progress import progress_bar
 from .rundir import holding_run_lock
-from .store import Evaluation, RunDirError, RunStore
+from .scoring import _simulate_with_timeout, _Timeout, set_summaries
+from .seeds import model_seeds, spread_seeds
+from .store import Evaluation, RunDirError, RunFiles, RunStore, json_default
+from .target import Target
+from .worker import evaluate_task, run_executor, started_workers, summary_task
 
 
 @dataclass
@@ -208,9 +212,8 @@ class _Progress:
 
 def _expected_total(cfg, optimizer, dim: int) -> int | None:
     """Evaluations the progress bar counts to: the budget, or what the optimiser plans
-    (``expected_evaluations``, duck-typed), whichever is smaller."""
-    plan = getattr(optimizer, "expected_evaluations", None)
-    planned = plan(dim) if callable(plan) else None
+    (``Optimizer.expected_evaluations``), whichever is smaller."""
+    planned = optimizer.expected_evaluations(dim)
     totals = [t for t in (cfg.stop.max_evaluations, planned) if t]
     return min(totals) if totals else None
 
@@ -226,7 +229,7 @@ def _result_relevant(cfg) -> dict:
 def same_config(run_dir, cfg) -> bool:
     """Whether the run in ``run_dir`` was made with ``cfg`` (up to the executor and the report,
     which do not change results); False when its config.toml is missing or unreadable."""
-    path = Path(run_dir) / "config.toml"
+    path = RunFiles(run_dir).config_path
     try:
         old = parse_config(read_toml(path), source=str(path))
     except (OSError, BayesForestError):
@@ -274,9 +277,9 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     with store:
         if resume:
             if not same_config(run_dir, cfg):
-                raise RunDirError(f"{run_dir}: the config differs from the run's config.toml; "
-                                  "resume with the run's own config (bforest fit RUN/config.toml -o RUN --resume)")
-            finished = (store.path / "best.json").exists()  # resuming it replays the log, simulates nothing
+                raise RunDirError(f"{run_dir}: the config differs from the run's {store.CONFIG}; resume with the "
+                                  f"run's own config (bforest fit RUN/{store.CONFIG} -o RUN --resume)")
+            finished = store.finished()  # resuming it replays the log, simulates nothing
             # the executor may change between sessions (results never depend on it)
             store.config_path.write_text(text, encoding="utf-8")
             store.clear_log()
@@ -292,7 +295,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
                           log=store.log)
         bar = _Progress(_expected_total(cfg, optimizer, len(names)), enabled=progress)
         evaluator = Evaluator(cfg, store, executor, ssm, names, problem, progress=bar,
-                              failures_as_inf=bool(getattr(optimizer, "failures_as_inf", False)))
+                              failures_as_inf=bool(optimizer.failures_as_inf))
         problem.evaluate = evaluator
         problem.seed_spread = evaluator.seed_spread
         problem.summaries = evaluator.summaries
@@ -320,7 +323,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
 def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
     """The data tables, and the distance's frozen data-side transforms and directions, so every
     number of the run can be recomputed from the run directory."""
-    np.savez_compressed(store.path / "target_sets.npz", **tgt.U)
+    np.savez_compressed(store.target_sets_path, **tgt.U)
     if cfg is not None:
         dist = component("distance", cfg.distance.kind, **section_settings(cfg, "distance"))
         own = {k: v for k, v in tgt.U.items() if "/" not in k}  # the [distance] term's sets
@@ -328,17 +331,18 @@ def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
         dist.prepare(own, cols)
         frozen = {"distance": cfg.distance.kind, "settings": section_settings(cfg, "distance"),
                   "columns": cols}
-        if hasattr(dist, "normalizations"):
-            frozen["normalization"] = dist.normalizations()
-        store.write_json("distance.json", frozen)
+        norms = dist.normalizations()
+        if norms:  # a distance that compares the tables in their own units has none
+            frozen["normalization"] = norms
+        store.write_json(store.DISTANCE, frozen)
         dims = sorted({u.shape[1] for u in own.values() if u.ndim == 2})
         try:
-            np.savez_compressed(store.path / "directions.npz", **{f"d{d}": dist.directions(d) for d in dims})
+            np.savez_compressed(store.directions_path, **{f"d{d}": dist.directions(d) for d in dims})
         except NotImplementedError:
             pass
     try:
         from ..io import write_tree
-        write_tree(tgt.trees[0], store.path / "target.txt")
+        write_tree(tgt.trees[0], store.target_tree_path)
     except Exception:  # writing a copy of the target is a convenience, never fatal
         pass
 
@@ -348,8 +352,8 @@ def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: flo
     """Write ``best.json`` (the answer: the best logged evaluation, or the candidate chosen on
     held-out seeds when there is a ``selection``; classical metrics of target and answer tree)
     and ``best_tree.txt`` (the answer regrown with its first model seed)."""
-    from ..metrics import classical_metrics, relative_errors
     from ..io import write_tree
+    from ..metrics import classical_metrics, relative_errors
     ev = store.evaluation(selection["chosen"]) if selection else store.best()
     target_metrics = classical_metrics(tgt.trees[0])
     best = {"params": ev.params, "distance": ev.distance, "per_set": ev.per_set, "status": ev.status,
@@ -365,31 +369,34 @@ def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: flo
     table = posterior_outputs(store.path, diag, list(diag.get("names") or ev.params))
     if table is not None:
         best["posterior_summary"] = table
-        best["posterior_files"] = ["posterior.csv", "posterior.nc"]
+        best["posterior_files"] = [store.POSTERIOR_CSV, store.POSTERIOR_NC]
     if ev.status != "ok":
         best["model_metrics"] = None
         best["note"] = f"no evaluation succeeded (best status: {ev.status})"
-        store.write_json("best.json", best)
+        store.write_json(store.BEST, best)
         return best
     try:
         tree = _simulate_with_timeout(ssm, ev.params, ev.seeds[0], cfg.objective.timeout)
         m = classical_metrics(tree)
         best["model_metrics"] = m
         best["relative_errors"] = relative_errors(target_metrics, m)
-        write_tree(tree, store.path / "best_tree.txt")
+        write_tree(tree, store.best_tree_path)
     except (BayesForestError, _Timeout) as exc:
         best["model_metrics"] = None
         best["note"] = f"best tree could not be regrown or written: {exc or 'timeout'}"
-    store.write_json("best.json", best)
+    store.write_json(store.BEST, best)
     return best
 
 
 def _jsonable(d):
+    """Diagnostics as plain JSON values (``json_default``, loose); an entry that cannot be written
+    at all (a mapping with tuple keys, say) as its text."""
+    default = functools.partial(json_default, loose=True)
     out = {}
     for k, v in d.items():
         try:
-            json.dumps(v, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+            json.dumps(v, default=default)
             out[k] = v
         except Exception:
             out[k] = str(v)
-    return json.loads(json.dumps(out, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
+    return json.loads(json.dumps(out, default=default))

@@ -17,13 +17,15 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
 from ..config import config_to_dict
-from .objective import evaluate_task, heldout_seeds, progress_bar
+from .progress import progress_bar
+from .seeds import heldout_seeds
 from .store import Evaluation, RunStore
+from .worker import evaluate_task
 
 __all__ = ["scoring_fingerprint", "point_key", "score_points", "candidates", "select_answer"]
 

@@ -9,8 +9,8 @@ seed, so its curve passes through the best fit. Writes ``figures/profile_<param>
 from __future__ import annotations
 
 import csv
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -85,14 +85,17 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
         ``distances`` (k, seeds), ``status`` (k, seeds), ``best_value``, ``best_distance``.
     """
     from ..config import load_config, ssm_settings
-    from .objective import build_target, evaluate_task, model_seeds, progress_bar, started_workers
     from ..registry import component
-    from .store import RunStore, slug
+    from .progress import progress_bar
+    from .seeds import model_seeds
+    from .store import RunFiles, RunStore, slug
+    from .target import build_target
+    from .worker import evaluate_task, started_workers
 
     run_dir = Path(run_dir)
     with RunStore.open(run_dir) as store:
         cfg = load_config(store.config_path)
-        best = store.read_json("best.json")
+        best = store.read_best()
     ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
     try:
         spec = ssm.parameter_spec(param)
@@ -127,7 +130,7 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
             bar.update(1)
     bar.close()
 
-    csv_path = _write_profile_csv(run_dir / f"profile_{slug(param)}.csv", vals, seed_list, D, status, per_set,
+    csv_path = _write_profile_csv(RunFiles(run_dir).profile_path(slug(param)), vals, seed_list, D, status, per_set,
                                   list(tgt.U), spec.unit)
     failed = status != "ok"
     # the best fit's own distance (mean over the fit's seeds), drawn as a marker

@@ -22,16 +22,10 @@ import threading
 import time
 from pathlib import Path
 
-from .store import RunDirError
-
-LOCK_NAME = ".bforest.lock"
+from .store import RunDirError, RunFiles
 
 #: files and folders a run writes into its directory (globs), all derived from its config
-DERIVED = ("config.toml", "evaluations.sqlite", "evaluations.sqlite-wal", "evaluations.sqlite-shm",
-           "evaluations.sqlite-journal", "best.json", "best.json.tmp", "best_tree.txt", "target.txt",
-           "target_sets.npz", "distance.json", "directions.npz", "diagnostics.npz", "posterior.csv",
-           "posterior.nc", "heldout.json", "heldout.json.tmp", "profile_*.csv", "report.md", "report.html",
-           "clones", "clones_posterior", "figures", "export")
+DERIVED = RunFiles.DERIVED
 
 _held: dict[str, list] = {}   # resolved path -> [fd, depth] of the locks this process holds
 _guard = threading.Lock()
@@ -72,7 +66,7 @@ def run_lock(run_dir, create: bool = True):
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         if not create:
-            raise RunDirError(f"{run_dir}: not a run directory (no config.toml)")
+            raise RunDirError(f"{run_dir}: not a run directory (no {RunFiles.CONFIG})")
         if run_dir.exists():
             raise RunDirError(f"{run_dir}: exists and is not a folder; choose another -o")
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -82,7 +76,7 @@ def run_lock(run_dir, create: bool = True):
             _held[key][1] += 1
             fd = None
         else:
-            fd = _acquire(run_dir / LOCK_NAME, run_dir)
+            fd = _acquire(RunFiles(run_dir).lock_path, run_dir)
             _held[key] = [fd, 1]
     try:
         yield run_dir
@@ -133,7 +127,7 @@ def derived_paths(run_dir) -> list[Path]:
 
 def is_run_dir(run_dir) -> bool:
     """Whether ``run_dir`` holds a run (its evaluation log), as opposed to a user's folder."""
-    return (Path(run_dir) / "evaluations.sqlite").exists()
+    return RunFiles(run_dir).evaluations_path.exists()
 
 
 def foreign_files(run_dir) -> list[str]:

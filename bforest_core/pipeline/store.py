@@ -1,6 +1,6 @@
 """Run directory and its SQLite evaluation log.
 
-Layout (docs/architecture.md)::
+Layout (:class:`RunFiles` names each file; no other module spells these names)::
 
     RUN/config.toml          the resolved configuration
     RUN/evaluations.sqlite   every evaluation, written as soon as it finishes; the held-out
@@ -110,12 +110,148 @@ def json_text(obj) -> str:
     return json.dumps(clean(obj), indent=2, allow_nan=False)
 
 
-class RunStore:
+class RunFiles:
+    """The files and folders of a run directory, each by what it holds.
+
+    The one place their names are spelled: every stage reads and writes a run's files through
+    these accessors (``RunFiles(run_dir).best_path``), and :class:`RunStore`, which opens the
+    evaluation log, has them too. A new file of the run directory is a name here, an accessor
+    and an entry of :data:`DERIVED` (what ``--overwrite`` removes).
+    """
+
+    CONFIG = "config.toml"
+    EVALUATIONS = "evaluations.sqlite"
+    BEST = "best.json"
+    BEST_TREE = "best_tree.txt"
+    TARGET_TREE = "target.txt"
+    TARGET_SETS = "target_sets.npz"
+    DISTANCE = "distance.json"
+    DIRECTIONS = "directions.npz"
+    DIAGNOSTICS = "diagnostics.npz"
+    POSTERIOR_CSV = "posterior.csv"
+    POSTERIOR_NC = "posterior.nc"
+    REPORT_MD = "report.md"
+    REPORT_HTML = "report.html"
+    CLONES = "clones"
+    CLONES_POSTERIOR = "clones_posterior"
+    #: in a clones folder: its summary and its table
+    CLONE_SUMMARY = "summary.json"
+    CLONE_TABLE = "clones.csv"
+    CLONE_FIDELITY = "fidelity.json"
+    FIGURES = "figures"
+    EXPORT = "export"
+    LOCK = ".bforest.lock"
+    #: files and folders a run writes into its directory (globs), all derived from its config
+    #: (``heldout.json``: where older runs kept their held-out scores)
+    DERIVED = (CONFIG, EVALUATIONS, f"{EVALUATIONS}-wal", f"{EVALUATIONS}-shm", f"{EVALUATIONS}-journal", BEST,
+               f"{BEST}.tmp", BEST_TREE, TARGET_TREE, TARGET_SETS, DISTANCE, DIRECTIONS, DIAGNOSTICS, POSTERIOR_CSV,
+               POSTERIOR_NC, "heldout.json", "heldout.json.tmp", "profile_*.csv", REPORT_MD, REPORT_HTML, CLONES,
+               CLONES_POSTERIOR, FIGURES, EXPORT)
+
+    def __init__(self, path):
+        self.path = Path(path)
+
+    @property
+    def config_path(self) -> Path:
+        """The resolved configuration the run was made with."""
+        return self.path / self.CONFIG
+
+    @property
+    def evaluations_path(self) -> Path:
+        """The SQLite log of every evaluation (and the held-out scores)."""
+        return self.path / self.EVALUATIONS
+
+    @property
+    def best_path(self) -> Path:
+        """The fit's answer (written when the fit has finished)."""
+        return self.path / self.BEST
+
+    @property
+    def best_tree_path(self) -> Path:
+        """The answer's tree, regrown with its first model seed."""
+        return self.path / self.BEST_TREE
+
+    @property
+    def target_tree_path(self) -> Path:
+        """A copy of the target tree."""
+        return self.path / self.TARGET_TREE
+
+    @property
+    def target_sets_path(self) -> Path:
+        """The target's data tables."""
+        return self.path / self.TARGET_SETS
+
+    @property
+    def distance_path(self) -> Path:
+        """The distance's frozen data-side transforms."""
+        return self.path / self.DISTANCE
+
+    @property
+    def directions_path(self) -> Path:
+        """The directions a sliced distance projects on."""
+        return self.path / self.DIRECTIONS
+
+    @property
+    def diagnostics_path(self) -> Path:
+        """The optimiser's large diagnostic arrays."""
+        return self.path / self.DIAGNOSTICS
+
+    @property
+    def posterior_csv_path(self) -> Path:
+        """A sampler's posterior sample."""
+        return self.path / self.POSTERIOR_CSV
+
+    @property
+    def posterior_nc_path(self) -> Path:
+        """A sampler's posterior as ArviZ NetCDF."""
+        return self.path / self.POSTERIOR_NC
+
+    @property
+    def report_md_path(self) -> Path:
+        return self.path / self.REPORT_MD
+
+    @property
+    def report_html_path(self) -> Path:
+        return self.path / self.REPORT_HTML
+
+    @property
+    def figures_dir(self) -> Path:
+        return self.path / self.FIGURES
+
+    @property
+    def export_dir(self) -> Path:
+        return self.path / self.EXPORT
+
+    @property
+    def lock_path(self) -> Path:
+        """The lock a command holds while it works on the run."""
+        return self.path / self.LOCK
+
+    def clones_dir(self, posterior: bool = False) -> Path:
+        """The clones of the best fit (``posterior``: the posterior-predictive clones)."""
+        return self.path / (self.CLONES_POSTERIOR if posterior else self.CLONES)
+
+    def profile_path(self, param_slug: str) -> Path:
+        """The table of ``bforest profile`` along one parameter."""
+        return self.path / f"profile_{param_slug}.csv"
+
+    def finished(self) -> bool:
+        """Whether the fit has finished (it wrote its answer)."""
+        return self.best_path.exists()
+
+    def read_best(self) -> dict:
+        """The fit's answer (``best.json``); RunDirError when the fit has not finished."""
+        if not self.best_path.exists():
+            raise RunDirError(f"{self.path}: no {self.BEST} (has the fit finished?)")
+        return json.loads(self.best_path.read_text(encoding="utf-8"))
+
+
+class RunStore(RunFiles):
     """A run directory with its evaluation log."""
 
     def __init__(self, path: Path):
-        self.path = Path(path)
-        self.db_path = self.path / "evaluations.sqlite"
+        super().__init__(path)
+        self.db_path = self.evaluations_path
         self._con = sqlite3.connect(self.db_path, isolation_level=None, timeout=30)
         self._con.execute("PRAGMA journal_mode=WAL")
         self._con.execute("PRAGMA synchronous=NORMAL")
@@ -123,7 +259,7 @@ class RunStore:
 
     # ------------------------------------------------------------------ creation
     @classmethod
-    def create(cls, path, config_text: str, overwrite: bool = False) -> "RunStore":
+    def create(cls, path, config_text: str, overwrite: bool = False) -> RunStore:
         """A new run directory holding ``config_text`` as ``config.toml``.
 
         Refuses a directory that already holds evaluations unless ``overwrite``, which then removes
@@ -132,7 +268,8 @@ class RunStore:
         """
         from .rundir import clear_derived, foreign_files
         path = Path(path)
-        db = path / "evaluations.sqlite"
+        files = RunFiles(path)
+        db = files.evaluations_path
         foreign = foreign_files(path)
         if foreign:
             raise RunDirError(f"{path}: holds {', '.join(foreign)}, not written by a run, which a run would "
@@ -143,9 +280,9 @@ class RunStore:
         path.mkdir(parents=True, exist_ok=True)
         if db.exists():  # --overwrite, or a run that failed before its first evaluation: nothing of it is kept
             clear_derived(path)
-        for sub in ("clones", "figures"):
-            (path / sub).mkdir(exist_ok=True)
-        (path / "config.toml").write_text(config_text, encoding="utf-8")
+        for sub in (files.clones_dir(), files.figures_dir):
+            sub.mkdir(exist_ok=True)
+        files.config_path.write_text(config_text, encoding="utf-8")
         store = cls(path)
         store.set_meta("created", time.time())
         return store
@@ -163,23 +300,19 @@ class RunStore:
     def state(cls, path) -> str:
         """``finished`` (it has its ``best.json``), ``partial`` (evaluations logged, no result:
         stopped or killed) or ``new`` (nothing to keep) for the run directory ``path``."""
-        path = Path(path)
-        if (path / "best.json").exists():
+        files = RunFiles(path)
+        if files.finished():
             return "finished"
-        if (path / "evaluations.sqlite").exists() and cls.held(path) > 0:
+        if files.evaluations_path.exists() and cls.held(path) > 0:
             return "partial"
         return "new"
 
     @classmethod
-    def open(cls, path) -> "RunStore":
+    def open(cls, path) -> RunStore:
         path = Path(path)
-        if not (path / "config.toml").exists():
-            raise RunDirError(f"{path}: not a run directory (no config.toml)")
+        if not RunFiles(path).config_path.exists():
+            raise RunDirError(f"{path}: not a run directory (no {RunFiles.CONFIG})")
         return cls(path)
-
-    @property
-    def config_path(self) -> Path:
-        return self.path / "config.toml"
 
     # ------------------------------------------------------------------ evaluations
     def add(self, ev: Evaluation) -> None:
@@ -256,7 +389,7 @@ class RunStore:
     def write_json(self, name: str, data) -> Path:
         p = self.path / name
         tmp = p.with_suffix(p.suffix + ".tmp")
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=_default), encoding="utf-8")
+        tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=json_default), encoding="utf-8")
         tmp.replace(p)
         return p
 
@@ -284,7 +417,7 @@ class RunStore:
                 big[k] = arr
             else:
                 small[k] = v
-        path = self.path / "diagnostics.npz"
+        path = self.diagnostics_path
         if big:
             np.savez_compressed(path, **big)
             small["arrays"] = sorted(big)
@@ -295,9 +428,9 @@ class RunStore:
     def read_diagnostics(self) -> dict:
         """The optimiser diagnostics of ``best.json`` with the stored arrays put back."""
         import numpy as np
-        p = self.path / "best.json"
+        p = self.best_path
         diag = dict(json.loads(p.read_text(encoding="utf-8")).get("diagnostics") or {}) if p.exists() else {}
-        npz = self.path / "diagnostics.npz"
+        npz = self.diagnostics_path
         if diag.pop("arrays", None) is not None and npz.exists():
             with np.load(npz) as z:
                 diag.update({k: z[k] for k in z.files})
@@ -310,22 +443,24 @@ class RunStore:
         command reading the run)."""
         self._con.close()
 
-    def __enter__(self) -> "RunStore":
+    def __enter__(self) -> RunStore:
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
 
 
-def _default(o):
-    try:
-        import numpy as np
-        if isinstance(o, np.generic):
-            return o.item()
-        if isinstance(o, np.ndarray):
-            return o.tolist()
-    except ImportError:
-        pass
-    if isinstance(o, Path):
+def json_default(o, loose: bool = False):
+    """``json.dumps``'s ``default`` for the run folder's files.
+
+    Numpy scalars become Python numbers, numpy arrays lists, paths text; anything else raises
+    ``TypeError``, or with ``loose`` (an optimiser's free-form diagnostics) becomes its text.
+    """
+    import numpy as np
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path) or loose:
         return str(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")

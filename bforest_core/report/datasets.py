@@ -2,17 +2,16 @@
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import re
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.lines import Line2D
 
+from .canvas import DATA_COLOR, MODEL_COLOR, capped_size, column_label, new_figure, save_figure
 from .document import slug
-from .canvas import DATA_COLOR, MODEL_COLOR, capped_size, new_figure, save_figure, column_label
 
 if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
     from .run_view import RunView
@@ -246,30 +245,22 @@ def distance_view(dist, name: str, um: np.ndarray, ud: np.ndarray):
 
     Returns ``(um, ud, line_values or None, statistic, normalised)``.
     """
-    stat = str(getattr(getattr(dist, "settings", None), "statistic", "ks"))
-    lines = None
-    fn = getattr(dist, "line_values", None)
-    if callable(fn):
-        try:
-            lines = np.asarray(fn(um, ud, set_name=name), float).reshape(-1)
-        except (TypeError, ValueError, NotImplementedError):
-            lines = None
+    stat = str(dist.statistic)
+    try:
+        lines = np.asarray(dist.line_values(um, ud, set_name=name), float).reshape(-1)
+    except (TypeError, ValueError, NotImplementedError):
+        lines = None
     normalised = False
-    norms = getattr(dist, "normalizations", None)
-    if callable(norms):
-        try:
-            nd = norms().get(name)
-        except Exception:
-            nd = None
-        if nd and nd.get("method", "none") != "none":
-            c = np.asarray(nd["center"], float)
-            sc = np.asarray(nd["scale"], float)
-            if c.shape == (ud.shape[1],) and sc.shape == (ud.shape[1],):
-                um, ud, normalised = (um - c) / sc, (ud - c) / sc, True
+    nd = dist.normalizations().get(name)
+    if nd and nd.get("method", "none") != "none":
+        c = np.asarray(nd["center"], float)
+        sc = np.asarray(nd["scale"], float)
+        if c.shape == (ud.shape[1],) and sc.shape == (ud.shape[1],):
+            um, ud, normalised = (um - c) / sc, (ud - c) / sc, True
     return um, ud, lines, stat, normalised
 
 
-def fig_sets(v: "RunView"):
+def fig_sets(v: RunView):
     out = []
     if not v.U_data:
         return out

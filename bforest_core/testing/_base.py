@@ -4,8 +4,9 @@ from __future__ import annotations
 import json
 import pickle
 import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import pydantic
@@ -131,7 +132,7 @@ class Report:
     def passed(self) -> list[str]:
         return [r.check for r in self.results if r.passed]
 
-    def raise_for_failures(self) -> "Report":
+    def raise_for_failures(self) -> Report:
         """Raise :class:`ConformanceError` listing every failed check (else return self)."""
         if self.failures:
             raise ConformanceError(self.component, [(r.check, r.problem) for r in self.failures])
@@ -320,6 +321,15 @@ def _common_checks(cls, inst, settings, label, kind, registered, make_error="") 
             return f"from {entry.distribution} {entry.version} (entry point {entry.plugin!r})"
         checks.append(Check(label, "registered", c_registered))
     return checks
+
+
+def _priority_check(cls, label) -> Check:
+    """``priority`` (``QSMReader``/``QSMWriter``, default 0) is a whole number."""
+    def c_priority():
+        p = cls.priority
+        _require(isinstance(p, int) and not isinstance(p, bool), f"priority is {p!r}, expected an int (default 0)")
+        return f"priority {p}"
+    return Check(label, "priority", c_priority)
 
 
 def _need(inst, make_error):

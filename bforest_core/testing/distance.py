@@ -6,8 +6,7 @@ from typing import Any
 
 import numpy as np
 
-
-from ._base import (Check, Report, _common_checks, _instance, _label, _need, _require, _roundtrip, _run)
+from ._base import Check, Report, _common_checks, _Fail, _instance, _label, _need, _require, _roundtrip, _run
 from .samples import sample_tables
 
 
@@ -82,6 +81,27 @@ def distance_checks(distance, tables=None, *, settings=None, atol: float = 1e-9,
         per = values(d, U)
         return f"empty model tables -> {per}"
 
+    def c_capabilities():
+        d = prepared()
+        _require(isinstance(d.statistic, str) and d.statistic, f"statistic is {d.statistic!r}, expected a name")
+        norms = d.normalizations()
+        _require(isinstance(norms, dict) and set(norms) <= set(U_data)
+                 and all(isinstance(v, dict) for v in norms.values()),
+                 f"normalizations() returned {norms!r}, expected a dict of dicts keyed by prepared sets")
+        k = next(k for k in U_data if len(U_data[k]) and len(U_model[k]))
+        try:
+            lines = d.line_values(U_model[k], U_data[k], set_name=k)
+        except NotImplementedError:
+            return f"statistic {d.statistic!r}; no per-line values"
+        lines = np.asarray(lines, float)
+        try:
+            n = d.directions(U_data[k].shape[1]).shape[0]
+        except NotImplementedError:
+            raise _Fail("line_values gives values but directions() raises: which lines are they?") from None
+        _require(lines.shape == (n,) and np.all(np.isfinite(lines)),
+                 f"line_values of set {k!r} has shape {lines.shape}, expected ({n},) finite values, one per direction")
+        return f"statistic {d.statistic!r}; {n} lines"
+
     def c_pickle():
         d = prepared()
         other = _roundtrip(d)
@@ -95,6 +115,7 @@ def distance_checks(distance, tables=None, *, settings=None, atol: float = 1e-9,
     checks.append(Check(label, "determinism", c_determinism))
     if empty:
         checks.append(Check(label, "empty", c_empty))
+    checks.append(Check(label, "capabilities", c_capabilities))
     checks.append(Check(label, "pickle", c_pickle))
     return checks
 

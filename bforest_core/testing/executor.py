@@ -1,11 +1,7 @@
 """Conformance checks of an executor."""
 from __future__ import annotations
 
-
-
-
-from ._base import (Check, Report, _common_checks, _instance, _label, _need, _require, _roundtrip, _run)
-
+from ._base import Check, Report, _common_checks, _instance, _label, _need, _require, _roundtrip, _run
 
 _WORKER_OFFSET = None
 
@@ -20,6 +16,14 @@ def _conformance_task(x):
     if _WORKER_OFFSET is None:
         raise RuntimeError("initializer did not run in this worker")
     return x * x + _WORKER_OFFSET
+
+
+def _no_time_limit(item):
+    return None
+
+
+def _no_stand_in(fn, item, status, message):
+    return NotImplemented
 
 
 def executor_checks(executor, *, settings=None, items: int = 12, registered: bool | str = False) -> list[Check]:
@@ -47,11 +51,23 @@ def executor_checks(executor, *, settings=None, items: int = 12, registered: boo
                                                           f"returned {again}")
         return f"{ex.workers} worker(s)"
 
+    def c_hooks():
+        ex = _need(inst, err)
+        _require(ex.time_limit is None and ex.on_lost is None, "a new instance has time_limit "
+                 f"{ex.time_limit!r} and on_lost {ex.on_lost!r}, expected None (Executor's defaults)")
+        ex.time_limit, ex.on_lost = _no_time_limit, _no_stand_in  # what a fit sets before start
+        try:
+            with ex.started(_conformance_init, (2,)):
+                got = ex.map(_conformance_task, xs[:4])
+        finally:
+            ex.time_limit = ex.on_lost = None
+        _require(got == [x * x + 2 for x in xs[:4]], f"with time_limit and on_lost set map returned {got}")
+
     def c_pickle():
         _roundtrip(_need(inst, err))
 
     return _common_checks(cls, inst, settings, label, "executor", registered, err) + [
-        Check(label, "map", c_map), Check(label, "pickle", c_pickle)]
+        Check(label, "map", c_map), Check(label, "hooks", c_hooks), Check(label, "pickle", c_pickle)]
 
 
 def check_executor(executor, *, raise_on_failure: bool = True, **options) -> Report:

@@ -1,14 +1,27 @@
 """Conformance checks of QSM readers and writers."""
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from ..tree import Tree
-
-from ._base import (Check, Report, _common_checks, _instance, _label, _need, _require, _roundtrip, _run, _tree_diff, check_tree)
+from ._base import (
+    Check,
+    Report,
+    _common_checks,
+    _instance,
+    _label,
+    _need,
+    _priority_check,
+    _require,
+    _roundtrip,
+    _run,
+    _tree_diff,
+    check_tree,
+)
 from .samples import sample_tree
 
 
@@ -81,7 +94,8 @@ def reader_checks(reader, paths: Sequence[str | Path], *, settings=None, foreign
     if not paths:
         raise ValueError("reader_checks needs at least one sample file in `paths`")
     return _common_checks(cls, inst, settings, label, "qsm_reader", registered, err) + [
-        Check(label, "suffixes", c_suffixes), Check(label, "sniff", c_sniff), Check(label, "read", c_read),
+        Check(label, "suffixes", c_suffixes), _priority_check(cls, label), Check(label, "sniff", c_sniff),
+        Check(label, "read", c_read),
         Check(label, "determinism", c_determinism), Check(label, "pickle", c_pickle)]
 
 
@@ -133,7 +147,7 @@ def writer_checks(writer, out_dir: str | Path, tree: Tree | None = None, *, sett
         _roundtrip(_need(inst, err))
 
     return _common_checks(cls, inst, settings, label, "qsm_writer", registered, err) + [
-        Check(label, "write", c_write), Check(label, "pickle", c_pickle)]
+        _priority_check(cls, label), Check(label, "write", c_write), Check(label, "pickle", c_pickle)]
 
 
 def check_writer(writer, out_dir, tree=None, *, raise_on_failure: bool = True, **options) -> Report:

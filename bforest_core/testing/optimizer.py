@@ -7,8 +7,7 @@ from typing import Any
 import numpy as np
 
 from ..interfaces import OptimizeResult, Problem
-
-from ._base import (Check, Report, _Fail, _common_checks, _instance, _label, _need, _require, _roundtrip, _run)
+from ._base import Check, Report, _common_checks, _Fail, _instance, _label, _need, _require, _roundtrip, _run
 
 
 class _Harness:
@@ -60,7 +59,9 @@ def optimizer_checks(optimizer, *, settings=None, budget: int = 60, seed: int = 
     ``minimize`` must return an :class:`OptimizeResult` inside the bounds, never exceed the
     evaluation budget, return promptly once the problem has stopped (at most one more
     ``evaluate`` call), find a point better than the median of what it evaluated, and repeat
-    exactly the same evaluations for the same seed.
+    exactly the same evaluations for the same seed. ``budget``: ``expected_evaluations`` is None
+    or a positive int, and ``budget_settings`` gives valid settings (a new dict) under which the
+    optimiser plans no fewer evaluations than the budget and still keeps to ``Problem.budget``.
     """
     cls, inst, settings, err = _instance(optimizer, "optimizer", settings)
     label = _label(cls, "optimizer")
@@ -100,6 +101,29 @@ def optimizer_checks(optimizer, *, settings=None, budget: int = 60, seed: int = 
         _require(same, "the same seed and objective gave a different sequence of evaluated points (the run "
                        "store replays evaluations on resume, so the search must be deterministic)")
 
+    def c_budget():
+        opt = _need(inst, err)
+        plan = opt.expected_evaluations(3)
+        _require(plan is None or (isinstance(plan, int) and plan >= 1),
+                 f"expected_evaluations(3) is {plan!r}, expected None or a positive int")
+        own = opt.settings.model_dump()
+        given = dict(own)
+        try:
+            lifted = cls.budget_settings(given, 10 * budget)
+            other = cls(**lifted)
+        except Exception as exc:
+            raise _Fail(f"budget_settings(settings, {10 * budget}) gave settings the class rejects "
+                        f"({type(exc).__name__}: {exc})") from None
+        _require(given == own, "budget_settings changed the mapping it was given (return a new dict)")
+        lplan = other.expected_evaluations(3)
+        _require(lplan is None or lplan >= 10 * budget, f"with budget_settings for {10 * budget} evaluations the "
+                 f"optimiser plans only {lplan}: its own limits, not the budget, would end a comparison's run")
+        h = _Harness(seed, budget)
+        other.minimize(h.problem)
+        _require(h.problem.n_evaluations <= budget, f"with budget_settings it evaluated {h.problem.n_evaluations} "
+                 f"points for a Problem.budget of {budget}")
+        return f"plans {plan}; with budget_settings {lplan}, {h.problem.n_evaluations}/{budget} evaluations"
+
     def c_pickle():
         other = _roundtrip(_need(inst, err))
         h1, _ = first()
@@ -109,7 +133,7 @@ def optimizer_checks(optimizer, *, settings=None, budget: int = 60, seed: int = 
 
     return _common_checks(cls, inst, settings, label, "optimizer", registered, err) + [
         Check(label, "minimize", c_minimize), Check(label, "determinism", c_determinism),
-        Check(label, "pickle", c_pickle)]
+        Check(label, "budget", c_budget), Check(label, "pickle", c_pickle)]
 
 
 def check_optimizer(optimizer, *, raise_on_failure: bool = True, **options) -> Report:

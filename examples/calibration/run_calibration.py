@@ -62,6 +62,7 @@ def seed_logs(name: str, source: str, n: int) -> None:
     runs part, :func:`trim_log` cuts the copied log and the rest is simulated, so the result is
     that of a fresh run."""
     import tomli_w
+
     from bforest_core.config import config_to_dict
     from bforest_core.pipeline.calibrate import _read_study_config, _study_spec, prior_draw, run_config
     cfg = _read_study_config(HERE / f"{name}.toml")
@@ -107,6 +108,7 @@ def stale_copies(out: Path) -> list[tuple[Path, int]]:
 
 def run_study(name: str, n: int) -> dict:
     import re
+
     from bforest_core.pipeline.calibrate import calibrate
     from bforest_core.pipeline.store import RunDirError
     from bforest_core.report.calibration import write_calibration_figure
@@ -155,6 +157,7 @@ def population_result(name: str, res: dict) -> dict:
     """The coverage of a recycled-posterior study's runs had they reported their last generation
     (``diagnostics.population`` of each run's best.json): the same fits, the other posterior."""
     import numpy as np
+
     from bforest_core.pipeline.calibrate import _read_study_config, _study_spec, coverage_table, posterior_params
     names = res["names"]
     cfg = _read_study_config(HERE / f"{name}.toml")
@@ -237,9 +240,12 @@ def noise_floors(name: str = "sot_abc_smc", seeds: int = 20) -> dict[str, float]
     """Per run of ``name``: the median distance of the true parameters to the run's target under
     ``seeds`` fresh model seeds (the distance's noise floor), cached in runs/calibration/floors.json."""
     import numpy as np
+
     import bforest_core as bf
     from bforest_core.config import config_to_dict
-    from bforest_core.pipeline.objective import build_target, evaluate_task, init_worker, spread_seeds
+    from bforest_core.pipeline.seeds import spread_seeds
+    from bforest_core.pipeline.target import build_target
+    from bforest_core.pipeline.worker import evaluate_task, init_worker
     cache = RUNS / "floors.json"
     floors = json.loads(cache.read_text()) if cache.exists() else {}
     for run in sorted((RUNS / name).glob("run_*")):

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import bforest_core as bf
 from bforest_core.pipeline.compare import heldout_table, score_heldout
-from bforest_core.pipeline.objective import build_target
+from bforest_core.pipeline.target import build_target
 
 
 def main(argv=None) -> int:

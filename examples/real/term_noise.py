@@ -18,7 +18,8 @@ import numpy as np
 
 import bforest_core as bf
 from bforest_core.config import config_to_dict
-from bforest_core.pipeline import objective as obj
+from bforest_core.pipeline.target import build_target, term_specs
+from bforest_core.pipeline.worker import evaluate_task, init_worker
 
 
 def main(argv=None) -> int:
@@ -35,14 +36,14 @@ def main(argv=None) -> int:
     print(f"{args.run}: best of the fit {best['distance']:.4f} with its own seeds")
     for path in args.configs:
         cfg = bf.load_config(path)
-        tgt = obj.build_target(cfg)
-        obj.init_worker(config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
-        rows = [obj.evaluate_task((params, [s])) for s in range(1000, 1000 + args.seeds)]
+        tgt = build_target(cfg)
+        init_worker(config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
+        rows = [evaluate_task((params, [s])) for s in range(1000, 1000 + args.seeds)]
         bad = [r["message"] for r in rows if r["status"] != "ok"]
         if bad:
             raise SystemExit(f"term_noise: {path}: {len(bad)} seed(s) failed: {bad[0]}")
         total = np.array([r["distance"] for r in rows])
-        weights = {t["name"]: t["weight"] for t in obj.term_specs(cfg)}
+        weights = {t.name: t.weight for t in term_specs(cfg)}
         parts = [f"objective {total.mean():.4f} ± {total.std(ddof=1):.4f}"]
         for name, w in weights.items():
             v = np.array([r["per_set"].get(f"term:{name}", r["distance"]) for r in rows])

@@ -2,11 +2,11 @@
 dask run starts, so discovering the plugin does not import ``distributed``)."""
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 from distributed.diagnostics.plugin import WorkerPlugin
 
-from bforest_core.pipeline.executors import limit_threads
+from bforest_core.interfaces import Executor
 
 
 class RunInitializer(WorkerPlugin):
@@ -22,6 +22,6 @@ class RunInitializer(WorkerPlugin):
         self.name = name
 
     def setup(self, worker) -> None:
-        limit_threads()
+        Executor.limit_worker_threads()
         if self.initializer is not None:
             self.initializer(*self.initargs)

@@ -94,7 +94,7 @@ from scipy.spatial import cKDTree
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 from bforest_core.metrics import weighted_quantiles
 
-from ._common import BoxEvaluator, History, OptimizerSettings, make_result
+from .box import UNLIMITED, BoxEvaluator, History, OptimizerSettings, make_result
 
 QUANTILES = (2.5, 5.0, 16.0, 25.0, 50.0, 75.0, 84.0, 95.0, 97.5)
 
@@ -264,6 +264,11 @@ class AbcSmc(Optimizer):
     gives_posterior = True
     failures_as_inf = True
 
+    @classmethod
+    def budget_settings(cls, settings, budget):
+        """No generation limit: the budget ends the run."""
+        return {**settings, "generations": UNLIMITED}
+
     def minimize(self, problem: Problem) -> OptimizeResult:
         s: AbcSmcSettings = self.settings
         ev = BoxEvaluator(problem)
@@ -381,7 +386,7 @@ class AbcSmc(Optimizer):
                 medians.append(median)
         return min(medians) if medians else 0.0
 
-    def _adjusted(self, problem: Problem, ev: BoxEvaluator, pool: "_Pool", eps: float, lo, hi) -> dict:
+    def _adjusted(self, problem: Problem, ev: BoxEvaluator, pool: _Pool, eps: float, lo, hi) -> dict:
         """The regression-adjusted posterior (``adjust = "linear"``): ``particles``, ``weights``,
         ``distances`` and the fit's figures, or only a ``note`` saying why there is none."""
         if problem.summaries is None or problem.target_summaries is None:

@@ -34,10 +34,9 @@ from typing import Literal, Optional, Union
 import numpy as np
 from pydantic import Field
 
-from bforest_core.interfaces import OptimizeResult, Optimizer, Problem
+from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import (BoxEvaluator, History, NoiseStop, OptimizerSettings, finite_stats, make_result,
-                      noise_stop_fields)
+from .box import BoxEvaluator, History, NoiseStop, OptimizerSettings, finite_stats, make_result, noise_stop_fields
 
 _NOISE = noise_stop_fields()
 
@@ -154,7 +153,7 @@ class CMAES(Optimizer):
                                "dropped_after": sl.dropped_after} for sl in slots]
         return make_result(ev, log, reason, diag)
 
-    def _es(self, slot: "_Start", pop0: int, seed: int):
+    def _es(self, slot: _Start, pop0: int, seed: int):
         import cma
         s = self.settings
         opts = {"bounds": [0.0, 1.0], "popsize": pop0 * 2 ** slot.run, "seed": seed * 1009 + slot.run + 1 + 7919 * slot.j,
@@ -163,7 +162,7 @@ class CMAES(Optimizer):
             opts["maxiter"] = s.max_generations
         return cma.CMAEvolutionStrategy(slot.x0, s.sigma0, opts)
 
-    def _generation(self, slot: "_Start", grow, ev: BoxEvaluator, log: History, generation: int) -> None:
+    def _generation(self, slot: _Start, grow, ev: BoxEvaluator, log: History, generation: int) -> None:
         """One generation of one start: ask, grow (or let the surrogate rank), tell, log."""
         es, surrogate = slot.es, slot.surrogate
         U = np.asarray(es.ask())

@@ -13,8 +13,17 @@ from pydantic import Field
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import BoxEvaluator, History, OptimizerSettings, SamplingName, StopOptimization, finite_stats, \
-    make_result, sampling_field
+from .box import (
+    UNLIMITED,
+    BoxEvaluator,
+    History,
+    OptimizerSettings,
+    SamplingName,
+    StopOptimization,
+    finite_stats,
+    make_result,
+    sampling_field,
+)
 
 Strategy = Literal["best1bin", "best1exp", "rand1bin", "rand1exp", "rand2bin", "rand2exp", "randtobest1bin",
                    "randtobest1exp", "currenttobest1bin", "currenttobest1exp", "best2bin", "best2exp"]
@@ -52,6 +61,11 @@ class DifferentialEvolution(Optimizer):
     name = "de"
     summary = "scipy differential evolution (vectorised generations, integrality)"
     Settings = DESettings
+
+    @classmethod
+    def budget_settings(cls, settings, budget):
+        """No generation limit (``maxiter``): the budget ends the run."""
+        return {**settings, "maxiter": UNLIMITED}
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         from scipy.optimize import differential_evolution

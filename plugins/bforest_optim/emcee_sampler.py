@@ -38,8 +38,16 @@ from pydantic import Field, model_validator
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import (BoxEvaluator, History, OptimizerSettings, SamplingName, finite_or_none, make_result,
-                      sampling_field, seed_noise)
+from .box import (
+    BoxEvaluator,
+    History,
+    OptimizerSettings,
+    SamplingName,
+    finite_or_none,
+    make_result,
+    sampling_field,
+    seed_noise,
+)
 
 PERCENTILES = (2.5, 16.0, 50.0, 84.0, 97.5)
 
@@ -117,6 +125,12 @@ class EmceeSampler(Optimizer):
     Settings = EmceeSettings
     gives_posterior = True
 
+    @classmethod
+    def budget_settings(cls, settings, budget):
+        """As many ``steps`` as the budget: every step evaluates at least one walker, so the
+        budget ends the run."""
+        return {**settings, "steps": int(budget)}
+
     def minimize(self, problem: Problem) -> OptimizeResult:
         import emcee
 
@@ -152,7 +166,7 @@ class EmceeSampler(Optimizer):
         reason = f"{s.steps} steps done"
         if not ev.stopped:
             state = emcee.State(coords, log_prob=lp0)
-            for i, state in enumerate(sampler.sample(state, iterations=s.steps, progress=False), start=1):
+            for i, state in enumerate(sampler.sample(state, iterations=s.steps, progress=False), start=1):  # noqa: B020
                 d = -state.log_prob * eps
                 fin = np.isfinite(d)
                 log(ev, step=i, mean=float(d[fin].mean()) if fin.any() else math.inf,

@@ -33,8 +33,18 @@ from pydantic import Field, model_validator
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import (BoxEvaluator, History, NoiseStop, OptimizerSettings, SamplingName, finite_stats, make_result,
-                      noise_stop_fields, sampling_field)
+from .box import (
+    UNLIMITED,
+    BoxEvaluator,
+    History,
+    NoiseStop,
+    OptimizerSettings,
+    SamplingName,
+    finite_stats,
+    make_result,
+    noise_stop_fields,
+    sampling_field,
+)
 
 _NOISE = noise_stop_fields()
 
@@ -110,6 +120,11 @@ class GeneticAlgorithm(Optimizer):
     name = "ga"
     summary = "genetic algorithm of the papers (Matlab ga style, integer-aware)"
     Settings = GASettings
+
+    @classmethod
+    def budget_settings(cls, settings, budget):
+        """No generation limit and no stall stop: the budget ends the run."""
+        return {**settings, "generations": UNLIMITED, "stall_generations": UNLIMITED}
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         s: GASettings = self.settings

@@ -13,7 +13,7 @@ from pydantic import Field, field_validator
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import BoxEvaluator, History, OptimizerSettings, make_result
+from .box import BoxEvaluator, History, OptimizerSettings, make_result
 
 #: algorithms that need a local optimiser (``set_local_optimizer``)
 _NEEDS_LOCAL = {"GN_MLSL", "GN_MLSL_LDS", "G_MLSL", "G_MLSL_LDS"}
@@ -109,6 +109,11 @@ class NloptOptimizer(Optimizer):
     name = "nlopt"
     summary = "NLopt derivative-free algorithms (CRS2, ISRES, ESCH, DIRECT, SBPLX, BOBYQA, ...)"
     Settings = NloptSettings
+
+    @classmethod
+    def budget_settings(cls, settings, budget):
+        """The main run's ``maxeval`` is the budget."""
+        return {**settings, "maxeval": int(budget)}
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         import nlopt

@@ -41,9 +41,9 @@ from typing import Literal, Optional, Union
 import numpy as np
 from pydantic import Field
 
-from bforest_core.interfaces import OptimizeResult, Optimizer, Problem
+from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from ._common import BoxEvaluator, History, NoiseStop, OptimizerSettings, finite_stats, make_result, noise_stop_fields
+from .box import BoxEvaluator, History, NoiseStop, OptimizerSettings, finite_stats, make_result, noise_stop_fields
 
 _NOISE = noise_stop_fields()
 
@@ -85,7 +85,7 @@ class Turbo(Optimizer):
     trust region, ``None`` for the design), ``population`` (points in the batch), ``mean``
     (their mean distance), ``noise`` (the GP's noise sd in distance units).
 
-    With a ``patience``, the noise-aware stop (``_common.NoiseStop``) ends the search when the best
+    With a ``patience``, the noise-aware stop (``box.NoiseStop``) ends the search when the best
     distance has not improved by more than the objective's seed noise in that many batches.
     """
 

@@ -26,9 +26,10 @@ import re
 import threading
 import warnings
 from collections import OrderedDict
+from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Literal, Mapping
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import AliasChoices, Field, field_validator, model_validator
@@ -308,6 +309,11 @@ class SlicedDistance(Distance):
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
+
+    @property
+    def statistic(self) -> str:
+        """The per-line statistic of the settings (``Distance.statistic``)."""
+        return self.settings.statistic
 
     # ------------------------------------------------------------------ directions
     def directions(self, d: int) -> np.ndarray:

@@ -11,8 +11,17 @@ import numpy as np
 
 from bforest_core.errors import QSMFormatError
 
-from ._common import (BaseReader, RawCylinders, ReaderSettings, build_tree, float_column,
-                      ids_to_rows, labels_to_int, select_models, sniff_safely)
+from .raw_cylinders import (
+    BaseReader,
+    RawCylinders,
+    ReaderSettings,
+    build_tree,
+    float_column,
+    ids_to_rows,
+    labels_to_int,
+    select_models,
+    sniff_safely,
+)
 
 HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 STRUCT_NAMES = ("qsm", "QSM", "OptQSM", "QSMs")
@@ -413,7 +422,7 @@ def cylinder_struct_to_raw(path, cyl, label: str):
     start = float_column(path, f"{label}.start", need("start"), n, 3)
     axis = float_column(path, f"{label}.axis", need("axis"), n, 3)
     parent = ids_to_rows(path, f"{label}.parent", need("parent"), n, 1, what="parent")
-    extension = (ids_to_rows(path, f"{label}.extension", getattr(cyl, "extension"), n, 1, what="extension")
+    extension = (ids_to_rows(path, f"{label}.extension", cyl.extension, n, 1, what="extension")
                  if "extension" in fields else None)
     added = None
     if "added" in fields:

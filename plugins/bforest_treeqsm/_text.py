@@ -16,9 +16,20 @@ import numpy as np
 
 from bforest_core.errors import QSMFormatError
 
-from ._common import (BaseReader, RawCylinders, ReaderSettings, build_tree, ids_to_rows,
-                      labels_to_int, plural, rows_text, select_models, sniff_safely, warn)
 from ._mat import cyldata14_to_raw, mat_kind
+from .raw_cylinders import (
+    BaseReader,
+    RawCylinders,
+    ReaderSettings,
+    build_tree,
+    ids_to_rows,
+    labels_to_int,
+    plural,
+    rows_text,
+    select_models,
+    sniff_safely,
+    warn,
+)
 
 TREEQSM17_NAMES = ["radius (m)", "length (m)", "start_point", "axis_direction", "parent", "extension",
                    "branch", "branch_order", "position_in_branch", "mad", "SurfCov", "added",
@@ -132,7 +143,7 @@ def parse_table(path, body: bytes, first_line: int, expected: Optional[int], wha
     except Exception:
         _ragged(path, body, first_line, k, what)
         _locate_bad_token(path, body.decode("latin-1"), first_line)
-        raise QSMFormatError(path, "could not read the numbers of the table")
+        raise QSMFormatError(path, "could not read the numbers of the table") from None
     if values.shape[0] == 0:
         raise QSMFormatError(path, "file contains no cylinders")
     if values.shape[1] != k:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from bforest_core.interfaces import ComponentSettings, QSMWriter
-from bforest_core.tree import _jump_to_head, levels, subtree_sum
+from bforest_core.tree import jump_to_head, levels, subtree_sum
 
 from .writers import _options, format_rows
 
@@ -26,7 +26,7 @@ def segments(tree):
     parent = tree.parent
     nchild = np.bincount(parent[parent >= 0], minlength=tree.n)
     is_head = (parent < 0) | (nchild[np.maximum(parent, 0)] > 1)
-    head, dist = _jump_to_head(parent, is_head)
+    head, dist = jump_to_head(parent, is_head)
     heads = np.flatnonzero(is_head)
     seg_of_head = np.full(tree.n, -1)
     seg_of_head[heads] = np.arange(heads.size)
@@ -49,7 +49,7 @@ def stem_branch_id(tree) -> np.ndarray:
     """Per cylinder: 0 on the stem, else k = 1, 2, ... for the stem-attached branch it belongs to
     (with all its sub-branches), as SimpleForest's ``branchID``."""
     br = tree.branches
-    top, _ = _jump_to_head(br.parent_branch, br.order <= 1)
+    top, _ = jump_to_head(br.parent_branch, br.order <= 1)
     first_order = np.flatnonzero(br.order == 1)
     label = np.zeros(len(br), dtype=np.int64)
     label[first_order] = np.arange(1, first_order.size + 1)

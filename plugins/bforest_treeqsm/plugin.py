@@ -19,10 +19,10 @@ tools' CSV layouts ``simpleforest-csv`` and ``archi-csv`` (by name), and the syn
 """
 from bforest_core.hookspecs import hookimpl
 
-from ._common import QSMReadWarning
 from ._mat import CylDataMatReader, TreeQSMFlatReader, TreeQSMMatReader
 from ._text import ArchiCSVReader, NativeCSVReader, SimpleForestCSVReader, TreeQSMTextReader
 from .foreign_csv import ArchiCSVWriter, SimpleForestCSVWriter
+from .raw_cylinders import QSMReadWarning
 from .scan import LASWriter, XYZWriter
 from .writers import CSVWriter, OBJWriter, PLYWriter, TreeQSMMatWriter, TreeQSMTextWriter
 

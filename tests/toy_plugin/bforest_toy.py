@@ -13,8 +13,17 @@ import time
 import numpy as np
 from pydantic import Field
 
-from bforest_core import (SSM, ComponentSettings, Distance, FeatureSet, OptimizeResult, Optimizer,
-                          ParameterSpec, SimulationFailed, Tree)
+from bforest_core import (
+    SSM,
+    ComponentSettings,
+    Distance,
+    FeatureSet,
+    Optimizer,
+    OptimizeResult,
+    ParameterSpec,
+    SimulationFailed,
+    Tree,
+)
 from bforest_core.hookspecs import hookimpl
 
 
@@ -101,6 +110,14 @@ class ToyRandomSearch(Optimizer):
 
     name = "toy-random"
     Settings = ToyRandomSettings
+
+    def expected_evaluations(self, dim):
+        return self.settings.batch * self.settings.batches
+
+    @classmethod
+    def budget_settings(cls, settings, budget):
+        # a field name the core does not know: only this class lifts it for a comparison
+        return {**settings, "batches": -(-int(budget) // settings.get("batch", 8))}
 
     def minimize(self, problem):
         rng = np.random.default_rng(problem.seed)

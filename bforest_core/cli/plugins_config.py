@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 
-
 from .common import Parser
 
 
@@ -14,7 +13,7 @@ def cmd_plugins(args):
     print(f"{'kind':<11} {'name':<16} {'distribution':<28} summary")
     for e in rows:
         dist = f"{e.distribution} {e.version}"
-        summ = getattr(e.cls, "summary", "") or (e.cls.__doc__ or "").strip().split("\n")[0]
+        summ = e.cls.summary or (e.cls.__doc__ or "").strip().split("\n")[0]
         print(f"{e.kind:<11} {e.name:<16} {dist:<28} {summ}")
     for (kind, name), entries in sorted(reg.conflicts.items()):
         who = ", ".join(f"{x.distribution} {x.version}" for x in entries)

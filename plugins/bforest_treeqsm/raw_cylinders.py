@@ -1,4 +1,5 @@
-"""Shared reader machinery: option handling, id conversion, validation, repairs, Tree building.
+"""The raw cylinder table every reader makes, and how it becomes a Tree: option handling, id
+conversion, validation, repairs, Tree building.
 
 Every reader turns its file into a :class:`RawCylinders` table (file row order, 0-based ids,
 -1 = none) and hands it to :func:`build_tree`, which applies the rules of

@@ -1,4 +1,5 @@
-"""Pieces shared by the optimisers: the checked box, the evaluation wrapper, logging, results.
+"""The box an optimiser searches, as the optimisers of this plugin see it: the checked box, the
+evaluation wrapper, logging, results, the noise-aware stop.
 
 Every optimiser of this plugin talks to its :class:`~bforest_core.interfaces.Problem` through a
 :class:`BoxEvaluator`, which
@@ -24,6 +25,11 @@ from pydantic import Field
 from bforest_core.interfaces import ComponentSettings, OptimizeResult, Problem
 
 SamplingName = Literal["halton", "sobol", "lhs", "random"]
+
+
+#: a length limit (generations, iterations) high enough that the evaluation budget ends the run
+#: first (``Optimizer.budget_settings``)
+UNLIMITED = 10**6
 
 
 class StopOptimization(Exception):
@@ -300,10 +306,10 @@ class NoiseStop:
         self.since = 0           # generations since then
         self.reason = ""
 
-    def _measure(self, ev: "BoxEvaluator") -> float:
+    def _measure(self, ev: BoxEvaluator) -> float:
         return 0.0 if ev.best_x is None else seed_noise(self.problem, ev.best_x, self.k)
 
-    def __call__(self, ev: "BoxEvaluator") -> bool:
+    def __call__(self, ev: BoxEvaluator) -> bool:
         """Call once per generation; True when the run should stop (``reason`` says why).
 
         Generations are judged in windows of ``patience``: at the end of a window the noise is

@@ -1,0 +1,157 @@
+"""Scoring: a tree's distance to the target, per data set and term, and the objective.
+
+:func:`build_scoring` builds, from a config and the target's tables, everything that scores a
+tree: the growth model, and per term of the objective its model-side feature set and its
+distance prepared on the term's data sets. The fit's workers hold one (:mod:`.worker`); the
+report builds one to recompute a run's numbers. :func:`score_tree` and :func:`combine_terms` use
+it; ``_simulate_with_timeout`` grows a tree under the objective's time limit.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import threading
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from ..interfaces import Distance, FeatureSet
+from ..registry import component
+from .target import Term, feature_set_for, term_specs
+
+
+@dataclass
+class PreparedTerm:
+    """A term of the objective ready to score model trees: its model-side feature set and its
+    distance prepared on the term's data sets."""
+
+    term: Term
+    features: FeatureSet
+    distance: Distance
+    U_data: dict[str, np.ndarray]
+
+
+class _Timeout(Exception):
+    pass
+
+
+#: what a model's simulation or feature extraction may raise besides SimulationFailed: the
+#: evaluation is then a failure with status "error", never a crash of the run. A plugin's code
+#: may raise anything (AttributeError, its own exception classes, even SystemExit from sys.exit()).
+_MODEL_ERRORS = (Exception, SystemExit)
+
+
+def build_scoring(cfg, U_data: dict, columns: dict, feature_settings: dict,
+                  terms: list[dict] | None = None) -> dict[str, Any]:
+    """What scores a tree against the target, built as the fit's workers build it.
+
+    Parameters
+    ----------
+    cfg : RunConfig or dict
+        The run's config (a dict as :func:`~bforest_core.config.config_to_dict` gives it).
+    U_data, columns : dict
+        The target's data tables and their column names (``Target.U``, ``Target.columns``).
+    feature_settings : dict
+        The data-side feature set's resolved settings (``Target.feature_settings``).
+    terms : list of Term, optional
+        ``Target.terms``; rebuilt from the config when None (a run written before they were kept).
+
+    Returns
+    -------
+    dict
+        ``ssm``; ``terms`` (a :class:`PreparedTerm` per term);
+        ``features``/``distance`` of the first term; ``U_data``, ``weights``, ``penalty``,
+        ``timeout`` and ``worker`` (host:pid).
+    """
+    from ..config import parse_config, ssm_settings
+    if isinstance(cfg, dict):
+        cfg = parse_config(cfg)
+    if terms is None:  # rebuilt from the config (a report reading an older or partial run)
+        terms = term_specs(cfg)
+        terms[0] = replace(terms[0], features=feature_settings)
+    built = []
+    for spec in terms:
+        Ud = spec.own(U_data)
+        dist = component("distance", spec.distance_kind, **spec.distance)
+        dist.prepare(Ud, spec.own(columns))
+        built.append(PreparedTerm(spec, feature_set_for(cfg, "model", spec.features, spec.features_kind), dist, Ud))
+    return dict(
+        ssm=component("ssm", cfg.ssm.kind, **ssm_settings(cfg)),
+        features=built[0].features, distance=built[0].distance, terms=built,
+        U_data=U_data, weights=cfg.objective.weights, penalty=cfg.objective.penalty,
+        timeout=cfg.objective.timeout, worker=f"{socket.gethostname()}:{os.getpid()}")
+
+
+def score_tree(tree, scoring: dict) -> tuple[dict[str, float | None], dict[str, int]]:
+    """Distance per data set of every term (keys as in ``Target.U``) and the model's rows per
+    set, for one tree (``scoring`` from :func:`build_scoring`)."""
+    per_set, n_rows = {}, {}
+    for t in scoring["terms"]:
+        U = t.features.extract(tree)
+        for k, v in t.distance.compute_per_set(U, t.U_data).items():
+            per_set[t.term.prefix + k] = v
+        for k, v in U.items():
+            n_rows[t.term.prefix + k] = int(v.shape[0])
+    return per_set, n_rows
+
+
+def combine_terms(per_set: dict[str, float | None], scoring: dict) -> tuple[float, dict[str, float]]:
+    """The objective (weighted mean of the terms) and each term's own value."""
+    values, num, den = {}, 0.0, 0.0
+    for t in scoring["terms"]:
+        term = t.term
+        values[term.name] = float(t.distance.combine(term.own(per_set), term.set_weights))
+        num += term.weight * values[term.name]
+        den += term.weight
+    return num / den, values
+
+
+def with_term_values(per_set: dict, values: dict[str, float]) -> dict:
+    """``per_set`` plus ``term:<name>`` entries when the objective has more than one term."""
+    if len(values) < 2:
+        return dict(per_set)
+    return {**per_set, **{f"term:{k}": v for k, v in values.items()}}
+
+
+def set_summaries(U: dict[str, np.ndarray], names, trees: int = 1) -> np.ndarray:
+    """Summary statistics of data sets ``U`` (keys as in ``Target.U``) pooled over ``trees`` trees,
+    in the order of ``names``: per set the log of one plus its rows per tree, then its columns'
+    means (0 for an empty set). What a regression adjustment regresses the parameters on
+    (``Problem.summaries``)."""
+    out = []
+    for k in names:
+        v = np.asarray(U[k], float)
+        if v.ndim != 2:  # a set of one column, or nothing
+            v = v.reshape(-1, 1)
+        out.append(np.log1p(v.shape[0] / max(int(trees), 1)))
+        out.extend(v.mean(axis=0) if v.shape[0] else np.zeros(v.shape[1]))
+    return np.asarray(out, float)
+
+
+def _alarm(signum, frame):
+    raise _Timeout()
+
+
+def _simulate_with_timeout(ssm, params, seed, timeout):
+    use_alarm = (timeout is not None and hasattr(signal, "setitimer")
+                 and threading.current_thread() is threading.main_thread())
+    if not use_alarm:
+        return _checked_tree(ssm, ssm.simulate(params, seed))
+    old = signal.signal(signal.SIGALRM, _alarm)
+    signal.setitimer(signal.ITIMER_REAL, float(timeout))
+    try:
+        tree = ssm.simulate(params, seed)
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+    return _checked_tree(ssm, tree)
+
+
+def _checked_tree(ssm, tree):
+    """What ``simulate`` returned, when it is a :class:`Tree` (a plugin may return None)."""
+    from ..tree import Tree
+    if not isinstance(tree, Tree):
+        raise TypeError(f"ssm '{ssm.name}': simulate returned {type(tree).__name__}, not a Tree")
+    return tree

@@ -1,0 +1,112 @@
+"""The target of a run: its data tree(s), the objective's terms and their data tables.
+
+Built once per run in the main process (:func:`build_target`); the tables travel to each worker
+once (:mod:`.worker`).
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from ..registry import component
+
+#: name of the [features]/[distance] term when the objective has more than one
+STRUCTURE = "structure"
+
+
+def feature_set_for(cfg, side: str, settings: dict | None = None, kind: str | None = None):
+    """The feature set of one side (``"target"`` or ``"model"``), honouring per-side topology.
+
+    ``settings`` defaults to the ``[features]`` section; the model side passes the data side's
+    resolved settings so it extracts exactly the same sets. ``kind`` defaults to
+    ``[features] kind`` (other terms name their own).
+    """
+    from ..config import section_settings
+    settings = dict(section_settings(cfg, "features") if settings is None else settings)
+    rule = cfg.target.topology if side == "target" else getattr(cfg.ssm, "topology", None)
+    if rule is not None and "topology" in settings:
+        settings["topology"] = rule
+    return component("features", kind or cfg.features.kind, **settings)
+
+
+@dataclass(frozen=True)
+class Term:
+    """One term of the objective: a feature set and a distance (kinds and settings), the term's
+    weight in the objective and the weights of its data sets.
+
+    Its data sets are keyed ``prefix + set name`` wherever the terms' sets are pooled
+    (``Target.U``, an evaluation's ``per_set``): the ``[features]``/``[distance]`` term has the
+    prefix ``""`` (its sets keep their own names), a ``[[objective.terms]]`` entry ``"<name>/"``.
+    """
+
+    name: str
+    prefix: str
+    weight: float
+    set_weights: dict[str, float] | None
+    features_kind: str
+    features: dict
+    distance_kind: str
+    distance: dict
+
+    def own(self, by_set: Mapping[str, Any]) -> dict[str, Any]:
+        """The entries of ``by_set`` (keyed as in ``Target.U``) that are this term's, keyed by its
+        own set names."""
+        pre = self.prefix
+        return {k[len(pre):]: v for k, v in by_set.items() if k.startswith(pre) and (pre or "/" not in k)}
+
+
+def term_specs(cfg) -> list[Term]:
+    """The terms of the objective: the ``[features]``/``[distance]`` term first, then each
+    ``[[objective.terms]]`` entry."""
+    from ..config import section_settings
+    o = cfg.objective
+    specs = [Term(name=STRUCTURE, prefix="", weight=float(o.structure_weight), set_weights=o.weights,
+                  features_kind=cfg.features.kind, features=section_settings(cfg, "features"),
+                  distance_kind=cfg.distance.kind, distance=section_settings(cfg, "distance"))]
+    for t in o.terms:
+        specs.append(Term(name=t.name, prefix=f"{t.name}/", weight=float(t.weight), set_weights=t.weights,
+                          features_kind=t.features["kind"],
+                          features={k: v for k, v in t.features.items() if k != "kind"},
+                          distance_kind=t.distance["kind"],
+                          distance={k: v for k, v in t.distance.items() if k != "kind"}))
+    return specs
+
+
+def load_target_trees(cfg) -> list:
+    """The data tree(s) of the run: read from the QSM file or grown by the named SSM."""
+    from ..io import read_qsm
+    t = cfg.target
+    if t.generate is not None:
+        ssm = component("ssm", t.generate.ssm, **t.generate.settings)
+        return [ssm.simulate(dict(t.generate.params), int(t.generate.seed))]
+    opts = {}
+    if t.select is not None:
+        opts["select"] = t.select
+    trees = read_qsm(t.qsm, reader=t.reader, **opts)
+    return list(trees) if isinstance(trees, (list, tuple)) else [trees]
+
+
+@dataclass
+class Target:
+    trees: list
+    U: dict[str, np.ndarray]         # every term's data sets (other terms' as "<term>/<set>")
+    columns: dict[str, list[str]]
+    feature_settings: dict          # the data-side feature set after prepare (resolved sets)
+    terms: list[Term] | None = None  # term_specs with each term's resolved feature settings
+
+
+def build_target(cfg, trees=None) -> Target:
+    trees = load_target_trees(cfg) if trees is None else trees
+    U, cols, terms = {}, {}, []
+    for spec in term_specs(cfg):
+        fs = feature_set_for(cfg, "target", spec.features, spec.features_kind)
+        fs.prepare(trees)
+        Ut = fs.extract_pooled(trees)
+        for k in fs.set_names:
+            U[spec.prefix + k] = Ut[k]
+            cols[spec.prefix + k] = fs.columns(k)
+        terms.append(replace(spec, features=fs.resolved_settings()))
+    return Target(trees, U, cols, terms[0].features, terms)

@@ -1,0 +1,146 @@
+"""The worker side of a run: each worker's scoring context and the tasks it runs.
+
+The executor starts each worker with :func:`init_worker` as initializer (:func:`started_workers`):
+the worker builds its scoring context (:func:`~.scoring.build_scoring`) once, so the target is
+loaded once per worker, never per evaluation. :func:`evaluate_task` and :func:`summary_task` run
+in an initialised worker; a task whose worker dies or is stopped becomes a failed evaluation
+(:func:`_lost_task`, the executor's ``on_lost``).
+"""
+from __future__ import annotations
+
+import functools
+import time
+from typing import Any
+
+import numpy as np
+
+from ..errors import SimulationFailed
+from ..registry import component
+from .scoring import (
+    _MODEL_ERRORS,
+    _simulate_with_timeout,
+    _Timeout,
+    build_scoring,
+    combine_terms,
+    score_tree,
+    set_summaries,
+    with_term_values,
+)
+from .target import Target, Term
+
+#: this worker's scoring context (:func:`~.scoring.build_scoring`), set by :func:`init_worker`
+_CTX: dict[str, Any] = {}
+
+
+def init_worker(cfg_dict: dict, U_data: dict, columns: dict, feature_settings: dict,
+                terms: list[Term] | None = None) -> None:
+    """Executor initializer: build the components of every term once in this process and
+    prepare each distance on its data sets."""
+    ctx = build_scoring(cfg_dict, U_data, columns, feature_settings, terms)
+    _CTX.clear()
+    _CTX.update(ctx)
+
+
+def worker_context() -> dict[str, Any]:
+    """This worker's scoring context; RuntimeError when :func:`init_worker` has not run here."""
+    if not _CTX:
+        raise RuntimeError("worker not initialised (init_worker was not run)")
+    return _CTX
+
+
+def summary_task(task: tuple[dict, list[int]]) -> np.ndarray | None:
+    """The summary statistics (:func:`~.scoring.set_summaries`) of one parameter vector's trees,
+    averaged over its model seeds, in an initialised worker; None when a simulation or its data
+    sets fail, as :func:`evaluate_task` counts them."""
+    params, seeds = task
+    c = worker_context()
+    rows = []
+    for seed in seeds:
+        try:
+            tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
+            U = {}
+            for t in c["terms"]:
+                U.update({t.term.prefix + k: v for k, v in t.features.extract(tree).items()})
+        except (SimulationFailed, _Timeout, *_MODEL_ERRORS):
+            return None
+        rows.append(set_summaries(U, list(c["U_data"])))
+    return np.mean(rows, axis=0)
+
+
+def run_executor(cfg):
+    """The executor of the run's ``[executor]`` section."""
+    from ..config import section_settings
+    return component("executor", cfg.executor.kind, **section_settings(cfg, "executor"))
+
+
+def started_workers(cfg, tgt: Target, executor=None):
+    """The run's executor (or ``executor``) started with :func:`init_worker` on the target, as a
+    context manager: the target's tables travel to each worker once."""
+    from ..config import config_to_dict
+    ex = run_executor(cfg) if executor is None else executor
+    # Executor.on_lost/time_limit: what a dead or stuck worker's task becomes, and when a task is
+    # stuck (honoured by an executor that can stop a worker, ignored by the others)
+    ex.on_lost = functools.partial(_lost_task, cfg.objective.penalty, list(tgt.U))
+    timeout = cfg.objective.timeout
+    ex.time_limit = None if timeout is None else functools.partial(_task_limit, timeout)
+    return ex.started(init_worker, (config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms))
+
+
+def _task_limit(timeout: float, item) -> float:
+    """Seconds a task of ``item`` may run before the process executor stops its worker: each
+    of its simulations' ``[objective] timeout`` (the worker's own alarm stops one that runs
+    Python code; this stops one stuck in C) plus a margin for scoring."""
+    seeds = item[1] if isinstance(item, tuple) and len(item) == 2 and isinstance(item[1], (list, tuple)) else (0,)
+    return max(1, len(seeds)) * float(timeout) + max(2.0, float(timeout))
+
+
+def _lost_task(penalty: float, names: list, fn, item, status: str, message: str):
+    """The result of a task whose worker died or was stopped (the process executor's
+    ``on_lost``): a failed evaluation with the penalty, no summaries, or the task's own
+    ``lost_result``; ``NotImplemented`` (the executor raises) for any other task."""
+    if fn is evaluate_task:
+        return dict(distance=float(penalty), per_set={k: None for k in names}, status=status, message=message[:500],
+                    seconds=0.0, worker="", n_rows={})
+    if fn is summary_task:
+        return None
+    hook = getattr(fn, "lost_result", None)
+    return NotImplemented if hook is None else hook(item, status, message)
+
+
+def evaluate_task(task: tuple[dict, list[int]]) -> dict:
+    """Score one parameter vector with K seeds in this worker. Never raises: failures come
+    back with a status and the penalty distance."""
+    params, seeds = task
+    c = worker_context()
+    t0 = time.perf_counter()
+    per_seed, n_rows = [], {}
+    status, message = "ok", ""
+    for seed in seeds:
+        try:
+            tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
+            ps, rows = score_tree(tree, c)
+            per_seed.append(ps)
+            for k, v in rows.items():
+                n_rows[k] = n_rows.get(k, 0) + v
+        except SimulationFailed as exc:
+            status, message = exc.status, str(exc)
+            break
+        except _Timeout:
+            status, message = "timeout", f"simulation exceeded {c['timeout']} s"
+            break
+        except _MODEL_ERRORS as exc:
+            status = "error"
+            message = f"{type(exc).__name__}: {exc}"[:500]
+            break
+    seconds = time.perf_counter() - t0
+    if status != "ok":
+        names = list(c["U_data"])
+        return dict(distance=float(c["penalty"]), per_set={k: None for k in names}, status=status,
+                    message=message, seconds=seconds, worker=c["worker"], n_rows={})
+    per_set = {}
+    for k in per_seed[0]:
+        vals = [p[k] for p in per_seed if p[k] is not None]
+        per_set[k] = float(np.mean(vals)) if vals else None
+    total, values = combine_terms(per_set, c)
+    return dict(distance=float(total), per_set=with_term_values(per_set, values), status="ok", message="", seconds=seconds,
+                worker=c["worker"], n_rows={k: v // len(seeds) for k, v in n_rows.items()})

@@ -27,6 +27,9 @@ def _fit_and_report(args, cfg, out, fit):
         print(f"{out}: this run had already finished; nothing was simulated (grow clones with "
               f"'bforest clones {out}', or start anew with --overwrite)")
     print(f"best distance {res.distance:.4f} after {res.n_evaluations} evaluations ({res.stop_reason})")
+    short = (res.diagnostics or {}).get("stopped_short")
+    if short:
+        print(f"WARNING: the sampler stopped short of its target: {short}")
     for title, names in (("fitted", list(cfg.ssm.free)), ("fixed", [k for k in res.params if k not in cfg.ssm.free])):
         if names:
             print(f"{title}:")

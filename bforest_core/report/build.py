@@ -12,7 +12,9 @@ Figures:
 * ``set_<set>.png``: data (QSM, blue) against model (SSM, red) for every fitted set (Fig. 3);
 * ``lines_<set>.png``: ECDFs on the worst-fitting projection lines with the KS gap;
 * ``convergence.png``, ``parameters.png``: the optimiser's progress and where it searched;
-* ``chain.png``, ``corner.png``: MCMC trace and posterior (emcee runs);
+* ``corner.png``: the posterior's marginals and pairs (every sampler that gives a posterior, with
+  the true values of a generated target); ``chain.png``: the trace of a chain (MCMC);
+  ``generations.png``: tolerance, acceptance and ESS per generation (a population sampler);
 * ``clones.png``, ``clone_metrics.png``: clones beside the target and their metric
   distributions (Fig. 5);
 * ``profile_<param>.png``: made by ``bforest profile`` (Fig. 4), included when present.
@@ -31,10 +33,10 @@ from .attributes import fig_distributions
 from .convergence import fig_convergence
 from .datasets import fig_sets
 from .document import Document, slug
-from .posterior import fig_mcmc
+from .posterior import fig_posterior
 from .run_view import RunView
 from .sections import (section_clones, section_evaluations, section_fit, section_model, section_optimizer,
-                       section_parameters, section_profiles, section_summary, section_target)
+                       section_parameters, section_profiles, section_summary, section_target, stopped_short)
 from .trees import fig_clones, fig_trees
 
 __all__ = ["write_report", "RunView", "slug"]
@@ -69,7 +71,7 @@ class _Figures:
 #: about half as long: the two groups cost about the same
 _SIDE = [("sets", "data sets", fig_sets)]
 _MAIN = [("trees", "trees", fig_trees), ("convergence", "convergence", fig_convergence),
-         ("mcmc", "MCMC", fig_mcmc), ("clones", "clones", fig_clones),
+         ("posterior", "posterior", fig_posterior), ("clones", "clones", fig_clones),
          ("clones", "distributions", fig_distributions)]
 
 
@@ -174,6 +176,8 @@ def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool 
     doc.h(2, "Notes")
     from .. import __version__
     notes = list(v.notes)
+    if stopped_short(v):
+        notes.insert(0, f"WARNING: the sampler stopped short of its target: {stopped_short(v)}")
     if not figures:
         notes.append("figures were not drawn (figures=False)")
     doc.items(notes or ["none"])

@@ -17,6 +17,7 @@ ORDER_COLORS = ("#5a3a1a", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#d62728"
 DATA_COLOR = "#1f5fbf"   # QSM / target (blue, as in the GigaScience figures)
 MODEL_COLOR = "#d62728"  # SSM / model (red)
 TARGET_LINE = "black"
+TRUE_COLOR = "#2ca02c"   # the true parameters of a generated target (green)
 
 #: view name -> (horizontal coordinate, vertical coordinate, coordinate pointing at the viewer,
 #: sign). "xz" looks along +y (y points away), "yz" along -x, "xy" down from above.

@@ -95,6 +95,22 @@ class RunView:
         ev = self.store.best()
         return None if ev is None else dict(ev.params)
 
+    @cached_property
+    def true_params(self) -> dict[str, float]:
+        """The free parameters' true values where the target was grown by the fitted model
+        (``[target.generate]`` with the same ``ssm``): the generating parameters, a parameter it
+        leaves out at the model's default. Empty for a QSM target or another model's tree."""
+        gen = self.cfg.target.generate if self.cfg is not None else None
+        if gen is None or gen.ssm != self.cfg.ssm.kind:
+            return {}
+        out = {}
+        for name in self.free_names:
+            if name in gen.params:
+                out[name] = float(gen.params[name])
+            elif name in self.param_specs and self.param_specs[name].default is not None:
+                out[name] = float(self.param_specs[name].default)
+        return out
+
     @property
     def best_seeds(self) -> list[int]:
         if self.best is not None and self.best.get("seeds"):

@@ -78,8 +78,11 @@ def corner_figure(samples: np.ndarray, names: Sequence[str], path, truths: Seque
         lo, hi = (float(S[:, j].min()), float(S[:, j].max())) if n else (0.0, 1.0)
         if bounds is not None:
             lo, hi = max(lo, bounds[j][0]) if n else bounds[j][0], min(hi, bounds[j][1]) if n else bounds[j][1]
-        if true_values[j] is not None:  # the truth stays in view, also outside the posterior's range
-            lo, hi = min(lo, true_values[j]), max(hi, true_values[j])
+        t = true_values[j]
+        if t is not None and not lo <= t <= hi:  # the truth stays in view, also outside the posterior's range
+            lo, hi = min(lo, t), max(hi, t)
+            pad = 0.04 * (hi - lo)
+            lo, hi = (lo - pad, hi) if t == lo else (lo, hi + pad)
         if hi <= lo:
             lo, hi = lo - 0.5 * max(abs(lo), 1e-3), hi + 0.5 * max(abs(hi), 1e-3)
         rng.append((lo, hi))

@@ -374,7 +374,7 @@ class AbcSmc(Optimizer):
         eps = eps_hist[-1]
         noise = s.epsilon_target == "noise"
         target = target_hist[-1] if target_hist else (0.0 if noise else float(s.epsilon_target))
-        floor = " (the distance's noise floor)" if noise else ""
+        floor = ", the distance's noise floor," if noise else ""
         if len(eps_hist) == 1:
             return (f"stopped before its first generation ({reason}): the posterior is the prior draws, "
                     "not a posterior")

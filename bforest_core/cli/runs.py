@@ -93,7 +93,9 @@ def _clones_and_report(args):
 
 def cmd_report(args):
     from ..report.build import write_report
-    p = write_report(args.run_dir)
+    if args.dpi is not None and not 20 <= args.dpi <= 2400:
+        raise UsageError(f"--dpi must be between 20 and 2400 (got {args.dpi})")
+    p = write_report(args.run_dir, format=args.format, dpi=args.dpi)
     print(f"report: {p}")
     return 0
 
@@ -170,8 +172,12 @@ def add_commands(sub) -> None:
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_clones)
 
-    s = sub.add_parser("report", help="figures (PNG) and a summary (Markdown/HTML) of a run")
+    s = sub.add_parser("report", help="figures (PNG, SVG or PDF) and a summary (Markdown/HTML) of a run")
     s.add_argument("run_dir", metavar="DIR", help="a run directory (bforest fit output)")
+    s.add_argument("--format", default="png", choices=("png", "svg", "pdf"),
+                   help="format of every figure (default: png; pdf also writes PNG previews for report.html)")
+    s.add_argument("--dpi", type=int, default=None,
+                   help="resolution of raster figures and of the raster parts of vector ones (default: 120-130)")
     s.set_defaults(func=cmd_report)
 
     s = sub.add_parser("compare", help="compare optimisers on equal evaluation budgets")

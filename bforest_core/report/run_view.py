@@ -275,6 +275,27 @@ class RunView:
                 rows.append(out)
         return rows
 
+    def clone_trees(self, k: int) -> list[tuple[str, object]]:
+        """The first ``k`` clones grown ok, read from their files: ``(label, tree)`` with the
+        label ``"clone <i>\nD = <distance>"``; a file that cannot be read is a note."""
+        from ..io import read_qsm
+        shown = []
+        for r in self.clone_rows:
+            if len(shown) >= k:
+                break
+            f = r.get("file")
+            if r.get("status") != "ok" or not f or not (self.path / "clones" / f).exists():
+                continue
+            try:
+                t = read_qsm(self.path / "clones" / f)
+                t = t[0] if isinstance(t, list) else t
+            except Exception as exc:
+                self.note(f"clone file {f} could not be read ({type(exc).__name__}: {exc})")
+                continue
+            d = r.get("distance")
+            shown.append((f"clone {int(r['index'])}" + (f"\nD = {d:.3f}" if d is not None and np.isfinite(d) else ""), t))
+        return shown
+
     @cached_property
     def clone_summary(self) -> dict | None:
         p = self.path / "clones" / "summary.json"

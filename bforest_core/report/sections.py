@@ -343,6 +343,7 @@ def section_clones(doc: Document, v: RunView, figs):
     if not rows:
         doc.p("No clones yet: grow them with `bforest clones " + str(v.path) + "` (the report is updated "
               "afterwards).")
+        section_view3d(doc, v)
         return
     ok = [r for r in rows if r.get("status") == "ok"]
     failed = Counter(r.get("status") for r in rows if r.get("status") != "ok")
@@ -364,6 +365,24 @@ def section_clones(doc: Document, v: RunView, figs):
     section_fidelity(doc, v)
     for rel_path, cap in figs.made.get("clones", []):
         doc.fig(rel_path, cap)
+    section_view3d(doc, v)
+
+
+def section_view3d(doc: Document, v: RunView, clones: int = 4):
+    """The interactive 3-D view (report.html): the target beside its first ``clones`` clones, or
+    beside the best fit while there are none."""
+    from .view3d import view3d_html
+    trees = [("target", v.target_tree)] if v.target_tree is not None else []
+    shown = v.clone_trees(clones)
+    if shown:
+        trees += shown
+    elif v.best_tree is not None:
+        trees.append(("best fit", v.best_tree))
+    if len(trees) < 2:
+        return
+    doc.h(3, "3-D view")
+    names = ", ".join(label.split("\n")[0] for label, _ in trees)
+    doc.raw_html(view3d_html(trees), f"An interactive 3-D view of {names} (drag to turn them) is in report.html.")
 
 
 def section_fidelity(doc: Document, v: RunView):

@@ -31,19 +31,32 @@ def _figures(md: str) -> list[str]:
 
 @pytest.fixture(scope="module")
 def sampler_run(toy_plugin, tmp_path_factory):
-    """A toy abc-smc fit with clones: every kind of figure a report draws (trees, data sets,
-    convergence, parameters, corner, generations, clones, their metrics and distributions)."""
+    """A toy abc-smc fit with clones and its PNG report, every kind of figure a report draws
+    (trees, data sets, convergence, parameters, corner, generations, clones, their metrics and
+    distributions), drawn in this process; returns the run and every ``(figure, file, dpi)`` saved."""
+    import bforest_core.report.build as build
     base = tmp_path_factory.mktemp("formats")
     p = toy_config(base, optimizer="abc-smc", optimizer_settings="particles = 10\ngenerations = 3", budget=200)
     bf.fit(bf.load_config(p), base / "run", progress=False)
     grow_clones(base / "run", n=4, progress=False)
-    write_report(base / "run", strict=True)
-    return base / "run"
+    saved, real_save, real_cores = [], Figure.savefig, build._cores
+
+    def spy(self, fname, *a, **kw):
+        saved.append((self, Path(fname), kw.get("dpi")))
+        return real_save(self, fname, *a, **kw)
+
+    Figure.savefig, build._cores = spy, (lambda: 1)
+    try:
+        write_report(base / "run", strict=True)
+    finally:
+        Figure.savefig, build._cores = real_save, real_cores
+    return base / "run", saved
 
 
 @pytest.mark.parametrize("fmt", ["svg", "pdf"])
 def test_every_figure_is_written_in_the_chosen_format(sampler_run, tmp_path, fmt):
     from bforest_core.cli import main
+    sampler_run, _ = sampler_run
     png = _figures((sampler_run / "report.md").read_text())
     stems = sorted(Path(f).stem for f in png)
     assert {"trees", "convergence", "parameters", "corner", "generations", "clones", "clone_metrics",
@@ -68,16 +81,21 @@ def test_every_figure_is_written_in_the_chosen_format(sampler_run, tmp_path, fmt
         assert sorted(p.stem for p in (run / "figures").glob("*.png")) == stems
 
 
-def test_dpi_sets_the_resolution_and_a_bad_value_is_one_line(sampler_run, tmp_path, capsys):
+def test_dpi_sets_the_resolution_and_a_bad_value_is_one_line(tmp_path, capsys, monkeypatch):
     from bforest_core.cli import main
-    run = tmp_path / "run"
-    shutil.copytree(sampler_run, run)
-    w130, h130 = png_size(sampler_run / "figures" / "convergence.png")  # drawn at its own 130 dpi
-    assert main(["report", str(run), "--dpi", "260"]) == 0
-    w260, h260 = png_size(run / "figures" / "convergence.png")
+    from bforest_core.report.canvas import figure_output
+    d = np.r_[0.5, 0.4, 0.3, 0.35, 0.2]
+    w130, h130 = png_size(convergence.convergence_figure(d, tmp_path / "a.png"))  # its own 130 dpi
+    with figure_output("png", 260):
+        w260, h260 = png_size(convergence.convergence_figure(d, tmp_path / "b.png"))
     assert w260 / w130 == pytest.approx(2.0, rel=0.01) and h260 / h130 == pytest.approx(2.0, rel=0.01)
+    seen = {}
+    monkeypatch.setattr("bforest_core.report.build.write_report",
+                        lambda run, **kw: seen.update(kw) or Path(run) / "report.md")
+    assert main(["report", str(tmp_path), "--format", "svg", "--dpi", "300"]) == 0
+    assert seen == {"format": "svg", "dpi": 300}
     capsys.readouterr()
-    assert main(["report", str(run), "--dpi", "5"]) == 2
+    assert main(["report", str(tmp_path), "--dpi", "5"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["error: --dpi must be between 20 and 2400 (got 5)"]
 
@@ -109,7 +127,8 @@ def test_no_report_figure_is_clipped(sampler_run, tmp_path, monkeypatch):
     """Every figure of a report, and the worst-lines figure whose long line formulas reach past
     the right edge, is saved as the box of everything drawn on it (plus a 0.05 in pad)."""
     from bforest_core.report import datasets
-    saved = []
+    _, saved = sampler_run
+    saved = list(saved)
     real = Figure.savefig
 
     def spy(self, fname, *a, **kw):
@@ -117,16 +136,11 @@ def test_no_report_figure_is_clipped(sampler_run, tmp_path, monkeypatch):
         return real(self, fname, *a, **kw)
 
     monkeypatch.setattr(Figure, "savefig", spy)
-    run = tmp_path / "run"
-    shutil.copytree(sampler_run, run)
-    monkeypatch.setattr("bforest_core.report.build._cores", lambda: 1)  # every figure in this process
-    write_report(run, strict=True)
     rng = np.random.default_rng(2)  # line formulas of S0,1's columns that reach past the right edge
     ud, um = rng.normal(size=(200, 6)), rng.normal(0.3, 1, size=(150, 6))
     A = rng.normal(size=(32, 6))
     A /= np.linalg.norm(A, axis=1, keepdims=True)
-    datasets.worst_lines_figure(um, ud, A,
-                                ["R", "L", "sin(gamma)", "cos(gamma)", "sin(zeta)", "cos(zeta)"],
+    datasets.worst_lines_figure(um, ud, A, ["R", "L", "sin(gamma)", "cos(gamma)", "sin(zeta)", "cos(zeta)"],
                                 tmp_path / "lines.png", k=4, normalised=True)
     pngs = [(f, p, dpi) for f, p, dpi in saved if p.suffix == ".png"]
     assert len(pngs) >= 10

@@ -43,11 +43,14 @@ def new_figure(width: float, height: float, layout: str | None = "constrained") 
 
 #: widest figure in pixels at its dpi: a report is read on a normal screen
 MAX_WIDTH_PX = 1600
+#: the margin around everything a figure draws in its file
+PAD_INCHES = 0.05
 
 
 def capped_size(width: float, height: float, dpi: int, max_px: int = MAX_WIDTH_PX) -> tuple[float, float]:
-    """(width, height) in inches scaled down together so the PNG is at most ``max_px`` wide."""
-    f = min(1.0, max_px / (width * dpi))
+    """(width, height) in inches scaled down together so the PNG is at most ``max_px`` wide (its
+    saved box, :func:`save_figure`, adds a pad of 0.05 in on each side)."""
+    f = min(1.0, (max_px - 2 * PAD_INCHES * dpi) / (width * dpi))
     return width * f, height * f
 
 
@@ -88,7 +91,7 @@ def save_figure(fig: Figure, path, dpi: int = 130) -> Path:
     dpi = _OUTPUT["dpi"] or dpi
     path = Path(path).with_suffix("." + fmt)
     path.parent.mkdir(parents=True, exist_ok=True)
-    opts = dict(dpi=dpi, facecolor="white", bbox_inches="tight", pad_inches=0.05)
+    opts = dict(dpi=dpi, facecolor="white", bbox_inches="tight", pad_inches=PAD_INCHES)
     fig.savefig(path, format=fmt, **opts)
     if fmt == "pdf":
         fig.savefig(path.with_suffix(".png"), format="png", **opts)

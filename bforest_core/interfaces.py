@@ -476,6 +476,24 @@ class Optimizer(Component):
     #: penalty and the status).
     failures_as_inf: bool = False
 
+    # --- what a sampler's posterior is (the report's wording and figures) ---------------------
+    #: The kind of posterior sample a sampler gives (``gives_posterior``), stored in ``best.json``
+    #: so the report words and draws it without knowing the sampler:
+    #:
+    #: ``"chain"``
+    #:     MCMC: ``diagnostics["chain"]`` ``(steps, walkers, parameters)`` and ``burn_in``; the
+    #:     posterior is every walker's draws after burn-in, each walker a chain.
+    #: ``"population"``
+    #:     SMC/ABC: ``diagnostics["particles"]`` with ``weights``; a weighted population per
+    #:     generation, with ``epsilon``, ``acceptance`` and ``ess`` lists per generation.
+    #: ``None``
+    #:     no posterior (an optimiser).
+    #:
+    #: A sampler that stops short of its own target (a tolerance above its target, a cap on
+    #: generations, evaluations or time before it finished) says why in one line in
+    #: ``diagnostics["stopped_short"]``; the report and ``bforest fit`` print it as a warning.
+    posterior_kind: ClassVar[str | None] = None
+
     @abc.abstractmethod
     def minimize(self, problem: Problem) -> OptimizeResult:
         """Search the box for the minimum. Must be deterministic given ``problem.seed`` and the

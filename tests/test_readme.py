@@ -59,3 +59,17 @@ def test_every_readme_line_runs(tmp_path):
         assert r.returncode == 0, f"README line failed: {line}\n(ran: {cmd})\n{r.stderr[-2000:]}"
     assert (tmp_path / "runs" / "pine3" / "clones" / "clone_000.txt").exists()
     assert (tmp_path / "pine.png").exists() and (tmp_path / "compare" / "compare.png").exists()
+
+
+def test_the_user_guides_fits_write_to_different_run_folders():
+    """Issue 33: sections 3 and 5b both fitted into ``runs/pine3``, so a reader following the
+    guide stopped at the second fit with "already holds a run". Every ``bforest fit ... -o DIR``
+    of the guide that neither resumes nor overwrites needs a folder of its own."""
+    text = (ROOT / "docs" / "user-guide.md").read_text(encoding="utf-8")
+    outs = []
+    for line in text.splitlines():
+        args = shlex.split(line.split("  #")[0]) if line.startswith("$ bforest fit ") else []
+        if "-o" in args and not {"--resume", "--overwrite"} & set(args):
+            outs.append(args[args.index("-o") + 1])
+    assert len(outs) >= 3, outs
+    assert len(outs) == len(set(outs)), f"two fits of the user guide write to one folder: {outs}"

@@ -73,8 +73,9 @@ def test_report_of_a_run_with_clones(toy_runs):
     n = store.count()
     assert f"{n} evaluations; {n} ok, 0 failed." in text
     # parameters table: free bounds and the best values; the fixed one with its value
-    assert f"| angle | free | 5 | 80 | {best['params']['angle']:.4g} | deg |" in text
-    assert "| noise | fixed |  |  | 2 | deg |" in text
+    # the target was grown by the toy model with angle 30 and segments 12: the true values beside the best
+    assert f"| angle | free | 5 | 80 | {best['params']['angle']:.4g} | 30 | deg |" in text
+    assert "| noise | fixed |  |  | 2 |  | deg |" in text
     assert f"| L | 1 | {best['per_set']['L']:.4g} | 12 | 12 |" in text
     assert "4 of 4 clones grown." in text and "No clones yet" not in text
     # html: every figure inline once
@@ -345,7 +346,7 @@ def test_report_of_a_real_emcee_run(tmp_path):
     text = write_report(run, strict=True).read_text()
     for name in ("trees", "set_S0-1", "set_B1-2", "lines_S0-1", "lines_B1-2", "convergence", "chain", "corner"):
         assert_png(run / "figures" / f"{name}.png")
-    assert "Posterior summaries after burn-in" in text and "| branch_angle |" in text
+    assert "of which the first 1 are burn-in and dropped" in text and "| branch_angle | 50 |" in text
     # the worst-lines figure uses the fit's own per-line values: their mean is the set's distance
     v = RunView(run)
     best = json.loads((run / "best.json").read_text())

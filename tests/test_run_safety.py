@@ -135,11 +135,29 @@ def test_demo_never_replaces_a_run_or_a_file_it_did_not_write(toy_plugin, tmp_pa
     assert main(["demo", "-o", str(run), "--quick", "-q"]) == 2
     assert "holds a run that is not a demo's" in capsys.readouterr().err
     assert RunStore.held(run) == 8
-    sibling = tmp_path / "y.toml"
-    sibling.write_text("# mine\n")
-    assert main(["demo", "-o", str(tmp_path / "y"), "--quick", "-q"]) == 2
-    assert "is not a demo's config" in capsys.readouterr().err
-    assert sibling.read_text() == "# mine\n" and not (tmp_path / "y" / "config.toml").exists()
+
+
+def test_demo_writes_nothing_beside_its_run_folder(tmp_path, monkeypatch):
+    """Issue 33: the demo left ``demo-run.toml`` in the folder it was started from (the
+    repository root); its config is the run's own config.toml now."""
+    from bforest_core.cli import demo
+    import bforest_core.pipeline.fit as fit_mod
+
+    class Stop(Exception):
+        pass
+
+    seen = {}
+
+    def fake_fit(cfg, out, **kw):  # the demo's fit is not the subject: stop once it is called
+        seen["cfg"] = cfg
+        raise Stop
+
+    monkeypatch.setattr(fit_mod, "fit", fake_fit)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(Stop):
+        demo.run_demo(Path("demo-run"), quick=True, progress=False)
+    assert seen["cfg"].optimizer.kind == "ga" and seen["cfg"].target.generate is not None
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["demo-run"]
 
 
 # ------------------------------------------------------------------------------ clones can be continued

@@ -65,33 +65,31 @@ def _written_by_demo(run_dir: Path) -> bool:
     return any(same_config(run_dir, parse_config(tomllib.loads(demo_config_text(q)))) for q in (False, True))
 
 
-def _check_demo_output(out: Path, cfg_path: Path) -> None:
-    """Refuse to replace what an earlier demo did not write: a run in ``out``, a file ``cfg_path``."""
+def _check_demo_output(out: Path) -> None:
+    """Refuse to replace a run in ``out`` that an earlier demo did not write."""
     from ..pipeline.store import RunDirError, RunStore
-    ours = {demo_config_text(False), demo_config_text(True)}
-    if cfg_path.exists() and (not cfg_path.is_file() or cfg_path.read_text(encoding="utf-8", errors="replace") not in ours):
-        raise RunDirError(f"{cfg_path}: exists and is not a demo's config; the demo writes its config there: "
-                          "move it, choose another -o, or replace it with --overwrite")
     if out.is_dir() and RunStore.state(out) != "new" and not _written_by_demo(out):
         raise RunDirError(f"{out}: holds a run that is not a demo's; choose another -o, or replace it with --overwrite")
 
 
 def run_demo(out: Path, quick: bool = False, progress: bool = True, overwrite: bool = False) -> int:
+    """Fit, clone and report the demo into ``out``. Its config is written only there, as the
+    run's own ``config.toml`` (``bforest fit OUT/config.toml -o OUT --resume`` continues it):
+    nothing lands beside the run folder."""
     from ..pipeline.rundir import run_lock
     out = Path(out)
-    cfg_path = out.parent / f"{out.name}.toml"
     with run_lock(out):  # the whole demo: its fit, clones and report
         if not overwrite:
-            _check_demo_output(out, cfg_path)
-        return _run_demo(out, cfg_path, quick, progress)
+            _check_demo_output(out)
+        return _run_demo(out, quick, progress)
 
 
-def _run_demo(out: Path, cfg_path: Path, quick: bool, progress: bool) -> int:
+def _run_demo(out: Path, quick: bool, progress: bool) -> int:
+    import tomllib
     from ..pipeline.clones import clones
-    from ..config import load_config
+    from ..config import parse_config
     from ..pipeline.fit import fit
-    cfg_path.write_text(demo_config_text(quick), encoding="utf-8")
-    cfg = load_config(cfg_path)
+    cfg = parse_config(tomllib.loads(demo_config_text(quick)), source="demo config")
     t0 = time.monotonic()
     print(f"Bayes Forest demo: fitting SOT to a tree it grew with {TRUE_PARAMS} (model seed differs)")
     res = fit(cfg, out, progress=progress, overwrite=True)

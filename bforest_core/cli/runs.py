@@ -28,6 +28,9 @@ def _fit_and_report(args, cfg, out, fit):
         print(f"{out}: this run had already finished; nothing was simulated (grow clones with "
               f"'bforest clones {out}', or start anew with --overwrite)")
     print(f"best distance {res.distance:.4f} after {res.n_evaluations} evaluations ({res.stop_reason})")
+    short = (res.diagnostics or {}).get("stopped_short")
+    if short:
+        print(f"WARNING: the sampler stopped short of its target: {short}")
     for title, names in (("fitted", list(cfg.ssm.free)), ("fixed", [k for k in res.params if k not in cfg.ssm.free])):
         if names:
             print(f"{title}:")
@@ -92,7 +95,9 @@ def _clones_and_report(args):
 
 def cmd_report(args):
     from ..report.build import write_report
-    p = write_report(args.run_dir)
+    if args.dpi is not None and not 20 <= args.dpi <= 2400:
+        raise UsageError(f"--dpi must be between 20 and 2400 (got {args.dpi})")
+    p = write_report(args.run_dir, format=args.format, dpi=args.dpi)
     print(f"report: {p}")
     return 0
 
@@ -169,8 +174,12 @@ def add_commands(sub) -> None:
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_clones)
 
-    s = sub.add_parser("report", help="figures (PNG) and a summary (Markdown/HTML) of a run")
+    s = sub.add_parser("report", help="figures (PNG, SVG or PDF) and a summary (Markdown/HTML) of a run")
     s.add_argument("run_dir", metavar="DIR", help="a run directory (bforest fit output)")
+    s.add_argument("--format", default="png", choices=("png", "svg", "pdf"),
+                   help="format of every figure (default: png; pdf also writes PNG previews for report.html)")
+    s.add_argument("--dpi", type=int, default=None,
+                   help="resolution of raster figures and of the raster parts of vector ones (default: 120-130)")
     s.set_defaults(func=cmd_report)
 
     s = sub.add_parser("compare", help="compare optimisers on equal evaluation budgets")

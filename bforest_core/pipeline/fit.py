@@ -314,7 +314,8 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
         stop_reason = problem.stop_reason or result.stop_reason or "optimiser finished"
         if store.count() == 0:
             raise BayesForestError(f"{run_dir}: the optimiser evaluated nothing ({stop_reason})")
-        out = finish_fit(cfg, store, tgt, stop_reason, evaluator.elapsed(), result, ssm, selection)
+        out = finish_fit(cfg, store, tgt, stop_reason, evaluator.elapsed(), result, ssm, selection,
+                         posterior_kind=getattr(optimizer, "posterior_kind", None))
         return FitResult(params=out["params"], distance=out["distance"], per_set=out["per_set"],
                          n_evaluations=store.count(), stop_reason=stop_reason, run_dir=run_dir,
                          history=store.log_records(), diagnostics=result.diagnostics, already_finished=finished)
@@ -348,10 +349,11 @@ def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
 
 
 def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: float, result, ssm,
-               selection: dict | None = None) -> dict:
+               selection: dict | None = None, posterior_kind: str | None = None) -> dict:
     """Write ``best.json`` (the answer: the best logged evaluation, or the candidate chosen on
     held-out seeds when there is a ``selection``; classical metrics of target and answer tree)
-    and ``best_tree.txt`` (the answer regrown with its first model seed)."""
+    and ``best_tree.txt`` (the answer regrown with its first model seed). A sampler's posterior
+    goes to ``posterior.csv``/``posterior.nc``, its ``posterior_kind`` to ``best.json``."""
     from ..io import write_tree
     from ..metrics import classical_metrics, relative_errors
     ev = store.evaluation(selection["chosen"]) if selection else store.best()
@@ -364,10 +366,15 @@ def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: flo
     if selection:
         best["heldout_distance"] = next(c["heldout"] for c in selection["candidates"] if c["evaluation"] == ev.idx)
         best["selection"] = selection
-    from .posterior import posterior_outputs
+    from .posterior import posterior_kind as _kind, posterior_outputs
     diag = getattr(result, "diagnostics", {}) or {}
-    table = posterior_outputs(store.path, diag, list(diag.get("names") or ev.params))
+    names, lo, hi, _, _, integer = _free_specs(cfg, ssm)
+    table = posterior_outputs(store.path, diag, list(diag.get("names") or ev.params), kind=posterior_kind,
+                              prior_box={n: (float(a), float(b), bool(i)) for n, a, b, i in zip(names, lo, hi, integer)},
+                              observed=tgt.U, columns=tgt.columns,
+                              attrs={"optimizer": cfg.optimizer.kind, "ssm": cfg.ssm.kind}, seed=int(cfg.seed))
     if table is not None:
+        best["posterior_kind"] = _kind(diag, posterior_kind)
         best["posterior_summary"] = table
         best["posterior_files"] = [store.POSTERIOR_CSV, store.POSTERIOR_NC]
     if ev.status != "ok":

@@ -1,6 +1,11 @@
-"""Posterior outputs of a sampler's run (``abc-smc`` particles, ``emcee`` chains): a table
-(``posterior.csv``), an ArviZ ``InferenceData`` file (``posterior.nc``) and a summary (mean, sd,
-5/50/95 % quantiles, 90 % HDI; R-hat and bulk ESS for MCMC chains)."""
+"""Posterior outputs of a sampler's run (weighted particles of a population, or the walkers of
+an MCMC chain): a table (``posterior.csv``), an ArviZ ``InferenceData`` file (``posterior.nc``
+with the ``posterior``, ``prior``, ``observed_data`` and ``sample_stats`` groups) and a summary
+(mean, sd, 5/50/95 % quantiles, 90 % HDI; R-hat and bulk ESS for MCMC chains).
+
+Which of the two a sampler gives is its ``posterior_kind`` (``"chain"`` or ``"population"``,
+:class:`~bforest_core.interfaces.Optimizer`); without it the diagnostics' keys tell.
+"""
 from __future__ import annotations
 
 import csv
@@ -16,8 +21,8 @@ HDI_PROB = 0.90
 
 def posterior_samples(diag: dict, names: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
     """``(samples (n, p), weights (n,))`` from optimiser diagnostics, or None when the optimiser
-    gave no posterior: the weighted particles of ``abc-smc``, or the post-burn-in draws of every
-    walker of ``emcee`` (equal weights)."""
+    gave no posterior: the weighted ``particles`` of a population, or the post-burn-in draws of
+    every walker of a ``chain`` (equal weights)."""
     if not isinstance(diag, dict):
         return None
     if diag.get("particles") is not None and diag.get("weights") is not None:
@@ -79,10 +84,24 @@ def read_posterior_csv(path) -> tuple[list[str], np.ndarray, np.ndarray]:
     return rows[0][:-1], data[:, :-1], w / w.sum()
 
 
-def _draws(diag: dict, names: list[str], X: np.ndarray, w: np.ndarray) -> dict[str, np.ndarray]:
+def posterior_kind(diag: dict, kind: str | None = None) -> str | None:
+    """``"chain"``, ``"population"`` or None: the sampler's declared ``kind`` when given, else
+    what the diagnostics hold (a run written before samplers declared it)."""
+    if kind in ("chain", "population"):
+        return kind
+    if not isinstance(diag, dict):
+        return None
+    if diag.get("particles") is not None and diag.get("weights") is not None:
+        return "population"
+    if diag.get("chain") is not None:
+        return "chain"
+    return None
+
+
+def _draws(diag: dict, names: list[str], X: np.ndarray, w: np.ndarray, kind: str) -> dict[str, np.ndarray]:
     """Per parameter an array (chain, draw): the walkers of an MCMC chain after burn-in, or for
     weighted particles one chain of a deterministic systematic resample by weight."""
-    if diag.get("chain") is not None and diag.get("particles") is None:
+    if kind == "chain":
         chain = np.asarray(diag["chain"], float)
         burn = min(int(diag.get("burn_in") or 0), chain.shape[0] - 1)
         kept = chain[burn:].transpose(1, 0, 2)  # (walkers, steps, p)
@@ -92,31 +111,122 @@ def _draws(diag: dict, names: list[str], X: np.ndarray, w: np.ndarray) -> dict[s
     return {name: X[idx, j][None, :] for j, name in enumerate(names)}
 
 
-def posterior_outputs(run_dir: Path, diag: dict, names: list[str]) -> dict | None:
-    """Write ``posterior.csv`` and ``posterior.nc`` (ArviZ InferenceData; for weighted particles
-    the posterior group is a systematic resample by weight and ``sample_stats.weight`` holds
-    the raw weights) into ``run_dir``; return the summary table per parameter, or None when the
-    optimiser gave no posterior."""
+def prior_draws(box: dict, n: int, seed: int = 1) -> dict[str, np.ndarray]:
+    """``n`` draws ``(1, n)`` per parameter of the uniform prior over the search box that every
+    sampler of a fit is given: ``box`` maps a name to ``(lower, upper, integer)``; an integer
+    parameter is uniform over the whole numbers in its bounds."""
+    rng = np.random.default_rng([int(seed), 0x9F10])
+    out = {}
+    for name, (lo, hi, integer) in box.items():
+        if integer:
+            a, b = int(np.ceil(lo)), int(np.floor(hi))
+            out[name] = rng.integers(a, max(a, b) + 1, size=n).astype(float)[None, :]
+        else:
+            out[name] = (lo + (hi - lo) * rng.random(n))[None, :]
+    return out
+
+
+def _safe_name(name: str) -> str:
+    """A netCDF variable name for a data set name (``S0,1`` -> ``S0_1``, ``size/summary`` ->
+    ``size_summary``)."""
+    import re
+    return re.sub(r"[^A-Za-z0-9_]", "_", name)
+
+
+def _observed(observed: dict | None, columns: dict | None):
+    """(data, dims, coords) of the ``observed_data`` group: each data set of the target a
+    ``(rows, columns)`` table with its column names."""
+    data, dims, coords = {}, {}, {}
+    for name, U in (observed or {}).items():
+        U = np.asarray(U, float)
+        if U.ndim != 2:
+            continue
+        var = _safe_name(name)
+        data[var] = U
+        dims[var] = [f"{var}_row", f"{var}_column"]
+        cols = list((columns or {}).get(name) or [])
+        if len(cols) == U.shape[1]:
+            coords[f"{var}_column"] = cols
+    return data, dims, coords
+
+
+def posterior_outputs(run_dir: Path, diag: dict, names: list[str], kind: str | None = None,
+                      prior_box: dict | None = None, observed: dict | None = None,
+                      columns: dict | None = None, attrs: dict | None = None, seed: int = 1) -> dict | None:
+    """Write ``posterior.csv`` and ``posterior.nc`` into ``run_dir``; return the summary table per
+    parameter, or None when the optimiser gave no posterior.
+
+    Parameters
+    ----------
+    run_dir : Path
+        The run directory.
+    diag : dict
+        The optimiser's diagnostics.
+    names : list of str
+        The fitted parameters, in the order of the samples' columns.
+    kind : {"chain", "population"}, optional
+        The sampler's ``posterior_kind`` (else read from the diagnostics' keys).
+    prior_box : dict, optional
+        ``{name: (lower, upper, integer)}``: the ``prior`` group holds as many draws of the
+        uniform prior over this box as the posterior has samples.
+    observed : dict, optional
+        The target's data sets ``{set: (rows, columns)}``: the ``observed_data`` group (set names
+        made netCDF-safe, ``S0,1`` -> ``S0_1``; the group's ``sets`` attribute maps them back).
+    columns : dict, optional
+        Column names per data set (the coordinates of ``observed_data``).
+    attrs : dict, optional
+        Attributes of the file (e.g. the optimiser's name).
+    seed : int
+        Seed of the prior draws.
+
+    Notes
+    -----
+    A chain's ``posterior`` has one ArviZ chain per walker (the draws after burn-in), and
+    ``sample_stats.distance`` the walkers' distances. A population's ``posterior`` is one chain
+    of a systematic resample by weight; ``sample_stats`` holds each particle's raw ``weight``
+    and ``distance`` in the order of ``posterior.csv``.
+    """
     got = posterior_samples(diag, names)
     if got is None:
         return None
+    kind = posterior_kind(diag, kind)
     run_dir = Path(run_dir)
     write_posterior_csv(run_dir / "posterior.csv", diag, names)
     X, w = got
     import arviz as az
-    draws = _draws(diag, names, X, w)
-    mcmc = next(iter(draws.values())).shape[0] > 1
+    draws = _draws(diag, names, X, w, kind)
+    stats = {}
+    dist = diag.get("distances")
+    if kind == "chain":
+        if dist is not None:
+            d = np.asarray(dist, float)
+            chain = np.asarray(diag["chain"], float)
+            burn = min(int(diag.get("burn_in") or 0), chain.shape[0] - 1)
+            if d.shape == chain.shape[:2]:
+                stats["distance"] = d[burn:].T
+    else:
+        stats["weight"] = w[None, :]
+        if dist is not None and np.shape(dist) == (X.shape[0],):
+            stats["distance"] = np.asarray(dist, float)[None, :]
+    n_draws = int(np.prod(next(iter(draws.values())).shape))
+    prior = prior_draws({k: prior_box[k] for k in names if k in prior_box}, n_draws, seed) if prior_box else None
+    obs, obs_dims, obs_coords = _observed(observed, columns)
+    file_attrs = {"posterior_kind": kind, **{k: str(v) for k, v in (attrs or {}).items() if v is not None}}
+    if obs:
+        import json
+        file_attrs["sets"] = json.dumps({_safe_name(k): k for k in (observed or {})})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # arviz's future-change notices
-        idata = az.from_dict(posterior=draws,
-                             sample_stats=None if mcmc else {"weight": w[None, :]},
-                             attrs={"sampler": "emcee" if mcmc else "abc-smc"})
+        idata = az.from_dict(posterior=draws, sample_stats=stats or None, prior=prior or None,
+                             observed_data=obs or None, dims=obs_dims or None, coords=obs_coords or None,
+                             attrs=file_attrs)
         try:
             idata.to_netcdf(str(run_dir / "posterior.nc"))
         except Exception:  # no netCDF engine: the CSV still holds everything
             pass
-        hdi = az.hdi(idata, hdi_prob=HDI_PROB)
-        diag_stats = az.summary(idata, kind="diagnostics") if mcmc else None
+        hdi = az.hdi(idata.posterior, hdi_prob=HDI_PROB)
+        diag_stats = az.summary(idata.posterior, kind="diagnostics") if kind == "chain" and \
+            next(iter(draws.values())).shape[0] > 1 else None
     table = {}
     for j, name in enumerate(names):
         q = weighted_quantiles(X[:, j], w, [5, 50, 95])

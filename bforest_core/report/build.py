@@ -1,7 +1,7 @@
 """``bforest report DIR``: figures and a summary of a run directory.
 
-Writes ``DIR/figures/*.png``, ``DIR/report.md`` and a self-contained ``DIR/report.html`` (the
-figures inline as base64). Everything is read from the run directory (``config.toml``,
+Writes ``DIR/figures/*.png`` (or ``.svg``, ``.pdf``: ``format``), ``DIR/report.md`` and a
+self-contained ``DIR/report.html`` (the figures inline as base64, PDFs as their PNG previews). Everything is read from the run directory (``config.toml``,
 ``evaluations.sqlite``, ``best.json``, ``target_sets.npz``, ``best_tree.txt``, ``clones/``); what
 is missing (an interrupted fit, no clones yet, a distance without projection lines) is skipped
 and the report says so. A figure that fails never stops the report (unless ``strict``).
@@ -12,7 +12,9 @@ Figures:
 * ``set_<set>.png``: data (QSM, blue) against model (SSM, red) for every fitted set (Fig. 3);
 * ``lines_<set>.png``: ECDFs on the worst-fitting projection lines with the KS gap;
 * ``convergence.png``, ``parameters.png``: the optimiser's progress and where it searched;
-* ``chain.png``, ``corner.png``: MCMC trace and posterior (emcee runs);
+* ``corner.png``: the posterior's marginals and pairs (every sampler that gives a posterior, with
+  the true values of a generated target); ``chain.png``: the trace of a chain (MCMC);
+  ``generations.png``: tolerance, acceptance and ESS per generation (a population sampler);
 * ``clones.png``, ``clone_metrics.png``: clones beside the target and their metric
   distributions (Fig. 5);
 * ``profile_<param>.png``: made by ``bforest profile`` (Fig. 4), included when present.
@@ -28,13 +30,14 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from .attributes import fig_distributions
+from .canvas import FORMATS, current_output, figure_output
 from .convergence import fig_convergence
 from .datasets import fig_sets
 from .document import Document, slug
-from .posterior import fig_mcmc
+from .posterior import fig_posterior
 from .run_view import RunView
 from .sections import (section_clones, section_evaluations, section_fit, section_model, section_optimizer,
-                       section_parameters, section_profiles, section_summary, section_target)
+                       section_parameters, section_profiles, section_summary, section_target, stopped_short)
 from .trees import fig_clones, fig_trees
 
 __all__ = ["write_report", "RunView", "slug"]
@@ -69,17 +72,19 @@ class _Figures:
 #: about half as long: the two groups cost about the same
 _SIDE = [("sets", "data sets", fig_sets)]
 _MAIN = [("trees", "trees", fig_trees), ("convergence", "convergence", fig_convergence),
-         ("mcmc", "MCMC", fig_mcmc), ("clones", "clones", fig_clones),
+         ("posterior", "posterior", fig_posterior), ("clones", "clones", fig_clones),
          ("clones", "distributions", fig_distributions)]
 
 
-def _side_figures(run_dir, strict: bool):
+def _side_figures(run_dir, strict: bool, output: tuple = ("png", None)):
     """Draw the ``_SIDE`` figures from a fresh view of ``run_dir`` (in the second process, which
-    never touches the first one's database connection). Returns (figures made, notes)."""
+    never touches the first one's database connection) in the ``(format, dpi)`` of ``output``.
+    Returns (figures made, notes)."""
     v = RunView(run_dir)
     figs = _Figures(v, strict)
-    for section, name, fn in _SIDE:
-        figs.run(section, name, fn, v)
+    with figure_output(*output):
+        for section, name, fn in _SIDE:
+            figs.run(section, name, fn, v)
     v.store.close()
     return figs.made, v.notes
 
@@ -97,7 +102,7 @@ def _draw_figures(v: RunView, figs: _Figures, strict: bool) -> None:
         try:
             # spawn: a fresh interpreter with this one's sys.path (plugins found the same way)
             pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
-            side = pool.submit(_side_figures, v.path, strict)
+            side = pool.submit(_side_figures, v.path, strict, current_output())
         except OSError as exc:  # no second process here: draw everything in this one
             v.note(f"figures drawn in one process ({exc})")
             pool = None
@@ -124,7 +129,8 @@ def _draw_figures(v: RunView, figs: _Figures, strict: bool) -> None:
 
 
 # ---------------------------------------------------------------------------------- entry point
-def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool = False) -> Path:
+def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool = False,
+                 format: str = "png", dpi: int | None = None) -> Path:
     """Write the figures, ``report.md`` and ``report.html`` of a run directory.
 
     Parameters
@@ -137,6 +143,11 @@ def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool 
         Also write ``report.html`` with the figures inline.
     strict : bool
         Raise when a figure fails instead of noting it in the report.
+    format : {"png", "svg", "pdf"}
+        Format of every figure (a PDF gets a PNG preview beside it for ``report.html``).
+    dpi : int, optional
+        Resolution of raster figures (and of the raster parts of vector ones); None: each
+        figure's own (120-130).
 
     Notes
     -----
@@ -155,10 +166,12 @@ def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool 
     v = RunView(run_dir)
     figs = _Figures(v, strict)
     if figures:
-        _draw_figures(v, figs, strict)
+        with figure_output(format, dpi):
+            _draw_figures(v, figs, strict)
         if not v.clone_rows:  # figures drawn from clones that are gone would contradict the folder
-            for stale in ("clones.png", "clone_metrics.png"):
-                (v.path / "figures" / stale).unlink(missing_ok=True)
+            for stale in ("clones", "clone_metrics"):
+                for suffix in FORMATS:
+                    (v.path / "figures" / f"{stale}.{suffix}").unlink(missing_ok=True)
     doc = Document()
     title = f"Bayes Forest run report: {v.path.name}"
     doc.h(1, title)
@@ -174,6 +187,8 @@ def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool 
     doc.h(2, "Notes")
     from .. import __version__
     notes = list(v.notes)
+    if stopped_short(v):
+        notes.insert(0, f"WARNING: the sampler stopped short of its target: {stopped_short(v)}")
     if not figures:
         notes.append("figures were not drawn (figures=False)")
     doc.items(notes or ["none"])

@@ -11,7 +11,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .document import cfg_kind
-from .canvas import MODEL_COLOR, new_figure, save_figure
+from .canvas import MODEL_COLOR, capped_size, new_figure, save_figure
 
 if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
     from .run_view import RunView
@@ -101,9 +101,10 @@ def parameter_scatter_figure(names: Sequence[str], X: np.ndarray, distances: np.
     X = np.asarray(X, float).reshape(len(distances), len(names))
     d = np.asarray(distances, float)
     p = len(names)
-    ncol = min(p, 3)
+    ncol = min(p, 3) if p <= 9 else 4
     nrow = math.ceil(p / ncol)
-    fig = new_figure(4.3 * ncol + 0.8, 3.4 * nrow)
+    # rows get lower as they get more, so 18 parameters still fit a page
+    fig = new_figure(*capped_size(4.3 * ncol + 0.8, (3.4 if nrow <= 3 else 2.6) * nrow + 0.8, dpi))
     axes = fig.subplots(nrow, ncol, squeeze=False).ravel()
     sc = None
     for j, (ax, name) in enumerate(zip(axes, names)):
@@ -123,7 +124,10 @@ def parameter_scatter_figure(names: Sequence[str], X: np.ndarray, distances: np.
     for ax in axes[p:]:
         ax.set_visible(False)
     if sc is not None:
-        fig.colorbar(sc, ax=list(axes[:p]), label="evaluation", shrink=0.9)
+        if nrow == 1:
+            fig.colorbar(sc, ax=list(axes[:p]), label="evaluation", shrink=0.9)
+        else:  # a bar across the top, as long as a row, not the whole figure's height
+            fig.colorbar(sc, ax=list(axes[:ncol]), location="top", label="evaluation", shrink=0.6, aspect=40)
     if title:
         fig.suptitle(title)
     return save_figure(fig, path, dpi)

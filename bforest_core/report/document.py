@@ -77,6 +77,11 @@ class Document:
     def code(self, text: str):
         self.blocks.append(("code", text))
 
+    def raw_html(self, html: str, markdown: str = ""):
+        """A block of HTML for report.html (trusted: written by the report itself) and its
+        stand-in in report.md."""
+        self.blocks.append(("raw", html, markdown))
+
     # ----------------------------------------------------------------- markdown
     @staticmethod
     def _md(text) -> str:
@@ -103,9 +108,12 @@ class Document:
                 lines += ["| " + " | ".join(esc(c) for c in r) + " |" for r in rows]
                 out.append("\n".join(lines))
             elif kind == "fig":
-                out.append(f"![{md(b[2])}]({b[1]})\n\n*{md(b[2])}*")
+                shown, pdf = _shown(b[1])
+                out.append(f"![{md(b[2])}]({shown})\n\n*{md(b[2])}*" + (f" ([PDF]({b[1]}))" if pdf else ""))
             elif kind == "code":
                 out.append("```\n" + b[1] + "\n```")
+            elif kind == "raw" and b[2]:
+                out.append(md(b[2]))
         return "\n\n".join(out) + "\n"
 
     # ----------------------------------------------------------------- html
@@ -132,12 +140,17 @@ class Document:
                                for r in b[2])
                 parts.append(f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")
             elif kind == "fig":
-                src = b[1]
-                p = base / b[1]
+                shown, pdf = _shown(b[1])
+                src = shown
+                p = base / shown
                 if inline_images and p.exists():
-                    src = "data:image/png;base64," + base64.b64encode(p.read_bytes()).decode("ascii")
+                    mime = "image/svg+xml" if p.suffix == ".svg" else "image/png"
+                    src = f"data:{mime};base64," + base64.b64encode(p.read_bytes()).decode("ascii")
+                link = f' (<a href="{_html.escape(b[1])}">PDF</a>)' if pdf else ""
                 parts.append(f'<figure><img src="{src}" alt="{_html.escape(b[2])}">'
-                             f"<figcaption>{self._inline(b[2])}</figcaption></figure>")
+                             f"<figcaption>{self._inline(b[2])}{link}</figcaption></figure>")
+            elif kind == "raw":
+                parts.append(b[1])
             elif kind == "code":
                 parts.append(f"<pre>{_html.escape(b[1])}</pre>")
         style = ("body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1200px;"
@@ -149,6 +162,14 @@ class Document:
                  "h1{border-bottom:2px solid #ddd}h2{border-bottom:1px solid #eee;margin-top:1.6em}")
         return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>{_html.escape(title)}"
                 f"</title><style>{style}</style></head><body>\n" + "\n".join(parts) + "\n</body></html>\n")
+
+
+def _shown(rel: str) -> tuple[str, bool]:
+    """(the figure the report shows, whether it is a PDF's preview): a PDF is shown as the PNG
+    written beside it."""
+    if rel.endswith(".pdf"):
+        return rel[:-4] + ".png", True
+    return rel, False
 
 
 def cfg_kind(v: "RunView", section: str) -> str:

@@ -95,6 +95,22 @@ class RunView:
         ev = self.store.best()
         return None if ev is None else dict(ev.params)
 
+    @cached_property
+    def true_params(self) -> dict[str, float]:
+        """The free parameters' true values where the target was grown by the fitted model
+        (``[target.generate]`` with the same ``ssm``): the generating parameters, a parameter it
+        leaves out at the model's default. Empty for a QSM target or another model's tree."""
+        gen = self.cfg.target.generate if self.cfg is not None else None
+        if gen is None or gen.ssm != self.cfg.ssm.kind:
+            return {}
+        out = {}
+        for name in self.free_names:
+            if name in gen.params:
+                out[name] = float(gen.params[name])
+            elif name in self.param_specs and self.param_specs[name].default is not None:
+                out[name] = float(self.param_specs[name].default)
+        return out
+
     @property
     def best_seeds(self) -> list[int]:
         if self.best is not None and self.best.get("seeds"):
@@ -258,6 +274,27 @@ class RunView:
                         out[k] = v
                 rows.append(out)
         return rows
+
+    def clone_trees(self, k: int) -> list[tuple[str, object]]:
+        """The first ``k`` clones grown ok, read from their files: ``(label, tree)`` with the
+        label ``"clone <i>\nD = <distance>"``; a file that cannot be read is a note."""
+        from ..io import read_qsm
+        shown = []
+        for r in self.clone_rows:
+            if len(shown) >= k:
+                break
+            f = r.get("file")
+            if r.get("status") != "ok" or not f or not (self.path / "clones" / f).exists():
+                continue
+            try:
+                t = read_qsm(self.path / "clones" / f)
+                t = t[0] if isinstance(t, list) else t
+            except Exception as exc:
+                self.note(f"clone file {f} could not be read ({type(exc).__name__}: {exc})")
+                continue
+            d = r.get("distance")
+            shown.append((f"clone {int(r['index'])}" + (f"\nD = {d:.3f}" if d is not None and np.isfinite(d) else ""), t))
+        return shown
 
     @cached_property
     def clone_summary(self) -> dict | None:

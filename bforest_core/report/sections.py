@@ -34,6 +34,9 @@ def section_summary(doc: Document, v: RunView):
         doc.p(f"SSM **{kind}** fitted with **{b.get('optimizer', cfg_kind(v, 'optimizer'))}**: best distance "
               f"**{fmt(b.get('distance'))}**{held} after {b.get('n_evaluations', len(evs))} evaluations "
               f"({b.get('stop_reason', '')}); run time {seconds_text(b.get('seconds'))}.")
+        short = stopped_short(v)
+        if short:
+            doc.p(f"**WARNING: the sampler stopped short of its target: {short}.**")
     else:
         best = v.store.best()
         doc.p(f"SSM **{kind}**: the fit has not finished; {len(evs)} evaluations logged"
@@ -96,6 +99,7 @@ def section_parameters(doc: Document, v: RunView):
     ssm_raw = v.raw_config.get("ssm", {})
     fixed, free = ssm_raw.get("fixed", {}) or {}, ssm_raw.get("free", {}) or {}
     best = v.best_params or {}
+    true = v.true_params
     rows, warn = [], []
     for name, fp in free.items():
         lo, hi = fp.get("lower"), fp.get("upper")
@@ -107,12 +111,16 @@ def section_parameters(doc: Document, v: RunView):
             if rel < 0.01 or rel > 0.99:
                 flag = " (at a bound)"
                 warn.append(name)
-        rows.append([name, "free", lo, hi, (fmt(b) + flag) if b is not None else "–",
-                     s.unit if s else "", s.description if s else ""])
+        rows.append([name, "free", lo, hi, (fmt(b) + flag) if b is not None else "–"]
+                    + ([true.get(name)] if true else []) + [s.unit if s else "", s.description if s else ""])
     for name, val in fixed.items():
         s = specs.get(name)
-        rows.append([name, "fixed", "", "", val, s.unit if s else "", s.description if s else ""])
-    doc.table(["parameter", "role", "lower", "upper", "best", "unit", "description"], rows)
+        rows.append([name, "fixed", "", "", val] + ([""] if true else []) + [s.unit if s else "", s.description if s else ""])
+    doc.table(["parameter", "role", "lower", "upper", "best"] + (["true"] if true else []) + ["unit", "description"],
+              rows)
+    if true:
+        doc.p("True: the value the target was grown with (`[target.generate]`; a parameter it does not set at the "
+              "model's default).")
     others = [p for n, p in specs.items() if n not in free and n not in fixed]
     if others:
         doc.p("Other parameters at the model's defaults: " +
@@ -224,17 +232,76 @@ def section_optimizer(doc: Document, v: RunView, figs):
               "the adjustment is `diagnostics.unadjusted` in best.json.")
     elif isinstance(adj, dict) and adj.get("note"):
         doc.p(f"Regression adjustment asked for but not applied: {adj['note']}.")
-    post = diag.get("posterior")
-    if isinstance(post, dict) and post:
-        tau = diag.get("autocorr_time") if isinstance(diag.get("autocorr_time"), dict) else {}
-        rows = [[n, q.get("median"), q.get("p2.5"), q.get("p16"), q.get("p84"), q.get("p97.5"), q.get("mean"),
-                 q.get("std"), tau.get(n)] for n, q in post.items() if isinstance(q, dict)]
-        doc.p("Posterior summaries after burn-in" + (" (autocorrelation estimates reliable)"
-              if diag.get("autocorr_reliable") else " (chain too short for reliable autocorrelation times: "
-              "treat the intervals as rough)") + ":")
-        doc.table(["parameter", "median", "2.5 %", "16 %", "84 %", "97.5 %", "mean", "sd", "autocorr. time"], rows)
-    for rel_path, cap in figs.made.get("convergence", []) + figs.made.get("mcmc", []):
+    section_posterior(doc, v, diag)
+    for rel_path, cap in figs.made.get("convergence", []):
         doc.fig(rel_path, cap)
+    for rel_path, cap in figs.made.get("posterior", []):
+        doc.fig(rel_path, cap)
+
+
+def stopped_short(v: RunView) -> str | None:
+    """The sampler's own line when it stopped short of its target (``diagnostics.stopped_short``)."""
+    text = ((v.best or {}).get("diagnostics") or {}).get("stopped_short")
+    return str(text) if text else None
+
+
+def section_posterior(doc: Document, v: RunView, diag: dict):
+    """The posterior of a sampler's run in the words of its kind (a chain's draws after burn-in,
+    or a weighted population at a tolerance) and the summaries of ``best.json`` (5/50/95 %, the
+    90 % HDI), beside the true values of a generated target."""
+    from ..pipeline.posterior import HDI_PROB, posterior_kind
+    b = v.best or {}
+    table = b.get("posterior_summary")
+    kind = posterior_kind(diag, b.get("posterior_kind"))
+    if not isinstance(table, dict) or not table or kind is None:
+        return
+    doc.h(3, "Posterior")
+    short = stopped_short(v)
+    if short:
+        doc.p(f"**WARNING: the sampler stopped short of its target: {short}.**")
+    hdi = int(100 * HDI_PROB)
+    true = v.true_params
+    if kind == "chain":
+        steps, burn, walkers = diag.get("steps"), diag.get("burn_in"), diag.get("walkers")
+        doc.p(f"The posterior is the draws of a Markov chain: {walkers} walkers, {steps} steps, of which the "
+              f"first {burn} are burn-in and dropped; each walker is one chain of `posterior.nc` (R-hat and bulk "
+              "ESS across them)" + ("." if diag.get("autocorr_reliable") else
+                                    "; the chain is too short for reliable autocorrelation times: treat the "
+                                    "intervals as rough."))
+    else:
+        eps = diag.get("epsilon_posterior")
+        gens = diag.get("generations")
+        n = len(diag["particles"]) if diag.get("particles") is not None else "?"
+        w = np.asarray(diag.get("weights") if diag.get("weights") is not None else [], float)
+        ess = f" (effective sample size {1.0 / float(np.sum((w / w.sum()) ** 2)):.0f})" if w.size and w.sum() > 0 else ""
+        doc.p(f"The posterior is a weighted population of {n} particles{ess} within the tolerance ε = {fmt(eps)}"
+              + (f" ({gens} generations, the prior draws counted)" if gens else "")
+              + "; `posterior.nc` holds a resample by weight, `posterior.csv` the particles and their weights.")
+    cols = ["parameter"] + (["true"] if true else []) + ["mean", "sd", "5 %", "50 %", "95 %", f"{hdi} % HDI"]
+    if true:
+        cols.append(f"true in {hdi} % HDI")
+    if kind == "chain":
+        cols += ["R-hat", "bulk ESS", "autocorr. time"]
+    tau = diag.get("autocorr_time") if isinstance(diag.get("autocorr_time"), dict) else {}
+    rows, missed = [], []
+    for name, q in table.items():
+        lo, hi = q.get(f"hdi{hdi}_low"), q.get(f"hdi{hdi}_high")
+        row = [name] + ([true.get(name)] if true else []) + [q.get("mean"), q.get("sd"), q.get("p5"), q.get("p50"),
+                                                              q.get("p95"), f"{fmt(lo)} – {fmt(hi)}"]
+        if true:
+            t = true.get(name)
+            inside = None if t is None or lo is None else bool(lo <= t <= hi)
+            row.append("–" if inside is None else ("yes" if inside else "**no**"))
+            if inside is False:
+                missed.append(name)
+        if kind == "chain":
+            row += [q.get("r_hat"), q.get("ess_bulk"), tau.get(name)]
+        rows.append(row)
+    doc.p(f"Posterior summaries (as in `best.json`: weighted mean, sd, 5/50/95 % quantiles and the {hdi} % "
+          "highest-density interval)" + (", beside the true values the target was grown with" if true else "") + ":")
+    doc.table(cols, rows)
+    if missed:
+        doc.p(f"**The {hdi} % HDI of {', '.join(missed)} excludes the true value.**")
 
 
 def section_evaluations(doc: Document, v: RunView):
@@ -276,6 +343,7 @@ def section_clones(doc: Document, v: RunView, figs):
     if not rows:
         doc.p("No clones yet: grow them with `bforest clones " + str(v.path) + "` (the report is updated "
               "afterwards).")
+        section_view3d(doc, v)
         return
     ok = [r for r in rows if r.get("status") == "ok"]
     failed = Counter(r.get("status") for r in rows if r.get("status") != "ok")
@@ -297,6 +365,24 @@ def section_clones(doc: Document, v: RunView, figs):
     section_fidelity(doc, v)
     for rel_path, cap in figs.made.get("clones", []):
         doc.fig(rel_path, cap)
+    section_view3d(doc, v)
+
+
+def section_view3d(doc: Document, v: RunView, clones: int = 4):
+    """The interactive 3-D view (report.html): the target beside its first ``clones`` clones, or
+    beside the best fit while there are none."""
+    from .view3d import view3d_html
+    trees = [("target", v.target_tree)] if v.target_tree is not None else []
+    shown = v.clone_trees(clones)
+    if shown:
+        trees += shown
+    elif v.best_tree is not None:
+        trees.append(("best fit", v.best_tree))
+    if len(trees) < 2:
+        return
+    doc.h(3, "3-D view")
+    names = ", ".join(label.split("\n")[0] for label, _ in trees)
+    doc.raw_html(view3d_html(trees), f"An interactive 3-D view of {names} (drag to turn them) is in report.html.")
 
 
 def section_fidelity(doc: Document, v: RunView):

@@ -399,22 +399,7 @@ def fig_clones(v: "RunView"):
         return []
     out = []
     k = v.cfg.report.clones_in_figure if v.cfg is not None else 6
-    shown = []
-    from ..io import read_qsm
-    for r in ok:
-        if len(shown) >= k:
-            break
-        f = r.get("file")
-        if not f or not (v.path / "clones" / f).exists():
-            continue
-        try:
-            t = read_qsm(v.path / "clones" / f)
-            t = t[0] if isinstance(t, list) else t
-        except Exception as exc:
-            v.note(f"clone file {f} could not be read ({type(exc).__name__}: {exc})")
-            continue
-        d = r.get("distance")
-        shown.append((f"clone {int(r['index'])}" + (f"\nD = {d:.3f}" if d is not None and np.isfinite(d) else ""), t))
+    shown = v.clone_trees(k)
     if shown and v.target_tree is not None:
         out.append((clones_figure(v.target_tree, shown, v.path / "figures" / "clones.png",
                                   title=f"Target and {len(shown)} morphological clones of the best fit"),

@@ -262,6 +262,7 @@ class AbcSmc(Optimizer):
     summary = "ABC-SMC sampler: a weighted posterior population and the best particle"
     Settings = AbcSmcSettings
     gives_posterior = True
+    posterior_kind = "population"
     failures_as_inf = True
 
     @classmethod
@@ -365,7 +366,30 @@ class AbcSmc(Optimizer):
         if s.epsilon_target == "noise":
             diag["epsilon_target"] = target_hist
         diag["note"] = f"{reason}; the posterior is generation {len(eps_hist) - 1}, the last complete one"
+        short = self._stopped_short(reason, eps_hist, target_hist, ev.stopped)
+        if short:
+            diag["stopped_short"] = short
         return make_result(ev, log, reason, diag)
+
+    def _stopped_short(self, reason: str, eps_hist: list, target_hist: list, capped: bool) -> str | None:
+        """One line when the run stopped short of its target: the last complete generation's
+        epsilon above the target (the noise floor), or, without a target, a stop at a cap
+        (generations, evaluations, wall time); None when it ended where it was meant to."""
+        s = self.settings
+        eps = eps_hist[-1]
+        noise = s.epsilon_target == "noise"
+        target = target_hist[-1] if target_hist else (0.0 if noise else float(s.epsilon_target))
+        floor = ", the distance's noise floor," if noise else ""
+        if len(eps_hist) == 1:
+            return (f"stopped before its first generation ({reason}): the posterior is the prior draws, "
+                    "not a posterior")
+        if target > 0 and eps > target:
+            return (f"epsilon stopped at {eps:.4g}, above its target {target:.4g}{floor} ({reason}): the "
+                    "intervals are wider than the data warrant; raise generations or the budget")
+        if target <= 0 and (capped or reason.endswith("generations done")):
+            return (f"stopped at a cap with epsilon {eps:.4g} and no epsilon target ({reason}): the posterior "
+                    "may still be narrowing")
+        return None
 
     def _target(self, problem: Problem, ev: BoxEvaluator, theta: np.ndarray, w: np.ndarray) -> float:
         """The epsilon target of the next generation (see the module text); 0 where the noise

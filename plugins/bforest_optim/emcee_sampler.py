@@ -124,6 +124,7 @@ class EmceeSampler(Optimizer):
     summary = "emcee ensemble sampler of exp(-D/epsilon): best fit plus posterior summaries"
     Settings = EmceeSettings
     gives_posterior = True
+    posterior_kind = "chain"
 
     @classmethod
     def budget_settings(cls, settings, budget):
@@ -175,6 +176,9 @@ class EmceeSampler(Optimizer):
                     break
         diagnostics = self._summaries(sampler, ev, eps, nw)
         diagnostics["epsilon_rule"] = eps_rule
+        if int(sampler.iteration) < s.steps:
+            diagnostics["stopped_short"] = (f"stopped after {int(sampler.iteration)} of {s.steps} steps "
+                                            f"({ev.stop_reason('stopped')}): the chain may not have mixed")
         return make_result(ev, log, reason, diagnostics)
 
     def _epsilon(self, problem: Problem, ev: BoxEvaluator, f0: np.ndarray) -> tuple[float, str]:

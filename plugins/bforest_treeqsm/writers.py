@@ -206,7 +206,10 @@ class CSVWriter(QSMWriter):
     """Native CSV (docs/qsm-formats.md §9): named columns, 0-based ids, -1 = none, floats at ``repr``
     precision (``%.17g``), plus 1-D numeric extras as further columns and, for a tree under a
     non-source topology, its ``source_extension``; a JSON sidecar keeps format version, units,
-    topology rule, source, model, parameters and seed. Read back it gives the same tree."""
+    topology rule, source, model, parameters and seed, and the ``provenance`` the other formats
+    write as a comment (with the Bayes Forest version). The CSV itself has no comment line, so
+    any CSV reader (pandas, R's ``read.csv``) takes its first line as the header. Read back it
+    gives the same tree."""
 
     name = "bforest-csv"
     summary = "Bayes Forest native cylinder CSV with a JSON sidecar"
@@ -245,7 +248,7 @@ class CSVWriter(QSMWriter):
             md = dict(tree.metadata)
             side = {"format": "bforest-csv", "format_version": CSV_FORMAT_VERSION, "units": "m",
                     "topology": tree.topology, "source": md.get("source"), "model": md.get("model"),
-                    "params": md.get("params"), "seed": md.get("seed"),
+                    "params": md.get("params"), "seed": md.get("seed"), "provenance": provenance(tree),
                     "metadata": jsonable({k: v for k, v in md.items() if k not in ("topology",)})}
             path.with_suffix(".json").write_text(json.dumps(side, indent=2, allow_nan=False), encoding="utf-8")
         return path

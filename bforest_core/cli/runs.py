@@ -177,7 +177,7 @@ def add_commands(sub) -> None:
     s = sub.add_parser("report", help="figures (PNG, SVG or PDF) and a summary (Markdown/HTML) of a run")
     s.add_argument("run_dir", metavar="DIR", help="a run directory (bforest fit output)")
     s.add_argument("--format", default="png", choices=("png", "svg", "pdf"),
-                   help="format of every figure (default: png; pdf also writes PNG previews for report.html)")
+                   help=f"format of every figure (default: png; pdf also writes PNG previews for {RunFiles.REPORT_HTML})")
     s.add_argument("--dpi", type=int, default=None,
                    help="resolution of raster figures and of the raster parts of vector ones (default: 120-130)")
     s.set_defaults(func=cmd_report)

@@ -54,8 +54,6 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         ("delay", 0.0, 20.0, None), ("drop_thresh", 0.05, 0.5, None),
         ("branch_angle", ang_lo, ang_hi, f"first-order branches at {m.beta_q10:.0f}-{m.beta_q90:.0f} deg "
          "to the stem (10-90 %)"),
-        ("branch_angle_sd", 0.0, 30.0, f"spread of the branch angle: the tree's first-order branches spread "
-         f"over {m.beta_q90 - m.beta_q10:.0f} deg (10-90 %)"),
         ("tropism", -0.1, 0.3, None), ("reorient", 0.0, 1.0, "how much shoots turn towards light"),
         ("heading_sd", 0.0, 20.0, "winding of the axes (deg per internode)"),
         ("shadow_a", 0.1, 0.9, None), ("shadow_b", 1.1, 4.0, None), ("alpha0", 0.0, 3.0, None),

@@ -115,17 +115,17 @@ class RunView:
     def best_seeds(self) -> list[int]:
         if self.best is not None and self.best.get("seeds"):
             return list(self.best["seeds"])
-        from ..pipeline.objective import model_seeds
+        from ..pipeline.seeds import model_seeds
         c = self.cfg
         return model_seeds(c.seed, c.objective.seeds, "fixed") if c is not None else [1]
 
     # ----------------------------------------------------------------- target and data sets
     @cached_property
     def target(self):
-        """The :class:`~bforest_core.objective.Target` rebuilt from the config (or None)."""
+        """The :class:`~bforest_core.pipeline.target.Target` rebuilt from the config (or None)."""
         if self.cfg is None:
             return None
-        from ..pipeline.objective import build_target
+        from ..pipeline.target import build_target
         try:
             return build_target(self.cfg)
         except Exception as exc:  # a moved QSM file must not stop the report
@@ -150,7 +150,7 @@ class RunView:
             return dict(self.target.columns)
         if self.cfg is not None and self.U_data:
             try:
-                from ..pipeline.objective import feature_set_for
+                from ..pipeline.target import feature_set_for
                 fs = feature_set_for(self.cfg, "target")
                 return {k: list(fs.columns(k)) for k in self.U_data}
             except Exception:
@@ -204,26 +204,22 @@ class RunView:
 
     @cached_property
     def worker_parts(self):
-        """(features, distance) built exactly as the fit's workers build them (``init_worker``),
-        or None."""
+        """(features, distance) built exactly as the fit's workers build them
+        (:func:`~bforest_core.pipeline.scoring.build_scoring`), or None."""
         if self.cfg is None or not self.U_data:
             return None
-        from ..pipeline import objective
         from ..config import config_to_dict, section_settings
+        from ..pipeline.scoring import build_scoring
         if self.target is not None:
             fs_settings = self.target.feature_settings
         else:
             fs_settings = section_settings(self.cfg, "features")
-        saved = dict(objective._CTX)
         try:
-            objective.init_worker(config_to_dict(self.cfg), self.U_data, self.columns, fs_settings)
-            return objective._CTX["features"], objective._CTX["distance"]
+            ctx = build_scoring(config_to_dict(self.cfg), self.U_data, self.columns, fs_settings)
         except Exception as exc:
             self.note(f"the feature set and distance could not be set up ({type(exc).__name__}: {exc})")
             return None
-        finally:
-            objective._CTX.clear()
-            objective._CTX.update(saved)
+        return ctx["features"], ctx["distance"]
 
     @cached_property
     def U_model(self) -> dict[str, np.ndarray] | None:

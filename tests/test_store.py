@@ -66,11 +66,6 @@ def test_a_fit_writes_the_files_runfiles_names(toy_plugin, tmp_path):
         RunFiles(tmp_path).read_best()
 
 
-#: modules that still spell run-folder file names (the report's reading of runs is being moved
-#: onto RunFiles in a parallel change of issue 34); remove an entry once its module is done
-PENDING = {"report", "pipeline/posterior.py"}
-
-
 def test_run_folder_file_names_are_spelled_only_in_the_store():
     import ast
     from pathlib import Path
@@ -81,7 +76,7 @@ def test_run_folder_file_names_are_spelled_only_in_the_store():
     found = []
     for f in sorted(core.rglob("*.py")):
         rel = f.relative_to(core).as_posix()
-        if rel == "pipeline/store.py" or rel in PENDING or rel.split("/")[0] in PENDING:
+        if rel == "pipeline/store.py":
             continue
         tree = ast.parse(f.read_text(encoding="utf-8"))
         docs = {id(n.body[0].value) for n in ast.walk(tree) if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef))

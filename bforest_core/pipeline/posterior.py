@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..metrics import weighted_quantiles
+from .store import RunFiles
 
 HDI_PROB = 0.90
 
@@ -191,7 +192,7 @@ def posterior_outputs(run_dir: Path, diag: dict, names: list[str], kind: str | N
         return None
     kind = posterior_kind(diag, kind)
     run_dir = Path(run_dir)
-    write_posterior_csv(run_dir / "posterior.csv", diag, names)
+    write_posterior_csv(RunFiles(run_dir).posterior_csv_path, diag, names)
     X, w = got
     import arviz as az
     draws = _draws(diag, names, X, w, kind)
@@ -221,7 +222,7 @@ def posterior_outputs(run_dir: Path, diag: dict, names: list[str], kind: str | N
                              observed_data=obs or None, dims=obs_dims or None, coords=obs_coords or None,
                              attrs=file_attrs)
         try:
-            idata.to_netcdf(str(run_dir / "posterior.nc"))
+            idata.to_netcdf(str(RunFiles(run_dir).posterior_nc_path))
         except Exception:  # no netCDF engine: the CSV still holds everything
             pass
         hdi = az.hdi(idata.posterior, hdi_prob=HDI_PROB)

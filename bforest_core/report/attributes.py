@@ -82,13 +82,13 @@ def fig_distributions(v: "RunView"):
         return []
     trees = []
     for r in ok:
-        p = v.path / "clones" / r["file"]
+        p = v.store.clones_dir() / r["file"]
         if p.exists():
             t = read_qsm(p)
             trees.append(t[0] if isinstance(t, list) else t)
     if not trees:
         return []
-    p = distributions_figure(v.target_tree, trees, v.path / "figures" / "distributions.png",
+    p = distributions_figure(v.target_tree, trees, v.store.figures_dir / "distributions.png",
                              title=f"TreeQSM's distributions: target and {len(trees)} clones")
     return [(p, "TreeQSM's distributions (docs/tree-attributes.md) of the target (blue) against the clones' "
                 "median (red) and 5–95 % band: wood volume and length by cylinder diameter and by height, "

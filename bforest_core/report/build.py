@@ -48,7 +48,7 @@ class _Figures:
     def __init__(self, view: RunView, strict: bool):
         self.v = view
         self.strict = strict
-        self.dir = view.path / "figures"
+        self.dir = view.store.figures_dir
         self.dir.mkdir(exist_ok=True)
         self.made: dict[str, list[tuple[str, str]]] = {}
 
@@ -171,7 +171,7 @@ def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool 
         if not v.clone_rows:  # figures drawn from clones that are gone would contradict the folder
             for stale in ("clones", "clone_metrics"):
                 for suffix in FORMATS:
-                    (v.path / "figures" / f"{stale}.{suffix}").unlink(missing_ok=True)
+                    (v.store.figures_dir / f"{stale}.{suffix}").unlink(missing_ok=True)
     doc = Document()
     title = f"Bayes Forest run report: {v.path.name}"
     doc.h(1, title)
@@ -194,9 +194,9 @@ def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool 
     doc.items(notes or ["none"])
     doc.p(f"Written {_dt.datetime.now().strftime('%Y-%m-%d %H:%M:%S')} by bforest {__version__} "
           f"in {time.monotonic() - t0:.1f} s.")
-    md = v.path / "report.md"
+    md = v.store.report_md_path
     md.write_text(doc.markdown(), encoding="utf-8")
     if html:
-        (v.path / "report.html").write_text(doc.html(v.path, title), encoding="utf-8")
+        v.store.report_html_path.write_text(doc.html(v.path, title), encoding="utf-8")
     v.store.close()
     return md

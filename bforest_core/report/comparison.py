@@ -143,9 +143,9 @@ def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: 
 
 def write_profile_figure(res: dict) -> Path:
     """Draw ``figures/profile_<param>.png`` of a :func:`bforest_core.pipeline.profile.profile` result."""
-    from ..pipeline.store import slug
+    from ..pipeline.store import RunFiles, slug
     param = res["param"]
-    return profile_figure(res["values"], res["distances"], Path(res["run_dir"]) / "figures" / f"profile_{slug(param)}.png",
+    return profile_figure(res["values"], res["distances"], RunFiles(res["run_dir"]).figures_dir / f"profile_{slug(param)}.png",
                           param, failed=res["failed"], best_value=res["best_value"],
                           best_distance=res["best_distance"], unit=res["unit"],
                           title=f"Distance profile along {param} ({len(res['seeds'])} seeds; other parameters "

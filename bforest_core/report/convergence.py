@@ -141,7 +141,7 @@ def fig_convergence(v: "RunView"):
         return []
     d = np.array([e.distance for e in evs], float)
     st = [e.status for e in evs]
-    out = [(convergence_figure(d, v.path / "figures" / "convergence.png", statuses=st, records=v.records,
+    out = [(convergence_figure(d, v.store.figures_dir / "convergence.png", statuses=st, records=v.records,
                                title=f"Convergence ({(v.best or {}).get('optimizer') or cfg_kind(v, 'optimizer')})"),
             "Distance of every evaluation and the best so far; per-generation best and mean when the "
             "optimiser logs generations")]
@@ -153,7 +153,7 @@ def fig_convergence(v: "RunView"):
         if v.cfg is not None:
             bounds = {n: (v.cfg.ssm.free[n].lower, v.cfg.ssm.free[n].upper) for n in names}
         out.append((parameter_scatter_figure(names, X, [e.distance for e in ok],
-                                             v.path / "figures" / "parameters.png", best=v.best_params,
+                                             v.store.figures_dir / "parameters.png", best=v.best_params,
                                              bounds=bounds, units={n: s.unit for n, s in v.param_specs.items()},
                                              title="Where the optimiser searched"),
                     "Distance against each free parameter over the successful evaluations (colour: "

@@ -276,7 +276,7 @@ def fig_sets(v: RunView):
         cols = v.columns.get(name) or [f"x{i}" for i in range(ud.shape[1])]
         D = per_set.get(name)
         title = f"data set {name}: data (target) vs best-fit model (SSM)" + (f", D = {D:.4f}" if D is not None else "")
-        p = set_scatter_figure(ud, um, cols, v.path / "figures" / f"set_{slug(name)}.png", title=title)
+        p = set_scatter_figure(ud, um, cols, v.store.figures_dir / f"set_{slug(name)}.png", title=title)
         out.append((p, f"Set {name}: every pair of variates, data blue, model red (angles in degrees)"))
         if dist is None or um.shape[0] == 0 or ud.shape[0] == 0:
             continue
@@ -287,7 +287,7 @@ def fig_sets(v: RunView):
             dist = None
             continue
         um2, ud2, lines, stat, normalised = distance_view(dist, name, um, ud)
-        p = worst_lines_figure(um2, ud2, A, cols, v.path / "figures" / f"lines_{slug(name)}.png",
+        p = worst_lines_figure(um2, ud2, A, cols, v.store.figures_dir / f"lines_{slug(name)}.png",
                                line_values=lines, statistic=stat, normalised=normalised,
                                title=f"data set {name}: the worst-fitting projection lines")
         out.append((p, f"Set {name}: per-line statistic over all {A.shape[0]} lines and the ECDFs of data "

@@ -12,6 +12,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..pipeline.store import RunFiles
 from .canvas import MODEL_COLOR, TRUE_COLOR, capped_size, new_figure, save_figure
 
 if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
@@ -272,7 +273,7 @@ def fig_posterior(v: "RunView"):
         ch = mcmc_chain(diag, names)
         if ch is not None:
             chain, dist, burn, names = ch
-            out.append((chain_figure(chain, names, v.path / "figures" / "chain.png", burn_in=burn, distances=dist,
+            out.append((chain_figure(chain, names, v.store.figures_dir / "chain.png", burn_in=burn, distances=dist,
                                      title="MCMC chain"),
                         f"Trace of every walker per parameter ({chain.shape[1]} walkers, {chain.shape[0]} steps; "
                         f"burn-in of {burn} steps shaded)"))
@@ -287,11 +288,11 @@ def fig_posterior(v: "RunView"):
         bounds = [(v.cfg.ssm.free[n].lower, v.cfg.ssm.free[n].upper) for n in names]
     specs = v.param_specs
     units = [specs[n].unit if n in specs else "" for n in names]
-    out.append((corner_figure(X, names, v.path / "figures" / "corner.png", truths=best, bounds=bounds, units=units,
+    out.append((corner_figure(X, names, v.store.figures_dir / "corner.png", truths=best, bounds=bounds, units=units,
                               weights=None if kind == "chain" else w,
                               true_values=true if any(t is not None for t in true) else None,
                               title=f"Posterior: {what}"),
-                "Posterior marginals (5/50/95 % quantiles, as in best.json) and pairwise densities (39 %/86 % "
+                f"Posterior marginals (5/50/95 % quantiles, as in {RunFiles.BEST}) and pairwise densities (39 %/86 % "
                 "contours)" + (", weighted by the particles' weights" if kind != "chain" else "")
                 + "; red: the best evaluation"
                 + ("; green: the true values the target was grown with" if any(t is not None for t in true) else "")))
@@ -304,7 +305,7 @@ def fig_posterior(v: "RunView"):
                 target = opt if isinstance(opt, (int, float)) and not isinstance(opt, bool) else None
             n_pop = len(diag["population"]["particles"]) if isinstance(diag.get("population"), dict) \
                 and diag["population"].get("particles") is not None else X.shape[0]
-            out.append((generations_figure(eps, acc, ess, v.path / "figures" / "generations.png",
+            out.append((generations_figure(eps, acc, ess, v.store.figures_dir / "generations.png",
                                            epsilon_target=target, particles=n_pop,
                                            title="Population per generation"),
                         "Tolerance ε (log scale; dashed: its target), acceptance rate and effective sample size "

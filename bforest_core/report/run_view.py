@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import BayesForestError
 from ..pipeline.clones import CSV_COLUMNS
-from ..pipeline.store import RunStore
+from ..pipeline.store import RunFiles, RunStore
 
 
 
@@ -40,7 +40,7 @@ class RunView:
         try:
             return tomllib.loads(self.store.config_path.read_text(encoding="utf-8"))
         except Exception as exc:
-            self.note(f"config.toml could not be read: {exc}")
+            self.note(f"{RunFiles.CONFIG} could not be read: {exc}")
             return {}
 
     @cached_property
@@ -49,15 +49,15 @@ class RunView:
         try:
             return load_config(self.store.config_path)
         except BayesForestError as exc:
-            self.note(f"config.toml does not validate with the installed plugins ({exc}); "
+            self.note(f"{RunFiles.CONFIG} does not validate with the installed plugins ({exc}); "
                       "figures that need the models are skipped")
             return None
 
     @cached_property
     def best(self) -> dict | None:
-        p = self.path / "best.json"
+        p = self.store.best_path
         if not p.exists():
-            self.note("no best.json: the fit has not finished (the report shows the evaluations so far)")
+            self.note(f"no {RunFiles.BEST}: the fit has not finished (the report shows the evaluations so far)")
             return None
         return json.loads(p.read_text(encoding="utf-8"))
 
@@ -135,13 +135,13 @@ class RunView:
 
     @cached_property
     def U_data(self) -> dict[str, np.ndarray]:
-        p = self.path / "target_sets.npz"
+        p = self.store.target_sets_path
         if p.exists():
             with np.load(p) as z:
                 return {k: np.asarray(z[k]) for k in z.files}
         if self.target is not None:
             return dict(self.target.U)
-        self.note("no target_sets.npz and the target could not be rebuilt: data-set figures skipped")
+        self.note(f"no {RunFiles.TARGET_SETS} and the target could not be rebuilt: data-set figures skipped")
         return {}
 
     @cached_property
@@ -157,8 +157,7 @@ class RunView:
                 pass
         return {k: [f"x{i}" for i in range(v.shape[1])] for k, v in self.U_data.items()}
 
-    def _read_tree(self, name: str):
-        p = self.path / name
+    def _read_tree(self, p: Path):
         if not p.exists():
             return None
         try:
@@ -166,16 +165,16 @@ class RunView:
             t = read_qsm(p)
             return t[0] if isinstance(t, list) else t
         except Exception as exc:
-            self.note(f"{name} could not be read ({type(exc).__name__}: {exc})")
+            self.note(f"{p.name} could not be read ({type(exc).__name__}: {exc})")
             return None
 
     @cached_property
     def target_tree(self):
         if self.target is not None:
             return self.target.trees[0]
-        t = self._read_tree("target.txt")
+        t = self._read_tree(self.store.target_tree_path)
         if t is None:
-            self.note("the target tree is not available (no target.txt and no readable target in the config)")
+            self.note(f"the target tree is not available (no {RunFiles.TARGET_TREE} and no readable target in the config)")
         return t
 
     @cached_property
@@ -196,10 +195,10 @@ class RunView:
                 return tree
             except Exception as exc:
                 self.note(f"the best-fit tree could not be regrown ({type(exc).__name__}: {exc}); "
-                          "using best_tree.txt")
-        t = self._read_tree("best_tree.txt")
+                          f"using {RunFiles.BEST_TREE}")
+        t = self._read_tree(self.store.best_tree_path)
         if t is not None:
-            self.best_tree_source = "best_tree.txt"
+            self.best_tree_source = RunFiles.BEST_TREE
         return t
 
     @cached_property
@@ -252,7 +251,7 @@ class RunView:
     # ----------------------------------------------------------------- clones
     @cached_property
     def clone_rows(self) -> list[dict]:
-        p = self.path / "clones" / "clones.csv"
+        p = self.store.clones_dir() / RunFiles.CLONE_TABLE
         if not p.exists():
             return []
         rows = []
@@ -280,10 +279,10 @@ class RunView:
             if len(shown) >= k:
                 break
             f = r.get("file")
-            if r.get("status") != "ok" or not f or not (self.path / "clones" / f).exists():
+            if r.get("status") != "ok" or not f or not (self.store.clones_dir() / f).exists():
                 continue
             try:
-                t = read_qsm(self.path / "clones" / f)
+                t = read_qsm(self.store.clones_dir() / f)
                 t = t[0] if isinstance(t, list) else t
             except Exception as exc:
                 self.note(f"clone file {f} could not be read ({type(exc).__name__}: {exc})")
@@ -294,7 +293,7 @@ class RunView:
 
     @cached_property
     def clone_summary(self) -> dict | None:
-        p = self.path / "clones" / "summary.json"
+        p = self.store.clones_dir() / RunFiles.CLONE_SUMMARY
         if not p.exists():
             return None
         return json.loads(p.read_text(encoding="utf-8"))

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 
+from ..pipeline.store import RunFiles
 from .document import METRIC_ROWS, Document, cfg_kind, fmt, seconds_text
 from .run_view import RunView
 
@@ -229,7 +230,7 @@ def section_optimizer(doc: Document, v: RunView, figs):
               f"{adj.get('regrown')} proposals within the last tolerance regrown with their seeds, each parameter "
               f"regressed on {adj.get('summaries')} summary statistics of their trees and moved to the target's; "
               f"the share of each parameter's spread the statistics explain (R²): {r2}. The posterior before "
-              "the adjustment is `diagnostics.unadjusted` in best.json.")
+              f"the adjustment is `diagnostics.unadjusted` in {RunFiles.BEST}.")
     elif isinstance(adj, dict) and adj.get("note"):
         doc.p(f"Regression adjustment asked for but not applied: {adj['note']}.")
     section_posterior(doc, v, diag)
@@ -264,7 +265,7 @@ def section_posterior(doc: Document, v: RunView, diag: dict):
     if kind == "chain":
         steps, burn, walkers = diag.get("steps"), diag.get("burn_in"), diag.get("walkers")
         doc.p(f"The posterior is the draws of a Markov chain: {walkers} walkers, {steps} steps, of which the "
-              f"first {burn} are burn-in and dropped; each walker is one chain of `posterior.nc` (R-hat and bulk "
+              f"first {burn} are burn-in and dropped; each walker is one chain of `{RunFiles.POSTERIOR_NC}` (R-hat and bulk "
               "ESS across them)" + ("." if diag.get("autocorr_reliable") else
                                     "; the chain is too short for reliable autocorrelation times: treat the "
                                     "intervals as rough."))
@@ -276,7 +277,7 @@ def section_posterior(doc: Document, v: RunView, diag: dict):
         ess = f" (effective sample size {1.0 / float(np.sum((w / w.sum()) ** 2)):.0f})" if w.size and w.sum() > 0 else ""
         doc.p(f"The posterior is a weighted population of {n} particles{ess} within the tolerance ε = {fmt(eps)}"
               + (f" ({gens} generations, the prior draws counted)" if gens else "")
-              + "; `posterior.nc` holds a resample by weight, `posterior.csv` the particles and their weights.")
+              + f"; `{RunFiles.POSTERIOR_NC}` holds a resample by weight, `{RunFiles.POSTERIOR_CSV}` the particles and their weights.")
     cols = ["parameter"] + (["true"] if true else []) + ["mean", "sd", "5 %", "50 %", "95 %", f"{hdi} % HDI"]
     if true:
         cols.append(f"true in {hdi} % HDI")
@@ -297,7 +298,7 @@ def section_posterior(doc: Document, v: RunView, diag: dict):
         if kind == "chain":
             row += [q.get("r_hat"), q.get("ess_bulk"), tau.get(name)]
         rows.append(row)
-    doc.p(f"Posterior summaries (as in `best.json`: weighted mean, sd, 5/50/95 % quantiles and the {hdi} % "
+    doc.p(f"Posterior summaries (as in `{RunFiles.BEST}`: weighted mean, sd, 5/50/95 % quantiles and the {hdi} % "
           "highest-density interval)" + (", beside the true values the target was grown with" if true else "") + ":")
     doc.table(cols, rows)
     if missed:
@@ -382,7 +383,7 @@ def section_view3d(doc: Document, v: RunView, clones: int = 4):
         return
     doc.h(3, "3-D view")
     names = ", ".join(label.split("\n")[0] for label, _ in trees)
-    doc.raw_html(view3d_html(trees), f"An interactive 3-D view of {names} (drag to turn them) is in report.html.")
+    doc.raw_html(view3d_html(trees), f"An interactive 3-D view of {names} (drag to turn them) is in {RunFiles.REPORT_HTML}.")
 
 
 def section_fidelity(doc: Document, v: RunView):
@@ -421,7 +422,7 @@ def section_fidelity(doc: Document, v: RunView):
 
 
 def section_profiles(doc: Document, v: RunView):
-    profs = sorted((v.path / "figures").glob("profile_*.png"))
+    profs = sorted(v.store.figures_dir.glob("profile_*.png"))
     if not profs:
         return
     doc.h(2, "Distance profiles")

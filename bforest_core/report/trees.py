@@ -384,7 +384,7 @@ def fig_trees(v: "RunView"):
     if not trees:
         v.note("trees figure skipped: neither the target nor the best-fit tree is available")
         return []
-    p = tree_comparison_figure(trees, v.path / "figures" / "trees.png",
+    p = tree_comparison_figure(trees, v.store.figures_dir / "trees.png",
                                title="Target and best-fit tree (line width ∝ radius, colour = branch order)")
     cap = "Target and best-fit tree in the side views XZ, YZ and the top view XY, on one scale"
     if v.best_tree_source == "regrown":
@@ -401,7 +401,7 @@ def fig_clones(v: "RunView"):
     k = v.cfg.report.clones_in_figure if v.cfg is not None else 6
     shown = v.clone_trees(k)
     if shown and v.target_tree is not None:
-        out.append((clones_figure(v.target_tree, shown, v.path / "figures" / "clones.png",
+        out.append((clones_figure(v.target_tree, shown, v.store.figures_dir / "clones.png",
                                   title=f"Target and {len(shown)} morphological clones of the best fit"),
                     f"The target and {len(shown)} clones (the best-fit model with fresh seeds) on one scale, "
                     "side view XZ and top view XY"))
@@ -416,7 +416,7 @@ def fig_clones(v: "RunView"):
         bm.update((v.best.get("relative_errors") or {}))
     if v.best_tree is not None:
         bm["n_cylinders"] = v.best_tree.n
-    out.append((clone_metrics_figure(values, v.path / "figures" / "clone_metrics.png", target=tm, best=bm,
+    out.append((clone_metrics_figure(values, v.store.figures_dir / "clone_metrics.png", target=tm, best=bm,
                                      title=f"Classical metrics of {len(ok)} clones"),
                 "Distributions over the clones: height, base diameter, crown spread, structural distance and the "
                 "relative errors d_h, d_g, d_c; black: target, red dashed: best-fit tree"))

@@ -29,8 +29,6 @@ import bforest_core as bf
 from bforest_sliced.grid import VALUE_BITS, snap
 
 
-
-
 def interleaved(fns: dict, repeats: int) -> dict:
     """Best-of-``repeats`` times of several functions, run in turn so that load from other
     processes hits them alike (the minimum estimates the intrinsic cost on a shared machine)."""

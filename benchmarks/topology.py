@@ -8,7 +8,6 @@ in the same run: a plain Python forward pass in row order (the obvious non-vecto
 """
 from __future__ import annotations
 
-
 import numpy as np
 from _timing import median_time
 

@@ -212,7 +212,7 @@ def _section_model(kind: str, name: str, cls: type) -> type[BaseModel]:
     return model
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _run_config_model(registry_id: int):
     reg = discover()
     fields = {}

@@ -184,7 +184,7 @@ class SSM(Component):
             For any non-ok status.
         """
 
-    def draft_recipe(self, measures: "TreeMeasures") -> "RecipeDraft | None":
+    def draft_recipe(self, measures: TreeMeasures) -> RecipeDraft | None:
         """Optional (``bforest init``): this model's part of a recipe for a measured tree.
 
         Parameters

@@ -140,8 +140,9 @@ def component(kind: str, name: str, **settings: Any) -> Component:
     Raises ``PluginError`` for an unknown name (listing the known ones) and ``ConfigError`` for
     invalid settings.
     """
-    from .errors import ConfigError
     import pydantic
+
+    from .errors import ConfigError
 
     cls = component_class(kind, name)
     try:

@@ -7,8 +7,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bforest_core.config import (ClonesConfig, FreeParameter, GeneratedTarget, ObjectiveConfig, ReportConfig,
-                                 SelectConfig, StopConfig, TargetConfig, SECTIONS)
+from bforest_core.config import (
+    SECTIONS,
+    ClonesConfig,
+    FreeParameter,
+    GeneratedTarget,
+    ObjectiveConfig,
+    ReportConfig,
+    SelectConfig,
+    StopConfig,
+    TargetConfig,
+)
 from bforest_core.registry import discover
 
 

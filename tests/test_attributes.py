@@ -132,6 +132,7 @@ def test_trunk_only_tree_has_no_crown():
 @pytest.fixture(scope="module")
 def coffee():
     import scipy.io as sio
+
     from bforest_core import read_qsm
     p = qsm_path("coffeetree_treeqsm_optqsm.mat")
     with warnings.catch_warnings():

@@ -62,8 +62,9 @@ def test_report_markdown_carries_no_raw_html():
 
 
 def test_a_plugins_parameter_names_must_be_identifiers(toy_plugin, tmp_path, monkeypatch, capsys):
-    from bforest_core import ParameterSpec
     from bforest_toy import ToySSM
+
+    from bforest_core import ParameterSpec
     p = toy_config(tmp_path, budget=4)
     real = ToySSM.parameters.fget
     monkeypatch.setattr(ToySSM, "parameters", property(lambda self: real(self) + [

@@ -10,8 +10,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bforest_core.pipeline.calibrate import (RANK_DRAWS, central_interval, coverage_table, prior_draw, rank_bins,
-                                             rank_counts, sbc_rank, uniform_band)
+from bforest_core.pipeline.calibrate import (
+    RANK_DRAWS,
+    central_interval,
+    coverage_table,
+    prior_draw,
+    rank_bins,
+    rank_counts,
+    sbc_rank,
+    uniform_band,
+)
 
 
 # ------------------------------------------------------------------ arithmetic

@@ -1,7 +1,7 @@
 """The `bforest` command: help, version, readable one-line errors with exit code 2."""
 import subprocess
-from pathlib import Path
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -136,6 +136,7 @@ def test_distance_json():
 
 def test_every_option_has_a_help_line():
     import argparse
+
     from bforest_core.cli.main import build_parser
 
     missing = []
@@ -160,6 +161,7 @@ def test_dev_py_lists_its_commands():
 def test_fit_progress_bar_counts_to_the_plan_and_closes_with_the_reason(toy_plugin, tmp_path):
     """The GA plans population x (generations + 1) evaluations; the bar ends with why it stopped."""
     import os
+
     from conftest import toy_config
     p = toy_config(tmp_path, optimizer="ga", optimizer_settings="population = 6\ngenerations = 3", budget=1000)
     from conftest import TOY_DIR
@@ -177,6 +179,7 @@ def test_fit_progress_bar_counts_to_the_plan_and_closes_with_the_reason(toy_plug
 def test_compare_and_clones_show_bars_with_totals(toy_plugin, tmp_path):
     """compare counts to optimisers x repeats x budget; clones counts to the clones it grows."""
     import os
+
     from conftest import TOY_DIR, toy_config
     p = toy_config(tmp_path, budget=1000)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(toy_plugin), str(TOY_DIR)])}
@@ -197,6 +200,7 @@ def test_a_dead_worker_pool_is_one_line_that_says_resume(tmp_path, monkeypatch, 
     """A worker whose start-up fails (or that is killed) breaks the process pool: one line that
     says what happened and that finished evaluations are kept, no traceback."""
     from concurrent.futures.process import BrokenProcessPool
+
     import bforest_core.pipeline.fit as fit_mod
 
     def broken(*a, **k):
@@ -220,6 +224,7 @@ def test_output_cut_short_by_the_reader_is_no_error():
     import subprocess
     import sys
     from pathlib import Path
+
     from conftest import qsm_path
     exe = shutil.which("bforest") or str(Path(sys.executable).with_name("bforest"))
     p = subprocess.Popen([exe, "info", str(qsm_path("wytham_tf1.mat")), "--csv", "--table", "branches"],

@@ -1,6 +1,5 @@
 """CMA-ES and the noise-aware early stop on problems with known answers."""
 import numpy as np
-import pytest
 
 import bforest_core as bf
 from bforest_core.interfaces import Problem

@@ -7,8 +7,14 @@ import pytest
 
 import bforest_core as bf
 from bforest_core import ConfigError, Tree
-from bforest_features.branch_segment import (BranchSegmentFeatures, _segment_angles, azimuth_frame,
-                                             branch_table, parse_set, segment_table)
+from bforest_features.branch_segment import (
+    BranchSegmentFeatures,
+    _segment_angles,
+    azimuth_frame,
+    branch_table,
+    parse_set,
+    segment_table,
+)
 from conftest import hand_tree, read_sample
 
 S60, C60 = np.sin(np.radians(60)), np.cos(np.radians(60))

@@ -16,8 +16,8 @@ import bforest_core as bf
 from bforest_core.cli.main import main
 from bforest_core.metrics import measure_tree
 from bforest_core.pipeline.recipe import write_recipe
-
-from conftest import ROOT, qsm_path as sample
+from conftest import ROOT
+from conftest import qsm_path as sample
 
 
 def _axis(zenith_deg: float, azimuth_deg: float) -> np.ndarray:

@@ -14,7 +14,6 @@ import pytest
 import bforest_core as bf
 from bforest_core.errors import ConfigError
 from bforest_core.interfaces import Problem
-
 from bforest_optim.cma_es import CMAES
 from bforest_optim.de import DifferentialEvolution
 from bforest_optim.emcee_sampler import EmceeSampler, auto_epsilon

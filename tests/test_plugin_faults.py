@@ -193,9 +193,10 @@ def _die(x):
 
 
 def test_unpicklable_errors_come_back_as_text_and_a_death_without_a_stand_in_is_one_error():
+    import pickle
+
     from bforest_core.errors import QSMFormatError, SimulationFailed
     from bforest_core.pipeline.executors import WorkerError, WorkerLost
-    import pickle
     e = pickle.loads(pickle.dumps(QSMFormatError("a.mat", "no cylinders", rows=[3])))
     assert (e.path, e.problem, e.rows, str(e)) == ("a.mat", "no cylinders", [3], "a.mat: no cylinders")
     e = pickle.loads(pickle.dumps(SimulationFailed("collapsed", "angle")))

@@ -13,7 +13,8 @@ import pytest
 import bforest_core as bf
 from bforest_core.interfaces import Optimizer
 from bforest_core.pipeline.posterior import posterior_kind, prior_draws
-from bforest_core.report import canvas, posterior as post_fig
+from bforest_core.report import canvas
+from bforest_core.report import posterior as post_fig
 from conftest import toy_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -104,8 +105,8 @@ def test_generations_figure_draws_epsilon_acceptance_and_ess(tmp_path, monkeypat
 
 # ---------------------------------------------------------------------------------- the stop note
 def test_abc_smc_says_when_it_stops_above_its_target_and_not_when_it_reaches_it():
-    from test_abc_smc import _problem, gaussian_location
     from bforest_optim.abc_smc import AbcSmc
+    from test_abc_smc import _problem, gaussian_location
     pr, _ = _problem(gaussian_location(), [-10.0], [10.0])
     res = AbcSmc(particles=50, generations=3, epsilon_target=0.05).minimize(pr)
     eps = res.diagnostics["epsilon"][-1]
@@ -141,6 +142,7 @@ def test_abc_smc_report_of_the_calibrated_recipe_on_a_generated_target(tmp_path,
     population, gives best.json's quantiles beside the true values, and draws the corner and
     per-generation figures."""
     import arviz as az
+
     from bforest_core.cli import main
     text = RECIPE.read_text()
     text = text.replace("[ssm]", "[target.generate]\nssm = \"sot\"\nseed = 5\nparams = { max_iter = 10, "

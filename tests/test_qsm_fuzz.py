@@ -16,7 +16,6 @@ import numpy as np
 import bforest_core as bf
 from bforest_core import QSMFormatError, Tree
 
-
 SEED = 20240611
 MIN_CASES = 300
 
@@ -281,6 +280,7 @@ def test_special_files_and_huge_values_are_one_clear_error(tmp_path):
 
 def test_a_bad_native_csv_sidecar_is_an_error_not_ignored(tmp_path):
     import json
+
     from conftest import hand_tree
     p = tmp_path / "t.csv"
     bf.write_tree(hand_tree(), p)

@@ -12,10 +12,8 @@ import pytest
 
 import bforest_core as bf
 from bforest_core import QSMFormatError
-
-from conftest import hand_tree, qsm_path
-
 from bforest_treeqsm.writers import ORDER_PALETTE, branch_table, cylinder_mesh
+from conftest import hand_tree, qsm_path
 
 ROUND_TRIP_SAMPLES = ["itsme_qsm_tree_v240.mat", "coffeetree_treeqsm_optqsm.mat", "pine_ruotsinkyla_3.mat",
                       "itsme_qsm_tree_v200.mat", "wytham_tf3.mat", "coffeetree_simpleforest.csv",

@@ -8,15 +8,14 @@ import numpy as np
 import pytest
 
 import bforest_core as bf
-from bforest_core.report import canvas, comparison, convergence, datasets, posterior, trees
-from bforest_core.pipeline.clones import clones as grow_clones
 from bforest_core.errors import ConfigError
+from bforest_core.pipeline.clones import clones as grow_clones
 from bforest_core.pipeline.profile import profile, profile_values
-from bforest_core.report import write_report
+from bforest_core.pipeline.store import RunStore
+from bforest_core.report import canvas, comparison, convergence, datasets, posterior, trees, write_report
 from bforest_core.report.datasets import distance_view
 from bforest_core.report.posterior import mcmc_chain
 from bforest_core.report.run_view import RunView
-from bforest_core.pipeline.store import RunStore
 from conftest import hand_tree, toy_config
 
 SECTIONS = ["# Bayes Forest run report", "## Target", "## Model and method", "## Parameters", "## Fit result",
@@ -116,6 +115,7 @@ def test_report_draws_the_same_figures_in_one_or_two_processes(toy_runs, tmp_pat
     leaves a note and the figures drawn in the first."""
     import re
     from concurrent.futures import Future
+
     from bforest_core.report import build
     run = tmp_path / "run"
     shutil.copytree(toy_runs[0], run)

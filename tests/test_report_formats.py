@@ -104,6 +104,7 @@ def test_a_label_beyond_the_bottom_edge_is_saved_not_clipped(tmp_path):
     """An x label below the figure's edge (axes placed by hand, no layout) is in the file: the
     image grows to hold it, and its bottom rows hold the label's dark pixels."""
     import matplotlib.image as mpimg
+
     from bforest_core.report.canvas import new_figure, save_figure
     fig = new_figure(4.0, 3.0, layout=None)
     ax = fig.add_axes([0.12, 0.03, 0.83, 0.9])

@@ -140,8 +140,8 @@ def test_demo_never_replaces_a_run_or_a_file_it_did_not_write(toy_plugin, tmp_pa
 def test_demo_writes_nothing_beside_its_run_folder(tmp_path, monkeypatch):
     """Issue 33: the demo left ``demo-run.toml`` in the folder it was started from (the
     repository root); its config is the run's own config.toml now."""
-    from bforest_core.cli import demo
     import bforest_core.pipeline.fit as fit_mod
+    from bforest_core.cli import demo
 
     class Stop(Exception):
         pass

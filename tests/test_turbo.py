@@ -65,8 +65,8 @@ def test_turbo_points_move_only_some_coordinates_of_the_best_point():
 def test_turbo_in_a_fit_resumes_after_a_kill_to_the_same_evaluations(toy_plugin, tmp_path, monkeypatch):
     """A fit killed after 17 evaluations and resumed asks for the same points and ends where an
     uninterrupted run ends (the GP fits replay on the logged distances)."""
-    from conftest import fit_killed_after, toy_config
     from bforest_core.pipeline.store import RunStore
+    from conftest import fit_killed_after, toy_config
     cfg_path = toy_config(tmp_path, optimizer="turbo", optimizer_settings="batch = 2\ncandidates = 128", budget=40)
     full = bf.fit(bf.load_config(cfg_path), tmp_path / "full", progress=False)
     assert full.n_evaluations == 40 and isinstance(full.params["segments"], int)

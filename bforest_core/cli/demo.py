@@ -60,6 +60,7 @@ def demo_config_text(quick: bool = False) -> str:
 def _written_by_demo(run_dir: Path) -> bool:
     """Whether the run in ``run_dir`` is an earlier demo's (its config is one of the demo's)."""
     import tomllib
+
     from ..config import parse_config
     from ..pipeline.fit import same_config
     return any(same_config(run_dir, parse_config(tomllib.loads(demo_config_text(q)))) for q in (False, True))
@@ -86,8 +87,9 @@ def run_demo(out: Path, quick: bool = False, progress: bool = True, overwrite: b
 
 def _run_demo(out: Path, quick: bool, progress: bool) -> int:
     import tomllib
-    from ..pipeline.clones import clones
+
     from ..config import parse_config
+    from ..pipeline.clones import clones
     from ..pipeline.fit import fit
     cfg = parse_config(tomllib.loads(demo_config_text(quick)), source="demo config")
     t0 = time.monotonic()

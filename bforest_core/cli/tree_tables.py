@@ -5,8 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..attributes import (ATTRIBUTE_UNITS, BRANCH_COLUMNS, DISTRIBUTION_UNITS, branch_table, distributions,
-                          tree_attributes)
+from ..attributes import (
+    ATTRIBUTE_UNITS,
+    BRANCH_COLUMNS,
+    DISTRIBUTION_UNITS,
+    branch_table,
+    distributions,
+    tree_attributes,
+)
 
 #: what the attributes are called where a user reads them
 ATTRIBUTE_LABELS = {

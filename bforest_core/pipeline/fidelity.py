@@ -10,7 +10,7 @@ clones miss it. Errors are shown in percent; the JSON keeps the fraction under `
 from __future__ import annotations
 
 import math
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 

@@ -366,7 +366,8 @@ def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: flo
     if selection:
         best["heldout_distance"] = next(c["heldout"] for c in selection["candidates"] if c["evaluation"] == ev.idx)
         best["selection"] = selection
-    from .posterior import posterior_kind as _kind, posterior_outputs
+    from .posterior import posterior_kind as _kind
+    from .posterior import posterior_outputs
     diag = getattr(result, "diagnostics", {}) or {}
     names, lo, hi, _, _, integer = _free_specs(cfg, ssm)
     table = posterior_outputs(store.path, diag, list(diag.get("names") or ev.params), kind=posterior_kind,

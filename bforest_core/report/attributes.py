@@ -3,8 +3,9 @@
 order, branch count by branching angle), read like TreeQSM's own distribution plots."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.lines import Line2D
@@ -74,7 +75,7 @@ def distributions_figure(target, clones: Sequence, path, dpi: int = 130, title: 
     return save_figure(fig, path, dpi)
 
 
-def fig_distributions(v: "RunView"):
+def fig_distributions(v: RunView):
     """The report's distributions figure (target against every readable ok clone)."""
     from ..io import read_qsm
     ok = [r for r in v.clone_rows if r.get("status") == "ok" and r.get("file")]

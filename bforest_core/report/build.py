@@ -20,7 +20,6 @@ Figures:
 * ``profile_<param>.png``: made by ``bforest profile`` (Fig. 4), included when present.
 """
 from __future__ import annotations
-from __future__ import annotations
 
 import datetime as _dt
 import multiprocessing as mp
@@ -36,8 +35,18 @@ from .datasets import fig_sets
 from .document import Document, slug
 from .posterior import fig_posterior
 from .run_view import RunView
-from .sections import (section_clones, section_evaluations, section_fit, section_model, section_optimizer,
-                       section_parameters, section_profiles, section_summary, section_target, stopped_short)
+from .sections import (
+    section_clones,
+    section_evaluations,
+    section_fit,
+    section_model,
+    section_optimizer,
+    section_parameters,
+    section_profiles,
+    section_summary,
+    section_target,
+    stopped_short,
+)
 from .trees import fig_clones, fig_trees
 
 __all__ = ["write_report", "RunView", "slug"]

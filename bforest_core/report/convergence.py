@@ -2,16 +2,15 @@
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import math
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .document import cfg_kind
 from .canvas import MODEL_COLOR, capped_size, new_figure, save_figure
+from .document import cfg_kind
 
 if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
     from .run_view import RunView
@@ -134,7 +133,7 @@ def parameter_scatter_figure(names: Sequence[str], X: np.ndarray, distances: np.
 
 
 # ---------------------------------------------------------------------------------- run report
-def fig_convergence(v: "RunView"):
+def fig_convergence(v: RunView):
     evs = v.evaluations
     if not evs:
         v.note("no evaluations logged: convergence figures skipped")

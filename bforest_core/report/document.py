@@ -1,13 +1,12 @@
 """The report document (Markdown and HTML from one list of blocks) and its number formats."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import base64
 import html as _html
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -172,7 +171,7 @@ def _shown(rel: str) -> tuple[str, bool]:
     return rel, False
 
 
-def cfg_kind(v: "RunView", section: str) -> str:
+def cfg_kind(v: RunView, section: str) -> str:
     if v.cfg is not None:
         return getattr(v.cfg, section).kind
     return str((v.raw_config.get(section) or {}).get("kind", "?"))

@@ -5,10 +5,9 @@ the target was grown by the fitted model.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -61,6 +60,7 @@ def corner_figure(samples: np.ndarray, names: Sequence[str], path, truths: Seque
     was grown with; None where unknown) in green. ``bins`` defaults to about sqrt(n)/2, between
     8 and 30."""
     from scipy.ndimage import gaussian_filter
+
     from ..metrics import weighted_quantiles
     S = np.asarray(samples, float)
     W = np.ones(S.shape[0]) if weights is None else np.asarray(weights, float)
@@ -256,7 +256,7 @@ def _per_generation(diag: dict, key: str):
     return None
 
 
-def fig_posterior(v: "RunView"):
+def fig_posterior(v: RunView):
     """The posterior figures of a sampler's run: the corner plot for every posterior, the chain's
     trace for a chain, and tolerance, acceptance and ESS per generation for a population."""
     from ..pipeline.posterior import posterior_kind, posterior_samples

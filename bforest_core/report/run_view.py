@@ -12,8 +12,6 @@ from ..errors import BayesForestError
 from ..pipeline.clones import CSV_COLUMNS
 from ..pipeline.store import RunFiles, RunStore
 
-
-
 # ---------------------------------------------------------------------------------- run data
 #: clones.csv header -> row key (headers carry units)
 _CSV_KEYS = {v: k for k, v in CSV_COLUMNS.items()}

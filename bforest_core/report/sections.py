@@ -4,11 +4,9 @@ from __future__ import annotations
 import datetime as _dt
 import json
 from collections import Counter
-
 from pathlib import Path
 
 import numpy as np
-
 
 from ..pipeline.store import RunFiles
 from .document import METRIC_ROWS, Document, cfg_kind, fmt, seconds_text
@@ -396,8 +394,8 @@ def section_fidelity(doc: Document, v: RunView):
     doc.h(3, "Fidelity: do the clones look like the target?")
     for w in fid.get("warnings", []):
         doc.p(f"**WARNING: {w}.**")
-    from ..pipeline.fidelity import limit_of, percent
     from ..metrics import summary_label, summary_unit
+    from ..pipeline.fidelity import limit_of, percent
     rows = []
     for r in fid["table"]:
         lim = r.get("limit", limit_of(r["statistic"]))

@@ -3,11 +3,10 @@ and the clones' classical metrics. The drawing primitives (:func:`plot_tree`, ..
 so they can be reused in notebooks and other figures."""
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import math
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.collections import LineCollection
@@ -15,7 +14,17 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
 
-from .canvas import (ORDER_COLORS, DATA_COLOR, MODEL_COLOR, TARGET_LINE, VIEWS, new_figure, save_figure, _AXIS_NAMES, _VIEW_TITLES)
+from .canvas import (
+    _AXIS_NAMES,
+    _VIEW_TITLES,
+    DATA_COLOR,
+    MODEL_COLOR,
+    ORDER_COLORS,
+    TARGET_LINE,
+    VIEWS,
+    new_figure,
+    save_figure,
+)
 
 if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
     from .run_view import RunView
@@ -375,7 +384,7 @@ def clone_metrics_figure(values: Mapping[str, np.ndarray], path, target: Mapping
 
 
 # ---------------------------------------------------------------------------------- run report
-def fig_trees(v: "RunView"):
+def fig_trees(v: RunView):
     trees = {}
     if v.target_tree is not None:
         trees["target (QSM)" if v.cfg is None or v.cfg.target.qsm else "target"] = v.target_tree
@@ -392,7 +401,7 @@ def fig_trees(v: "RunView"):
     return [(p, cap)]
 
 
-def fig_clones(v: "RunView"):
+def fig_clones(v: RunView):
     rows = v.clone_rows
     ok = [r for r in rows if r.get("status") == "ok"]
     if not ok:
@@ -413,7 +422,7 @@ def fig_clones(v: "RunView"):
     bm = dict(v.model_metrics or {})
     if v.best is not None:
         bm["distance"] = v.best.get("distance")
-        bm.update((v.best.get("relative_errors") or {}))
+        bm.update(v.best.get("relative_errors") or {})
     if v.best_tree is not None:
         bm["n_cylinders"] = v.best_tree.n
     out.append((clone_metrics_figure(values, v.store.figures_dir / "clone_metrics.png", target=tm, best=bm,

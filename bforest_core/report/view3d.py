@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import html as _html
 import json
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

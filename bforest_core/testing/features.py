@@ -1,13 +1,13 @@
 """Conformance checks of a feature set."""
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from ..tree import Tree
-
-from ._base import (Check, Report, _common_checks, _instance, _label, _need, _require, _roundtrip, _run, _tables_diff)
+from ._base import Check, Report, _common_checks, _instance, _label, _need, _require, _roundtrip, _run, _tables_diff
 from .samples import sample_trees
 
 

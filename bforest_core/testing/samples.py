@@ -1,12 +1,11 @@
 """Small inputs the checks run on: a sample tree with known branches, sample tables."""
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
 from ..tree import Tree
-
 
 
 def _branches(parent_rows, starts, dirs, ncyl, clen, rad, offset):

@@ -4,14 +4,28 @@ from __future__ import annotations
 import keyword
 import math
 import pickle
-from typing import Any, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from ..errors import SimulationFailed
 from ..interfaces import ParameterSpec
-
-from ._base import (METADATA_KEYS, Check, Report, _Fail, _common_checks, _instance, _label, _need, _require, _roundtrip, _run, _tree_diff, check_tree)
+from ._base import (
+    METADATA_KEYS,
+    Check,
+    Report,
+    _common_checks,
+    _Fail,
+    _instance,
+    _label,
+    _need,
+    _require,
+    _roundtrip,
+    _run,
+    _tree_diff,
+    check_tree,
+)
 
 
 class _SSMCase:

@@ -17,7 +17,8 @@ import importlib.util
 import logging
 import os
 import uuid
-from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any
 
 from pydantic import Field
 

@@ -39,8 +39,8 @@ Implementation choices where docs/models.md leaves room (all documented in docs/
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
 
 import numpy as np
 from scipy.optimize import brentq
@@ -295,7 +295,7 @@ class LignumView:
     output table exactly as a ``years = t`` run would return it.
     """
 
-    def __init__(self, sim: "_Simulation", t: int, S, I, fL, Pv, Mv):
+    def __init__(self, sim: _Simulation, t: int, S, I, fL, Pv, Mv):
         st = sim.st
         live = ~st.deleted
         self.t = t

@@ -13,8 +13,8 @@ defaults; parameters passed to ``simulate`` override them.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 from bforest_core.interfaces import ParameterSpec
 

@@ -1,7 +1,8 @@
 """The ``lignum`` SSM component: simplified stochastic LIGNUM (docs/models.md part A)."""
 from __future__ import annotations
 
-from typing import Callable, Literal, Mapping
+from collections.abc import Callable, Mapping
+from typing import Literal
 
 from pydantic import Field
 

@@ -25,8 +25,8 @@ Random draws, all from one ``numpy.random.Generator(PCG64(seed))`` (docs/models.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 

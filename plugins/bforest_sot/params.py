@@ -7,7 +7,7 @@ Ranges of the clone-noise sds are project choices (docs/models.md E gives only t
 """
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 from bforest_core.interfaces import ParameterSpec
 

@@ -6,9 +6,9 @@ following docs/models.md part B (calibrated for the 12 m cube of B.4).
 """
 from __future__ import annotations
 
-from typing import Any, Callable, Literal, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any, Literal
 
-import numpy as np
 from pydantic import Field
 
 from bforest_core.errors import SimulationFailed
@@ -16,9 +16,10 @@ from bforest_core.hookspecs import hookimpl
 from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
 from bforest_core.tree import Tree
 
-from .model import MODEL_VERSION, GrowthFailure, SOTGrowth, build_tree
+from .model import GrowthFailure, SOTGrowth, build_tree
 from .params import PARAMETERS, validate
 from .recipe import sot_recipe
+
 
 class SOTSettings(ComponentSettings):
     """Switches of the SOT model (not fitted)."""

@@ -36,7 +36,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
     ]
     fixed = [("span", span, f"world cube (m): room for a tree 1.8 x this one's height ({h:.1f} m)")]
     if voxel != 0.2:
-        fixed += [("voxel_size", voxel, f"light voxels of 1/50 of the height (the papers' 0.2 m for a 10 m tree)"),
+        fixed += [("voxel_size", voxel, "light voxels of 1/50 of the height (the papers' 0.2 m for a 10 m tree)"),
                   ("sample_rad", _r(1.6 * voxel, 0.01), "the light-gradient probe: 1.6 voxels, as the papers' 0.32 m for 0.2 m")]
     free = [
         ("max_iter", 8, 30, "growth cycles: the model's whole range"),
@@ -62,7 +62,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         ("init_width", width_lo, 0.04, f"diameter of a new shoot (m): the QSM's thinnest branch is "
          f"{100 * m.thinnest_branch:.1f} cm"),
         ("pipe_exp", 2.0, 3.0, None),
-        ("node_length", node_lo, node_hi, f"internode (m): 1/100-1/33 of the height (one lateral bud per "
+        ("node_length", node_lo, node_hi, "internode (m): 1/100-1/33 of the height (one lateral bud per "
          "node: it sets how many branches a metre of stem can carry)"),
         ("stand_shade", 0.0, 1.0, "shade of the neighbours (1/m below the top): 0 = open-grown"),
     ]

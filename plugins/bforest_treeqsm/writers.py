@@ -333,8 +333,8 @@ def treeqsm_struct(tree, provenance: Optional[dict] = None) -> dict:
     metadata: model, parameters, seed, source file) and the Bayes Forest version.
     """
     from bforest_core import __version__
-    from bforest_core.attributes import branch_table as btab, crown_points, crown_spreads
-    from bforest_core.attributes import distributions, stem_taper, tree_attributes
+    from bforest_core.attributes import branch_table as btab
+    from bforest_core.attributes import crown_points, crown_spreads, distributions, stem_taper, tree_attributes
     c = treeqsm_columns(tree)
     n = tree.n
     cyl = {}
@@ -405,7 +405,7 @@ def treeqsm_struct(tree, provenance: Optional[dict] = None) -> dict:
 
 def _now_iso() -> str:
     import datetime
-    return datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0).isoformat()
+    return datetime.datetime.now(datetime.UTC).replace(microsecond=0).isoformat()
 
 
 class TreeQSMMatWriter(QSMWriter):

@@ -14,10 +14,10 @@ import sys
 from pathlib import Path
 from typing import Literal
 
+from bforest_toy import ToySSM, ToySSMSettings
 from pydantic import Field
 
 from bforest_core.hookspecs import hookimpl
-from bforest_toy import ToySSM, ToySSMSettings
 
 FAULTS = ("exit", "abort", "segv", "attribute", "own", "none", "unpicklable", "c-block")
 

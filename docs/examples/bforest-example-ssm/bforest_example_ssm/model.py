@@ -23,7 +23,7 @@ The string is never materialised: every step rewrites all apices at once as nump
 """
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 from pydantic import Field

@@ -6,6 +6,7 @@ Public names (see docs/architecture.md)::
     tree = bf.read_qsm(path)
     ssm = bf.component("ssm", "sot"); t = ssm.simulate({}, seed=1)
 """
+
 from importlib.metadata import PackageNotFoundError
 from importlib.metadata import version as _version
 
@@ -45,5 +46,6 @@ def __getattr__(name):
     # metrics live in their own module, imported on first use
     if name in ("classical_metrics", "relative_errors"):
         from . import metrics
+
         return getattr(metrics, name)
     raise AttributeError(f"module 'bforest_core' has no attribute {name!r}")

@@ -72,6 +72,7 @@ def test_cli_plugins_lists_kinds_versions_and_errors(toy_plugin, tmp_path):
     import io
 
     from bforest_core.cli import main
+
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
         assert main(["plugins"]) == 0

@@ -19,6 +19,7 @@ Figures:
   distributions (Fig. 5);
 * ``profile_<param>.png``: made by ``bforest profile`` (Fig. 4), included when present.
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -80,9 +81,13 @@ class _Figures:
 #: the machine has two cores or more (a fit's workers are idle by then), so the report takes
 #: about half as long: the two groups cost about the same
 _SIDE = [("sets", "data sets", fig_sets)]
-_MAIN = [("trees", "trees", fig_trees), ("convergence", "convergence", fig_convergence),
-         ("posterior", "posterior", fig_posterior), ("clones", "clones", fig_clones),
-         ("clones", "distributions", fig_distributions)]
+_MAIN = [
+    ("trees", "trees", fig_trees),
+    ("convergence", "convergence", fig_convergence),
+    ("posterior", "posterior", fig_posterior),
+    ("clones", "clones", fig_clones),
+    ("clones", "distributions", fig_distributions),
+]
 
 
 def _side_figures(run_dir, strict: bool, output: tuple = ("png", None)):
@@ -116,7 +121,7 @@ def _draw_figures(v: RunView, figs: _Figures, strict: bool) -> None:
             v.note(f"figures drawn in one process ({exc})")
             pool = None
     try:
-        for section, name, fn in (_MAIN if pool else _SIDE + _MAIN):
+        for section, name, fn in _MAIN if pool else _SIDE + _MAIN:
             figs.run(section, name, fn, v)
         if pool:
             try:
@@ -138,8 +143,9 @@ def _draw_figures(v: RunView, figs: _Figures, strict: bool) -> None:
 
 
 # ---------------------------------------------------------------------------------- entry point
-def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool = False,
-                 format: str = "png", dpi: int | None = None) -> Path:
+def write_report(
+    run_dir, figures: bool = True, html: bool = True, strict: bool = False, format: str = "png", dpi: int | None = None
+) -> Path:
     """Write the figures, ``report.md`` and ``report.html`` of a run directory.
 
     Parameters
@@ -195,14 +201,17 @@ def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool 
     section_profiles(doc, v)
     doc.h(2, "Notes")
     from .. import __version__
+
     notes = list(v.notes)
     if stopped_short(v):
         notes.insert(0, f"WARNING: the sampler stopped short of its target: {stopped_short(v)}")
     if not figures:
         notes.append("figures were not drawn (figures=False)")
     doc.items(notes or ["none"])
-    doc.p(f"Written {_dt.datetime.now().strftime('%Y-%m-%d %H:%M:%S')} by bforest {__version__} "
-          f"in {time.monotonic() - t0:.1f} s.")
+    doc.p(
+        f"Written {_dt.datetime.now().strftime('%Y-%m-%d %H:%M:%S')} by bforest {__version__} "
+        f"in {time.monotonic() - t0:.1f} s."
+    )
     md = v.store.report_md_path
     md.write_text(doc.markdown(), encoding="utf-8")
     if html:

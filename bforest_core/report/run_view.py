@@ -1,4 +1,5 @@
 """Everything the report reads from a run directory, read once (:class:`RunView`)."""
+
 from __future__ import annotations
 
 import csv
@@ -35,6 +36,7 @@ class RunView:
     @cached_property
     def raw_config(self) -> dict:
         import tomllib
+
         try:
             return tomllib.loads(self.store.config_path.read_text(encoding="utf-8"))
         except Exception as exc:
@@ -44,11 +46,14 @@ class RunView:
     @cached_property
     def cfg(self):
         from ..config import load_config
+
         try:
             return load_config(self.store.config_path)
         except BayesForestError as exc:
-            self.note(f"{RunFiles.CONFIG} does not validate with the installed plugins ({exc}); "
-                      "figures that need the models are skipped")
+            self.note(
+                f"{RunFiles.CONFIG} does not validate with the installed plugins ({exc}); "
+                "figures that need the models are skipped"
+            )
             return None
 
     @cached_property
@@ -75,6 +80,7 @@ class RunView:
         try:
             from ..config import ssm_settings
             from ..registry import component
+
             ssm = component("ssm", self.cfg.ssm.kind, **ssm_settings(self.cfg))
             return {p.name: p for p in ssm.parameters}
         except Exception:
@@ -114,6 +120,7 @@ class RunView:
         if self.best is not None and self.best.get("seeds"):
             return list(self.best["seeds"])
         from ..pipeline.seeds import model_seeds
+
         c = self.cfg
         return model_seeds(c.seed, c.objective.seeds, "fixed") if c is not None else [1]
 
@@ -124,11 +131,14 @@ class RunView:
         if self.cfg is None:
             return None
         from ..pipeline.target import build_target
+
         try:
             return build_target(self.cfg)
         except Exception as exc:  # a moved QSM file must not stop the report
-            self.note(f"the target could not be rebuilt from the config ({type(exc).__name__}: {exc}); "
-                      "using the run's saved copies")
+            self.note(
+                f"the target could not be rebuilt from the config ({type(exc).__name__}: {exc}); "
+                "using the run's saved copies"
+            )
             return None
 
     @cached_property
@@ -149,6 +159,7 @@ class RunView:
         if self.cfg is not None and self.U_data:
             try:
                 from ..pipeline.target import feature_set_for
+
                 fs = feature_set_for(self.cfg, "target")
                 return {k: list(fs.columns(k)) for k in self.U_data}
             except Exception:
@@ -160,6 +171,7 @@ class RunView:
             return None
         try:
             from ..io import read_qsm
+
             t = read_qsm(p)
             return t[0] if isinstance(t, list) else t
         except Exception as exc:
@@ -172,7 +184,9 @@ class RunView:
             return self.target.trees[0]
         t = self._read_tree(self.store.target_tree_path)
         if t is None:
-            self.note(f"the target tree is not available (no {RunFiles.TARGET_TREE} and no readable target in the config)")
+            self.note(
+                f"the target tree is not available (no {RunFiles.TARGET_TREE} and no readable target in the config)"
+            )
         return t
 
     @cached_property
@@ -187,13 +201,15 @@ class RunView:
             try:
                 from ..config import ssm_settings
                 from ..registry import component
+
                 ssm = component("ssm", self.cfg.ssm.kind, **ssm_settings(self.cfg))
                 tree = ssm.simulate(self.best_params, int(self.best_seeds[0]))
                 self.best_tree_source = "regrown"
                 return tree
             except Exception as exc:
-                self.note(f"the best-fit tree could not be regrown ({type(exc).__name__}: {exc}); "
-                          f"using {RunFiles.BEST_TREE}")
+                self.note(
+                    f"the best-fit tree could not be regrown ({type(exc).__name__}: {exc}); using {RunFiles.BEST_TREE}"
+                )
         t = self._read_tree(self.store.best_tree_path)
         if t is not None:
             self.best_tree_source = RunFiles.BEST_TREE
@@ -207,6 +223,7 @@ class RunView:
             return None
         from ..config import config_to_dict, section_settings
         from ..pipeline.scoring import build_scoring
+
         if self.target is not None:
             fs_settings = self.target.feature_settings
         else:
@@ -234,6 +251,7 @@ class RunView:
             return self.best["target_metrics"]
         if self.target_tree is not None:
             from ..metrics import classical_metrics
+
             return classical_metrics(self.target_tree)
         return None
 
@@ -243,6 +261,7 @@ class RunView:
             return self.best["model_metrics"]
         if self.best_tree is not None:
             from ..metrics import classical_metrics
+
             return classical_metrics(self.best_tree)
         return None
 
@@ -272,6 +291,7 @@ class RunView:
         """The first ``k`` clones grown ok, read from their files: ``(label, tree)`` with the
         label ``"clone <i>\nD = <distance>"``; a file that cannot be read is a note."""
         from ..io import read_qsm
+
         shown = []
         for r in self.clone_rows:
             if len(shown) >= k:
@@ -286,7 +306,9 @@ class RunView:
                 self.note(f"clone file {f} could not be read ({type(exc).__name__}: {exc})")
                 continue
             d = r.get("distance")
-            shown.append((f"clone {int(r['index'])}" + (f"\nD = {d:.3f}" if d is not None and np.isfinite(d) else ""), t))
+            shown.append(
+                (f"clone {int(r['index'])}" + (f"\nD = {d:.3f}" if d is not None and np.isfinite(d) else ""), t)
+            )
         return shown
 
     @cached_property

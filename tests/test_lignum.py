@@ -132,7 +132,7 @@ def test_component_parameters_and_presets(ssm):
     for preset in LP.PRESETS:  # every preset's values lie in the plausible ranges
         for p in _ssm(preset=preset).parameters:
             assert p.lower <= p.default <= p.upper, (preset, p.name)
-    with pytest.raises(Exception):
+    with pytest.raises(bf.ConfigError, match="preset"):
         _ssm(preset="nope")
 
 
@@ -281,7 +281,7 @@ def test_light_lone_and_bare_segments():
 
 def test_light_ranges_and_production_counts_only_foliage(synth12):
     _, trace, views = synth12
-    for t, v in views.items():
+    for v in views.values():
         R = 30.0
         fol = v.foliage > 1e-5
         assert np.all(v.shadow[fol] >= 0) and np.all(np.isnan(v.shadow[~fol]))
@@ -530,7 +530,7 @@ def test_first_order_inclination_cap(synth12):
     tree, _, views = synth12
     bmax = 95.0
     worst = 0.0
-    for t, v in views.items():
+    for v in views.values():
         tr = v.tree()
         o1 = tr.order == 1
         incl = np.degrees(np.arccos(np.clip(tr.axis[o1, 2], -1, 1)))

@@ -65,7 +65,7 @@ def test_treeqsm_text_layout_of_hand_tree(tmp_path):
     r5 = rows[4]
     assert r5[8:13] == ["4", "0", "2", "1", "2"]
     assert r5[13:17] == ["0", "1", "0", "0.04"]  # mad 0, SurfCov 1, added 0, UnmodRadius = radius
-    assert rows[4][5] == "%.9g" % (np.sin(np.radians(60)))
+    assert rows[4][5] == f"{np.sin(np.radians(60)):.9g}"
     assert rows[0][8:10] == ["0", "2"]  # root: parent 0 = none, extension 2 (1-based)
     back = read_quiet(p)
     assert back.equals(t, atol=1e-8)

@@ -306,7 +306,7 @@ def test_borchert_honda_conserves_vigor_at_every_branch_point(ssm, kappa, defaul
     else:
         _, rec = run_recorded(ssm, {"max_iter": 11, "nonlinear": kappa}, 3)
     checked = 0
-    for c, alloc in rec["alloc"].items():
+    for alloc in rec["alloc"].values():
         checked += _check_conservation(alloc, kappa)
         root = int(np.flatnonzero(alloc.parent < 0)[0])
         assert alloc.v[root] == pytest.approx(1.0 + 1.5 * alloc.Q[root], rel=1e-15)
@@ -317,7 +317,7 @@ def test_borchert_honda_conserves_vigor_at_every_branch_point(ssm, kappa, defaul
 def test_drops_leave_only_supplied_segments(default_run):
     tree, rec = default_run
     n_dropped = 0
-    for c, a in rec["alloc"].items():
+    for a in rec["alloc"].values():
         kept = ~a.dropped & (a.parent >= 0)
         assert np.all(a.v[kept] / a.N[kept] > 0.2)
         # every dropped subtree has a dropped top whose own v/N fell to the threshold
@@ -336,7 +336,7 @@ def test_drops_leave_only_supplied_segments(default_run):
 def test_metamer_counts_lengths_and_cube(default_run):
     tree, rec = default_run
     total_shoots = 0
-    for c, sh in rec["shoots"].items():
+    for sh in rec["shoots"].values():
         np.testing.assert_array_equal(sh.planned, np.floor(sh.vigor))
         assert np.all(sh.planned >= 1) and np.all(sh.planned <= 3)
         np.testing.assert_array_equal(sh.built, sh.planned)  # far from the walls here

@@ -11,6 +11,7 @@ Each creates (or reuses) the virtual environment ``.venv`` beside this file and 
 project into it (editable, with the test and Dask extras and the example third-party plugin).
 The install is redone only when a packaging file changed.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -57,6 +58,7 @@ def ensure_env() -> Path:
 def lint_enabled() -> bool:
     """``[tool.bforest] lint`` of pyproject.toml: whether ``test`` runs ruff before pytest."""
     import tomllib
+
     conf = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
     return bool(conf.get("tool", {}).get("bforest", {}).get("lint", False))
 

@@ -1,4 +1,5 @@
 """Timing helper shared by the benchmark scripts (run them from the repository root)."""
+
 from __future__ import annotations
 
 import statistics

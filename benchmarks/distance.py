@@ -14,6 +14,7 @@ Prints, from one run on this machine:
 Timings are the best of interleaved repeats (medians also shown); the machine may be shared,
 so re-run for stable figures.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,8 +28,6 @@ from scipy import stats
 
 import bforest_core as bf
 from bforest_sliced.grid import VALUE_BITS, snap
-
-
 
 
 def interleaved(fns: dict, repeats: int) -> dict:
@@ -76,16 +75,22 @@ def synthetic_tree(n_target: int, seed: int = 0) -> bf.Tree:
     ax = rng.normal(size=(n, 3))
     ax[:, 2] = np.abs(ax[:, 2]) + 0.5
     ax /= np.linalg.norm(ax, axis=1, keepdims=True)
-    return bf.Tree(rng.normal(size=(n, 3)), ax, rng.uniform(0.02, 0.3, n), rng.uniform(0.002, 0.2, n),
-                   parent, ext, topology="source")
+    return bf.Tree(
+        rng.normal(size=(n, 3)),
+        ax,
+        rng.uniform(0.02, 0.3, n),
+        rng.uniform(0.002, 0.2, n),
+        parent,
+        ext,
+        topology="source",
+    )
 
 
 def bench_distance(lines: int, n: int, repeats: int) -> None:
     rng = np.random.default_rng(20170101)
     ud = rng.normal(size=(n, 5))
     um = rng.normal(size=(n, 5))
-    print(f"== sliced KS: d = 5, n_d = n_m = {n}, {lines} gp2 lines, normalize = none "
-          f"(cores: {os.cpu_count()})")
+    print(f"== sliced KS: d = 5, n_d = n_m = {n}, {lines} gp2 lines, normalize = none (cores: {os.cpu_count()})")
     dist = bf.component("distance", "sliced", lines=lines, normalize="none")
     dist1 = bf.component("distance", "sliced", lines=lines, normalize="none", threads=1)
     t0 = time.perf_counter()
@@ -97,9 +102,14 @@ def bench_distance(lines: int, n: int, repeats: int) -> None:
     # warm up (thread pool start, caches)
     dist.compute_pair("U", um, ud)
     P = np.concatenate([A @ ud.T, A @ um.T], axis=1)
-    T = interleaved({"ours": lambda: dist.compute_pair("U", um, ud),
-                     "ours1": lambda: dist1.compute_pair("U", um, ud),
-                     "floor": lambda: np.sort(P, axis=1)}, repeats)
+    T = interleaved(
+        {
+            "ours": lambda: dist.compute_pair("U", um, ud),
+            "ours1": lambda: dist1.compute_pair("U", um, ud),
+            "floor": lambda: np.sort(P, axis=1),
+        },
+        repeats,
+    )
     (t_ours, m_ours), (t_ours1, m_ours1), (t_floor, m_floor) = T["ours"], T["ours1"], T["floor"]
 
     t0 = time.perf_counter()
@@ -112,22 +122,28 @@ def bench_distance(lines: int, n: int, repeats: int) -> None:
     D = dist.compute_pair("U", um, ud)
     print(f"prepare (project + sort data once):      {t_prep * 1e3:9.1f} ms")
     print(f"times: best of {repeats} interleaved runs (median in brackets)")
-    print(f"compute, {dist.n_threads} threads:                 {t_ours * 1e3:9.1f} ms ({m_ours * 1e3:.1f})   D = {D:.6f}")
+    print(
+        f"compute, {dist.n_threads} threads:                 {t_ours * 1e3:9.1f} ms ({m_ours * 1e3:.1f})   D = {D:.6f}"
+    )
     print(f"compute, 1 thread:                        {t_ours1 * 1e3:9.1f} ms ({m_ours1 * 1e3:.1f})")
     print(f"scipy ks_2samp loop over lines (1 run):   {t_scipy * 1e3:9.1f} ms   D = {ref.mean():.6f}")
     print(f"np.sort of stacked projections (floor):   {t_floor * 1e3:9.1f} ms ({m_floor * 1e3:.1f})")
     sp = t_scipy / t_ours
     fl = t_ours / t_floor
     print(f"speed-up over SciPy:    {sp:6.1f}x  (target >= 8x: {'met' if sp >= 8 else 'NOT met'})")
-    print(f"time / sort floor:      {fl:6.2f}x  (target <= 1.5x: {'met' if fl <= 1.5 else 'NOT met'}); "
-          f"1 thread: {t_ours1 / t_floor:.2f}x")
+    print(
+        f"time / sort floor:      {fl:6.2f}x  (target <= 1.5x: {'met' if fl <= 1.5 else 'NOT met'}); "
+        f"1 thread: {t_ours1 / t_floor:.2f}x"
+    )
     print(f"max |per-line D - SciPy|: {err:.2e}  (target <= 1e-12: {'met' if err <= 1e-12 else 'NOT met'})")
 
 
 def bench_features(n_cyl: int, repeats: int) -> None:
     tree = synthetic_tree(n_cyl)
-    print(f"\n== feature extraction: synthetic tree, {tree.n} cylinders, {tree.n_branches} branches "
-          f"(source), max order {tree.max_order}")
+    print(
+        f"\n== feature extraction: synthetic tree, {tree.n} cylinders, {tree.n_branches} branches "
+        f"(source), max order {tree.max_order}"
+    )
     for rule in ("subtree", "thickest", "source"):
         probe = tree.with_topology(rule)
         sets = [f"S{w}" for w in range(probe.max_order + 1)] + [f"B{w}" for w in range(1, probe.max_order + 1)]
@@ -137,8 +153,10 @@ def bench_features(n_cyl: int, repeats: int) -> None:
             fs.prepare(tree)
         t = median_time(lambda: fs.extract(tree), repeats)
         rows = sum(v.shape[0] for v in fs.extract(tree).values())
-        print(f"topology '{rule:8s}' + {len(fs.set_names):2d} tables ({rows} rows): {t * 1e3:8.1f} ms  "
-              f"(target < 1000 ms, aim 300 ms: {'met' if t < 1 else 'NOT met'})")
+        print(
+            f"topology '{rule:8s}' + {len(fs.set_names):2d} tables ({rows} rows): {t * 1e3:8.1f} ms  "
+            f"(target < 1000 ms, aim 300 ms: {'met' if t < 1 else 'NOT met'})"
+        )
 
 
 def main() -> None:

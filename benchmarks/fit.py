@@ -9,6 +9,7 @@
 
     .venv/bin/python benchmarks/fit.py [--full]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -41,6 +42,7 @@ def _run(cfg_raw, out, generations, executor):
 
 def _noop_init():
     import bforest_core
+
     bforest_core.discover()
 
 
@@ -64,14 +66,19 @@ def main():
         n = len(evs_s)
         setup_t0 = time.perf_counter()
         from bforest_core.pipeline.target import build_target
+
         build_target(base)
         setup = time.perf_counter() - setup_t0
         loop = wall_s - inside_s - setup
-        print(f"serial GA, {args.generations} generations: {n} evaluations, wall {wall_s:.2f} s, "
-              f"inside evaluations {inside_s:.2f} s ({inside_s / n * 1000:.1f} ms each), target set-up {setup:.2f} s")
-        print(f"  loop overhead (optimiser, seeds, cache, SQLite log, final best tree): "
-              f"{loop:.2f} s = {100 * loop / inside_s:.1f} % of the evaluation time "
-              f"({loop / n * 1000:.2f} ms per evaluation)  [target < 5 %]")
+        print(
+            f"serial GA, {args.generations} generations: {n} evaluations, wall {wall_s:.2f} s, "
+            f"inside evaluations {inside_s:.2f} s ({inside_s / n * 1000:.1f} ms each), target set-up {setup:.2f} s"
+        )
+        print(
+            f"  loop overhead (optimiser, seeds, cache, SQLite log, final best tree): "
+            f"{loop:.2f} s = {100 * loop / inside_s:.1f} % of the evaluation time "
+            f"({loop / n * 1000:.2f} ms per evaluation)  [target < 5 %]"
+        )
         res_p, wall_p, inside_p, evs_p = _run(raw, tmp / "process", args.generations, {"kind": "process", "workers": 2})
         same = [(e.params, e.distance) for e in evs_s] == [(e.params, e.distance) for e in evs_p]
         ex = bf.component("executor", "process", workers=2)
@@ -79,10 +86,14 @@ def main():
         with ex.started(_noop_init, ()):
             list(ex.map_unordered(_noop, [0, 1]))
         startup = time.perf_counter() - t0
-        print(f"process executor, 2 workers: wall {wall_p:.2f} s -> throughput {wall_s / wall_p:.2f}x serial "
-              f"[target >= 1.7x]; identical evaluations: {same}")
-        print(f"  of which starting the 2 workers (imports, plugin discovery): about {startup:.2f} s; "
-              f"excluding it: {wall_s / (wall_p - startup):.2f}x")
+        print(
+            f"process executor, 2 workers: wall {wall_p:.2f} s -> throughput {wall_s / wall_p:.2f}x serial "
+            f"[target >= 1.7x]; identical evaluations: {same}"
+        )
+        print(
+            f"  of which starting the 2 workers (imports, plugin discovery): about {startup:.2f} s; "
+            f"excluding it: {wall_s / (wall_p - startup):.2f}x"
+        )
         if args.full:
             cfg = bf.load_config(CONFIG)
             t0 = time.perf_counter()
@@ -90,9 +101,11 @@ def main():
             wall = time.perf_counter() - t0
             evs = RunStore.open(tmp / "full").evaluations()
             fails = sum(e.status != "ok" for e in evs)
-            print(f"full GA fit (40 x 25) of SOT to pine_ruotsinkyla_3, S0,1 + B2,3,4, 2 workers: "
-                  f"{len(evs)} evaluations ({fails} failed), wall {wall:.1f} s = {wall / 60:.2f} min "
-                  f"[target < 4 min]; best distance {res.distance:.4f}")
+            print(
+                f"full GA fit (40 x 25) of SOT to pine_ruotsinkyla_3, S0,1 + B2,3,4, 2 workers: "
+                f"{len(evs)} evaluations ({fails} failed), wall {wall:.1f} s = {wall / 60:.2f} min "
+                f"[target < 4 min]; best distance {res.distance:.4f}"
+            )
             print("  best params: " + ", ".join(f"{k}={v:.4g}" for k, v in res.params.items()))
             keep = ROOT / "runs" / "bench-sot-pine3"
             shutil.rmtree(keep, ignore_errors=True)

@@ -11,6 +11,7 @@ Usage::
 
     python benchmarks/read_qsm.py [--n 100000] [--repeat 3] [--data ../shared/data/qsm]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -64,8 +65,10 @@ def compare(label: str, path: Path, repeat: int, skiprows: int, delimiter=None) 
     if skiprows is not None:
         t_lt = best_of(lambda: np.loadtxt(path, skiprows=skiprows, delimiter=delimiter, comments=None), repeat)
         t_gf = best_of(lambda: np.genfromtxt(path, skip_header=skiprows, delimiter=delimiter), repeat)
-        line += (f" | np.loadtxt {t_lt * 1e3:8.1f} ms | np.genfromtxt {t_gf * 1e3:8.1f} ms"
-                 f" | read_qsm / loadtxt = {t_read / t_lt:4.2f}")
+        line += (
+            f" | np.loadtxt {t_lt * 1e3:8.1f} ms | np.genfromtxt {t_gf * 1e3:8.1f} ms"
+            f" | read_qsm / loadtxt = {t_read / t_lt:4.2f}"
+        )
     print(line + ("" if t_read < 1.0 else "   ** over 1 s **"))
 
 
@@ -83,8 +86,9 @@ def main(argv=None) -> None:
         for p in files:
             text = p.suffix in (".txt", ".csv")
             skip = (1 if p.read_bytes()[:1].isalpha() or p.suffix == ".csv" else 0) if text else None
-            compare(p.name + (" (largest)" if p == files[0] else ""), p, a.repeat, skip,
-                    "," if p.suffix == ".csv" else None)
+            compare(
+                p.name + (" (largest)" if p == files[0] else ""), p, a.repeat, skip, "," if p.suffix == ".csv" else None
+            )
     else:
         print(f"(sample folder {a.data} not found: only the synthetic file is timed)")
 

@@ -10,6 +10,7 @@ worktree) in the same session and prints the ratio and whether the distances agr
     .venv/bin/python benchmarks/recipe_eval.py examples/real/pine_sot.toml --points 64 --against HEAD~3
     .venv/bin/python benchmarks/recipe_eval.py examples/real/pine_sot.toml --run runs/pine3 --against HEAD~3
 """
+
 from __future__ import annotations
 
 import argparse
@@ -36,12 +37,14 @@ def measure(recipe: str, points: int, seed: int, run: str | None = None) -> dict
 
     from bforest_core.config import config_to_dict, load_config
     from bforest_core.pipeline.fit import _free_specs
+
     try:  # the objective's modules since issue 34 (--against may run a revision before the split)
         from bforest_core.pipeline import seeds as sd_mod
         from bforest_core.pipeline import target as tg_mod
         from bforest_core.pipeline import worker as ob
     except ImportError:
         from bforest_core.pipeline import objective as ob
+
         sd_mod = tg_mod = ob
 
     cfg = load_config(recipe)
@@ -51,13 +54,16 @@ def measure(recipe: str, points: int, seed: int, run: str | None = None) -> dict
     seeds = sd_mod.model_seeds(int(cfg.seed), cfg.objective.seeds)
     if run:
         from bforest_core.pipeline.store import RunStore
+
         evs = RunStore.open(run).evaluations()
         tasks = [(evs[i].params, list(evs[i].seeds)) for i in np.linspace(0, len(evs) - 1, points).astype(int)]
     else:
         m = int(np.ceil(np.log2(max(points, 2))))
         U = qmc.Sobol(len(names), scramble=True, rng=np.random.default_rng(seed)).random_base2(m)[:points]
-        tasks = [({n: (int(round(v)) if i else float(v)) for n, v, i in zip(names, lo + u * (hi - lo), integer)}, seeds)
-                 for u in U]
+        tasks = [
+            ({n: (int(round(v)) if i else float(v)) for n, v, i in zip(names, lo + u * (hi - lo), integer)}, seeds)
+            for u in U
+        ]
     ob.evaluate_task(tasks[0])  # warm-up (imports, first allocations)
     secs, dists = [], []
     for params, sd in tasks:
@@ -72,16 +78,20 @@ def in_worktree(rev: str, recipe: str, points: int, seed: int, run: str | None) 
     """:func:`measure` with the code of ``rev`` (a temporary git worktree, same interpreter)."""
     with tempfile.TemporaryDirectory() as tmp:
         wt = Path(tmp) / "rev"
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(wt), rev], check=True,
-                       capture_output=True)
+        subprocess.run(
+            ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(wt), rev], check=True, capture_output=True
+        )
         try:
             env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(wt), str(wt / "plugins")])}
-            code = (f"import sys, json; sys.path.insert(0, {str(ROOT / 'benchmarks')!r}); "
-                    f"from recipe_eval import measure; "
-                    f"print(json.dumps(measure({str(Path(recipe).resolve())!r}, {points}, {seed}, "
-                    f"{str(Path(run).resolve()) if run else None!r})))")
-            out = subprocess.run([sys.executable, "-c", code], env=env, cwd=wt, check=True,
-                                 capture_output=True, text=True)
+            code = (
+                f"import sys, json; sys.path.insert(0, {str(ROOT / 'benchmarks')!r}); "
+                f"from recipe_eval import measure; "
+                f"print(json.dumps(measure({str(Path(recipe).resolve())!r}, {points}, {seed}, "
+                f"{str(Path(run).resolve()) if run else None!r})))"
+            )
+            out = subprocess.run(
+                [sys.executable, "-c", code], env=env, cwd=wt, check=True, capture_output=True, text=True
+            )
             return json.loads(out.stdout.strip().splitlines()[-1])
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(wt)], capture_output=True)
@@ -92,11 +102,16 @@ def main(argv=None) -> int:
     ap.add_argument("recipe", help="a run config (TOML), e.g. examples/real/pine_sot.toml")
     ap.add_argument("--points", type=int, default=64, help="parameter vectors (default 64)")
     ap.add_argument("--seed", type=int, default=1, help="seed of the Sobol' design")
-    ap.add_argument("--run", metavar="DIR", help="take the parameters from this fit's evaluation log instead "
-                    "(evenly spread over it: the mix of tree sizes a fit meets)")
+    ap.add_argument(
+        "--run",
+        metavar="DIR",
+        help="take the parameters from this fit's evaluation log instead "
+        "(evenly spread over it: the mix of tree sizes a fit meets)",
+    )
     ap.add_argument("--against", metavar="REV", help="also time the code of this git revision")
     a = ap.parse_args(argv)
     import numpy as np
+
     runs = {"this code": measure(a.recipe, a.points, a.seed, a.run)}
     if a.against:
         runs[a.against] = in_worktree(a.against, a.recipe, a.points, a.seed, a.run)
@@ -107,8 +122,10 @@ def main(argv=None) -> int:
         print(f"  {name:12s} {np.median(r['seconds']):14.3f} {sum(r['seconds']):9.1f}")
     if a.against:
         mine, theirs = runs["this code"], runs[a.against]
-        print(f"  ratio (total): {sum(theirs['seconds']) / sum(mine['seconds']):.2f}x; distances "
-              + ("identical" if mine["distances"] == theirs["distances"] else "DIFFER"))
+        print(
+            f"  ratio (total): {sum(theirs['seconds']) / sum(mine['seconds']):.2f}x; distances "
+            + ("identical" if mine["distances"] == theirs["distances"] else "DIFFER")
+        )
     return 0
 
 

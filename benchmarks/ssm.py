@@ -5,6 +5,7 @@
 Each model's part lives in its own module: ``benchmarks/ssm_sot.py`` (SOT) and
 ``benchmarks/ssm_lignum.py`` (simplified stochastic LIGNUM, written separately).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -23,6 +24,7 @@ def main(argv=None):
 
     # ---- SOT
     from ssm_sot import bench_sot
+
     bench_sot(args.repeats, args.full)
 
     # ---- LIGNUM: benchmarks/ssm_lignum.py (written separately) is expected to offer
@@ -37,6 +39,7 @@ def main(argv=None):
         lignum.bench_lignum(args.repeats, args.full)
     else:
         lignum.main(["--repeats", str(args.repeats)] + (["--full"] if args.full else []))
+
 
 if __name__ == "__main__":
     main()

@@ -17,6 +17,7 @@ Prints (single core):
 
 Timings are noisy on a shared machine; re-run when it is quiet.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,6 +54,7 @@ SEEDS = (1, 2, 3, 4, 5)
 def _ssm(preset: str):
     warnings.filterwarnings("ignore", category=RuntimeWarning, module="bforest_core.registry")
     from bforest_lignum import LignumSSM
+
     return LignumSSM(preset=preset)
 
 
@@ -60,12 +62,14 @@ def sizes(tree) -> dict:
     """Sizes by the measurement conventions of docs/models.md (before D) (height and crown radius from segment end points)."""
     e = tree.end
     base = tree.start[0]
-    return {"live": tree.n, "created": tree.metadata["segments_created"],
-            "dead": int(tree.extras["is_dead"].sum()), "height": float(e[:, 2].max() - base[2]),
-            "crown": float(np.hypot(e[:, 0] - base[0], e[:, 1] - base[1]).max()),
-            "base_cm": float(200 * tree.radius[0])}
-
-
+    return {
+        "live": tree.n,
+        "created": tree.metadata["segments_created"],
+        "dead": int(tree.extras["is_dead"].sum()),
+        "height": float(e[:, 2].max() - base[2]),
+        "crown": float(np.hypot(e[:, 0] - base[0], e[:, 1] - base[1]).max()),
+        "base_cm": float(200 * tree.radius[0]),
+    }
 
 
 def _numpy_workload():
@@ -92,6 +96,7 @@ def _over_seeds(ssm, T: int):
 def _without_grid():
     """The shadow method choice of the code before the compiled bucket kernel."""
     from bforest_lignum import shadow
+
     saved = shadow._C_GRID
     shadow._C_GRID = float("inf")
     try:
@@ -105,8 +110,10 @@ def bench_lignum(repeats: int = 5, full: bool = False) -> dict:
     from bforest_lignum.shadow import shadow_brute, shadow_fast, voxel_coords
 
     base_med, _, _ = timed(_numpy_workload, repeats)
-    print(f"LIGNUM benchmark (single core; models: median/min over seeds {SEEDS[0]}-{SEEDS[-1]}; "
-          f"kernels: median of {repeats} runs)")
+    print(
+        f"LIGNUM benchmark (single core; models: median/min over seeds {SEEDS[0]}-{SEEDS[-1]}; "
+        f"kernels: median of {repeats} runs)"
+    )
     print(f"  baseline numpy workload: {base_med * 1000:.1f} ms")
     out = {"baseline": base_med}
     cases = [("sf_synthetic", 15, 0.25), ("sf_real", 32, 0.2), ("sf_real", 40, 0.5)]
@@ -116,14 +123,17 @@ def bench_lignum(repeats: int = 5, full: bool = False) -> dict:
         med, mn, trees = _over_seeds(ssm, T)
         with _without_grid():  # the previous code: the same choice among the other three methods
             old_med, _, old_trees = _over_seeds(ssm, T)
-        same = all(np.array_equal(a.start, b.start) and np.array_equal(a.radius, b.radius)
-                   for a, b in zip(trees, old_trees))
+        same = all(
+            np.array_equal(a.start, b.start) and np.array_equal(a.radius, b.radius) for a, b in zip(trees, old_trees)
+        )
         s = sizes(trees[0])
         flag = "ok" if med <= target else "OVER TARGET (machine load?)"
-        print(f"  {preset:13s} T={T:2d}: median {med:.3f} s, min {mn:.3f} s over seeds {SEEDS[0]}-{SEEDS[-1]} "
-              f"(target <= {target} s: {flag}); previous code {old_med:.3f} s ({old_med / med:.1f}x), "
-              f"identical trees: {same}; {med / base_med:.1f} x baseline; seed 1: {s['live']} live / "
-              f"{s['created']} created segments")
+        print(
+            f"  {preset:13s} T={T:2d}: median {med:.3f} s, min {mn:.3f} s over seeds {SEEDS[0]}-{SEEDS[-1]} "
+            f"(target <= {target} s: {flag}); previous code {old_med:.3f} s ({old_med / med:.1f}x), "
+            f"identical trees: {same}; {med / base_med:.1f} x baseline; seed 1: {s['live']} live / "
+            f"{s['created']} created segments"
+        )
         out[f"{preset}_T{T}"] = (med, mn, old_med)
     # the hot spot against its brute-force reference, on the final sf_synthetic crown
     views = {}
@@ -132,8 +142,10 @@ def bench_lignum(repeats: int = 5, full: bool = False) -> dict:
     vox = voxel_coords(v.start + 0.5 * v.length[:, None] * v.axis, 0.02)
     f_med, _, S1 = timed(lambda: shadow_fast(vox, 10.0, 28), repeats)
     b_med, _, S2 = timed(lambda: shadow_brute(vox, 10.0, 28), max(1, min(repeats, 2)))
-    print(f"  shadow kernel on {len(vox)} points: auto method {f_med * 1000:.1f} ms vs brute force "
-          f"{b_med * 1000:.1f} ms ({b_med / f_med:.0f}x), equal: {bool(np.array_equal(S1, S2))}")
+    print(
+        f"  shadow kernel on {len(vox)} points: auto method {f_med * 1000:.1f} ms vs brute force "
+        f"{b_med * 1000:.1f} ms ({b_med / f_med:.0f}x), equal: {bool(np.array_equal(S1, S2))}"
+    )
     out["shadow"] = (f_med, b_med)
     return out
 
@@ -151,19 +163,28 @@ def size_table(markdown: bool = False) -> None:
         return f"{fmt.format(vals.min())}-{fmt.format(vals.max())} (mean {fmt.format(vals.mean())})"
 
     if markdown:
-        print("| preset | T | live segments | dead | created | height m | crown radius m | base Ø cm "
-              "| A.10 live | A.10 created | A.10 height | A.10 base Ø |")
+        print(
+            "| preset | T | live segments | dead | created | height m | crown radius m | base Ø cm "
+            "| A.10 live | A.10 created | A.10 height | A.10 base Ø |"
+        )
         print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for preset, T, ss, spec in rows:
-        cells = [rng_([s["live"] for s in ss], "{:.0f}"), rng_([s["dead"] for s in ss], "{:.0f}"),
-                 rng_([s["created"] for s in ss], "{:.0f}"), rng_([s["height"] for s in ss], "{:.2f}"),
-                 rng_([s["crown"] for s in ss], "{:.2f}"), rng_([s["base_cm"] for s in ss], "{:.1f}")]
+        cells = [
+            rng_([s["live"] for s in ss], "{:.0f}"),
+            rng_([s["dead"] for s in ss], "{:.0f}"),
+            rng_([s["created"] for s in ss], "{:.0f}"),
+            rng_([s["height"] for s in ss], "{:.2f}"),
+            rng_([s["crown"] for s in ss], "{:.2f}"),
+            rng_([s["base_cm"] for s in ss], "{:.1f}"),
+        ]
         if markdown:
             print(f"| `{preset}` | {T} | " + " | ".join(cells) + " | " + " | ".join(spec) + " |")
         else:
-            print(f"{preset:13s} T={T:2d}: live {cells[0]}, dead {cells[1]}, created {cells[2]}, "
-                  f"height {cells[3]} m, crown {cells[4]} m, base {cells[5]} cm | A.10: live {spec[0]}, "
-                  f"created {spec[1]}, height {spec[2]} m, base {spec[3]} cm")
+            print(
+                f"{preset:13s} T={T:2d}: live {cells[0]}, dead {cells[1]}, created {cells[2]}, "
+                f"height {cells[3]} m, crown {cells[4]} m, base {cells[5]} cm | A.10: live {spec[0]}, "
+                f"created {spec[1]}, height {spec[2]} m, base {spec[3]} cm"
+            )
     print()
     if markdown:
         print("| q_mean | H / crown radius | height m | live segments | D.6 H/crown | D.6 height | D.6 live |")
@@ -177,8 +198,10 @@ def size_table(markdown: bool = False) -> None:
         if markdown:
             print(f"| {q:.2f} | {ratio:.2f} | {h:.2f} | {n:.0f} | {spec[0]} | {spec[1]} | {spec[2]} |")
         else:
-            print(f"q_mean {q:.2f}: H/crown {ratio:.2f}, height {h:.2f} m, live {n:.0f} | D.6: "
-                  f"{spec[0]}, {spec[1]} m, {spec[2]}")
+            print(
+                f"q_mean {q:.2f}: H/crown {ratio:.2f}, height {h:.2f} m, live {n:.0f} | D.6: "
+                f"{spec[0]}, {spec[1]} m, {spec[2]}"
+            )
 
 
 def main(argv=None) -> None:

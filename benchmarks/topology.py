@@ -6,8 +6,8 @@ in the same run: a plain Python forward pass in row order (the obvious non-vecto
 
     .venv/bin/python benchmarks/topology.py
 """
-from __future__ import annotations
 
+from __future__ import annotations
 
 import numpy as np
 from _timing import median_time
@@ -36,9 +36,12 @@ def synthetic_tree_arrays(n=100_000, seed=0):
 
 def python_forward_pass(parent, extension):
     n = parent.shape[0]
-    branch = np.zeros(n, int); order = np.zeros(n, int); pos = np.zeros(n, int)
+    branch = np.zeros(n, int)
+    order = np.zeros(n, int)
+    pos = np.zeros(n, int)
     nb = 1
-    par = parent.tolist(); ext = extension.tolist()
+    par = parent.tolist()
+    ext = extension.tolist()
     for i in range(1, n):
         p = par[i]
         if ext[p] == i:
@@ -49,8 +52,6 @@ def python_forward_pass(parent, extension):
     return branch, order, pos
 
 
-
-
 def main():
     n = 100_000
     start, axis, length, radius, parent = synthetic_tree_arrays(n)
@@ -59,7 +60,9 @@ def main():
     for rule in ("thickest", "subtree"):
         t = median_time(lambda: Tree(start, axis, length, radius, parent, topology=rule))
         tr = Tree(start, axis, length, radius, parent, topology=rule)
-        print(f"  Tree(..., topology={rule!r}): {t * 1000:7.1f} ms  ({tr.n_branches} branches, max order {tr.max_order})")
+        print(
+            f"  Tree(..., topology={rule!r}): {t * 1000:7.1f} ms  ({tr.n_branches} branches, max order {tr.max_order})"
+        )
     t = median_time(lambda: Tree(start, axis, length, radius, parent, ref.extension, topology="source"))
     print(f"  Tree(..., topology='source'):  {t * 1000:7.1f} ms")
     t = median_time(lambda: Tree(start, axis, length, radius, parent, ref.extension).branches)
@@ -69,8 +72,7 @@ def main():
     tb = median_time(lambda: python_forward_pass(parent, ref.extension), repeats=3)
     b, o, p = python_forward_pass(parent, ref.extension)
     assert (b == ref.branch).all() and (o == ref.order).all() and (p == ref.position_in_branch).all()
-    print(f"  baseline, Python forward pass (branches/orders/positions only): {tb * 1000:7.1f} ms "
-          f"(same result)")
+    print(f"  baseline, Python forward pass (branches/orders/positions only): {tb * 1000:7.1f} ms (same result)")
 
 
 if __name__ == "__main__":

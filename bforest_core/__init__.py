@@ -6,19 +6,35 @@ Public names (see docs/architecture.md)::
     tree = bf.read_qsm(path)
     ssm = bf.component("ssm", "sot"); t = ssm.simulate({}, seed=1)
 """
-from importlib.metadata import PackageNotFoundError, version as _version
 
-from .errors import (BayesForestError, ConfigError, PluginError, QSMFormatError, SimulationFailed,
-                     TreeError)
-from .tree import TOPOLOGY_RULES, BranchTable, Tree
-from .interfaces import (KINDS, SSM, Component, ComponentSettings, Distance, Executor, FeatureSet,
-                         OptimizeResult, Optimizer, ParameterSpec, Problem, QSMReader, QSMWriter, RecipeDraft)
-from .registry import component, component_class, discover
-from .io import read_qsm, write_tree
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as _version
+
 from .config import load_config
+from .errors import BayesForestError, ConfigError, PluginError, QSMFormatError, SimulationFailed, TreeError
+from .interfaces import (
+    KINDS,
+    SSM,
+    Component,
+    ComponentSettings,
+    Distance,
+    Executor,
+    FeatureSet,
+    Optimizer,
+    OptimizeResult,
+    ParameterSpec,
+    Problem,
+    QSMReader,
+    QSMWriter,
+    RecipeDraft,
+)
+from .io import read_qsm, write_tree
+from .pipeline.clones import clones
+
 # binding the functions after importing their modules keeps `bf.fit`/`bf.clones` callable
 from .pipeline.fit import fit
-from .pipeline.clones import clones
+from .registry import component, component_class, discover
+from .tree import TOPOLOGY_RULES, BranchTable, Tree
 
 try:
     __version__ = _version("bayesforest")
@@ -30,5 +46,6 @@ def __getattr__(name):
     # metrics live in their own module, imported on first use
     if name in ("classical_metrics", "relative_errors"):
         from . import metrics
+
         return getattr(metrics, name)
     raise AttributeError(f"module 'bforest_core' has no attribute {name!r}")

@@ -19,28 +19,65 @@ TreeQSM 2.4's, are stated in ``docs/tree-attributes.md``; in short:
 Every function takes a :class:`~bforest_core.tree.Tree` and is vectorised over cylinders and
 branches (loops run over classes, layers or sectors only).
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 from .metrics import classical_metrics, crown_base_height, tree_summary
 
-__all__ = ["branch_table", "tree_attributes", "distributions", "crown_points", "ATTRIBUTE_UNITS",
-           "BRANCH_COLUMNS", "DISTRIBUTION_UNITS", "stem_taper", "crown_spreads", "fidelity_statistics",
-           "FIDELITY_ATTRIBUTES"]
+__all__ = [
+    "branch_table",
+    "tree_attributes",
+    "distributions",
+    "crown_points",
+    "ATTRIBUTE_UNITS",
+    "BRANCH_COLUMNS",
+    "DISTRIBUTION_UNITS",
+    "stem_taper",
+    "crown_spreads",
+    "fidelity_statistics",
+    "FIDELITY_ATTRIBUTES",
+]
 
 #: per-branch columns of :func:`branch_table` with their units (TreeQSM's ``qsm.branch``)
-BRANCH_COLUMNS = {"order": "", "parent": "", "diameter": "m", "volume": "m^3", "area": "m^2",
-                  "length": "m", "angle": "deg", "height": "m", "azimuth": "deg", "zenith": "deg"}
+BRANCH_COLUMNS = {
+    "order": "",
+    "parent": "",
+    "diameter": "m",
+    "volume": "m^3",
+    "area": "m^2",
+    "length": "m",
+    "angle": "deg",
+    "height": "m",
+    "azimuth": "deg",
+    "zenith": "deg",
+}
 
 #: units of :func:`tree_attributes`
 ATTRIBUTE_UNITS = {
-    "total_volume": "m^3", "trunk_volume": "m^3", "branch_volume": "m^3",
-    "tree_height": "m", "trunk_length": "m", "branch_length": "m", "total_length": "m",
-    "n_branches": "", "max_branch_order": "", "trunk_area": "m^2", "branch_area": "m^2",
-    "total_area": "m^2", "dbh": "m", "crown_diameter_mean": "m", "crown_diameter_max": "m",
-    "crown_area_conv": "m^2", "crown_area_alpha": "m^2", "crown_base_height": "m",
-    "crown_length": "m", "crown_ratio": "", "crown_volume_conv": "m^3", "crown_volume_alpha": "m^3",
+    "total_volume": "m^3",
+    "trunk_volume": "m^3",
+    "branch_volume": "m^3",
+    "tree_height": "m",
+    "trunk_length": "m",
+    "branch_length": "m",
+    "total_length": "m",
+    "n_branches": "",
+    "max_branch_order": "",
+    "trunk_area": "m^2",
+    "branch_area": "m^2",
+    "total_area": "m^2",
+    "dbh": "m",
+    "crown_diameter_mean": "m",
+    "crown_diameter_max": "m",
+    "crown_area_conv": "m^2",
+    "crown_area_alpha": "m^2",
+    "crown_base_height": "m",
+    "crown_length": "m",
+    "crown_ratio": "",
+    "crown_volume_conv": "m^3",
+    "crown_volume_alpha": "m^3",
 }
 
 #: unit of each distribution quantity (the first three letters of a distribution's name)
@@ -50,6 +87,7 @@ DISTRIBUTION_UNITS = {"vol": "m^3", "are": "m^2", "len": "m", "num": ""}
 # ------------------------------------------------------------------------------------------
 # branches
 # ------------------------------------------------------------------------------------------
+
 
 def branch_table(tree) -> dict[str, np.ndarray]:
     """One row per branch (branch 0 = the trunk), TreeQSM's ``qsm.branch`` in SI units.
@@ -68,7 +106,7 @@ def branch_table(tree) -> dict[str, np.ndarray]:
     """
     bt = tree.branches
     nb = len(bt)
-    vol = np.bincount(tree.branch, weights=np.pi * tree.radius ** 2 * tree.length, minlength=nb)
+    vol = np.bincount(tree.branch, weights=np.pi * tree.radius**2 * tree.length, minlength=nb)
     area = np.bincount(tree.branch, weights=2 * np.pi * tree.radius * tree.length, minlength=nb)
     length = np.bincount(tree.branch, weights=tree.length, minlength=nb)
     f = bt.first
@@ -81,16 +119,24 @@ def branch_table(tree) -> dict[str, np.ndarray]:
     pa = tree.axis[np.maximum(pc, 0)]
     ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", a, pa), -1.0, 1.0)))
     ang = np.where(pc >= 0, ang, 0.0)
-    return {"order": bt.order.astype(np.int64), "parent": bt.parent_branch.astype(np.int64),
-            "diameter": 2.0 * tree.radius[f], "volume": vol, "area": area, "length": length,
-            "angle": ang, "height": tree.start[f, 2] - tree.start[0, 2],
-            "azimuth": np.degrees(np.arctan2(a0[:, 1], a0[:, 0])),
-            "zenith": np.degrees(np.arccos(np.clip(a0[:, 2], -1.0, 1.0)))}
+    return {
+        "order": bt.order.astype(np.int64),
+        "parent": bt.parent_branch.astype(np.int64),
+        "diameter": 2.0 * tree.radius[f],
+        "volume": vol,
+        "area": area,
+        "length": length,
+        "angle": ang,
+        "height": tree.start[f, 2] - tree.start[0, 2],
+        "azimuth": np.degrees(np.arctan2(a0[:, 1], a0[:, 0])),
+        "zenith": np.degrees(np.arccos(np.clip(a0[:, 2], -1.0, 1.0))),
+    }
 
 
 # ------------------------------------------------------------------------------------------
 # crown geometry
 # ------------------------------------------------------------------------------------------
+
 
 def _frames(axis: np.ndarray):
     """Two unit vectors u, w orthogonal to each axis and to each other."""
@@ -111,11 +157,11 @@ def crown_points(tree) -> np.ndarray:
     if br.any():
         t = np.arange(4) * (np.pi / 2)
         mid = tree.start[br] + 0.5 * tree.length[br, None] * tree.axis[br]
-        ring = (np.cos(t)[None, :, None] * u[br][:, None, :] + np.sin(t)[None, :, None] * w[br][:, None, :])
+        ring = np.cos(t)[None, :, None] * u[br][:, None, :] + np.sin(t)[None, :, None] * w[br][:, None, :]
         parts.append((mid[:, None, :] + tree.radius[br, None, None] * ring).reshape(-1, 3))
     if trunk.any():
         t = np.arange(12) * (np.pi / 6)
-        ring = (np.cos(t)[None, :, None] * u[trunk][:, None, :] + np.sin(t)[None, :, None] * w[trunk][:, None, :])
+        ring = np.cos(t)[None, :, None] * u[trunk][:, None, :] + np.sin(t)[None, :, None] * w[trunk][:, None, :]
         ring = tree.radius[trunk, None, None] * ring  # (m, 12, 3)
         for k in (1, 2, 3, 4):
             c = tree.start[trunk] + (k / 4) * tree.length[trunk, None] * tree.axis[trunk]
@@ -127,6 +173,7 @@ def _hull2d(xy: np.ndarray):
     """(vertices in order, area, centroid) of the convex hull of 2-D points; None when the points
     span no area."""
     from scipy.spatial import ConvexHull, QhullError
+
     xy = np.unique(xy, axis=0)
     if xy.shape[0] < 3:
         return None
@@ -149,7 +196,7 @@ def _sector_diameters(xy: np.ndarray, centre: np.ndarray, n: int = 18) -> np.nda
     """Diameters through ``centre`` in ``n`` directions (each covers 180/n deg): the farthest
     point in a sector plus the farthest in the opposite sector (0 for an empty sector)."""
     v = xy - centre
-    ang = np.arctan2(v[:, 1], v[:, 0]) + np.pi            # 0 ... 2 pi
+    ang = np.arctan2(v[:, 1], v[:, 0]) + np.pi  # 0 ... 2 pi
     sec = np.minimum((ang / (np.pi / n)).astype(np.int64), 2 * n - 1)
     far = np.zeros(2 * n)
     np.maximum.at(far, sec, np.hypot(v[:, 0], v[:, 1]))
@@ -184,6 +231,7 @@ def _alpha_measure(pts: np.ndarray, alpha: float) -> float:
     """Area (2-D) or volume (3-D) of the alpha shape of ``pts``: the Delaunay triangles
     (tetrahedra) whose circumradius is at most ``alpha``."""
     from scipy.spatial import Delaunay, QhullError
+
     d = pts.shape[1]
     if pts.shape[0] < d + 1:
         return 0.0
@@ -191,8 +239,8 @@ def _alpha_measure(pts: np.ndarray, alpha: float) -> float:
         tri = Delaunay(pts)
     except (QhullError, ValueError):
         return 0.0
-    s = pts[tri.simplices]                       # (k, d+1, d)
-    e = s[:, 1:, :] - s[:, :1, :]                # edge vectors from vertex 0
+    s = pts[tri.simplices]  # (k, d+1, d)
+    e = s[:, 1:, :] - s[:, :1, :]  # edge vectors from vertex 0
     det = np.linalg.det(e)
     size = np.abs(det) / (2.0 if d == 2 else 6.0)
     # circumcentre c solves 2 e c = |e|^2 (relative to vertex 0)
@@ -207,6 +255,7 @@ def _alpha_measure(pts: np.ndarray, alpha: float) -> float:
 
 def _hull3d_volume(pts: np.ndarray) -> float:
     from scipy.spatial import ConvexHull, QhullError
+
     if pts.shape[0] < 4:
         return 0.0
     try:
@@ -220,7 +269,7 @@ def stem_taper(tree) -> np.ndarray:
     the trunk diameter there (m): the first cylinder's diameter at 0, then each cylinder's at its
     start, the last one's again at the tip."""
     bt = tree.branches
-    c = bt.cylinders[bt.ptr[0]:bt.ptr[1]]
+    c = bt.cylinders[bt.ptr[0] : bt.ptr[1]]
     d = 2.0 * tree.radius[c]
     dist = np.concatenate([[0.0], np.cumsum(tree.length[c])])
     diam = np.concatenate([d[:1], d[1:], d[-1:]])
@@ -230,6 +279,7 @@ def stem_taper(tree) -> np.ndarray:
 # ------------------------------------------------------------------------------------------
 # tree attributes
 # ------------------------------------------------------------------------------------------
+
 
 def tree_attributes(tree, points: np.ndarray | None = None, alpha: bool = True) -> dict[str, float]:
     """TreeQSM's tree attributes in SI units (:data:`ATTRIBUTE_UNITS`).
@@ -257,17 +307,26 @@ def tree_attributes(tree, points: np.ndarray | None = None, alpha: bool = True) 
         crown length, ratio and volumes (as TreeQSM).
     """
     P = crown_points(tree) if points is None else points
-    vol = np.pi * tree.radius ** 2 * tree.length
+    vol = np.pi * tree.radius**2 * tree.length
     area = 2 * np.pi * tree.radius * tree.length
     trunk = tree.branch == 0
     m = classical_metrics(tree)
     h = m["height"]
-    out = {"total_volume": float(vol.sum()), "trunk_volume": float(vol[trunk].sum()),
-           "branch_volume": float(vol[~trunk].sum()), "tree_height": h,
-           "trunk_length": float(tree.length[trunk].sum()), "branch_length": float(tree.length[~trunk].sum()),
-           "total_length": float(tree.length.sum()), "n_branches": float(tree.n_branches - 1),
-           "max_branch_order": float(tree.max_order), "trunk_area": float(area[trunk].sum()),
-           "branch_area": float(area[~trunk].sum()), "total_area": float(area.sum()), "dbh": m["dbh"]}
+    out = {
+        "total_volume": float(vol.sum()),
+        "trunk_volume": float(vol[trunk].sum()),
+        "branch_volume": float(vol[~trunk].sum()),
+        "tree_height": h,
+        "trunk_length": float(tree.length[trunk].sum()),
+        "branch_length": float(tree.length[~trunk].sum()),
+        "total_length": float(tree.length.sum()),
+        "n_branches": float(tree.n_branches - 1),
+        "max_branch_order": float(tree.max_order),
+        "trunk_area": float(area[trunk].sum()),
+        "branch_area": float(area[~trunk].sum()),
+        "total_area": float(area.sum()),
+        "dbh": m["dbh"],
+    }
     hull = _hull2d(P[:, :2])
     if hull is None:
         out.update(crown_diameter_mean=0.0, crown_diameter_max=0.0, crown_area_conv=0.0, crown_area_alpha=0.0)
@@ -275,14 +334,16 @@ def tree_attributes(tree, points: np.ndarray | None = None, alpha: bool = True) 
         v, a, c = hull
         out["crown_diameter_mean"] = float(_sector_diameters(tree.end[:, :2], c).mean())
         dv = v[:, None, :] - v[None, :, :]
-        out["crown_diameter_max"] = float(np.sqrt((dv ** 2).sum(-1)).max())
+        out["crown_diameter_max"] = float(np.sqrt((dv**2).sum(-1)).max())
         out["crown_area_conv"] = a
-        out["crown_area_alpha"] = (_alpha_measure(np.unique(P[:, :2], axis=0),
-                                                  max(0.5, out["crown_diameter_mean"] / 10)) if alpha else np.nan)
+        out["crown_area_alpha"] = (
+            _alpha_measure(np.unique(P[:, :2], axis=0), max(0.5, out["crown_diameter_mean"] / 10)) if alpha else np.nan
+        )
     cbh = crown_base_height(tree)
     if not np.isfinite(cbh):
-        out.update(crown_base_height=h, crown_length=0.0, crown_ratio=0.0, crown_volume_conv=0.0,
-                   crown_volume_alpha=0.0)
+        out.update(
+            crown_base_height=h, crown_length=0.0, crown_ratio=0.0, crown_volume_conv=0.0, crown_volume_alpha=0.0
+        )
         return out
     out["crown_base_height"] = cbh
     out["crown_length"] = h - cbh
@@ -296,8 +357,15 @@ def tree_attributes(tree, points: np.ndarray | None = None, alpha: bool = True) 
 #: TreeQSM attributes in the clones' fidelity table: volumes and crown measures (branch length and
 #: area are left out: a model tree holds twigs no scan resolves, and the table's branch lengths
 #: already apply the detection limit; the alpha shapes cost a triangulation per clone)
-FIDELITY_ATTRIBUTES = ("trunk_volume", "branch_volume", "crown_diameter_mean", "crown_area_conv", "crown_length",
-                       "crown_ratio", "crown_volume_conv")
+FIDELITY_ATTRIBUTES = (
+    "trunk_volume",
+    "branch_volume",
+    "crown_diameter_mean",
+    "crown_area_conv",
+    "crown_length",
+    "crown_ratio",
+    "crown_volume_conv",
+)
 
 
 def fidelity_statistics(tree) -> dict[str, float]:
@@ -329,8 +397,10 @@ def _classes(par: np.ndarray, width: float, n: int | None = None) -> tuple[np.nd
 
 def _sums(k: np.ndarray, n: int, weights: dict) -> dict[str, np.ndarray]:
     keep = (k >= 0) & (k < n)
-    return {name: np.bincount(k[keep], weights=None if w is None else w[keep], minlength=n)[:n].astype(float)
-            for name, w in weights.items()}
+    return {
+        name: np.bincount(k[keep], weights=None if w is None else w[keep], minlength=n)[:n].astype(float)
+        for name, w in weights.items()
+    }
 
 
 def _height_overlap(b: np.ndarray, t: np.ndarray, n: int) -> np.ndarray:
@@ -370,7 +440,7 @@ def distributions(tree) -> dict[str, np.ndarray]:
     """
     out: dict[str, np.ndarray] = {}
     r, l, ax = tree.radius, tree.length, tree.axis
-    cw = {"Vol": np.pi * r ** 2 * l, "Are": 2 * np.pi * r * l, "Len": l}
+    cw = {"Vol": np.pi * r**2 * l, "Are": 2 * np.pi * r * l, "Len": l}
     k, n = _classes(2 * r, 0.01)
     for q, v in _sums(k, n, cw).items():
         out[f"{q}CylDia"] = v
@@ -390,12 +460,16 @@ def distributions(tree) -> dict[str, np.ndarray]:
         out[f"{q}CylAzi"] = v
 
     b = branch_table(tree)
-    sel = np.arange(b["order"].size) > 0          # the trunk is branch 0
+    sel = np.arange(b["order"].size) > 0  # the trunk is branch 0
     bw = {"Vol": b["volume"][sel], "Are": b["area"][sel], "Len": b["length"][sel], "Num": None}
     first = b["order"][sel] == 1
-    pars = {"Dia": (b["diameter"][sel], 0.01, None), "Hei": (b["height"][sel], 1.0, nh),
-            "Ang": (b["angle"][sel], 10.0, 18), "Azi": (b["azimuth"][sel] + 180.0, 10.0, 36),
-            "Zen": (b["zenith"][sel], 10.0, 18)}
+    pars = {
+        "Dia": (b["diameter"][sel], 0.01, None),
+        "Hei": (b["height"][sel], 1.0, nh),
+        "Ang": (b["angle"][sel], 10.0, 18),
+        "Azi": (b["azimuth"][sel] + 180.0, 10.0, 36),
+        "Zen": (b["zenith"][sel], 10.0, 18),
+    }
     for name, (par, width, n) in pars.items():
         k, n = _classes(par, width, n)
         if name in ("Ang", "Azi", "Zen"):

@@ -22,6 +22,7 @@ third-party plugin's settings are validated exactly like a bundled one's. Exampl
     kind = "process"
     workers = 2
 """
+
 from __future__ import annotations
 
 import difflib
@@ -40,10 +41,14 @@ from .errors import ConfigError, PluginError, validation_error_text
 from .registry import discover
 
 #: config section -> component kind
-SECTIONS = {"ssm": "ssm", "features": "features", "distance": "distance", "optimizer": "optimizer",
-            "executor": "executor"}
-DEFAULT_KINDS = {"features": "branch-segment", "distance": "sliced", "optimizer": "ga",
-                 "executor": "process"}
+SECTIONS = {
+    "ssm": "ssm",
+    "features": "features",
+    "distance": "distance",
+    "optimizer": "optimizer",
+    "executor": "executor",
+}
+DEFAULT_KINDS = {"features": "branch-segment", "distance": "sliced", "optimizer": "ga", "executor": "process"}
 
 
 class _Strict(BaseModel):
@@ -66,7 +71,9 @@ class FreeParameter(_Strict):
         ilo = self.lower if self.init_lower is None else self.init_lower
         ihi = self.upper if self.init_upper is None else self.init_upper
         if not (self.lower <= ilo < ihi <= self.upper):
-            raise ValueError(f"need lower <= init_lower < init_upper <= upper (got {self.lower}, {ilo}, {ihi}, {self.upper})")
+            raise ValueError(
+                f"need lower <= init_lower < init_upper <= upper (got {self.lower}, {ilo}, {ihi}, {self.upper})"
+            )
         return self
 
 
@@ -87,10 +94,13 @@ class TargetConfig(_Strict):
     reader: Optional[str] = Field(None, description="force a reader by name (default: detect)")
     select: Union[int, list[int], Literal["all"], None] = Field(None, description="reconstruction(s) of a QSMs file")
     topology: Optional[Literal["source", "subtree", "thickest"]] = Field(
-        None, description="topology rule of the data side (default: the feature set's)")
+        None, description="topology rule of the data side (default: the feature set's)"
+    )
     references: list[str] = Field(
-        default_factory=list, description="QSM files of other trees of the stand (relative to the config file): "
-        "the report shows the target's distance to each beside the clones' distances")
+        default_factory=list,
+        description="QSM files of other trees of the stand (relative to the config file): "
+        "the report shows the target's distance to each beside the clones' distances",
+    )
 
     @model_validator(mode="after")
     def _one(self):
@@ -115,8 +125,9 @@ class TermConfig(_Strict):
     sets are stored as ``<name>/<set>``.
     """
 
-    name: str = Field(..., pattern=r"^[A-Za-z][A-Za-z0-9_-]*$",
-                      description="name of the term (its sets are stored as NAME/SET)")
+    name: str = Field(
+        ..., pattern=r"^[A-Za-z][A-Za-z0-9_-]*$", description="name of the term (its sets are stored as NAME/SET)"
+    )
     weight: float = Field(1.0, gt=0, description="weight of the term in the objective")
     features: dict[str, Any] = Field(..., description="feature set: { kind = NAME, settings... }")
     distance: dict[str, Any] = Field(..., description="distance: { kind = NAME, settings... }")
@@ -128,7 +139,7 @@ class TermConfig(_Strict):
     def _kinds(self):
         for part in ("features", "distance"):
             if not isinstance(getattr(self, part).get("kind"), str):
-                raise ValueError(f"{part}: needs kind = \"<{part} plugin name>\"")
+                raise ValueError(f'{part}: needs kind = "<{part} plugin name>"')
         return self
 
 
@@ -137,20 +148,31 @@ class ObjectiveConfig(_Strict):
 
     seeds: int = Field(1, ge=1, description="model seeds per evaluation (mean distance; common random numbers)")
     seed_mode: Literal["fixed", "per_evaluation"] = Field(
-        "fixed", description="fixed: the same model seed(s) for every evaluation (the paper); "
-                             "per_evaluation: from the run seed and the evaluation index")
+        "fixed",
+        description="fixed: the same model seed(s) for every evaluation (the paper); "
+        "per_evaluation: from the run seed and the evaluation index",
+    )
     model_seeds: Optional[list[int]] = Field(
-        None, description="explicit model seeds held fixed for every evaluation (overrides seeds/seed_mode)")
+        None, description="explicit model seeds held fixed for every evaluation (overrides seeds/seed_mode)"
+    )
     weights: Optional[dict[str, float]] = Field(None, description="weight per data set (default equal)")
-    penalty: float = Field(1.0, ge=0, allow_inf_nan=False, description="distance of a failed simulation, for optimisers: keep it above every "
-                           "real distance (1.0 suits statistics bounded by 1, such as KS); "
-                           "samplers that say so (abc-smc) treat a failure as inf instead")
+    penalty: float = Field(
+        1.0,
+        ge=0,
+        allow_inf_nan=False,
+        description="distance of a failed simulation, for optimisers: keep it above every "
+        "real distance (1.0 suits statistics bounded by 1, such as KS); "
+        "samplers that say so (abc-smc) treat a failure as inf instead",
+    )
     timeout: Optional[float] = Field(60.0, gt=0, description="seconds before a simulation is stopped (None: no limit)")
     cache: bool = Field(True, description="never simulate identical params and seeds twice")
-    structure_weight: float = Field(1.0, gt=0, description="weight of the [features]/[distance] term "
-                                    "when [[objective.terms]] adds others")
-    terms: list[TermConfig] = Field(default_factory=list, description="more terms of the objective, e.g. a "
-                                    "summary-statistics term beside the structural distance")
+    structure_weight: float = Field(
+        1.0, gt=0, description="weight of the [features]/[distance] term when [[objective.terms]] adds others"
+    )
+    terms: list[TermConfig] = Field(
+        default_factory=list,
+        description="more terms of the objective, e.g. a summary-statistics term beside the structural distance",
+    )
 
     _weights = field_validator("weights")(lambda cls, v: _check_weights(v))
 
@@ -166,7 +188,9 @@ class ObjectiveConfig(_Strict):
         names = [t.name for t in self.terms]
         dup = sorted({n for n in names if names.count(n) > 1} | ({"structure"} & set(names)))
         if dup:
-            raise ValueError(f"terms: the name {dup[0]!r} is used twice ('structure' is the [features]/[distance] term)")
+            raise ValueError(
+                f"terms: the name {dup[0]!r} is used twice ('structure' is the [features]/[distance] term)"
+            )
         return self
 
 
@@ -179,13 +203,25 @@ class StopConfig(_Strict):
 class SelectConfig(_Strict):
     """How the answer of a fit is chosen: on model seeds the search never used."""
 
-    top: int = Field(0, ge=0, description="best distinct points of the search re-scored on held-out model seeds "
-                     "at the end of the fit; the answer is the one of lowest held-out distance (0: the answer "
-                     "is the point of lowest own distance, with no re-scoring)")
-    sets: int = Field(8, ge=1, description="sets of held-out model seeds per candidate, each as large as an "
-                      "evaluation's ([objective] seeds)")
-    spacing: float = Field(0.02, ge=0, le=1, description="candidates differ by more than this fraction of a "
-                           "parameter's range in at least one parameter (distinct points, not near-copies)")
+    top: int = Field(
+        0,
+        ge=0,
+        description="best distinct points of the search re-scored on held-out model seeds "
+        "at the end of the fit; the answer is the one of lowest held-out distance (0: the answer "
+        "is the point of lowest own distance, with no re-scoring)",
+    )
+    sets: int = Field(
+        8,
+        ge=1,
+        description="sets of held-out model seeds per candidate, each as large as an evaluation's ([objective] seeds)",
+    )
+    spacing: float = Field(
+        0.02,
+        ge=0,
+        le=1,
+        description="candidates differ by more than this fraction of a "
+        "parameter's range in at least one parameter (distinct points, not near-copies)",
+    )
 
 
 class ClonesConfig(_Strict):
@@ -203,30 +239,35 @@ def _section_model(kind: str, name: str, cls: type) -> type[BaseModel]:
     fields: dict[str, Any] = {"kind": (Literal[name], Field(..., description=f"{kind} plugin name"))}
     if kind == "ssm":
         fields["fixed"] = (dict[str, float], Field(default_factory=dict, description="parameters held at these values"))
-        fields["free"] = (dict[str, FreeParameter], Field(default_factory=dict, description="parameters the optimiser varies"))
-        fields["topology"] = (Optional[Literal["source", "subtree", "thickest"]],
-                              Field(None, description="topology rule of the model side (default: the feature set's)"))
+        fields["free"] = (
+            dict[str, FreeParameter],
+            Field(default_factory=dict, description="parameters the optimiser varies"),
+        )
+        fields["topology"] = (
+            Optional[Literal["source", "subtree", "thickest"]],
+            Field(None, description="topology rule of the model side (default: the feature set's)"),
+        )
     base = cls.Settings
     model = create_model(f"{cls.__name__}_{kind}_config", __base__=base, **fields)
     model.__doc__ = (cls.__doc__ or "").strip().split("\n")[0]
     return model
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _run_config_model(registry_id: int):
     reg = discover()
     fields = {}
     for section, kind in SECTIONS.items():
         names = reg.names(kind)
-        models = [_section_model(kind, n, reg.get(kind, n)) for n in names
-                  if (kind, n) in reg.components]
+        models = [_section_model(kind, n, reg.get(kind, n)) for n in names if (kind, n) in reg.components]
         if not models:
             fields[section] = (Optional[dict], None)
             continue
         union = models[0] if len(models) == 1 else Annotated[Union[tuple(models)], Field(discriminator="kind")]
         fields[section] = (union, ...)  # parse_config fills the default kinds first
     return create_model(
-        "RunConfig", __base__=_Strict,
+        "RunConfig",
+        __base__=_Strict,
         seed=(int, Field(1, ge=0, description="run seed: every evaluation seed and clone seed derives from it")),
         target=(TargetConfig, ...),
         objective=(ObjectiveConfig, Field(default_factory=ObjectiveConfig)),
@@ -234,7 +275,8 @@ def _run_config_model(registry_id: int):
         select=(SelectConfig, Field(default_factory=SelectConfig)),
         clones=(ClonesConfig, Field(default_factory=ClonesConfig)),
         report=(ReportConfig, Field(default_factory=ReportConfig)),
-        **fields)
+        **fields,
+    )
 
 
 def run_config_model() -> type[BaseModel]:
@@ -304,40 +346,55 @@ def _allowed_keys(model, raw, loc) -> list[str]:
 def check_ssm_parameters(cfg) -> None:
     """``fixed`` and ``free`` entries must name parameters of the SSM, within its ranges."""
     from .registry import component
+
     ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
     specs = {p.name: p for p in ssm.parameters}
-    problems = [f"ssm '{cfg.ssm.kind}': the plugin's parameter name {n!r} is not a Python identifier (it is a "
-                "TOML key, a column name and a report label)" for n in specs if not _identifier(n)]
+    problems = [
+        f"ssm '{cfg.ssm.kind}': the plugin's parameter name {n!r} is not a Python identifier (it is a "
+        "TOML key, a column name and a report label)"
+        for n in specs
+        if not _identifier(n)
+    ]
     for name, val in cfg.ssm.fixed.items():
         if name not in specs:
-            problems.append(f"ssm.fixed.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
-                            f"{did_you_mean(name, specs)}")
+            problems.append(
+                f"ssm.fixed.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
+                f"{did_you_mean(name, specs)}"
+            )
         elif not specs[name].lower <= val <= specs[name].upper:
             s = specs[name]
-            problems.append(f"ssm.fixed.{name}: {val} is outside the allowed range [{s.lower}, {s.upper}] {s.unit}".rstrip())
+            problems.append(
+                f"ssm.fixed.{name}: {val} is outside the allowed range [{s.lower}, {s.upper}] {s.unit}".rstrip()
+            )
     for name, fp in cfg.ssm.free.items():
         if name not in specs:
-            problems.append(f"ssm.free.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
-                            f"{did_you_mean(name, specs)}")
+            problems.append(
+                f"ssm.free.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
+                f"{did_you_mean(name, specs)}"
+            )
             continue
         s = specs[name]
         if name in cfg.ssm.fixed:
             problems.append(f"ssm.free.{name}: also listed in ssm.fixed")
         if fp.lower < s.lower or fp.upper > s.upper:
-            problems.append(f"ssm.free.{name}: bounds [{fp.lower}, {fp.upper}] exceed the allowed range "
-                            f"[{s.lower}, {s.upper}] {s.unit}".rstrip())
+            problems.append(
+                f"ssm.free.{name}: bounds [{fp.lower}, {fp.upper}] exceed the allowed range "
+                f"[{s.lower}, {s.upper}] {s.unit}".rstrip()
+            )
     if problems:
         raise ConfigError("; ".join(problems))
 
 
 def _identifier(name) -> bool:
     import keyword
+
     return isinstance(name, str) and name.isidentifier() and not keyword.iskeyword(name)
 
 
 def check_generated_target(cfg) -> None:
     """``[target.generate]`` names an installed SSM, its parameters and settings."""
     from .registry import component
+
     gen = cfg.target.generate
     if gen is None:
         return
@@ -352,11 +409,15 @@ def check_generated_target(cfg) -> None:
     for name, val in gen.params.items():
         s = specs.get(name)
         if s is None:
-            problems.append(f"target.generate.params.{name}: unknown parameter of '{gen.ssm}' "
-                            f"(known: {', '.join(specs)}){did_you_mean(name, specs)}")
+            problems.append(
+                f"target.generate.params.{name}: unknown parameter of '{gen.ssm}' "
+                f"(known: {', '.join(specs)}){did_you_mean(name, specs)}"
+            )
         elif not s.lower <= val <= s.upper:
-            problems.append(f"target.generate.params.{name}: {val} is outside the allowed range "
-                            f"[{s.lower}, {s.upper}] {s.unit}".rstrip())
+            problems.append(
+                f"target.generate.params.{name}: {val} is outside the allowed range "
+                f"[{s.lower}, {s.upper}] {s.unit}".rstrip()
+            )
     if problems:
         raise ConfigError("; ".join(problems))
 
@@ -374,8 +435,10 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
     """Validate a config dict; relative target paths are resolved against ``base_dir``."""
     model = run_config_model()
     if "target" not in raw:
-        raise ConfigError(f"{source}: no [target]: add the tree to fit, e.g. [target] qsm = \"path/to/tree.mat\" "
-                          "(relative to this file), or [target.generate] ssm = \"sot\" for a model-grown target")
+        raise ConfigError(
+            f'{source}: no [target]: add the tree to fit, e.g. [target] qsm = "path/to/tree.mat" '
+            '(relative to this file), or [target.generate] ssm = "sot" for a model-grown target'
+        )
     raw = _fill_defaults(raw)
     reg = discover()
     problems, bad = [], set()  # every problem of the file, reported at once
@@ -383,16 +446,19 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
         sec = raw.get(section)
         if isinstance(sec, dict) and "kind" in sec and sec["kind"] not in reg.names(kind):
             known = ", ".join(reg.names(kind)) or "none installed"
-            problems.append(f"{section}.kind: unknown {kind} {sec['kind']!r} (known: {known})"
-                            f"{did_you_mean(sec['kind'], reg.names(kind))}")
+            problems.append(
+                f"{section}.kind: unknown {kind} {sec['kind']!r} (known: {known})"
+                f"{did_you_mean(sec['kind'], reg.names(kind))}"
+            )
             bad.add(section)
     tags = {s: raw.get(s, {}).get("kind") for s in SECTIONS if isinstance(raw.get(s), dict)}
     cfg = None
     try:
         cfg = model.model_validate({k: v for k, v in raw.items() if k not in bad})
     except pydantic.ValidationError as exc:
-        text = validation_error_text(exc, tags, skip=tuple(bad),
-                                     hint=lambda loc: did_you_mean(loc[-1], _allowed_keys(model, raw, loc)))
+        text = validation_error_text(
+            exc, tags, skip=tuple(bad), hint=lambda loc: did_you_mean(loc[-1], _allowed_keys(model, raw, loc))
+        )
         if text:
             problems.append(text)
     if cfg is None or problems:
@@ -414,6 +480,7 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
 def check_terms(cfg) -> None:
     """Every ``[[objective.terms]]`` entry names installed components with valid settings."""
     from .registry import component
+
     problems = []
     for i, t in enumerate(cfg.objective.terms):
         for kind, part in (("features", t.features), ("distance", t.distance)):
@@ -421,8 +488,9 @@ def check_terms(cfg) -> None:
             try:
                 component(kind, part["kind"], **settings)
             except PluginError as exc:
-                problems.append(f"objective.terms[{i}] ({t.name}).{kind}: {exc}"
-                                f"{did_you_mean(part['kind'], discover().names(kind))}")
+                problems.append(
+                    f"objective.terms[{i}] ({t.name}).{kind}: {exc}{did_you_mean(part['kind'], discover().names(kind))}"
+                )
             except ConfigError as exc:
                 problems.append(f"objective.terms[{i}] ({t.name}).{kind}: {exc}")
     if problems:
@@ -464,17 +532,20 @@ def read_toml(path) -> dict:
 
 def config_to_dict(cfg) -> dict:
     """The resolved config as plain data (``None`` values removed, so it writes as TOML)."""
+
     def clean(x):
         if isinstance(x, dict):
             return {k: clean(v) for k, v in x.items() if v is not None}
         if isinstance(x, (list, tuple)):
             return [clean(v) for v in x]
         return x
+
     return clean(cfg.model_dump(mode="json"))
 
 
 def dump_config(cfg, path) -> None:
     import tomli_w
+
     Path(path).write_text(tomli_w.dumps(config_to_dict(cfg)), encoding="utf-8")
 
 

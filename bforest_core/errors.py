@@ -3,6 +3,7 @@
 Every error a user can cause derives from :class:`BayesForestError`; the CLI turns
 those into one readable line and exit code 2.
 """
+
 from __future__ import annotations
 
 import pydantic
@@ -75,8 +76,7 @@ class SimulationFailed(BayesForestError):
         return (type(self), (self.status, self.message))
 
 
-def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = None, hint=None,
-                          skip: tuple = ()) -> str:
+def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = None, hint=None, skip: tuple = ()) -> str:
     """One readable clause per problem: ``key.path: message (got value)``. ``hint(loc)`` may add
     a suggestion to an unknown key (e.g. "did you mean ..."); errors under a top-level key in
     ``skip`` are left out (reported otherwise)."""
@@ -100,9 +100,12 @@ def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = Non
             if hint is not None:
                 msg += hint(raw_loc)
         if msg.startswith("Value error, "):
-            msg = msg[len("Value error, "):]
+            msg = msg[len("Value error, ") :]
         inp = e.get("input")
-        shown = "" if isinstance(inp, dict) or e.get("type") in ("missing", "extra_forbidden", "value_error") \
+        shown = (
+            ""
+            if isinstance(inp, dict) or e.get("type") in ("missing", "extra_forbidden", "value_error")
             else f" (got {inp!r})"
+        )
         parts.append(f"{where}: {msg}{shown}")
     return "; ".join(parts)

@@ -8,6 +8,7 @@ A plugin is a module named by an entry point in the group ``bforest``; it define
     def bforest_components():
         return [MyModel, MyReader]
 """
+
 import pluggy
 
 PROJECT = "bforest"

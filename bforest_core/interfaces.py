@@ -5,6 +5,7 @@ config's ``kind = "..."`` selects) and a pydantic ``Settings`` model (``extra="f
 its own options. ``bf.component(kind, name, **settings)`` validates the settings and returns an
 instance; the instance keeps them in ``self.settings``.
 """
+
 from __future__ import annotations
 
 import abc
@@ -184,7 +185,7 @@ class SSM(Component):
             For any non-ok status.
         """
 
-    def draft_recipe(self, measures: "TreeMeasures") -> "RecipeDraft | None":
+    def draft_recipe(self, measures: TreeMeasures) -> RecipeDraft | None:
         """Optional (``bforest init``): this model's part of a recipe for a measured tree.
 
         Parameters
@@ -219,8 +220,9 @@ class SSM(Component):
         known = self.defaults()
         unknown = sorted(set(params) - set(known))
         if unknown:
-            raise ValueError(f"unknown parameter(s) for SSM '{self.name}': {', '.join(unknown)} "
-                             f"(known: {', '.join(known)})")
+            raise ValueError(
+                f"unknown parameter(s) for SSM '{self.name}': {', '.join(unknown)} (known: {', '.join(known)})"
+            )
         out = dict(known)
         out.update(params)
         for p in self.parameters:
@@ -285,7 +287,9 @@ class Distance(Component):
     def compute(self, u_model: np.ndarray, u_data: np.ndarray) -> float:
         """Distance of one pair of ``(n, d)`` tables (data side named second)."""
 
-    def compute_per_set(self, U_model: Mapping[str, np.ndarray], U_data: Mapping[str, np.ndarray]) -> dict[str, float | None]:
+    def compute_per_set(
+        self, U_model: Mapping[str, np.ndarray], U_data: Mapping[str, np.ndarray]
+    ) -> dict[str, float | None]:
         """Per-set distances; ``None`` for a pair that is skipped (both sides empty)."""
         if set(U_model) != set(U_data):
             raise ValueError(f"model sets {sorted(U_model)} differ from data sets {sorted(U_data)}")
@@ -364,8 +368,14 @@ class Distance(Component):
         """
         return {}
 
-    def permutation_test(self, U_model: Mapping[str, np.ndarray], U_data: Mapping[str, np.ndarray],
-                         weights: Mapping[str, float] | None = None, *, seed: int = 0):
+    def permutation_test(
+        self,
+        U_model: Mapping[str, np.ndarray],
+        U_data: Mapping[str, np.ndarray],
+        weights: Mapping[str, float] | None = None,
+        *,
+        seed: int = 0,
+    ):
         """Whether the model tables can be told from the data tables (optional).
 
         Parameters
@@ -591,11 +601,18 @@ class Executor(Component):
         the initializer (the ``process`` and ``dask`` executors do): a worker's own thread pools
         would only compete with the other workers.
         """
-        for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-                  "VECLIB_MAXIMUM_THREADS", "BLIS_NUM_THREADS"):
+        for v in (
+            "OMP_NUM_THREADS",
+            "OPENBLAS_NUM_THREADS",
+            "MKL_NUM_THREADS",
+            "NUMEXPR_NUM_THREADS",
+            "VECLIB_MAXIMUM_THREADS",
+            "BLIS_NUM_THREADS",
+        ):
             os.environ[v] = "1"
         try:  # effective even after numpy is imported, when threadpoolctl is present
             from threadpoolctl import threadpool_limits
+
             threadpool_limits(1)
         except Exception:
             pass
@@ -617,5 +634,12 @@ class _Started:
         return False
 
 
-INTERFACES = {"qsm_reader": QSMReader, "qsm_writer": QSMWriter, "ssm": SSM, "features": FeatureSet,
-              "distance": Distance, "optimizer": Optimizer, "executor": Executor}
+INTERFACES = {
+    "qsm_reader": QSMReader,
+    "qsm_writer": QSMWriter,
+    "ssm": SSM,
+    "features": FeatureSet,
+    "distance": Distance,
+    "optimizer": Optimizer,
+    "executor": Executor,
+}

@@ -1,4 +1,5 @@
 """``read_qsm`` and ``write_tree``: dispatch to the registered readers and writers."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -18,6 +19,7 @@ def _check_regular_file(path: Path) -> None:
     import errno
     import os
     import stat
+
     try:
         mode = os.stat(path).st_mode
     except OSError as exc:
@@ -75,8 +77,12 @@ def read_qsm(path, reader: str | None = None, **options):
         r = cls()
         if r.sniff(path, head):
             return r.read(path, **options)
-    raise QSMFormatError(path, "content matches no known QSM layout (tried readers: "
-                         + ", ".join(c.name for c in cands) + "); pass reader=... to force one")
+    raise QSMFormatError(
+        path,
+        "content matches no known QSM layout (tried readers: "
+        + ", ".join(c.name for c in cands)
+        + "); pass reader=... to force one",
+    )
 
 
 def writer_for(path, format: str | None = None):

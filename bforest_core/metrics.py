@@ -10,19 +10,33 @@ Reference: docs/features-and-distance.md §5 (GS Methods IV "traditional metrics
 toolbox's ``tree_basic_metrics.m`` with its defects fixed). Base point = start of the root
 cylinder; point set = all cylinder start and end points.
 """
+
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Literal, Mapping
+from typing import Literal
 
 import numpy as np
 
-__all__ = ["classical_metrics", "relative_errors", "crown_spread", "dbh", "tree_summary", "order_summary",
-           "SUMMARY_UNITS", "summary_unit", "summary_label", "TreeMeasures", "measure_tree", "DECURRENT_LIMB_RATIO"]
+__all__ = [
+    "classical_metrics",
+    "relative_errors",
+    "crown_spread",
+    "dbh",
+    "tree_summary",
+    "order_summary",
+    "SUMMARY_UNITS",
+    "summary_unit",
+    "summary_label",
+    "TreeMeasures",
+    "measure_tree",
+    "DECURRENT_LIMB_RATIO",
+]
 
 BREAST_HEIGHT = 1.3  # m
-_RHO_EPS = 1e-9      # m; points closer than this to the vertical through the base have no direction
+_RHO_EPS = 1e-9  # m; points closer than this to the vertical through the base have no direction
 
 
 def _points(tree) -> np.ndarray:
@@ -81,7 +95,7 @@ def dbh(tree, breast_height: float = BREAST_HEIGHT, warn: bool = True) -> float:
     no trunk cylinder does.
     """
     bt = tree.branches
-    trunk = bt.cylinders[bt.ptr[0]:bt.ptr[1]]
+    trunk = bt.cylinders[bt.ptr[0] : bt.ptr[1]]
     z0 = tree.start[0, 2]
     zs = tree.start[trunk, 2] - z0
     ze = tree.end[trunk, 2] - z0
@@ -89,15 +103,22 @@ def dbh(tree, breast_height: float = BREAST_HEIGHT, warn: bool = True) -> float:
     if hit.size == 0:
         if warn:
             src = tree.metadata.get("source") or tree.metadata.get("model") or "tree"
-            warnings.warn(f"{src}: no trunk cylinder spans breast height {breast_height} m above the "
-                          f"base (trunk reaches {float(max(zs.max(), ze.max())):.3f} m); DBH is NaN",
-                          RuntimeWarning, stacklevel=2)
+            warnings.warn(
+                f"{src}: no trunk cylinder spans breast height {breast_height} m above the "
+                f"base (trunk reaches {float(max(zs.max(), ze.max())):.3f} m); DBH is NaN",
+                RuntimeWarning,
+                stacklevel=2,
+            )
         return float("nan")
     return float(2.0 * tree.radius[trunk[hit[0]]])
 
 
-def classical_metrics(tree, girth: Literal["base", "dbh"] = "base", spoke_step: float = 10.0,
-                      empty_sectors: Literal["zero", "drop"] = "zero") -> dict[str, float]:
+def classical_metrics(
+    tree,
+    girth: Literal["base", "dbh"] = "base",
+    spoke_step: float = 10.0,
+    empty_sectors: Literal["zero", "drop"] = "zero",
+) -> dict[str, float]:
     """Height, girth, DBH and crown spread of a tree, in metres (docs/features-and-distance.md §5).
 
     Parameters
@@ -123,8 +144,13 @@ def classical_metrics(tree, girth: Literal["base", "dbh"] = "base", spoke_step: 
     height = float(max(tree.start[:, 2].max(), tree.end[:, 2].max()) - z0)
     d = dbh(tree, warn=(girth == "dbh"))
     g = d if girth == "dbh" else float(2.0 * tree.radius[0])
-    return {"height": height, "girth": g, "base_diameter": float(2.0 * tree.radius[0]), "dbh": d,
-            "crown_spread": crown_spread(tree, spoke_step, empty_sectors)}
+    return {
+        "height": height,
+        "girth": g,
+        "base_diameter": float(2.0 * tree.radius[0]),
+        "dbh": d,
+        "crown_spread": crown_spread(tree, spoke_step, empty_sectors),
+    }
 
 
 def relative_errors(data_metrics: Mapping[str, float], model_metrics: Mapping[str, float]) -> dict:
@@ -146,8 +172,9 @@ def relative_errors(data_metrics: Mapping[str, float], model_metrics: Mapping[st
     out = {}
     for key, name in (("d_h", "height"), ("d_g", "girth"), ("d_c", "crown_spread")):
         if name not in data_metrics or name not in model_metrics:
-            raise KeyError(f"relative_errors: '{name}' missing from the "
-                           f"{'data' if name not in data_metrics else 'model'} metrics")
+            raise KeyError(
+                f"relative_errors: '{name}' missing from the {'data' if name not in data_metrics else 'model'} metrics"
+            )
         xd = float(data_metrics[name])
         xm = np.asarray(model_metrics[name], dtype=np.float64)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -158,11 +185,27 @@ def relative_errors(data_metrics: Mapping[str, float], model_metrics: Mapping[st
 
 # ------------------------------------------------------------------------------ tree summary
 #: unit of each summary statistic, by name prefix (longest prefix wins)
-SUMMARY_UNITS = {"height": "m", "dbh": "m", "base_diameter": "m", "crown_spread": "m",
-                 "crown_base_height": "m", "stem_length": "m", "n_branches": "count", "length": "m",
-                 "volume": "m^3", "profile_n": "count", "profile_len": "m", "n_all_branches": "count",
-                 "trunk_volume": "m^3", "branch_volume": "m^3", "crown_diameter_mean": "m", "crown_area_conv": "m^2",
-                 "crown_length": "m", "crown_ratio": "fraction", "crown_volume_conv": "m^3"}
+SUMMARY_UNITS = {
+    "height": "m",
+    "dbh": "m",
+    "base_diameter": "m",
+    "crown_spread": "m",
+    "crown_base_height": "m",
+    "stem_length": "m",
+    "n_branches": "count",
+    "length": "m",
+    "volume": "m^3",
+    "profile_n": "count",
+    "profile_len": "m",
+    "n_all_branches": "count",
+    "trunk_volume": "m^3",
+    "branch_volume": "m^3",
+    "crown_diameter_mean": "m",
+    "crown_area_conv": "m^2",
+    "crown_length": "m",
+    "crown_ratio": "fraction",
+    "crown_volume_conv": "m^3",
+}
 #: share of the living first-order branch length that may lie below the crown base
 CROWN_BASE_SHARE = 0.05
 #: base diameter (m) below which a branch is left out of the branch counts, lengths and profile:
@@ -180,12 +223,21 @@ def summary_unit(name: str) -> str:
 def summary_label(name: str, bands: int = 5) -> str:
     """What a summary statistic is, in words (``"profile_n_b0"`` -> ``"order-1 branches based at
     0-20 % of the height"``); the name itself for one this function does not know."""
-    fixed = {"height": "height", "dbh": "DBH (1.3 m)", "base_diameter": "base diameter",
-             "crown_spread": "crown spread", "crown_base_height": "crown base height", "stem_length": "stem length",
-             "trunk_volume": "trunk volume", "branch_volume": "branch volume",
-             "crown_diameter_mean": "crown diameter, mean", "crown_area_conv": "crown area (convex hull)",
-             "crown_length": "crown length", "crown_ratio": "crown ratio",
-             "crown_volume_conv": "crown volume (convex hull)"}
+    fixed = {
+        "height": "height",
+        "dbh": "DBH (1.3 m)",
+        "base_diameter": "base diameter",
+        "crown_spread": "crown spread",
+        "crown_base_height": "crown base height",
+        "stem_length": "stem length",
+        "trunk_volume": "trunk volume",
+        "branch_volume": "branch volume",
+        "crown_diameter_mean": "crown diameter, mean",
+        "crown_area_conv": "crown area (convex hull)",
+        "crown_length": "crown length",
+        "crown_ratio": "crown ratio",
+        "crown_volume_conv": "crown volume (convex hull)",
+    }
     if name in fixed:
         return fixed[name]
     head, _, tail = name.rpartition("_")
@@ -193,10 +245,12 @@ def summary_label(name: str, bands: int = 5) -> str:
         return name
     k = int(tail[1:])
     if tail[0] == "o":
-        return {"n_branches": f"branches of order {k} (base >= {100 * DETECTION_DIAMETER:g} cm)",
-                "n_all_branches": f"branches of order {k} (all)",
-                "length": f"length of order-{k} branches (base >= {100 * DETECTION_DIAMETER:g} cm)",
-                "volume": "stem wood volume" if k == 0 else f"wood volume of order {k}"}.get(head, name)
+        return {
+            "n_branches": f"branches of order {k} (base >= {100 * DETECTION_DIAMETER:g} cm)",
+            "n_all_branches": f"branches of order {k} (all)",
+            "length": f"length of order-{k} branches (base >= {100 * DETECTION_DIAMETER:g} cm)",
+            "volume": "stem wood volume" if k == 0 else f"wood volume of order {k}",
+        }.get(head, name)
     if tail[0] == "b" and head in ("profile_n", "profile_len"):
         lo, hi = 100 * k / bands, 100 * (k + 1) / bands
         what = "order-1 branches" if head == "profile_n" else "length of order-1 branches"
@@ -238,8 +292,9 @@ def crown_base_height(tree, share: float = CROWN_BASE_SHARE) -> float:
     return float(z[order][min(k, z.size - 1)])
 
 
-def tree_summary(tree, max_order: int = 3, bands: int = 5,
-                 min_diameter: float = DETECTION_DIAMETER) -> dict[str, float]:
+def tree_summary(
+    tree, max_order: int = 3, bands: int = 5, min_diameter: float = DETECTION_DIAMETER
+) -> dict[str, float]:
     """Tree-level summary statistics, one implementation for QSMs and model trees.
 
     Parameters
@@ -271,10 +326,15 @@ def tree_summary(tree, max_order: int = 3, bands: int = 5,
     blen = np.bincount(tree.branch, weights=tree.length, minlength=len(br))
     living = _living(tree)
     seen = living & (2.0 * tree.radius[br.first] >= min_diameter)
-    vol = np.pi * tree.radius ** 2 * tree.length
-    out = {"height": m["height"], "dbh": m["dbh"], "base_diameter": m["base_diameter"],
-           "crown_spread": m["crown_spread"], "crown_base_height": crown_base_height(tree),
-           "stem_length": float(tree.length[order == 0].sum())}
+    vol = np.pi * tree.radius**2 * tree.length
+    out = {
+        "height": m["height"],
+        "dbh": m["dbh"],
+        "base_diameter": m["base_diameter"],
+        "crown_spread": m["crown_spread"],
+        "crown_base_height": crown_base_height(tree),
+        "stem_length": float(tree.length[order == 0].sum()),
+    }
     for w in range(1, max_order + 1):
         sel = (br.order == w) & seen
         out[f"n_branches_o{w}"] = float(np.count_nonzero(sel))
@@ -299,7 +359,7 @@ def order_summary(tree) -> list[dict]:
     cylinder; NaN for the stem) and mean base diameter (m)."""
     br = tree.branches
     blen = np.bincount(tree.branch, weights=tree.length, minlength=len(br))
-    bvol = np.bincount(tree.branch, weights=np.pi * tree.radius ** 2 * tree.length, minlength=len(br))
+    bvol = np.bincount(tree.branch, weights=np.pi * tree.radius**2 * tree.length, minlength=len(br))
     has_parent = br.parent_cyl >= 0
     cosang = np.full(len(br), np.nan)
     cosang[has_parent] = np.einsum("ij,ij->i", tree.axis[br.first[has_parent]], tree.axis[br.parent_cyl[has_parent]])
@@ -311,14 +371,22 @@ def order_summary(tree) -> list[dict]:
     has_angle = np.isfinite(angle)
     n_angle = np.bincount(order, weights=has_angle.astype(float), minlength=count.size)
     sum_angle = np.bincount(order, weights=np.where(has_angle, angle, 0.0), minlength=count.size)
-    sums = {k: np.bincount(order, weights=v, minlength=count.size)
-            for k, v in (("length_m", blen), ("volume_m3", bvol), ("base", 2.0 * tree.radius[br.first]))}
+    sums = {
+        k: np.bincount(order, weights=v, minlength=count.size)
+        for k, v in (("length_m", blen), ("volume_m3", bvol), ("base", 2.0 * tree.radius[br.first]))
+    }
     rows = []
     for w in np.flatnonzero(count):
-        rows.append({"order": int(w), "n_branches": int(count[w]), "length_m": float(sums["length_m"][w]),
-                     "volume_m3": float(sums["volume_m3"][w]),
-                     "mean_angle_deg": float(sum_angle[w] / n_angle[w]) if n_angle[w] else float("nan"),
-                     "mean_base_diameter_m": float(sums["base"][w] / count[w])})
+        rows.append(
+            {
+                "order": int(w),
+                "n_branches": int(count[w]),
+                "length_m": float(sums["length_m"][w]),
+                "volume_m3": float(sums["volume_m3"][w]),
+                "mean_angle_deg": float(sum_angle[w] / n_angle[w]) if n_angle[w] else float("nan"),
+                "mean_base_diameter_m": float(sums["base"][w] / count[w]),
+            }
+        )
     return rows
 
 
@@ -413,13 +481,15 @@ def measure_tree(tree) -> TreeMeasures:
     rise = float(tree.axis[0, 2])
     stem_top = float((tree.start[stem, 2] + tree.length[stem] * tree.axis[stem, 2]).max() - tree.start[0, 2])
     if rise < 0.5 or stem_top < 0.5 * h:
-        raise ValueError(f"no trunk: the stem's first cylinder rises at {rise:.2f} (1 = vertical; "
-                         f"needs >= 0.5) and the stem reaches {stem_top:.2f} m of the tree's {h:.2f} m "
-                         "(needs half): a growth model grows a tree from one upright stem")
+        raise ValueError(
+            f"no trunk: the stem's first cylinder rises at {rise:.2f} (1 = vertical; "
+            f"needs >= 0.5) and the stem reaches {stem_top:.2f} m of the tree's {h:.2f} m "
+            "(needs half): a growth model grows a tree from one upright stem"
+        )
     o1 = np.flatnonzero((br.order == 1) & _living(tree))
     if o1.size == 0:
         raise ValueError("no first-order branch: a stem alone gives a growth model nothing to fit")
-    vol = np.pi * tree.radius ** 2 * tree.length
+    vol = np.pi * tree.radius**2 * tree.length
     sub = np.bincount(tree.branch, weights=vol, minlength=len(br))
     for b in np.argsort(-br.order, kind="stable"):  # each branch's wood into its parent's, deepest first
         if br.parent_branch[b] >= 0 and br.order[b] > 1:
@@ -434,9 +504,19 @@ def measure_tree(tree) -> TreeMeasures:
     q10, q50, q90 = (float(v) for v in np.percentile(a, [10, 50, 90]))
     crown_length = max(h - cb, 1e-9)
     return TreeMeasures(
-        height=h, dbh=s["dbh"], crown_spread=s["crown_spread"], crown_base_height=cb,
-        crown_length=h - cb, n_branches_o1=int(o1.size), max_order=int(br.order.max()),
-        branch_spacing=crown_length / o1.size, beta_q10=q10, beta_q50=q50, beta_q90=q90,
+        height=h,
+        dbh=s["dbh"],
+        crown_spread=s["crown_spread"],
+        crown_base_height=cb,
+        crown_length=h - cb,
+        n_branches_o1=int(o1.size),
+        max_order=int(br.order.max()),
+        branch_spacing=crown_length / o1.size,
+        beta_q10=q10,
+        beta_q50=q50,
+        beta_q90=q90,
         limb_ratio=float(limbs / stem_crown) if stem_crown > 0 else float("inf"),
-        longest_limb=float(blen[o1].max()), thinnest_branch=float(2.0 * tree.radius[br.first[1:]].min()),
-        stem_rise=rise)
+        longest_limb=float(blen[o1].max()),
+        thinnest_branch=float(2.0 * tree.radius[br.first[1:]].min()),
+        stem_rise=rise,
+    )

@@ -5,6 +5,7 @@ recorded (``bforest plugins`` lists it, a warning is issued) and skipped, so the
 work. ``BFOREST_STRICT_PLUGINS=1`` makes such a failure fatal. Two plugins registering the same
 (kind, name) make that name ambiguous: selecting it raises an error naming both distributions.
 """
+
 from __future__ import annotations
 
 import importlib.metadata as md
@@ -28,8 +29,8 @@ class ComponentEntry:
     kind: str
     name: str
     cls: type
-    plugin: str          # entry point name
-    distribution: str    # distribution name
+    plugin: str  # entry point name
+    distribution: str  # distribution name
     version: str
 
 
@@ -54,8 +55,7 @@ class Registry:
             raise PluginError(f"unknown component kind {kind!r} (kinds: {', '.join(KINDS)})")
         if (kind, name) in self.conflicts:
             who = " and ".join(f"{e.distribution} ({e.plugin})" for e in self.conflicts[(kind, name)])
-            raise PluginError(f"{kind} '{name}' is registered by more than one plugin: {who}; "
-                              "uninstall one of them")
+            raise PluginError(f"{kind} '{name}' is registered by more than one plugin: {who}; uninstall one of them")
         try:
             return self.components[(kind, name)].cls
         except KeyError:
@@ -121,8 +121,11 @@ def discover(refresh: bool = False) -> Registry:
                 reg.errors.append(LoadError(ep.name, dist, msg))
                 if _strict():
                     raise PluginError(f"plugin '{ep.name}' from {dist} failed to load: {msg}") from exc
-                warnings.warn(f"bforest plugin '{ep.name}' from {dist} failed to load and is skipped: {msg}",
-                              RuntimeWarning, stacklevel=2)
+                warnings.warn(
+                    f"bforest plugin '{ep.name}' from {dist} failed to load and is skipped: {msg}",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
         if _strict() and reg.conflicts:
             k, entries = next(iter(reg.conflicts.items()))
             reg.get(*k)
@@ -140,8 +143,9 @@ def component(kind: str, name: str, **settings: Any) -> Component:
     Raises ``PluginError`` for an unknown name (listing the known ones) and ``ConfigError`` for
     invalid settings.
     """
-    from .errors import ConfigError
     import pydantic
+
+    from .errors import ConfigError
 
     cls = component_class(kind, name)
     try:

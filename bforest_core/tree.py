@@ -8,6 +8,7 @@ from ``parent`` + ``extension`` by :func:`derive_branches`; a *topology rule* on
 All derivations are vectorised (pointer jumping, level-synchronous accumulation); there is no
 Python loop over cylinders.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -30,6 +31,7 @@ def _rows_text(rows, limit: int = 10) -> str:
 # ----------------------------------------------------------------------------------------------
 # vectorised topology kernels
 # ----------------------------------------------------------------------------------------------
+
 
 def jump_to_head(link: np.ndarray, is_head: np.ndarray):
     """Pointer jumping: for each node, the head of its chain and the number of links to it.
@@ -77,7 +79,7 @@ def subtree_sum(parent: np.ndarray, values: np.ndarray) -> np.ndarray:
     out = np.array(values, dtype=np.float64, copy=True)
     order, bounds = levels(parent)
     for k in range(len(bounds) - 1, 1, -1):
-        rows = order[bounds[k - 1]:bounds[k]]
+        rows = order[bounds[k - 1] : bounds[k]]
         np.add.at(out, parent[rows], out[rows])
     return out
 
@@ -155,8 +157,11 @@ def parent_first_order(parent: np.ndarray):
     n = parent.shape[0]
     bad = np.flatnonzero((parent < -1) | (parent >= n))
     if bad.size:
-        raise TreeError(f"parent out of range at rows {_rows_text(bad)} (values {parent[bad][:5].tolist()}; "
-                        f"valid 0..{n - 1} or -1)", bad)
+        raise TreeError(
+            f"parent out of range at rows {_rows_text(bad)} (values {parent[bad][:5].tolist()}; "
+            f"valid 0..{n - 1} or -1)",
+            bad,
+        )
     selfp = np.flatnonzero(parent == np.arange(n))
     if selfp.size:
         raise TreeError(f"cylinder is its own parent at rows {_rows_text(selfp)}", selfp)
@@ -164,8 +169,9 @@ def parent_first_order(parent: np.ndarray):
     if roots.size == 0:
         raise TreeError("no root: every cylinder has a parent (the parent links form a cycle)")
     if roots.size > 1:
-        raise TreeError(f"{roots.size} cylinders have no parent (rows {_rows_text(roots)}); "
-                        "a tree has exactly one root", roots)
+        raise TreeError(
+            f"{roots.size} cylinders have no parent (rows {_rows_text(roots)}); a tree has exactly one root", roots
+        )
     if roots[0] == 0 and np.all(parent[1:] < np.arange(1, n)):
         return None  # already in order
     # cycle detection: nodes not reachable from the root
@@ -192,9 +198,13 @@ def parent_first_order(parent: np.ndarray):
         while i not in seen and len(seen) < 20:
             seen.append(i)
             i = int(parent[i])
-        cyc = seen[seen.index(i):] + [i] if i in seen else seen
-        raise TreeError("cylinders " + " -> ".join(str(c) for c in cyc) +
-                        f" form a cycle ({bad.size} cylinders not connected to the root)", bad)
+        cyc = seen[seen.index(i) :] + [i] if i in seen else seen
+        raise TreeError(
+            "cylinders "
+            + " -> ".join(str(c) for c in cyc)
+            + f" form a cycle ({bad.size} cylinders not connected to the root)",
+            bad,
+        )
     # smallest-row-first topological order: sort by (depth?) no -- a stable order that keeps
     # sorted files intact: order rows by (max depth constraint) using iterative relabel.
     # Kahn's algorithm with a min-heap is O(n log n) but Python-level; use depth-stable sort,
@@ -206,6 +216,7 @@ def parent_first_order(parent: np.ndarray):
 # the Tree
 # ----------------------------------------------------------------------------------------------
 
+
 @dataclass(frozen=True)
 class BranchTable:
     """One row per branch (docs/features-and-distance.md §1; ``gen_scatter2.m``).
@@ -213,8 +224,8 @@ class BranchTable:
     ``cylinders[ptr[b]:ptr[b+1]]`` are the cylinders of branch b from base to tip.
     """
 
-    first: np.ndarray          # first cylinder
-    parent_cyl: np.ndarray     # parent cylinder of the first cylinder, -1 for the trunk
+    first: np.ndarray  # first cylinder
+    parent_cyl: np.ndarray  # parent cylinder of the first cylinder, -1 for the trunk
     parent_branch: np.ndarray  # -1 for the trunk
     order: np.ndarray
     n_cyl: np.ndarray
@@ -225,7 +236,6 @@ class BranchTable:
         return int(self.first.shape[0])
 
 
-
 def _unit_axes(axis: np.ndarray) -> np.ndarray:
     """The axes checked to be unit vectors (rows off by more than rounding are renormalised)."""
     norm = np.linalg.norm(axis, axis=1)
@@ -234,8 +244,11 @@ def _unit_axes(axis: np.ndarray) -> np.ndarray:
         raise TreeError(f"axis has zero length at rows {_rows_text(bad)}", bad)
     bad = np.flatnonzero(np.abs(norm - 1.0) > _AXIS_TOL)
     if bad.size:
-        raise TreeError(f"axis is not a unit vector at rows {_rows_text(bad)} (norm {norm[bad[0]]:.6g}); "
-                        "renormalise it before building the tree", bad)
+        raise TreeError(
+            f"axis is not a unit vector at rows {_rows_text(bad)} (norm {norm[bad[0]]:.6g}); "
+            "renormalise it before building the tree",
+            bad,
+        )
     # renormalise only rows that are off by more than rounding, so rebuilding a tree
     # (with_topology, round trips) leaves its axes bit-identical
     off = np.abs(norm - 1.0) > 4e-15
@@ -254,7 +267,13 @@ def _parent_first(start, axis, length, radius, parent, extension, added, source_
         inv[perm] = np.arange(n)
         remap = lambda a: np.where(a >= 0, inv[np.maximum(a, 0)], -1)
         start, axis, length, radius, added, source_row = (
-            start[perm], axis[perm], length[perm], radius[perm], added[perm], source_row[perm])
+            start[perm],
+            axis[perm],
+            length[perm],
+            radius[perm],
+            added[perm],
+            source_row[perm],
+        )
         parent = remap(parent[perm])
         extension = remap(extension[perm])
         extras = {k: v[perm] for k, v in extras.items()}
@@ -294,12 +313,39 @@ class Tree:
         With the problem and the offending rows.
     """
 
-    __slots__ = ("start", "axis", "length", "radius", "parent", "extension", "branch", "order",
-                 "position_in_branch", "added", "source_row", "extras", "metadata", "topology",
-                 "_cache")
+    __slots__ = (
+        "start",
+        "axis",
+        "length",
+        "radius",
+        "parent",
+        "extension",
+        "branch",
+        "order",
+        "position_in_branch",
+        "added",
+        "source_row",
+        "extras",
+        "metadata",
+        "topology",
+        "_cache",
+    )
 
-    def __init__(self, start, axis, length, radius, parent, extension=None, *, topology="source",
-                 added=None, source_row=None, extras=None, metadata=None):
+    def __init__(
+        self,
+        start,
+        axis,
+        length,
+        radius,
+        parent,
+        extension=None,
+        *,
+        topology="source",
+        added=None,
+        source_row=None,
+        extras=None,
+        metadata=None,
+    ):
         start = np.asarray(start, dtype=np.float64)
         axis = np.asarray(axis, dtype=np.float64)
         length = np.asarray(length, dtype=np.float64).reshape(-1)
@@ -310,8 +356,12 @@ class Tree:
             raise TreeError("the tree has no cylinders")
         start = start.reshape(-1, 3) if start.size == 3 * n else start
         axis = axis.reshape(-1, 3) if axis.size == 3 * n else axis
-        for name, arr, shape in (("start", start, (n, 3)), ("axis", axis, (n, 3)),
-                                 ("radius", radius, (n,)), ("parent", parent, (n,))):
+        for name, arr, shape in (
+            ("start", start, (n, 3)),
+            ("axis", axis, (n, 3)),
+            ("radius", radius, (n,)),
+            ("parent", parent, (n,)),
+        ):
             if arr.shape != shape:
                 raise TreeError(f"'{name}' has shape {arr.shape}, expected {shape} (n = {n} cylinders from 'length')")
         if not np.issubdtype(parent.dtype, np.integer):
@@ -352,7 +402,8 @@ class Tree:
         if bad.size:
             raise TreeError(f"extension out of range at rows {_rows_text(bad)}", bad)
         start, axis, length, radius, parent, extension, added, source_row, extras = _parent_first(
-            start, axis, length, radius, parent, extension, added, source_row, extras)
+            start, axis, length, radius, parent, extension, added, source_row, extras
+        )
         has_ext = np.flatnonzero(extension >= 0)
         bad = has_ext[parent[extension[has_ext]] != has_ext]
         if bad.size:
@@ -374,13 +425,25 @@ class Tree:
         self.extension = choose_extension(parent, extension, radius, length, topology)
         self._set_branches()
         self.metadata["topology"] = topology
-        for a in (self.start, self.axis, self.length, self.radius, self.parent, self.extension,
-                  self.branch, self.order, self.position_in_branch, self.added, self.source_row):
+        for a in (
+            self.start,
+            self.axis,
+            self.length,
+            self.radius,
+            self.parent,
+            self.extension,
+            self.branch,
+            self.order,
+            self.position_in_branch,
+            self.added,
+            self.source_row,
+        ):
             a.flags.writeable = False
 
     def _set_branches(self):
-        (self.branch, self.order, self.position_in_branch, firsts, parent_cyl, parent_branch,
-         border) = derive_branches(self.parent, self.extension)
+        (self.branch, self.order, self.position_in_branch, firsts, parent_cyl, parent_branch, border) = derive_branches(
+            self.parent, self.extension
+        )
         self._cache["_branch_parts"] = (firsts, parent_cyl, parent_branch, border)
 
     # ------------------------------------------------------------------ basic properties
@@ -413,7 +476,7 @@ class Tree:
     @property
     def volume(self) -> float:
         """Total wood volume (m^3)."""
-        return float(np.sum(np.pi * self.radius ** 2 * self.length))
+        return float(np.sum(np.pi * self.radius**2 * self.length))
 
     def children(self):
         """Children as CSR arrays ``(ptr, idx)`` (children of i: ``idx[ptr[i]:ptr[i+1]]``)."""
@@ -434,8 +497,15 @@ class Tree:
             n_cyl = np.bincount(self.branch, minlength=nb)
             ptr = np.zeros(nb + 1, dtype=np.int64)
             np.cumsum(n_cyl, out=ptr[1:])
-            bt = BranchTable(first=firsts, parent_cyl=parent_cyl, parent_branch=parent_branch,
-                             order=border.astype(np.int64), n_cyl=n_cyl, ptr=ptr, cylinders=cyl)
+            bt = BranchTable(
+                first=firsts,
+                parent_cyl=parent_cyl,
+                parent_branch=parent_branch,
+                order=border.astype(np.int64),
+                n_cyl=n_cyl,
+                ptr=ptr,
+                cylinders=cyl,
+            )
             self._cache["branches"] = bt
         return bt
 
@@ -451,9 +521,19 @@ class Tree:
         base_ext = src_ext if src_ext is not None else self.extension
         extras = dict(self.extras)
         extras.setdefault("_source_extension", np.asarray(self.extension if self.topology == "source" else base_ext))
-        return Tree(self.start, self.axis, self.length, self.radius, self.parent,
-                    extras["_source_extension"], topology=rule, added=self.added,
-                    source_row=self.source_row, extras=extras, metadata=self.metadata)
+        return Tree(
+            self.start,
+            self.axis,
+            self.length,
+            self.radius,
+            self.parent,
+            extras["_source_extension"],
+            topology=rule,
+            added=self.added,
+            source_row=self.source_row,
+            extras=extras,
+            metadata=self.metadata,
+        )
 
     def subset(self, keep) -> Tree:
         """The tree restricted to rows ``keep`` (a bool mask or indices) that must be closed under
@@ -468,16 +548,35 @@ class Tree:
         new = np.full(self.n, -1, dtype=np.int64)
         new[rows] = np.arange(rows.size)
         remap = lambda a: np.where(a >= 0, new[np.maximum(a, 0)], -1)
-        return Tree(self.start[rows], self.axis[rows], self.length[rows], self.radius[rows],
-                    remap(self.parent[rows]), remap(self.extension[rows]), topology=self.topology,
-                    added=self.added[rows], source_row=self.source_row[rows],
-                    extras={k: v[rows] for k, v in self.extras.items()}, metadata=self.metadata)
+        return Tree(
+            self.start[rows],
+            self.axis[rows],
+            self.length[rows],
+            self.radius[rows],
+            remap(self.parent[rows]),
+            remap(self.extension[rows]),
+            topology=self.topology,
+            added=self.added[rows],
+            source_row=self.source_row[rows],
+            extras={k: v[rows] for k, v in self.extras.items()},
+            metadata=self.metadata,
+        )
 
     def translated(self, offset) -> Tree:
         """A copy moved by ``offset`` (m)."""
-        return Tree(self.start + np.asarray(offset, float), self.axis, self.length, self.radius,
-                    self.parent, self.extension, topology=self.topology, added=self.added,
-                    source_row=self.source_row, extras=self.extras, metadata=self.metadata)
+        return Tree(
+            self.start + np.asarray(offset, float),
+            self.axis,
+            self.length,
+            self.radius,
+            self.parent,
+            self.extension,
+            topology=self.topology,
+            added=self.added,
+            source_row=self.source_row,
+            extras=self.extras,
+            metadata=self.metadata,
+        )
 
     def __getstate__(self):
         return {k: getattr(self, k) for k in self.__slots__ if k != "_cache"}
@@ -490,15 +589,21 @@ class Tree:
 
     def __repr__(self) -> str:
         src = self.metadata.get("source") or self.metadata.get("model") or ""
-        return (f"Tree({self.n} cylinders, {self.n_branches} branches, max order {self.max_order}, "
-                f"topology={self.topology!r}{', ' + str(src) if src else ''})")
+        return (
+            f"Tree({self.n} cylinders, {self.n_branches} branches, max order {self.max_order}, "
+            f"topology={self.topology!r}{', ' + str(src) if src else ''})"
+        )
 
     def equals(self, other: Tree, atol: float = 0.0) -> bool:
         """True when both trees have the same columns (geometry within ``atol``)."""
         if self.n != other.n:
             return False
-        same_int = all(np.array_equal(getattr(self, k), getattr(other, k))
-                       for k in ("parent", "extension", "branch", "order", "position_in_branch", "added"))
-        same_f = all(np.allclose(getattr(self, k), getattr(other, k), rtol=0, atol=atol)
-                     for k in ("start", "axis", "length", "radius"))
+        same_int = all(
+            np.array_equal(getattr(self, k), getattr(other, k))
+            for k in ("parent", "extension", "branch", "order", "position_in_branch", "added")
+        )
+        same_f = all(
+            np.allclose(getattr(self, k), getattr(other, k), rtol=0, atol=atol)
+            for k in ("start", "axis", "length", "radius")
+        )
         return same_int and same_f

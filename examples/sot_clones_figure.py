@@ -7,6 +7,7 @@ Usage::
 Cylinders are drawn as line segments whose width is proportional to their radius (drawn at
 true scale where that is visible, with a floor for the finest twigs).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,8 +35,8 @@ def draw(ax, tree, dims, lw_per_m, color_by_radius=True):
     r = tree.radius[order]
     lw = np.maximum(2.0 * r * lw_per_m, 0.25)
     t = np.clip(np.log(r / r.min()) / max(np.log(r.max() / r.min()), 1e-9), 0, 1)
-    twig = np.array([0.42, 0.55, 0.22])   # olive green twigs
-    wood = np.array([0.36, 0.22, 0.12])   # bark brown
+    twig = np.array([0.42, 0.55, 0.22])  # olive green twigs
+    wood = np.array([0.36, 0.22, 0.12])  # bark brown
     col = twig[None, :] * (1 - t[:, None]) + wood[None, :] * t[:, None]
     ax.add_collection(LineCollection(seg, linewidths=lw, colors=col, capstyle="round"))
 
@@ -53,8 +54,13 @@ def main(argv=None):
     ext = max(float(np.abs(t.end[:, :2]).max()) for t in trees) + 0.3
     top = max(float(t.end[:, 2].max()) for t in trees) + 0.3
 
-    fig, axes = plt.subplots(2, n, figsize=(2.6 * n, 2.6 * top / (2 * ext) + 3.4),
-                             gridspec_kw={"height_ratios": [top / (2 * ext), 1.0]}, squeeze=False)
+    fig, axes = plt.subplots(
+        2,
+        n,
+        figsize=(2.6 * n, 2.6 * top / (2 * ext) + 3.4),
+        gridspec_kw={"height_ratios": [top / (2 * ext), 1.0]},
+        squeeze=False,
+    )
     for c, (tree, seed) in enumerate(zip(trees, args.seeds)):
         e = tree.end
         h = e[:, 2].max()
@@ -62,8 +68,10 @@ def main(argv=None):
         side, plan = axes[0, c], axes[1, c]
         side.set_xlim(-ext, ext)
         side.set_ylim(0, top)
-        side.set_title(f"seed {seed}: {tree.n} cyl., H {h:.1f} m\ncrown r {cr:.1f} m, base d "
-                       f"{200 * tree.radius[0]:.0f} cm", fontsize=8)
+        side.set_title(
+            f"seed {seed}: {tree.n} cyl., H {h:.1f} m\ncrown r {cr:.1f} m, base d {200 * tree.radius[0]:.0f} cm",
+            fontsize=8,
+        )
         side.set_xlabel("x (m)", fontsize=8)
         plan.set_xlim(-ext, ext)
         plan.set_ylim(-ext, ext)
@@ -76,10 +84,12 @@ def main(argv=None):
             side.set_ylabel("z (m)", fontsize=8)
             plan.set_ylabel("y (m)", fontsize=8)
     p = trees[0].metadata["params"]
-    fig.suptitle(f"SOT clones: calibrated defaults, {args.cycles} cycles, six seeds "
-                 f"(clone noise: branch angle sd {p['branch_angle_sd']:g}\u00b0, phyllotaxis sd "
-                 f"{p['phyllotaxis_sd']:g}\u00b0, ran {p['ran']:g}); side views (top) and top views (bottom)",
-                 fontsize=10)
+    fig.suptitle(
+        f"SOT clones: calibrated defaults, {args.cycles} cycles, six seeds "
+        f"(clone noise: branch angle sd {p['branch_angle_sd']:g}\u00b0, phyllotaxis sd "
+        f"{p['phyllotaxis_sd']:g}\u00b0, ran {p['ran']:g}); side views (top) and top views (bottom)",
+        fontsize=10,
+    )
     fig.tight_layout(rect=(0, 0, 1, 0.96))
     fig.canvas.draw()
     for c, tree in enumerate(trees):

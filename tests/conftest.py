@@ -1,4 +1,5 @@
 """Shared fixtures: the real sample QSMs live in ../shared/data/qsm (never copied here)."""
+
 from __future__ import annotations
 
 import os
@@ -22,6 +23,7 @@ def qsm_path(name: str) -> Path:
 def read_sample(name: str, **options):
     """A real sample QSM read with the bundled readers (skips when the data folder is absent)."""
     from bforest_core import read_qsm
+
     return read_qsm(qsm_path(name), **options)
 
 
@@ -38,10 +40,15 @@ def hand_tree(topology: str = "source"):
     from bforest_core import Tree
 
     s60, c60 = np.sin(np.radians(60)), np.cos(np.radians(60))
-    start = [[0, 0, 0], [0, 0, 1], [0, 0, 2],           # trunk 0,1,2
-             [0, 0, 1], [0.8 * s60, 0, 1 + 0.8 * c60],  # lateral A (2 cyl) on trunk 0's end
-             [0, 0, 1.5],                              # lateral B mid trunk 1
-             [0, 0, 2.25]]                             # lateral C on trunk 2
+    start = [
+        [0, 0, 0],
+        [0, 0, 1],
+        [0, 0, 2],  # trunk 0,1,2
+        [0, 0, 1],
+        [0.8 * s60, 0, 1 + 0.8 * c60],  # lateral A (2 cyl) on trunk 0's end
+        [0, 0, 1.5],  # lateral B mid trunk 1
+        [0, 0, 2.25],
+    ]  # lateral C on trunk 2
     axis = [[0, 0, 1]] * 3 + [[s60, 0, c60]] * 2 + [[0, 1, 0], [-1, 0, 0]]
     length = [1, 1, 1, 0.8, 0.5, 0.6, 0.6]
     radius = [0.20, 0.15, 0.10, 0.05, 0.04, 0.04, 0.03]
@@ -62,6 +69,7 @@ def pid_alive(pid: int) -> bool:
 def gone_within(pids, seconds: float) -> bool:
     """Wait up to ``seconds`` for every process of ``pids`` to end; whether they all did."""
     import time
+
     deadline = time.monotonic() + seconds
     while time.monotonic() < deadline and any(pid_alive(p) for p in pids):
         time.sleep(0.1)
@@ -88,6 +96,7 @@ def install_toy_plugin(tmp_dir: Path, broken: bool = True) -> Path:
             sys.path.insert(0, p)
     registry.discover(refresh=True)
     from bforest_core import config
+
     config._run_config_model.cache_clear()
     return tmp_dir
 
@@ -96,6 +105,7 @@ def uninstall_toy_plugin(tmp_dir: Path) -> None:
     import sys
 
     from bforest_core import config, registry
+
     for p in (str(tmp_dir), str(TOY_DIR)):
         while p in sys.path:
             sys.path.remove(p)
@@ -108,6 +118,7 @@ def toy_plugin(tmp_path_factory):
     """The toy plugin installed for the whole session (SSM ``toy``, features ``toy-features``,
     distance ``toy-distance``) plus a broken plugin that fails to import."""
     import warnings
+
     d = tmp_path_factory.mktemp("toy_site")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -144,11 +155,19 @@ count = 4
 """
 
 
-def toy_config(tmp_path: Path, optimizer="toy-random", optimizer_settings="", executor="serial",
-               executor_settings="", budget=40) -> Path:
+def toy_config(
+    tmp_path: Path, optimizer="toy-random", optimizer_settings="", executor="serial", executor_settings="", budget=40
+) -> Path:
     p = tmp_path / "run.toml"
-    p.write_text(TOY_CONFIG.format(optimizer=optimizer, optimizer_settings=optimizer_settings,
-                                   executor=executor, executor_settings=executor_settings, budget=budget))
+    p.write_text(
+        TOY_CONFIG.format(
+            optimizer=optimizer,
+            optimizer_settings=optimizer_settings,
+            executor=executor,
+            executor_settings=executor_settings,
+            budget=budget,
+        )
+    )
     return p
 
 
@@ -157,6 +176,7 @@ def fit_killed_after(cfg, run_dir: Path, n: int, monkeypatch) -> None:
     to log its evaluation ``n + 1``: the run store then holds exactly ``n`` evaluations."""
     import bforest_core as bf
     from bforest_core.pipeline.store import RunStore
+
     real_add, calls = RunStore.add, {"n": 0}
 
     def crashing_add(self, ev):

@@ -1,4 +1,5 @@
 """ABC-SMC on problems with a known posterior, its stops, and resume through the fit pipeline."""
+
 import numpy as np
 import pytest
 
@@ -11,9 +12,15 @@ from conftest import fit_killed_after, toy_config
 
 def _problem(simulate_distance, lo, hi, integer=None, budget=200_000, seed=1):
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    pr = Problem(names=[f"x{i}" for i in range(lo.size)], lower=lo, upper=hi,
-                 integer=np.zeros(lo.size, bool) if integer is None else np.asarray(integer, bool),
-                 evaluate=None, seed=seed, budget=budget)
+    pr = Problem(
+        names=[f"x{i}" for i in range(lo.size)],
+        lower=lo,
+        upper=hi,
+        integer=np.zeros(lo.size, bool) if integer is None else np.asarray(integer, bool),
+        evaluate=None,
+        seed=seed,
+        budget=budget,
+    )
     calls = []
 
     def evaluate(X):
@@ -53,13 +60,12 @@ def test_weighted_quantiles_equal_weights_match_numpy_hazen():
 @pytest.mark.parametrize("kernel", ["mvn", "local"])
 def test_gaussian_location_posterior_mean_and_sd(kernel):
     pr, _ = _problem(gaussian_location(), [-10.0], [10.0])
-    res = AbcSmc(particles=400, generations=40, epsilon_target=0.1, min_acceptance=0.005,
-                 kernel=kernel).minimize(pr)
+    res = AbcSmc(particles=400, generations=40, epsilon_target=0.1, min_acceptance=0.005, kernel=kernel).minimize(pr)
     d = res.diagnostics
     assert d["epsilon"][-1] <= 0.1 and "target" in res.stop_reason
     post = d["posterior"]["x0"]
     eps = d["epsilon"][-1]
-    sd_exact = np.sqrt(1.0 + eps ** 2 / 3)
+    sd_exact = np.sqrt(1.0 + eps**2 / 3)
     assert post["mean"] == pytest.approx(2.0, abs=0.1 * sd_exact)
     assert post["std"] == pytest.approx(sd_exact, rel=0.10)
     assert post["p5"] < post["p50"] < post["p95"]
@@ -77,8 +83,9 @@ def test_recycled_posterior_is_the_abc_posterior_at_its_lower_tolerance():
     out = {}
     for post in ("population", "recycled"):
         pr, calls = _problem(gaussian_location(seed=3), [-10.0], [10.0])
-        res = AbcSmc(particles=400, generations=40, epsilon_target=1.0, min_acceptance=0.005,
-                     posterior=post).minimize(pr)
+        res = AbcSmc(particles=400, generations=40, epsilon_target=1.0, min_acceptance=0.005, posterior=post).minimize(
+            pr
+        )
         out[post] = (res.diagnostics, np.concatenate(calls))
     pop, rec = out["population"][0], out["recycled"][0]
     assert np.array_equal(out["population"][1], out["recycled"][1])  # the same proposals
@@ -86,9 +93,9 @@ def test_recycled_posterior_is_the_abc_posterior_at_its_lower_tolerance():
     assert pop["epsilon_posterior"] == eps_t == pytest.approx(1.0)
     assert eps < 0.7 * eps_t  # the earlier generations hold many proposals closer than eps_T
     w = rec["weights"]
-    assert w.sum() == pytest.approx(1.0) and 1.0 / np.sum(w ** 2) >= 400  # a population's ESS
+    assert w.sum() == pytest.approx(1.0) and 1.0 / np.sum(w**2) >= 400  # a population's ESS
     assert np.all(rec["distances"] <= eps) and rec["distances"].max() == eps
-    sd = np.sqrt(1.0 + eps ** 2 / 3)
+    sd = np.sqrt(1.0 + eps**2 / 3)
     post = rec["posterior"]["x0"]
     assert post["mean"] == pytest.approx(2.0, abs=0.1 * sd)
     assert post["std"] == pytest.approx(sd, rel=0.10)
@@ -102,9 +109,13 @@ def test_recycled_posterior_at_a_bound_of_the_prior():
     posterior is still the ABC posterior at its tolerance, p(theta) ~ Phi(y - theta + eps) -
     Phi(y - theta - eps) on theta >= 0, integrated numerically."""
     from scipy.stats import norm
+
     pr, _ = _problem(gaussian_location(y_obs=0.3, seed=1), [0.0], [10.0])
-    d = AbcSmc(particles=400, generations=40, epsilon_target=1.0, min_acceptance=0.005,
-               posterior="recycled").minimize(pr).diagnostics
+    d = (
+        AbcSmc(particles=400, generations=40, epsilon_target=1.0, min_acceptance=0.005, posterior="recycled")
+        .minimize(pr)
+        .diagnostics
+    )
     eps = d["epsilon_posterior"]
     t = np.linspace(0.0, 10.0, 200_001)
     p = norm.cdf(0.3 - t + eps) - norm.cdf(0.3 - t - eps)
@@ -146,6 +157,7 @@ def test_abc_smc_in_a_fit_resumes_after_a_kill(toy_plugin, tmp_path, monkeypatch
     """A fit killed after 30 evaluations and resumed ends exactly where an uninterrupted run ends
     (the logged evaluations are replayed, the same particles proposed and accepted)."""
     from bforest_core.pipeline.store import RunStore
+
     settings = "particles = 12\ngenerations = 4"
     cfg_path = toy_config(tmp_path, optimizer="abc-smc", optimizer_settings=settings, budget=80)
     full = bf.fit(bf.load_config(cfg_path), tmp_path / "full", progress=False)
@@ -158,7 +170,11 @@ def test_abc_smc_in_a_fit_resumes_after_a_kill(toy_plugin, tmp_path, monkeypatch
 
 def test_posterior_csv_of_abc_smc_and_emcee_runs(toy_plugin, tmp_path):
     import csv
-    for kind, settings in (("abc-smc", "particles = 10\ngenerations = 3"), ("emcee", "walkers = 8\nsteps = 6\nburn_in = 2")):
+
+    for kind, settings in (
+        ("abc-smc", "particles = 10\ngenerations = 3"),
+        ("emcee", "walkers = 8\nsteps = 6\nburn_in = 2"),
+    ):
         run = tmp_path / kind
         p = toy_config(tmp_path, optimizer=kind, optimizer_settings=settings, budget=200)
         res = bf.fit(bf.load_config(p), run, progress=False)
@@ -179,10 +195,17 @@ def test_inference_data_and_summary_round_trip(toy_plugin, tmp_path):
     import json
 
     import arviz as az
-    for kind, settings in (("abc-smc", "particles = 10\ngenerations = 3"), ("emcee", "walkers = 8\nsteps = 6\nburn_in = 2")):
+
+    for kind, settings in (
+        ("abc-smc", "particles = 10\ngenerations = 3"),
+        ("emcee", "walkers = 8\nsteps = 6\nburn_in = 2"),
+    ):
         run = tmp_path / kind
-        res = bf.fit(bf.load_config(toy_config(tmp_path, optimizer=kind, optimizer_settings=settings, budget=200)),
-                     run, progress=False)
+        res = bf.fit(
+            bf.load_config(toy_config(tmp_path, optimizer=kind, optimizer_settings=settings, budget=200)),
+            run,
+            progress=False,
+        )
         names = res.diagnostics["names"]
         idata = az.from_netcdf(str(run / "posterior.nc"))
         table = json.loads((run / "best.json").read_text())["posterior_summary"]
@@ -202,10 +225,15 @@ def test_inference_data_and_summary_round_trip(toy_plugin, tmp_path):
 
 def test_posterior_predictive_clones_draw_distinct_parameters(toy_plugin, tmp_path):
     from bforest_core.pipeline.clones import ClonesError, clones
+
     run = tmp_path / "abc"
-    res = bf.fit(bf.load_config(toy_config(tmp_path, optimizer="abc-smc",
-                                           optimizer_settings="particles = 10\ngenerations = 3", budget=200)),
-                 run, progress=False)
+    res = bf.fit(
+        bf.load_config(
+            toy_config(tmp_path, optimizer="abc-smc", optimizer_settings="particles = 10\ngenerations = 3", budget=200)
+        ),
+        run,
+        progress=False,
+    )
     s = clones(run, n=6, posterior=True, progress=False)
     names = res.diagnostics["names"]
     drawn = [tuple(r["params"][k] for k in names) for r in s["rows"]]
@@ -240,15 +268,16 @@ def test_noise_target_stops_at_the_distance_a_perfect_model_shows():
         return vals
 
     pr.seed_spread = seed_spread
-    res = AbcSmc(particles=400, generations=40, epsilon_target="noise", noise_seeds=200,
-                 min_acceptance=0.005).minimize(pr)
+    res = AbcSmc(particles=400, generations=40, epsilon_target="noise", noise_seeds=200, min_acceptance=0.005).minimize(
+        pr
+    )
     d = res.diagnostics
     targets = [min(a, b) for a, b in zip(measured[::2], measured[1::2])]  # best particle, weighted mean
     assert "noise floor" in res.stop_reason and d["epsilon_target"] == pytest.approx(targets)
     eps = d["epsilon"][-1]
     assert eps == pytest.approx(targets[-2])  # the last generation ran at the target (clamped)
     assert eps == pytest.approx(0.674, rel=0.15)
-    assert d["posterior"]["x0"]["std"] == pytest.approx(np.sqrt(1.0 + eps ** 2 / 3), rel=0.10)
+    assert d["posterior"]["x0"]["std"] == pytest.approx(np.sqrt(1.0 + eps**2 / 3), rel=0.10)
     assert d["posterior"]["x0"]["mean"] == pytest.approx(2.0, abs=0.15)
     # without a way to measure the noise there is no target (the other stops end the run)
     pr, _ = _problem(gaussian_location(), [-10.0], [10.0], budget=3000)
@@ -265,6 +294,7 @@ def test_failed_simulations_are_never_accepted_whatever_the_penalty(toy_plugin, 
     statistic) is never accepted; the store still logs the penalty with the status. Without the
     flag (the ``False`` case, the behaviour before it) the failures are accepted as perfect fits."""
     from bforest_core.pipeline.store import RunStore
+
     monkeypatch.setattr(AbcSmc, "failures_as_inf", as_inf)
     p = toy_config(tmp_path, optimizer="abc-smc", optimizer_settings="particles = 12\ngenerations = 4", budget=300)
     text = p.read_text().replace('kind = "toy"\n', 'kind = "toy"\nfail_above = 50.0\n')
@@ -305,8 +335,9 @@ def test_linear_adjustment_takes_out_the_width_the_tolerance_adds():
     out = {}
     for adjust in ("none", "linear"):
         pr = _location_with_summaries(seed=4)
-        res = AbcSmc(particles=400, generations=40, epsilon_target=2.0, min_acceptance=0.005,
-                     adjust=adjust).minimize(pr)
+        res = AbcSmc(particles=400, generations=40, epsilon_target=2.0, min_acceptance=0.005, adjust=adjust).minimize(
+            pr
+        )
         out[adjust] = res.diagnostics
     raw, adj = out["none"], out["linear"]
     assert raw["epsilon"][-1] == pytest.approx(2.0)
@@ -326,6 +357,7 @@ def test_regression_adjustment_known_linear_model_and_degrees_of_freedom():
     (the residuals of a fit with df degrees of freedom, inflated by sqrt(n / (n - df)), not the
     fit's underestimate); a parameter the summaries do not explain keeps its spread."""
     from bforest_optim.abc_smc import regression_adjust
+
     rng = np.random.default_rng(7)
     n, lo, hi = 80, np.array([0.0, 0.0]), np.array([1.0, 1.0])
     sds = {"inflated": [], "raw": []}
@@ -353,6 +385,7 @@ def test_adjusted_posterior_in_a_fit_regrows_logged_trees_and_resumes(toy_plugin
     posterior is what posterior.csv holds, narrower than the unadjusted one, and a run killed and
     resumed writes the same posterior."""
     import json
+
     settings = 'particles = 30\ngenerations = 4\nadjust = "linear"'
     cfg_path = toy_config(tmp_path, optimizer="abc-smc", optimizer_settings=settings, budget=400)
     full = bf.fit(bf.load_config(cfg_path), tmp_path / "full", progress=False)
@@ -370,6 +403,7 @@ def test_adjusted_posterior_in_a_fit_regrows_logged_trees_and_resumes(toy_plugin
         assert sd < sd_raw
     assert json.loads((tmp_path / "full" / "best.json").read_text())["diagnostics"]["adjustment"]["method"] == "linear"
     from bforest_core.report.build import write_report
+
     text = write_report(tmp_path / "full", figures=False, html=False).read_text()
     assert "regression-adjusted" in text and "regressed on 3 summary statistics" in text
     fit_killed_after(bf.load_config(cfg_path), tmp_path / "killed", 100, monkeypatch)
@@ -381,6 +415,7 @@ def test_set_summaries_rows_per_tree_and_column_means():
     """The statistics the adjustment regresses on: per set log(1 + rows per tree), then the
     columns' means; an empty set gives zeros; a target pooled over two trees counts rows per tree."""
     from bforest_core.pipeline.scoring import set_summaries
+
     U = {"B": np.array([[1.0, 10.0], [3.0, 30.0], [5.0, 20.0], [7.0, 40.0]]), "S": np.empty((0, 3))}
     assert set_summaries(U, ["B", "S"]) == pytest.approx([np.log(5.0), 4.0, 25.0, 0.0, 0.0, 0.0, 0.0])
     assert set_summaries(U, ["S", "B"], trees=2)[4] == pytest.approx(np.log(3.0))
@@ -391,11 +426,15 @@ def test_summary_task_counts_a_failing_data_set_as_a_failure_like_evaluate_task(
     no summaries (None): regrowing it never crashes the adjustment."""
     from bforest_core.pipeline.target import build_target
     from bforest_core.pipeline.worker import evaluate_task, started_workers, summary_task
+
     cfg = bf.load_config(toy_config(tmp_path))
     task = ({"angle": 30.0, "segments": 12}, [1, 2])
     with started_workers(cfg, build_target(cfg)):  # serial: the worker is this process
         assert summary_task(task).shape == (3,)  # one set: log rows, two column means
-        monkeypatch.setattr(type(bf.component("features", "toy-features")), "extract",
-                            lambda self, tree: (_ for _ in ()).throw(ValueError("bad table")))
+        monkeypatch.setattr(
+            type(bf.component("features", "toy-features")),
+            "extract",
+            lambda self, tree: (_ for _ in ()).throw(ValueError("bad table")),
+        )
         assert evaluate_task(task)["status"] == "error"
         assert summary_task(task) is None

@@ -10,6 +10,7 @@ or cli. Every import counts, also those inside functions; so do dynamic loads
 makes (through entry points). A private name (``_x``) is imported only within its layer (or
 package): another layer uses the public names.
 """
+
 from __future__ import annotations
 
 import ast
@@ -74,7 +75,7 @@ def imports(path: Path, name: str) -> list[tuple[int, str, list[str], bool]]:
         elif isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.split(".")
-                base = base[:len(base) - (node.level - 1)]
+                base = base[: len(base) - (node.level - 1)]
                 mod = ".".join(base + ([node.module] if node.module else []))
                 if node.module is None:  # from . import x: x may be a module
                     out += [(node.lineno, f"{mod}.{a.name}", [], False) for a in node.names]
@@ -95,8 +96,12 @@ def imported_modules(path: Path, name: str) -> list[tuple[int, str]]:
 def _module_or_package(mod: str, top: Path) -> str:
     """``pkg.name`` from ``from pkg import name``: the module if it is one, else the package."""
     path = top.joinpath(*mod.split("."))
-    if "." not in mod or path.with_suffix(".py").exists() or (path / "__init__.py").exists() or not top.joinpath(
-            *mod.split(".")[:-1]).is_dir():
+    if (
+        "." not in mod
+        or path.with_suffix(".py").exists()
+        or (path / "__init__.py").exists()
+        or not top.joinpath(*mod.split(".")[:-1]).is_dir()
+    ):
         return mod
     return mod.rpartition(".")[0]
 
@@ -145,8 +150,10 @@ def violations(core_dir: Path, plugin_dirs: list[Path]) -> list[str]:
             if theirs is not None and theirs not in ALLOWED[mine]:
                 out.append(f"{where}: {mine} imports {theirs} ({mod})")
             elif theirs is not None and theirs != mine and any(map(_private, names)):
-                out.append(f"{where}: {mine} imports the private name(s) {', '.join(filter(_private, names))} "
-                           f"of {theirs} ({mod})")
+                out.append(
+                    f"{where}: {mine} imports the private name(s) {', '.join(filter(_private, names))} "
+                    f"of {theirs} ({mod})"
+                )
     for pdir in plugin_dirs:
         own = pdir.name
         for f in sorted(pdir.rglob("*.py")):
@@ -163,11 +170,15 @@ def violations(core_dir: Path, plugin_dirs: list[Path]) -> list[str]:
                 elif top == core:
                     layer = core_layer(_module_or_package(mod, core_dir.parent), core)
                     if layer not in PLUGIN_ALLOWED:
-                        out.append(f"{where}: plugin {own} imports the core's {layer} ({mod}); plugins use the "
-                                   "public face (bforest_core, its kernel modules, bforest_core.testing)")
+                        out.append(
+                            f"{where}: plugin {own} imports the core's {layer} ({mod}); plugins use the "
+                            "public face (bforest_core, its kernel modules, bforest_core.testing)"
+                        )
                     elif any(map(_private, names)):
-                        out.append(f"{where}: plugin {own} imports the private name(s) "
-                                   f"{', '.join(filter(_private, names))} of the core ({mod})")
+                        out.append(
+                            f"{where}: plugin {own} imports the private name(s) "
+                            f"{', '.join(filter(_private, names))} of the core ({mod})"
+                        )
     return out
 
 
@@ -206,11 +217,14 @@ GOOD = {
     "plugins/bforest_a/_own.py": "_q = 1\n",
 }
 #: a module of each layer of the planted project, and what a module of that layer imports
-MODULE = {"kernel": ("bforest_core/tree.py", "bforest_core.tree"), "pipeline": ("bforest_core/pipeline/store.py",
-          "bforest_core.pipeline.store"), "report": ("bforest_core/report/__init__.py", "bforest_core.report"),
-          "cli": ("bforest_core/cli/__init__.py", "bforest_core.cli"), "testing": (
-          "bforest_core/testing/_base.py", "bforest_core.testing._base"), "facade": ("bforest_core/__init__.py",
-          "bforest_core")}
+MODULE = {
+    "kernel": ("bforest_core/tree.py", "bforest_core.tree"),
+    "pipeline": ("bforest_core/pipeline/store.py", "bforest_core.pipeline.store"),
+    "report": ("bforest_core/report/__init__.py", "bforest_core.report"),
+    "cli": ("bforest_core/cli/__init__.py", "bforest_core.cli"),
+    "testing": ("bforest_core/testing/_base.py", "bforest_core.testing._base"),
+    "facade": ("bforest_core/__init__.py", "bforest_core"),
+}
 LAYER_RULES = [(mine, theirs) for mine in ALLOWED for theirs in ALLOWED if theirs not in ALLOWED[mine]]
 
 
@@ -223,28 +237,57 @@ def test_the_check_finds_every_upward_import(tmp_path, mine, theirs):
     assert len(found) == 1 and f"{mine} imports {theirs}" in found[0], found
 
 
-@pytest.mark.parametrize("rel, text, expected", [
-    ("bforest_core/tree.py", "import bforest_a\n", "the core imports the plugin bforest_a"),
-    ("plugins/bforest_a/m.py", "from bforest_b.x import y\n", "plugin bforest_a imports plugin bforest_b.x"),
-    # dynamic loads outside the registry: in the core, in a plugin, of a computed name
-    ("bforest_core/pipeline/store.py", "import importlib\nm = importlib.import_module('bforest_a.m')\n",
-     "dynamic import of bforest_a.m outside the registry"),
-    ("plugins/bforest_a/m.py", "m = __import__('bforest_core.cli')\n",
-     "dynamic import of bforest_core.cli outside the registry"),
-    ("bforest_core/report/__init__.py", "from importlib import import_module\nm = import_module('bforest_' + 'a')\n",
-     "dynamic import of a computed module name outside the registry"),
-    # plugins use the core's public face only
-    ("plugins/bforest_a/m.py", "from bforest_core.pipeline.store import x\n", "plugin bforest_a imports the core's pipeline"),
-    ("plugins/bforest_a/m.py", "def f():\n    import bforest_core.report\n", "plugin bforest_a imports the core's report"),
-    ("plugins/bforest_a/m.py", "from bforest_core.cli import main\n", "plugin bforest_a imports the core's cli"),
-    # private names across layers, and from a plugin into the core
-    ("bforest_core/cli/__init__.py", "from ..pipeline.store import _secret\n",
-     "cli imports the private name(s) _secret of pipeline"),
-    ("bforest_core/pipeline/store.py", "from ..tree import _helper, Tree\n",
-     "pipeline imports the private name(s) _helper of kernel"),
-    ("plugins/bforest_a/m.py", "from bforest_core.tree import _helper\n",
-     "plugin bforest_a imports the private name(s) _helper of the core"),
-])
+@pytest.mark.parametrize(
+    "rel, text, expected",
+    [
+        ("bforest_core/tree.py", "import bforest_a\n", "the core imports the plugin bforest_a"),
+        ("plugins/bforest_a/m.py", "from bforest_b.x import y\n", "plugin bforest_a imports plugin bforest_b.x"),
+        # dynamic loads outside the registry: in the core, in a plugin, of a computed name
+        (
+            "bforest_core/pipeline/store.py",
+            "import importlib\nm = importlib.import_module('bforest_a.m')\n",
+            "dynamic import of bforest_a.m outside the registry",
+        ),
+        (
+            "plugins/bforest_a/m.py",
+            "m = __import__('bforest_core.cli')\n",
+            "dynamic import of bforest_core.cli outside the registry",
+        ),
+        (
+            "bforest_core/report/__init__.py",
+            "from importlib import import_module\nm = import_module('bforest_' + 'a')\n",
+            "dynamic import of a computed module name outside the registry",
+        ),
+        # plugins use the core's public face only
+        (
+            "plugins/bforest_a/m.py",
+            "from bforest_core.pipeline.store import x\n",
+            "plugin bforest_a imports the core's pipeline",
+        ),
+        (
+            "plugins/bforest_a/m.py",
+            "def f():\n    import bforest_core.report\n",
+            "plugin bforest_a imports the core's report",
+        ),
+        ("plugins/bforest_a/m.py", "from bforest_core.cli import main\n", "plugin bforest_a imports the core's cli"),
+        # private names across layers, and from a plugin into the core
+        (
+            "bforest_core/cli/__init__.py",
+            "from ..pipeline.store import _secret\n",
+            "cli imports the private name(s) _secret of pipeline",
+        ),
+        (
+            "bforest_core/pipeline/store.py",
+            "from ..tree import _helper, Tree\n",
+            "pipeline imports the private name(s) _helper of kernel",
+        ),
+        (
+            "plugins/bforest_a/m.py",
+            "from bforest_core.tree import _helper\n",
+            "plugin bforest_a imports the private name(s) _helper of the core",
+        ),
+    ],
+)
 def test_the_check_finds_each_kind_of_violation(tmp_path, rel, text, expected):
     _write(tmp_path, GOOD)
     assert violations(tmp_path / "bforest_core", [tmp_path / "plugins" / "bforest_a"]) == []

@@ -1,5 +1,6 @@
 """TreeQSM's tree attributes and distributions (bforest_core.attributes): hand-computed values on
 hand-built trees, and TreeQSM 2.4's own treedata/branch of the coffee tree sample."""
+
 from __future__ import annotations
 
 import warnings
@@ -27,7 +28,7 @@ def test_hand_tree_branch_table():
     assert [b["parent"][i] for i in (A, B, C)] == [0, 0, 0]
     assert b["diameter"][[A, B, C]] == pytest.approx([0.10, 0.08, 0.06])
     assert b["length"][[0, A, B, C]] == pytest.approx([3.0, 1.3, 0.6, 0.6])
-    assert b["volume"][A] == pytest.approx(PI * (0.05 ** 2 * 0.8 + 0.04 ** 2 * 0.5))
+    assert b["volume"][A] == pytest.approx(PI * (0.05**2 * 0.8 + 0.04**2 * 0.5))
     assert b["area"][A] == pytest.approx(2 * PI * (0.05 * 0.8 + 0.04 * 0.5))
     assert b["angle"][[0, A, B, C]] == pytest.approx([0, 60, 90, 90])
     assert b["azimuth"][[A, B, C]] == pytest.approx([0, 90, 180])
@@ -54,14 +55,14 @@ def test_hand_tree_distributions():
     want = np.zeros(41)
     want[[40, 30, 20, 10, 8, 6]] = [1, 1, 1, 0.8, 1.1, 0.6]
     assert d["LenCylDia"] == pytest.approx(want)
-    assert d["VolCylDia"][8] == pytest.approx(PI * 0.04 ** 2 * 1.1)
+    assert d["VolCylDia"][8] == pytest.approx(PI * 0.04**2 * 1.1)
     # heights: trunk cylinders one per metre, A (1...1.65 m) and B (1.5 m) in class 1, C (2.25 m) in 2
     assert d["LenCylHei"] == pytest.approx([1.0, 2.9, 1.6])
     zen = np.zeros(18)
     zen[[0, 6, 9]] = [3.0, 1.3, 1.2]
     assert d["LenCylZen"] == pytest.approx(zen)
     azi = np.zeros(36)
-    azi[[18, 27, 35]] = [3.0 + 1.3, 0.6, 0.6]   # C points to 180 deg: the closed top of the last class
+    azi[[18, 27, 35]] = [3.0 + 1.3, 0.6, 0.6]  # C points to 180 deg: the closed top of the last class
     assert d["LenCylAzi"] == pytest.approx(azi)
     ang = np.zeros(18)
     ang[[6, 9]] = [1, 2]
@@ -76,7 +77,7 @@ def test_hand_tree_distributions():
 
 def test_height_classes_split_a_slanted_cylinder():
     t = Tree([[0, 0, 0]], [[0.6, 0, 0.8]], [2.5], [0.1], [-1])
-    d = distributions(t)          # rises 2 m: half of it in each 1 m class
+    d = distributions(t)  # rises 2 m: half of it in each 1 m class
     assert d["LenCylHei"] == pytest.approx([1.25, 1.25])
     assert d["VolCylHei"] == pytest.approx([PI * 0.01 * 1.25] * 2)
 
@@ -97,7 +98,7 @@ def test_crown_measures_of_a_cross():
     # diameters of 2 m among 18
     assert a["crown_diameter_mean"] == pytest.approx(4 / 18, abs=1e-9)
     assert a["crown_diameter_max"] == pytest.approx(2.0, abs=1e-9)
-    assert a["crown_area_conv"] == pytest.approx(2.0, abs=1e-9)     # the square with diagonals 2 m
+    assert a["crown_area_conv"] == pytest.approx(2.0, abs=1e-9)  # the square with diagonals 2 m
     assert a["crown_base_height"] == pytest.approx(1.0)
     assert (a["crown_length"], a["crown_ratio"]) == pytest.approx((1.0, 0.5))
     # the pyramid over that square up to the trunk top: 2 x 1 / 3 (plus the 1 mm radii)
@@ -108,6 +109,7 @@ def test_crown_measures_of_a_cross():
 def test_fidelity_statistics_add_volumes_and_crown_to_the_summary():
     from bforest_core.attributes import FIDELITY_ATTRIBUTES, fidelity_statistics
     from bforest_core.metrics import summary_label, summary_unit, tree_summary
+
     t = _cross_tree()
     f, a = fidelity_statistics(t), tree_attributes(t)
     assert set(f) == set(tree_summary(t)) | set(FIDELITY_ATTRIBUTES)
@@ -129,10 +131,13 @@ def test_trunk_only_tree_has_no_crown():
 # against TreeQSM 2.4's own treedata (coffee tree sample)
 # ------------------------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def coffee():
     import scipy.io as sio
+
     from bforest_core import read_qsm
+
     p = qsm_path("coffeetree_treeqsm_optqsm.mat")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -157,12 +162,21 @@ def test_attributes_agree_with_treeqsm_treedata(coffee):
     t, q = coffee
     td = q.treedata
     a = tree_attributes(t)
-    same = {"TotalVolume": 1000 * a["total_volume"], "TrunkVolume": 1000 * a["trunk_volume"],
-            "BranchVolume": 1000 * a["branch_volume"], "TreeHeight": a["tree_height"],
-            "TrunkLength": a["trunk_length"], "BranchLength": a["branch_length"],
-            "TotalLength": a["total_length"], "MaxBranchOrder": a["max_branch_order"],
-            "TrunkArea": a["trunk_area"], "BranchArea": a["branch_area"], "TotalArea": a["total_area"],
-            "DBHqsm": a["dbh"], "CrownDiamAve": a["crown_diameter_mean"]}
+    same = {
+        "TotalVolume": 1000 * a["total_volume"],
+        "TrunkVolume": 1000 * a["trunk_volume"],
+        "BranchVolume": 1000 * a["branch_volume"],
+        "TreeHeight": a["tree_height"],
+        "TrunkLength": a["trunk_length"],
+        "BranchLength": a["branch_length"],
+        "TotalLength": a["total_length"],
+        "MaxBranchOrder": a["max_branch_order"],
+        "TrunkArea": a["trunk_area"],
+        "BranchArea": a["branch_area"],
+        "TotalArea": a["total_area"],
+        "DBHqsm": a["dbh"],
+        "CrownDiamAve": a["crown_diameter_mean"],
+    }
     for k, v in same.items():
         assert v == pytest.approx(float(getattr(td, k)), rel=1e-5), k
     # the crown hull: our sampling of the cylinder surfaces differs in orientation only
@@ -192,8 +206,8 @@ def test_distributions_agree_with_treeqsm_treedata(coffee):
             # our 1 cm class j is its classes 2j and 2j+1
             m = ref.size // 2
             if k == "NumBranchDia":
-                ref = ref - np.eye(ref.size)[0] * empty.sum()   # the empty branches: diameter 0
-            assert got[:m] == pytest.approx(ref[:2 * m:2] + ref[1:2 * m:2], rel=1e-4, abs=1e-6), k
+                ref = ref - np.eye(ref.size)[0] * empty.sum()  # the empty branches: diameter 0
+            assert got[:m] == pytest.approx(ref[: 2 * m : 2] + ref[1 : 2 * m : 2], rel=1e-4, abs=1e-6), k
             continue
         if k.startswith("NumBranch") and not k.startswith("NumBranch1") and not k.endswith("Ord"):
             # TreeQSM's branches without cylinders count in the class of height, angle, zenith 0 (and
@@ -207,12 +221,14 @@ def test_distributions_agree_with_treeqsm_treedata(coffee):
 # bforest info
 # ------------------------------------------------------------------------------------------
 
+
 def test_info_shows_attributes_and_distributions(capsys):
     import csv
     import io
     import json
 
     from bforest_core.cli.main import main
+
     p = str(qsm_path("pine_ruotsinkyla_3.mat"))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -224,7 +240,7 @@ def test_info_shows_attributes_and_distributions(capsys):
         assert f"crown ratio                 {a['crown_ratio']:.4g}\n" in out
         assert "branches by branching angle (10 deg classes; empty ones left out)" in out
         assert "wood by height (1 m classes; empty ones left out)" in out
-        assert "\n       10-20             0" not in out     # pine 3 has no branch at 10-20 deg
+        assert "\n       10-20             0" not in out  # pine 3 has no branch at 10-20 deg
         assert main(["info", p, "--json"]) == 0
         js = json.loads(capsys.readouterr().out)
         assert js["attributes"]["crown_length"] == pytest.approx(a["crown_length"])
@@ -237,7 +253,10 @@ def test_info_shows_attributes_and_distributions(capsys):
         assert float(rows[0]["volume_m^3"]) == pytest.approx(a["trunk_volume"])
         assert main(["info", p, "--csv", "--table", "attributes"]) == 0
         rows = {r["attribute"]: r for r in csv.DictReader(io.StringIO(capsys.readouterr().out))}
-        assert float(rows["branch_area"]["value"]) == pytest.approx(a["branch_area"]) and rows["branch_area"]["unit"] == "m^2"
+        assert (
+            float(rows["branch_area"]["value"]) == pytest.approx(a["branch_area"])
+            and rows["branch_area"]["unit"] == "m^2"
+        )
         assert main(["info", p, "--csv", "--table", "distributions"]) == 0
         rows = [r for r in csv.DictReader(io.StringIO(capsys.readouterr().out)) if r["distribution"] == "NumBranchAng"]
         assert len(rows) == 18 and rows[3]["class_lower"] == "30.0" and rows[3]["class_unit"] == "deg"
@@ -245,6 +264,7 @@ def test_info_shows_attributes_and_distributions(capsys):
 
 def test_clone_band_and_distributions_figure(tmp_path):
     from bforest_core.report.attributes import band, distributions_figure
+
     med, lo, hi = band([np.array([1.0, 2.0]), np.array([3.0]), np.array([5.0, 4.0, 1.0])])
     # a clone without a class counts 0 there; numpy's linear percentiles of (1, 3, 5), (2, 0, 4), (0, 0, 1)
     assert med.tolist() == [3.0, 2.0, 0.0]
@@ -252,5 +272,6 @@ def test_clone_band_and_distributions_figure(tmp_path):
     t = hand_tree()
     p = distributions_figure(t, [t, _cross_tree()], tmp_path / "d.png", dpi=60)
     from PIL import Image
+
     im = np.asarray(Image.open(p).convert("L"))
-    assert im.shape[1] > 600 and im.std() > 5   # drawn, not blank
+    assert im.shape[1] > 600 and im.std() > 5  # drawn, not blank

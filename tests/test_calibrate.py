@@ -1,5 +1,6 @@
 """``bforest calibrate``: coverage and SBC-rank arithmetic with known answers, a tiny study end to
 end through the console script (files, resume without refitting, a stopped run resumed), bad input."""
+
 import json
 import shutil
 import sqlite3
@@ -10,8 +11,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bforest_core.pipeline.calibrate import (RANK_DRAWS, central_interval, coverage_table, prior_draw, rank_bins,
-                                             rank_counts, sbc_rank, uniform_band)
+from bforest_core.pipeline.calibrate import (
+    RANK_DRAWS,
+    central_interval,
+    coverage_table,
+    prior_draw,
+    rank_bins,
+    rank_counts,
+    sbc_rank,
+    uniform_band,
+)
 
 
 # ------------------------------------------------------------------ arithmetic
@@ -34,8 +43,14 @@ def _row(truth, x, w=None):
 
 def test_coverage_counts_truths_inside_and_outside():
     x = np.linspace(0.0, 1.0, 1001)  # posterior uniform on [0, 1]: 50 % interval [0.25, 0.75], 90 % [0.05, 0.95]
-    rows = [_row(0.5, x), _row(0.3, x), _row(0.1, x), _row(0.97, x), _row(1.5, x),
-            {"status": "fit failed: boom", "params": {}}]
+    rows = [
+        _row(0.5, x),
+        _row(0.3, x),
+        _row(0.1, x),
+        _row(0.97, x),
+        _row(1.5, x),
+        {"status": "fit failed: boom", "params": {}},
+    ]
     t = coverage_table(rows, ["a"], [0.0], [2.0])[0]
     assert t["runs"] == 5  # the failed run is left out
     assert (t["covered50"], t["covered90"]) == (2, 3) and t["coverage90"] == pytest.approx(0.6)
@@ -174,6 +189,7 @@ def test_calibrate_end_to_end_files_and_resume(tmp_path):
 
 def test_calibrate_bad_input_gives_one_line_errors(tmp_path, capsys):
     from bforest_core.cli.main import main
+
     ok = tmp_path / "ok.toml"
     ok.write_text(STUDY)
     ga = tmp_path / "ga.toml"
@@ -182,12 +198,14 @@ def test_calibrate_bad_input_gives_one_line_errors(tmp_path, capsys):
     bad.write_text(STUDY.replace("free.init_lambda ", "free.no_such_parameter "))
     never = tmp_path / "never.toml"  # every drawn target fails its data sets: no run gives a posterior
     never.write_text(STUDY.replace('small_sets = "keep"', "min_rows = 100000"))
-    cases = [([ga, "-n", 2], "needs a sampler whose result is a posterior (e.g. abc-smc, emcee); 'ga'"),
-             ([ok, "-n", 0], "-n must be at least 1"),
-             ([ok, "-n", 2, "--resume", "--overwrite"], "exclude each other"),
-             ([tmp_path / "missing.toml", "-n", 2], "missing.toml: file not found"),
-             ([bad, "-n", 2], "no_such_parameter"),
-             ([never, "-n", 2], "no run gave a posterior (run_000: fit failed: features: data set")]
+    cases = [
+        ([ga, "-n", 2], "needs a sampler whose result is a posterior (e.g. abc-smc, emcee); 'ga'"),
+        ([ok, "-n", 0], "-n must be at least 1"),
+        ([ok, "-n", 2, "--resume", "--overwrite"], "exclude each other"),
+        ([tmp_path / "missing.toml", "-n", 2], "missing.toml: file not found"),
+        ([bad, "-n", 2], "no_such_parameter"),
+        ([never, "-n", 2], "no run gave a posterior (run_000: fit failed: features: data set"),
+    ]
     for k, (args, words) in enumerate(cases):
         code = main(["calibrate", *map(str, args), "-q", "-o", str(tmp_path / f"out{k}")])
         err = capsys.readouterr().err

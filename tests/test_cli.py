@@ -1,7 +1,8 @@
 """The `bforest` command: help, version, readable one-line errors with exit code 2."""
+
 import subprocess
-from pathlib import Path
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -28,11 +29,14 @@ def test_usage_error_is_one_line_exit_2():
     assert r.returncode == 2 and "error:" in r.stderr and "Traceback" not in r.stderr
 
 
-@pytest.mark.parametrize("name, content, msg", [
-    ("missing.mat", None, "file not found"),
-    ("tree.xyz", b"1 2 3\n", "unsupported file type '.xyz'"),
-    ("empty.txt", b"", "file is empty"),
-])
+@pytest.mark.parametrize(
+    "name, content, msg",
+    [
+        ("missing.mat", None, "file not found"),
+        ("tree.xyz", b"1 2 3\n", "unsupported file type '.xyz'"),
+        ("empty.txt", b"", "file is empty"),
+    ],
+)
 def test_info_bad_files(tmp_path, name, content, msg):
     p = tmp_path / name
     if content is not None:
@@ -83,6 +87,7 @@ def test_distance_sets_keep_open_ranges(capsys):
 # ------------------------------------------------------------------ messages and paths (issue 15)
 def _bforest(*args, cwd=None):
     import shutil
+
     exe = shutil.which("bforest") or str(Path(sys.executable).with_name("bforest"))
     return subprocess.run([exe, *args], capture_output=True, text=True, cwd=cwd)
 
@@ -104,6 +109,7 @@ def test_config_check_names_a_missing_target_file(tmp_path):
 
 def test_simulate_checks_the_output_format_before_growing(tmp_path):
     import time
+
     t0 = time.monotonic()
     r = _bforest("simulate", "--ssm", "lignum", "--preset", "sf_real", "-o", str(tmp_path / "tree.xyz1"))
     assert r.returncode == 2 and "no writer for '.xyz1'" in r.stderr
@@ -114,6 +120,7 @@ def test_info_per_order_table_text_json_and_csv():
     import csv
     import io
     import json
+
     p = str(qsm_path("pine_ruotsinkyla_3.mat"))
     r = _bforest("info", p)
     assert r.returncode == 0 and "mean angle (deg)" in r.stdout and "base diameter" in r.stdout
@@ -123,11 +130,13 @@ def test_info_per_order_table_text_json_and_csv():
     assert data["metrics_m"]["height"] == pytest.approx(9.936, abs=1e-3)
     rows = list(csv.DictReader(io.StringIO(_bforest("info", p, "--csv").stdout)))
     assert [int(r["order"]) for r in rows] == sorted(orders) and float(rows[1]["length_m"]) == pytest.approx(
-        orders[1]["length_m"])
+        orders[1]["length_m"]
+    )
 
 
 def test_distance_json():
     import json
+
     a, b = str(qsm_path("pine_ruotsinkyla_1.mat")), str(qsm_path("pine_ruotsinkyla_3.mat"))
     d = json.loads(_bforest("distance", a, b, "--json").stdout)
     assert set(d["per_set"]) == {"S1", "B1"} and 0 < d["distance"] < 1
@@ -136,6 +145,7 @@ def test_distance_json():
 
 def test_every_option_has_a_help_line():
     import argparse
+
     from bforest_core.cli.main import build_parser
 
     missing = []
@@ -147,26 +157,37 @@ def test_every_option_has_a_help_line():
                     walk(sp, path + [name])
             elif not a.help and not isinstance(a, argparse._HelpAction):
                 missing.append(f"{' '.join(path)} {'/'.join(a.option_strings) or a.dest}")
+
     walk(build_parser(), ["bforest"])
     assert not missing, "options without a help line: " + ", ".join(missing)
 
 
 def test_dev_py_lists_its_commands():
     import pathlib
-    r = subprocess.run([sys.executable, str(pathlib.Path(__file__).parents[1] / "dev.py")], capture_output=True, text=True)
+
+    r = subprocess.run(
+        [sys.executable, str(pathlib.Path(__file__).parents[1] / "dev.py")], capture_output=True, text=True
+    )
     assert r.returncode == 2 and all(f"dev.py {c}" in r.stdout for c in ("demo", "test", "env"))
 
 
 def test_fit_progress_bar_counts_to_the_plan_and_closes_with_the_reason(toy_plugin, tmp_path):
     """The GA plans population x (generations + 1) evaluations; the bar ends with why it stopped."""
     import os
+
     from conftest import toy_config
+
     p = toy_config(tmp_path, optimizer="ga", optimizer_settings="population = 6\ngenerations = 3", budget=1000)
     from conftest import TOY_DIR
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(toy_plugin), str(TOY_DIR)])}  # the toy plugin, for the subprocess
+
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(toy_plugin), str(TOY_DIR)]),
+    }  # the toy plugin, for the subprocess
     exe = Path(sys.executable).with_name("bforest")
-    r = subprocess.run([str(exe), "fit", str(p), "-o", str(tmp_path / "run"), "--no-report"], capture_output=True,
-                       text=True, env=env)
+    r = subprocess.run(
+        [str(exe), "fit", str(p), "-o", str(tmp_path / "run"), "--no-report"], capture_output=True, text=True, env=env
+    )
     assert r.returncode == 0, r.stderr
     assert "/24" in r.stderr and "stopped:" in r.stderr
     # the summary lists the fitted parameters apart from the fixed one
@@ -177,16 +198,35 @@ def test_fit_progress_bar_counts_to_the_plan_and_closes_with_the_reason(toy_plug
 def test_compare_and_clones_show_bars_with_totals(toy_plugin, tmp_path):
     """compare counts to optimisers x repeats x budget; clones counts to the clones it grows."""
     import os
+
     from conftest import TOY_DIR, toy_config
+
     p = toy_config(tmp_path, budget=1000)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(toy_plugin), str(TOY_DIR)])}
     exe = str(Path(sys.executable).with_name("bforest"))
-    r = subprocess.run([exe, "compare", str(p), "--optimizers", "toy-random,ga", "--budget", "12", "--repeats", "2",
-                        "-o", str(tmp_path / "cmp")], capture_output=True, text=True, env=env)
+    r = subprocess.run(
+        [
+            exe,
+            "compare",
+            str(p),
+            "--optimizers",
+            "toy-random,ga",
+            "--budget",
+            "12",
+            "--repeats",
+            "2",
+            "-o",
+            str(tmp_path / "cmp"),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
     assert r.returncode == 0, r.stderr
     assert "/48" in r.stderr  # 2 optimisers x 2 repeats x 12 evaluations
-    r = subprocess.run([exe, "fit", str(p), "-o", str(tmp_path / "run"), "--no-report"], capture_output=True,
-                       text=True, env=env)
+    r = subprocess.run(
+        [exe, "fit", str(p), "-o", str(tmp_path / "run"), "--no-report"], capture_output=True, text=True, env=env
+    )
     assert r.returncode == 0, r.stderr
     r = subprocess.run([exe, "clones", str(tmp_path / "run"), "-n", "5"], capture_output=True, text=True, env=env)
     assert r.returncode == 0, r.stderr
@@ -197,6 +237,7 @@ def test_a_dead_worker_pool_is_one_line_that_says_resume(tmp_path, monkeypatch, 
     """A worker whose start-up fails (or that is killed) breaks the process pool: one line that
     says what happened and that finished evaluations are kept, no traceback."""
     from concurrent.futures.process import BrokenProcessPool
+
     import bforest_core.pipeline.fit as fit_mod
 
     def broken(*a, **k):
@@ -220,10 +261,16 @@ def test_output_cut_short_by_the_reader_is_no_error():
     import subprocess
     import sys
     from pathlib import Path
+
     from conftest import qsm_path
+
     exe = shutil.which("bforest") or str(Path(sys.executable).with_name("bforest"))
-    p = subprocess.Popen([exe, "info", str(qsm_path("wytham_tf1.mat")), "--csv", "--table", "branches"],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(
+        [exe, "info", str(qsm_path("wytham_tf1.mat")), "--csv", "--table", "branches"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     assert p.stdout.readline().startswith("reconstruction,branch,order")
     p.stdout.close()  # the reader is gone; the rest of the table (> the pipe's 64 KB) cannot be written
     err = p.stderr.read()

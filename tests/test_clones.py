@@ -1,4 +1,5 @@
 """Clones: a set that only grows unless asked, fidelity against the target, reference trees."""
+
 import json
 import shutil
 
@@ -30,18 +31,33 @@ def test_fidelity_table_known_answers():
 
 
 def test_warning_limit_is_twenty_percent_of_height_dbh_and_crown():
-    rows = fidelity_table({"height": 10.0, "crown_spread": 4.0, "length_o1": 100.0},
-                          [{"height": 8.1, "crown_spread": 5.2, "length_o1": 10.0}])
+    rows = fidelity_table(
+        {"height": 10.0, "crown_spread": 4.0, "length_o1": 100.0},
+        [{"height": 8.1, "crown_spread": 5.2, "length_o1": 10.0}],
+    )
     warns = fidelity_warnings(rows)
     assert len(warns) == 1 and "[crown_spread]" in warns[0]  # height -19 % passes; length has no limit
 
 
 def test_crown_base_and_branch_counts_have_limits_and_every_row_a_unit():
     from bforest_core.metrics import SUMMARY_UNITS
-    target = {"crown_base_height": 2.0, "n_branches_o1": 50.0, "n_branches_o2": 100.0, "length_o1": 40.0,
-              "volume_o0": 0.04, "profile_n_b0": 4.0}
-    clone = {"crown_base_height": 2.5, "n_branches_o1": 20.0, "n_branches_o2": 75.0, "length_o1": 20.0,
-             "volume_o0": 0.05, "profile_n_b0": 1.0}
+
+    target = {
+        "crown_base_height": 2.0,
+        "n_branches_o1": 50.0,
+        "n_branches_o2": 100.0,
+        "length_o1": 40.0,
+        "volume_o0": 0.04,
+        "profile_n_b0": 4.0,
+    }
+    clone = {
+        "crown_base_height": 2.5,
+        "n_branches_o1": 20.0,
+        "n_branches_o2": 75.0,
+        "length_o1": 20.0,
+        "volume_o0": 0.05,
+        "profile_n_b0": 1.0,
+    }
     rows = {r["statistic"]: r for r in fidelity_table(target, [clone], SUMMARY_UNITS)}
     # crown base +25 % within its 30 %; first-order branches -60 % beyond it; second order -25 % within
     assert [rows[k]["warn"] for k in ("crown_base_height", "n_branches_o1", "n_branches_o2")] == [False, True, False]
@@ -49,8 +65,10 @@ def test_crown_base_and_branch_counts_have_limits_and_every_row_a_unit():
     assert [rows[k]["unit"] for k in target] == ["m", "count", "count", "m", "m^3", "count"]
     assert rows["profile_n_b0"]["label"] == "order-1 branches based at 0-20 % of the height"
     warns = fidelity_warnings(list(rows.values()))
-    assert warns == ["clones miss the target's branches of order 1 (base >= 1 cm) [n_branches_o1]: mean 20 vs 50 "
-                     "(-60.0 %, limit ±30 %)"]
+    assert warns == [
+        "clones miss the target's branches of order 1 (base >= 1 cm) [n_branches_o1]: mean 20 vs 50 "
+        "(-60.0 %, limit ±30 %)"
+    ]
     rows["crown_base_height"]["error"] = -0.35
     assert len(fidelity_warnings(list(rows.values()))) == 2
 
@@ -128,8 +146,11 @@ def test_fidelity_and_references_of_a_run(toy_fit, tmp_path):
     assert (stats["crown_volume_conv"]["unit"], stats["crown_ratio"]["unit"]) == ("m^3", "fraction")
     assert stats["height"]["n"] == 3
     assert json.loads((run / "clones" / "fidelity.json").read_text())["table"] == fid["table"]
-    assert len(s["references"]) == 1 and s["references"][0]["distance"] == pytest.approx(0.0, abs=1e-6)  # text file precision
+    assert len(s["references"]) == 1 and s["references"][0]["distance"] == pytest.approx(
+        0.0, abs=1e-6
+    )  # text file precision
     from bforest_core.report import write_report
+
     text = write_report(run, figures=False, html=False).read_text()
     assert "Fidelity: do the clones look like the target?" in text and "ref.txt" in text
 
@@ -137,6 +158,7 @@ def test_fidelity_and_references_of_a_run(toy_fit, tmp_path):
 def test_what_a_user_reads_says_base_diameter_and_percent(toy_fit, tmp_path, capsys):
     from bforest_core.cli.main import main
     from bforest_core.report import write_report
+
     run = tmp_path / "run"
     shutil.copytree(toy_fit, run)
     assert main(["clones", str(run), "-n", "2", "--no-report", "-q"]) == 0

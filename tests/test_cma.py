@@ -1,6 +1,6 @@
 """CMA-ES and the noise-aware early stop on problems with known answers."""
+
 import numpy as np
-import pytest
 
 import bforest_core as bf
 from bforest_core.interfaces import Problem
@@ -9,9 +9,16 @@ from conftest import toy_config
 
 def _problem(f, lo, hi, integer=None, budget=600, seed=1, seed_spread=None):
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    pr = Problem(names=[f"x{i}" for i in range(lo.size)], lower=lo, upper=hi,
-                 integer=np.zeros(lo.size, bool) if integer is None else np.asarray(integer, bool),
-                 evaluate=None, seed=seed, budget=budget, seed_spread=seed_spread)
+    pr = Problem(
+        names=[f"x{i}" for i in range(lo.size)],
+        lower=lo,
+        upper=hi,
+        integer=np.zeros(lo.size, bool) if integer is None else np.asarray(integer, bool),
+        evaluate=None,
+        seed=seed,
+        budget=budget,
+        seed_spread=seed_spread,
+    )
     asked = []
 
     def evaluate(X):
@@ -49,6 +56,7 @@ def test_cma_finds_the_minimum_of_a_shifted_sphere():
 def test_cma_beats_the_ga_at_equal_budget_on_rosenbrock():
     def rosen(x):
         return float(((1 - x[:-1]) ** 2 + 100 * (x[1:] - x[:-1] ** 2) ** 2).sum())
+
     best = {}
     for name in ("cma", "ga"):
         pr, _ = _problem(rosen, [-2] * 4, [2] * 4, budget=1500)
@@ -57,8 +65,9 @@ def test_cma_beats_the_ga_at_equal_budget_on_rosenbrock():
 
 
 def test_cma_integer_parameters_are_whole_and_bounds_hold():
-    pr, asked = _problem(lambda x: (x[0] - 7.2) ** 2 + (x[1] - 0.25) ** 2, [0, 0], [20, 1], integer=[True, False],
-                         budget=300)
+    pr, asked = _problem(
+        lambda x: (x[0] - 7.2) ** 2 + (x[1] - 0.25) ** 2, [0, 0], [20, 1], integer=[True, False], budget=300
+    )
     res = bf.component("optimizer", "cma").minimize(pr)
     X = np.array(asked)
     assert np.all(X[:, 0] == np.round(X[:, 0])) and X[:, 0].min() >= 0 and X[:, 0].max() <= 20
@@ -104,8 +113,9 @@ def test_noise_stop_keeps_going_while_the_objective_improves():
 
 
 def test_cma_in_a_fit(toy_plugin, tmp_path):
-    p = toy_config(tmp_path, optimizer="cma", optimizer_settings="population = 6\nmax_generations = 4\nrestarts = 0",
-                   budget=60)
+    p = toy_config(
+        tmp_path, optimizer="cma", optimizer_settings="population = 6\nmax_generations = 4\nrestarts = 0", budget=60
+    )
     res = bf.fit(bf.load_config(p), tmp_path / "run", progress=False)
     assert 0 < res.n_evaluations <= 24 and (tmp_path / "run" / "best.json").exists()
     assert isinstance(res.params["segments"], int)
@@ -113,10 +123,16 @@ def test_cma_in_a_fit(toy_plugin, tmp_path):
 
 def test_the_ga_stops_on_the_seed_noise_too():
     rng = np.random.default_rng(1)
-    pr, _ = _problem(lambda x: 5.0 + 0.01 * rng.random(), [-1] * 3, [1] * 3, budget=5000,
-                     seed_spread=lambda x, k: 5.0 + 0.1 * rng.standard_normal(k))
-    res = bf.component("optimizer", "ga", population=10, generations=50, stall_generations=None,
-                       patience=4).minimize(pr)
+    pr, _ = _problem(
+        lambda x: 5.0 + 0.01 * rng.random(),
+        [-1] * 3,
+        [1] * 3,
+        budget=5000,
+        seed_spread=lambda x, k: 5.0 + 0.1 * rng.standard_normal(k),
+    )
+    res = bf.component("optimizer", "ga", population=10, generations=50, stall_generations=None, patience=4).minimize(
+        pr
+    )
     assert "seed noise" in res.stop_reason and res.history[-1]["generation"] == 4
 
 
@@ -157,8 +173,7 @@ def test_lq_surrogate_needs_far_fewer_evaluations_on_a_quadratic():
         sizes = []
         inner = pr.evaluate
         pr.evaluate = lambda X: (sizes.append(len(X)), inner(X))[1]
-        got[sur] = res = bf.component("optimizer", "cma", population=12, surrogate=sur,
-                                      surrogate_batch=3).minimize(pr)
+        got[sur] = res = bf.component("optimizer", "cma", population=12, surrogate=sur, surrogate_batch=3).minimize(pr)
         assert res.n_evaluations <= 400
     plain, lq = got["none"], got["lq"]
     assert plain.fun > 1e-2 and lq.fun < 1e-6 and np.allclose(lq.x, c, atol=1e-3)
@@ -214,7 +229,8 @@ def test_one_start_is_the_plain_ipop_search():
 
 def test_there_are_as_many_starts_as_asked_even_where_few_points_lie_apart():
     from bforest_optim.cma_es import _start_points
+
     lo, hi = np.zeros(1), np.ones(1)
-    for seed in range(1, 6):   # one parameter: at most 4 points of [0, 1] lie 0.25 apart
+    for seed in range(1, 6):  # one parameter: at most 4 points of [0, 1] lie 0.25 apart
         pts = _start_points(None, None, 6, lo, hi, lo, hi, seed)
         assert len(pts) == 6 and all(0 <= p[0] <= 1 for p in pts)

@@ -22,27 +22,46 @@ def test_toy_config_validates_and_defaults(toy_plugin, tmp_path):
 
 
 def _raw(**over):
-    raw = {"target": {"generate": {"ssm": "toy"}},
-           "ssm": {"kind": "toy", "free": {"angle": {"lower": 5, "upper": 80}}},
-           "features": {"kind": "toy-features"}, "distance": {"kind": "toy-distance"},
-           "optimizer": {"kind": "toy-random"}, "executor": {"kind": "serial"}}
+    raw = {
+        "target": {"generate": {"ssm": "toy"}},
+        "ssm": {"kind": "toy", "free": {"angle": {"lower": 5, "upper": 80}}},
+        "features": {"kind": "toy-features"},
+        "distance": {"kind": "toy-distance"},
+        "optimizer": {"kind": "toy-random"},
+        "executor": {"kind": "serial"},
+    }
     for k, v in over.items():
         raw[k] = v
     return raw
 
 
-@pytest.mark.parametrize("over, msg", [
-    (dict(ssm={"kind": "tyo"}), r"ssm\.kind: unknown ssm 'tyo' \(known: .*toy"),
-    (dict(optimizer={"kind": "toy-random", "batchs": 3}), r"optimizer\.batchs: unknown key"),
-    (dict(optimizer={"kind": "toy-random", "batch": "many"}), r"optimizer\.batch: .*integer"),
-    (dict(optimizer={"kind": "toy-random", "batch": 0}), r"optimizer\.batch: .*greater than or equal to 1"),
-    (dict(colour="red"), r"colour: unknown key"),
-    (dict(ssm={"kind": "toy", "free": {"angel": {"lower": 1, "upper": 2}}}), r"ssm\.free\.angel: unknown parameter .*known: angle"),
-    (dict(ssm={"kind": "toy", "free": {"angle": {"lower": 5, "upper": 120}}}), r"ssm\.free\.angle: bounds \[5.0, 120.0\] exceed the allowed range \[0.0, 90.0\] deg"),
-    (dict(ssm={"kind": "toy", "free": {"angle": {"lower": 50, "upper": 20}}}), r"ssm\.free\.angle: lower \(50.0\) must be below upper"),
-    (dict(ssm={"kind": "toy", "fixed": {"noise": 50}}), r"ssm\.fixed\.noise: 50.0 is outside the allowed range \[0.0, 20.0\]"),
-    (dict(target={"qsm": "a.mat", "generate": {"ssm": "toy"}}), r"target: give exactly one of 'qsm'"),
-])
+@pytest.mark.parametrize(
+    "over, msg",
+    [
+        (dict(ssm={"kind": "tyo"}), r"ssm\.kind: unknown ssm 'tyo' \(known: .*toy"),
+        (dict(optimizer={"kind": "toy-random", "batchs": 3}), r"optimizer\.batchs: unknown key"),
+        (dict(optimizer={"kind": "toy-random", "batch": "many"}), r"optimizer\.batch: .*integer"),
+        (dict(optimizer={"kind": "toy-random", "batch": 0}), r"optimizer\.batch: .*greater than or equal to 1"),
+        (dict(colour="red"), r"colour: unknown key"),
+        (
+            dict(ssm={"kind": "toy", "free": {"angel": {"lower": 1, "upper": 2}}}),
+            r"ssm\.free\.angel: unknown parameter .*known: angle",
+        ),
+        (
+            dict(ssm={"kind": "toy", "free": {"angle": {"lower": 5, "upper": 120}}}),
+            r"ssm\.free\.angle: bounds \[5.0, 120.0\] exceed the allowed range \[0.0, 90.0\] deg",
+        ),
+        (
+            dict(ssm={"kind": "toy", "free": {"angle": {"lower": 50, "upper": 20}}}),
+            r"ssm\.free\.angle: lower \(50.0\) must be below upper",
+        ),
+        (
+            dict(ssm={"kind": "toy", "fixed": {"noise": 50}}),
+            r"ssm\.fixed\.noise: 50.0 is outside the allowed range \[0.0, 20.0\]",
+        ),
+        (dict(target={"qsm": "a.mat", "generate": {"ssm": "toy"}}), r"target: give exactly one of 'qsm'"),
+    ],
+)
 def test_config_errors_name_key_and_allowed_values(toy_plugin, over, msg):
     with pytest.raises(ConfigError, match=msg):
         parse_config(_raw(**over), source="run.toml")
@@ -70,6 +89,7 @@ def test_schema_has_plugin_unions(toy_plugin):
 
 def test_cli_config_check_and_schema(toy_plugin, tmp_path, capsys):
     from bforest_core.cli import main
+
     assert main(["config", "check", str(toy_config(tmp_path))]) == 0
     assert "ok (ssm toy" in capsys.readouterr().out
     bad = tmp_path / "bad.toml"
@@ -90,6 +110,7 @@ def test_shipped_example_configs_validate(path):
     same validation as ``bforest config check``: a renamed or removed setting breaks it here."""
     if path.parent.name == "calibration":  # study configs: no [target], each run grows its own
         from bforest_core.pipeline.calibrate import _read_study_config
+
         cfg = _read_study_config(path)
     else:
         cfg = bf.load_config(path)
@@ -101,6 +122,7 @@ def test_lignum_recipe_weights_statistics_by_their_fidelity_limits():
     DBH 15 %, crown spread 20 %, crown base and first-order branches 25 %), and its structure and
     size terms weigh alike: the balance its validation (docs/validation.md section 4) rests on."""
     import importlib.util
+
     real = Path(__file__).resolve().parents[1] / "examples" / "real"
     spec = importlib.util.spec_from_file_location("run_fidelity", real / "run_fidelity.py")
     run_fidelity = importlib.util.module_from_spec(spec)

@@ -1,5 +1,6 @@
 """The conformance kit (bforest_core.testing): run on the bundled components and the toy plugin,
 and shown to catch deliberately broken components with a message naming component and check."""
+
 from __future__ import annotations
 
 import re
@@ -44,7 +45,10 @@ OPTIONS = {
     ("qsm_writer", "treeqsm-mat"): {"roundtrip": True},
 }
 READER_SAMPLES = {
-    "treeqsm-mat": (["itsme_qsm_tree_v230.mat", "itsme_qsms_tree_v230.mat"], ["wytham_tf3.mat", "pine_ruotsinkyla_3.mat"]),
+    "treeqsm-mat": (
+        ["itsme_qsm_tree_v230.mat", "itsme_qsms_tree_v230.mat"],
+        ["wytham_tf3.mat", "pine_ruotsinkyla_3.mat"],
+    ),
     "treeqsm-flat": (["pine_ruotsinkyla_3.mat"], ["wytham_tf3.mat", "itsme_qsm_tree_v230.mat"]),
     "cyldata-mat": (["wytham_tf3.mat"], ["itsme_qsm_tree_v230.mat"]),
     "treeqsm-text": (["itsme_tree_v240_cylinder.txt", "archi_tree1_treeqsm_v23.txt"], []),
@@ -95,8 +99,9 @@ def test_the_kit_covers_every_registered_component(record_property):
     reg = bf.discover()
     installed = sorted(k for k, e in reg.components.items() if e.distribution != TOY)  # not the session's toy
     assert REGISTERED == installed and len(REGISTERED) >= 32
-    assert {"bforest-example-ssm"} <= {e.distribution for e in reg.components.values()}, \
+    assert {"bforest-example-ssm"} <= {e.distribution for e in reg.components.values()}, (
         "the example plugin (docs/examples/bforest-example-ssm) is not installed: python3 dev.py env"
+    )
     record_property("conformance_components", f"{len(REGISTERED)} of {len(installed)} registered (100 %)")
     print(f"conformance kit: {len(REGISTERED)} of {len(installed)} registered components (100 %)")
 
@@ -108,22 +113,42 @@ def test_readers_are_checked_on_their_writers_output_when_they_have_no_samples()
 
 # ----------------------------------------------------------------------------- toy plugin
 def test_toy_plugin_conforms(toy_plugin):
-    reports = run_all(distribution="bforest-toy", options={
-        ("ssm", "toy"): {"params": {"segments": 6}},
-        ("features", "toy-features"): {"trees": [sample_tree(0), sample_tree(1)]}})
-    assert sorted(reports) == [("distance", "toy-distance"), ("features", "toy-features"),
-                               ("optimizer", "toy-random"), ("ssm", "toy")]
+    reports = run_all(
+        distribution="bforest-toy",
+        options={
+            ("ssm", "toy"): {"params": {"segments": 6}},
+            ("features", "toy-features"): {"trees": [sample_tree(0), sample_tree(1)]},
+        },
+    )
+    assert sorted(reports) == [
+        ("distance", "toy-distance"),
+        ("features", "toy-features"),
+        ("optimizer", "toy-random"),
+        ("ssm", "toy"),
+    ]
     assert all(r.ok and "registered" in r.passed for r in reports.values())
     ssm = reports[("ssm", "toy")]
-    assert ssm.passed == ["class", "settings", "registered", "parameters", "resolve_params", "unknown_params",
-                          "simulate", "determinism", "seeds", "pickle", "bounds"]
+    assert ssm.passed == [
+        "class",
+        "settings",
+        "registered",
+        "parameters",
+        "resolve_params",
+        "unknown_params",
+        "simulate",
+        "determinism",
+        "seeds",
+        "pickle",
+        "bounds",
+    ]
     assert "4 parameters" in str(ssm)
 
 
 def test_toy_ssm_failing_at_bounds_is_fine_when_it_raises_simulation_failed(toy_plugin):
     # fail_above makes every angle above 60 raise SimulationFailed("collapsed"): allowed
-    rep = check_ssm(bf.component_class("ssm", "toy"), settings={"fail_above": 60.0}, params={"angle": 30.0},
-                    bounds="each", hold=[])
+    rep = check_ssm(
+        bf.component_class("ssm", "toy"), settings={"fail_above": 60.0}, params={"angle": 30.0}, bounds="each", hold=[]
+    )
     note = next(r.note for r in rep.results if r.check == "bounds")
     assert "angle = 90 (upper): collapsed" in note and "all at upper bounds: collapsed" in note
 
@@ -168,8 +193,10 @@ class GoodSSM(SSM):
 
     @property
     def parameters(self):
-        return [ParameterSpec("angle", 40.0, 10.0, 80.0, unit="deg", description="lateral angle"),
-                ParameterSpec("nodes", 5, 2, 12, integer=True, description="trunk cylinders")]
+        return [
+            ParameterSpec("angle", 40.0, 10.0, 80.0, unit="deg", description="lateral angle"),
+            ParameterSpec("nodes", 5, 2, 12, integer=True, description="trunk cylinders"),
+        ]
 
     def _rng(self, seed):
         return np.random.default_rng(seed)
@@ -185,8 +212,15 @@ class GoodSSM(SSM):
         axis = np.r_[np.tile([0, 0, 1.0], (n, 1)), lat]
         parent = np.r_[-1, np.arange(n - 1), np.arange(n)]
         ext = np.r_[np.arange(1, n), -1, np.full(n, -1)]
-        return Tree(start * self.settings.scale, axis, np.ones(2 * n), np.full(2 * n, 0.05), parent, ext,
-                    metadata=self._metadata(p, seed))
+        return Tree(
+            start * self.settings.scale,
+            axis,
+            np.ones(2 * n),
+            np.full(2 * n, 0.05),
+            parent,
+            ext,
+            metadata=self._metadata(p, seed),
+        )
 
     def _metadata(self, p, seed):
         return {"model": self.name, "params": p, "seed": seed, "status": "ok"}
@@ -219,10 +253,12 @@ class BadSpecSSM(GoodSSM):
 
     @property
     def parameters(self):
-        return [ParameterSpec("angle", 95.0, 10.0, 80.0),          # default outside the range
-                ParameterSpec("nodes", 5, 2, 12.5, integer=True),  # fractional bound of an integer
-                ParameterSpec("nodes", 5, 2, 12, integer=True),    # duplicate
-                ParameterSpec("leaf area", 1.0, 0.0, 2.0)]         # not an identifier
+        return [
+            ParameterSpec("angle", 95.0, 10.0, 80.0),  # default outside the range
+            ParameterSpec("nodes", 5, 2, 12.5, integer=True),  # fractional bound of an integer
+            ParameterSpec("nodes", 5, 2, 12, integer=True),  # duplicate
+            ParameterSpec("leaf area", 1.0, 0.0, 2.0),
+        ]  # not an identifier
 
     def simulate(self, params, seed):
         return super().simulate({}, seed)
@@ -296,7 +332,9 @@ def test_unpicklable_ssm_is_caught():
     assert err.checks == ["pickle"]
     # one check run on its own raises with the component and the check in the message
     check = next(c for c in ssm_checks(UnpicklableSSM) if c.name == "pickle")
-    with pytest.raises(ConformanceError, match=r"^ssm 'unpicklable': check 'pickle' failed: the instance cannot be pickled"):
+    with pytest.raises(
+        ConformanceError, match=r"^ssm 'unpicklable': check 'pickle' failed: the instance cannot be pickled"
+    ):
         check()
 
 
@@ -395,7 +433,9 @@ def test_broken_distances_are_caught():
     _fails(OffsetDistance, "identical", r"identical model and data tables give non-zero distances")
     _fails(SignedDistance, "finite", r"distance -?\d.* is not a finite non-negative number")
     U_data, U_model, cols = sample_tables(dims=(3,), shift=2.0)
-    assert check_distance(OffsetDistance, (U_data, U_model, cols), raise_on_failure=False).failures[0].check == "identical"
+    assert (
+        check_distance(OffsetDistance, (U_data, U_model, cols), raise_on_failure=False).failures[0].check == "identical"
+    )
 
 
 class GreedyOptimizer(Optimizer):
@@ -493,5 +533,6 @@ def test_declared_capabilities_are_checked(tmp_path):
 
 def test_feature_check_on_the_hand_tree():
     from conftest import hand_tree
+
     rep = check_feature_set(WideFeatures, trees=[hand_tree()], raise_on_failure=False)
     assert [f.check for f in rep.failures] == ["extract"]

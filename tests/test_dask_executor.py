@@ -3,6 +3,7 @@
 One cluster for the whole module (a module-scoped fixture); other clients connect to it by
 address. The functions below run in the worker processes, which import this module by name.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -13,7 +14,9 @@ import numpy as np
 import pytest
 
 pytest.importorskip("dask", reason="dask is not installed (optional extra: pip install 'bayesforest[dask]')")
-pytest.importorskip("distributed", reason="distributed is not installed (optional extra: pip install 'bayesforest[dask]')")
+pytest.importorskip(
+    "distributed", reason="distributed is not installed (optional extra: pip install 'bayesforest[dask]')"
+)
 
 import bforest_core as bf  # noqa: E402
 from bforest_core.errors import ConfigError  # noqa: E402
@@ -159,6 +162,7 @@ def test_no_http_port_unless_asked_and_then_on_loopback(executor):
     nothing listens, and a dashboard address without a host binds to 127.0.0.1, not every
     interface."""
     from bforest_dask.executor import dashboard_address
+
     assert all(sock.fileno() == -1 for sock in executor._cluster.scheduler.http_server._sockets.values())
     assert dashboard_address(":8787") == "127.0.0.1:8787" and dashboard_address("8787") == "127.0.0.1:8787"
     assert dashboard_address("0.0.0.0:8787") == "0.0.0.0:8787"  # an address that says otherwise

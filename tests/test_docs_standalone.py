@@ -8,6 +8,7 @@
 * Every ``docs/<name>.md`` a file names and every relative link of a Markdown page resolves to a
   file of the repository.
 """
+
 from __future__ import annotations
 
 import re
@@ -21,9 +22,10 @@ THIS = Path(__file__).resolve()
 
 #: what a standalone repository must not cite (the sample-data folder is the one exception)
 EXTERNAL = re.compile(
-    r"DESIGN\.md"                                         # the design sketch
-    r"|\bshared/(?!data/qsm\b)"                            # shared/spec/..., ../shared/papers, ...
-    r"|[\"']shared[\"']\s*/\s*[\"'](?!data[\"']\s*/\s*[\"']qsm[\"'])")  # ROOT.parent / "shared" / "spec"
+    r"DESIGN\.md"  # the design sketch
+    r"|\bshared/(?!data/qsm\b)"  # shared/spec/..., ../shared/papers, ...
+    r"|[\"']shared[\"']\s*/\s*[\"'](?!data[\"']\s*/\s*[\"']qsm[\"'])"
+)  # ROOT.parent / "shared" / "spec"
 
 #: a page of the docs named in text: docs/models.md, docs/examples/x/README.md
 DOC_PATH = re.compile(r"(?<![\w/.-])docs/[\w./-]*?\.md\b")
@@ -40,9 +42,13 @@ def tracked_files() -> list[Path]:
         names = [n for n in out.stdout.decode("utf-8", "surrogateescape").split("\0") if n]
     except (OSError, subprocess.CalledProcessError):
         skip = {".git", ".venv", "runs", "demo-run", "__pycache__", ".pytest_cache"}
-        names = [str(p.relative_to(ROOT)) for p in ROOT.rglob("*")
-                 if p.is_file() and not skip.intersection(p.relative_to(ROOT).parts)
-                 and not any(part.endswith(".egg-info") for part in p.parts)]
+        names = [
+            str(p.relative_to(ROOT))
+            for p in ROOT.rglob("*")
+            if p.is_file()
+            and not skip.intersection(p.relative_to(ROOT).parts)
+            and not any(part.endswith(".egg-info") for part in p.parts)
+        ]
     return [ROOT / n for n in sorted(names) if not n.startswith(".ci/")]
 
 
@@ -96,8 +102,10 @@ def broken_doc_links(paths: list[Path], root: Path = ROOT) -> list[str]:
 
 def test_no_file_cites_the_external_spec_or_design_notes():
     found = external_citations(tracked_files())
-    assert not found, ("files cite notes a clone of the repository does not have (cite docs/models.md, "
-                       "docs/features-and-distance.md or docs/qsm-formats.md instead):\n" + "\n".join(found))
+    assert not found, (
+        "files cite notes a clone of the repository does not have (cite docs/models.md, "
+        "docs/features-and-distance.md or docs/qsm-formats.md instead):\n" + "\n".join(found)
+    )
 
 
 def test_every_docs_page_named_or_linked_exists():
@@ -117,21 +125,23 @@ def test_the_reference_pages_exist_with_their_sections():
         assert head in qf, head
 
 
-@pytest.mark.parametrize("line, cites", [
-    ("see shared/spec/ssm-models.md part B", True),
-    ("Public names (see ``DESIGN.md``)", True),
-    ("the papers in ../shared/papers/", True),
-    ('SPEC = ROOT.parent / "shared" / "spec"', True),
-    ("samples in ../shared/data/qsm (skipped when absent)", False),
-    ('QSM = ROOT.parent / "shared" / "data" / "qsm"', False),
-    ("see docs/models.md B.5 step 3", False),
-    ("the machine is shared with other jobs", False),
-])
+@pytest.mark.parametrize(
+    "line, cites",
+    [
+        ("see shared/spec/ssm-models.md part B", True),
+        ("Public names (see ``DESIGN.md``)", True),
+        ("the papers in ../shared/papers/", True),
+        ('SPEC = ROOT.parent / "shared" / "spec"', True),
+        ("samples in ../shared/data/qsm (skipped when absent)", False),
+        ('QSM = ROOT.parent / "shared" / "data" / "qsm"', False),
+        ("see docs/models.md B.5 step 3", False),
+        ("the machine is shared with other jobs", False),
+    ],
+)
 def test_the_checks_can_fail(tmp_path, line, cites):
     f = tmp_path / "planted.py"
     f.write_text(f"# {line}\n", encoding="utf-8")
     assert bool(external_citations([f], tmp_path)) is cites
     page = tmp_path / "page.md"
-    page.write_text("[a](missing.md) and docs/nowhere.md and [b](page.md) [c](https://x.org/y.md)\n",
-                    encoding="utf-8")
+    page.write_text("[a](missing.md) and docs/nowhere.md and [b](page.md) [c](https://x.org/y.md)\n", encoding="utf-8")
     assert broken_doc_links([page], tmp_path) == ["page.md: docs/nowhere.md", "page.md: link (missing.md)"]

@@ -1,5 +1,6 @@
 """The example third-party plugin (docs/examples/bforest-example-ssm): discovered through its own
 entry point, conformant, a real L-system with known answers, selectable and fittable from TOML."""
+
 from __future__ import annotations
 
 import importlib.metadata as md
@@ -19,8 +20,11 @@ DIST = "bforest-example-ssm"
 try:
     md.distribution(DIST)
 except md.PackageNotFoundError:
-    pytest.skip(f"the example plugin distribution {DIST!r} is not installed (run `python3 dev.py env`, or "
-                f".venv/bin/pip install -e {EXAMPLE})", allow_module_level=True)
+    pytest.skip(
+        f"the example plugin distribution {DIST!r} is not installed (run `python3 dev.py env`, or "
+        f".venv/bin/pip install -e {EXAMPLE})",
+        allow_module_level=True,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -87,8 +91,17 @@ def test_segment_counts_follow_the_grammar(ssm):
 def test_turtle_geometry_known_angles(ssm):
     # no noise, no tropism: the trunk stays vertical, each lateral leaves its mother internode at
     # exactly branch_angle and successive trunk laterals are rolled by the divergence angle
-    p = dict(iterations=6, whorl_size=1, lateral_prob=1.0, angle_sd=0.0, tropism=0.0, bare_steps=0,
-             branch_angle=40.0, divergence=137.5, max_order=2)
+    p = dict(
+        iterations=6,
+        whorl_size=1,
+        lateral_prob=1.0,
+        angle_sd=0.0,
+        tropism=0.0,
+        bare_steps=0,
+        branch_angle=40.0,
+        divergence=137.5,
+        max_order=2,
+    )
     t = ssm.simulate(p, seed=8)
     trunk = np.flatnonzero(t.order == 0)
     np.testing.assert_allclose(t.axis[trunk], np.tile([0, 0, 1.0], (trunk.size, 1)), atol=1e-12)
@@ -101,7 +114,7 @@ def test_turtle_geometry_known_angles(ssm):
     np.testing.assert_allclose(np.mod(np.diff(az), 360.0), 137.5, atol=1e-9)
     # internode length decays with order
     for o in range(3):
-        np.testing.assert_allclose(t.length[t.order == o], 0.4 * 0.65 ** o)
+        np.testing.assert_allclose(t.length[t.order == o], 0.4 * 0.65**o)
 
 
 def test_pipe_model_radii(ssm):
@@ -116,7 +129,7 @@ def test_pipe_model_radii(ssm):
     sums = np.add.reduceat(t.radius[idx] ** 2, ptr[:-1][inner])
     np.testing.assert_allclose(t.radius[inner] ** 2, sums, rtol=1e-12)
     # so the base area is the number of tips times the tip area
-    assert t.radius[0] ** 2 == pytest.approx(tips.sum() * 0.005 ** 2)
+    assert t.radius[0] ** 2 == pytest.approx(tips.sum() * 0.005**2)
 
 
 def test_tropism_and_noise_shape_the_crown(ssm):
@@ -146,14 +159,21 @@ def _stack(request):
     """The features/distance/optimizer sections: the bundled ones when registered, else the toy
     plugin's (installed through the toy_plugin fixture)."""
     reg = bf.discover()
-    if ("branch-segment" in reg.names("features") and "sliced" in reg.names("distance")
-            and "ga" in reg.names("optimizer")):
-        return ('[features]\nkind = "branch-segment"\nsets = ["S0,1", "B1"]\n'
-                '[distance]\nkind = "sliced"\n'
-                '[optimizer]\nkind = "ga"\npopulation = 8\n'), True
+    if (
+        "branch-segment" in reg.names("features")
+        and "sliced" in reg.names("distance")
+        and "ga" in reg.names("optimizer")
+    ):
+        return (
+            '[features]\nkind = "branch-segment"\nsets = ["S0,1", "B1"]\n'
+            '[distance]\nkind = "sliced"\n'
+            '[optimizer]\nkind = "ga"\npopulation = 8\n'
+        ), True
     request.getfixturevalue("toy_plugin")
-    return ('[features]\nkind = "toy-features"\n[distance]\nkind = "toy-distance"\n'
-            '[optimizer]\nkind = "toy-random"\nbatch = 8\n'), False
+    return (
+        '[features]\nkind = "toy-features"\n[distance]\nkind = "toy-distance"\n'
+        '[optimizer]\nkind = "toy-random"\nbatch = 8\n'
+    ), False
 
 
 CONFIG = """
@@ -191,7 +211,9 @@ def test_selected_by_kind_in_toml(tmp_path, request):
     with pytest.raises(bf.ConfigError, match=r"ssm\.max_segment: unknown key"):
         bf.load_config(bad)
     bad.write_text(CONFIG.format(stack=stack).replace("upper = 90.0", "upper = 120.0"))
-    with pytest.raises(bf.ConfigError, match=r"ssm\.free\.branch_angle: bounds \[10\.0, 120\.0\] exceed .*\[10\.0, 90\.0\] deg"):
+    with pytest.raises(
+        bf.ConfigError, match=r"ssm\.free\.branch_angle: bounds \[10\.0, 120\.0\] exceed .*\[10\.0, 90\.0\] deg"
+    ):
         bf.load_config(bad)
 
 

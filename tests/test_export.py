@@ -1,4 +1,5 @@
 """bforest export: trees of a run in other formats, the evaluation log as one CSV."""
+
 import csv
 import shutil
 import subprocess
@@ -24,8 +25,14 @@ def run(toy_plugin, tmp_path_factory):
 
 def test_trees_in_other_formats(run, tmp_path):
     files = export_trees(run, ["ply", "treeqsm-mat"], tmp_path / "out")
-    assert sorted(p.name for p in files) == ["best_tree.mat", "best_tree.ply", "clone_000.mat", "clone_000.ply",
-                                             "clone_001.mat", "clone_001.ply"]
+    assert sorted(p.name for p in files) == [
+        "best_tree.mat",
+        "best_tree.ply",
+        "clone_000.mat",
+        "clone_000.ply",
+        "clone_001.mat",
+        "clone_001.ply",
+    ]
     back = bf.read_qsm(tmp_path / "out" / "clone_001.mat")
     assert back.n == bf.read_qsm(run / "clones" / "clone_001.txt").n
     with pytest.raises(ExportError, match="exists.*--overwrite"):
@@ -34,8 +41,11 @@ def test_trees_in_other_formats(run, tmp_path):
     with pytest.raises(ExportError, match="unknown export format 'lass'.*known: .*ply"):
         export_trees(run, ["lass"], tmp_path / "x")
     both = export_trees(run, ["csv", "simpleforest-csv", "archi-csv"], tmp_path / "csv", what=("best",))
-    assert sorted(p.name for p in both) == ["best_tree_archi-csv.csv", "best_tree_bforest-csv.csv",
-                                            "best_tree_simpleforest-csv.csv"]
+    assert sorted(p.name for p in both) == [
+        "best_tree_archi-csv.csv",
+        "best_tree_bforest-csv.csv",
+        "best_tree_simpleforest-csv.csv",
+    ]
     assert bf.read_qsm(tmp_path / "csv" / "best_tree_archi-csv.csv").metadata["format"] == "archi-csv"
 
 
@@ -50,8 +60,21 @@ def test_evaluations_as_one_table(run, tmp_path):
 
 def test_export_command(run, tmp_path):
     exe = shutil.which("bforest") or str(Path(sys.executable).with_name("bforest"))
-    r = subprocess.run([exe, "export", str(run), "--format", "obj", "-o", str(tmp_path / "o"),
-                        "--evaluations", str(tmp_path / "ev.csv")], capture_output=True, text=True)
+    r = subprocess.run(
+        [
+            exe,
+            "export",
+            str(run),
+            "--format",
+            "obj",
+            "-o",
+            str(tmp_path / "o"),
+            "--evaluations",
+            str(tmp_path / "ev.csv"),
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0 and "wrote 3 files" in r.stdout and (tmp_path / "o" / "clone_000.obj").exists()
     r = subprocess.run([exe, "export", str(run)], capture_output=True, text=True)
     assert r.returncode == 2 and "at least one --format" in r.stderr
@@ -61,6 +84,7 @@ def test_exported_mat_and_csv_record_model_parameters_and_seed(run, tmp_path):
     import json
 
     import scipy.io as sio
+
     summary = json.loads((run / "clones" / "summary.json").read_text())
     row = next(r for r in summary["rows"] if r["file"] == "clone_001.txt")
     export_trees(run, ["mat", "csv"], tmp_path / "p", what=("clones",))
@@ -77,6 +101,7 @@ def test_posterior_clones_are_exported_with_their_own_names_and_provenance(run, 
     import json
 
     import scipy.io as sio
+
     r = tmp_path / "run"
     shutil.copytree(run, r)
     # the posterior clones of `bforest clones --posterior` (here: the clone set under that name)
@@ -85,12 +110,18 @@ def test_posterior_clones_are_exported_with_their_own_names_and_provenance(run, 
     s["rows"][1]["seed"] = 4242
     (r / "clones_posterior" / "summary.json").write_text(json.dumps(s))
     files = export_trees(r, ["mat"], tmp_path / "o", what=("clones", "posterior"))
-    assert sorted(p.name for p in files) == ["clone_000.mat", "clone_001.mat", "posterior_clone_000.mat",
-                                             "posterior_clone_001.mat"]
-    prov = sio.loadmat(str(tmp_path / "o" / "posterior_clone_001.mat"), squeeze_me=True,
-                       struct_as_record=False)["qsm"].rundata.bforest
+    assert sorted(p.name for p in files) == [
+        "clone_000.mat",
+        "clone_001.mat",
+        "posterior_clone_000.mat",
+        "posterior_clone_001.mat",
+    ]
+    prov = sio.loadmat(str(tmp_path / "o" / "posterior_clone_001.mat"), squeeze_me=True, struct_as_record=False)[
+        "qsm"
+    ].rundata.bforest
     assert prov.role == "posterior clone 1" and int(prov.seed) == 4242
     exe = shutil.which("bforest") or str(Path(sys.executable).with_name("bforest"))
-    res = subprocess.run([exe, "export", str(r), "--what", "posteriors", "--format", "ply"], capture_output=True,
-                         text=True)
+    res = subprocess.run(
+        [exe, "export", str(r), "--what", "posteriors", "--format", "ply"], capture_output=True, text=True
+    )
     assert res.returncode == 2 and "best, clones and/or posterior" in res.stderr

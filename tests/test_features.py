@@ -1,5 +1,6 @@
 """B^w / S^w feature tables (docs/features-and-distance.md §2, §7): hand-built trees with known
 answers, invariances, set parsing and preparation, and real-data regressions."""
+
 import warnings
 
 import numpy as np
@@ -7,8 +8,14 @@ import pytest
 
 import bforest_core as bf
 from bforest_core import ConfigError, Tree
-from bforest_features.branch_segment import (BranchSegmentFeatures, _segment_angles, azimuth_frame,
-                                             branch_table, parse_set, segment_table)
+from bforest_features.branch_segment import (
+    BranchSegmentFeatures,
+    _segment_angles,
+    azimuth_frame,
+    branch_table,
+    parse_set,
+    segment_table,
+)
 from conftest import hand_tree, read_sample
 
 S60, C60 = np.sin(np.radians(60)), np.cos(np.radians(60))
@@ -44,8 +51,15 @@ def random_tree(n, seed=0, topology="source"):
 
 
 def transformed(tree, R=np.eye(3), shift=(0, 0, 0), k=1.0):
-    return Tree(k * tree.start @ R.T + np.asarray(shift), tree.axis @ R.T, k * tree.length, k * tree.radius,
-                tree.parent, tree.extension, topology="source")
+    return Tree(
+        k * tree.start @ R.T + np.asarray(shift),
+        tree.axis @ R.T,
+        k * tree.length,
+        k * tree.radius,
+        tree.parent,
+        tree.extension,
+        topology="source",
+    )
 
 
 def rotz(psi_deg):
@@ -54,6 +68,7 @@ def rotz(psi_deg):
 
 
 # ------------------------------------------------------------------------------ hand-built tree
+
 
 def test_hand_tree_branch_table_known_values():
     U = feats(sets=["B1"]).extract(hand_tree())
@@ -64,8 +79,9 @@ def test_hand_tree_branch_table_known_values():
 def test_hand_tree_segment_tables_known_values():
     U = feats(sets=["S0", "S1", "S0,1"]).extract(hand_tree())
     np.testing.assert_allclose(U["S0"], [[0.20, 0, 0, 0], [0.15, 1, 0, 0], [0.10, 2, 0, 0]], atol=1e-12)
-    np.testing.assert_allclose(U["S1"], [[0.05, 0, 0, 0], [0.04, 0.8, 0, 0], [0.04, 0, 0, 0], [0.03, 0, 0, 0]],
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        U["S1"], [[0.05, 0, 0, 0], [0.04, 0.8, 0, 0], [0.04, 0, 0, 0], [0.03, 0, 0, 0]], atol=1e-12
+    )
     # pooled: rows ordered by branch id then position
     np.testing.assert_allclose(U["S0,1"], np.vstack([U["S0"], U["S1"]]), atol=0)
 
@@ -78,7 +94,7 @@ def test_turned_segment_row():
     start = np.array(t.start)
     t2 = Tree(start, axis, t.length, t.radius, t.parent, t.extension)
     row = feats(sets=["S1"]).extract(t2)["S1"][1]
-    zeta = np.degrees(np.arctan2(S60 * C60 * (1 - c20), S60 ** 2 * c20 + C60 ** 2))
+    zeta = np.degrees(np.arctan2(S60 * C60 * (1 - c20), S60**2 * c20 + C60**2))
     np.testing.assert_allclose(row, [0.04, 0.8, 20, zeta], atol=1e-12)
     assert abs(zeta - 1.5667) < 5e-5
 
@@ -88,7 +104,9 @@ def test_thickest_rule_on_hand_tree_gives_two_laterals():
     U = fs.extract(hand_tree())  # the tree is built with 'source'; the set applies 'thickest'
     np.testing.assert_allclose(U["B1"], [[60, -90, 1.3, 0.05, 1.0], [90, 0, 0.6, 0.04, 1.5]], atol=1e-12)
     # the third lateral continues the trunk: a horizontal segment after a vertical one
-    np.testing.assert_allclose(U["S0"][:, :2], [[0.2, 0], [0.15, 1], [0.1, 2], [0.03, 3.0]], atol=1e-12)  # L sums lengths
+    np.testing.assert_allclose(
+        U["S0"][:, :2], [[0.2, 0], [0.15, 1], [0.1, 2], [0.03, 3.0]], atol=1e-12
+    )  # L sums lengths
     # vertical p, t along -X: gamma = 0 and zeta = -(angle between them) = -90
     np.testing.assert_allclose(U["S0"][3, 2:], [0, -90], atol=1e-12)
 
@@ -163,6 +181,7 @@ def test_azimuth_frame_equals_rodrigues_and_is_orthonormal():
 
 # ------------------------------------------------------------------------------ invariances
 
+
 def test_translation_changes_nothing():
     t = random_tree(400, seed=1)
     fs = feats(sets=["S0,1,2,3+", "B1+"])
@@ -216,13 +235,13 @@ def test_renumbering_gives_same_multisets(rule):
     t = random_tree(300, seed=5)
     # a parent-before-child permutation: sort by depth with random tie-break
     from bforest_core.tree import depth_of
+
     rng = np.random.default_rng(0)
     perm = np.lexsort((rng.random(t.n), depth_of(t.parent)))
     inv = np.empty(t.n, dtype=np.int64)
     inv[perm] = np.arange(t.n)
     rm = lambda a: np.where(a >= 0, inv[np.maximum(a, 0)], -1)
-    t2 = Tree(t.start[perm], t.axis[perm], t.length[perm], t.radius[perm], rm(t.parent[perm]),
-              rm(t.extension[perm]))
+    t2 = Tree(t.start[perm], t.axis[perm], t.length[perm], t.radius[perm], rm(t.parent[perm]), rm(t.extension[perm]))
     assert not np.array_equal(perm, np.arange(t.n))
     fs = feats(sets=["S0+", "B1+"], topology=rule)
     fs.prepare(t)
@@ -243,6 +262,7 @@ def test_same_code_for_any_input_topology():
 
 
 # ------------------------------------------------------------------------------ vectorised kernels vs a reference
+
 
 def test_tables_match_a_per_cylinder_reference():
     t = random_tree(150, seed=7)
@@ -268,6 +288,7 @@ def test_tables_match_a_per_cylinder_reference():
 
 
 # ------------------------------------------------------------------------------ sets, embedding, policies
+
 
 def test_parse_set_forms():
     assert parse_set("S0,1").orders == (0, 1)
@@ -380,8 +401,15 @@ def test_nan_policy_drop_and_error():
 
 def test_exclude_added_keeps_lengths():
     t = hand_tree()
-    t2 = Tree(t.start, t.axis, t.length, t.radius, t.parent, t.extension,
-              added=[False, False, False, True, False, False, False])
+    t2 = Tree(
+        t.start,
+        t.axis,
+        t.length,
+        t.radius,
+        t.parent,
+        t.extension,
+        added=[False, False, False, True, False, False, False],
+    )
     U = feats(sets=["S1", "B1"], exclude_added=True).extract(t2)
     np.testing.assert_allclose(U["S1"][:, :2], [[0.04, 0.8], [0.04, 0], [0.03, 0]], atol=1e-12)
     assert U["B1"][0, 2] == pytest.approx(1.3)
@@ -400,7 +428,6 @@ def test_registered_and_defaults():
 
 
 # ------------------------------------------------------------------------------ real data
-
 
 
 def test_real_pine3_branch_counts_by_rule():
@@ -431,18 +458,33 @@ def test_real_tables_are_finite():
     assert sum(fs.last_dropped.values()) == 0
 
 
-@pytest.mark.parametrize("name,branches", [("pine_ruotsinkyla_1.mat", 805), ("pine_ruotsinkyla_2.mat", 587),
-                                           ("pine_ruotsinkyla_3.mat", 300), ("archi_tree1_treeqsm_v23.txt", 233),
-                                           ("coffeetree_treeqsm_optqsm.mat", 82),
-                                           ("itsme_qsm_tree_v240.mat", 410), ("itsme_qsm_trunk.mat", 1)])
+@pytest.mark.parametrize(
+    "name,branches",
+    [
+        ("pine_ruotsinkyla_1.mat", 805),
+        ("pine_ruotsinkyla_2.mat", 587),
+        ("pine_ruotsinkyla_3.mat", 300),
+        ("archi_tree1_treeqsm_v23.txt", 233),
+        ("coffeetree_treeqsm_optqsm.mat", 82),
+        ("itsme_qsm_tree_v240.mat", 410),
+        ("itsme_qsm_trunk.mat", 1),
+    ],
+)
 def test_real_source_topology_branch_counts(name, branches):
     # docs/features-and-distance.md §7: 'source' reproduces TreeQSM's branch count (after detached fragments are removed)
     assert read_sample(name).with_topology("source").n_branches == branches
 
 
-@pytest.mark.parametrize("name,share,share_stored", [("pine_ruotsinkyla_3.mat", 59, 54), ("pine_ruotsinkyla_1.mat", 49, 45),
-                                                     ("wytham_tf1.mat", 39, 35), ("itsme_qsm_tree_v240.mat", 20, 20),
-                                                     ("coffeetree_treeqsm_optqsm.mat", 18, 18)])
+@pytest.mark.parametrize(
+    "name,share,share_stored",
+    [
+        ("pine_ruotsinkyla_3.mat", 59, 54),
+        ("pine_ruotsinkyla_1.mat", 49, 45),
+        ("wytham_tf1.mat", 39, 35),
+        ("itsme_qsm_tree_v240.mat", 20, 20),
+        ("coffeetree_treeqsm_optqsm.mat", 18, 18),
+    ],
+)
 def test_real_fork_shares_where_thickest_is_not_the_qsm_continuation(name, share, share_stored):
     # docs/features-and-distance.md §1.1: share of forks (>= 2 children) whose thickest child is not TreeQSM's continuation
     t = read_sample(name).with_topology("source")

@@ -1,4 +1,5 @@
 """The fit pipeline on the toy plugin: store, seeds, executors, resume, failures, clones."""
+
 import importlib
 import json
 import os
@@ -74,7 +75,9 @@ def test_resume_after_crash_repeats_nothing_and_matches(toy_plugin, tmp_path, mo
         return real_task(task)
 
     monkeypatch.setattr(fit_mod, "evaluate_task", counting)
-    res = bf.fit(bf.load_config(tmp_path / "crashed" / "config.toml"), tmp_path / "crashed", resume=True, progress=False)
+    res = bf.fit(
+        bf.load_config(tmp_path / "crashed" / "config.toml"), tmp_path / "crashed", resume=True, progress=False
+    )
     assert simulated["n"] == 40 - 19
     assert _evals(tmp_path / "crashed") == _evals(tmp_path / "full")
     assert res.params == full.params and res.distance == full.distance
@@ -107,8 +110,10 @@ def test_failing_and_hanging_simulations_are_logged(toy_plugin, tmp_path):
     (tmp_path / "h").mkdir()
     p2 = toy_config(tmp_path / "h", budget=3)
     t2 = p2.read_text().replace('kind = "toy"\n', 'kind = "toy"\nsleep = 30.0\n', 1) + "\n[objective]\ntimeout = 0.3\n"
-    t2 = t2.replace("[optimizer]\nkind = \"toy-random\"\n", "[optimizer]\nkind = \"toy-random\"\nbatch = 3\n")
-    p2.write_text(t2.replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = { sleep = 0.0 }'))
+    t2 = t2.replace('[optimizer]\nkind = "toy-random"\n', '[optimizer]\nkind = "toy-random"\nbatch = 3\n')
+    p2.write_text(
+        t2.replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = { sleep = 0.0 }')
+    )
     t0 = time.monotonic()
     bf.fit(bf.load_config(p2), tmp_path / "hang", progress=False)
     evs = RunStore.open(tmp_path / "hang").evaluations()
@@ -118,6 +123,7 @@ def test_failing_and_hanging_simulations_are_logged(toy_plugin, tmp_path):
 def test_clones_table_and_summary(toy_plugin, tmp_path):
     bf.fit(bf.load_config(toy_config(tmp_path, budget=16)), tmp_path / "run", progress=False)
     from bforest_core.pipeline.clones import clones
+
     s = clones(tmp_path / "run", n=5, progress=False)
     assert s["ok"] == 5 and len(list((tmp_path / "run" / "clones").glob("clone_*.txt"))) == 5
     header = (tmp_path / "run" / "clones" / "clones.csv").read_text().splitlines()[0].split(",")
@@ -136,14 +142,25 @@ def _cli_env(toy_site):
 def test_kill_9_then_resume_equals_uninterrupted(toy_plugin, tmp_path):
     """A real `bforest fit` process killed with SIGKILL mid-run, then `--resume`."""
     p = toy_config(tmp_path, budget=48)
-    p.write_text(p.read_text().replace('kind = "toy"\n', 'kind = "toy"\nsleep = 0.05\n', 1)
-                 .replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = { sleep = 0.0 }'))
+    p.write_text(
+        p.read_text()
+        .replace('kind = "toy"\n', 'kind = "toy"\nsleep = 0.05\n', 1)
+        .replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = { sleep = 0.0 }')
+    )
     exe = [sys.executable, "-m", "bforest_core.cli"]
     env = _cli_env(toy_plugin)
-    subprocess.run(exe + ["fit", str(p), "-o", str(tmp_path / "full"), "-q", "--no-report"], env=env, check=True,
-                   capture_output=True)
-    proc = subprocess.Popen(exe + ["fit", str(p), "-o", str(tmp_path / "killed"), "-q", "--no-report"], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    subprocess.run(
+        exe + ["fit", str(p), "-o", str(tmp_path / "full"), "-q", "--no-report"],
+        env=env,
+        check=True,
+        capture_output=True,
+    )
+    proc = subprocess.Popen(
+        exe + ["fit", str(p), "-o", str(tmp_path / "killed"), "-q", "--no-report"],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     db = tmp_path / "killed" / "evaluations.sqlite"
     deadline = time.monotonic() + 60
     n = 0
@@ -159,18 +176,38 @@ def test_kill_9_then_resume_equals_uninterrupted(toy_plugin, tmp_path):
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert 12 <= RunStore.open(tmp_path / "killed").count() < 48
-    r = subprocess.run(exe + ["fit", str(tmp_path / "killed" / "config.toml"), "-o", str(tmp_path / "killed"),
-                              "--resume", "-q", "--no-report"], env=env, capture_output=True, text=True)
+    r = subprocess.run(
+        exe
+        + [
+            "fit",
+            str(tmp_path / "killed" / "config.toml"),
+            "-o",
+            str(tmp_path / "killed"),
+            "--resume",
+            "-q",
+            "--no-report",
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
     assert _evals(tmp_path / "killed") == _evals(tmp_path / "full")
-    assert json.loads((tmp_path / "killed" / "best.json").read_text())["params"] == \
-        json.loads((tmp_path / "full" / "best.json").read_text())["params"]
+    assert (
+        json.loads((tmp_path / "killed" / "best.json").read_text())["params"]
+        == json.loads((tmp_path / "full" / "best.json").read_text())["params"]
+    )
 
 
 def test_cli_fit_bad_input_one_line(toy_plugin, tmp_path, capsys):
     from bforest_core.cli import main
+
     p = toy_config(tmp_path)
-    p.write_text(p.read_text().replace("free.angle = { lower = 5.0, upper = 80.0 }", "free.angle = { lower = 5.0, upper = 800.0 }"))
+    p.write_text(
+        p.read_text().replace(
+            "free.angle = { lower = 5.0, upper = 80.0 }", "free.angle = { lower = 5.0, upper = 800.0 }"
+        )
+    )
     assert main(["fit", str(p), "-o", str(tmp_path / "r")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and "ssm.free.angle" in err and "\n" not in err
@@ -187,9 +224,11 @@ def test_explicit_model_seeds(toy_plugin, tmp_path):
 
 def test_compare_optimizers_on_equal_budgets(toy_plugin, tmp_path):
     from bforest_core.pipeline.compare import compare
+
     # budget 100 is not a multiple of emcee's default 16 walkers: every optimiser still spends all of it
-    res = compare(toy_config(tmp_path), ["ga", "de", "emcee", "toy-random"], budget=100, repeats=2,
-                  out_dir=tmp_path / "cmp")
+    res = compare(
+        toy_config(tmp_path), ["ga", "de", "emcee", "toy-random"], budget=100, repeats=2, out_dir=tmp_path / "cmp"
+    )
     assert [t["optimizer"] for t in res["table"]] == ["ga", "de", "emcee", "toy-random"]
     assert len(res["runs"]) == 8 and all(r["evaluations"] == 100 for r in res["runs"])
     for curves in res["curves"].values():
@@ -197,6 +236,7 @@ def test_compare_optimizers_on_equal_budgets(toy_plugin, tmp_path):
     # repeats use different run seeds, so their evaluation sequences differ
     assert not np.array_equal(res["curves"]["ga"][0], res["curves"]["ga"][1])
     from bforest_core.report.comparison import write_compare_figure
+
     fig = write_compare_figure(res)
     assert fig.exists() and fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "](compare.png)" in (tmp_path / "cmp" / "compare.md").read_text()
@@ -207,6 +247,7 @@ def test_compare_lets_each_optimiser_lift_its_own_limits_for_the_budget(toy_plug
     """A plugin's optimiser with a length limit of its own (toy-random's ``batches``) spends the
     whole budget in a comparison through its ``budget_settings``; a fit keeps the limit."""
     from bforest_core.pipeline.compare import compare
+
     p = toy_config(tmp_path, optimizer_settings="batch = 4\nbatches = 2", budget=40)
     assert bf.fit(bf.load_config(p), tmp_path / "fit", progress=False).n_evaluations == 8
     res = compare(p, ["toy-random"], budget=22, repeats=1, out_dir=tmp_path / "cmp")
@@ -218,8 +259,9 @@ def test_compare_lets_each_optimiser_lift_its_own_limits_for_the_budget(toy_plug
 def test_a_fit_that_failed_before_its_first_evaluation_does_not_block_the_retry(toy_plugin, tmp_path):
     bad = toy_config(tmp_path, budget=4)
     text = bad.read_text()
-    bad.write_text(text.replace(text[text.index("[target.generate]"):text.index("[ssm]")],
-                                '[target]\nqsm = "missing.txt"\n'))  # fails while reading the target
+    bad.write_text(
+        text.replace(text[text.index("[target.generate]") : text.index("[ssm]")], '[target]\nqsm = "missing.txt"\n')
+    )  # fails while reading the target
     with pytest.raises((bf.BayesForestError, FileNotFoundError)):
         bf.fit(bf.load_config(bad), tmp_path / "run", progress=False)
     assert not (tmp_path / "run" / "evaluations.sqlite").exists()  # refused before the run was written
@@ -233,6 +275,7 @@ def test_compare_threshold_by_name_and_the_configs_own_settings(toy_plugin, tmp_
     import tomllib
 
     from bforest_core.pipeline.compare import compare
+
     cfg = toy_config(tmp_path, optimizer="ga", optimizer_settings="population = 6")
     res = compare(cfg, ["ga", "toy-random"], budget=24, repeats=2, out_dir=tmp_path / "cmp", threshold="ga")
     ga_best = [r["best"] for r in res["runs"] if r["optimizer"] == "ga"]
@@ -247,6 +290,7 @@ def test_compare_threshold_by_name_and_the_configs_own_settings(toy_plugin, tmp_
 def test_compare_keeps_earlier_runs_and_adds_an_optimiser_with_resume(toy_plugin, tmp_path):
     from bforest_core.pipeline.compare import compare
     from bforest_core.pipeline.store import RunDirError
+
     cfg = toy_config(tmp_path)
     first = compare(cfg, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp")
     stamp = (tmp_path / "cmp" / "ga-0" / "evaluations.sqlite").stat().st_mtime_ns
@@ -268,8 +312,11 @@ def test_compare_curves_never_count_a_failed_simulation_as_a_fit(toy_plugin, tmp
     import json
 
     from bforest_core.pipeline.compare import compare
+
     p = toy_config(tmp_path)
-    p.write_text(p.read_text().replace('kind = "toy"\n', 'kind = "toy"\nfail_above = 50.0\n') + "[objective]\npenalty = 0.0\n")
+    p.write_text(
+        p.read_text().replace('kind = "toy"\n', 'kind = "toy"\nfail_above = 50.0\n') + "[objective]\npenalty = 0.0\n"
+    )
     res = compare(p, ["toy-random"], budget=30, repeats=2, out_dir=tmp_path / "cmp")
     for r, curve in enumerate(res["curves"]["toy-random"]):
         evs = RunStore.open(tmp_path / "cmp" / f"toy-random-{r}").evaluations()
@@ -281,6 +328,7 @@ def test_compare_curves_never_count_a_failed_simulation_as_a_fit(toy_plugin, tmp
     import warnings
 
     from bforest_core.report.comparison import write_compare_figure
+
     res["curves"]["toy-random"][0][0] = np.inf
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -296,23 +344,43 @@ def test_compare_scores_best_points_on_held_out_model_seeds(toy_plugin, tmp_path
     from bforest_core.pipeline.compare import compare
     from bforest_core.pipeline.seeds import heldout_seeds
     from bforest_core.pipeline.target import build_target
+
     p = toy_config(tmp_path)
     p.write_text(p.read_text() + "[objective]\nseeds = 2\n")
-    res = compare(p, ["ga", "toy-random"], budget=24, repeats=2, out_dir=tmp_path / "cmp", threshold="ga",
-                  heldout=3, at=[8])
+    res = compare(
+        p, ["ga", "toy-random"], budget=24, repeats=2, out_dir=tmp_path / "cmp", threshold="ga", heldout=3, at=[8]
+    )
     cfg = bf.load_config(p)
     sets = heldout_seeds(cfg.seed, 3, 2)
-    own = {s for r in range(2) for name in ("ga", "toy-random")
-           for e in RunStore.open(tmp_path / "cmp" / f"{name}-{r}").evaluations() for s in e.seeds}
+    own = {
+        s
+        for r in range(2)
+        for name in ("ga", "toy-random")
+        for e in RunStore.open(tmp_path / "cmp" / f"{name}-{r}").evaluations()
+        for s in e.seeds
+    }
     assert len({s for st in sets for s in st} | own) == 6 + len(own)  # 6 held-out seeds, none a fit's
-    ssm, feats, dist = bf.component("ssm", "toy"), bf.component("features", "toy-features"), bf.component("distance", "toy-distance")
+    ssm, feats, dist = (
+        bf.component("ssm", "toy"),
+        bf.component("features", "toy-features"),
+        bf.component("distance", "toy-distance"),
+    )
     target = build_target(cfg).U["L"]
     for row in res["runs"]:
         store = RunStore.open(tmp_path / "cmp" / f"{row['optimizer']}-{row['repeat']}")
         for cp, before in (("8", 8), ("final", None)):
             e = store.best(before=before)
-            want = np.mean([np.mean([dist.compute(feats.extract(ssm.simulate({**e.params, "noise": 2.0}, s))["L"], target)
-                                     for s in st]) for st in sets])
+            want = np.mean(
+                [
+                    np.mean(
+                        [
+                            dist.compute(feats.extract(ssm.simulate({**e.params, "noise": 2.0}, s))["L"], target)
+                            for s in st
+                        ]
+                    )
+                    for st in sets
+                ]
+            )
             got = row["heldout"][cp]
             assert got["heldout"] == pytest.approx(want, rel=1e-12)
             assert (got["own"], got["evaluations"]) == (e.distance, e.idx + 1)
@@ -333,6 +401,7 @@ def test_compare_scores_best_points_on_held_out_model_seeds(toy_plugin, tmp_path
     assert saved["heldout"]["sets"] == 3 and saved["heldout"]["model_seeds_per_set"] == 2
     assert "held out" in (tmp_path / "cmp" / "compare.md").read_text()
     from bforest_core.report.comparison import write_compare_figure
+
     assert write_compare_figure(res).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(ValueError, match="--at, which needs --heldout"):
         compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", resume=True, at=[8])
@@ -345,17 +414,20 @@ def test_held_out_scores_are_kept_in_the_runs_and_not_grown_twice(toy_plugin, tm
     import json
 
     import bforest_core.pipeline.compare as cmp_mod
+
     p = toy_config(tmp_path)
     p.write_text(p.read_text() + "[objective]\nseeds = 2\n")
     first = cmp_mod.compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", heldout=3, at=[8])
     cmp_mod.compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", resume=True)
     assert "heldout" not in json.loads((tmp_path / "cmp" / "compare.json").read_text())
     from bforest_core.pipeline.heldout import scoring_fingerprint
+
     for r in range(2):
         with RunStore.open(tmp_path / "cmp" / f"ga-{r}") as store:
             assert store.heldout_scores(scoring_fingerprint(bf.load_config(p)))
     grown = []
     import bforest_core.pipeline.heldout as heldout_mod
+
     real = heldout_mod.evaluate_task
     monkeypatch.setattr(heldout_mod, "evaluate_task", lambda task: grown.append(task) or real(task))
     again = cmp_mod.compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", resume=True, heldout=3, at=[8])
@@ -368,7 +440,10 @@ def test_held_out_scores_are_kept_in_the_runs_and_not_grown_twice(toy_plugin, tm
     # another objective is another score: grown again, the earlier scores kept beside it
     from bforest_core.pipeline.compare import score_heldout
     from bforest_core.pipeline.target import build_target
-    cfg = bf.load_config(p).model_copy(update={"objective": bf.load_config(p).objective.model_copy(update={"penalty": 2.0})})
+
+    cfg = bf.load_config(p).model_copy(
+        update={"objective": bf.load_config(p).objective.model_copy(update={"penalty": 2.0})}
+    )
     grown.clear()
     score_heldout({"ga": [tmp_path / "cmp" / "ga-0"]}, cfg, build_target(cfg), 3)
     assert len(grown) == 3

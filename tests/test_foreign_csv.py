@@ -1,5 +1,6 @@
 """SimpleForest and aRchi CSV writers: round trips through the bundled readers, and the derived
 columns agree with what SimpleForest itself wrote."""
+
 import numpy as np
 import pytest
 
@@ -40,6 +41,7 @@ def test_derived_columns_agree_with_simpleforest():
 
     def same_partition(a, b):
         return len(set(zip(a, b))) == len(set(a)) == len(set(b))
+
     assert same_partition(seg, f[:, 12].astype(int)) and len(set(seg)) == 133
     assert same_partition(stem_branch_id(t), f[:, 16].astype(int))
     assert np.array_equal(reverse[seg], f[:, 15].astype(int))

@@ -4,6 +4,7 @@ Hand-built trees with known heights, angles and crown forms: an excurrent one (a
 top carrying short branches, like a pine) and a decurrent one (a short bole that divides into
 three heavy limbs, like a maple), and a QSM without a trunk.
 """
+
 from __future__ import annotations
 
 import math
@@ -16,8 +17,8 @@ import bforest_core as bf
 from bforest_core.cli.main import main
 from bforest_core.metrics import measure_tree
 from bforest_core.pipeline.recipe import write_recipe
-
-from conftest import ROOT, qsm_path as sample
+from conftest import ROOT
+from conftest import qsm_path as sample
 
 
 def _axis(zenith_deg: float, azimuth_deg: float) -> np.ndarray:
@@ -47,8 +48,14 @@ class Builder:
         return self.start[i] + self.length[i] * self.axis[i]
 
     def tree(self) -> bf.Tree:
-        return bf.Tree(np.array(self.start), np.array(self.axis), np.array(self.length),
-                       np.array(self.radius), np.array(self.parent), topology="thickest")
+        return bf.Tree(
+            np.array(self.start),
+            np.array(self.axis),
+            np.array(self.length),
+            np.array(self.radius),
+            np.array(self.parent),
+            topology="thickest",
+        )
 
 
 def excurrent_tree() -> bf.Tree:
@@ -91,10 +98,12 @@ def test_measures_of_the_hand_trees():
     assert not ex.decurrent and ex.limb_ratio < 0.1
     assert (ex.beta_q10, ex.beta_q90) == (pytest.approx(50.0), pytest.approx(80.0))
     assert ex.thinnest_branch == pytest.approx(0.01)
+
     # the thickest child continues the stem: one limb is the stem's crown part; the other two
     # limbs with their branches and the stem's short continuation are the three largest limbs
     def vol(r0, r1, n):
         return sum(math.pi * (r0 + (r1 - r0) * k / (n - 1)) ** 2 * 0.5 for k in range(n))
+
     limb, sub, cont = vol(0.12, 0.04, 12), 4 * vol(0.015, 0.012, 3), vol(0.06, 0.05, 2) / 2
     assert de.decurrent and de.limb_ratio == pytest.approx((2 * (limb + sub) + cont) / limb)
     assert de.height == pytest.approx(3.0 + 6 * math.cos(math.radians(30)))
@@ -173,9 +182,14 @@ def test_init_on_pine_3_is_the_shipped_lignum_recipe(tmp_path):
     assert a == b and list(a["ssm"]["free"]) == list(b["ssm"]["free"])
 
 
-@pytest.mark.parametrize("name, model, form", [("wytham_tf1.mat", "sot", "decurrent"),
-                                               ("coffeetree_treeqsm_optqsm.mat", "sot", "decurrent"),
-                                               ("pine_ruotsinkyla_1.mat", "lignum", "excurrent")])
+@pytest.mark.parametrize(
+    "name, model, form",
+    [
+        ("wytham_tf1.mat", "sot", "decurrent"),
+        ("coffeetree_treeqsm_optqsm.mat", "sot", "decurrent"),
+        ("pine_ruotsinkyla_1.mat", "lignum", "excurrent"),
+    ],
+)
 def test_init_on_the_sample_trees_picks_the_model_for_their_crown_form(tmp_path, name, model, form):
     r = write_recipe(sample(name), tmp_path / "r.toml")
     assert r.model == model and (r.measures.decurrent == (form == "decurrent"))

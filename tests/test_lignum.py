@@ -3,6 +3,7 @@
 Deliberately NOT asserted (docs/models.md D warns they are false): monotone taper along branches, trunk
 radii never increasing upwards, crown radius <= R_env, the beta_max cap for order >= 2.
 """
+
 from __future__ import annotations
 
 import math
@@ -45,8 +46,17 @@ def real32():
 
 
 def _arrays(tree):
-    return (tree.start, tree.axis, tree.length, tree.radius, tree.parent, tree.extension,
-            tree.extras["is_dead"], tree.extras["heartwood_radius"], tree.extras["foliage_mass"])
+    return (
+        tree.start,
+        tree.axis,
+        tree.length,
+        tree.radius,
+        tree.parent,
+        tree.extension,
+        tree.extras["is_dead"],
+        tree.extras["heartwood_radius"],
+        tree.extras["foliage_mass"],
+    )
 
 
 def _same(a, b):
@@ -61,36 +71,84 @@ def _height_crown(tree):
 # ---------------------------------------------------------------------------- component, params
 def test_component_parameters_and_presets(ssm):
     names = [p.name for p in ssm.parameters]
-    for n in ("years", "radiation", "shadow_max", "shadow_len", "voxel_size", "r_env_mean", "r_env_sd",
-              "lr_mean", "lr_sd", "q_mean", "q_sd", "beta_init", "beta_incr", "beta_max", "zeta_sd",
-              "gamma_sd", "init_rot_angle", "whorl_rotation_sd", "shed_year", "shed_dist", "shed_mu",
-              "foliage_per_area", "root_per_foliage", "root_senescence", "sapwood_senescence", "ss_start",
-              "resp_foliage", "resp_sapwood", "resp_root", "heartwood_share", "wood_density", "photo_eff",
-              "fl_threshold", "fl_min_buds", "min_len", "init_len", "pipe_coeff", "fol_threshold",
-              "bud_table", "collision"):
+    for n in (
+        "years",
+        "radiation",
+        "shadow_max",
+        "shadow_len",
+        "voxel_size",
+        "r_env_mean",
+        "r_env_sd",
+        "lr_mean",
+        "lr_sd",
+        "q_mean",
+        "q_sd",
+        "beta_init",
+        "beta_incr",
+        "beta_max",
+        "zeta_sd",
+        "gamma_sd",
+        "init_rot_angle",
+        "whorl_rotation_sd",
+        "shed_year",
+        "shed_dist",
+        "shed_mu",
+        "foliage_per_area",
+        "root_per_foliage",
+        "root_senescence",
+        "sapwood_senescence",
+        "ss_start",
+        "resp_foliage",
+        "resp_sapwood",
+        "resp_root",
+        "heartwood_share",
+        "wood_density",
+        "photo_eff",
+        "fl_threshold",
+        "fl_min_buds",
+        "min_len",
+        "init_len",
+        "pipe_coeff",
+        "fol_threshold",
+        "bud_table",
+        "collision",
+    ):
         assert n in names
     spec = {p.name: p for p in ssm.parameters}
     assert spec["years"].integer and spec["years"].default == 15
     assert spec["shadow_len"].unit == "m" and spec["shadow_len"].description.startswith("[S_L]")
     assert (spec["lr_mean"].default, spec["lr_sd"].default, spec["q_mean"].default) == (0.009, 0.001, 0.2)
     real = {p.name: p.default for p in _ssm(preset="sf_real").parameters}
-    assert (real["shadow_max"], real["shadow_len"], real["years"], real["shed_dist"], real["bud_table"]) == \
-        (72.4, 0.87, 32, 2, 1)
+    assert (real["shadow_max"], real["shadow_len"], real["years"], real["shed_dist"], real["bud_table"]) == (
+        72.4,
+        0.87,
+        32,
+        2,
+        1,
+    )
     assert {p.name: p.default for p in _ssm(preset="p98").parameters}["voxel_size"] == 0.01
     assert {p.name: p.default for p in _ssm(preset="s08").parameters}["pipe_coeff"] == 0.77
     assert {p.name: p.default for p in _ssm(preset="sf_test16").parameters}["shadow_len"] == 0.4
     for preset in LP.PRESETS:  # every preset's values lie in the plausible ranges
         for p in _ssm(preset=preset).parameters:
             assert p.lower <= p.default <= p.upper, (preset, p.name)
-    with pytest.raises(Exception):
+    with pytest.raises(bf.ConfigError, match="preset"):
         _ssm(preset="nope")
 
 
-@pytest.mark.parametrize("bad, name", [({"lr_sd": -0.1}, "lr_sd"), ({"voxel_size": 0.0}, "voxel_size"),
-                                       ({"shed_dist": 3}, "shed_dist"), ({"zeta_sd": -1}, "zeta_sd"),
-                                       ({"years": 0}, "years"), ({"bud_table": "x"}, "bud_table"),
-                                       ({"radiation": float("nan")}, "radiation"),
-                                       ({"no_such_parameter": 1}, "no_such_parameter")])
+@pytest.mark.parametrize(
+    "bad, name",
+    [
+        ({"lr_sd": -0.1}, "lr_sd"),
+        ({"voxel_size": 0.0}, "voxel_size"),
+        ({"shed_dist": 3}, "shed_dist"),
+        ({"zeta_sd": -1}, "zeta_sd"),
+        ({"years": 0}, "years"),
+        ({"bud_table": "x"}, "bud_table"),
+        ({"radiation": float("nan")}, "radiation"),
+        ({"no_such_parameter": 1}, "no_such_parameter"),
+    ],
+)
 def test_invalid_parameters_raise_value_error_naming_them(ssm, bad, name):
     with pytest.raises(ValueError, match=name):
         ssm.simulate(bad, seed=1)
@@ -146,7 +204,7 @@ def test_q_max_rounding():
 @pytest.mark.parametrize("n, spread, q", [(300, 20, 28), (800, 40, 44), (200, 6, 5), (50, 3, 2)])
 def test_fast_shadow_equals_brute_force(n, spread, q):
     vox = RNG.integers(-spread, spread, size=(n, 3))
-    vox[: n // 10] = vox[n // 10: 2 * (n // 10)]  # several sources in one voxel
+    vox[: n // 10] = vox[n // 10 : 2 * (n // 10)]  # several sources in one voxel
     fast = shadow_fast(vox, 7.3, q)
     brute = shadow_brute(vox, 7.3, q)
     assert np.array_equal(fast, brute)
@@ -172,6 +230,7 @@ def test_fast_shadow_equals_brute_force_on_a_grown_crown(synth12):
 
 def test_all_shadow_methods_on_a_grown_crown(synth12, monkeypatch):
     from bforest_lignum import shadow as SH
+
     _, _, views = synth12
     v = views[10]
     vox = voxel_coords(v.start + 0.5 * v.length[:, None] * v.axis, 0.02)
@@ -197,13 +256,14 @@ def test_pyramid_geometry_exact_values():
         for dx, dy in ((0, 0), (dz, -dz), (dz, 0)):
             vox = np.array([[0, 0, 0], [dx, dy, dz]])
             assert shadow_fast(vox, smax, q)[0] == pytest.approx(smax * (1 - dz / q), rel=1e-15, abs=0)
-            assert shadow_fast(vox, smax, q)[1] == 0.0                  # no shade upwards
+            assert shadow_fast(vox, smax, q)[1] == 0.0  # no shade upwards
     outside = [[1, 0, 0], [0, 0, 28], [3, 0, 2], [0, -3, 2], [0, 0, 0]]
     for o in outside:
         assert shadow_fast(np.array([[0, 0, 0], o]), smax, q)[0] == 0.0
     # sources in one voxel add up; the lattice is origin-anchored (floor)
     assert shadow_fast(np.array([[0, 0, 0], [0, 0, 3], [0, 0, 3]]), smax, q)[0] == pytest.approx(
-        2 * smax * (1 - 3 / q), rel=1e-15, abs=0)
+        2 * smax * (1 - 3 / q), rel=1e-15, abs=0
+    )
     assert voxel_coords(np.array([[-0.001, 0.019, 0.02]]), 0.02).tolist() == [[-1, 0, 1]]
 
 
@@ -221,7 +281,7 @@ def test_light_lone_and_bare_segments():
 
 def test_light_ranges_and_production_counts_only_foliage(synth12):
     _, trace, views = synth12
-    for t, v in views.items():
+    for v in views.values():
         R = 30.0
         fol = v.foliage > 1e-5
         assert np.all(v.shadow[fol] >= 0) and np.all(np.isnan(v.shadow[~fol]))
@@ -289,8 +349,16 @@ def test_height_grows_with_years(synth12):
 
 
 def test_no_randomness_gives_identical_trees(ssm):
-    quiet = {"years": 8, "zeta_sd": 0, "gamma_sd": 0, "lr_sd": 0, "q_sd": 0, "r_env_sd": 0,
-             "whorl_rotation_sd": 0, "shed_dist": 0}
+    quiet = {
+        "years": 8,
+        "zeta_sd": 0,
+        "gamma_sd": 0,
+        "lr_sd": 0,
+        "q_sd": 0,
+        "r_env_sd": 0,
+        "whorl_rotation_sd": 0,
+        "shed_dist": 0,
+    }
     assert _same(ssm.simulate(quiet, seed=1), ssm.simulate(quiet, seed=99))
 
 
@@ -311,8 +379,9 @@ def test_too_many_segments_failure():
 
 
 def test_no_root_failure():
-    sim = LM._Simulation(_ssm().resolve_params({"years": 2}), 1, preset="sf_synthetic",
-                         order_mode="growth", max_live=10)
+    sim = LM._Simulation(
+        _ssm().resolve_params({"years": 2}), 1, preset="sf_synthetic", order_mode="growth", max_live=10
+    )
     sim._init()
     sim.st.deleted[:] = True
     with pytest.raises(LM._Failed) as ei:
@@ -355,7 +424,7 @@ def test_carbon_spent_equals_balance_from_state_changes(synth12):
         new = np.arange(n_old, d["end_radius"].size)
         r_new, L_new = d["end_radius"][new], d["end_length"][new]
         wf0 = p["foliage_per_area"] * 2 * np.pi * r_new * L_new
-        wood_new = p["wood_density"] * np.sum(np.pi * r_new ** 2 * L_new)
+        wood_new = p["wood_density"] * np.sum(np.pi * r_new**2 * L_new)
         dA = np.pi * d["end_radius"][old] ** 2 - np.pi * d["r_before"][old] ** 2
         wood_old = p["wood_density"] * np.sum(d["end_length"][old] * dA)
         spent = (1 + p["root_per_foliage"]) * wf0.sum() + wood_new + wood_old
@@ -371,11 +440,11 @@ def test_pipe_model_areas(synth12):
     for tr in trace:
         d = tr.data
         old = np.flatnonzero(d["old_live"] & ~np.isin(np.arange(d["B"].size), d["ground_removed"]))
-        Areq = d["Ah"][old] + tr.lam ** 2 * d["B"][old] + d["C"][old]
+        Areq = d["Ah"][old] + tr.lam**2 * d["B"][old] + d["C"][old]
         r, hw = d["end_radius"][old], d["end_hw"][old]
         unc = Areq >= d["A_before"][old]
-        sap = np.pi * (r ** 2 - hw ** 2)
-        target = tr.lam ** 2 * d["B"][old] + d["C"][old]
+        sap = np.pi * (r**2 - hw**2)
+        target = tr.lam**2 * d["B"][old] + d["C"][old]
         np.testing.assert_allclose(sap[unc], target[unc], rtol=1e-12, atol=0)
         unclamped_total += unc.sum()
     assert unclamped_total > 1000
@@ -461,7 +530,7 @@ def test_first_order_inclination_cap(synth12):
     tree, _, views = synth12
     bmax = 95.0
     worst = 0.0
-    for t, v in views.items():
+    for v in views.values():
         tr = v.tree()
         o1 = tr.order == 1
         incl = np.degrees(np.arccos(np.clip(tr.axis[o1, 2], -1, 1)))
@@ -514,8 +583,14 @@ def _no_shedding_candidates(d, p):
     has_ext[parent[nonroot[~is_lat[nonroot]]]] = True
     lat_on_axis = np.zeros(n, bool)
     lat_on_axis[axis_id[parent[nonroot[is_lat[nonroot]]]]] = True
-    bare_old_tip = (live & ~has_ext & (d["end_order"] >= 1) & ~d["end_dead"]
-                    & (d["end_wf"] < p["fol_threshold"]) & (d["end_age"] >= p["shed_year"]))
+    bare_old_tip = (
+        live
+        & ~has_ext
+        & (d["end_order"] >= 1)
+        & ~d["end_dead"]
+        & (d["end_wf"] < p["fol_threshold"])
+        & (d["end_age"] >= p["shed_year"])
+    )
     return not np.any(bare_old_tip & ~lat_on_axis[axis_id])
 
 
@@ -627,9 +702,10 @@ def test_render_pieces_on_a_hand_built_table():
     ext = np.array([-1, -1])
     order = np.array([0, 1])
     for wind in (0.0, 25.0):
-        s, a, ln, par, ex, keep = LM.render_pieces(start, axis, length, parent, ext, order, 0.1, wind,
-                                                   np.random.default_rng(5))
-        assert keep.tolist() == [0] * 10 + [1] * 4                  # ceil(1/0.1) and ceil(0.35/0.1)
+        s, a, ln, par, ex, keep = LM.render_pieces(
+            start, axis, length, parent, ext, order, 0.1, wind, np.random.default_rng(5)
+        )
+        assert keep.tolist() == [0] * 10 + [1] * 4  # ceil(1/0.1) and ceil(0.35/0.1)
         assert par.tolist() == [-1] + list(range(9)) + [9, 10, 11, 12]
         assert ex.tolist() == list(range(1, 10)) + [-1, 11, 12, 13, -1]
         end = s + a * ln[:, None]

@@ -1,4 +1,5 @@
 """Classical metrics (docs/features-and-distance.md §5): height, girth/DBH, crown spread, relative errors."""
+
 import numpy as np
 import pytest
 
@@ -13,8 +14,8 @@ S60 = np.sin(np.radians(60))
 def test_hand_tree_height_girth_dbh():
     m = bf.classical_metrics(hand_tree())
     assert m["height"] == pytest.approx(3.0, abs=1e-12)
-    assert m["girth"] == pytest.approx(0.40, abs=1e-12)   # 2 x root radius
-    assert m["dbh"] == pytest.approx(0.30, abs=1e-12)     # trunk cylinder 1 spans z = 1.3
+    assert m["girth"] == pytest.approx(0.40, abs=1e-12)  # 2 x root radius
+    assert m["dbh"] == pytest.approx(0.30, abs=1e-12)  # trunk cylinder 1 spans z = 1.3
     assert bf.classical_metrics(hand_tree(), girth="dbh")["girth"] == pytest.approx(0.30, abs=1e-12)
 
 
@@ -86,10 +87,14 @@ def test_relative_errors():
 # ------------------------------------------------------------------------------ real data
 
 
-
-@pytest.mark.parametrize("name,h,g", [("coffeetree_treeqsm_optqsm.mat", 3.72, 0.093),
-                                      ("coffeetree_simpleforest.csv", 3.70, 0.094),
-                                      ("coffeetree_archi.csv", 3.65, 0.086)])
+@pytest.mark.parametrize(
+    "name,h,g",
+    [
+        ("coffeetree_treeqsm_optqsm.mat", 3.72, 0.093),
+        ("coffeetree_simpleforest.csv", 3.70, 0.094),
+        ("coffeetree_archi.csv", 3.65, 0.086),
+    ],
+)
 def test_real_coffee_tree_height_and_girth(name, h, g):
     m = bf.classical_metrics(read_sample(name))
     assert m["height"] == pytest.approx(h, abs=0.005)

@@ -1,4 +1,5 @@
 """An objective of several terms: [[objective.terms]] beside the [features]/[distance] term."""
+
 import json
 
 import numpy as np
@@ -79,15 +80,21 @@ def test_score_tree_and_combine_terms(toy_plugin, tmp_path):
         worker._CTX.update(saved)
 
 
-@pytest.mark.parametrize("term, message", [
-    ('name = "x"\nfeatures = { kind = "nope" }\ndistance = { kind = "toy-distance" }',
-     "objective.terms[0] (x).features"),
-    ('name = "x"\nfeatures = { kind = "toy-features", bogus = 1 }\ndistance = { kind = "toy-distance" }',
-     "bogus"),
-    ('name = "x"\nfeatures = { sets = ["A"] }\ndistance = { kind = "toy-distance" }', "needs kind"),
-    ('name = "structure"\nfeatures = { kind = "toy-features" }\ndistance = { kind = "toy-distance" }',
-     "used twice"),
-])
+@pytest.mark.parametrize(
+    "term, message",
+    [
+        (
+            'name = "x"\nfeatures = { kind = "nope" }\ndistance = { kind = "toy-distance" }',
+            "objective.terms[0] (x).features",
+        ),
+        ('name = "x"\nfeatures = { kind = "toy-features", bogus = 1 }\ndistance = { kind = "toy-distance" }', "bogus"),
+        ('name = "x"\nfeatures = { sets = ["A"] }\ndistance = { kind = "toy-distance" }', "needs kind"),
+        (
+            'name = "structure"\nfeatures = { kind = "toy-features" }\ndistance = { kind = "toy-distance" }',
+            "used twice",
+        ),
+    ],
+)
 def test_bad_terms_are_named(toy_plugin, tmp_path, term, message):
     p = toy_config(tmp_path)
     p.write_text(p.read_text() + "\n[[objective.terms]]\n" + term + "\n")

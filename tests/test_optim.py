@@ -4,6 +4,7 @@
 integer rounding, an evaluation budget after which points get ``inf`` and ``stopped`` is set,
 best-point tracking, and a record of every batch.
 """
+
 from __future__ import annotations
 
 import math
@@ -14,7 +15,6 @@ import pytest
 import bforest_core as bf
 from bforest_core.errors import ConfigError
 from bforest_core.interfaces import Problem
-
 from bforest_optim.cma_es import CMAES
 from bforest_optim.de import DifferentialEvolution
 from bforest_optim.emcee_sampler import EmceeSampler, auto_epsilon
@@ -89,12 +89,32 @@ class Recorder:
         return np.concatenate([b[1] for b in self.batches])
 
 
-def make_problem(fun=quadratic, *, budget=None, seed=0, lower=LOWER, upper=UPPER, integer=INTEGER,
-                 init_lower=None, init_upper=None, replay=None, target=None):
+def make_problem(
+    fun=quadratic,
+    *,
+    budget=None,
+    seed=0,
+    lower=LOWER,
+    upper=UPPER,
+    integer=INTEGER,
+    init_lower=None,
+    init_upper=None,
+    replay=None,
+    target=None,
+):
     logs: list[dict] = []
-    pr = Problem(list(NAMES[: len(lower)]), np.asarray(lower, float), np.asarray(upper, float),
-                 np.asarray(integer, bool), evaluate=None, init_lower=init_lower, init_upper=init_upper,
-                 seed=seed, budget=budget, log=logs.append)
+    pr = Problem(
+        list(NAMES[: len(lower)]),
+        np.asarray(lower, float),
+        np.asarray(upper, float),
+        np.asarray(integer, bool),
+        evaluate=None,
+        init_lower=init_lower,
+        init_upper=init_upper,
+        seed=seed,
+        budget=budget,
+        log=logs.append,
+    )
     rec = Recorder(fun, pr, replay, target)
     pr.evaluate = rec
     return pr, rec, logs
@@ -106,7 +126,13 @@ CASES = {
     "ga-intermediate": (GeneticAlgorithm, {"crossover": "intermediate", "selection": "tournament"}, None, 0.1, 0.02),
     "nlopt-crs2": (NloptOptimizer, {"maxeval": 1500}, None, 0.05, 1e-3),
     "nlopt-sbplx": (NloptOptimizer, {"algorithm": "sbplx", "maxeval": 1500}, None, 0.05, 1e-3),
-    "nlopt-direct+bobyqa": (NloptOptimizer, {"algorithm": "direct_l", "local_algorithm": "LN_BOBYQA"}, 1500, 0.05, 1e-3),
+    "nlopt-direct+bobyqa": (
+        NloptOptimizer,
+        {"algorithm": "direct_l", "local_algorithm": "LN_BOBYQA"},
+        1500,
+        0.05,
+        1e-3,
+    ),
     "emcee": (EmceeSampler, {"epsilon": 0.5, "steps": 150}, None, 0.3, 0.1),
     "de": (DifferentialEvolution, {}, None, 0.05, 1e-3),
     "cma-lq": (CMAES, {"surrogate": "lq", "population": 8}, 600, 0.05, 1e-3),
@@ -179,8 +205,14 @@ def test_stops_at_budget_and_returns_best_seen(case):
 def test_stops_at_target_mid_run_and_returns_best_seen(case):
     """A stop that is not the evaluation budget (target distance, wall time) ends the run at
     once, whatever NLopt's maxeval says."""
-    cls, settings, *_ = CASES[case] if case in CASES else (NloptOptimizer, {
-        "nlopt-isres": {"algorithm": "GN_ISRES"}, "nlopt-mlsl": {"algorithm": "GN_MLSL_LDS"}}[case])
+    cls, settings, *_ = (
+        CASES[case]
+        if case in CASES
+        else (
+            NloptOptimizer,
+            {"nlopt-isres": {"algorithm": "GN_ISRES"}, "nlopt-mlsl": {"algorithm": "GN_MLSL_LDS"}}[case],
+        )
+    )
     pr, rec, _ = make_problem(seed=5, target=10.0)  # reached within the first few points
     res = cls(**settings).minimize(pr)
     assert pr.stopped and res.stop_reason == "target"
@@ -229,8 +261,13 @@ def test_evaluations_respect_bounds_and_init_box(case):
 
 def test_ga_keeps_integers_integral_and_uses_integer_steps():
     # n starts in {0, 1, 2}: reaching n = 3 takes integer mutation steps
-    pr, rec, _ = make_problem(budget=None, seed=4, integer=np.array([False, True, True]),
-                              init_lower=np.array([-5.0, -5.0, 0.0]), init_upper=np.array([5.0, 5.0, 2.0]))
+    pr, rec, _ = make_problem(
+        budget=None,
+        seed=4,
+        integer=np.array([False, True, True]),
+        init_lower=np.array([-5.0, -5.0, 0.0]),
+        init_upper=np.array([5.0, 5.0, 2.0]),
+    )
     res = GeneticAlgorithm(generations=20).minimize(pr)
     P = rec.points
     assert np.array_equal(P[:, 1:], np.rint(P[:, 1:]))
@@ -264,8 +301,10 @@ def test_ga_stall_stops_early():
 
 def test_failed_evaluations_are_never_the_best():
     """NaN/inf (failed simulations) are ignored; the optimisers still find the minimum."""
+
     def failing(x):
         return math.nan if x[0] > 2.0 else quadratic(x)
+
     for cls, settings in [(GeneticAlgorithm, {}), (DifferentialEvolution, {}), (NloptOptimizer, {"maxeval": 800})]:
         pr, rec, _ = make_problem(fun=failing, seed=6)
         res = cls(**settings).minimize(pr)
@@ -354,8 +393,9 @@ def test_nlopt_algorithm_names():
 
 def test_nlopt_one_point_per_call_and_polish_after_global():
     pr, rec, logs = make_problem(seed=1)
-    res = NloptOptimizer(algorithm="GN_ISRES", population=30, maxeval=300, local_algorithm="sbplx",
-                         local_maxeval=200).minimize(pr)
+    res = NloptOptimizer(
+        algorithm="GN_ISRES", population=30, maxeval=300, local_algorithm="sbplx", local_maxeval=200
+    ).minimize(pr)
     assert all(len(X) == 1 for X, _ in rec.batches)
     phases = [r["phase"] for r in logs]
     assert phases.count("global") == 300 and 0 < phases.count("local") <= 200
@@ -366,8 +406,12 @@ def test_nlopt_one_point_per_call_and_polish_after_global():
 
 # ------------------------------------------------------------------------------ registry, settings
 def test_components_are_registered():
-    for name, cls in [("ga", GeneticAlgorithm), ("nlopt", NloptOptimizer), ("emcee", EmceeSampler),
-                      ("de", DifferentialEvolution)]:
+    for name, cls in [
+        ("ga", GeneticAlgorithm),
+        ("nlopt", NloptOptimizer),
+        ("emcee", EmceeSampler),
+        ("de", DifferentialEvolution),
+    ]:
         comp = bf.component("optimizer", name)
         assert type(comp) is cls and comp.kind == "optimizer"
     with pytest.raises(ConfigError, match="elite_count"):

@@ -1,6 +1,7 @@
 """A fit no plugin can kill: misbehaving SSMs (installed on the fly from
 ``tests/toy_plugin/bforest_toy_faults.py``) cost their evaluations, never the fit; workers that
 die or hang are replaced; every worker dies with its owner."""
+
 from __future__ import annotations
 
 import os
@@ -33,6 +34,7 @@ def _install(site: Path, module: str, name: str) -> Path:
 def faulty(toy_plugin, tmp_path_factory):
     """The ``toy-faulty`` SSM registered through an entry point for this module's tests."""
     from bforest_core import config, registry
+
     site = _install(tmp_path_factory.mktemp("faults_site"), "bforest_toy_faults", "faults")
     sys.path.insert(0, str(site))
     registry.discover(refresh=True)
@@ -44,16 +46,33 @@ def faulty(toy_plugin, tmp_path_factory):
 
 
 def _env(*sites):
-    return {**os.environ, "PYTHONPATH": os.pathsep.join([*map(str, sites), str(TOY_DIR), os.environ.get("PYTHONPATH", "")])}
+    return {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([*map(str, sites), str(TOY_DIR), os.environ.get("PYTHONPATH", "")]),
+    }
 
 
-def faulty_config(tmp_path: Path, fault: str, above: float, budget=12, executor="process", workers=2,
-                  extra_ssm="", objective="", batch=4) -> Path:
-    p = toy_config(tmp_path, executor=executor, budget=budget,
-                   executor_settings=f"workers = {workers}" if executor == "process" else "",
-                   optimizer_settings=f"batch = {batch}")
-    text = p.read_text().replace('[ssm]\nkind = "toy"\n',
-                                 f'[ssm]\nkind = "toy-faulty"\nfault = "{fault}"\nfault_above = {above}\n{extra_ssm}', 1)
+def faulty_config(
+    tmp_path: Path,
+    fault: str,
+    above: float,
+    budget=12,
+    executor="process",
+    workers=2,
+    extra_ssm="",
+    objective="",
+    batch=4,
+) -> Path:
+    p = toy_config(
+        tmp_path,
+        executor=executor,
+        budget=budget,
+        executor_settings=f"workers = {workers}" if executor == "process" else "",
+        optimizer_settings=f"batch = {batch}",
+    )
+    text = p.read_text().replace(
+        '[ssm]\nkind = "toy"\n', f'[ssm]\nkind = "toy-faulty"\nfault = "{fault}"\nfault_above = {above}\n{extra_ssm}', 1
+    )
     p.write_text(text + (f"\n[objective]\n{objective}\n" if objective else ""))
     return p
 
@@ -64,8 +83,9 @@ def _statuses(run):
 
 
 # ------------------------------------------------------------------------------ faults cost one evaluation
-@pytest.mark.parametrize("fault,status", [("exit", "error"), ("abort", "crashed"), ("segv", "crashed"),
-                                          ("unpicklable", "error")])  # the other Python-level ones: serial test
+@pytest.mark.parametrize(
+    "fault,status", [("exit", "error"), ("abort", "crashed"), ("segv", "crashed"), ("unpicklable", "error")]
+)  # the other Python-level ones: serial test
 def test_a_misbehaving_ssm_costs_its_evaluations_not_the_fit(faulty, tmp_path, fault, status):
     """On the process executor: the points above the threshold are logged failed with the
     penalty (the dead worker replaced), the others are scored, the budget is spent."""
@@ -86,29 +106,44 @@ def test_a_misbehaving_ssm_costs_its_evaluations_not_the_fit(faulty, tmp_path, f
 @pytest.mark.parametrize("fault", ["exit", "attribute", "own", "none", "unpicklable"])
 def test_python_level_faults_in_the_serial_executor(faulty, tmp_path, fault):
     """In-process (serial): sys.exit(), AttributeError, a plugin's own exception, a None tree."""
-    bf.fit(bf.load_config(faulty_config(tmp_path, fault, above=45.0, budget=6, executor="serial")), tmp_path / "run",
-           progress=False)
+    bf.fit(
+        bf.load_config(faulty_config(tmp_path, fault, above=45.0, budget=6, executor="serial")),
+        tmp_path / "run",
+        progress=False,
+    )
     got = _statuses(tmp_path / "run")
     assert len(got) == 6
     assert all((st == "error") == (angle > 45.0) for angle, st, _, _ in got)
     msgs = {m for a, st, _, m in got if st == "error"}
-    assert msgs and all(m.split(":")[0] in ("SystemExit", "AttributeError", "ToyModelError", "TypeError", "Unpicklable")
-                        for m in msgs), msgs
+    assert msgs and all(
+        m.split(":")[0] in ("SystemExit", "AttributeError", "ToyModelError", "TypeError", "Unpicklable") for m in msgs
+    ), msgs
 
 
 @linux
 def test_segfaults_on_a_tenth_of_the_points_then_kill_9_and_resume_give_the_identical_log(faulty, tmp_path):
     p = faulty_config(tmp_path, "segv", above=72.5, budget=40, extra_ssm="sleep = 0.03\n", batch=8)
-    p.write_text(p.read_text().replace('[target.generate]\nssm = "toy"',
-                                       '[target.generate]\nssm = "toy"\nsettings = { sleep = 0.0 }'))
+    p.write_text(
+        p.read_text().replace(
+            '[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = { sleep = 0.0 }'
+        )
+    )
     env = _env(*faulty)
-    r = subprocess.run(EXE + ["fit", str(p), "-o", str(tmp_path / "full"), "-q", "--no-report"], env=env,
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        EXE + ["fit", str(p), "-o", str(tmp_path / "full"), "-q", "--no-report"],
+        env=env,
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
     full = _statuses(tmp_path / "full")
     assert len(full) == 40 and any(st == "crashed" for _, st, _, _ in full)
-    proc = subprocess.Popen(EXE + ["fit", str(p), "-o", str(tmp_path / "killed"), "-q", "--no-report"], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        EXE + ["fit", str(p), "-o", str(tmp_path / "killed"), "-q", "--no-report"],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     db, n, deadline = tmp_path / "killed" / "evaluations.sqlite", 0, time.monotonic() + 60
     while time.monotonic() < deadline and n < 12:
         try:
@@ -118,8 +153,21 @@ def test_segfaults_on_a_tenth_of_the_points_then_kill_9_and_resume_give_the_iden
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    r = subprocess.run(EXE + ["fit", str(tmp_path / "killed" / "config.toml"), "-o", str(tmp_path / "killed"),
-                              "--resume", "-q", "--no-report"], env=env, capture_output=True, text=True)
+    r = subprocess.run(
+        EXE
+        + [
+            "fit",
+            str(tmp_path / "killed" / "config.toml"),
+            "-o",
+            str(tmp_path / "killed"),
+            "--resume",
+            "-q",
+            "--no-report",
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 0, r.stderr
     strip = lambda rows: [(a, st, d) for a, st, d, _ in rows]  # noqa: E731 - messages name worker pids
     assert strip(_statuses(tmp_path / "killed")) == strip(full)
@@ -149,11 +197,18 @@ def test_no_worker_outlives_a_killed_fit_even_stuck_in_c(faulty, tmp_path):
     (where a watching thread cannot run): no worker is left after 5 s."""
     pids = tmp_path / "pids"
     pids.mkdir()
-    p = faulty_config(tmp_path, "c-block", above=0.0, budget=4, extra_ssm=f'pid_dir = "{pids}"\n',
-                      objective="timeout = 120")
-    p.write_text(p.read_text().replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = {}'))
-    proc = subprocess.Popen(EXE + ["fit", str(p), "-o", str(tmp_path / "run"), "-q", "--no-report"], env=_env(*faulty),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    p = faulty_config(
+        tmp_path, "c-block", above=0.0, budget=4, extra_ssm=f'pid_dir = "{pids}"\n', objective="timeout = 120"
+    )
+    p.write_text(
+        p.read_text().replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = {}')
+    )
+    proc = subprocess.Popen(
+        EXE + ["fit", str(p), "-o", str(tmp_path / "run"), "-q", "--no-report"],
+        env=_env(*faulty),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and len(list(pids.iterdir())) < 2:
@@ -193,9 +248,11 @@ def _die(x):
 
 
 def test_unpicklable_errors_come_back_as_text_and_a_death_without_a_stand_in_is_one_error():
+    import pickle
+
     from bforest_core.errors import QSMFormatError, SimulationFailed
     from bforest_core.pipeline.executors import WorkerError, WorkerLost
-    import pickle
+
     e = pickle.loads(pickle.dumps(QSMFormatError("a.mat", "no cylinders", rows=[3])))
     assert (e.path, e.problem, e.rows, str(e)) == ("a.mat", "no cylinders", [3], "a.mat: no cylinders")
     e = pickle.loads(pickle.dumps(SimulationFailed("collapsed", "angle")))
@@ -220,6 +277,7 @@ def test_a_plugin_that_exits_at_import_is_one_warning_never_a_silent_exit(toy_pl
     assert r.returncode == 0 and "toy-faulty" not in r.stdout
     assert "plugin 'exits' from exits failed to load and is skipped: SystemExit" in r.stderr
     assert "sot" in r.stdout  # the others still load
-    r = subprocess.run(EXE + ["simulate", "--ssm", "toy", "-o", str(tmp_path / "t.txt")],
-                       env=env, capture_output=True, text=True)
+    r = subprocess.run(
+        EXE + ["simulate", "--ssm", "toy", "-o", str(tmp_path / "t.txt")], env=env, capture_output=True, text=True
+    )
     assert r.returncode == 0 and (tmp_path / "t.txt").exists(), r.stderr

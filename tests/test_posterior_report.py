@@ -2,6 +2,7 @@
 and a chain as a chain, best.json's quantiles, the corner plot for every sampler with a
 posterior, a population's per-generation figure, the true values of a generated target, the
 warning when a sampler stops above its tolerance target or at a cap, and the ArviZ groups."""
+
 from __future__ import annotations
 
 import json
@@ -13,7 +14,8 @@ import pytest
 import bforest_core as bf
 from bforest_core.interfaces import Optimizer
 from bforest_core.pipeline.posterior import posterior_kind, prior_draws
-from bforest_core.report import canvas, posterior as post_fig
+from bforest_core.report import canvas
+from bforest_core.report import posterior as post_fig
 from conftest import toy_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,6 +71,7 @@ def test_weighted_corner_draws_best_json_quantiles_and_the_true_values(tmp_path,
     """Two particles hold all the weight: the 5/50/95 % lines are their weighted quantiles, not
     those of the unweighted cloud; the true value is drawn on the diagonal and in the pair panel."""
     from bforest_core.metrics import weighted_quantiles
+
     figs = _capture(monkeypatch, post_fig)
     rng = np.random.default_rng(0)
     X = np.vstack([rng.uniform(0, 10, size=(200, 2)), [[2.0, 8.0], [3.0, 7.0]]])
@@ -81,18 +84,26 @@ def test_weighted_corner_draws_best_json_quantiles_and_the_true_values(tmp_path,
     assert xs == pytest.approx(sorted(weighted_quantiles(X[:, 0], w / w.sum(), [5, 50, 95])), abs=1e-6)
     assert 1.9 < xs[0] and xs[-1] < 3.2  # the unweighted cloud spans 0-10
     greens = [line for ax in axes for line in ax.lines if line.get_color() == canvas.TRUE_COLOR]
-    assert any(np.allclose(line.get_xdata(), 2.5) for line in greens)        # marginal of a
-    assert any(np.allclose(line.get_xdata(), 11.0) for line in greens)       # marginal of b, outside the cloud
+    assert any(np.allclose(line.get_xdata(), 2.5) for line in greens)  # marginal of a
+    assert any(np.allclose(line.get_xdata(), 11.0) for line in greens)  # marginal of b, outside the cloud
     diag_b = next(ax for ax in axes if ax.get_title().startswith("b = "))
-    assert diag_b.get_xlim()[1] > 11.0                                        # ... and kept in view
-    assert any(line.get_marker() == "D" and np.allclose(line.get_xdata(), 2.5) and np.allclose(line.get_ydata(), 11.0)
-               for line in greens)                                            # the pair panel
+    assert diag_b.get_xlim()[1] > 11.0  # ... and kept in view
+    assert any(
+        line.get_marker() == "D" and np.allclose(line.get_xdata(), 2.5) and np.allclose(line.get_ydata(), 11.0)
+        for line in greens
+    )  # the pair panel
 
 
 def test_generations_figure_draws_epsilon_acceptance_and_ess(tmp_path, monkeypatch):
     figs = _capture(monkeypatch, post_fig)
-    post_fig.generations_figure([None, 0.5, 0.3, 0.2], [1.0, 0.5, 0.3, 0.1], [40.0, 35.0, 30.0, 20.0],
-                                tmp_path / "g.png", epsilon_target=[0.1, 0.12, 0.15], particles=40)
+    post_fig.generations_figure(
+        [None, 0.5, 0.3, 0.2],
+        [1.0, 0.5, 0.3, 0.1],
+        [40.0, 35.0, 30.0, 20.0],
+        tmp_path / "g.png",
+        epsilon_target=[0.1, 0.12, 0.15],
+        particles=40,
+    )
     ax_eps, ax_acc, ax_ess = figs[-1].axes[:3]
     eps = ax_eps.lines[0].get_ydata()
     assert np.isnan(eps[0]) and list(eps[1:]) == [0.5, 0.3, 0.2] and ax_eps.get_yscale() == "log"
@@ -104,8 +115,9 @@ def test_generations_figure_draws_epsilon_acceptance_and_ess(tmp_path, monkeypat
 
 # ---------------------------------------------------------------------------------- the stop note
 def test_abc_smc_says_when_it_stops_above_its_target_and_not_when_it_reaches_it():
-    from test_abc_smc import _problem, gaussian_location
     from bforest_optim.abc_smc import AbcSmc
+    from test_abc_smc import _problem, gaussian_location
+
     pr, _ = _problem(gaussian_location(), [-10.0], [10.0])
     res = AbcSmc(particles=50, generations=3, epsilon_target=0.05).minimize(pr)
     eps = res.diagnostics["epsilon"][-1]
@@ -114,7 +126,7 @@ def test_abc_smc_says_when_it_stops_above_its_target_and_not_when_it_reaches_it(
     pr, _ = _problem(gaussian_location(), [-10.0], [10.0])
     res = AbcSmc(particles=50, generations=30, epsilon_target=2.0).minimize(pr)
     assert "target" in res.stop_reason and "stopped_short" not in res.diagnostics
-    pr, _ = _problem(gaussian_location(), [-10.0], [10.0], budget=220)   # the evaluation cap, no target
+    pr, _ = _problem(gaussian_location(), [-10.0], [10.0], budget=220)  # the evaluation cap, no target
     res = AbcSmc(particles=50, generations=30).minimize(pr)
     assert "stopped at a cap" in res.diagnostics["stopped_short"]
 
@@ -124,6 +136,7 @@ def test_emcee_says_when_the_budget_cut_its_chain(toy_plugin, tmp_path):
     res = bf.fit(bf.load_config(p), tmp_path / "run", progress=False)
     assert res.diagnostics["stopped_short"].startswith(f"stopped after {res.diagnostics['steps']} of 50 steps")
     from bforest_core.report import write_report
+
     text = write_report(tmp_path / "run", figures=False).read_text()
     assert "WARNING: the sampler stopped short of its target: stopped after" in text
     assert "burn-in" in text and "autocorr. time" in text and "weighted population" not in text
@@ -131,9 +144,13 @@ def test_emcee_says_when_the_budget_cut_its_chain(toy_plugin, tmp_path):
 
 # ---------------------------------------------------------------------------------- the acceptance run
 @pytest.mark.slow
-@pytest.mark.skipif(not all(_have(k, n) for k, n in [("ssm", "sot"), ("features", "branch-segment"),
-                                                        ("distance", "sliced"), ("optimizer", "abc-smc")]),
-                    reason="needs the sot, branch-segment, sliced and abc-smc plugins")
+@pytest.mark.skipif(
+    not all(
+        _have(k, n)
+        for k, n in [("ssm", "sot"), ("features", "branch-segment"), ("distance", "sliced"), ("optimizer", "abc-smc")]
+    ),
+    reason="needs the sot, branch-segment, sliced and abc-smc plugins",
+)
 def test_abc_smc_report_of_the_calibrated_recipe_on_a_generated_target(tmp_path, capsys):
     """The user guide's calibrated recipe (noise-floor target, recycled and adjusted posterior)
     on a tree grown with known parameters, cut to 3 generations of 10 particles: epsilon stops
@@ -141,13 +158,24 @@ def test_abc_smc_report_of_the_calibrated_recipe_on_a_generated_target(tmp_path,
     population, gives best.json's quantiles beside the true values, and draws the corner and
     per-generation figures."""
     import arviz as az
+
     from bforest_core.cli import main
+
     text = RECIPE.read_text()
-    text = text.replace("[ssm]", "[target.generate]\nssm = \"sot\"\nseed = 5\nparams = { max_iter = 10, "
-                        + ", ".join(f"{k} = {v}" for k, v in TRUE.items()) + " }\n\n[ssm]", 1)
-    for old, new in (("particles = 40", "particles = 10"), ("generations = 20", "generations = 3"),
-                     ("noise_seeds = 8", "noise_seeds = 4"), ("lines = 64", "lines = 16"),
-                     ('kind = "process"\nworkers = 2', 'kind = "serial"')):
+    text = text.replace(
+        "[ssm]",
+        '[target.generate]\nssm = "sot"\nseed = 5\nparams = { max_iter = 10, '
+        + ", ".join(f"{k} = {v}" for k, v in TRUE.items())
+        + " }\n\n[ssm]",
+        1,
+    )
+    for old, new in (
+        ("particles = 40", "particles = 10"),
+        ("generations = 20", "generations = 3"),
+        ("noise_seeds = 8", "noise_seeds = 4"),
+        ("lines = 64", "lines = 16"),
+        ('kind = "process"\nworkers = 2', 'kind = "serial"'),
+    ):
         assert old in text, old
         text = text.replace(old, new)
     cfg = tmp_path / "calibrated.toml"
@@ -162,7 +190,9 @@ def test_abc_smc_report_of_the_calibrated_recipe_on_a_generated_target(tmp_path,
     warning = f"epsilon stopped at {eps:.4g}, above its target {floor:.4g}, the distance's noise floor,"
     assert f"WARNING: the sampler stopped short of its target: {warning}" in out
     report = (run / "report.md").read_text()
-    assert report.count(f"WARNING: the sampler stopped short of its target: {warning}") == 3  # summary, posterior, notes
+    assert (
+        report.count(f"WARNING: the sampler stopped short of its target: {warning}") == 3
+    )  # summary, posterior, notes
     assert "Notes\n\n- none" not in report
     # a population's words, not a chain's
     assert best["posterior_kind"] == "population"
@@ -190,6 +220,7 @@ def test_abc_smc_report_of_the_calibrated_recipe_on_a_generated_target(tmp_path,
     target_sets = np.load(run / "target_sets.npz")
     assert np.array_equal(idata.observed_data["S0_1"].values, target_sets["S0,1"])
     assert idata.sample_stats["weight"].values.ravel() == pytest.approx(
-        np.loadtxt(run / "posterior.csv", delimiter=",", skiprows=1)[:, -1])
+        np.loadtxt(run / "posterior.csv", delimiter=",", skiprows=1)[:, -1]
+    )
     assert idata.attrs["posterior_kind"] == "population" and idata.attrs["optimizer"] == "abc-smc"
     assert n is None or idata.sample_stats["distance"].shape[-1] == n

@@ -5,6 +5,7 @@ Mutations (fixed seed): truncation, byte flips, NaN injection, shuffled parent i
 columns, duplicated/deleted lines, and for MAT files rewritten matrices with NaN, shuffled parent
 columns and removed columns. Mutated files go to ``tmp_path``.
 """
+
 from __future__ import annotations
 
 import signal
@@ -16,14 +17,19 @@ import numpy as np
 import bforest_core as bf
 from bforest_core import QSMFormatError, Tree
 
-
 SEED = 20240611
 MIN_CASES = 300
 
 TEXT_SAMPLES = ["itsme_tree_v240_cylinder.txt", "archi_tree1_treeqsm_v23.txt"]
 CSV_SAMPLES = ["coffeetree_simpleforest.csv", "coffeetree_archi.csv"]
-MAT_SAMPLES = ["itsme_qsm_tree_v240_notria.mat", "itsme_qsms_tree_v230.mat", "itsme_qsm_tree_v200.mat",
-               "coffeetree_treeqsm_optqsm.mat", "wytham_tf3.mat", "itsme_qsm_trunk.mat"]
+MAT_SAMPLES = [
+    "itsme_qsm_tree_v240_notria.mat",
+    "itsme_qsms_tree_v230.mat",
+    "itsme_qsm_tree_v200.mat",
+    "coffeetree_treeqsm_optqsm.mat",
+    "wytham_tf3.mat",
+    "itsme_qsm_trunk.mat",
+]
 H5_SAMPLES = ["pine_ruotsinkyla_3.mat"]
 
 
@@ -234,8 +240,12 @@ def test_fuzz_readers_only_raise_qsmformaterror(tmp_path, qsm_dir):
             r = _check(p, f"{name} {label}", failures)
             outcomes[r] = outcomes.get(r, 0) + 1
     # content in the wrong container
-    for name, suffix in (("coffeetree_archi.csv", ".mat"), ("wytham_tf3.mat", ".txt"),
-                         ("wytham_tf3.mat", ".csv"), ("itsme_qsm_tree_v200.mat", ".dat")):
+    for name, suffix in (
+        ("coffeetree_archi.csv", ".mat"),
+        ("wytham_tf3.mat", ".txt"),
+        ("wytham_tf3.mat", ".csv"),
+        ("itsme_qsm_tree_v200.mat", ".dat"),
+    ):
         run(f"{name} as {suffix}", (qsm_dir / name).read_bytes(), suffix)
 
     assert k >= MIN_CASES, f"only {k} fuzz cases"
@@ -247,6 +257,7 @@ def test_fuzz_readers_only_raise_qsmformaterror(tmp_path, qsm_dir):
 def _hand_file(tmp_path: Path, radius: float = 0.1) -> Path:
     """A small TreeQSM text file of the hand-built tree, its first radius set to ``radius``."""
     from conftest import hand_tree
+
     t = hand_tree()
     r = t.radius.copy()
     r[0] = radius
@@ -259,6 +270,7 @@ def test_special_files_and_huge_values_are_one_clear_error(tmp_path):
     """A FIFO (reading one would wait for ever), a symbolic link loop, a broken link and a radius
     of 1e300 (an infinite volume) each give a QSMFormatError naming the problem, never a hang."""
     import os
+
     cases = []
     if hasattr(os, "mkfifo"):
         os.mkfifo(tmp_path / "pipe.txt")
@@ -281,14 +293,18 @@ def test_special_files_and_huge_values_are_one_clear_error(tmp_path):
 
 def test_a_bad_native_csv_sidecar_is_an_error_not_ignored(tmp_path):
     import json
+
     from conftest import hand_tree
+
     p = tmp_path / "t.csv"
     bf.write_tree(hand_tree(), p)
     side = p.with_suffix(".json")
     good = json.loads(side.read_text())
     assert bf.read_qsm(p).n == 7
-    for bad, words in (({**good, "topology": "sideways"}, "topology 'sideways' is not one of"),
-                       ({**good, "metadata": [1, 2]}, "metadata is not a JSON object")):
+    for bad, words in (
+        ({**good, "topology": "sideways"}, "topology 'sideways' is not one of"),
+        ({**good, "metadata": [1, 2]}, "metadata is not a JSON object"),
+    ):
         side.write_text(json.dumps(bad))
         failures: list[str] = []
         assert _check(p, "sidecar", failures) == "error", failures
@@ -300,6 +316,7 @@ def test_a_bad_native_csv_sidecar_is_an_error_not_ignored(tmp_path):
 
 def test_a_nan_added_flag_is_an_error_not_true(tmp_path, qsm_dir):
     import scipy.io as sio
+
     m = {k: v for k, v in sio.loadmat(str(qsm_dir / "itsme_qsm_tree_v200.mat")).items() if not k.startswith("__")}
     assert "Added" in m
     m["Added"] = m["Added"].astype(float)

@@ -4,6 +4,7 @@ Known numbers come from docs/qsm-formats.md (the sample files of §11 and the fo
 counts, branch counts, heights) or are read independently from the raw file in the test.
 Branch counts are under the file's own (``source``) topology after fragment removal.
 """
+
 from __future__ import annotations
 
 import shutil
@@ -135,8 +136,10 @@ def test_text_zero_length_row_removed_and_children_reattached():
         assert t.parent[row_of[int(k)]] == row_of[par]
     if int(raw[par, 9]) == 1005:  # it was its parent's extension: its own extension takes over
         assert t.extension[row_of[par]] == row_of[int(raw[1004, 9]) - 1]
-    with pytest.raises(QSMFormatError, match=r"length <= 0 at row 1005 \(value 0; TreeQSM text rounds"), \
-            pytest.warns(QSMReadWarning, match="6 cylinders have no parent"):
+    with (
+        pytest.raises(QSMFormatError, match=r"length <= 0 at row 1005 \(value 0; TreeQSM text rounds"),
+        pytest.warns(QSMReadWarning, match="6 cylinders have no parent"),
+    ):
         bf.read_qsm(p, drop_degenerate=False)
 
 
@@ -212,7 +215,9 @@ def test_simpleforest_ids_extension_and_extras():
     ch = np.bincount(t.parent[t.parent >= 0], minlength=t.n)
     forks = np.flatnonzero(ch >= 2)
     th = t.with_topology("thickest")
-    assert forks.size == 64 and np.count_nonzero(th.extension[forks] != t.extension[forks]) == 17  # docs/qsm-formats.md §6
+    assert (
+        forks.size == 64 and np.count_nonzero(th.extension[forks] != t.extension[forks]) == 17
+    )  # docs/qsm-formats.md §6
 
 
 def test_archi_ids_orders_and_untrusted_extension_id():
@@ -229,7 +234,9 @@ def test_struct_extras_versions_and_empty_branch_entries():
     t = read_quiet(qsm_path("coffeetree_treeqsm_optqsm.mat"))
     assert {"UnmodRadius", "SurfCov", "mad"} <= set(t.extras)
     assert t.metadata["variable"] == "OptQSM"
-    assert t.start[0] == pytest.approx([0.768, -16.361, 253.887], abs=1e-3)  # file frame kept (docs/qsm-formats.md §0: 0.76, -16.36, 253.9)
+    assert t.start[0] == pytest.approx(
+        [0.768, -16.361, 253.887], abs=1e-3
+    )  # file frame kept (docs/qsm-formats.md §0: 0.76, -16.36, 253.9)
     t23 = read_quiet(qsm_path("itsme_qsm_tree_v230_notria.mat"))
     assert "SurfCov" not in t23.extras and t23.metadata["version"] == "2.3.x"
     trunk = read_quiet(qsm_path("itsme_qsm_trunk.mat"))
@@ -250,6 +257,7 @@ def test_detection_is_by_content_not_suffix(tmp_path):
 # MAT v7.3 structs written with h5py (no sample exists)
 # ------------------------------------------------------------------------------------------
 
+
 def _mat73_header(path):
     hdr = b"MATLAB 7.3 MAT-file, Platform: GLNXA64, Created on: Mon Jan  1 00:00:00 2024 HDF5 schema 1.00 ."
     hdr = hdr.ljust(116, b" ") + b"\x00" * 8 + b"\x00\x02" + b"IM"
@@ -260,10 +268,18 @@ def _mat73_header(path):
 def _h5_cylinder(group, tree):
     """MATLAB n x k arrays appear transposed (k x n) in HDF5."""
     one = lambda a: np.where(a >= 0, a + 1, 0).astype(np.float64)
-    fields = {"radius": tree.radius, "length": tree.length, "start": tree.start, "axis": tree.axis,
-              "parent": one(tree.parent), "extension": one(tree.extension),
-              "added": tree.added.astype(np.float64), "branch": tree.branch + 1.0,
-              "BranchOrder": tree.order.astype(np.float64), "UnmodRadius": tree.radius * 1.01}
+    fields = {
+        "radius": tree.radius,
+        "length": tree.length,
+        "start": tree.start,
+        "axis": tree.axis,
+        "parent": one(tree.parent),
+        "extension": one(tree.extension),
+        "added": tree.added.astype(np.float64),
+        "branch": tree.branch + 1.0,
+        "BranchOrder": tree.order.astype(np.float64),
+        "UnmodRadius": tree.radius * 1.01,
+    }
     group.attrs["MATLAB_class"] = np.bytes_("struct")
     for k, v in fields.items():
         ds = group.create_dataset(k, data=np.asarray(v, dtype=np.float64).reshape(tree.n, -1).T)
@@ -320,6 +336,7 @@ def test_mat73_struct_and_struct_array_written_with_h5py(tmp_path):
 # bad input (docs/qsm-formats.md §10) on small files
 # ------------------------------------------------------------------------------------------
 
+
 def _write_text17(path, tree, mutate=None):
     """The hand tree as a TreeQSM 17-column text file, with an optional row mutation."""
     bf.write_tree(tree, path)
@@ -347,6 +364,7 @@ def test_unsupported_suffix_and_wrong_content(tmp_path):
     with pytest.raises(QSMFormatError, match="content looks like CSV text, not a MAT-file"):
         bf.read_qsm(m)
     import scipy.io as sio
+
     m2 = tmp_path / "other.mat"
     sio.savemat(str(m2), {"P": np.zeros((5, 3)), "foo": np.ones(3)})
     with pytest.raises(QSMFormatError, match=r"no QSM variables found \(present: P, foo\)"):
@@ -362,8 +380,10 @@ def test_unsupported_suffix_and_wrong_content(tmp_path):
 
 
 def test_truncated_containers(tmp_path):
-    for name, label in (("coffeetree_treeqsm_optqsm.mat", "MAT v5 reader"),
-                        ("pine_ruotsinkyla_3.mat", "MAT v7.3/HDF5 reader")):
+    for name, label in (
+        ("coffeetree_treeqsm_optqsm.mat", "MAT v5 reader"),
+        ("pine_ruotsinkyla_3.mat", "MAT v7.3/HDF5 reader"),
+    ):
         data = qsm_path(name).read_bytes()
         p = tmp_path / ("half_" + name)
         p.write_bytes(data[: len(data) // 2])
@@ -403,20 +423,23 @@ def test_parent_out_of_range_message(tmp_path):
         bf.read_qsm(p)
 
 
-@pytest.mark.parametrize("mutate,pattern", [
-    (lambda L: _set(L, 2, 1, -0.1), r"radius <= 0 at rows 2"),
-    (lambda L: _set(L, 2, 1, 0), r"radius <= 0 at rows 2"),
-    (lambda L: _set(L, 3, 2, -1), r"length < 0 at rows 3"),
-    (lambda L: [_set(L, 7, c, 0) for c in (6, 7, 8)], r"axis has zero length at rows 7"),
-    (lambda L: _set(L, 4, 9, 5), r"cylinders (4 -> 5 -> 4|5 -> 4 -> 5) form a cycle"),
-    (lambda L: (_set(L, 2, 9, 3), _set(L, 3, 9, 2)), r"extension of row 1 is row 2, whose parent is row 3"),
-    (lambda L: _set(L, 4, 9, 4), r"cylinder 4 is its own parent"),
-    (lambda L: _set(L, 4, 10, 7), r"extension of row 4 is row 7, whose parent is row 3"),
-    (lambda L: _set(L, 1, 1, "abc"), r"line 2, field 1: cannot read 'abc' as a number"),
-    (lambda L: _set(L, 2, 9, 1.5), r"'column 9 \(parent\)' holds non-integer values at rows 2"),
-    (lambda L: _set(L, 1, 2, 0), r"the root cylinder \(row 1\) has zero length"),
-    (lambda L: L.__setitem__(slice(1, None), []), r"file contains no cylinders"),
-])
+@pytest.mark.parametrize(
+    "mutate,pattern",
+    [
+        (lambda L: _set(L, 2, 1, -0.1), r"radius <= 0 at rows 2"),
+        (lambda L: _set(L, 2, 1, 0), r"radius <= 0 at rows 2"),
+        (lambda L: _set(L, 3, 2, -1), r"length < 0 at rows 3"),
+        (lambda L: [_set(L, 7, c, 0) for c in (6, 7, 8)], r"axis has zero length at rows 7"),
+        (lambda L: _set(L, 4, 9, 5), r"cylinders (4 -> 5 -> 4|5 -> 4 -> 5) form a cycle"),
+        (lambda L: (_set(L, 2, 9, 3), _set(L, 3, 9, 2)), r"extension of row 1 is row 2, whose parent is row 3"),
+        (lambda L: _set(L, 4, 9, 4), r"cylinder 4 is its own parent"),
+        (lambda L: _set(L, 4, 10, 7), r"extension of row 4 is row 7, whose parent is row 3"),
+        (lambda L: _set(L, 1, 1, "abc"), r"line 2, field 1: cannot read 'abc' as a number"),
+        (lambda L: _set(L, 2, 9, 1.5), r"'column 9 \(parent\)' holds non-integer values at rows 2"),
+        (lambda L: _set(L, 1, 2, 0), r"the root cylinder \(row 1\) has zero length"),
+        (lambda L: L.__setitem__(slice(1, None), []), r"file contains no cylinders"),
+    ],
+)
 def test_always_errors(tmp_path, mutate, pattern):
     p = _write_text17(tmp_path / "hand.txt", hand_tree(), mutate)
     with pytest.raises(QSMFormatError, match=pattern) as ei:
@@ -428,6 +451,7 @@ def test_zero_length_chain_is_bridged(tmp_path):
     # hand tree: trunk 1 -> 2 -> 3, lateral A = 4 -> 5 on 1, B = 6 on 2, C = 7 on 3
     def mutate(L):
         _set(L, 2, 2, 0)  # trunk cylinder 2 has zero length: 3 and 6 attach to 1, 3 continues 1
+
     p = _write_text17(tmp_path / "zl.txt", hand_tree(), mutate)
     with pytest.warns(QSMReadWarning, match=r"removed 1 zero-length cylinder \(row 2"):
         t = bf.read_qsm(p)
@@ -442,6 +466,7 @@ def test_zero_length_chain_is_bridged(tmp_path):
     def chain(L):  # two consecutive zero-length cylinders: 2 and 3
         _set(L, 2, 2, 0)
         _set(L, 3, 2, 0)
+
     p2 = _write_text17(tmp_path / "zl2.txt", hand_tree(), chain)
     t2 = read_quiet(p2)
     rows = (t2.source_row + 1).tolist()
@@ -454,6 +479,7 @@ def test_stored_order_mismatch_warns_once(tmp_path):
     def mutate(L):
         _set(L, 5, 12, 3)  # stored order of row 5 (lateral A, order 1)
         _set(L, 7, 11, 2)  # stored branch of row 7 (lateral C) merged with lateral A's id
+
     p = _write_text17(tmp_path / "ord.txt", hand_tree(), mutate)
     with warnings.catch_warnings(record=True) as rec:
         warnings.simplefilter("always")
@@ -514,6 +540,7 @@ def test_millimetre_warning(tmp_path):
     def mutate(L):
         for row in range(1, 8):
             _set(L, row, 1, 30)
+
     p = _write_text17(tmp_path / "mm.txt", hand_tree(), mutate)
     with pytest.warns(QSMReadWarning, match="values look like millimetres"):
         bf.read_qsm(p)
@@ -527,6 +554,7 @@ def test_low_level_exceptions_are_converted(tmp_path, monkeypatch):
 
     def boom(*a, **k):
         raise IndexError("index 3 is out of bounds")
+
     monkeypatch.setattr(scipy.io, "loadmat", boom)
     with pytest.raises(QSMFormatError, match=r"truncated or corrupt \(MAT v5 reader: IndexError"):
         bf.read_qsm(p)
@@ -554,18 +582,18 @@ def test_unsorted_rows_are_resorted_and_keep_file_rows(tmp_path):
     t = hand_tree()
     p = bf.write_tree(t, tmp_path / "sorted.txt")
     v = np.loadtxt(p, skiprows=1)
-    perm = np.array([6, 4, 2, 0, 5, 3, 1])          # new file row k holds old row perm[k]
+    perm = np.array([6, 4, 2, 0, 5, 3, 1])  # new file row k holds old row perm[k]
     new_of_old = np.empty(7, dtype=int)
     new_of_old[perm] = np.arange(7)
     w = v[perm].copy()
-    for c in (8, 9):                                  # parent, extension (1-based, 0 = none)
+    for c in (8, 9):  # parent, extension (1-based, 0 = none)
         w[:, c] = np.where(w[:, c] > 0, new_of_old[np.maximum(w[:, c].astype(int) - 1, 0)] + 1, 0)
     q = tmp_path / "shuffled.txt"
     q.write_text(p.read_text().split("\n", 1)[0] + "\n" + "\n".join("\t".join(f"{x:.9g}" for x in row) for row in w))
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         u = bf.read_qsm(q)
-    old = perm[u.source_row]                          # original hand-tree row of every tree row
+    old = perm[u.source_row]  # original hand-tree row of every tree row
     assert old[0] == 0 and sorted(old.tolist()) == list(range(7))
     assert np.allclose(u.start, t.start[old]) and np.allclose(u.radius, t.radius[old])
     assert np.array_equal(np.where(u.parent >= 0, old[np.maximum(u.parent, 0)], -1), t.parent[old])
@@ -593,8 +621,16 @@ def test_qsms_cell_array_in_mat_v5(tmp_path):
 
     def cyl(t):
         one = lambda a: np.where(a >= 0, a + 1, 0).astype(float)
-        return {"radius": t.radius, "length": t.length, "start": t.start, "axis": t.axis,
-                "parent": one(t.parent), "extension": one(t.extension), "added": t.added.astype(float)}
+        return {
+            "radius": t.radius,
+            "length": t.length,
+            "start": t.start,
+            "axis": t.axis,
+            "parent": one(t.parent),
+            "extension": one(t.extension),
+            "added": t.added.astype(float),
+        }
+
     cell = np.empty((1, 2), dtype=object)
     for i, t in enumerate(trees):
         cell[0, i] = {"cylinder": cyl(t)}

@@ -2,6 +2,7 @@
 
 Round trips: written and read back, a tree is the same to the written precision.
 """
+
 from __future__ import annotations
 
 import json
@@ -12,14 +13,18 @@ import pytest
 
 import bforest_core as bf
 from bforest_core import QSMFormatError
-
+from bforest_treeqsm.writers import ORDER_PALETTE, branch_table, cylinder_mesh
 from conftest import hand_tree, qsm_path
 
-from bforest_treeqsm.writers import ORDER_PALETTE, branch_table, cylinder_mesh
-
-ROUND_TRIP_SAMPLES = ["itsme_qsm_tree_v240.mat", "coffeetree_treeqsm_optqsm.mat", "pine_ruotsinkyla_3.mat",
-                      "itsme_qsm_tree_v200.mat", "wytham_tf3.mat", "coffeetree_simpleforest.csv",
-                      "itsme_qsm_trunk.mat"]
+ROUND_TRIP_SAMPLES = [
+    "itsme_qsm_tree_v240.mat",
+    "coffeetree_treeqsm_optqsm.mat",
+    "pine_ruotsinkyla_3.mat",
+    "itsme_qsm_tree_v200.mat",
+    "wytham_tf3.mat",
+    "coffeetree_simpleforest.csv",
+    "itsme_qsm_trunk.mat",
+]
 
 
 def read_quiet(path, **kw):
@@ -32,22 +37,35 @@ def read_quiet(path, **kw):
 # TreeQSM text
 # ------------------------------------------------------------------------------------------
 
+
 def test_treeqsm_text_layout_of_hand_tree(tmp_path):
     t = hand_tree()
     p = bf.write_tree(t, tmp_path / "cylinder_hand.txt")
     raw = p.read_bytes()
     assert b"\r" not in raw
     lines = raw.decode().split("\n")
-    assert lines[0].split("\t") == ["radius (m)", "length (m)", "start_point", "axis_direction", "parent",
-                                    "extension", "branch", "branch_order", "position_in_branch", "mad",
-                                    "SurfCov", "added", "UnmodRadius (m)"]
+    assert lines[0].split("\t") == [
+        "radius (m)",
+        "length (m)",
+        "start_point",
+        "axis_direction",
+        "parent",
+        "extension",
+        "branch",
+        "branch_order",
+        "position_in_branch",
+        "mad",
+        "SurfCov",
+        "added",
+        "UnmodRadius (m)",
+    ]
     rows = [ln.split("\t") for ln in lines[1:] if ln]
     assert len(rows) == 7 and all(len(r) == 17 for r in rows)
     # row 5 = second cylinder of lateral A: parent 4, no extension, branch 2, order 1, position 2
     r5 = rows[4]
     assert r5[8:13] == ["4", "0", "2", "1", "2"]
     assert r5[13:17] == ["0", "1", "0", "0.04"]  # mad 0, SurfCov 1, added 0, UnmodRadius = radius
-    assert rows[4][5] == "%.9g" % (np.sin(np.radians(60)))
+    assert rows[4][5] == f"{np.sin(np.radians(60)):.9g}"
     assert rows[0][8:10] == ["0", "2"]  # root: parent 0 = none, extension 2 (1-based)
     back = read_quiet(p)
     assert back.equals(t, atol=1e-8)
@@ -108,6 +126,7 @@ def test_branch_file(tmp_path):
 # native CSV
 # ------------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("name", ROUND_TRIP_SAMPLES)
 def test_csv_round_trip_exact(tmp_path, name):
     t = read_quiet(qsm_path(name))
@@ -128,9 +147,26 @@ def test_csv_header_sidecar_and_topology(tmp_path):
     t.metadata.update({"model": "sot", "params": {"a": 1.5}, "seed": 7})
     p = bf.write_tree(t, tmp_path / "clone.csv")
     header = p.read_text().split("\n", 1)[0].split(",")
-    assert header[:18] == ["id", "parent", "extension", "branch", "order", "position_in_branch", "added",
-                           "start_x", "start_y", "start_z", "axis_x", "axis_y", "axis_z", "length", "radius",
-                           "end_x", "end_y", "end_z"]
+    assert header[:18] == [
+        "id",
+        "parent",
+        "extension",
+        "branch",
+        "order",
+        "position_in_branch",
+        "added",
+        "start_x",
+        "start_y",
+        "start_z",
+        "axis_x",
+        "axis_y",
+        "axis_z",
+        "length",
+        "radius",
+        "end_x",
+        "end_y",
+        "end_z",
+    ]
     assert "source_extension" in header
     side = json.loads((tmp_path / "clone.json").read_text())
     assert side["topology"] == "subtree" and side["units"] == "m" and side["format_version"] == 1
@@ -152,8 +188,11 @@ def test_csv_header_sidecar_and_topology(tmp_path):
 # .mat
 # ------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("name", ["itsme_qsm_tree_v240.mat", "coffeetree_treeqsm_optqsm.mat",
-                                  "pine_ruotsinkyla_1.mat", "itsme_qsm_trunk.mat"])
+
+@pytest.mark.parametrize(
+    "name",
+    ["itsme_qsm_tree_v240.mat", "coffeetree_treeqsm_optqsm.mat", "pine_ruotsinkyla_1.mat", "itsme_qsm_trunk.mat"],
+)
 def test_mat_round_trip(tmp_path, name):
     import scipy.io as sio
 
@@ -161,8 +200,21 @@ def test_mat_round_trip(tmp_path, name):
     p = bf.write_tree(t, tmp_path / "out.mat")
     m = sio.loadmat(str(p), squeeze_me=True, struct_as_record=False)
     c = m["qsm"].cylinder
-    assert set(c._fieldnames) >= {"radius", "length", "start", "axis", "parent", "extension", "added",
-                                  "UnmodRadius", "branch", "SurfCov", "mad", "BranchOrder", "PositionInBranch"}
+    assert set(c._fieldnames) >= {
+        "radius",
+        "length",
+        "start",
+        "axis",
+        "parent",
+        "extension",
+        "added",
+        "UnmodRadius",
+        "branch",
+        "SurfCov",
+        "mad",
+        "BranchOrder",
+        "PositionInBranch",
+    }
     assert c.parent[0] == 0 and c.branch.min() == 1 and np.atleast_1d(c.PositionInBranch)[0] == 1
     u = read_quiet(p)
     assert u.metadata["format"] == "treeqsm-mat" and u.equals(t, atol=1e-12)
@@ -179,6 +231,7 @@ def test_one_cylinder_tree_mat_and_text(tmp_path):
 # meshes
 # ------------------------------------------------------------------------------------------
 
+
 def _read_ply(path):
     data = path.read_bytes()
     end = data.index(b"end_header\n") + len(b"end_header\n")
@@ -189,7 +242,7 @@ def _read_ply(path):
     if "format ascii 1.0" in header:
         rows = data[end:].decode().split("\n")
         v = np.array([r.split() for r in rows[:nv]], dtype=float)
-        f = np.array([r.split() for r in rows[nv:nv + nf]], dtype=np.int64)
+        f = np.array([r.split() for r in rows[nv : nv + nf]], dtype=np.int64)
         assert np.all(f[:, 0] == 3)
         return header, v[:, :3], v[:, 3:6].astype(np.uint8), f[:, 1:]
     vdt = np.dtype([("x", ftype), ("y", ftype), ("z", ftype), ("r", "u1"), ("g", "u1"), ("b", "u1")])
@@ -219,15 +272,15 @@ def _check_mesh(tree, v, f, k, caps):
     # outward orientation: side normals point away from the axis, caps along -a / +a
     ff = f.reshape(n, per_face, 3) - (np.arange(n) * 2 * k)[:, None, None]
     assert ff.min() >= 0 and ff.max() < 2 * k
-    p0, p1, p2 = (np.take_along_axis(vv, ff[:, :, i:i + 1].repeat(3, axis=2), axis=1) for i in range(3))
+    p0, p1, p2 = (np.take_along_axis(vv, ff[:, :, i : i + 1].repeat(3, axis=2), axis=1) for i in range(3))
     normal = np.cross(p1 - p0, p2 - p0)
     cen = (p0 + p1 + p2) / 3 - tree.start[:, None, :]
     cen_rad = cen - np.einsum("nfj,nj->nf", cen, tree.axis)[:, :, None] * tree.axis[:, None, :]
-    side = np.einsum("nfj,nfj->nf", normal[:, :2 * k], cen_rad[:, :2 * k])
+    side = np.einsum("nfj,nfj->nf", normal[:, : 2 * k], cen_rad[:, : 2 * k])
     assert np.all(side > 0)
     if caps:
-        top = np.einsum("nfj,nj->nf", normal[:, 2 * k:3 * k - 2], tree.axis)
-        bottom = np.einsum("nfj,nj->nf", normal[:, 3 * k - 2:], tree.axis)
+        top = np.einsum("nfj,nj->nf", normal[:, 2 * k : 3 * k - 2], tree.axis)
+        bottom = np.einsum("nfj,nj->nf", normal[:, 3 * k - 2 :], tree.axis)
         assert np.all(top > 0) and np.all(bottom < 0)
         # Euler characteristic V - E + F = 2 for every closed cylinder
         edges = np.sort(np.concatenate([ff[0][:, [0, 1]], ff[0][:, [1, 2]], ff[0][:, [2, 0]]]), axis=1)
@@ -251,8 +304,9 @@ def test_ply_binary_default(tmp_path):
 def test_ply_ascii_matches_binary(tmp_path):
     t = hand_tree()
     _, vb, cb, fb = _read_ply(bf.write_tree(t, tmp_path / "b.ply", sides=5, caps=False, color_by="radius"))
-    header, va, ca, fa = _read_ply(bf.write_tree(t, tmp_path / "a.ply", format="ply", ascii=True, sides=5,
-                                                 caps=False, color_by="radius"))
+    header, va, ca, fa = _read_ply(
+        bf.write_tree(t, tmp_path / "a.ply", format="ply", ascii=True, sides=5, caps=False, color_by="radius")
+    )
     assert header[1] == "format ascii 1.0"
     assert np.allclose(va, vb, atol=1e-6) and np.array_equal(fa, fb) and np.array_equal(ca, cb)
     _check_mesh(t, va, fa, 5, caps=False)
@@ -283,7 +337,7 @@ def test_obj_groups_by_order(tmp_path):
     # the faces of group "order_0" belong to trunk cylinders only
     g0 = lines.index("g order_0")
     g1 = lines.index("g order_1")
-    trunk_faces = np.array([ln.split()[1:] for ln in lines[g0 + 1:g1]], dtype=np.int64) - 1
+    trunk_faces = np.array([ln.split()[1:] for ln in lines[g0 + 1 : g1]], dtype=np.int64) - 1
     assert np.all(t.order[trunk_faces // 12] == 0)
 
 
@@ -291,6 +345,7 @@ def test_write_by_format_name_and_unknown_suffix(tmp_path):
     t = hand_tree()
     p = bf.write_tree(t, tmp_path / "x.dat", format="treeqsm-mat")
     import scipy.io as sio
+
     assert "qsm" in sio.whosmat(str(p))[0]
     with pytest.raises(QSMFormatError, match="no writer for '.stl'"):
         bf.write_tree(t, tmp_path / "x.stl")

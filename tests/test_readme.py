@@ -3,6 +3,7 @@
 The lines run in order with the real console script from the repository root, so a line may use
 what an earlier one wrote (the clones of the fit, say); outputs go to a temporary folder.
 """
+
 import re
 import shlex
 import shutil
@@ -19,9 +20,10 @@ ROOT = Path(__file__).resolve().parents[1]
 #: (pattern, replacement) applied to a README line before it runs: smaller budgets and outputs in
 #: the temporary folder; the command itself is unchanged
 OVERRIDES = [
-    (r"\bruns/", "{tmp}/runs/"),                                    # run directories
+    (r"\bruns/", "{tmp}/runs/"),  # run directories
     (r"-o pine\.txt --png pine\.png", "-o {tmp}/pine.txt --png {tmp}/pine.png"),
-    (r"(bforest fit \S+ -o \S+)", r"\1 --max-evaluations 32 --no-report"),   # ~3 min -> seconds
+    (r"-o tf3\.toml$", "-o {tmp}/tf3.toml"),  # the recipe of bforest init (it left tf3.toml in the repository)
+    (r"(bforest fit \S+ -o \S+)", r"\1 --max-evaluations 32 --no-report"),  # ~3 min -> seconds
     (r"(bforest clones \S+) -n 30", r"\1 -n 2 --no-report"),
     (r"--budget 400 --repeats 3", "--budget 24 --repeats 1 -o {tmp}/compare -q"),
 ]
@@ -59,6 +61,7 @@ def test_every_readme_line_runs(tmp_path):
         assert r.returncode == 0, f"README line failed: {line}\n(ran: {cmd})\n{r.stderr[-2000:]}"
     assert (tmp_path / "runs" / "pine3" / "clones" / "clone_000.txt").exists()
     assert (tmp_path / "pine.png").exists() and (tmp_path / "compare" / "compare.png").exists()
+    assert (tmp_path / "tf3.toml").exists() and not (ROOT / "tf3.toml").exists()
 
 
 def test_the_user_guides_fits_write_to_different_run_folders():

@@ -68,8 +68,11 @@ def test_rejects_non_component():
 
 
 def test_cli_plugins_lists_kinds_versions_and_errors(toy_plugin, tmp_path):
+    import contextlib
+    import io
+
     from bforest_core.cli import main
-    import io, contextlib
+
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
         assert main(["plugins"]) == 0

@@ -1,4 +1,5 @@
 """Run report, figures and distance profiles: rendered headlessly from small real runs."""
+
 import json
 import shutil
 import struct
@@ -8,19 +9,27 @@ import numpy as np
 import pytest
 
 import bforest_core as bf
-from bforest_core.report import canvas, comparison, convergence, datasets, posterior, trees
-from bforest_core.pipeline.clones import clones as grow_clones
 from bforest_core.errors import ConfigError
+from bforest_core.pipeline.clones import clones as grow_clones
 from bforest_core.pipeline.profile import profile, profile_values
-from bforest_core.report import write_report
+from bforest_core.pipeline.store import RunStore
+from bforest_core.report import canvas, comparison, convergence, datasets, posterior, trees, write_report
 from bforest_core.report.datasets import distance_view
 from bforest_core.report.posterior import mcmc_chain
 from bforest_core.report.run_view import RunView
-from bforest_core.pipeline.store import RunStore
 from conftest import hand_tree, toy_config
 
-SECTIONS = ["# Bayes Forest run report", "## Target", "## Model and method", "## Parameters", "## Fit result",
-            "## Optimiser", "## Evaluations and run time", "## Clones", "## Notes"]
+SECTIONS = [
+    "# Bayes Forest run report",
+    "## Target",
+    "## Model and method",
+    "## Parameters",
+    "## Fit result",
+    "## Optimiser",
+    "## Evaluations and run time",
+    "## Clones",
+    "## Notes",
+]
 
 
 def png_size(path: Path) -> tuple[int, int]:
@@ -97,7 +106,10 @@ def test_report_of_a_run_without_clones(toy_runs):
     n_fail = sum(e.status == "collapsed" for e in evs)
     assert 0 < n_fail < len(evs)
     assert f"{len(evs)} evaluations; {len(evs) - n_fail} ok, {n_fail} failed." in text
-    assert f"| collapsed | {n_fail} | {100 * n_fail / len(evs):.1f} % | simulation failed (collapsed): angle too large |" in text
+    assert (
+        f"| collapsed | {n_fail} | {100 * n_fail / len(evs):.1f} % | simulation failed (collapsed): angle too large |"
+        in text
+    )
 
 
 def test_report_of_an_unfinished_run_and_text_only(toy_plugin, tmp_path):
@@ -116,7 +128,9 @@ def test_report_draws_the_same_figures_in_one_or_two_processes(toy_runs, tmp_pat
     leaves a note and the figures drawn in the first."""
     import re
     from concurrent.futures import Future
+
     from bforest_core.report import build
+
     run = tmp_path / "run"
     shutil.copytree(toy_runs[0], run)
     figs = lambda text: re.findall(r"\]\((figures/[^)]+\.png)\)", text)  # noqa: E731
@@ -225,6 +239,7 @@ def test_plot_tree_widths_colours_and_depth_order():
     assert np.allclose(lw, np.maximum(0.5, 4.0 * tree.radius[perm] / 0.20))
     cols = lc.get_colors()
     from matplotlib.colors import to_rgba
+
     assert np.allclose(cols, [to_rgba(canvas.ORDER_COLORS[o]) for o in tree.order[perm]])
     assert ax.get_xlabel() == "x (m)" and ax.get_ylabel() == "z (m)"
     assert trees.radius_linewidths(np.array([0.001, 0.1, 0.2]), 4.0, 0.3).tolist() == [0.3, 2.0, 4.0]
@@ -237,8 +252,11 @@ def test_save_tree_figure_and_clones_figure(tmp_path):
     assert_png(trees.save_tree_figure(tree, tmp_path / "t.png", title="hand tree"))
     clones = [(f"clone {i}", tree.translated([0.1 * i, 0, 0])) for i in range(3)]
     assert_png(trees.clones_figure(tree, clones, tmp_path / "c.png"))
-    vals = {"height": np.array([3.0, 3.2, 2.9]), "girth": np.array([0.4, 0.41, 0.39]),
-            "d_h": np.array([0.0, 0.06, 0.03])}
+    vals = {
+        "height": np.array([3.0, 3.2, 2.9]),
+        "girth": np.array([0.4, 0.41, 0.39]),
+        "d_h": np.array([0.0, 0.06, 0.03]),
+    }
     assert_png(trees.clone_metrics_figure(vals, tmp_path / "m.png", target={"height": 3.0, "girth": 0.4}))
 
 
@@ -252,6 +270,7 @@ def test_display_columns_turns_circular_pairs_into_degrees():
 
 def test_per_line_ks_equals_scipy_with_ties():
     from scipy.stats import ks_2samp
+
     rng = np.random.default_rng(4)
     um = np.round(rng.normal(size=(60, 3)), 1)
     ud = np.round(rng.normal(0.3, 1.2, size=(45, 3)), 1)
@@ -287,14 +306,22 @@ def test_convergence_compare_chain_and_corner_figures(tmp_path):
     assert_png(comparison.compare_figure(curves, tmp_path / "cmp.png", threshold=0.3))
     rng = np.random.default_rng(0)
     chain = rng.normal(size=(30, 8, 3)) * [1, 2, 0.1] + [0, 5, 1]
-    diag = {"chain": chain.tolist(), "distances": rng.random((30, 8)).tolist(), "burn_in": 10,
-            "names": ["a", "b", "c"], "walkers": 8}
+    diag = {
+        "chain": chain.tolist(),
+        "distances": rng.random((30, 8)).tolist(),
+        "burn_in": 10,
+        "names": ["a", "b", "c"],
+        "walkers": 8,
+    }
     got = mcmc_chain(diag, ["x", "y", "z"])
     assert got[0].shape == (30, 8, 3) and got[1].shape == (30, 8) and got[2] == 10 and got[3] == ["a", "b", "c"]
     assert mcmc_chain({"generations": 3}, ["a"]) is None
     assert_png(posterior.chain_figure(got[0], got[3], tmp_path / "ch.png", burn_in=10, distances=got[1]))
-    assert_png(posterior.corner_figure(chain[10:].reshape(-1, 3), ["a", "b", "c"], tmp_path / "co.png",
-                                      truths=[0, 5, 1]), 500, 500)
+    assert_png(
+        posterior.corner_figure(chain[10:].reshape(-1, 3), ["a", "b", "c"], tmp_path / "co.png", truths=[0, 5, 1]),
+        500,
+        500,
+    )
 
 
 # ---------------------------------------------------------------------------------- real components
@@ -335,9 +362,13 @@ max_evaluations = 40
 """
 
 
-@pytest.mark.skipif(not all(_have(k, n) for k, n in [("ssm", "sot"), ("features", "branch-segment"),
-                                                        ("distance", "sliced"), ("optimizer", "emcee")]),
-                    reason="needs the sot, branch-segment, sliced and emcee plugins")
+@pytest.mark.skipif(
+    not all(
+        _have(k, n)
+        for k, n in [("ssm", "sot"), ("features", "branch-segment"), ("distance", "sliced"), ("optimizer", "emcee")]
+    ),
+    reason="needs the sot, branch-segment, sliced and emcee plugins",
+)
 def test_report_of_a_real_emcee_run(tmp_path):
     cfg_path = tmp_path / "real.toml"
     cfg_path.write_text(REAL_TOML.format())

@@ -2,12 +2,12 @@
 drawn by the page's own script in a real browser (Debian's chromium, headless) from a copied
 folder with the network off; the screenshot of the view is not blank and the page logs nothing
 to the console. Skipped where chromium is not installed (.ci/run installs it)."""
+
 from __future__ import annotations
 
 import re
 import shutil
 import subprocess
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,17 +19,33 @@ from bforest_core.report.view3d import tree_json, view3d_html
 from conftest import hand_tree, toy_config
 
 CHROMIUM = next((shutil.which(n) for n in ("chromium", "chromium-browser") if shutil.which(n)), None)
-needs_chromium = pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (Debian: apt-get install "
-                                    "chromium; .ci/run installs it): the 3-D view is not rendered")
+needs_chromium = pytest.mark.skipif(
+    CHROMIUM is None,
+    reason="chromium is not installed (Debian: apt-get install "
+    "chromium; .ci/run installs it): the 3-D view is not rendered",
+)
 
 
 def _chromium(url: str, *extra: str, height: int = 1000) -> subprocess.CompletedProcess:
     """Headless chromium on ``url`` with every connection refused (no proxy reachable, no name
     resolves): what the page needs must be in it."""
-    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--no-first-run",
-           f"--window-size=1280,{height}", "--virtual-time-budget=8000", "--enable-logging=stderr", "--v=0",
-           "--proxy-server=http://127.0.0.1:9", "--proxy-bypass-list=<-loopback>",
-           "--host-resolver-rules=MAP * ~NOTFOUND", *extra, url]
+    cmd = [
+        CHROMIUM,
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--hide-scrollbars",
+        "--no-first-run",
+        f"--window-size=1280,{height}",
+        "--virtual-time-budget=8000",
+        "--enable-logging=stderr",
+        "--v=0",
+        "--proxy-server=http://127.0.0.1:9",
+        "--proxy-bypass-list=<-loopback>",
+        "--host-resolver-rules=MAP * ~NOTFOUND",
+        *extra,
+        url,
+    ]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
 
 
@@ -94,11 +110,12 @@ def test_the_view_renders_in_headless_chromium_from_a_copied_folder_offline(run_
     assert shot.exists(), r.stderr[-2000:]
     assert _console(r.stderr) == [], _console(r.stderr)
     from PIL import Image
+
     img = np.asarray(Image.open(shot).convert("RGB"), float)
-    view = img[top + 2:top + h - 2, left + 2:left + w - 2]
+    view = img[top + 2 : top + h - 2, left + 2 : left + w - 2]
     gray = view.mean(axis=2)
     assert gray.std() > 5.0  # not blank
-    ink = (np.abs(view - 255).max(axis=2) > 60)  # drawn pixels (white is the background)
+    ink = np.abs(view - 255).max(axis=2) > 60  # drawn pixels (white is the background)
     coloured = (view.max(axis=2) - view.min(axis=2)) > 60  # branch-order colours, not only text
     assert coloured.mean() > 0.005
     # five trees side by side: five separate groups of columns with coloured pixels

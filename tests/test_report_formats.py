@@ -1,6 +1,7 @@
 """Figures fit for a paper (issue 33, item 4): ``bforest report --format png|svg|pdf --dpi N``
 writes every figure in that format, nothing drawn is clipped, and the parameter plot reads at 18
 parameters."""
+
 from __future__ import annotations
 
 import re
@@ -35,6 +36,7 @@ def sampler_run(toy_plugin, tmp_path_factory):
     (trees, data sets, convergence, parameters, corner, generations, clones, their metrics and
     distributions), drawn in this process; returns the run and every ``(figure, file, dpi)`` saved."""
     import bforest_core.report.build as build
+
     base = tmp_path_factory.mktemp("formats")
     p = toy_config(base, optimizer="abc-smc", optimizer_settings="particles = 10\ngenerations = 3", budget=200)
     bf.fit(bf.load_config(p), base / "run", progress=False)
@@ -56,11 +58,20 @@ def sampler_run(toy_plugin, tmp_path_factory):
 @pytest.mark.parametrize("fmt", ["svg", "pdf"])
 def test_every_figure_is_written_in_the_chosen_format(sampler_run, tmp_path, fmt):
     from bforest_core.cli import main
+
     sampler_run, _ = sampler_run
     png = _figures((sampler_run / "report.md").read_text())
     stems = sorted(Path(f).stem for f in png)
-    assert {"trees", "convergence", "parameters", "corner", "generations", "clones", "clone_metrics",
-            "distributions"} <= set(stems)
+    assert {
+        "trees",
+        "convergence",
+        "parameters",
+        "corner",
+        "generations",
+        "clones",
+        "clone_metrics",
+        "distributions",
+    } <= set(stems)
     run = tmp_path / "run"
     shutil.copytree(sampler_run, run)
     shutil.rmtree(run / "figures")
@@ -84,14 +95,16 @@ def test_every_figure_is_written_in_the_chosen_format(sampler_run, tmp_path, fmt
 def test_dpi_sets_the_resolution_and_a_bad_value_is_one_line(tmp_path, capsys, monkeypatch):
     from bforest_core.cli import main
     from bforest_core.report.canvas import figure_output
+
     d = np.r_[0.5, 0.4, 0.3, 0.35, 0.2]
     w130, h130 = png_size(convergence.convergence_figure(d, tmp_path / "a.png"))  # its own 130 dpi
     with figure_output("png", 260):
         w260, h260 = png_size(convergence.convergence_figure(d, tmp_path / "b.png"))
     assert w260 / w130 == pytest.approx(2.0, rel=0.01) and h260 / h130 == pytest.approx(2.0, rel=0.01)
     seen = {}
-    monkeypatch.setattr("bforest_core.report.build.write_report",
-                        lambda run, **kw: seen.update(kw) or Path(run) / "report.md")
+    monkeypatch.setattr(
+        "bforest_core.report.build.write_report", lambda run, **kw: seen.update(kw) or Path(run) / "report.md"
+    )
     assert main(["report", str(tmp_path), "--format", "svg", "--dpi", "300"]) == 0
     assert seen == {"format": "svg", "dpi": 300}
     capsys.readouterr()
@@ -104,7 +117,9 @@ def test_a_label_beyond_the_bottom_edge_is_saved_not_clipped(tmp_path):
     """An x label below the figure's edge (axes placed by hand, no layout) is in the file: the
     image grows to hold it, and its bottom rows hold the label's dark pixels."""
     import matplotlib.image as mpimg
+
     from bforest_core.report.canvas import new_figure, save_figure
+
     fig = new_figure(4.0, 3.0, layout=None)
     ax = fig.add_axes([0.12, 0.03, 0.83, 0.9])
     ax.plot([0, 1], [0, 1])
@@ -113,7 +128,7 @@ def test_a_label_beyond_the_bottom_edge_is_saved_not_clipped(tmp_path):
     w, h = png_size(p)
     assert h > 300 + 20  # 3 in at 100 dpi, plus the tick labels and the label below the edge
     img = mpimg.imread(p)[..., :3].mean(axis=2)
-    assert img[-int(0.06 * h):].min() < 0.3  # the label's text is in the bottom rows
+    assert img[-int(0.06 * h) :].min() < 0.3  # the label's text is in the bottom rows
 
 
 def _drawn_box(fig, dpi):
@@ -127,6 +142,7 @@ def test_no_report_figure_is_clipped(sampler_run, tmp_path, monkeypatch):
     """Every figure of a report, and the worst-lines figure whose long line formulas reach past
     the right edge, is saved as the box of everything drawn on it (plus a 0.05 in pad)."""
     from bforest_core.report import datasets
+
     _, saved = sampler_run
     saved = list(saved)
     real = Figure.savefig
@@ -140,8 +156,15 @@ def test_no_report_figure_is_clipped(sampler_run, tmp_path, monkeypatch):
     ud, um = rng.normal(size=(200, 6)), rng.normal(0.3, 1, size=(150, 6))
     A = rng.normal(size=(32, 6))
     A /= np.linalg.norm(A, axis=1, keepdims=True)
-    datasets.worst_lines_figure(um, ud, A, ["R", "L", "sin(gamma)", "cos(gamma)", "sin(zeta)", "cos(zeta)"],
-                                tmp_path / "lines.png", k=4, normalised=True)
+    datasets.worst_lines_figure(
+        um,
+        ud,
+        A,
+        ["R", "L", "sin(gamma)", "cos(gamma)", "sin(zeta)", "cos(zeta)"],
+        tmp_path / "lines.png",
+        k=4,
+        normalised=True,
+    )
     pngs = [(f, p, dpi) for f, p, dpi in saved if p.suffix == ".png"]
     assert len(pngs) >= 10
     for fig, path, dpi in pngs:
@@ -150,8 +173,12 @@ def test_no_report_figure_is_clipped(sampler_run, tmp_path, monkeypatch):
         # the file holds the whole box (whatever lies past the figure's edge included), and not much more
         assert w >= box.width * dpi - 2 and h >= box.height * dpi - 2, (path.name, (w, h), box.bounds)
         tol = 0.1 * dpi  # a redraw's layout may move by a few pixels
-        assert abs(w - (box.width + 0.1) * dpi) <= tol and abs(h - (box.height + 0.1) * dpi) <= tol, \
-            (path.name, (w, h), box.bounds, fig.get_size_inches())
+        assert abs(w - (box.width + 0.1) * dpi) <= tol and abs(h - (box.height + 0.1) * dpi) <= tol, (
+            path.name,
+            (w, h),
+            box.bounds,
+            fig.get_size_inches(),
+        )
 
 
 def test_parameter_plot_reads_at_18_parameters(tmp_path, monkeypatch):
@@ -162,8 +189,9 @@ def test_parameter_plot_reads_at_18_parameters(tmp_path, monkeypatch):
     monkeypatch.setattr(convergence, "save_figure", lambda fig, path, dpi=130: figs.append(fig) or real(fig, path, dpi))
     rng = np.random.default_rng(0)
     names = [f"param_{i}" for i in range(18)]
-    p = convergence.parameter_scatter_figure(names, rng.random((300, 18)), rng.random(300), tmp_path / "p.png",
-                                             best={"param_0": 0.5})
+    p = convergence.parameter_scatter_figure(
+        names, rng.random((300, 18)), rng.random(300), tmp_path / "p.png", best={"param_0": 0.5}
+    )
     fig = figs[-1]
     fig.canvas.draw()
     bar = next(ax for ax in fig.axes if ax.get_label() == "<colorbar>")

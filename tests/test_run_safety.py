@@ -1,5 +1,6 @@
 """A run folder nothing can corrupt: one owner at a time, --overwrite that clears the old run,
 no command overwriting a file it did not write, clones that can be continued."""
+
 from __future__ import annotations
 
 import json
@@ -19,14 +20,19 @@ EXE = [sys.executable, "-m", "bforest_core.cli"]
 
 
 def _env(toy_site, *more):
-    return {**os.environ, "PYTHONPATH": os.pathsep.join([str(toy_site), str(TOY_DIR), *map(str, more),
-                                                         os.environ.get("PYTHONPATH", "")])}
+    return {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(toy_site), str(TOY_DIR), *map(str, more), os.environ.get("PYTHONPATH", "")]),
+    }
 
 
 def _slow(p: Path, sleep: float) -> Path:
     """The toy config with a model that sleeps per simulation (the target grows at once)."""
-    p.write_text(p.read_text().replace('kind = "toy"\n', f'kind = "toy"\nsleep = {sleep}\n', 1)
-                 .replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = { sleep = 0.0 }'))
+    p.write_text(
+        p.read_text()
+        .replace('kind = "toy"\n', f'kind = "toy"\nsleep = {sleep}\n', 1)
+        .replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = { sleep = 0.0 }')
+    )
     return p
 
 
@@ -41,14 +47,22 @@ def test_two_fits_into_one_folder_exactly_one_runs(toy_plugin, tmp_path):
     b = toy_config(tmp_path / "b", budget=8)
     b.write_text(b.read_text().replace("seed = 3", "seed = 4", 1))
     run, env = tmp_path / "run", _env(toy_plugin)
-    first = subprocess.Popen(EXE + ["fit", str(a), "-o", str(run), "-q", "--no-report"], env=env,
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    first = subprocess.Popen(
+        EXE + ["fit", str(a), "-o", str(run), "-q", "--no-report"],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and not (run / "evaluations.sqlite").exists():
         time.sleep(0.05)
-    others = [subprocess.Popen(EXE + args + ["-q", "--no-report"], env=env, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
-              for args in (["fit", str(b), "-o", str(run)], ["fit", str(run / "config.toml"), "-o", str(run), "--resume"])]
+    others = [
+        subprocess.Popen(
+            EXE + args + ["-q", "--no-report"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        for args in (["fit", str(b), "-o", str(run)], ["fit", str(run / "config.toml"), "-o", str(run), "--resume"])
+    ]
     out, err = first.communicate(timeout=120)
     assert first.returncode == 0, err
     for r in others:
@@ -66,14 +80,17 @@ def test_two_fits_into_one_folder_exactly_one_runs(toy_plugin, tmp_path):
 def test_the_lock_is_reentrant_in_a_process_and_freed_after(toy_plugin, tmp_path):
     from bforest_core.pipeline.rundir import run_lock
     from bforest_core.pipeline.store import RunFiles
+
     with run_lock(tmp_path / "r"):
         with run_lock(tmp_path / "r"):  # demo holds it while its fit takes it again
             pass
         info = json.loads(RunFiles(tmp_path / "r").lock_path.read_text())
         assert info["pid"] == os.getpid()
         # another process cannot take it meanwhile
-        code = ("import sys; from bforest_core.pipeline.rundir import run_lock\n"
-                "try:\n    run_lock(sys.argv[1]).__enter__()\nexcept Exception as e:\n    print(e); sys.exit(2)\n")
+        code = (
+            "import sys; from bforest_core.pipeline.rundir import run_lock\n"
+            "try:\n    run_lock(sys.argv[1]).__enter__()\nexcept Exception as e:\n    print(e); sys.exit(2)\n"
+        )
         r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "r")], capture_output=True, text=True)
         assert r.returncode == 2 and f"pid {os.getpid()}" in r.stdout
     r = subprocess.run([sys.executable, "-c", code, str(tmp_path / "r")], capture_output=True, text=True)
@@ -87,6 +104,7 @@ def test_the_lock_is_reentrant_in_a_process_and_freed_after(toy_plugin, tmp_path
 # ------------------------------------------------------------------------------ --overwrite, foreign files
 def test_overwrite_clears_everything_the_old_run_wrote(toy_plugin, tmp_path):
     from bforest_core.pipeline.clones import clones
+
     run = tmp_path / "run"
     cfg = bf.load_config(toy_config(tmp_path, budget=8))
     bf.fit(cfg, run, progress=False)
@@ -105,6 +123,7 @@ def test_overwrite_clears_everything_the_old_run_wrote(toy_plugin, tmp_path):
 
 def test_overwrite_keeps_the_old_run_when_the_new_config_is_invalid(toy_plugin, tmp_path):
     from bforest_core.cli import main
+
     run = tmp_path / "run"
     p = toy_config(tmp_path, budget=8)
     assert main(["fit", str(p), "-o", str(run), "-q", "--no-report"]) == 0
@@ -116,6 +135,7 @@ def test_overwrite_keeps_the_old_run_when_the_new_config_is_invalid(toy_plugin, 
 
 def test_fit_into_the_configs_own_folder_never_overwrites_the_users_config(toy_plugin, tmp_path, capsys):
     from bforest_core.cli import main
+
     p = toy_config(tmp_path, budget=8)
     mine = tmp_path / "config.toml"
     mine.write_text("# my notes\n" + p.read_text())
@@ -130,6 +150,7 @@ def test_fit_into_the_configs_own_folder_never_overwrites_the_users_config(toy_p
 
 def test_demo_never_replaces_a_run_or_a_file_it_did_not_write(toy_plugin, tmp_path, capsys):
     from bforest_core.cli import main
+
     run = tmp_path / "x"
     bf.fit(bf.load_config(toy_config(tmp_path, budget=8)), run, progress=False)
     assert main(["demo", "-o", str(run), "--quick", "-q"]) == 2
@@ -140,8 +161,8 @@ def test_demo_never_replaces_a_run_or_a_file_it_did_not_write(toy_plugin, tmp_pa
 def test_demo_writes_nothing_beside_its_run_folder(tmp_path, monkeypatch):
     """Issue 33: the demo left ``demo-run.toml`` in the folder it was started from (the
     repository root); its config is the run's own config.toml now."""
-    from bforest_core.cli import demo
     import bforest_core.pipeline.fit as fit_mod
+    from bforest_core.cli import demo
 
     class Stop(Exception):
         pass
@@ -166,11 +187,16 @@ def test_a_killed_clones_call_is_continued_without_regrowing_its_clones(toy_plug
     import signal
 
     from bforest_core.pipeline.clones import clones
+
     run = tmp_path / "run"
     p = _slow(toy_config(tmp_path, budget=4), 0.3)
     bf.fit(bf.load_config(p), run, progress=False)
-    proc = subprocess.Popen(EXE + ["clones", str(run), "-n", "8", "-q", "--no-report"], env=_env(toy_plugin),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        EXE + ["clones", str(run), "-n", "8", "-q", "--no-report"],
+        env=_env(toy_plugin),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     summary, deadline, rows = run / "clones" / "summary.json", time.monotonic() + 60, []
     while time.monotonic() < deadline and len(rows) < 2:
         try:
@@ -190,9 +216,13 @@ def test_a_killed_clones_call_is_continued_without_regrowing_its_clones(toy_plug
 
 def test_a_missing_reference_file_loses_no_clone(toy_plugin, tmp_path, capsys):
     from bforest_core.cli import main
+
     p = toy_config(tmp_path, budget=4)
-    p.write_text(p.read_text().replace("[target.generate]", 'seed = 3\n[target]\nreferences = ["gone.txt"]\n[target.generate]', 1)
-                 .replace("seed = 3\n", "", 1))
+    p.write_text(
+        p.read_text()
+        .replace("[target.generate]", 'seed = 3\n[target]\nreferences = ["gone.txt"]\n[target.generate]', 1)
+        .replace("seed = 3\n", "", 1)
+    )
     run = tmp_path / "run"
     (tmp_path / "gone.txt").write_text("")  # there when the fit checked it, gone by the clones
     bf.fit(bf.load_config(p), run, progress=False)

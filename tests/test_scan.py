@@ -1,4 +1,5 @@
 """Synthetic laser scans: points on the cylinder surfaces, LAS/XYZ files with the true structure."""
+
 import numpy as np
 import pytest
 
@@ -30,7 +31,7 @@ def test_uniform_density_and_surface():
     assert along.min() >= 0 and along.max() <= 2.0
     again = scan_points(t, density=3000, noise=0.002, seed=3)
     assert np.array_equal(pts["xyz"], again["xyz"])
-    assert not np.array_equal(pts["xyz"], scan_points(t, density=3000, noise=0.002, seed=4)["xyz"][:len(pts["xyz"])])
+    assert not np.array_equal(pts["xyz"], scan_points(t, density=3000, noise=0.002, seed=4)["xyz"][: len(pts["xyz"])])
 
 
 def test_points_of_a_real_pine_lie_on_their_cylinders():

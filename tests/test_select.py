@@ -1,5 +1,6 @@
 """The answer of a fit chosen on held-out model seeds (``[select]``): the right candidate, kept
 scores, a resumable re-scoring, and the report showing both distances."""
+
 import json
 import warnings
 
@@ -22,8 +23,12 @@ SELECT = "\n[select]\ntop = 5\nsets = 6\n"
 
 def noisy_config(tmp_path, seed=3):
     p = toy_config(tmp_path, budget=40)
-    p.write_text(p.read_text().replace("fixed = { noise = 2.0 }", "fixed = { noise = 20.0 }")
-                 .replace("seed = 3", f"seed = {seed}", 1) + SELECT)
+    p.write_text(
+        p.read_text()
+        .replace("fixed = { noise = 2.0 }", "fixed = { noise = 20.0 }")
+        .replace("seed = 3", f"seed = {seed}", 1)
+        + SELECT
+    )
     return p
 
 
@@ -41,14 +46,16 @@ def test_the_answer_is_the_candidate_best_on_held_out_seeds_not_the_luckiest(toy
     # their held-out distances, recomputed seed set by seed set outside the fit
     sets = heldout_seeds(cfg.seed, 6, 1)
     used = {s for e in evs for s in e.seeds}
-    assert not used & {s for ss in sets for s in ss}   # seeds the search never used
+    assert not used & {s for ss in sets for s in ss}  # seeds the search never used
     with started_workers(cfg, build_target(cfg)):
-        expect = {c["evaluation"]: np.mean([evaluate_task((c["params"], s))["distance"] for s in sets])
-                  for c in sel["candidates"]}
+        expect = {
+            c["evaluation"]: np.mean([evaluate_task((c["params"], s))["distance"] for s in sets])
+            for c in sel["candidates"]
+        }
     assert {c["evaluation"]: c["heldout"] for c in sel["candidates"]} == pytest.approx(expect, rel=1e-12)
     chosen = min(expect, key=expect.get)
     assert sel["chosen"] == chosen == best["evaluation"]
-    assert chosen != own[0].idx                       # the luckiest point is not the answer
+    assert chosen != own[0].idx  # the luckiest point is not the answer
     assert best["params"] == next(c["params"] for c in sel["candidates"] if c["evaluation"] == chosen)
     assert best["heldout_distance"] == pytest.approx(expect[chosen], rel=1e-12)
     assert res.params == best["params"]
@@ -56,10 +63,15 @@ def test_the_answer_is_the_candidate_best_on_held_out_seeds_not_the_luckiest(toy
 
 def test_candidates_are_distinct_points():
     ev = lambda i, x, d: Evaluation(i, {"a": x, "b": 0.0}, [1], d, {}, "ok", "", 0.0, "", {})
-    log = [ev(0, 0.50, 0.10), ev(1, 0.505, 0.11), ev(2, 0.90, 0.12), ev(3, 0.10, 0.13),
-           Evaluation(4, {"a": 0.3, "b": 0.0}, [1], 0.01, {}, "error", "", 0.0, "", {})]
+    log = [
+        ev(0, 0.50, 0.10),
+        ev(1, 0.505, 0.11),
+        ev(2, 0.90, 0.12),
+        ev(3, 0.10, 0.13),
+        Evaluation(4, {"a": 0.3, "b": 0.0}, [1], 0.01, {}, "error", "", 0.0, "", {}),
+    ]
     got = candidates(log, 3, [0.0, 0.0], [1.0, 1.0], ["a", "b"], spacing=0.02)
-    assert [e.idx for e in got] == [0, 2, 3]          # 1 is a near-copy of 0; 4 failed
+    assert [e.idx for e in got] == [0, 2, 3]  # 1 is a near-copy of 0; 4 failed
 
 
 def test_a_killed_rescoring_resumes_to_the_identical_answer_growing_nothing_twice(toy_plugin, tmp_path, monkeypatch):
@@ -73,6 +85,7 @@ def test_a_killed_rescoring_resumes_to_the_identical_answer_growing_nothing_twic
         if calls["n"] > 7:
             raise KeyboardInterrupt  # Ctrl-C in the middle of the re-scoring
         return real_add(self, *a)
+
     monkeypatch.setattr(RunStore, "add_heldout", dying_add)
     with pytest.raises(KeyboardInterrupt):
         bf.fit(bf.load_config(p), tmp_path / "cut", progress=False)
@@ -82,7 +95,7 @@ def test_a_killed_rescoring_resumes_to_the_identical_answer_growing_nothing_twic
     monkeypatch.setattr(heldout_mod, "evaluate_task", lambda task: grown.append(task) or evaluate_task(task))
     bf.fit(bf.load_config(p), tmp_path / "cut", resume=True, progress=False)
     cut = json.loads((tmp_path / "cut" / "best.json").read_text())
-    assert len(grown) == 5 * 6 - 7                   # the 7 kept scores are not grown again
+    assert len(grown) == 5 * 6 - 7  # the 7 kept scores are not grown again
     for k in ("params", "evaluation", "distance", "heldout_distance", "selection"):
         assert cut[k] == whole[k], k
 
@@ -91,6 +104,7 @@ def test_the_report_shows_own_and_held_out_distances(toy_plugin, tmp_path):
     p = noisy_config(tmp_path)
     bf.fit(bf.load_config(p), tmp_path / "run", progress=False)
     from bforest_core.report.build import write_report
+
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         write_report(tmp_path / "run", figures=False, html=False)
@@ -100,7 +114,7 @@ def test_the_report_shows_own_and_held_out_distances(toy_plugin, tmp_path):
     assert "| evaluation | own distance | held-out distance |" in md
     for c in best["selection"]["candidates"]:
         assert f"| {c['evaluation']} | " in md
-    assert "seeds' luck" in md   # the answer is not the point of lowest own distance here
+    assert "seeds' luck" in md  # the answer is not the point of lowest own distance here
 
 
 def test_select_off_keeps_the_best_own_distance(toy_plugin, tmp_path):
@@ -118,6 +132,7 @@ def test_compare_reports_each_search_by_its_best_own_distance(toy_plugin, tmp_pa
     """compare compares searches: a recipe's [select] does not replace a run's best by a candidate
     chosen on held-out seeds (compare --heldout scores runs on fresh seeds itself)."""
     from bforest_core.pipeline.compare import compare
+
     p = noisy_config(tmp_path)
     res = compare(p, ["toy-random"], budget=20, repeats=1, out_dir=tmp_path / "cmp")
     best = json.loads((tmp_path / "cmp" / "toy-random-0" / "best.json").read_text())

@@ -1,5 +1,6 @@
 """The sliced distance (docs/features-and-distance.md §3, §4, §7): directions, exact statistics
 against SciPy, normalisation, set rules, caching, and the permutation test."""
+
 import pickle
 import warnings
 
@@ -24,6 +25,7 @@ def dist(**kw):
 
 # ------------------------------------------------------------------------------ references
 
+
 def ad_sigma2(ns):
     """Variance of the k-sample A^2 under H0 (Scholz & Stephens 1987, eq. 4)."""
     ns = np.asarray(ns, float)
@@ -34,11 +36,11 @@ def ad_sigma2(ns):
     inner = np.cumsum(1 / j)[::-1]  # inner[i-1] ~ sum_{j>=i} 1/j ; need sum_{j=i+1}^{N-1}
     g = sum(np.sum(1.0 / ((N - i) * np.arange(i + 1, N))) for i in range(1, N - 1))
     a = (4 * g - 6) * (k - 1) + (10 - 6 * g) * H
-    b = (2 * g - 4) * k ** 2 + 8 * h * k + (2 * g - 14 * h - 4) * H - 8 * h + 4 * g - 6
-    c = (6 * h + 2 * g - 2) * k ** 2 + (4 * h - 4 * g + 6) * k + (2 * h - 6) * H + 4 * h
-    d = (2 * h + 6) * k ** 2 - 4 * h * k
+    b = (2 * g - 4) * k**2 + 8 * h * k + (2 * g - 14 * h - 4) * H - 8 * h + 4 * g - 6
+    c = (6 * h + 2 * g - 2) * k**2 + (4 * h - 4 * g + 6) * k + (2 * h - 6) * H + 4 * h
+    d = (2 * h + 6) * k**2 - 4 * h * k
     del inner
-    return (a * N ** 3 + b * N ** 2 + c * N + d) / ((N - 1) * (N - 2) * (N - 3))
+    return (a * N**3 + b * N**2 + c * N + d) / ((N - 1) * (N - 2) * (N - 3))
 
 
 def scipy_A2(x, y):
@@ -63,6 +65,7 @@ def one(x, y, stat, scaled=False):
 
 # ------------------------------------------------------------------------------ directions
 
+
 @pytest.mark.parametrize("net", NETS)
 def test_directions_unit_finite_for_every_dimension(net):
     for d in range(2, 11):
@@ -72,7 +75,7 @@ def test_directions_unit_finite_for_every_dimension(net):
         np.testing.assert_allclose(np.linalg.norm(A, axis=1), 1.0, atol=1e-12)
         # the distance's directions: the same net on the grid of 2^-20, unit to about 1e-6
         G = directions(d, 200, net)
-        np.testing.assert_array_equal(G * 2.0 ** DIRECTION_BITS, np.rint(G * 2.0 ** DIRECTION_BITS))
+        np.testing.assert_array_equal(G * 2.0**DIRECTION_BITS, np.rint(G * 2.0**DIRECTION_BITS))
         assert np.abs(G - A).max() <= 2.0 ** -(DIRECTION_BITS + 1)
         np.testing.assert_allclose(np.linalg.norm(G, axis=1), 1.0, atol=4e-6)
 
@@ -80,10 +83,14 @@ def test_directions_unit_finite_for_every_dimension(net):
 def test_gp2_parity_vectors():
     c = net_points("gp2", 1, 3)
     np.testing.assert_allclose(c[0], [0.189207115003, 0.414213562373, 0.681792830507], atol=1e-12)
-    np.testing.assert_allclose(make_directions(4, 7)[0], [-0.373306397597, 0.223269900604, -0.374186916140,
-                                                     -0.819009790410], atol=1e-11)
-    np.testing.assert_allclose(make_directions(5, 7)[0], [0.191245058474, -0.491658349415, -0.048709746455,
-                                                     -0.047397025580, -0.846804745869], atol=1e-11)
+    np.testing.assert_allclose(
+        make_directions(4, 7)[0], [-0.373306397597, 0.223269900604, -0.374186916140, -0.819009790410], atol=1e-11
+    )
+    np.testing.assert_allclose(
+        make_directions(5, 7)[0],
+        [0.191245058474, -0.491658349415, -0.048709746455, -0.047397025580, -0.846804745869],
+        atol=1e-11,
+    )
     A = make_directions(2, 4)
     np.testing.assert_allclose(np.degrees(np.arctan2(A[:, 1], A[:, 0])), [22.5, 67.5, 112.5, 157.5], atol=1e-12)
     np.testing.assert_array_equal(directions(1, 100), [[1.0]])
@@ -207,18 +214,28 @@ def test_sliced_equals_per_line_scipy_loop(stat):
     rng = np.random.default_rng(11)
     ud = rng.normal(size=(300, 5))
     um = rng.normal(size=(250, 5)) * 1.1 + 0.1
-    D = dist(statistic=stat, lines=64, normalize="none", empty_cost=1.0, return_lines=True,
-             scale_by_sample_size=(stat in ("cvm", "ad")))
+    D = dist(
+        statistic=stat,
+        lines=64,
+        normalize="none",
+        empty_cost=1.0,
+        return_lines=True,
+        scale_by_sample_size=(stat in ("cvm", "ad")),
+    )
     val = D.compute(um, ud)
     A = D.directions(5)
     ref = []
     for a in A:  # the statistic of the values the distance sees (on its grid: normalize = none)
         x, y = snap(ud, VALUE_BITS) @ a, snap(um, VALUE_BITS) @ a
-        ref.append({"ks": lambda: stats.ks_2samp(x, y).statistic,
-                    "cvm": lambda: stats.cramervonmises_2samp(x, y).statistic,
-                    "ad": lambda: scipy_A2(x, y),
-                    "w1": lambda: stats.wasserstein_distance(x, y),
-                    "energy": lambda: stats.energy_distance(x, y) ** 2}[stat]())
+        ref.append(
+            {
+                "ks": lambda: stats.ks_2samp(x, y).statistic,
+                "cvm": lambda: stats.cramervonmises_2samp(x, y).statistic,
+                "ad": lambda: scipy_A2(x, y),
+                "w1": lambda: stats.wasserstein_distance(x, y),
+                "energy": lambda: stats.energy_distance(x, y) ** 2,
+            }[stat]()
+        )
     np.testing.assert_allclose(D.last_lines[None], ref, rtol=0, atol=1e-12)
     assert val == pytest.approx(np.mean(ref), abs=1e-12)
 
@@ -239,6 +256,7 @@ def test_sliced_ks_with_rows_repeated_across_sides():
 
 
 # ------------------------------------------------------------------------------ properties
+
 
 @pytest.mark.parametrize("stat", ["ks", "cvm", "ad", "w1", "energy", "l1", "l2"])
 def test_identity_symmetry_and_shift(stat):
@@ -301,6 +319,7 @@ def test_empty_cost_rules():
 
 # ------------------------------------------------------------------------------ normalisation
 
+
 def test_normalisation_fits():
     rng = np.random.default_rng(14)
     u = np.column_stack([rng.normal(5, 2, 500), rng.exponential(1, 500)])
@@ -347,6 +366,7 @@ def test_zscore_changes_the_weight_of_units():
 
 # ------------------------------------------------------------------------------ prepare, caching, threads
 
+
 def test_prepare_equals_unprepared_and_freezes_transform():
     rng = np.random.default_rng(17)
     ud = {"S1": rng.normal(size=(300, 4)), "B1": rng.normal(size=(60, 5))}
@@ -365,6 +385,7 @@ def test_prepare_equals_unprepared_and_freezes_transform():
 
 def test_default_threads_follow_the_process_thread_limit(monkeypatch):
     import os
+
     d = bf.component("distance", "sliced", lines=16)
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     assert d.n_threads == max(1, min(8, os.cpu_count() or 1))
@@ -413,6 +434,7 @@ def test_one_dimensional_table_uses_one_line():
 
 
 # ------------------------------------------------------------------------------ permutation test
+
 
 def test_holm():
     adj = holm({"a": 0.01, "b": 0.04, "c": 0.03})
@@ -466,7 +488,6 @@ def test_permutation_per_set_and_holm_and_determinism():
 # ------------------------------------------------------------------------------ real data (§3 table)
 
 
-
 def _wrap(deg):
     return (deg + 180.0) % 360.0 - 180.0  # (-180, 180] up to the seam value
 
@@ -476,12 +497,15 @@ def _embed(S):
     return np.column_stack([S[:, 0], S[:, 1], np.sin(g), np.cos(g), np.sin(z), np.cos(z)])
 
 
-@pytest.mark.parametrize("normalize,angles,expected", [
-    ("none", "linear", (0.131, 0.019, 0.355)),
-    ("zscore", "linear", (0.322, 0.199, 0.114)),
-    ("robust", "linear", (0.280, 0.131, 0.182)),
-    ("zscore", "circular", (0.313, 0.190, 0.120)),
-])
+@pytest.mark.parametrize(
+    "normalize,angles,expected",
+    [
+        ("none", "linear", (0.131, 0.019, 0.355)),
+        ("zscore", "linear", (0.322, 0.199, 0.114)),
+        ("robust", "linear", (0.280, 0.131, 0.182)),
+        ("zscore", "circular", (0.313, 0.190, 0.120)),
+    ],
+)
 def test_real_pine3_normalisation_table(normalize, angles, expected):
     tree = read_sample("pine_ruotsinkyla_3.mat")
     fs = bf.component("features", "branch-segment", sets=["S1"], topology="source", angles="linear")
@@ -493,7 +517,9 @@ def test_real_pine3_normalisation_table(normalize, angles, expected):
     emb = _embed if angles == "circular" else (lambda a: a)
     D = dist(lines=100, normalize=normalize)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # robust: zero IQR of gamma/zeta (docs/features-and-distance.md §3)
+        warnings.simplefilter(
+            "ignore", RuntimeWarning
+        )  # robust: zero IQR of gamma/zeta (docs/features-and-distance.md §3)
         got = [D.compute(emb(m), emb(S), columns=cols) for m in mods]
     # docs/features-and-distance.md §7: +-0.002. The robust row reproduces only to 0.005 (0.2786, 0.1324, 0.1776 against
     # 0.280, 0.131, 0.182; no numpy quantile method or wrap convention gives all three) while the
@@ -503,20 +529,30 @@ def test_real_pine3_normalisation_table(normalize, angles, expected):
 
 # ------------------------------------------------------------------------------ invariance (round-off)
 
+
 def renumbered(tree, seed=0):
     """The same tree with its cylinders in another order (parents and children permuted)."""
     from bforest_core import Tree
-    perm = np.random.default_rng(seed).permutation(tree.n)   # new row i holds old row perm[i]
+
+    perm = np.random.default_rng(seed).permutation(tree.n)  # new row i holds old row perm[i]
     inv = np.empty(tree.n, dtype=np.int64)
     inv[perm] = np.arange(tree.n)
     relink = lambda a: np.where(a[perm] >= 0, inv[np.maximum(a[perm], 0)], -1)
-    return Tree(tree.start[perm], tree.axis[perm], tree.length[perm], tree.radius[perm],
-                relink(tree.parent), relink(tree.extension), topology=tree.topology)
+    return Tree(
+        tree.start[perm],
+        tree.axis[perm],
+        tree.length[perm],
+        tree.radius[perm],
+        relink(tree.parent),
+        relink(tree.extension),
+        topology=tree.topology,
+    )
 
 
 @pytest.mark.parametrize("which", ["hand", "pine3"])
 def test_distance_is_blind_to_numbering_position_and_machine_round_off(which):
     from conftest import hand_tree
+
     tree = hand_tree() if which == "hand" else read_sample("pine_ruotsinkyla_3.mat")
     sets = ["S0", "S1", "B1", "S0,1"] if which == "hand" else ["S0", "S1", "S2", "B1", "B2", "S0,1", "B1,2"]
     fs = bf.component("features", "branch-segment", sets=sets, min_rows=0, small_sets="keep")
@@ -524,8 +560,12 @@ def test_distance_is_blind_to_numbering_position_and_machine_round_off(which):
     U = fs.extract(tree)
     D = dist(lines=128)
     D.prepare(U, {k: fs.columns(k) for k in fs.set_names})
-    copies = {"itself": tree, "renumbered": renumbered(tree, 1), "renumbered again": renumbered(tree, 2),
-              "translated by 100 m": tree.translated([100.0, 100.0, 100.0])}
+    copies = {
+        "itself": tree,
+        "renumbered": renumbered(tree, 1),
+        "renumbered again": renumbered(tree, 2),
+        "translated by 100 m": tree.translated([100.0, 100.0, 100.0]),
+    }
     for name, other in copies.items():
         Um = fs.extract(other)
         for k in U:  # the same rows, in another order
@@ -537,7 +577,9 @@ def test_distance_is_blind_to_numbering_position_and_machine_round_off(which):
     other = renumbered(tree.translated([3.0, -2.0, 0.5]), 3)
     if which == "pine3":
         other = read_sample("pine_ruotsinkyla_1.mat")
-    fs1 = bf.component("features", "branch-segment", sets=sets, min_rows=0, small_sets="keep", orders=fs.settings.orders)
+    fs1 = bf.component(
+        "features", "branch-segment", sets=sets, min_rows=0, small_sets="keep", orders=fs.settings.orders
+    )
     Um = fs1.extract(other)
     assert D.permutation_test(Um, U, max_draws=100).d0 == pytest.approx(D.compute_sets(Um, U), rel=1e-12)
 
@@ -546,6 +588,7 @@ def test_segment_lengths_are_summed_per_branch():
     # L of a cylinder is the sum of the lengths before it on its own branch, whatever comes first
     from bforest_features.branch_segment import along_branch
     from conftest import hand_tree
+
     t = hand_tree()
     L = along_branch(t.branches, t.length[t.branches.cylinders])
     np.testing.assert_array_equal(L, [0.0, 1.0, 2.0, 0.0, 0.8, 0.0, 0.0])

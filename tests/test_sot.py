@@ -1,4 +1,5 @@
 """Tests of the SOT growth model plugin (docs/models.md part B; sanity properties D 1-5, 15-21)."""
+
 from __future__ import annotations
 
 import copy
@@ -42,15 +43,16 @@ def run_recorded(ssm, params, seed, keep_trees=()):
             store = view.store
             rec.setdefault("order", {})[c] = store.order[view.live_ids].copy()
             rec.setdefault("growth_lateral", {})[c] = store.is_lateral[view.live_ids].copy()
-            rec.setdefault("stubs", {})[c] = {k: getattr(store, k)[view.live_ids].copy() for k in
-                                              ("api_state", "lat_state", "api_stub_w", "lat_stub_w")}
+            rec.setdefault("stubs", {})[c] = {
+                k: getattr(store, k)[view.live_ids].copy()
+                for k in ("api_state", "lat_state", "api_stub_w", "lat_stub_w")
+            }
         # the incrementally maintained field equals one rebuilt from the living segments
         f2 = copy.copy(view.field)
         f2.rebuild(view.store.start[view.live_ids])
         rec["field_err"][c] = float(np.max(np.abs(f2.log_e - view.field.log_e)))
         e = view.field.voxel_exposure()
-        rec.setdefault("field_range", []).append((float(e.min()), float(e.max()),
-                                                  float(e[view.field.roof].max())))
+        rec.setdefault("field_range", []).append((float(e.min()), float(e.max()), float(e[view.field.roof].max())))
 
     tree = ssm.simulate(params, seed, on_step=on_step)
     return tree, rec
@@ -65,19 +67,66 @@ def default_run(ssm):
 # ------------------------------------------------------------------------------ parameters
 def test_parameter_table_complete():
     names = [p.name for p in PARAMETERS]
-    expected = {"max_iter", "alpha0", "alpha1", "max_grow", "drop_thresh", "init_width", "pipe_exp",
-                "nonlinear", "reorient", "redir_strength", "tropism", "sample_rad", "ran", "vert",
-                "init_lambda", "targ_lambda", "delay", "transition", "depth", "spread", "shadow_a",
-                "shadow_b", "branch_angle", "phyllotaxis", "nonplanar_twist", "node_length",
-                "voxel_size", "span", "branch_angle_sd", "phyllotaxis_sd", "lambda_sd", "tropism_sd",
-                "stand_shade", "heading_sd", "leader_death", "death_delay"}  # the last four are additions, off by default
+    expected = {
+        "max_iter",
+        "alpha0",
+        "alpha1",
+        "max_grow",
+        "drop_thresh",
+        "init_width",
+        "pipe_exp",
+        "nonlinear",
+        "reorient",
+        "redir_strength",
+        "tropism",
+        "sample_rad",
+        "ran",
+        "vert",
+        "init_lambda",
+        "targ_lambda",
+        "delay",
+        "transition",
+        "depth",
+        "spread",
+        "shadow_a",
+        "shadow_b",
+        "branch_angle",
+        "phyllotaxis",
+        "nonplanar_twist",
+        "node_length",
+        "voxel_size",
+        "span",
+        "branch_angle_sd",
+        "phyllotaxis_sd",
+        "lambda_sd",
+        "tropism_sd",
+        "stand_shade",
+        "heading_sd",
+        "leader_death",
+        "death_delay",
+    }  # the last four are additions, off by default
     assert set(names) == expected and len(names) == len(expected)
     by = {p.name: p for p in PARAMETERS}
     # calibrated defaults of B.4 and clone noise of E
-    calib = {"max_iter": 18, "alpha0": 1, "alpha1": 1.5, "shadow_a": 0.5, "shadow_b": 2, "max_grow": 3,
-             "drop_thresh": 0.2, "init_width": 0.02, "sample_rad": 0.32, "branch_angle_sd": 5,
-             "phyllotaxis_sd": 10, "lambda_sd": 0, "tropism_sd": 0, "span": 12, "node_length": 0.2,
-             "stand_shade": 0, "heading_sd": 0}
+    calib = {
+        "max_iter": 18,
+        "alpha0": 1,
+        "alpha1": 1.5,
+        "shadow_a": 0.5,
+        "shadow_b": 2,
+        "max_grow": 3,
+        "drop_thresh": 0.2,
+        "init_width": 0.02,
+        "sample_rad": 0.32,
+        "branch_angle_sd": 5,
+        "phyllotaxis_sd": 10,
+        "lambda_sd": 0,
+        "tropism_sd": 0,
+        "span": 12,
+        "node_length": 0.2,
+        "stand_shade": 0,
+        "heading_sd": 0,
+    }
     for k, v in calib.items():
         assert by[k].default == v, k
     assert {p.name for p in PARAMETERS if p.integer} == {"max_iter", "depth"}
@@ -98,23 +147,26 @@ def test_component_registered_and_settings_checked():
         SOT(no_such_switch=1)
 
 
-@pytest.mark.parametrize("params, name", [
-    ({"shadow_b": 1.0}, "shadow_b"),
-    ({"shadow_a": 2.5, "shadow_b": 2.0}, "shadow_a"),
-    ({"shadow_a": -0.1}, "shadow_a"),
-    ({"depth": 1}, "depth"),
-    ({"depth": 1.4}, "depth"),           # integer parameters are rounded (SSM contract): 1
-    ({"max_iter": "many"}, "max_iter"),
-    ({"branch_angle_sd": -1.0}, "branch_angle_sd"),
-    ({"lambda_sd": -0.01}, "lambda_sd"),
-    ({"ran": 0.7, "vert": 0.4}, "ran"),
-    ({"node_length": 0.0}, "node_length"),
-    ({"init_width": -0.02}, "init_width"),
-    ({"transition": 0.0}, "transition"),
-    ({"init_lambda": 1.2}, "init_lambda"),
-    ({"alpha1": float("nan")}, "alpha1"),
-    ({"no_such_param": 1.0}, "no_such_param"),
-])
+@pytest.mark.parametrize(
+    "params, name",
+    [
+        ({"shadow_b": 1.0}, "shadow_b"),
+        ({"shadow_a": 2.5, "shadow_b": 2.0}, "shadow_a"),
+        ({"shadow_a": -0.1}, "shadow_a"),
+        ({"depth": 1}, "depth"),
+        ({"depth": 1.4}, "depth"),  # integer parameters are rounded (SSM contract): 1
+        ({"max_iter": "many"}, "max_iter"),
+        ({"branch_angle_sd": -1.0}, "branch_angle_sd"),
+        ({"lambda_sd": -0.01}, "lambda_sd"),
+        ({"ran": 0.7, "vert": 0.4}, "ran"),
+        ({"node_length": 0.0}, "node_length"),
+        ({"init_width": -0.02}, "init_width"),
+        ({"transition": 0.0}, "transition"),
+        ({"init_lambda": 1.2}, "init_lambda"),
+        ({"alpha1": float("nan")}, "alpha1"),
+        ({"no_such_param": 1.0}, "no_such_param"),
+    ],
+)
 def test_invalid_parameters_raise_value_error_naming_them(ssm, params, name):
     with pytest.raises(ValueError, match=name):
         ssm.simulate(params, 1)
@@ -137,11 +189,11 @@ def test_single_shadow_exact_and_trilinear():
     assert f.voxel_of(p).tolist() == [[30, 29, 15]]
     f.cast(p)
     e = f.voxel_exposure().reshape(n, n, n)
-    assert e[30, 29, 15] == 1.0 and e[30, 29, 16] == 1.0          # no self-shading, nothing above
+    assert e[30, 29, 15] == 1.0 and e[30, 29, 16] == 1.0  # no self-shading, nothing above
     assert e[30, 29, 14] == pytest.approx(1 - 0.5 / 2.0, rel=1e-14)
     assert e[32, 26, 12] == pytest.approx(1 - 0.5 * 2.0 ** -math.sqrt(9 + 4 + 9), rel=1e-14)
-    assert e[30, 29, 9] == 1.0                                     # layer 6 is beyond depth - 1
-    assert e[34, 29, 12] == 1.0                                    # outside the pyramid (|di| > l)
+    assert e[30, 29, 9] == 1.0  # layer 6 is beyond depth - 1
+    assert e[34, 29, 12] == 1.0  # outside the pyramid (|di| > l)
     # trilinear: at a voxel centre it is the voxel value, half way between two centres the mean
     c = np.array([[30.5 * 0.2 - 6.0, 29.5 * 0.2 - 6.0, 14.5 * 0.2]])
     assert f.exposure(c)[0] == pytest.approx(e[30, 29, 14], rel=1e-12)
@@ -153,8 +205,7 @@ def test_single_shadow_exact_and_trilinear():
 
 def test_cast_remove_restores_field_exactly():
     rng = np.random.default_rng(0)
-    f = LightField(12.0, 0.2, 6, 1.0, 0.8, 1.5, ran=0.2,
-                   uniforms=rng.random(60 ** 3))
+    f = LightField(12.0, 0.2, 6, 1.0, 0.8, 1.5, ran=0.2, uniforms=rng.random(60**3))
     pts = np.column_stack([rng.uniform(-6, 6, 3000), rng.uniform(-6, 6, 3000), rng.uniform(0, 12, 3000)])
     pts[:500, :2] *= 0.05  # a dense column so voxels get many factors
     f.cast(pts)
@@ -206,12 +257,23 @@ def test_accumulate_and_allocate_known_answers():
     np.testing.assert_allclose(v, [2.0, 2.0, 0.8], rtol=1e-14)
     assert path_any(np.array([False, True, False]), rounds).tolist() == [False, True, True]
     acc2 = accumulate(*_hand_structure(), lam=0.6, kappa=2.0, pipe_exp=2.0, init_width=0.02)
-    np.testing.assert_allclose(acc2["D"][1:], [0.6 * 0.36 + 0.4 * 3 * 0.2 ** 2,
-                                               0.6 * 0.04 + 0.4 * 0.16], rtol=1e-14)
+    np.testing.assert_allclose(acc2["D"][1:], [0.6 * 0.36 + 0.4 * 3 * 0.2**2, 0.6 * 0.04 + 0.4 * 0.16], rtol=1e-14)
     # a segment with no BUD or CHILD slot: N = 1, Q = 0, D = 1, stubs keep their width
-    acc3 = accumulate(np.array([STUB], np.int8), np.array([STUB], np.int8), np.array([-1]),
-                      np.array([-1]), np.zeros(1), np.zeros(1), np.array([0.03]), np.array([0.04]),
-                      np.array([0]), lam=0.5, kappa=1.0, pipe_exp=2.0, init_width=0.02)
+    acc3 = accumulate(
+        np.array([STUB], np.int8),
+        np.array([STUB], np.int8),
+        np.array([-1]),
+        np.array([-1]),
+        np.zeros(1),
+        np.zeros(1),
+        np.array([0.03]),
+        np.array([0.04]),
+        np.array([0]),
+        lam=0.5,
+        kappa=1.0,
+        pipe_exp=2.0,
+        init_width=0.02,
+    )
     assert (acc3["N"][0], acc3["Q"][0], acc3["D"][0]) == (1.0, 0.0, 1.0)
     assert acc3["width"][0] == pytest.approx(0.05, rel=1e-14)
 
@@ -223,8 +285,12 @@ def _check_conservation(alloc, kappa):
         m = states == CHILD
         return np.where(m, v[np.searchsorted(alloc.ids, np.where(m, children, 0))], 0.0)
 
-    passed = (child_v(alloc.api_child, alloc.api_state) + child_v(alloc.lat_child, alloc.lat_state)
-              + alloc.vA_raw + alloc.vL_raw)
+    passed = (
+        child_v(alloc.api_child, alloc.api_state)
+        + child_v(alloc.lat_child, alloc.lat_state)
+        + alloc.vA_raw
+        + alloc.vL_raw
+    )
     has = np.isin(alloc.api_state, [BUD, CHILD]) | np.isin(alloc.lat_state, [BUD, CHILD])
     sel = has & (alloc.D > 0)
     assert sel.sum() > 0
@@ -240,7 +306,7 @@ def test_borchert_honda_conserves_vigor_at_every_branch_point(ssm, kappa, defaul
     else:
         _, rec = run_recorded(ssm, {"max_iter": 11, "nonlinear": kappa}, 3)
     checked = 0
-    for c, alloc in rec["alloc"].items():
+    for alloc in rec["alloc"].values():
         checked += _check_conservation(alloc, kappa)
         root = int(np.flatnonzero(alloc.parent < 0)[0])
         assert alloc.v[root] == pytest.approx(1.0 + 1.5 * alloc.Q[root], rel=1e-15)
@@ -251,7 +317,7 @@ def test_borchert_honda_conserves_vigor_at_every_branch_point(ssm, kappa, defaul
 def test_drops_leave_only_supplied_segments(default_run):
     tree, rec = default_run
     n_dropped = 0
-    for c, a in rec["alloc"].items():
+    for a in rec["alloc"].values():
         kept = ~a.dropped & (a.parent >= 0)
         assert np.all(a.v[kept] / a.N[kept] > 0.2)
         # every dropped subtree has a dropped top whose own v/N fell to the threshold
@@ -270,7 +336,7 @@ def test_drops_leave_only_supplied_segments(default_run):
 def test_metamer_counts_lengths_and_cube(default_run):
     tree, rec = default_run
     total_shoots = 0
-    for c, sh in rec["shoots"].items():
+    for sh in rec["shoots"].values():
         np.testing.assert_array_equal(sh.planned, np.floor(sh.vigor))
         assert np.all(sh.planned >= 1) and np.all(sh.planned <= 3)
         np.testing.assert_array_equal(sh.built, sh.planned)  # far from the walls here
@@ -319,8 +385,7 @@ def test_pipe_model_exact_after_final_update(default_run):
 
 # ------------------------------------------------------------------------------ angles and frames
 def test_branch_angle_phyllotaxis_and_vertical_trunk_without_turning(ssm):
-    t = ssm.simulate({"max_iter": 9, "reorient": 0.0, "tropism": 0.0, **NO_NOISE,
-                      "branch_angle": 50.0}, 1)
+    t = ssm.simulate({"max_iter": 9, "reorient": 0.0, "tropism": 0.0, **NO_NOISE, "branch_angle": 50.0}, 1)
     lat = np.flatnonzero(t.extras["is_lateral"])
     cosang = np.einsum("ij,ij->i", t.axis[lat], t.axis[t.parent[lat]])
     np.testing.assert_allclose(np.degrees(np.arccos(np.clip(cosang, -1, 1))), 50.0, atol=1e-9)
@@ -391,8 +456,13 @@ def test_determinism_and_seeds(ssm):
     q1, q2 = ssm.simulate(quiet, 1), ssm.simulate(quiet, 99)
     assert q1.equals(q2)
     # each noise source alone makes seeds differ
-    for extra in ({"ran": 0.05}, {"branch_angle_sd": 5.0}, {"phyllotaxis_sd": 10.0},
-                  {"lambda_sd": 0.05}, {"tropism_sd": 0.05}):
+    for extra in (
+        {"ran": 0.05},
+        {"branch_angle_sd": 5.0},
+        {"phyllotaxis_sd": 10.0},
+        {"lambda_sd": 0.05},
+        {"tropism_sd": 0.05},
+    ):
         t1 = ssm.simulate({**quiet, **extra}, 1)
         t2 = ssm.simulate({**quiet, **extra}, 2)
         assert not t1.equals(t2), extra
@@ -401,8 +471,11 @@ def test_determinism_and_seeds(ssm):
 def test_prefix_property(ssm):
     short = ssm.simulate({"max_iter": 9, "lambda_sd": 0.02, "tropism_sd": 0.02}, 5)
     snaps = {}
-    ssm.simulate({"max_iter": 12, "lambda_sd": 0.02, "tropism_sd": 0.02}, 5,
-                 on_step=lambda c, v: snaps.__setitem__(c, v.tree()) if c == 9 else None)
+    ssm.simulate(
+        {"max_iter": 12, "lambda_sd": 0.02, "tropism_sd": 0.02},
+        5,
+        on_step=lambda c, v: snaps.__setitem__(c, v.tree()) if c == 9 else None,
+    )
     assert short.equals(snaps[9])
 
 
@@ -483,7 +556,9 @@ def test_stand_shade_exposure_is_beer_lambert_below_the_top():
     assert e1[1] == pytest.approx(e0[1] * math.exp(-0.3 * 0.5), rel=1e-14)
     assert e1[2] == e0[2] and e1[3] == e0[3]  # at and above the top: open sky
     # the gradient now points up: light comes from above
-    assert g.gradient(np.array([[3.0, 3.0, 2.0]]), 0.32)[0, 2] > 0 == f.gradient(np.array([[3.0, 3.0, 2.0]]), 0.32)[0, 2]
+    assert (
+        g.gradient(np.array([[3.0, 3.0, 2.0]]), 0.32)[0, 2] > 0 == f.gradient(np.array([[3.0, 3.0, 2.0]]), 0.32)[0, 2]
+    )
 
 
 def test_stand_shade_raises_the_crown_and_keeps_trees_without_it(ssm):
@@ -515,6 +590,7 @@ def test_heading_noise_winds_axes_and_stays_deterministic(ssm):
         child = np.flatnonzero((t.parent >= 0) & (t.branch == t.branch[np.maximum(t.parent, 0)]))
         c = np.einsum("ij,ij->i", t.axis[child], t.axis[t.parent[child]])
         return float(np.degrees(np.arccos(np.clip(c, -1, 1))).mean())
+
     assert turn(wind) > turn(smooth) + 3.0
     # the stem does not wind: without light-seeking it stays exactly vertical
     straight = ssm.simulate({**base, "heading_sd": 8.0, "reorient": 0.0}, 1)
@@ -527,6 +603,7 @@ def test_cached_initial_field_gives_the_same_trees(ssm):
     (PCG64 advance): the tree is the one grown without the cache, and other seeds, ran or grid
     sizes are not served the wrong field."""
     import bforest_sot.light as light
+
     for params in ({"max_iter": 10}, {"max_iter": 10, "ran": 0.2}):
         light._INITIAL.clear()
         miss = ssm.simulate(params, 21)
@@ -547,13 +624,21 @@ def test_cached_initial_field_gives_the_same_trees(ssm):
 # ------------------------------------------------------------------------------ growth forms (additions)
 #: the default tree at 14 cycles, recorded from the model before the growth forms were added
 #: (seed: cylinders, branches, total length m, sum of radii m, sum of start heights m, sum of axis x)
-DEFAULT_TREES = {1: (944, 360, 242.566928, 16.511129, 4472.327294, -79.893762),
-                 2: (1074, 412, 278.805355, 18.763092, 4833.032427, -33.109388)}
+DEFAULT_TREES = {
+    1: (944, 360, 242.566928, 16.511129, 4472.327294, -79.893762),
+    2: (1074, 412, 278.805355, 18.763092, 4833.032427, -33.109388),
+}
 
 
 def _digest(t):
-    return (t.n, t.n_branches, round(float(t.length.sum()), 6), round(float(t.radius.sum()), 6),
-            round(float(t.start[:, 2].sum()), 6), round(float(t.axis[:, 0].sum()), 6))
+    return (
+        t.n,
+        t.n_branches,
+        round(float(t.length.sum()), 6),
+        round(float(t.radius.sum()), 6),
+        round(float(t.start[:, 2].sum()), 6),
+        round(float(t.axis[:, 0].sum()), 6),
+    )
 
 
 @pytest.mark.parametrize("seed", [1, 2])
@@ -564,9 +649,20 @@ def test_growth_forms_off_leave_the_papers_tree_as_it_was(seed):
 
 
 #: a tree whose geometry can be checked by hand: no noise, no light-seeking, no tropism
-HAND = {"max_iter": 3, "phyllotaxis": 90.0, **NO_NOISE, "tropism": 0.0, "reorient": 0.0, "ran": 0.0,
-        "init_lambda": 0.5, "targ_lambda": 0.5, "alpha0": 3.0, "max_grow": 4.0, "drop_thresh": 0.05,
-        "branch_angle": 65.0}
+HAND = {
+    "max_iter": 3,
+    "phyllotaxis": 90.0,
+    **NO_NOISE,
+    "tropism": 0.0,
+    "reorient": 0.0,
+    "ran": 0.0,
+    "init_lambda": 0.5,
+    "targ_lambda": 0.5,
+    "alpha0": 3.0,
+    "max_grow": 4.0,
+    "drop_thresh": 0.05,
+    "branch_angle": 65.0,
+}
 
 
 def _nodes(t):

@@ -27,6 +27,7 @@ def test_evaluations_are_committed_one_by_one(tmp_path):
 
 def test_a_store_used_as_a_context_closes_its_connection(tmp_path):
     import sqlite3
+
     RunStore.create(tmp_path / "run", "seed = 1\n").close()
     with RunStore.open(tmp_path / "run") as s:
         assert s.count() == 0
@@ -37,8 +38,9 @@ def test_a_store_used_as_a_context_closes_its_connection(tmp_path):
 def test_large_diagnostics_go_to_npz(tmp_path):
     s = RunStore.create(tmp_path / "run", "seed = 1\n")
     chain = np.random.default_rng(0).normal(size=(50, 16, 3))
-    small = s.write_diagnostics({"chain": chain, "acceptance": 0.3, "names": ["a", "b", "c"],
-                                 "posterior": {"a": {"median": 1.0}}})
+    small = s.write_diagnostics(
+        {"chain": chain, "acceptance": 0.3, "names": ["a", "b", "c"], "posterior": {"a": {"median": 1.0}}}
+    )
     assert small["arrays"] == ["chain"] and small["acceptance"] == 0.3
     s.write_json("best.json", {"diagnostics": small})
     assert len((tmp_path / "run" / "best.json").read_text()) < 1000
@@ -53,22 +55,30 @@ def test_a_fit_writes_the_files_runfiles_names(toy_plugin, tmp_path):
     import bforest_core as bf
     from bforest_core.pipeline.store import RunFiles
     from conftest import toy_config
+
     bf.fit(bf.load_config(toy_config(tmp_path, budget=8)), tmp_path / "run", progress=False)
     run = RunFiles(tmp_path / "run")
-    for p in (run.config_path, run.evaluations_path, run.best_path, run.best_tree_path, run.target_tree_path,
-              run.target_sets_path, run.distance_path, run.clones_dir(), run.figures_dir):
+    for p in (
+        run.config_path,
+        run.evaluations_path,
+        run.best_path,
+        run.best_tree_path,
+        run.target_tree_path,
+        run.target_sets_path,
+        run.distance_path,
+        run.clones_dir(),
+        run.figures_dir,
+    ):
         assert p.exists(), p
     assert run.finished() and run.read_best()["n_evaluations"] == 8
-    unnamed = [p.name for p in run.path.iterdir()
-               if p.name != RunFiles.LOCK and not any(fnmatch.fnmatch(p.name, g) for g in RunFiles.DERIVED)]
+    unnamed = [
+        p.name
+        for p in run.path.iterdir()
+        if p.name != RunFiles.LOCK and not any(fnmatch.fnmatch(p.name, g) for g in RunFiles.DERIVED)
+    ]
     assert not unnamed, f"files of a run that RunFiles does not name: {unnamed}"
     with pytest.raises(RunDirError, match="no best.json"):
         RunFiles(tmp_path).read_best()
-
-
-#: modules that still spell run-folder file names (the report's reading of runs is being moved
-#: onto RunFiles in a parallel change of issue 34); remove an entry once its module is done
-PENDING = {"report", "pipeline/posterior.py"}
 
 
 def test_run_folder_file_names_are_spelled_only_in_the_store():
@@ -76,16 +86,23 @@ def test_run_folder_file_names_are_spelled_only_in_the_store():
     from pathlib import Path
 
     from bforest_core.pipeline.store import RunFiles
+
     names = {v for k, v in vars(RunFiles).items() if k.isupper() and isinstance(v, str)}
     core = Path(__file__).resolve().parents[1] / "bforest_core"
     found = []
     for f in sorted(core.rglob("*.py")):
         rel = f.relative_to(core).as_posix()
-        if rel == "pipeline/store.py" or rel in PENDING or rel.split("/")[0] in PENDING:
+        if rel == "pipeline/store.py":
             continue
         tree = ast.parse(f.read_text(encoding="utf-8"))
-        docs = {id(n.body[0].value) for n in ast.walk(tree) if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef))
-                and n.body and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+        docs = {
+            id(n.body[0].value)
+            for n in ast.walk(tree)
+            if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef))
+            and n.body
+            and isinstance(n.body[0], ast.Expr)
+            and isinstance(n.body[0].value, ast.Constant)
+        }
         for node in ast.walk(tree):
             if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docs:
                 # file names (folder names such as "clones" are also the words of commands)
@@ -99,6 +116,7 @@ def test_json_default_writes_numpy_and_paths_and_only_loosely_anything_else(tmp_
     from pathlib import Path
 
     from bforest_core.pipeline.store import json_default
+
     data = {"a": np.float32(0.5), "b": np.arange(3), "c": np.int64(7), "p": Path("x") / "y"}
     assert json.loads(json.dumps(data, default=json_default)) == {"a": 0.5, "b": [0, 1, 2], "c": 7, "p": "x/y"}
     with pytest.raises(TypeError, match="not JSON serialisable: object"):

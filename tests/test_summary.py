@@ -1,4 +1,5 @@
 """Tree-level summary statistics and the summary distance, with known answers."""
+
 import math
 
 import numpy as np
@@ -74,8 +75,14 @@ def test_order_summary_of_a_degenerate_chain_one_order_per_cylinder():
     sum, not one per order: a 1M-cylinder chain took minutes)."""
     n = 3000
     z = np.arange(n, dtype=float)
-    t = bf.Tree(np.c_[np.zeros(n), np.zeros(n), z], np.tile([0, 0, 1.0], (n, 1)), np.ones(n),
-                np.linspace(0.3, 0.01, n), np.r_[-1, np.arange(n - 1)], np.full(n, -1))
+    t = bf.Tree(
+        np.c_[np.zeros(n), np.zeros(n), z],
+        np.tile([0, 0, 1.0], (n, 1)),
+        np.ones(n),
+        np.linspace(0.3, 0.01, n),
+        np.r_[-1, np.arange(n - 1)],
+        np.full(n, -1),
+    )
     rows = order_summary(t)
     assert [r["order"] for r in rows] == list(range(n))
     assert all(r["n_branches"] == 1 and r["length_m"] == pytest.approx(1.0) for r in rows)
@@ -88,7 +95,7 @@ def test_summary_of_a_real_pine_against_an_independent_count():
     t = read_sample("pine_ruotsinkyla_3.mat")
     s = tree_summary(t)
     br = t.branches
-    lengths = np.array([t.length[br.cylinders[br.ptr[b]:br.ptr[b + 1]]].sum() for b in range(len(br))])
+    lengths = np.array([t.length[br.cylinders[br.ptr[b] : br.ptr[b + 1]]].sum() for b in range(len(br))])
     assert s["n_all_branches_o1"] == np.count_nonzero(br.order == 1) == 73
     # the detection limit: first-order branches at least 1 cm thick at the base
     seen = (br.order == 1) & (2 * t.radius[br.first] >= 0.01)
@@ -98,7 +105,11 @@ def test_summary_of_a_real_pine_against_an_independent_count():
     assert s["height"] == pytest.approx(9.936, abs=1e-3)
     assert sum(s[f"profile_n_b{k}"] for k in range(5)) == 72
     assert 1.0 < s["crown_base_height"] < 6.0
-    assert summary_unit("length_o2") == "m" and summary_unit("volume_o0") == "m^3" and summary_unit("n_branches_o1") == "count"
+    assert (
+        summary_unit("length_o2") == "m"
+        and summary_unit("volume_o0") == "m^3"
+        and summary_unit("n_branches_o1") == "count"
+    )
 
 
 # ------------------------------------------------------------------------------ the components

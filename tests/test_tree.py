@@ -19,7 +19,7 @@ def test_hand_tree_branches():
     assert bt.parent_cyl.tolist() == [-1, 0, 1, 2]
     assert bt.parent_branch.tolist() == [-1, 0, 0, 0]
     assert bt.n_cyl.tolist() == [3, 2, 1, 1]
-    assert bt.cylinders[bt.ptr[1]:bt.ptr[2]].tolist() == [3, 4]
+    assert bt.cylinders[bt.ptr[1] : bt.ptr[2]].tolist() == [3, 4]
     np.testing.assert_allclose(t.end[2], [0, 0, 3])
 
 
@@ -33,13 +33,20 @@ def test_thickest_rule_continues_lateral_when_no_extension():
 def _fork(r_ext, r_lat, with_ext=True):
     start = [[0, 0, 0], [0, 0, 1], [0, 0, 1]]
     axis = [[0, 0, 1], [0, 0, 1], [1, 0, 0]]
-    return Tree(start, axis, [1, 1, 1], [0.1, r_ext, r_lat], [-1, 0, 0],
-                [1, -1, -1] if with_ext else [-1, -1, -1], topology="thickest")
+    return Tree(
+        start,
+        axis,
+        [1, 1, 1],
+        [0.1, r_ext, r_lat],
+        [-1, 0, 0],
+        [1, -1, -1] if with_ext else [-1, -1, -1],
+        topology="thickest",
+    )
 
 
 def test_thickest_ties_and_takeover():
-    assert _fork(0.05, 0.06).extension[0] == 2      # thicker lateral continues
-    assert _fork(0.05, 0.05).extension[0] == 1      # tie -> old extension
+    assert _fork(0.05, 0.06).extension[0] == 2  # thicker lateral continues
+    assert _fork(0.05, 0.05).extension[0] == 1  # tie -> old extension
     assert _fork(0.05, 0.05, with_ext=False).extension[0] == 1  # no extension, tie -> lower row
 
 
@@ -47,8 +54,7 @@ def test_subtree_rule_follows_volume_not_radius():
     # the continuation is thinner but carries a long subtree; a fat short twig must not win
     start = [[0, 0, 0], [0, 0, 1], [0, 0, 1], [0, 0, 2]]
     axis = [[0, 0, 1], [0, 0, 1], [1, 0, 0], [0, 0, 1]]
-    t = Tree(start, axis, [1, 1, 0.3, 5], [0.1, 0.05, 0.06, 0.05], [-1, 0, 0, 1], [-1, -1, -1, -1],
-             topology="subtree")
+    t = Tree(start, axis, [1, 1, 0.3, 5], [0.1, 0.05, 0.06, 0.05], [-1, 0, 0, 1], [-1, -1, -1, -1], topology="subtree")
     assert t.extension[0] == 1 and t.extension[1] == 3
     assert t.with_topology("thickest").extension[0] == 2
 
@@ -57,7 +63,7 @@ def test_subtree_sum_and_children():
     parent = np.array([-1, 0, 0, 1, 1, 3])
     np.testing.assert_allclose(subtree_sum(parent, np.ones(6)), [6, 4, 1, 2, 1, 1])
     ptr, idx = children_csr(parent)
-    assert idx[ptr[1]:ptr[2]].tolist() == [3, 4] and ptr[-1] == 5
+    assert idx[ptr[1] : ptr[2]].tolist() == [3, 4] and ptr[-1] == 5
 
 
 def test_unsorted_rows_are_resorted_and_keep_source_row():
@@ -67,24 +73,33 @@ def test_unsorted_rows_are_resorted_and_keep_source_row():
     assert t.extension.tolist() == [1, -1] and t.radius[0] == 0.2
 
 
-@pytest.mark.parametrize("kw, msg", [
-    (dict(length=[1, 0]), "length <= 0 at rows 1"),
-    (dict(radius=[0.1, -0.1]), "radius <= 0 at rows 1"),
-    (dict(radius=[0.1, np.nan]), "non-finite values in 'radius' at rows 1"),
-    (dict(start=[[0, 0, 0], [0, np.inf, 1]]), "non-finite values in 'start' at rows 1"),
-    (dict(axis=[[0, 0, 1], [0, 0, 0]]), "axis has zero length at rows 1"),
-    (dict(axis=[[0, 0, 1], [0, 0, 2]]), "axis is not a unit vector at rows 1"),
-    (dict(parent=[-1, 5]), "parent out of range at rows 1"),
-    (dict(parent=[-1, -1]), "2 cylinders have no parent"),
-    (dict(parent=[1, 0]), "no root"),
-    (dict(parent=[-1, 1]), "its own parent at rows 1"),
-    (dict(extension=[1, 0]), "extension of row 1 is row 0"),
-    (dict(radius=[0.1, 0.1, 0.1]), "'radius' has shape (3,)"),
-    (dict(length=[]), "no cylinders"),
-])
+@pytest.mark.parametrize(
+    "kw, msg",
+    [
+        (dict(length=[1, 0]), "length <= 0 at rows 1"),
+        (dict(radius=[0.1, -0.1]), "radius <= 0 at rows 1"),
+        (dict(radius=[0.1, np.nan]), "non-finite values in 'radius' at rows 1"),
+        (dict(start=[[0, 0, 0], [0, np.inf, 1]]), "non-finite values in 'start' at rows 1"),
+        (dict(axis=[[0, 0, 1], [0, 0, 0]]), "axis has zero length at rows 1"),
+        (dict(axis=[[0, 0, 1], [0, 0, 2]]), "axis is not a unit vector at rows 1"),
+        (dict(parent=[-1, 5]), "parent out of range at rows 1"),
+        (dict(parent=[-1, -1]), "2 cylinders have no parent"),
+        (dict(parent=[1, 0]), "no root"),
+        (dict(parent=[-1, 1]), "its own parent at rows 1"),
+        (dict(extension=[1, 0]), "extension of row 1 is row 0"),
+        (dict(radius=[0.1, 0.1, 0.1]), "'radius' has shape (3,)"),
+        (dict(length=[]), "no cylinders"),
+    ],
+)
 def test_validation_messages(kw, msg):
-    base = dict(start=[[0, 0, 0], [0, 0, 1]], axis=[[0, 0, 1], [0, 0, 1]], length=[1, 1],
-                radius=[0.2, 0.1], parent=[-1, 0], extension=[1, -1])
+    base = dict(
+        start=[[0, 0, 0], [0, 0, 1]],
+        axis=[[0, 0, 1], [0, 0, 1]],
+        length=[1, 1],
+        radius=[0.2, 0.1],
+        parent=[-1, 0],
+        extension=[1, -1],
+    )
     base.update(kw)
     with pytest.raises(TreeError, match=msg.replace("(", r"\(").replace(")", r"\)")):
         Tree(**base)
@@ -112,10 +127,13 @@ def test_large_random_tree_orders_consistent():
     rng = np.random.default_rng(3)
     n = 5000
     parent = np.concatenate([[-1], rng.integers(np.maximum(0, np.arange(1, n) - 20), np.arange(1, n))])
-    t = Tree(np.zeros((n, 3)), np.tile([0, 0, 1.0], (n, 1)), np.ones(n), rng.random(n) + 0.01, parent,
-             topology="subtree")
+    t = Tree(
+        np.zeros((n, 3)), np.tile([0, 0, 1.0], (n, 1)), np.ones(n), rng.random(n) + 0.01, parent, topology="subtree"
+    )
     # brute-force check of the derivation rules in row order
-    branch = np.zeros(n, int); order = np.zeros(n, int); pos = np.zeros(n, int)
+    branch = np.zeros(n, int)
+    order = np.zeros(n, int)
+    pos = np.zeros(n, int)
     nb = 1
     for i in range(1, n):
         p = parent[i]
@@ -127,7 +145,7 @@ def test_large_random_tree_orders_consistent():
     assert t.branch.tolist() == branch.tolist()
     assert t.order.tolist() == order.tolist()
     assert t.position_in_branch.tolist() == pos.tolist()
-    vol = subtree_sum(parent, np.pi * t.radius ** 2 * t.length)
+    vol = subtree_sum(parent, np.pi * t.radius**2 * t.length)
     for p in range(n):
         ch = np.flatnonzero(parent == p)
         if ch.size:
@@ -149,7 +167,15 @@ def test_rebuilding_keeps_axes_bit_identical_and_source_topology():
 def test_resort_renumbers_source_extension():
     # rows out of order (child before parent), built under thickest with the file's own branching kept
     ext = np.array([-1, 0, -1])
-    t = Tree([[0, 0, 1], [0, 0, 0], [0, 0, 1]], [[0, 0, 1], [0, 0, 1], [1, 0, 0]], [1, 1, 1], [0.05, 0.2, 0.06],
-             [1, -1, 1], ext, topology="thickest", extras={"_source_extension": ext})
+    t = Tree(
+        [[0, 0, 1], [0, 0, 0], [0, 0, 1]],
+        [[0, 0, 1], [0, 0, 1], [1, 0, 0]],
+        [1, 1, 1],
+        [0.05, 0.2, 0.06],
+        [1, -1, 1],
+        ext,
+        topology="thickest",
+        extras={"_source_extension": ext},
+    )
     assert t.parent.tolist() == [-1, 0, 0] and t.extension[0] == 2  # thicker lateral continues
     assert t.with_topology("source").extension.tolist() == [1, -1, -1]

@@ -1,5 +1,6 @@
 """The TreeQSM 2.4 .mat export: every field of TreeQSM's own struct (the coffee tree sample, field
 by field), the same tables back through our reader, provenance in rundata."""
+
 from __future__ import annotations
 
 import warnings
@@ -33,8 +34,9 @@ def model_tree():
 def test_every_field_of_the_treeqsm_24_sample(tmp_path, sample, model_tree):
     p = bf.write_tree(model_tree, tmp_path / "clone.mat")
     got = _struct(p, "qsm")
-    assert _fields(got) == _fields(sample) == ["cylinder", "branch", "treedata", "rundata", "pmdistance",
-                                               "triangulation"]
+    assert (
+        _fields(got) == _fields(sample) == ["cylinder", "branch", "treedata", "rundata", "pmdistance", "triangulation"]
+    )
     n, nb = model_tree.n, model_tree.n_branches
     for top in ("cylinder", "branch", "treedata", "pmdistance", "triangulation"):
         r, g = sample[top][0, 0], got[top][0, 0]
@@ -42,15 +44,18 @@ def test_every_field_of_the_treeqsm_24_sample(tmp_path, sample, model_tree):
         for f in _fields(r):
             a, b = r[f], g[f]
             if top == "cylinder" or (top == "pmdistance" and f == "CylDist"):
-                assert b.shape == (n, a.shape[1]), f        # one row per cylinder, same columns
+                assert b.shape == (n, a.shape[1]), f  # one row per cylinder, same columns
             elif top == "branch":
                 assert b.shape == (nb, 1), f
             elif a.shape[0] == 1 and a.shape[1] in (1, 3, 18, 36):
-                assert b.shape == a.shape, f                # scalars, location, fixed classes
+                assert b.shape == a.shape, f  # scalars, location, fixed classes
             else:
                 assert b.ndim == 2 and (b.shape[0] == a.shape[0] or b.shape[1] == a.shape[1]), f
-            assert b.dtype.kind == a.dtype.kind or top == "triangulation" or (
-                a.dtype.kind in "iuf" and b.dtype.kind in "iuf"), f
+            assert (
+                b.dtype.kind == a.dtype.kind
+                or top == "triangulation"
+                or (a.dtype.kind in "iuf" and b.dtype.kind in "iuf")
+            ), f
     # integer ids in TreeQSM's unsigned classes, 1-based
     cyl = got["cylinder"][0, 0]
     assert cyl["parent"].dtype.kind == "u" and int(cyl["parent"][0, 0]) == 0 and int(cyl["branch"][0, 0]) == 1

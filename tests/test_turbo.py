@@ -1,5 +1,6 @@
 """TuRBO (trust-region Bayesian optimisation) on problems with known answers: its trust-region
 rules, its restarts, and its sample efficiency against CMA-ES at a small budget."""
+
 import numpy as np
 import pytest
 
@@ -27,8 +28,9 @@ def test_a_flat_objective_halves_the_trust_region_after_each_failure_tolerance_a
     below 0.5**7 in 7 halvings; then a new run starts, with a fresh design (``design``, TuRBO-1)
     or at full size around the best point with every point kept (``best``)."""
     pr, asked = _problem(lambda x: 1.0, [0] * 3, [1] * 3, budget=10_000, seed=1)
-    res = bf.component("optimizer", "turbo", batch=2, failure_tol=3, init_points=6, restarts=1, restart=restart,
-                       **FAST).minimize(pr)
+    res = bf.component(
+        "optimizer", "turbo", batch=2, failure_tol=3, init_points=6, restarts=1, restart=restart, **FAST
+    ).minimize(pr)
     runs = [r["run"] for r in res.history]
     first = [r for r in res.history if r["run"] == 0]
     assert first[0]["length"] is None and first[0]["population"] == 6  # the design
@@ -57,7 +59,7 @@ def test_turbo_points_move_only_some_coordinates_of_the_best_point():
     moved = []
     for k in range(50, 80, 2):
         centre = X[:k][np.argmin(vals[:k])]
-        moved.extend((X[k:k + 2] != centre).sum(axis=1))
+        moved.extend((X[k : k + 2] != centre).sum(axis=1))
     assert np.mean(moved) < 25 * 0.9  # each coordinate moves with probability 20 / 25
     assert res.fun == pytest.approx(vals.min())
 
@@ -65,8 +67,9 @@ def test_turbo_points_move_only_some_coordinates_of_the_best_point():
 def test_turbo_in_a_fit_resumes_after_a_kill_to_the_same_evaluations(toy_plugin, tmp_path, monkeypatch):
     """A fit killed after 17 evaluations and resumed asks for the same points and ends where an
     uninterrupted run ends (the GP fits replay on the logged distances)."""
-    from conftest import fit_killed_after, toy_config
     from bforest_core.pipeline.store import RunStore
+    from conftest import fit_killed_after, toy_config
+
     cfg_path = toy_config(tmp_path, optimizer="turbo", optimizer_settings="batch = 2\ncandidates = 128", budget=40)
     full = bf.fit(bf.load_config(cfg_path), tmp_path / "full", progress=False)
     assert full.n_evaluations == 40 and isinstance(full.params["segments"], int)

@@ -1,4 +1,5 @@
 """``python -m bforest_core.cli``: the ``bforest`` command."""
+
 import sys
 
 from .main import main

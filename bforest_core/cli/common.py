@@ -1,4 +1,5 @@
 """What the commands share: the one-line-error parser, argument helpers."""
+
 from __future__ import annotations
 
 import argparse
@@ -35,6 +36,7 @@ def parse_set(items: list[str]) -> dict:
 
 def read(path, args=None):
     from ..io import read_qsm
+
     opts = {}
     if args is not None:
         if getattr(args, "select", None) is not None:
@@ -64,5 +66,3 @@ def report(run_dir):
         return
     p = write_report(run_dir)
     print(f"report: {p}")
-
-

@@ -4,6 +4,7 @@ The target is grown by the bundled SOT model with known parameters (so no extern
 needed); the demo fits two of those parameters back with the GA using a *different* model seed
 (as in the papers' synthetic tests), grows clones of the best fit and writes the report.
 """
+
 from __future__ import annotations
 
 import time
@@ -60,14 +61,17 @@ def demo_config_text(quick: bool = False) -> str:
 def _written_by_demo(run_dir: Path) -> bool:
     """Whether the run in ``run_dir`` is an earlier demo's (its config is one of the demo's)."""
     import tomllib
+
     from ..config import parse_config
     from ..pipeline.fit import same_config
+
     return any(same_config(run_dir, parse_config(tomllib.loads(demo_config_text(q)))) for q in (False, True))
 
 
 def _check_demo_output(out: Path) -> None:
     """Refuse to replace a run in ``out`` that an earlier demo did not write."""
     from ..pipeline.store import RunDirError, RunStore
+
     if out.is_dir() and RunStore.state(out) != "new" and not _written_by_demo(out):
         raise RunDirError(f"{out}: holds a run that is not a demo's; choose another -o, or replace it with --overwrite")
 
@@ -77,6 +81,7 @@ def run_demo(out: Path, quick: bool = False, progress: bool = True, overwrite: b
     run's own ``config.toml`` (``bforest fit OUT/config.toml -o OUT --resume`` continues it):
     nothing lands beside the run folder."""
     from ..pipeline.rundir import run_lock
+
     out = Path(out)
     with run_lock(out):  # the whole demo: its fit, clones and report
         if not overwrite:
@@ -86,9 +91,11 @@ def run_demo(out: Path, quick: bool = False, progress: bool = True, overwrite: b
 
 def _run_demo(out: Path, quick: bool, progress: bool) -> int:
     import tomllib
-    from ..pipeline.clones import clones
+
     from ..config import parse_config
+    from ..pipeline.clones import clones
     from ..pipeline.fit import fit
+
     cfg = parse_config(tomllib.loads(demo_config_text(quick)), source="demo config")
     t0 = time.monotonic()
     print(f"Bayes Forest demo: fitting SOT to a tree it grew with {TRUE_PARAMS} (model seed differs)")
@@ -99,10 +106,13 @@ def _run_demo(out: Path, quick: bool, progress: bool) -> int:
             err = abs(v - TRUE_PARAMS[k]) / abs(TRUE_PARAMS[k])
             print(f"  {k:<14} fitted {v:8.4f}   true {TRUE_PARAMS[k]:8.4f}   error {100 * err:5.1f} %")
     s = clones(out, progress=progress)
-    print(f"clones: {s['ok']} of {s['count']} grown; mean distance to the target "
-          f"{s.get('distance', {}).get('mean', float('nan')):.4f}")
+    print(
+        f"clones: {s['ok']} of {s['count']} grown; mean distance to the target "
+        f"{s.get('distance', {}).get('mean', float('nan')):.4f}"
+    )
     try:
         from ..report.build import write_report
+
         rep = write_report(out)
         print(f"report: {rep}")
     except ImportError:

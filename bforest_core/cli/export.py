@@ -1,4 +1,5 @@
 """``bforest export``: the best fit and the clones in other formats, the evaluation log as CSV."""
+
 from __future__ import annotations
 
 from ..pipeline.store import RunFiles
@@ -7,6 +8,7 @@ from .common import UsageError, parse_set
 
 def cmd_export(args):
     from ..pipeline.export import export_evaluations, export_trees
+
     if not args.format and not args.evaluations:
         raise UsageError("export: name at least one --format or --evaluations FILE.csv")
     if args.evaluations:
@@ -34,17 +36,28 @@ def add_commands(sub) -> None:
     """Register ``export``."""
     s = sub.add_parser("export", help="the best fit and the clones in other formats; evaluations as CSV")
     s.add_argument("run_dir", metavar="RUN", help="a run directory (bforest fit output)")
-    s.add_argument("--format", action="append", metavar="FMT",
-                   help="writer name or suffix, repeatable or comma separated: txt (TreeQSM text), mat (TreeQSM "
-                        ".mat), csv (native), simpleforest-csv, archi-csv, ply, obj, las, laz, xyz (synthetic "
-                        "laser scans), or any installed writer (bforest plugins)")
-    s.add_argument("--what", default="best,clones",
-                   help="trees to export, comma separated: best, clones, posterior (the posterior clones of "
-                        "bforest clones --posterior, written as posterior_clone_*) (default best,clones)")
+    s.add_argument(
+        "--format",
+        action="append",
+        metavar="FMT",
+        help="writer name or suffix, repeatable or comma separated: txt (TreeQSM text), mat (TreeQSM "
+        ".mat), csv (native), simpleforest-csv, archi-csv, ply, obj, las, laz, xyz (synthetic "
+        "laser scans), or any installed writer (bforest plugins)",
+    )
+    s.add_argument(
+        "--what",
+        default="best,clones",
+        help="trees to export, comma separated: best, clones, posterior (the posterior clones of "
+        "bforest clones --posterior, written as posterior_clone_*) (default best,clones)",
+    )
     s.add_argument("-o", "--output", default=None, help="folder of the tree files (default: RUN/export)")
     s.add_argument("--evaluations", metavar="FILE.csv", help=f"also flatten {RunFiles.EVALUATIONS} into this CSV")
-    s.add_argument("--scan", action="append", metavar="NAME=VALUE",
-                   help="synthetic-scan setting for las/laz/xyz, repeatable: density=POINTS_PER_M2 (2000), "
-                        "mode=uniform|scanner, scanner=X,Y,Z (m), reference_range=M (10), noise=SD_M (0), seed=N (0)")
+    s.add_argument(
+        "--scan",
+        action="append",
+        metavar="NAME=VALUE",
+        help="synthetic-scan setting for las/laz/xyz, repeatable: density=POINTS_PER_M2 (2000), "
+        "mode=uniform|scanner, scanner=X,Y,Z (m), reference_range=M (10), noise=SD_M (0), seed=N (0)",
+    )
     s.add_argument("--overwrite", action="store_true", help="replace files that exist")
     s.set_defaults(func=cmd_export)

@@ -1,4 +1,5 @@
 """`bforest init`: measure a tree and write a ready-to-run recipe for it."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,6 +9,7 @@ from .common import UsageError
 
 def cmd_init(args):
     from ..pipeline.recipe import measured_lines, write_recipe
+
     qsm = Path(args.qsm)
     out = Path(args.output) if args.output else Path(f"{qsm.stem}.toml")
     if out.exists() and not args.overwrite:
@@ -30,7 +32,9 @@ def cmd_init(args):
 
 def add_commands(sub):
     s = sub.add_parser("init", help="measure a tree and write a commented recipe to fit it (RUN.toml)")
-    s.add_argument("qsm", metavar="QSM", help="the tree: a QSM file (TreeQSM .mat/.txt, SimpleForest or aRchi CSV, ...)")
+    s.add_argument(
+        "qsm", metavar="QSM", help="the tree: a QSM file (TreeQSM .mat/.txt, SimpleForest or aRchi CSV, ...)"
+    )
     s.add_argument("--model", help="growth model (default: the one that suits the tree, and why)")
     s.add_argument("-o", "--output", help="recipe file to write (default: QSM's name with .toml, here)")
     s.add_argument("--overwrite", action="store_true", help="replace an existing recipe file")

@@ -5,6 +5,7 @@ shows the traceback instead. The subcommands live in one module per group: ``run
 clones, report, compare, profile, calibrate), ``trees`` (info, simulate, distance), ``export``,
 ``plugins_config`` (plugins, config).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -23,8 +24,11 @@ def _warning_line(message, category, filename, lineno, file=None, line=None):
 
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
-    p = Parser(prog="bforest", description="Bayes Forest: fit growth models to laser-scanned trees "
-               "and grow morphological clones.")
+
+    p = Parser(
+        prog="bforest",
+        description="Bayes Forest: fit growth models to laser-scanned trees and grow morphological clones.",
+    )
     p.add_argument("--version", action="version", version=f"bforest {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
@@ -35,6 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     from ..errors import BayesForestError
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):
@@ -59,9 +64,12 @@ def main(argv=None) -> int:
     except BrokenExecutor as exc:  # a worker process died: its start-up failed, or it was killed
         if args.debug:
             raise
-        print(f"error: the worker processes stopped ({_one_line(exc)}); a worker's start-up failed "
-              "(its message is above) or it was killed, e.g. out of memory; finished evaluations are "
-              "saved: continue with --resume", file=sys.stderr)
+        print(
+            f"error: the worker processes stopped ({_one_line(exc)}); a worker's start-up failed "
+            "(its message is above) or it was killed, e.g. out of memory; finished evaluations are "
+            "saved: continue with --resume",
+            file=sys.stderr,
+        )
         return EXIT_USAGE
     except (ValueError, OSError) as exc:  # an SSM rejecting a value; a path that cannot be written
         if args.debug:

@@ -1,4 +1,5 @@
 """Commands about the installation: plugins, config."""
+
 from __future__ import annotations
 
 import json
@@ -8,6 +9,7 @@ from .common import Parser
 
 def cmd_plugins(args):
     from ..registry import discover
+
     reg = discover()
     rows = sorted(reg.components.values(), key=lambda e: (e.kind, e.name))
     print(f"{'kind':<11} {'name':<16} {'distribution':<28} summary")
@@ -29,6 +31,7 @@ def cmd_config(args):
     from ..config import config_schema, load_config
     from ..errors import ConfigError
     from ..pipeline.checks import preflight
+
     if args.action == "schema":
         print(json.dumps(config_schema(), indent=2))
         return 0
@@ -37,9 +40,11 @@ def cmd_config(args):
         preflight(cfg)  # what fit checks before its first evaluation, the same code
     except ConfigError as exc:
         raise ConfigError(f"{args.file}: {exc}") from None
-    print(f"{args.file}: ok (ssm {cfg.ssm.kind}, {len(cfg.ssm.free)} free parameters, "
-          f"features {cfg.features.kind}, distance {cfg.distance.kind}, optimizer {cfg.optimizer.kind}, "
-          f"executor {cfg.executor.kind})")
+    print(
+        f"{args.file}: ok (ssm {cfg.ssm.kind}, {len(cfg.ssm.free)} free parameters, "
+        f"features {cfg.features.kind}, distance {cfg.distance.kind}, optimizer {cfg.optimizer.kind}, "
+        f"executor {cfg.executor.kind})"
+    )
     return 0
 
 

@@ -1,4 +1,5 @@
 """Commands that run or read a fit: demo, fit, clones, report, compare, profile, calibrate."""
+
 from __future__ import annotations
 
 import sys
@@ -12,6 +13,7 @@ from .common import UsageError, report
 def cmd_fit(args):
     from ..config import load_config
     from ..pipeline.fit import fit
+
     cfg = load_config(args.config)
     if args.max_evaluations is not None:
         if args.max_evaluations < 1:
@@ -25,8 +27,10 @@ def cmd_fit(args):
 def _fit_and_report(args, cfg, out, fit):
     res = fit(cfg, out, resume=args.resume, progress=not args.quiet, overwrite=args.overwrite)
     if res.already_finished:
-        print(f"{out}: this run had already finished; nothing was simulated (grow clones with "
-              f"'bforest clones {out}', or start anew with --overwrite)")
+        print(
+            f"{out}: this run had already finished; nothing was simulated (grow clones with "
+            f"'bforest clones {out}', or start anew with --overwrite)"
+        )
     print(f"best distance {res.distance:.4f} after {res.n_evaluations} evaluations ({res.stop_reason})")
     short = (res.diagnostics or {}).get("stopped_short")
     if short:
@@ -48,14 +52,17 @@ def _all_failed(out) -> int:
     from collections import Counter
 
     from ..pipeline.store import RunStore
+
     with RunStore.open(out) as store:
         evs = store.evaluations()
     if not evs or any(e.ok for e in evs):
         return 0
     counts = ", ".join(f"{k} {v}" for k, v in Counter(e.status for e in evs).most_common())
-    print(f"error: every one of the {len(evs)} evaluations failed ({counts}; the first: {evs[0].message or '-'}); "
-          "the parameters above fit nothing: check the model on its own (bforest simulate) and the bounds",
-          file=sys.stderr)
+    print(
+        f"error: every one of the {len(evs)} evaluations failed ({counts}; the first: {evs[0].message or '-'}); "
+        "the parameters above fit nothing: check the model on its own (bforest simulate) and the bounds",
+        file=sys.stderr,
+    )
     return 1
 
 
@@ -66,16 +73,27 @@ def cmd_clones(args):
 
 def _clones_and_report(args):
     from ..pipeline.clones import clones
+
     s = clones(args.run_dir, n=args.n, progress=not args.quiet, replace=args.replace, posterior=args.posterior)
     where = RunFiles(args.run_dir).clones_dir(args.posterior)
     kept = s["count"] - s["grown"]
-    print(f"{s['grown']} clones grown, {kept} kept: {s['ok']} of {s['count']} clones ok in {where}"
-          + ("" if s["requested"] >= s["count"] else f" (asked for {s['requested']}; nothing is deleted "
-                                                    "without --replace)"))
-    for key, label, scale in (("distance", "distance D", 1), ("height", "height (m)", 1),
-                              ("girth", "base diameter (m)", 1), ("crown_spread", "crown spread (m)", 1),
-                              ("d_h", "height error (%)", 100), ("d_g", "base diam. error (%)", 100),
-                              ("d_c", "crown error (%)", 100)):
+    print(
+        f"{s['grown']} clones grown, {kept} kept: {s['ok']} of {s['count']} clones ok in {where}"
+        + (
+            ""
+            if s["requested"] >= s["count"]
+            else f" (asked for {s['requested']}; nothing is deleted without --replace)"
+        )
+    )
+    for key, label, scale in (
+        ("distance", "distance D", 1),
+        ("height", "height (m)", 1),
+        ("girth", "base diameter (m)", 1),
+        ("crown_spread", "crown spread (m)", 1),
+        ("d_h", "height error (%)", 100),
+        ("d_g", "base diam. error (%)", 100),
+        ("d_c", "crown error (%)", 100),
+    ):
         if key in s:
             v = {k: scale * s[key][k] for k in ("mean", "sd", "min", "max")}
             d = 1 if scale == 100 else 4
@@ -95,6 +113,7 @@ def _clones_and_report(args):
 
 def cmd_report(args):
     from ..report.build import write_report
+
     if args.dpi is not None and not 20 <= args.dpi <= 2400:
         raise UsageError(f"--dpi must be between 20 and 2400 (got {args.dpi})")
     p = write_report(args.run_dir, format=args.format, dpi=args.dpi)
@@ -104,11 +123,22 @@ def cmd_report(args):
 
 def cmd_compare(args):
     from ..pipeline.compare import compare
-    res = compare(args.config, optimizers=[o.strip() for o in args.optimizers.split(",") if o.strip()],
-                  budget=args.budget, repeats=args.repeats, out_dir=args.output, threshold=args.threshold,
-                  progress=not args.quiet, resume=args.resume, overwrite=args.overwrite, heldout=args.heldout,
-                  at=args.at)
+
+    res = compare(
+        args.config,
+        optimizers=[o.strip() for o in args.optimizers.split(",") if o.strip()],
+        budget=args.budget,
+        repeats=args.repeats,
+        out_dir=args.output,
+        threshold=args.threshold,
+        progress=not args.quiet,
+        resume=args.resume,
+        overwrite=args.overwrite,
+        heldout=args.heldout,
+        at=args.at,
+    )
     from ..report.comparison import write_compare_figure
+
     print(res["table_text"])
     print(f"figure: {write_compare_figure(res)}")
     return 0
@@ -116,8 +146,10 @@ def cmd_compare(args):
 
 def cmd_profile(args):
     from ..pipeline.profile import profile
+
     res = profile(args.run_dir, args.param, values=args.values, seeds=args.seeds, n=args.n, progress=not args.quiet)
     from ..report.comparison import write_profile_figure
+
     print(res["table_text"])
     print(f"figure: {write_profile_figure(res)}")
     return 0
@@ -125,12 +157,18 @@ def cmd_profile(args):
 
 def cmd_calibrate(args):
     from ..pipeline.calibrate import calibrate
-    res = calibrate(args.config, args.n, out_dir=args.output, resume=args.resume, overwrite=args.overwrite,
-                    progress=not args.quiet)
+
+    res = calibrate(
+        args.config, args.n, out_dir=args.output, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet
+    )
     from ..report.calibration import write_calibration_figure
+
     c = res["counts"]
-    print(f"runs: {c['fitted']} fitted, {c['resumed']} resumed, {c['read back']} read back"
-          + (f", {c['failed']} failed" if c["failed"] else "") + f" in {res['out_dir']}")
+    print(
+        f"runs: {c['fitted']} fitted, {c['resumed']} resumed, {c['read back']} read back"
+        + (f", {c['failed']} failed" if c["failed"] else "")
+        + f" in {res['out_dir']}"
+    )
     print(res["table_text"])
     print(f"table: {res['csv']}, {res['json']}")
     print(f"figure: {write_calibration_figure(res)}")
@@ -139,6 +177,7 @@ def cmd_calibrate(args):
 
 def cmd_demo(args):
     from .demo import run_demo
+
     return run_demo(Path(args.output), quick=args.quick, progress=not args.quiet, overwrite=args.overwrite)
 
 
@@ -147,8 +186,12 @@ def add_commands(sub) -> None:
     s = sub.add_parser("demo", help="the main job on the embedded default target, end to end")
     s.add_argument("-o", "--output", default="demo-run", help="run directory (default: demo-run)")
     s.add_argument("--quick", action="store_true", help="a smaller fit (for tests)")
-    s.add_argument("--overwrite", action="store_true", help="replace a run in -o, and the file -o.toml beside it, "
-                   "that an earlier demo did not write (a demo's own are replaced without it)")
+    s.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace a run in -o, and the file -o.toml beside it, "
+        "that an earlier demo did not write (a demo's own are replaced without it)",
+    )
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     s.set_defaults(func=cmd_demo)
 
@@ -164,40 +207,76 @@ def add_commands(sub) -> None:
 
     s = sub.add_parser("clones", help="clones of a finished fit, with their distances and metrics")
     s.add_argument("run_dir", metavar="DIR", help="a run directory (bforest fit output)")
-    s.add_argument("-n", type=int, default=None, help="clones the set should hold (default: [clones] count); "
-                   "existing clones are kept, only missing ones are grown")
+    s.add_argument(
+        "-n",
+        type=int,
+        default=None,
+        help="clones the set should hold (default: [clones] count); "
+        "existing clones are kept, only missing ones are grown",
+    )
     s.add_argument("--replace", action="store_true", help="delete the existing clones and grow the set anew")
-    s.add_argument("--posterior", action="store_true",
-                   help="posterior-predictive clones (abc-smc or emcee runs): each clone's parameters are one "
-                        f"draw from {RunFiles.POSTERIOR_CSV}; written to RUN/{RunFiles.CLONES_POSTERIOR}")
+    s.add_argument(
+        "--posterior",
+        action="store_true",
+        help="posterior-predictive clones (abc-smc or emcee runs): each clone's parameters are one "
+        f"draw from {RunFiles.POSTERIOR_CSV}; written to RUN/{RunFiles.CLONES_POSTERIOR}",
+    )
     s.add_argument("--no-report", action="store_true", help="do not update the report afterwards")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_clones)
 
     s = sub.add_parser("report", help="figures (PNG, SVG or PDF) and a summary (Markdown/HTML) of a run")
     s.add_argument("run_dir", metavar="DIR", help="a run directory (bforest fit output)")
-    s.add_argument("--format", default="png", choices=("png", "svg", "pdf"),
-                   help=f"format of every figure (default: png; pdf also writes PNG previews for {RunFiles.REPORT_HTML})")
-    s.add_argument("--dpi", type=int, default=None,
-                   help="resolution of raster figures and of the raster parts of vector ones (default: 120-130)")
+    s.add_argument(
+        "--format",
+        default="png",
+        choices=("png", "svg", "pdf"),
+        help=f"format of every figure (default: png; pdf also writes PNG previews for {RunFiles.REPORT_HTML})",
+    )
+    s.add_argument(
+        "--dpi",
+        type=int,
+        default=None,
+        help="resolution of raster figures and of the raster parts of vector ones (default: 120-130)",
+    )
     s.set_defaults(func=cmd_report)
 
     s = sub.add_parser("compare", help="compare optimisers on equal evaluation budgets")
     s.add_argument("config", metavar="RUN.toml", help="the run configuration (TOML)")
-    s.add_argument("--optimizers", default="ga,nlopt,emcee,de", help="comma-separated optimiser names (default: ga,nlopt,emcee,de)")
+    s.add_argument(
+        "--optimizers", default="ga,nlopt,emcee,de", help="comma-separated optimiser names (default: ga,nlopt,emcee,de)"
+    )
     s.add_argument("--budget", type=int, required=True, help="evaluations per optimiser run")
     s.add_argument("--repeats", type=int, default=3, help="runs per optimiser with different run seeds (default 3)")
-    s.add_argument("--threshold", default=None,
-                   help="distance for 'evaluations to reach', or an optimiser's name: its median final best "
-                        "(default: 5%% above the lower quartile of all final bests)")
-    s.add_argument("--heldout", type=int, default=0, metavar="K",
-                   help="also score each run's best point on K sets of model seeds no fit saw (what clones see; "
-                        "the fits' own distances include their seeds' luck)")
-    s.add_argument("--at", type=int, nargs="+", default=[], metavar="N",
-                   help="with --heldout: also score each run's best after N evaluations")
+    s.add_argument(
+        "--threshold",
+        default=None,
+        help="distance for 'evaluations to reach', or an optimiser's name: its median final best "
+        "(default: 5%% above the lower quartile of all final bests)",
+    )
+    s.add_argument(
+        "--heldout",
+        type=int,
+        default=0,
+        metavar="K",
+        help="also score each run's best point on K sets of model seeds no fit saw (what clones see; "
+        "the fits' own distances include their seeds' luck)",
+    )
+    s.add_argument(
+        "--at",
+        type=int,
+        nargs="+",
+        default=[],
+        metavar="N",
+        help="with --heldout: also score each run's best after N evaluations",
+    )
     s.add_argument("-o", "--output", default=None, help="output directory (default: runs/compare-<config>)")
-    s.add_argument("--resume", action="store_true", help="continue the runs of an earlier comparison in -o; "
-                   "finished runs are read back (so another optimiser can be added to it)")
+    s.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the runs of an earlier comparison in -o; "
+        "finished runs are read back (so another optimiser can be added to it)",
+    )
     s.add_argument("--overwrite", action="store_true", help="replace the runs of an earlier comparison in -o")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_compare)
@@ -211,14 +290,22 @@ def add_commands(sub) -> None:
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_profile)
 
-    s = sub.add_parser("calibrate", help="simulation-based calibration: coverage of the sampler's intervals "
-                       "on targets grown from prior draws")
-    s.add_argument("config", metavar="CONFIG", help="a run configuration with a sampler (abc-smc, emcee); "
-                   "its [target] is optional and replaced in every run")
+    s = sub.add_parser(
+        "calibrate",
+        help="simulation-based calibration: coverage of the sampler's intervals on targets grown from prior draws",
+    )
+    s.add_argument(
+        "config",
+        metavar="CONFIG",
+        help="a run configuration with a sampler (abc-smc, emcee); its [target] is optional and replaced in every run",
+    )
     s.add_argument("-n", type=int, required=True, help="calibration runs (prior draws, one fit each)")
     s.add_argument("-o", "--output", default=None, help="study folder (default: runs/calibrate-<config>)")
-    s.add_argument("--resume", action="store_true", help="continue a study in -o: finished runs are read back, "
-                   "stopped ones resumed")
+    s.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue a study in -o: finished runs are read back, stopped ones resumed",
+    )
     s.add_argument("--overwrite", action="store_true", help="refit every run of an earlier study in -o")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=cmd_calibrate)

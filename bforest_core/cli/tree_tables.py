@@ -1,23 +1,44 @@
 """The tables ``bforest info`` shows besides the classical metrics: TreeQSM's tree attributes,
 its distributions and the per-branch table (:mod:`bforest_core.attributes`), as text, JSON rows
 and CSV rows."""
+
 from __future__ import annotations
 
 import numpy as np
 
-from ..attributes import (ATTRIBUTE_UNITS, BRANCH_COLUMNS, DISTRIBUTION_UNITS, branch_table, distributions,
-                          tree_attributes)
+from ..attributes import (
+    ATTRIBUTE_UNITS,
+    BRANCH_COLUMNS,
+    DISTRIBUTION_UNITS,
+    branch_table,
+    distributions,
+    tree_attributes,
+)
 
 #: what the attributes are called where a user reads them
 ATTRIBUTE_LABELS = {
-    "total_volume": "total wood volume", "trunk_volume": "trunk volume", "branch_volume": "branch volume",
-    "tree_height": "tree height", "trunk_length": "trunk length", "branch_length": "total branch length",
-    "total_length": "total length", "n_branches": "branches (no trunk)", "max_branch_order": "max branch order",
-    "trunk_area": "trunk area", "branch_area": "total branch area", "total_area": "total area",
-    "dbh": "DBH (1.3 m)", "crown_diameter_mean": "crown diameter, mean", "crown_diameter_max": "crown diameter, max",
-    "crown_area_conv": "crown area (convex hull)", "crown_area_alpha": "crown area (alpha shape)",
-    "crown_base_height": "crown base height", "crown_length": "crown length", "crown_ratio": "crown ratio",
-    "crown_volume_conv": "crown volume (convex hull)", "crown_volume_alpha": "crown volume (alpha shape)",
+    "total_volume": "total wood volume",
+    "trunk_volume": "trunk volume",
+    "branch_volume": "branch volume",
+    "tree_height": "tree height",
+    "trunk_length": "trunk length",
+    "branch_length": "total branch length",
+    "total_length": "total length",
+    "n_branches": "branches (no trunk)",
+    "max_branch_order": "max branch order",
+    "trunk_area": "trunk area",
+    "branch_area": "total branch area",
+    "total_area": "total area",
+    "dbh": "DBH (1.3 m)",
+    "crown_diameter_mean": "crown diameter, mean",
+    "crown_diameter_max": "crown diameter, max",
+    "crown_area_conv": "crown area (convex hull)",
+    "crown_area_alpha": "crown area (alpha shape)",
+    "crown_base_height": "crown base height",
+    "crown_length": "crown length",
+    "crown_ratio": "crown ratio",
+    "crown_volume_conv": "crown volume (convex hull)",
+    "crown_volume_alpha": "crown volume (alpha shape)",
 }
 
 #: (title, class name, class width, class unit, distribution names) of the distributions shown
@@ -81,12 +102,15 @@ def info_text(tree) -> list[str]:
 def info_json(tree) -> dict:
     """Attributes, distributions (with units and class bounds) for ``bforest info --json``."""
     d = distributions(tree)
-    return {"attributes": tree_attributes(tree), "attribute_units": dict(ATTRIBUTE_UNITS),
-            "distributions": {k: v.tolist() for k, v in d.items()},
-            "distribution_units": {k: distribution_unit(k) for k in d},
-            "distribution_classes": "class k (0-based): diameters [k, k+1) cm, heights [k, k+1) m above the lowest "
-                                    "cylinder, angles and zenith [10k, 10k+10) deg, azimuth [10k-180, 10k-170) deg, "
-                                    "orders k+1"}
+    return {
+        "attributes": tree_attributes(tree),
+        "attribute_units": dict(ATTRIBUTE_UNITS),
+        "distributions": {k: v.tolist() for k, v in d.items()},
+        "distribution_units": {k: distribution_unit(k) for k in d},
+        "distribution_classes": "class k (0-based): diameters [k, k+1) cm, heights [k, k+1) m above the lowest "
+        "cylinder, angles and zenith [10k, 10k+10) deg, azimuth [10k-180, 10k-170) deg, "
+        "orders k+1",
+    }
 
 
 def csv_rows(tree, table: str) -> tuple[list[str], list[list]]:
@@ -105,8 +129,7 @@ def csv_rows(tree, table: str) -> tuple[list[str], list[list]]:
     cols = list(BRANCH_COLUMNS)
     head = ["branch"] + [f"{c}_{BRANCH_COLUMNS[c]}" if BRANCH_COLUMNS[c] else c for c in cols]
     n = b["order"].size
-    return head, [[i] + [int(b[c][i]) if c in ("order", "parent") else float(b[c][i]) for c in cols]
-                  for i in range(n)]
+    return head, [[i] + [int(b[c][i]) if c in ("order", "parent") else float(b[c][i]) for c in cols] for i in range(n)]
 
 
 def finite(x):

@@ -1,4 +1,5 @@
 """Commands on single trees: info, simulate, distance."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -9,6 +10,7 @@ from .common import UsageError, parse_set, read, select_arg, split_sets
 
 def cmd_info(args):
     from ..metrics import classical_metrics, order_summary
+
     tree = read(args.tree, args)
     trees = tree if isinstance(tree, list) else [tree]
     if args.json or args.csv:
@@ -31,13 +33,18 @@ def cmd_info(args):
         print(f"  wood volume   {t.volume:.4f} m^3")
         for note in md.get("repairs", []) or []:
             print(f"  repaired      {note}")
-        print(f"  {'order':>5} {'branches':>9} {'length (m)':>11} {'volume (m^3)':>13} {'mean angle (deg)':>17} "
-              f"{'base diam. (m)':>15}")
+        print(
+            f"  {'order':>5} {'branches':>9} {'length (m)':>11} {'volume (m^3)':>13} {'mean angle (deg)':>17} "
+            f"{'base diam. (m)':>15}"
+        )
         for r in order_summary(t):
             ang = "–" if r["mean_angle_deg"] != r["mean_angle_deg"] else f"{r['mean_angle_deg']:.1f}"
-            print(f"  {r['order']:>5} {r['n_branches']:>9} {r['length_m']:>11.2f} {r['volume_m3']:>13.5f} {ang:>17} "
-                  f"{r['mean_base_diameter_m']:>15.4f}")
+            print(
+                f"  {r['order']:>5} {r['n_branches']:>9} {r['length_m']:>11.2f} {r['volume_m3']:>13.5f} {ang:>17} "
+                f"{r['mean_base_diameter_m']:>15.4f}"
+            )
         from .tree_tables import info_text
+
         print("\n".join(info_text(t)))
     return 0
 
@@ -50,6 +57,7 @@ def _info_table(args, trees) -> int:
 
     from ..metrics import classical_metrics, order_summary
     from .tree_tables import csv_rows, info_json
+
     if args.csv and args.table != "orders":
         w = csv.writer(sys.stdout)
         for k, t in enumerate(trees):
@@ -58,9 +66,18 @@ def _info_table(args, trees) -> int:
                 w.writerow(["reconstruction"] + head)
             w.writerows([k] + r for r in rows)
         return 0
-    out = [{"file": str(args.tree), "reconstruction": k, "cylinders": t.n, "branches": t.n_branches,
-            "metrics_m": classical_metrics(t), "orders": order_summary(t), **info_json(t)}
-           for k, t in enumerate(trees)]
+    out = [
+        {
+            "file": str(args.tree),
+            "reconstruction": k,
+            "cylinders": t.n,
+            "branches": t.n_branches,
+            "metrics_m": classical_metrics(t),
+            "orders": order_summary(t),
+            **info_json(t),
+        }
+        for k, t in enumerate(trees)
+    ]
     if args.json:
         print(json_text(out if len(out) > 1 else out[0]))
         return 0
@@ -77,6 +94,7 @@ def cmd_simulate(args):
     from ..io import write_tree, writer_for
     from ..metrics import classical_metrics
     from ..registry import component
+
     scan = parse_set(args.scan)
     if args.output:
         writer_for(args.output)  # a wrong output name fails before the tree is grown
@@ -95,13 +113,16 @@ def cmd_simulate(args):
     _check_ranges(ssm, params)
     tree = ssm.simulate(params, args.seed)
     m = classical_metrics(tree)
-    print(f"{args.ssm} seed {args.seed}: {tree.n} cylinders, {tree.n_branches} branches, "
-          f"height {m['height']:.2f} m, base diameter {m['base_diameter']:.3f} m, crown spread {m['crown_spread']:.2f} m")
+    print(
+        f"{args.ssm} seed {args.seed}: {tree.n} cylinders, {tree.n_branches} branches, "
+        f"height {m['height']:.2f} m, base diameter {m['base_diameter']:.3f} m, crown spread {m['crown_spread']:.2f} m"
+    )
     if args.output:
         p = write_tree(tree, args.output, **scan)
         print(f"wrote {p}")
     if args.png:
         from ..report.trees import save_tree_figure
+
         save_tree_figure(tree, args.png, title=f"{args.ssm}, seed {args.seed}")
         print(f"wrote {args.png}")
     return 0
@@ -123,14 +144,17 @@ MAX_LINES = 1 << 16
 def cmd_distance(args):
     from ..metrics import classical_metrics, relative_errors
     from ..registry import component
+
     a, b = read(args.tree_a), read(args.tree_b)
     a = a[0] if isinstance(a, list) else a
     b = b[0] if isinstance(b, list) else b
     if not 1 <= args.lines <= MAX_LINES:
         raise UsageError(f"--lines must be between 1 and {MAX_LINES} (got {args.lines})")
     if args.empty_cost is None and args.distance == "sliced" and args.statistic.lower() != "ks":
-        raise UsageError(f"--statistic {args.statistic} needs --empty-cost X: the distance of a set that one tree "
-                         "lacks (1.0, the default, is the maximum of KS only)")
+        raise UsageError(
+            f"--statistic {args.statistic} needs --empty-cost X: the distance of a set that one tree "
+            "lacks (1.0, the default, is the maximum of KS only)"
+        )
     fs_settings = {"sets": split_sets(args.sets)}
     if args.topology:
         fs_settings["topology"] = args.topology
@@ -148,11 +172,26 @@ def cmd_distance(args):
     total = dist.combine(per)
     if args.json:
         ma, mb = classical_metrics(a), classical_metrics(b)
-        print(json_text({"data": str(args.tree_b), "model": str(args.tree_a), "distance": total,
-                          "settings": {"distance": args.distance, "statistic": args.statistic, "lines": args.lines,
-                                       "sets": list(per)},
-                          "per_set": per, "rows": {k: [int(Ua[k].shape[0]), int(Ub[k].shape[0])] for k in per},
-                          "metrics_model_m": ma, "metrics_data_m": mb, "relative_errors": relative_errors(mb, ma)}))
+        print(
+            json_text(
+                {
+                    "data": str(args.tree_b),
+                    "model": str(args.tree_a),
+                    "distance": total,
+                    "settings": {
+                        "distance": args.distance,
+                        "statistic": args.statistic,
+                        "lines": args.lines,
+                        "sets": list(per),
+                    },
+                    "per_set": per,
+                    "rows": {k: [int(Ua[k].shape[0]), int(Ub[k].shape[0])] for k in per},
+                    "metrics_model_m": ma,
+                    "metrics_data_m": mb,
+                    "relative_errors": relative_errors(mb, ma),
+                }
+            )
+        )
         return 0
     print(f"data (B): {args.tree_b}\nmodel (A): {args.tree_a}")
     print(f"distance ({args.distance}, {args.statistic}, {args.lines} lines): {total:.4f}")
@@ -161,8 +200,11 @@ def cmd_distance(args):
     ma, mb = classical_metrics(a), classical_metrics(b)
     err = relative_errors(mb, ma)
     print(f"{'metric':<18}{'A':>10}{'B':>10}{'rel. error':>12}")
-    for key, label, ek in (("height", "height (m)", "d_h"), ("girth", "base diameter (m)", "d_g"),
-                           ("crown_spread", "crown spread (m)", "d_c")):
+    for key, label, ek in (
+        ("height", "height (m)", "d_h"),
+        ("girth", "base diameter (m)", "d_g"),
+        ("crown_spread", "crown spread (m)", "d_c"),
+    ):
         e = "–" if not np.isfinite(err[ek]) else f"{100 * err[ek]:.1f} %"
         print(f"{label:<18}{ma[key]:>10.3f}{mb[key]:>10.3f}{e:>12}")
     if args.test:
@@ -183,13 +225,24 @@ def add_commands(sub) -> None:
     s.add_argument("tree_a", metavar="TREE_A", help="QSM file of the model side (A)")
     s.add_argument("tree_b", metavar="TREE_B", help="QSM file of the data side (B)")
     s.add_argument("--sets", default="S1 B1", help="data sets, e.g. 'S0,1 B2,3,4' (default: 'S1 B1')")
-    s.add_argument("--statistic", default="ks", help="two-sample statistic per line: ks, cvm, ad, w1, energy (default ks)")
+    s.add_argument(
+        "--statistic", default="ks", help="two-sample statistic per line: ks, cvm, ad, w1, energy (default ks)"
+    )
     s.add_argument("--lines", type=int, default=256, help="projection lines (default 256)")
     s.add_argument("--normalize", default=None, help="column normalisation (default: the distance's, zscore)")
-    s.add_argument("--empty-cost", type=float, default=None, metavar="X",
-                   help="distance of a set one tree lacks (needed by every statistic but ks, whose maximum is 1)")
-    s.add_argument("--topology", default=None, choices=["source", "subtree", "thickest"],
-                   help="branch topology rule (default: the feature set's, subtree)")
+    s.add_argument(
+        "--empty-cost",
+        type=float,
+        default=None,
+        metavar="X",
+        help="distance of a set one tree lacks (needed by every statistic but ks, whose maximum is 1)",
+    )
+    s.add_argument(
+        "--topology",
+        default=None,
+        choices=["source", "subtree", "thickest"],
+        help="branch topology rule (default: the feature set's, subtree)",
+    )
     s.add_argument("--features", default="branch-segment", help="feature set plugin (default branch-segment)")
     s.add_argument("--distance", default="sliced", help="distance plugin (default sliced)")
     s.add_argument("--test", action="store_true", help="permutation test p-value")
@@ -204,9 +257,13 @@ def add_commands(sub) -> None:
     s.add_argument("--setting", action="append", metavar="NAME=VALUE", help="component setting (repeatable)")
     s.add_argument("--preset", default=None, help="parameter preset (LIGNUM)")
     s.add_argument("-o", "--output", help="tree file (.txt TreeQSM text, .csv, .ply, .obj)")
-    s.add_argument("--scan", action="append", metavar="NAME=VALUE",
-                   help="synthetic-scan setting for a .las/.laz/.xyz output, repeatable: density=POINTS_PER_M2, "
-                        "mode=uniform|scanner, scanner=X,Y,Z (m), reference_range=M, noise=SD_M, seed=N")
+    s.add_argument(
+        "--scan",
+        action="append",
+        metavar="NAME=VALUE",
+        help="synthetic-scan setting for a .las/.laz/.xyz output, repeatable: density=POINTS_PER_M2, "
+        "mode=uniform|scanner, scanner=X,Y,Z (m), reference_range=M, noise=SD_M, seed=N",
+    )
     s.add_argument("--png", help="figure of the tree")
     s.set_defaults(func=cmd_simulate)
 
@@ -214,13 +271,21 @@ def add_commands(sub) -> None:
     s.add_argument("tree", metavar="TREE", help="a QSM file (TreeQSM .mat/.txt, SimpleForest or aRchi CSV, ...)")
     s.add_argument("--reader", default=None, help="force a reader by name (default: detect)")
     s.add_argument("--select", default=None, type=select_arg, help="reconstruction index, list or 'all'")
-    s.add_argument("--topology", default=None, choices=["source", "subtree", "thickest"],
-                   help="branch topology rule (default: the reader's)")
+    s.add_argument(
+        "--topology",
+        default=None,
+        choices=["source", "subtree", "thickest"],
+        help="branch topology rule (default: the reader's)",
+    )
     out = s.add_mutually_exclusive_group()
     out.add_argument("--json", action="store_true", help="metrics and the per-order table as JSON")
     out.add_argument("--csv", action="store_true", help="a table as CSV (--table; default the per-order table)")
-    s.add_argument("--table", default="orders", choices=["orders", "attributes", "distributions", "branches"],
-                   help="with --csv: per order (default), TreeQSM's tree attributes, its distributions, or one row "
-                        "per branch like TreeQSM's qsm.branch (order, parent, diameter, volume, area, length, angle, "
-                        "height, azimuth, zenith)")
+    s.add_argument(
+        "--table",
+        default="orders",
+        choices=["orders", "attributes", "distributions", "branches"],
+        help="with --csv: per order (default), TreeQSM's tree attributes, its distributions, or one row "
+        "per branch like TreeQSM's qsm.branch (order, parent, diameter, volume, area, length, angle, "
+        "height, azimuth, zenith)",
+    )
     s.set_defaults(func=cmd_info)

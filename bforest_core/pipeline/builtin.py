@@ -1,7 +1,8 @@
 """Components shipped inside the core (the ``serial`` and ``process`` executors), registered
 through the same entry-point mechanism as every plugin."""
-from .executors import ProcessExecutor, SerialExecutor
+
 from ..hookspecs import hookimpl
+from .executors import ProcessExecutor, SerialExecutor
 
 
 @hookimpl

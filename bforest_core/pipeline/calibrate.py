@@ -31,6 +31,7 @@ Resume: a finished run (``best.json``) is read back, not refitted; a run stopped
 continued with the fit's own resume (its logged evaluations are replayed). Nothing is deleted
 without ``overwrite``.
 """
+
 from __future__ import annotations
 
 import copy
@@ -47,8 +48,18 @@ from ..metrics import weighted_quantiles
 from .fit import _free_specs, fit, same_config
 from .store import RunDirError, RunFiles, RunStore, json_text
 
-__all__ = ["calibrate", "central_interval", "sbc_rank", "prior_draw", "coverage_table", "rank_counts",
-           "uniform_band", "rank_bins", "LEVELS", "RANK_DRAWS"]
+__all__ = [
+    "calibrate",
+    "central_interval",
+    "sbc_rank",
+    "prior_draw",
+    "coverage_table",
+    "rank_counts",
+    "uniform_band",
+    "rank_bins",
+    "LEVELS",
+    "RANK_DRAWS",
+]
 
 #: central interval levels checked, in %
 LEVELS = (50, 90)
@@ -66,8 +77,9 @@ def central_interval(x: np.ndarray, w: np.ndarray, level: float) -> tuple[float,
     return float(lo), float(hi)
 
 
-def sbc_rank(x: np.ndarray, w: np.ndarray, truth: float, draws: int = RANK_DRAWS,
-             rng: np.random.Generator | None = None) -> int:
+def sbc_rank(
+    x: np.ndarray, w: np.ndarray, truth: float, draws: int = RANK_DRAWS, rng: np.random.Generator | None = None
+) -> int:
     """Rank of ``truth`` among ``draws`` (L) posterior draws: how many of the posterior's weighted
     quantiles at the levels k / (L + 1), k = 1..L, lie below it (0..L). Draws equal to the truth
     (integer parameters) are split at random: a uniform number of them, 0..ties, counts below
@@ -98,6 +110,7 @@ def rank_counts(ranks, bins: int, draws: int = RANK_DRAWS) -> np.ndarray:
 def _binomial_range(n_runs: int, p: float, prob: float) -> tuple[float, float]:
     """The central ``prob`` range of a Binomial(n_runs, p) count."""
     from scipy.stats import binom
+
     a = (1.0 - prob) / 2.0
     return float(binom.ppf(a, n_runs, p)), float(binom.ppf(1.0 - a, n_runs, p))
 
@@ -133,6 +146,7 @@ def coverage_table(rows: list[dict], names: list[str], lower, upper) -> list[dic
     """Per parameter: runs, coverage of each central interval (fraction), mean interval width
     relative to the prior's width, and the chi-square p-value of the ranks' uniformity."""
     from scipy.stats import chisquare
+
     ok = [r for r in rows if r["status"] == "ok"]
     n = len(ok)
     bins = rank_bins(n) if n else 2
@@ -141,12 +155,16 @@ def coverage_table(rows: list[dict], names: list[str], lower, upper) -> list[dic
         width = float(upper[j] - lower[j])
         row = {"parameter": name, "runs": n}
         for lev in LEVELS:
-            inside = [r["params"][name][f"lo{lev}"] <= r["params"][name]["truth"] <= r["params"][name][f"hi{lev}"]
-                      for r in ok]
+            inside = [
+                r["params"][name][f"lo{lev}"] <= r["params"][name]["truth"] <= r["params"][name][f"hi{lev}"] for r in ok
+            ]
             row[f"covered{lev}"] = int(sum(inside))
             row[f"coverage{lev}"] = float(np.mean(inside)) if n else math.nan
-            row[f"width{lev}"] = (float(np.mean([r["params"][name][f"hi{lev}"] - r["params"][name][f"lo{lev}"]
-                                                 for r in ok])) / width if n else math.nan)
+            row[f"width{lev}"] = (
+                float(np.mean([r["params"][name][f"hi{lev}"] - r["params"][name][f"lo{lev}"] for r in ok])) / width
+                if n
+                else math.nan
+            )
         counts = rank_counts([r["params"][name]["rank"] for r in ok], bins) if n else np.zeros(bins, int)
         row["rank_counts"] = counts.tolist()
         row["rank_p"] = float(chisquare(counts).pvalue) if n >= bins else math.nan
@@ -165,14 +183,18 @@ def _read_study_config(path: Path):
 
 def _check_sampler(cfg, source: str) -> None:
     from ..registry import component_class
+
     cls = component_class("optimizer", cfg.optimizer.kind)
     if not cls.gives_posterior:
-        raise ConfigError(f"{source}: optimizer.kind: calibrate needs a sampler whose result is a posterior "
-                          f"(e.g. abc-smc, emcee); {cfg.optimizer.kind!r} gives a best fit only")
+        raise ConfigError(
+            f"{source}: optimizer.kind: calibrate needs a sampler whose result is a posterior "
+            f"(e.g. abc-smc, emcee); {cfg.optimizer.kind!r} gives a best fit only"
+        )
 
 
 def _fixed_model_seeds(cfg) -> set[int]:
     from .seeds import model_seeds
+
     o = cfg.objective
     if o.model_seeds:
         return {int(s) for s in o.model_seeds}
@@ -186,8 +208,12 @@ def run_config(base: dict, i: int, truth: dict, target_seed: int):
     ssm = raw["ssm"]
     settings = {k: v for k, v in ssm.items() if k not in ("kind", "fixed", "free", "topology")}
     target = {k: v for k, v in raw["target"].items() if k == "topology"}
-    target["generate"] = {"ssm": ssm["kind"], "seed": int(target_seed),
-                          "params": {**ssm.get("fixed", {}), **truth}, "settings": settings}
+    target["generate"] = {
+        "ssm": ssm["kind"],
+        "seed": int(target_seed),
+        "params": {**ssm.get("fixed", {}), **truth},
+        "settings": settings,
+    }
     raw["target"] = target
     raw["seed"] = int(base.get("seed", 1)) + int(i)
     cfg = parse_config(raw, source=f"calibrate/run_{i:03d}")
@@ -200,6 +226,7 @@ def run_config(base: dict, i: int, truth: dict, target_seed: int):
 def _study_spec(cfg):
     from ..config import ssm_settings
     from ..registry import component
+
     ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
     names, lo, hi, _, _, integer = _free_specs(cfg, ssm)
     units = [ssm.parameter_spec(n).unit or "" for n in names]
@@ -214,15 +241,23 @@ def _held_runs(out_dir: Path) -> list[Path]:
 def _evaluate_run(run_dir: Path, names, theta, integer, seed: int, i: int) -> dict:
     """The row of one finished run: truth, intervals, median and rank per parameter."""
     from .posterior import read_posterior_csv
+
     files = RunFiles(run_dir)
     best = files.read_best()
     diag = best.get("diagnostics") or {}
     eps = diag.get("epsilon")
     if isinstance(eps, list):
         eps = next((e for e in reversed(eps) if e is not None), None)
-    row = {"run": run_dir.name, "status": "ok", "n_evaluations": best.get("n_evaluations"),
-           "seconds": best.get("seconds"), "stop_reason": best.get("stop_reason"), "epsilon": eps,
-           "best_distance": best.get("distance"), "params": {}}
+    row = {
+        "run": run_dir.name,
+        "status": "ok",
+        "n_evaluations": best.get("n_evaluations"),
+        "seconds": best.get("seconds"),
+        "stop_reason": best.get("stop_reason"),
+        "epsilon": eps,
+        "best_distance": best.get("distance"),
+        "params": {},
+    }
     try:
         got, X, w = read_posterior_csv(files.posterior_csv_path)
     except RunDirError as exc:
@@ -242,9 +277,11 @@ def posterior_params(X: np.ndarray, w: np.ndarray, names, theta, integer, seed: 
     out = {}
     for j, name in enumerate(names):
         t = float(theta[j])
-        p = {"truth": int(t) if integer[j] else t,
-             "median": float(weighted_quantiles(X[:, j], w, [50])[0]),
-             "rank": sbc_rank(X[:, j], w, t, RANK_DRAWS, rng)}
+        p = {
+            "truth": int(t) if integer[j] else t,
+            "median": float(weighted_quantiles(X[:, j], w, [50])[0]),
+            "rank": sbc_rank(X[:, j], w, t, RANK_DRAWS, rng),
+        }
         for lev in LEVELS:
             p[f"lo{lev}"], p[f"hi{lev}"] = central_interval(X[:, j], w, lev)
         out[name] = p
@@ -262,16 +299,19 @@ def _plan_runs(cfg, base: dict, out_dir: Path, n: int, overwrite: bool, names, l
         run_dir = out_dir / f"run_{i:03d}"
         state = "new" if overwrite else RunStore.state(run_dir)
         if state != "new" and not same_config(run_dir, run_cfg):
-            raise ConfigError(f"{run_dir}: was made with another config (or another version of this one); "
-                              "refit the study with --overwrite, or choose another -o")
+            raise ConfigError(
+                f"{run_dir}: was made with another config (or another version of this one); "
+                "refit the study with --overwrite, or choose another -o"
+            )
         plans.append((i, theta, run_cfg, run_dir, state))
     return plans
 
 
 # Over 80 lines, a third of it the docstring: the run loop keeps the bar, the counts and the rows
 # together (set-up and per-run steps are helpers above).
-def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite: bool = False,
-              progress: bool = False) -> dict:
+def calibrate(
+    config_path, n: int, out_dir=None, resume: bool = False, overwrite: bool = False, progress: bool = False
+) -> dict:
     """Simulation-based calibration of the configured sampler (see the module text).
 
     Parameters
@@ -297,12 +337,12 @@ def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite
         (summed fit time of the runs), ``json``/``csv`` paths, ``out_dir``.
     """
     from .progress import progress_bar
+
     config_path = Path(config_path)
     if int(n) < 1:
         raise ConfigError(f"calibrate: -n must be at least 1 (got {n})")
     if resume and overwrite:
-        raise ConfigError("calibrate: --resume and --overwrite exclude each other (continue the study, or "
-                          "refit it)")
+        raise ConfigError("calibrate: --resume and --overwrite exclude each other (continue the study, or refit it)")
     cfg = _read_study_config(config_path)
     _check_sampler(cfg, str(config_path))
     names, lo, hi, integer, units = _study_spec(cfg)
@@ -311,8 +351,10 @@ def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite
         raise ConfigError(f"{out_dir}: exists and is not a folder")
     held = _held_runs(out_dir) if out_dir.is_dir() else []
     if held and not (resume or overwrite):
-        raise ConfigError(f"{out_dir}: already holds a calibration study ({len(held)} runs); continue it with "
-                          "--resume, refit it with --overwrite, or choose another -o")
+        raise ConfigError(
+            f"{out_dir}: already holds a calibration study ({len(held)} runs); continue it with "
+            "--resume, refit it with --overwrite, or choose another -o"
+        )
     out_dir.mkdir(parents=True, exist_ok=True)
     base = config_to_dict(cfg)
     plans = _plan_runs(cfg, base, out_dir, int(n), overwrite, names, lo, hi, integer)
@@ -322,8 +364,9 @@ def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite
     bar = progress_bar(int(n), "calibrate", "run", progress)
     try:
         for i, theta, run_cfg, run_dir, state in plans:
-            bar.set_postfix_str(f"run {i + 1}/{n}" + {"finished": " (read back)", "partial": " (resume)"}.get(state, ""),
-                                refresh=True)
+            bar.set_postfix_str(
+                f"run {i + 1}/{n}" + {"finished": " (read back)", "partial": " (resume)"}.get(state, ""), refresh=True
+            )
             if state == "finished":
                 counts["read back"] += 1
             else:
@@ -335,8 +378,14 @@ def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite
                     # recorded and left out of the coverage; a run folder problem stops the study
                     if isinstance(exc, RunDirError):
                         raise
-                    rows.append({"run": run_dir.name, "status": f"fit failed: {exc}".replace("\n", " ")[:300],
-                                 "params": {}, "truth": dict(zip(names, map(float, theta)))})
+                    rows.append(
+                        {
+                            "run": run_dir.name,
+                            "status": f"fit failed: {exc}".replace("\n", " ")[:300],
+                            "params": {},
+                            "truth": dict(zip(names, map(float, theta))),
+                        }
+                    )
                     counts["failed"] += 1
                     bar.update(1)
                     continue
@@ -354,12 +403,28 @@ def calibrate(config_path, n: int, out_dir=None, resume: bool = False, overwrite
     bins = rank_bins(len(ok)) if ok else 2
     band = uniform_band(len(ok), bins) if ok else (0.0, 0.0)
     wall = float(sum(r.get("seconds") or 0.0 for r in rows))
-    res = {"config": str(config_path), "optimizer": cfg.optimizer.kind, "ssm": cfg.ssm.kind,
-           "optimizer_settings": base.get("optimizer"), "objective": base.get("objective"),
-           "n": int(n), "names": list(names), "units": units, "lower": lo.tolist(), "upper": hi.tolist(),
-           "levels": list(LEVELS), "rank_draws": RANK_DRAWS, "bins": bins, "band": list(band),
-           "table": table, "runs": rows, "counts": counts, "wall_seconds": wall,
-           "session_seconds": time.monotonic() - t0, "out_dir": out_dir}
+    res = {
+        "config": str(config_path),
+        "optimizer": cfg.optimizer.kind,
+        "ssm": cfg.ssm.kind,
+        "optimizer_settings": base.get("optimizer"),
+        "objective": base.get("objective"),
+        "n": int(n),
+        "names": list(names),
+        "units": units,
+        "lower": lo.tolist(),
+        "upper": hi.tolist(),
+        "levels": list(LEVELS),
+        "rank_draws": RANK_DRAWS,
+        "bins": bins,
+        "band": list(band),
+        "table": table,
+        "runs": rows,
+        "counts": counts,
+        "wall_seconds": wall,
+        "session_seconds": time.monotonic() - t0,
+        "out_dir": out_dir,
+    }
     res["table_text"] = table_text(res)
     res["json"] = _write_json(out_dir / "calibration.json", res)
     res["csv"] = _write_csv(out_dir / "calibration.csv", rows, names)
@@ -370,30 +435,42 @@ def table_text(res: dict) -> str:
     """The coverage table as printed at the end of the study."""
     ok = [r for r in res["runs"] if r["status"] == "ok"]
     n_ok = len(ok)
-    lines = [f"calibration of {res['optimizer']} on {res['ssm']}: {len(res['runs'])} runs, {n_ok} with a "
-             f"posterior; central intervals from weighted quantiles, ranks among {res['rank_draws']} "
-             f"posterior draws in {res['bins']} bins"]
+    lines = [
+        f"calibration of {res['optimizer']} on {res['ssm']}: {len(res['runs'])} runs, {n_ok} with a "
+        f"posterior; central intervals from weighted quantiles, ranks among {res['rank_draws']} "
+        f"posterior draws in {res['bins']} bins"
+    ]
     if n_ok:
         r50, r90 = coverage_range(n_ok, 50), coverage_range(n_ok, 90)
-        lines.append(f"a calibrated sampler covers 50 % and 90 %; over {n_ok} runs 95 % of calibrated studies "
-                     f"fall within {r50[0]:.0f}-{r50[1]:.0f} % and {r90[0]:.0f}-{r90[1]:.0f} %")
-    lines.append(f"{'parameter':<16}{'unit':<11}{'50 % covers':>16}{'90 % covers':>16}{'rank p':>9}"
-                 f"{'width50/prior':>15}{'width90/prior':>15}")
+        lines.append(
+            f"a calibrated sampler covers 50 % and 90 %; over {n_ok} runs 95 % of calibrated studies "
+            f"fall within {r50[0]:.0f}-{r50[1]:.0f} % and {r90[0]:.0f}-{r90[1]:.0f} %"
+        )
+    lines.append(
+        f"{'parameter':<16}{'unit':<11}{'50 % covers':>16}{'90 % covers':>16}{'rank p':>9}"
+        f"{'width50/prior':>15}{'width90/prior':>15}"
+    )
     for t, unit in zip(res["table"], res["units"]):
         c50 = f"{100 * t['coverage50']:.1f} % ({t['covered50']}/{t['runs']})" if t["runs"] else "-"
         c90 = f"{100 * t['coverage90']:.1f} % ({t['covered90']}/{t['runs']})" if t["runs"] else "-"
         p = "-" if not math.isfinite(t["rank_p"]) else f"{t['rank_p']:.3f}"
-        lines.append(f"{t['parameter']:<16}{(unit or '-'):<11}{c50:>16}{c90:>16}{p:>9}"
-                     f"{t['width50']:>15.3f}{t['width90']:>15.3f}")
+        lines.append(
+            f"{t['parameter']:<16}{(unit or '-'):<11}{c50:>16}{c90:>16}{p:>9}{t['width50']:>15.3f}{t['width90']:>15.3f}"
+        )
     failed = [r for r in res["runs"] if r["status"] != "ok"]
     if failed:
-        lines.append(f"{len(failed)} run{'' if len(failed) == 1 else 's'} without a posterior, left out: "
-                     + "; ".join(f"{r['run']}: {r['status']}" for r in failed[:3]) + (" ..." if len(failed) > 3 else ""))
+        lines.append(
+            f"{len(failed)} run{'' if len(failed) == 1 else 's'} without a posterior, left out: "
+            + "; ".join(f"{r['run']}: {r['status']}" for r in failed[:3])
+            + (" ..." if len(failed) > 3 else "")
+        )
     secs = [r["seconds"] for r in ok if r.get("seconds")]
     evals = [r["n_evaluations"] for r in ok if r.get("n_evaluations")]
     if secs:
-        lines.append(f"fit time: {res['wall_seconds']:.0f} s in all, median {np.median(secs):.1f} s and "
-                     f"{np.median(evals):.0f} evaluations per run")
+        lines.append(
+            f"fit time: {res['wall_seconds']:.0f} s in all, median {np.median(secs):.1f} s and "
+            f"{np.median(evals):.0f} evaluations per run"
+        )
     return "\n".join(lines)
 
 
@@ -408,15 +485,23 @@ def _write_csv(path: Path, rows: list[dict], names) -> Path:
     cols = ["truth", "median"] + [f"{b}{lev}" for lev in LEVELS for b in ("lo", "hi")] + ["rank"]
     with path.open("w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
-        w.writerow(["run"] + [f"{c}_{nm}" for nm in names for c in cols]
-                   + ["n_evaluations", "seconds", "epsilon", "best_distance", "status"])
+        w.writerow(
+            ["run"]
+            + [f"{c}_{nm}" for nm in names for c in cols]
+            + ["n_evaluations", "seconds", "epsilon", "best_distance", "status"]
+        )
         for r in rows:
             vals = []
             for nm in names:
                 p = r["params"].get(nm) or {"truth": r.get("truth", {}).get(nm)}
-                vals += ["" if p.get(c) is None else (f"{p[c]:.10g}" if isinstance(p[c], float) else p[c])
-                         for c in cols]
+                vals += [
+                    "" if p.get(c) is None else (f"{p[c]:.10g}" if isinstance(p[c], float) else p[c]) for c in cols
+                ]
             extra = [r.get(k) for k in ("n_evaluations", "seconds", "epsilon", "best_distance")]
-            w.writerow([r["run"]] + vals + ["" if v is None else (f"{v:.6g}" if isinstance(v, float) else v)
-                                            for v in extra] + [r["status"]])
+            w.writerow(
+                [r["run"]]
+                + vals
+                + ["" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for v in extra]
+                + [r["status"]]
+            )
     return path

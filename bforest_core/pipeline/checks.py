@@ -7,6 +7,7 @@ these need the installed components and the data: the files the config names, th
 grown and its data sets resolved, the weights naming those sets. Every problem is reported at
 once, in one :class:`ConfigError`.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -64,7 +65,7 @@ def _weight_problems(tgt: Target) -> list[str]:
     for i, t in enumerate(tgt.terms or []):
         sets = list(t.own(tgt.U))
         key = "objective.weights" if not t.prefix else f"objective.terms[{i - 1}].weights"
-        for name in (t.set_weights or {}):
+        for name in t.set_weights or {}:
             if name not in sets:
                 out.append(f"{key}.{name}: no data set {name!r}{did_you_mean(name, sets)} (sets: {', '.join(sets)})")
     return out

@@ -10,6 +10,7 @@ set of their own, ``clones_posterior/``: clone ``i`` draws its parameter vector 
 ``posterior.csv`` by weight, with a generator seeded by its own clone seed, so the set carries
 the parameter uncertainty and still grows reproducibly.
 """
+
 from __future__ import annotations
 
 import csv
@@ -31,8 +32,16 @@ from .worker import started_workers, worker_context
 
 METRIC_KEYS = ("height", "girth", "crown_spread")
 #: clones.csv column of each per-clone value (units in the header; girth is the base diameter)
-CSV_COLUMNS = {"n_cylinders": "n_cylinders", "height": "height_m", "girth": "base_diameter_m",
-               "dbh": "dbh_m", "crown_spread": "crown_spread_m", "d_h": "d_h", "d_g": "d_g", "d_c": "d_c"}
+CSV_COLUMNS = {
+    "n_cylinders": "n_cylinders",
+    "height": "height_m",
+    "girth": "base_diameter_m",
+    "dbh": "dbh_m",
+    "crown_spread": "crown_spread_m",
+    "d_h": "d_h",
+    "d_g": "d_g",
+    "d_c": "d_c",
+}
 
 
 class ClonesError(BayesForestError):
@@ -44,6 +53,7 @@ def _clone_task(task):
     from ..attributes import fidelity_statistics
     from ..io import write_tree
     from ..metrics import classical_metrics
+
     i, params, seed, out_dir = task
     c = worker_context()
     try:
@@ -51,16 +61,28 @@ def _clone_task(task):
     except SimulationFailed as exc:
         return dict(index=i, seed=seed, status=exc.status, message=str(exc), params=params)
     except _Timeout:
-        return dict(index=i, seed=seed, status="timeout", message=f"simulation exceeded {c['timeout']} s", params=params)
+        return dict(
+            index=i, seed=seed, status="timeout", message=f"simulation exceeded {c['timeout']} s", params=params
+        )
     except _MODEL_ERRORS as exc:
         return dict(index=i, seed=seed, status="error", message=f"{type(exc).__name__}: {exc}"[:500], params=params)
     path = Path(out_dir) / f"clone_{i:03d}.txt"
     write_tree(tree, path)
     per_set, _ = score_tree(tree, c)
     total, values = combine_terms(per_set, c)
-    return dict(index=i, seed=seed, status="ok", message="", file=path.name, distance=total,
-                per_set=with_term_values(per_set, values), n_cylinders=tree.n, summary=fidelity_statistics(tree),
-                params=params, **classical_metrics(tree))
+    return dict(
+        index=i,
+        seed=seed,
+        status="ok",
+        message="",
+        file=path.name,
+        distance=total,
+        per_set=with_term_values(per_set, values),
+        n_cylinders=tree.n,
+        summary=fidelity_statistics(tree),
+        params=params,
+        **classical_metrics(tree),
+    )
 
 
 def _lost_clone(task, status, message):
@@ -76,14 +98,16 @@ def _reference_task(task):
     """Score a reference tree of the stand against the target, like a clone."""
     from ..attributes import fidelity_statistics
     from ..io import read_qsm
+
     path = task
     tree = read_qsm(path)
     tree = tree[0] if isinstance(tree, list) else tree
     c = worker_context()
     per_set, _ = score_tree(tree, c)
     total, values = combine_terms(per_set, c)
-    return dict(file=str(path), distance=total, per_set=with_term_values(per_set, values),
-                summary=fidelity_statistics(tree))
+    return dict(
+        file=str(path), distance=total, per_set=with_term_values(per_set, values), summary=fidelity_statistics(tree)
+    )
 
 
 def posterior_draw(run_dir: Path, base: dict, seed: int) -> dict:
@@ -91,8 +115,9 @@ def posterior_draw(run_dir: Path, base: dict, seed: int) -> dict:
     parameters) with the fitted ones drawn from ``posterior.csv`` by weight."""
     path = RunFiles(run_dir).posterior_csv_path
     if not path.exists():
-        raise ClonesError(f"{run_dir}: no {path.name}; posterior clones need a sampler's run "
-                          "(optimizer kind abc-smc or emcee)")
+        raise ClonesError(
+            f"{run_dir}: no {path.name}; posterior clones need a sampler's run (optimizer kind abc-smc or emcee)"
+        )
     with path.open(newline="", encoding="utf-8") as fh:
         rows = list(csv.reader(fh))
     names, data = rows[0][:-1], np.array(rows[1:], float)
@@ -109,19 +134,24 @@ def _existing(out_dir: Path, store: RunStore, params: dict) -> list[dict]:
     """The rows of the clones already in ``out_dir`` (checked to be clones of ``params``)."""
     if not (out_dir / RunFiles.CLONE_SUMMARY).exists():
         if any(out_dir.glob("clone_*.txt")):
-            raise ClonesError(f"{out_dir}: holds clone files but no {RunFiles.CLONE_SUMMARY}; regrow them with --replace, "
-                              "or move the folder to keep them")
+            raise ClonesError(
+                f"{out_dir}: holds clone files but no {RunFiles.CLONE_SUMMARY}; regrow them with --replace, "
+                "or move the folder to keep them"
+            )
         return []
     old = store.read_json(f"{out_dir.name}/{RunFiles.CLONE_SUMMARY}")
     if old.get("best_params") != params:
-        raise ClonesError(f"{out_dir}: holds clones of other parameters ({old.get('best_params')}); "
-                          "regrow them with --replace, or move the folder to keep them")
+        raise ClonesError(
+            f"{out_dir}: holds clones of other parameters ({old.get('best_params')}); "
+            "regrow them with --replace, or move the folder to keep them"
+        )
     return [r for r in old.get("rows", []) if (out_dir / r.get("file", "-")).exists() or r.get("status") != "ok"]
 
 
 @holding_run_lock
-def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, replace: bool = False,
-           posterior: bool = False) -> dict:
+def clones(
+    run_dir, n: int | None = None, executor=None, progress: bool = True, replace: bool = False, posterior: bool = False
+) -> dict:
     """Grow clones of a finished fit until the set holds ``n``; writes ``clones/clone_NNN.txt``,
     ``clones/clones.csv``, ``clones/summary.json`` and ``clones/fidelity.json``.
 
@@ -162,8 +192,15 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
         tgt = build_target(cfg)
         tm = best.get("target_metrics")
         seeds = clone_seeds(cfg.seed, max(n, len(rows)), cfg.clones.seed)
-        tasks = [(i, posterior_draw(run_dir, best["params"], seeds[i]) if posterior else best["params"], seeds[i],
-                  str(out_dir)) for i in want]
+        tasks = [
+            (
+                i,
+                posterior_draw(run_dir, best["params"], seeds[i]) if posterior else best["params"],
+                seeds[i],
+                str(out_dir),
+            )
+            for i in want
+        ]
         refs = list(cfg.target.references)
         new_rows, references, ref_errors = [], [], []
         if tasks or refs:
@@ -175,6 +212,7 @@ def clones(run_dir, n: int | None = None, executor=None, progress: bool = True, 
                 for _, res in ex.map_unordered(_clone_task, tasks):
                     if res["status"] == "ok":
                         from ..metrics import relative_errors
+
                         res.update(relative_errors(tm, {k: res[k] for k in METRIC_KEYS}))
                     new_rows.append(res)
                     _write_progress(store, out_dir, rows + new_rows, tgt, best, tm)
@@ -210,6 +248,7 @@ def _write_progress(store: RunStore, out_dir: Path, rows, tgt, best, tm) -> None
 def _fidelity(cfg, tgt, best, rows) -> dict:
     from ..attributes import fidelity_statistics
     from ..metrics import SUMMARY_UNITS
+
     target = fidelity_statistics(tgt.trees[0])
     ok = [r["summary"] for r in rows if r.get("status") == "ok" and r.get("summary")]
     table = fidelity_table(target, ok, SUMMARY_UNITS)
@@ -221,13 +260,24 @@ def _fidelity(cfg, tgt, best, rows) -> dict:
 
 def _summarise(rows, tgt, best, tm) -> dict:
     ok = [r for r in rows if r["status"] == "ok"]
-    summary = {"count": len(rows), "ok": len(ok), "failed": len(rows) - len(ok), "target_metrics": tm,
-               "best_params": best["params"], "fit_distance": best["distance"]}
+    summary = {
+        "count": len(rows),
+        "ok": len(ok),
+        "failed": len(rows) - len(ok),
+        "target_metrics": tm,
+        "best_params": best["params"],
+        "fit_distance": best["distance"],
+    }
     for key in ["distance", "height", "girth", "crown_spread", "d_h", "d_g", "d_c"]:
         vals = np.array([r[key] for r in ok if r.get(key) is not None and np.isfinite(r[key])], float)
         if vals.size:
-            summary[key] = {"mean": float(vals.mean()), "sd": float(vals.std(ddof=1)) if vals.size > 1 else 0.0,
-                            "median": float(np.median(vals)), "min": float(vals.min()), "max": float(vals.max())}
+            summary[key] = {
+                "mean": float(vals.mean()),
+                "sd": float(vals.std(ddof=1)) if vals.size > 1 else 0.0,
+                "median": float(np.median(vals)),
+                "min": float(vals.min()),
+                "max": float(vals.max()),
+            }
     for s in _set_columns(tgt):
         vals = np.array([r["per_set"][s] for r in ok if r["per_set"].get(s) is not None], float)
         if vals.size:
@@ -247,6 +297,8 @@ def _write_csv(path: Path, rows, tgt) -> None:
         w = csv.writer(fh)
         w.writerow(header)
         for r in rows:
-            w.writerow([r.get("index"), r.get("seed"), r.get("status"), r.get("file", ""), r.get("distance", "")]
-                       + [(r.get("per_set") or {}).get(s, "") for s in sets]
-                       + [r.get(k, "") for k in CSV_COLUMNS])
+            w.writerow(
+                [r.get("index"), r.get("seed"), r.get("status"), r.get("file", ""), r.get("distance", "")]
+                + [(r.get("per_set") or {}).get(s, "") for s in sets]
+                + [r.get(k, "") for k in CSV_COLUMNS]
+            )

@@ -1,4 +1,5 @@
 """``bforest compare``: optimisers on equal evaluation budgets, repeated with different seeds."""
+
 from __future__ import annotations
 
 import contextlib
@@ -71,30 +72,49 @@ def score_heldout(runs, cfg, target, sets: int, at=(), progress: bool = False) -
         dirs_of.setdefault(point_key(e.params), set()).add(Path(runs[name][r]))
     with contextlib.ExitStack() as stack:
         open_ = {d: stack.enter_context(RunStore.open(d)) for ds in dirs_of.values() for d in ds}
-        known = score_points(unique, seed_sets, {k: [open_[d] for d in sorted(ds)] for k, ds in dirs_of.items()},
-                             scoring_fingerprint(cfg), lambda: started_workers(cfg, target), progress)
+        known = score_points(
+            unique,
+            seed_sets,
+            {k: [open_[d] for d in sorted(ds)] for k, ds in dirs_of.items()},
+            scoring_fingerprint(cfg),
+            lambda: started_workers(cfg, target),
+            progress,
+        )
     for (name, r, cp), e in points.items():
         h, failed = heldout_mean(known, point_key(e.params), seed_sets)
         out[name][r][cp] = {"evaluations": e.idx + 1, "own": float(e.distance), "heldout": h, "failed": failed}
     return out, per
 
 
-def heldout_table(scores: dict, sets: int, per: int, threshold_name: str | None = None
-                  ) -> tuple[list[str], dict, float | None]:
+def heldout_table(
+    scores: dict, sets: int, per: int, threshold_name: str | None = None
+) -> tuple[list[str], dict, float | None]:
     """The held-out lines of a comparison's table (from :func:`score_heldout`), the medians over
     repeats (optimiser -> checkpoint -> median held-out distance) and the held-out threshold:
     with ``threshold_name`` (one of the optimisers) its median held-out final best, and each
     cell counts the repeats at or below it."""
-    cps = sorted({cp for runs in scores.values() for run in runs for cp in run},
-                 key=lambda c: (c == "final", int(c) if c != "final" else 0))
-    medians = {name: {cp: float(np.median([run[cp]["heldout"] for run in runs if cp in run]))
-                      for cp in cps if any(cp in run for run in runs)} for name, runs in scores.items()}
+    cps = sorted(
+        {cp for runs in scores.values() for run in runs for cp in run},
+        key=lambda c: (c == "final", int(c) if c != "final" else 0),
+    )
+    medians = {
+        name: {
+            cp: float(np.median([run[cp]["heldout"] for run in runs if cp in run]))
+            for cp in cps
+            if any(cp in run for run in runs)
+        }
+        for name, runs in scores.items()
+    }
     threshold = medians.get(threshold_name, {}).get("final")
-    lines = [f"held out: each run's best point on {sets} sets of {per} model seeds no fit saw (mean distance, "
-             "median over repeats)"]
+    lines = [
+        f"held out: each run's best point on {sets} sets of {per} model seeds no fit saw (mean distance, "
+        "median over repeats)"
+    ]
     if threshold is not None:
-        lines.append(f"threshold {threshold:.4f} ({threshold_name}'s median final); beside each median the "
-                     "repeats at or below it")
+        lines.append(
+            f"threshold {threshold:.4f} ({threshold_name}'s median final); beside each median the "
+            "repeats at or below it"
+        )
     lines.append(f"{'optimizer':<10}" + "".join(f"{('after ' + c) if c != 'final' else 'final':>17}" for c in cps))
     for name, runs in scores.items():
         cells = []
@@ -109,9 +129,19 @@ def heldout_table(scores: dict, sets: int, per: int, threshold_name: str | None 
     return lines, medians, threshold
 
 
-def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None, threshold=None,
-            progress: bool = False, resume: bool = False, overwrite: bool = False, heldout: int = 0,
-            at=()) -> dict:
+def compare(
+    config_path,
+    optimizers,
+    budget: int,
+    repeats: int = 3,
+    out_dir=None,
+    threshold=None,
+    progress: bool = False,
+    resume: bool = False,
+    overwrite: bool = False,
+    heldout: int = 0,
+    at=(),
+) -> dict:
     """Run each optimiser ``repeats`` times with ``budget`` evaluations; returns the table, the
     curves and the figure path.
 
@@ -134,12 +164,17 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
             threshold = float(threshold)
         except ValueError:
             if threshold not in optimizers:
-                raise ValueError(f"--threshold {threshold!r} is neither a distance nor one of the compared "
-                                 f"optimisers ({', '.join(optimizers)})") from None
+                raise ValueError(
+                    f"--threshold {threshold!r} is neither a distance nor one of the compared "
+                    f"optimisers ({', '.join(optimizers)})"
+                ) from None
     if heldout < 0 or (at and not heldout) or any(int(n) < 1 for n in at):
-        raise ValueError(f"--heldout {heldout} --at {' '.join(map(str, at))}: --heldout is a number of seed sets "
-                         "(0: none) and --at, which needs --heldout, numbers of evaluations (1 or more)")
+        raise ValueError(
+            f"--heldout {heldout} --at {' '.join(map(str, at))}: --heldout is a number of seed sets "
+            "(0: none) and --at, which needs --heldout, numbers of evaluations (1 or more)"
+        )
     from .fit import fit, same_config
+
     base = load_config(config_path)
     out_dir = Path(out_dir) if out_dir else Path("runs") / f"compare-{Path(config_path).stem}"
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -161,19 +196,29 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
             run = out_dir / f"{name}-{r}"
             state = "new" if overwrite else RunStore.state(run)
             if state != "new" and not resume:
-                raise RunDirError(f"{run}: already holds a run; add to this comparison with --resume, replace "
-                                  "its runs with --overwrite, or choose another -o")
+                raise RunDirError(
+                    f"{run}: already holds a run; add to this comparison with --resume, replace "
+                    "its runs with --overwrite, or choose another -o"
+                )
             if state != "new" and not same_config(run, cfg):
-                raise RunDirError(f"{run}: was made with another config (or budget); replace it with "
-                                  "--overwrite, or choose another -o")
-            bar.set_postfix_str(f"{name} run {r + 1}/{repeats}" + {"finished": " (read back)",
-                                "partial": " (resume)"}.get(state, ""), refresh=True)
+                raise RunDirError(
+                    f"{run}: was made with another config (or budget); replace it with "
+                    "--overwrite, or choose another -o"
+                )
+            bar.set_postfix_str(
+                f"{name} run {r + 1}/{repeats}" + {"finished": " (read back)", "partial": " (resume)"}.get(state, ""),
+                refresh=True,
+            )
             if state != "finished":
                 fit(cfg, run, resume=state == "partial", progress=False, overwrite=overwrite, target=target)
             # the result as the run recorded it (its clock sums the sessions of a resumed run)
             best = RunFiles(run).read_best()
-            row = {"best": best["distance"], "evaluations": best["n_evaluations"], "seconds": best["seconds"],
-                   "stop_reason": best["stop_reason"]}
+            row = {
+                "best": best["distance"],
+                "evaluations": best["n_evaluations"],
+                "seconds": best["seconds"],
+                "stop_reason": best["stop_reason"],
+            }
             bar.update(int(budget))  # a run that stopped early still takes its share of the total
             curve = best_so_far(run)
             curves[name].append(curve)
@@ -195,22 +240,38 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
             hit = np.flatnonzero(c <= threshold)
             reach.append(int(hit[0]) + 1 if hit.size else None)
         reached = [x for x in reach if x is not None]
-        table.append({"optimizer": name, "median_best": float(np.median(best)), "min_best": float(best.min()),
-                      "max_best": float(best.max()),
-                      "evals_to_threshold": float(np.median(reached)) if reached else None,
-                      "reached": f"{len(reached)}/{len(reach)}",
-                      "median_seconds": float(np.median([row["seconds"] for row in mine]))})
-    lines = [f"budget {budget} evaluations x {repeats} repeats; threshold {threshold:.4f}",
-             f"{'optimizer':<10}{'median best':>12}{'range':>20}{'evals to thr.':>15}{'reached':>9}{'wall s':>9}"]
+        table.append(
+            {
+                "optimizer": name,
+                "median_best": float(np.median(best)),
+                "min_best": float(best.min()),
+                "max_best": float(best.max()),
+                "evals_to_threshold": float(np.median(reached)) if reached else None,
+                "reached": f"{len(reached)}/{len(reach)}",
+                "median_seconds": float(np.median([row["seconds"] for row in mine])),
+            }
+        )
+    lines = [
+        f"budget {budget} evaluations x {repeats} repeats; threshold {threshold:.4f}",
+        f"{'optimizer':<10}{'median best':>12}{'range':>20}{'evals to thr.':>15}{'reached':>9}{'wall s':>9}",
+    ]
     for t in table:
         e = "-" if t["evals_to_threshold"] is None else f"{t['evals_to_threshold']:.0f}"
         spread = f"[{t['min_best']:.4f}, {t['max_best']:.4f}]"
-        lines.append(f"{t['optimizer']:<10}{t['median_best']:>12.4f}{spread:>20}"
-                     f"{e:>15}{t['reached']:>9}{t['median_seconds']:>9.1f}")
+        lines.append(
+            f"{t['optimizer']:<10}{t['median_best']:>12.4f}{spread:>20}"
+            f"{e:>15}{t['reached']:>9}{t['median_seconds']:>9.1f}"
+        )
     held = {}
     if heldout:
-        scores, per = score_heldout({name: [out_dir / f"{name}-{r}" for r in range(repeats)] for name in optimizers},
-                                    base, target, heldout, at, progress)
+        scores, per = score_heldout(
+            {name: [out_dir / f"{name}-{r}" for r in range(repeats)] for name in optimizers},
+            base,
+            target,
+            heldout,
+            at,
+            progress,
+        )
         h_lines, medians, h_thr = heldout_table(scores, heldout, per, threshold_name)
         lines += ["", *h_lines]
         held = {"sets": int(heldout), "model_seeds_per_set": per, "threshold": h_thr}
@@ -219,9 +280,26 @@ def compare(config_path, optimizers, budget: int, repeats: int = 3, out_dir=None
         for row in rows:
             row["heldout"] = scores[row["optimizer"]][row["repeat"]]
     text = "\n".join(lines)
-    (out_dir / "compare.json").write_text(json.dumps({"budget": budget, "repeats": repeats, "threshold": threshold,
-                                                      **({"heldout": held} if held else {}),
-                                                      "table": table, "runs": rows}, indent=2))
+    (out_dir / "compare.json").write_text(
+        json.dumps(
+            {
+                "budget": budget,
+                "repeats": repeats,
+                "threshold": threshold,
+                **({"heldout": held} if held else {}),
+                "table": table,
+                "runs": rows,
+            },
+            indent=2,
+        )
+    )
     (out_dir / "compare.md").write_text(f"# Optimiser comparison\n\n```\n{text}\n```\n")
-    return {"table": table, "table_text": text, "curves": curves, "runs": rows, "threshold": threshold,
-            "heldout": held, "out_dir": out_dir}
+    return {
+        "table": table,
+        "table_text": text,
+        "curves": curves,
+        "runs": rows,
+        "threshold": threshold,
+        "heldout": held,
+        "out_dir": out_dir,
+    }

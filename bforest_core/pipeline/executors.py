@@ -12,6 +12,7 @@ objective makes a failed evaluation of it). An exception that cannot be pickled 
 text (:class:`WorkerError`). Every worker dies with its owner (``PR_SET_PDEATHSIG`` on Linux,
 and a thread watching the owner everywhere).
 """
+
 from __future__ import annotations
 
 import itertools
@@ -39,6 +40,7 @@ class WorkerLost(BayesForestError):
 class WorkerError(BayesForestError):
     """An exception raised in a worker that could not be sent back as itself (it could not be
     pickled): its type name and message as text."""
+
 
 def _exit_with(owner: int, every: float = 1.0) -> None:
     """End this worker when the process that owns its pool is gone.
@@ -68,6 +70,7 @@ def _die_with_parent() -> None:
         return
     try:
         import ctypes
+
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
@@ -80,6 +83,7 @@ def _release_forkserver() -> None:
     death signal never came. Without it the server ends with its owner, and then the worker."""
     try:
         from multiprocessing import forkserver
+
         server = forkserver._forkserver
         fd = getattr(server, "_forkserver_alive_fd", None)
         if fd is not None:
@@ -113,10 +117,15 @@ class SerialExecutor(Executor):
 
 
 class ProcessSettings(ComponentSettings):
-    workers: int = Field(default_factory=lambda: max(1, os.cpu_count() or 1), ge=1,
-                         description="number of worker processes (default: all cores)")
+    workers: int = Field(
+        default_factory=lambda: max(1, os.cpu_count() or 1),
+        ge=1,
+        description="number of worker processes (default: all cores)",
+    )
     start_method: Literal["fork", "spawn", "forkserver"] = Field(
-        "spawn" if os.name == "nt" else "forkserver", description="multiprocessing start method: fork, spawn or forkserver")
+        "spawn" if os.name == "nt" else "forkserver",
+        description="multiprocessing start method: fork, spawn or forkserver",
+    )
 
 
 def _portable(exc: BaseException) -> BaseException:
@@ -175,8 +184,9 @@ class _Worker:
 
     def __init__(self, ctx, initializer, initargs):
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_worker_main, args=(child, initializer, initargs, os.getpid()),
-                                daemon=True, name="bforest-worker")
+        self.proc = ctx.Process(
+            target=_worker_main, args=(child, initializer, initargs, os.getpid()), daemon=True, name="bforest-worker"
+        )
         self.proc.start()
         child.close()
         self.ready = False
@@ -210,7 +220,7 @@ class ProcessExecutor(Executor):
         super().__init__(*a, **kw)
         self._workers = None
         self.time_limit = None  # item -> seconds or None (set by whoever knows the tasks)
-        self.on_lost = None     # (fn, item, status, message) -> stand-in result
+        self.on_lost = None  # (fn, item, status, message) -> stand-in result
 
     def __getstate__(self):
         return {**self.__dict__, "_workers": None, "time_limit": None, "on_lost": None}
@@ -234,8 +244,10 @@ class ProcessExecutor(Executor):
         if not w.ready:
             self._start_deaths += 1
             if self._start_deaths >= self.MAX_START_DEATHS:
-                raise WorkerLost(f"worker processes die while starting ({_death_text(w.proc.exitcode)}, "
-                                 f"{self._start_deaths} in a row); a plugin's start-up crashes")
+                raise WorkerLost(
+                    f"worker processes die while starting ({_death_text(w.proc.exitcode)}, "
+                    f"{self._start_deaths} in a row); a plugin's start-up crashes"
+                )
         self._workers[self._workers.index(w)] = self._spawn()
 
     def _lost(self, fn, item, status, message):
@@ -293,8 +305,10 @@ class ProcessExecutor(Executor):
                         task = w.task
                         if task is not None and task[1] is not None:
                             done += 1
-                            msg = (f"the worker process {_death_text(w.proc.exitcode)} while running {name}; "
-                                   "it was replaced")
+                            msg = (
+                                f"the worker process {_death_text(w.proc.exitcode)} while running {name}; "
+                                "it was replaced"
+                            )
                             yield task[1], self._lost(fn, items[task[1]], "crashed", msg)
                         self._replace(w)
                 now = time.monotonic()
@@ -305,8 +319,10 @@ class ProcessExecutor(Executor):
                         self._replace(w)
                         if task[1] is not None:
                             done += 1
-                            msg = (f"still running after {task[3]:g} s (stuck outside Python?); its worker "
-                                   "was stopped and replaced")
+                            msg = (
+                                f"still running after {task[3]:g} s (stuck outside Python?); its worker "
+                                "was stopped and replaced"
+                            )
                             yield task[1], self._lost(fn, items[task[1]], "timeout", msg)
         finally:  # the caller stopped early or a task raised: results still to come are dropped
             for w in self._workers or []:

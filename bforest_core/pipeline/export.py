@@ -7,6 +7,7 @@ writer's name (``treeqsm-text``, ``treeqsm-mat``, ``bforest-csv``, ``simplefores
 ``mat``, ``csv``, ``ply``, ``obj``, ``las``, ``laz``, ``xyz``, ...). An existing file is never
 overwritten unless asked.
 """
+
 from __future__ import annotations
 
 import csv
@@ -27,6 +28,7 @@ SCAN_WRITERS = ("las", "xyz")
 def _writer(fmt: str):
     """(writer name, suffix) of a format given as a writer name or a suffix."""
     from ..registry import discover
+
     reg = discover()
     names = reg.names("qsm_writer")
     if fmt in names:
@@ -35,6 +37,7 @@ def _writer(fmt: str):
     suffix = "." + fmt.lower().lstrip(".")
     from ..errors import QSMFormatError
     from ..io import writer_for
+
     try:
         return writer_for(Path("tree" + suffix)).name, suffix  # the suffix's own writer (highest priority)
     except QSMFormatError:
@@ -61,8 +64,14 @@ def _stem(src: Path) -> str:
     return f"posterior_{src.stem}" if src.parent.name == RunFiles.CLONES_POSTERIOR else src.stem
 
 
-def export_trees(run_dir, formats: list[str], out_dir=None, what: tuple[str, ...] = ("best", "clones"),
-                 overwrite: bool = False, scan: dict | None = None) -> list[Path]:
+def export_trees(
+    run_dir,
+    formats: list[str],
+    out_dir=None,
+    what: tuple[str, ...] = ("best", "clones"),
+    overwrite: bool = False,
+    scan: dict | None = None,
+) -> list[Path]:
     """Write the run's trees in each of ``formats`` into ``out_dir`` (default ``RUN/export``).
 
     ``scan`` holds settings of the synthetic-scan writers (``las``, ``xyz``: density, mode,
@@ -75,6 +84,7 @@ def export_trees(run_dir, formats: list[str], out_dir=None, what: tuple[str, ...
         nothing is written then.
     """
     from ..io import read_qsm, write_tree
+
     run_dir = Path(run_dir)
     RunStore.open(run_dir).close()  # a run directory, or a clear error
     out_dir = Path(out_dir) if out_dir is not None else RunFiles(run_dir).export_dir
@@ -84,12 +94,17 @@ def export_trees(run_dir, formats: list[str], out_dir=None, what: tuple[str, ...
         raise ExportError(f"{run_dir}: no trees to export ({' or '.join(what)}: run the fit / bforest clones first)")
     shared = {sfx for _, sfx in writers if [w[1] for w in writers].count(sfx) > 1}
     # two formats with one suffix (csv and simpleforest-csv) get the writer's name in the file name
-    plan = [(src, name, out_dir / (f"{_stem(src)}_{name}{suffix}" if suffix in shared else f"{_stem(src)}{suffix}"))
-            for src in files for name, suffix in writers]
+    plan = [
+        (src, name, out_dir / (f"{_stem(src)}_{name}{suffix}" if suffix in shared else f"{_stem(src)}{suffix}"))
+        for src in files
+        for name, suffix in writers
+    ]
     existing = [dst for _, _, dst in plan if dst.exists()]
     if existing and not overwrite:
-        raise ExportError(f"{existing[0]} exists ({len(existing)} files would be replaced); pass --overwrite to "
-                          "replace them or choose another -o")
+        raise ExportError(
+            f"{existing[0]} exists ({len(existing)} files would be replaced); pass --overwrite to "
+            "replace them or choose another -o"
+        )
     prov = run_provenance(run_dir)
     out = []
     for src, name, dst in plan:
@@ -110,6 +125,7 @@ def run_provenance(run_dir) -> dict[str, dict]:
     are left out."""
     import json
     import tomllib
+
     run_dir = Path(run_dir)
     run = RunFiles(run_dir)
     try:
@@ -127,17 +143,26 @@ def run_provenance(run_dir) -> dict[str, dict]:
             return json.loads(p.read_text(encoding="utf-8"))
         except (OSError, ValueError):
             return None
+
     best = _read(run.best_path)
     if isinstance(best, dict) and best.get("params") is not None:
         seeds = best.get("seeds") or []
-        out[RunFiles.BEST_TREE] = {**base, "params": best["params"], "seed": seeds[0] if seeds else None,
-                                "role": "best fit"}
+        out[RunFiles.BEST_TREE] = {
+            **base,
+            "params": best["params"],
+            "seed": seeds[0] if seeds else None,
+            "role": "best fit",
+        }
     for folder, role in ((RunFiles.CLONES, "clone"), (RunFiles.CLONES_POSTERIOR, "posterior clone")):
         summary = _read(run_dir / folder / RunFiles.CLONE_SUMMARY)
         for r in (summary or {}).get("rows", []) if isinstance(summary, dict) else []:
             if r.get("status") == "ok" and r.get("file"):
-                out[f"{folder}/{r['file']}"] = {**base, "params": r.get("params"), "seed": r.get("seed"),
-                                                "role": f"{role} {r.get('index')}"}
+                out[f"{folder}/{r['file']}"] = {
+                    **base,
+                    "params": r.get("params"),
+                    "seed": r.get("seed"),
+                    "role": f"{role} {r.get('index')}",
+                }
     return {k: {kk: vv for kk, vv in v.items() if vv is not None} for k, v in out.items()}
 
 
@@ -155,11 +180,17 @@ def export_evaluations(run_dir, path, overwrite: bool = False) -> int:
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["evaluation", "status", "seconds", "distance"] + params + [f"D[{s}]" for s in sets]
-                   + ["seeds", "worker", "message"])
+        w.writerow(
+            ["evaluation", "status", "seconds", "distance"]
+            + params
+            + [f"D[{s}]" for s in sets]
+            + ["seeds", "worker", "message"]
+        )
         for e in evs:
-            w.writerow([e.idx, e.status, f"{e.seconds:.6g}", repr(float(e.distance))]
-                       + [e.params.get(k, "") for k in params]
-                       + ["" if e.per_set.get(s) is None else repr(float(e.per_set[s])) for s in sets]
-                       + [" ".join(map(str, e.seeds)), e.worker, e.message])
+            w.writerow(
+                [e.idx, e.status, f"{e.seconds:.6g}", repr(float(e.distance))]
+                + [e.params.get(k, "") for k in params]
+                + ["" if e.per_set.get(s) is None else repr(float(e.per_set[s])) for s in sets]
+                + [" ".join(map(str, e.seeds)), e.worker, e.message]
+            )
     return len(evs)

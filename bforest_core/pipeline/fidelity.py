@@ -7,10 +7,11 @@ clones beside the target on every tree-level summary statistic
 their search box, and warn loudly on every statistic that has a limit (:data:`LIMITS`) when the
 clones miss it. Errors are shown in percent; the JSON keeps the fraction under ``error``.
 """
+
 from __future__ import annotations
 
 import math
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -42,12 +43,15 @@ def percent(fraction, digits: int = 1) -> str:
     if fraction is None or not math.isfinite(fraction):
         return "–"
     return f"{100 * fraction:+.{digits}f} %"
+
+
 #: a fitted parameter within this fraction of its search box from a bound is flagged
 BOUND_FRACTION = 0.05
 
 
-def fidelity_table(target: Mapping[str, float], clones: Sequence[Mapping[str, float]],
-                   units: Mapping[str, str] | None = None) -> list[dict]:
+def fidelity_table(
+    target: Mapping[str, float], clones: Sequence[Mapping[str, float]], units: Mapping[str, str] | None = None
+) -> list[dict]:
     """One row per statistic: the target's value, the clones' mean and sd, the error of the mean.
 
     Parameters
@@ -78,17 +82,28 @@ def fidelity_table(target: Mapping[str, float], clones: Sequence[Mapping[str, fl
         mean = float(x.mean())
         err = (mean - tv) / tv if tv != 0 else None
         lim = limit_of(name)
-        rows.append({"statistic": name, "label": summary_label(name),
-                     "unit": units[name] if name in units else summary_unit(name), "target": float(tv),
-                     "mean": mean, "sd": float(x.std(ddof=1)) if x.size > 1 else 0.0,
-                     "p5": float(np.percentile(x, 5)), "p95": float(np.percentile(x, 95)), "n": int(x.size),
-                     "error": err, "limit": lim,
-                     "warn": bool(err is not None and lim is not None and abs(err) > lim)})
+        rows.append(
+            {
+                "statistic": name,
+                "label": summary_label(name),
+                "unit": units[name] if name in units else summary_unit(name),
+                "target": float(tv),
+                "mean": mean,
+                "sd": float(x.std(ddof=1)) if x.size > 1 else 0.0,
+                "p5": float(np.percentile(x, 5)),
+                "p95": float(np.percentile(x, 95)),
+                "n": int(x.size),
+                "error": err,
+                "limit": lim,
+                "warn": bool(err is not None and lim is not None and abs(err) > lim),
+            }
+        )
     return rows
 
 
-def bound_flags(params: Mapping[str, float], bounds: Mapping[str, tuple[float, float]],
-                fraction: float = BOUND_FRACTION) -> list[str]:
+def bound_flags(
+    params: Mapping[str, float], bounds: Mapping[str, tuple[float, float]], fraction: float = BOUND_FRACTION
+) -> list[str]:
     """Fitted parameters within ``fraction`` of their box width from a bound (the optimum may
     lie outside the box: widen it or reconsider the model)."""
     out = []
@@ -112,9 +127,11 @@ def fidelity_warnings(rows: Sequence[Mapping], limits: Mapping[str, float] | Non
         lim = (limits or {}).get(r["statistic"], limit_of(r["statistic"]))
         if lim is not None and r["error"] is not None and abs(r["error"]) > lim:
             u = f" {r['unit']}" if r.get("unit") and r["unit"] != "count" else ""
-            out.append(f"clones miss the target's {r.get('label') or summary_label(r['statistic'])} "
-                       f"[{r['statistic']}]: mean {r['mean']:.3g}{u} vs {r['target']:.3g}{u} "
-                       f"({percent(r['error'])}, limit ±{100 * lim:g} %)")
+            out.append(
+                f"clones miss the target's {r.get('label') or summary_label(r['statistic'])} "
+                f"[{r['statistic']}]: mean {r['mean']:.3g}{u} vs {r['target']:.3g}{u} "
+                f"({percent(r['error'])}, limit ±{100 * lim:g} %)"
+            )
     return out
 
 
@@ -122,13 +139,17 @@ def fidelity_text(rows: Sequence[Mapping], flags: Sequence[str] = (), warnings: 
     """The table as fixed-width text (for the terminal), then the flags and warnings; ``!`` marks
     a row beyond its limit."""
     w = max([22] + [len(r.get("label") or r["statistic"]) + 1 for r in rows])
-    lines = [f"{'statistic':<{w}}{'unit':>6}{'target':>11}{'clones mean':>13}{'sd':>10}{'5-95 % band':>21}"
-             f"{'error':>10}{'limit':>8}"]
+    lines = [
+        f"{'statistic':<{w}}{'unit':>6}{'target':>11}{'clones mean':>13}{'sd':>10}{'5-95 % band':>21}"
+        f"{'error':>10}{'limit':>8}"
+    ]
     for r in rows:
         lim = r.get("limit", limit_of(r["statistic"]))
         mark = " !" if r.get("warn") else ""
-        lines.append(f"{r.get('label') or r['statistic']:<{w}}{r['unit']:>6}{_num(r['target']):>11}{_num(r['mean']):>13}"
-                     f"{_num(r['sd']):>10}{_band(r):>21}{percent(r['error']):>10}{'' if lim is None else f'±{100 * lim:g} %':>8}{mark}")
+        lines.append(
+            f"{r.get('label') or r['statistic']:<{w}}{r['unit']:>6}{_num(r['target']):>11}{_num(r['mean']):>13}"
+            f"{_num(r['sd']):>10}{_band(r):>21}{percent(r['error']):>10}{'' if lim is None else f'±{100 * lim:g} %':>8}{mark}"
+        )
     lines += [f"note: {f} of the search box" for f in flags]
     lines += [f"WARNING: {w}" for w in warnings]
     return "\n".join(lines)

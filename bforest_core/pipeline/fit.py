@@ -5,6 +5,7 @@ run's ``evaluations.sqlite`` are replayed from the log instead of being simulate
 resumed run repeats no simulation, loses nothing and reaches the same result as an
 uninterrupted one.
 """
+
 from __future__ import annotations
 
 import functools
@@ -44,22 +45,24 @@ class FitResult:
     run_dir: Path
     history: list[dict] = field(default_factory=list)
     diagnostics: dict[str, Any] = field(default_factory=dict)
-    already_finished: bool = False   # a --resume of a run that had finished: nothing was simulated
+    already_finished: bool = False  # a --resume of a run that had finished: nothing was simulated
 
 
 class Evaluator:
     """``Problem.evaluate`` of a run: replay from the store, cache, executor, stop criteria."""
 
-    def __init__(self, cfg, store: RunStore, executor, ssm, names, problem: Problem, progress=None,
-                 failures_as_inf: bool = False):
+    def __init__(
+        self, cfg, store: RunStore, executor, ssm, names, problem: Problem, progress=None, failures_as_inf: bool = False
+    ):
         self.cfg = cfg
         self.failures_as_inf = failures_as_inf  # Optimizer.failures_as_inf
         self.store = store
         self.executor = executor
         self.names = names
         self.problem = problem
-        self.fixed = {k: (int(round(v)) if ssm.parameter_spec(k).integer else float(v))
-                      for k, v in cfg.ssm.fixed.items()}
+        self.fixed = {
+            k: (int(round(v)) if ssm.parameter_spec(k).integer else float(v)) for k, v in cfg.ssm.fixed.items()
+        }
         self.integer = problem.integer
         self.replay = store.replay()
         self.cache: dict[tuple, float] = {}
@@ -107,9 +110,10 @@ class Evaluator:
         params = self._params(np.clip(np.asarray(x, float), self.problem.lower, self.problem.upper))
         per = len(self.explicit_seeds) if self.explicit_seeds else int(self.k)
         seeds = spread_seeds(self.cfg.seed, int(k) * per)
-        tasks = [(params, seeds[i * per:(i + 1) * per]) for i in range(int(k))]
-        return np.array([self._value(r["distance"], r["status"]) for r in self.executor.map(evaluate_task, tasks)],
-                        float)
+        tasks = [(params, seeds[i * per : (i + 1) * per]) for i in range(int(k))]
+        return np.array(
+            [self._value(r["distance"], r["status"]) for r in self.executor.map(evaluate_task, tasks)], float
+        )
 
     def summaries(self, X) -> np.ndarray:
         """``Problem.summaries``: the summary statistics of the trees of points this run has
@@ -153,8 +157,7 @@ class Evaluator:
             if self.cfg.objective.cache and key in pending:
                 pending[key].append(r)  # identical point twice in one batch: evaluate once
                 continue
-            if self.stop.max_evaluations is not None and \
-                    pr.n_evaluations + len(todo) >= self.stop.max_evaluations:
+            if self.stop.max_evaluations is not None and pr.n_evaluations + len(todo) >= self.stop.max_evaluations:
                 pr.stopped, pr.stop_reason = True, f"evaluation budget ({self.stop.max_evaluations}) reached"
                 continue
             idx = self.next_index
@@ -162,8 +165,10 @@ class Evaluator:
             ev = self.replay.get(idx)
             if ev is not None:
                 if ev.params != json.loads(json.dumps(params)) or ev.seeds != seeds:
-                    raise RunDirError(f"{self.store.path}: evaluation {idx} in the log has other parameters "
-                                      "than this run asks for (config or code changed?); start a new run")
+                    raise RunDirError(
+                        f"{self.store.path}: evaluation {idx} in the log has other parameters "
+                        "than this run asks for (config or code changed?); start a new run"
+                    )
                 out[r] = self.cache[key] = self._value(ev.distance, ev.status)
                 self.seeds_of.setdefault(key[0], seeds)
                 pr.n_evaluations += 1
@@ -177,8 +182,18 @@ class Evaluator:
             tasks = [(t[2], t[3]) for t in todo]
             for j, res in self.executor.map_unordered(evaluate_task, tasks):
                 r, idx, params, seeds, key = todo[j]
-                ev = Evaluation(idx, params, seeds, res["distance"], res["per_set"], res["status"],
-                                res["message"], res["seconds"], res["worker"], res["n_rows"])
+                ev = Evaluation(
+                    idx,
+                    params,
+                    seeds,
+                    res["distance"],
+                    res["per_set"],
+                    res["status"],
+                    res["message"],
+                    res["seconds"],
+                    res["worker"],
+                    res["n_rows"],
+                )
                 self.store.add(ev)
                 out[r] = self.cache[key] = self._value(ev.distance, ev.status)
                 self.seeds_of.setdefault(key[0], seeds)
@@ -206,7 +221,9 @@ class _Progress:
 
     def close(self, reason: str = ""):
         if reason:  # the bar ends with why the fit stopped (budget, the optimiser's own stop, ...)
-            self.bar.set_postfix_str(f"{getattr(self.bar, 'postfix', '') or ''} stopped: {reason}".strip(), refresh=True)
+            self.bar.set_postfix_str(
+                f"{getattr(self.bar, 'postfix', '') or ''} stopped: {reason}".strip(), refresh=True
+            )
         self.bar.close()
 
 
@@ -253,8 +270,7 @@ def _free_specs(cfg, ssm):
 
 
 @holding_run_lock
-def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bool = False,
-        target=None) -> FitResult:
+def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bool = False, target=None) -> FitResult:
     """Fit the SSM of ``cfg`` to its target; everything is written to ``run_dir``.
 
     Parameters
@@ -267,6 +283,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
         Continue a run that was stopped or killed.
     """
     import tomli_w
+
     if not hasattr(cfg, "ssm"):
         cfg = load_config(cfg)
     run_dir = Path(run_dir)
@@ -277,8 +294,10 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     with store:
         if resume:
             if not same_config(run_dir, cfg):
-                raise RunDirError(f"{run_dir}: the config differs from the run's {store.CONFIG}; resume with the "
-                                  f"run's own config (bforest fit RUN/{store.CONFIG} -o RUN --resume)")
+                raise RunDirError(
+                    f"{run_dir}: the config differs from the run's {store.CONFIG}; resume with the "
+                    f"run's own config (bforest fit RUN/{store.CONFIG} -o RUN --resume)"
+                )
             finished = store.finished()  # resuming it replays the log, simulates nothing
             # the executor may change between sessions (results never depend on it)
             store.config_path.write_text(text, encoding="utf-8")
@@ -290,12 +309,22 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
         names, lo, hi, ilo, ihi, integer = _free_specs(cfg, ssm)
         optimizer = component("optimizer", cfg.optimizer.kind, **section_settings(cfg, "optimizer"))
         executor = run_executor(cfg)
-        problem = Problem(names=names, lower=lo, upper=hi, integer=integer, evaluate=None, init_lower=ilo,
-                          init_upper=ihi, seed=int(cfg.seed), budget=cfg.stop.max_evaluations,
-                          log=store.log)
+        problem = Problem(
+            names=names,
+            lower=lo,
+            upper=hi,
+            integer=integer,
+            evaluate=None,
+            init_lower=ilo,
+            init_upper=ihi,
+            seed=int(cfg.seed),
+            budget=cfg.stop.max_evaluations,
+            log=store.log,
+        )
         bar = _Progress(_expected_total(cfg, optimizer, len(names)), enabled=progress)
-        evaluator = Evaluator(cfg, store, executor, ssm, names, problem, progress=bar,
-                              failures_as_inf=bool(optimizer.failures_as_inf))
+        evaluator = Evaluator(
+            cfg, store, executor, ssm, names, problem, progress=bar, failures_as_inf=bool(optimizer.failures_as_inf)
+        )
         problem.evaluate = evaluator
         problem.seed_spread = evaluator.seed_spread
         problem.summaries = evaluator.summaries
@@ -314,11 +343,28 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
         stop_reason = problem.stop_reason or result.stop_reason or "optimiser finished"
         if store.count() == 0:
             raise BayesForestError(f"{run_dir}: the optimiser evaluated nothing ({stop_reason})")
-        out = finish_fit(cfg, store, tgt, stop_reason, evaluator.elapsed(), result, ssm, selection,
-                         posterior_kind=getattr(optimizer, "posterior_kind", None))
-        return FitResult(params=out["params"], distance=out["distance"], per_set=out["per_set"],
-                         n_evaluations=store.count(), stop_reason=stop_reason, run_dir=run_dir,
-                         history=store.log_records(), diagnostics=result.diagnostics, already_finished=finished)
+        out = finish_fit(
+            cfg,
+            store,
+            tgt,
+            stop_reason,
+            evaluator.elapsed(),
+            result,
+            ssm,
+            selection,
+            posterior_kind=getattr(optimizer, "posterior_kind", None),
+        )
+        return FitResult(
+            params=out["params"],
+            distance=out["distance"],
+            per_set=out["per_set"],
+            n_evaluations=store.count(),
+            stop_reason=stop_reason,
+            run_dir=run_dir,
+            history=store.log_records(),
+            diagnostics=result.diagnostics,
+            already_finished=finished,
+        )
 
 
 def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
@@ -330,8 +376,7 @@ def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
         own = {k: v for k, v in tgt.U.items() if "/" not in k}  # the [distance] term's sets
         cols = {k: v for k, v in tgt.columns.items() if "/" not in k}
         dist.prepare(own, cols)
-        frozen = {"distance": cfg.distance.kind, "settings": section_settings(cfg, "distance"),
-                  "columns": cols}
+        frozen = {"distance": cfg.distance.kind, "settings": section_settings(cfg, "distance"), "columns": cols}
         norms = dist.normalizations()
         if norms:  # a distance that compares the tables in their own units has none
             frozen["normalization"] = norms
@@ -343,36 +388,65 @@ def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
             pass
     try:
         from ..io import write_tree
+
         write_tree(tgt.trees[0], store.target_tree_path)
     except Exception:  # writing a copy of the target is a convenience, never fatal
         pass
 
 
-def finish_fit(cfg, store: RunStore, tgt: Target, stop_reason: str, seconds: float, result, ssm,
-               selection: dict | None = None, posterior_kind: str | None = None) -> dict:
+def finish_fit(
+    cfg,
+    store: RunStore,
+    tgt: Target,
+    stop_reason: str,
+    seconds: float,
+    result,
+    ssm,
+    selection: dict | None = None,
+    posterior_kind: str | None = None,
+) -> dict:
     """Write ``best.json`` (the answer: the best logged evaluation, or the candidate chosen on
     held-out seeds when there is a ``selection``; classical metrics of target and answer tree)
     and ``best_tree.txt`` (the answer regrown with its first model seed). A sampler's posterior
     goes to ``posterior.csv``/``posterior.nc``, its ``posterior_kind`` to ``best.json``."""
     from ..io import write_tree
     from ..metrics import classical_metrics, relative_errors
+
     ev = store.evaluation(selection["chosen"]) if selection else store.best()
     target_metrics = classical_metrics(tgt.trees[0])
-    best = {"params": ev.params, "distance": ev.distance, "per_set": ev.per_set, "status": ev.status,
-            "evaluation": ev.idx, "seeds": ev.seeds, "stop_reason": stop_reason,
-            "n_evaluations": store.count(), "seconds": seconds,
-            "target_metrics": target_metrics, "optimizer": cfg.optimizer.kind,
-            "diagnostics": _jsonable(store.write_diagnostics(getattr(result, "diagnostics", {}) or {}))}
+    best = {
+        "params": ev.params,
+        "distance": ev.distance,
+        "per_set": ev.per_set,
+        "status": ev.status,
+        "evaluation": ev.idx,
+        "seeds": ev.seeds,
+        "stop_reason": stop_reason,
+        "n_evaluations": store.count(),
+        "seconds": seconds,
+        "target_metrics": target_metrics,
+        "optimizer": cfg.optimizer.kind,
+        "diagnostics": _jsonable(store.write_diagnostics(getattr(result, "diagnostics", {}) or {})),
+    }
     if selection:
         best["heldout_distance"] = next(c["heldout"] for c in selection["candidates"] if c["evaluation"] == ev.idx)
         best["selection"] = selection
-    from .posterior import posterior_kind as _kind, posterior_outputs
+    from .posterior import posterior_kind as _kind
+    from .posterior import posterior_outputs
+
     diag = getattr(result, "diagnostics", {}) or {}
     names, lo, hi, _, _, integer = _free_specs(cfg, ssm)
-    table = posterior_outputs(store.path, diag, list(diag.get("names") or ev.params), kind=posterior_kind,
-                              prior_box={n: (float(a), float(b), bool(i)) for n, a, b, i in zip(names, lo, hi, integer)},
-                              observed=tgt.U, columns=tgt.columns,
-                              attrs={"optimizer": cfg.optimizer.kind, "ssm": cfg.ssm.kind}, seed=int(cfg.seed))
+    table = posterior_outputs(
+        store.path,
+        diag,
+        list(diag.get("names") or ev.params),
+        kind=posterior_kind,
+        prior_box={n: (float(a), float(b), bool(i)) for n, a, b, i in zip(names, lo, hi, integer)},
+        observed=tgt.U,
+        columns=tgt.columns,
+        attrs={"optimizer": cfg.optimizer.kind, "ssm": cfg.ssm.kind},
+        seed=int(cfg.seed),
+    )
     if table is not None:
         best["posterior_kind"] = _kind(diag, posterior_kind)
         best["posterior_summary"] = table

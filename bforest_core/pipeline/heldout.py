@@ -12,6 +12,7 @@ them on held-out seeds (:func:`select_answer`, ``[select]`` in the config), and 
 soon as it is known, keyed by what it depends on (:func:`scoring_fingerprint`), so a killed
 scoring loses nothing and no tree is grown twice.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -47,9 +48,14 @@ def _seeds_key(seeds) -> str:
     return json.dumps([int(s) for s in seeds])
 
 
-def score_points(points: dict[str, dict], seed_sets: list[list[int]], stores: dict[str, list[RunStore]],
-                 scoring: str, workers: Callable[[], contextlib.AbstractContextManager],
-                 progress: bool = False) -> dict[tuple[str, tuple], dict]:
+def score_points(
+    points: dict[str, dict],
+    seed_sets: list[list[int]],
+    stores: dict[str, list[RunStore]],
+    scoring: str,
+    workers: Callable[[], contextlib.AbstractContextManager],
+    progress: bool = False,
+) -> dict[tuple[str, tuple], dict]:
     """The held-out score of every point on every seed set.
 
     Parameters
@@ -141,13 +147,23 @@ def select_answer(cfg, store: RunStore, executor, progress: bool = False) -> dic
     per = len(cands[0].seeds)
     seed_sets = heldout_seeds(int(cfg.seed), int(sel.sets), per)
     points = {point_key(e.params): e.params for e in cands}
-    known = score_points(points, seed_sets, {k: [store] for k in points}, scoring_fingerprint(cfg),
-                         lambda: contextlib.nullcontext(executor), progress)
+    known = score_points(
+        points,
+        seed_sets,
+        {k: [store] for k in points},
+        scoring_fingerprint(cfg),
+        lambda: contextlib.nullcontext(executor),
+        progress,
+    )
     rows = []
     for e in cands:
         h, failed = heldout_mean(known, point_key(e.params), seed_sets)
-        rows.append({"evaluation": e.idx, "params": e.params, "own": float(e.distance), "heldout": h,
-                     "failed": failed})
+        rows.append({"evaluation": e.idx, "params": e.params, "own": float(e.distance), "heldout": h, "failed": failed})
     best = min(rows, key=lambda r: (r["heldout"], r["own"], r["evaluation"]))
-    return {"sets": int(sel.sets), "model_seeds_per_set": per, "spacing": float(sel.spacing),
-            "chosen": best["evaluation"], "candidates": rows}
+    return {
+        "sets": int(sel.sets),
+        "model_seeds_per_set": per,
+        "spacing": float(sel.spacing),
+        "chosen": best["evaluation"],
+        "candidates": rows,
+    }

@@ -6,6 +6,7 @@ with the ``posterior``, ``prior``, ``observed_data`` and ``sample_stats`` groups
 Which of the two a sampler gives is its ``posterior_kind`` (``"chain"`` or ``"population"``,
 :class:`~bforest_core.interfaces.Optimizer`); without it the diagnostics' keys tell.
 """
+
 from __future__ import annotations
 
 import csv
@@ -15,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..metrics import weighted_quantiles
+from .store import RunFiles
 
 HDI_PROB = 0.90
 
@@ -66,6 +68,7 @@ def read_posterior_csv(path) -> tuple[list[str], np.ndarray, np.ndarray]:
         When the file is missing, empty or not a posterior table.
     """
     from .store import RunDirError
+
     path = Path(path)
     try:
         with path.open(newline="", encoding="utf-8") as fh:
@@ -130,6 +133,7 @@ def _safe_name(name: str) -> str:
     """A netCDF variable name for a data set name (``S0,1`` -> ``S0_1``, ``size/summary`` ->
     ``size_summary``)."""
     import re
+
     return re.sub(r"[^A-Za-z0-9_]", "_", name)
 
 
@@ -150,9 +154,17 @@ def _observed(observed: dict | None, columns: dict | None):
     return data, dims, coords
 
 
-def posterior_outputs(run_dir: Path, diag: dict, names: list[str], kind: str | None = None,
-                      prior_box: dict | None = None, observed: dict | None = None,
-                      columns: dict | None = None, attrs: dict | None = None, seed: int = 1) -> dict | None:
+def posterior_outputs(
+    run_dir: Path,
+    diag: dict,
+    names: list[str],
+    kind: str | None = None,
+    prior_box: dict | None = None,
+    observed: dict | None = None,
+    columns: dict | None = None,
+    attrs: dict | None = None,
+    seed: int = 1,
+) -> dict | None:
     """Write ``posterior.csv`` and ``posterior.nc`` into ``run_dir``; return the summary table per
     parameter, or None when the optimiser gave no posterior.
 
@@ -191,9 +203,10 @@ def posterior_outputs(run_dir: Path, diag: dict, names: list[str], kind: str | N
         return None
     kind = posterior_kind(diag, kind)
     run_dir = Path(run_dir)
-    write_posterior_csv(run_dir / "posterior.csv", diag, names)
+    write_posterior_csv(RunFiles(run_dir).posterior_csv_path, diag, names)
     X, w = got
     import arviz as az
+
     draws = _draws(diag, names, X, w, kind)
     stats = {}
     dist = diag.get("distances")
@@ -214,27 +227,42 @@ def posterior_outputs(run_dir: Path, diag: dict, names: list[str], kind: str | N
     file_attrs = {"posterior_kind": kind, **{k: str(v) for k, v in (attrs or {}).items() if v is not None}}
     if obs:
         import json
+
         file_attrs["sets"] = json.dumps({_safe_name(k): k for k in (observed or {})})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # arviz's future-change notices
-        idata = az.from_dict(posterior=draws, sample_stats=stats or None, prior=prior or None,
-                             observed_data=obs or None, dims=obs_dims or None, coords=obs_coords or None,
-                             attrs=file_attrs)
+        idata = az.from_dict(
+            posterior=draws,
+            sample_stats=stats or None,
+            prior=prior or None,
+            observed_data=obs or None,
+            dims=obs_dims or None,
+            coords=obs_coords or None,
+            attrs=file_attrs,
+        )
         try:
-            idata.to_netcdf(str(run_dir / "posterior.nc"))
+            idata.to_netcdf(str(RunFiles(run_dir).posterior_nc_path))
         except Exception:  # no netCDF engine: the CSV still holds everything
             pass
         hdi = az.hdi(idata.posterior, hdi_prob=HDI_PROB)
-        diag_stats = az.summary(idata.posterior, kind="diagnostics") if kind == "chain" and \
-            next(iter(draws.values())).shape[0] > 1 else None
+        diag_stats = (
+            az.summary(idata.posterior, kind="diagnostics")
+            if kind == "chain" and next(iter(draws.values())).shape[0] > 1
+            else None
+        )
     table = {}
     for j, name in enumerate(names):
         q = weighted_quantiles(X[:, j], w, [5, 50, 95])
         mean = float(w @ X[:, j])
-        row = {"mean": mean, "sd": float(np.sqrt(w @ (X[:, j] - mean) ** 2)), "p5": float(q[0]),
-               "p50": float(q[1]), "p95": float(q[2]),
-               f"hdi{int(100 * HDI_PROB)}_low": float(hdi[name].values[0]),
-               f"hdi{int(100 * HDI_PROB)}_high": float(hdi[name].values[1])}
+        row = {
+            "mean": mean,
+            "sd": float(np.sqrt(w @ (X[:, j] - mean) ** 2)),
+            "p5": float(q[0]),
+            "p50": float(q[1]),
+            "p95": float(q[2]),
+            f"hdi{int(100 * HDI_PROB)}_low": float(hdi[name].values[0]),
+            f"hdi{int(100 * HDI_PROB)}_high": float(hdi[name].values[1]),
+        }
         if diag_stats is not None:
             row["r_hat"] = float(diag_stats.loc[name, "r_hat"])
             row["ess_bulk"] = float(diag_stats.loc[name, "ess_bulk"])

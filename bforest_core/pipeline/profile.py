@@ -6,6 +6,7 @@ realisation of the stochastic distance surface). The first seed is the fit's own
 seed, so its curve passes through the best fit. Writes ``figures/profile_<param>.png`` and
 ``profile_<param>.csv`` (one row per value and seed, with the per-set distances).
 """
+
 from __future__ import annotations
 
 import csv
@@ -19,8 +20,9 @@ from ..errors import ConfigError
 __all__ = ["profile", "profile_values"]
 
 
-def profile_values(lower: float, upper: float, n: int = 11, integer: bool = False,
-                   include: float | None = None) -> np.ndarray:
+def profile_values(
+    lower: float, upper: float, n: int = 11, integer: bool = False, include: float | None = None
+) -> np.ndarray:
     """``n`` values spread evenly over ``[lower, upper]`` (whole numbers for integer
     parameters, without repeats), plus ``include`` (the best fit) when given."""
     if not upper > lower:
@@ -33,7 +35,6 @@ def profile_values(lower: float, upper: float, n: int = 11, integer: bool = Fals
     if integer:
         v = np.round(v)
     return np.unique(v)
-
 
 
 def _profile_grid(cfg, spec, param: str, values, n: int, best_value: float):
@@ -54,12 +55,22 @@ def _profile_grid(cfg, spec, param: str, values, n: int, best_value: float):
         raise ConfigError("profile: --values is empty")
     bad = vals[(vals < spec.lower) | (vals > spec.upper)]
     if bad.size:
-        raise ConfigError(f"profile: {param} = {bad[0]:g} is outside the model's allowed range "
-                          f"[{spec.lower:g}, {spec.upper:g}] {spec.unit}".rstrip())
+        raise ConfigError(
+            f"profile: {param} = {bad[0]:g} is outside the model's allowed range "
+            f"[{spec.lower:g}, {spec.upper:g}] {spec.unit}".rstrip()
+        )
     return (np.unique(np.round(vals)) if integer else vals), integer
 
-def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: int = 5, n: int = 11,
-            executor=None, progress: bool = False) -> dict:
+
+def profile(
+    run_dir,
+    param: str,
+    values: Sequence[float] | None = None,
+    seeds: int = 5,
+    n: int = 11,
+    executor=None,
+    progress: bool = False,
+) -> dict:
     """Distance profile along one parameter of a finished fit.
 
     Parameters
@@ -130,15 +141,27 @@ def profile(run_dir, param: str, values: Sequence[float] | None = None, seeds: i
             bar.update(1)
     bar.close()
 
-    csv_path = _write_profile_csv(RunFiles(run_dir).profile_path(slug(param)), vals, seed_list, D, status, per_set,
-                                  list(tgt.U), spec.unit)
+    csv_path = _write_profile_csv(
+        RunFiles(run_dir).profile_path(slug(param)), vals, seed_list, D, status, per_set, list(tgt.U), spec.unit
+    )
     failed = status != "ok"
     # the best fit's own distance (mean over the fit's seeds), drawn as a marker
     best_distance = best.get("distance")
     lines = _profile_table(param, spec.unit, vals, seed_list, D, failed, best_value)
-    return {"table_text": "\n".join(lines), "csv": csv_path, "param": param, "values": vals,
-            "seeds": seed_list, "distances": D, "status": status, "failed": failed, "best_value": best_value,
-            "best_distance": best_distance, "unit": spec.unit, "run_dir": run_dir}
+    return {
+        "table_text": "\n".join(lines),
+        "csv": csv_path,
+        "param": param,
+        "values": vals,
+        "seeds": seed_list,
+        "distances": D,
+        "status": status,
+        "failed": failed,
+        "best_value": best_value,
+        "best_distance": best_distance,
+        "unit": spec.unit,
+        "run_dir": run_dir,
+    }
 
 
 def _write_profile_csv(csv_path, vals, seed_list, D, status, per_set, set_names, unit: str = ""):
@@ -146,12 +169,16 @@ def _write_profile_csv(csv_path, vals, seed_list, D, status, per_set, set_names,
     carries the parameter's unit, e.g. ``value_deg``)."""
     with open(csv_path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow([f"value_{unit}" if unit else "value", "seed", "distance", "status"] + [f"D[{s}]" for s in set_names])
+        w.writerow(
+            [f"value_{unit}" if unit else "value", "seed", "distance", "status"] + [f"D[{s}]" for s in set_names]
+        )
         for i, x in enumerate(vals):
             for j, s in enumerate(seed_list):
                 ps = per_set.get((i, j)) or {}
-                w.writerow([f"{x:.10g}", s, f"{D[i, j]:.10g}", status[i, j]]
-                           + ["" if ps.get(n) is None else f"{ps[n]:.10g}" for n in set_names])
+                w.writerow(
+                    [f"{x:.10g}", s, f"{D[i, j]:.10g}", status[i, j]]
+                    + ["" if ps.get(n) is None else f"{ps[n]:.10g}" for n in set_names]
+                )
     return csv_path
 
 
@@ -159,13 +186,17 @@ def _profile_table(param, unit, vals, seed_list, D, failed, best_value) -> list[
     """The printed table: median, quartiles and range of the distance per value."""
     med = np.median(D, axis=1)
     q1, q3 = np.quantile(D, [0.25, 0.75], axis=1)
-    lines = [f"profile of {param} ({unit or 'no unit'}): {vals.size} values x {len(seed_list)} seeds, "
-             f"other parameters at the best fit; best fit {param} = {best_value:.6g}",
-             f"{'value':>12}{'median':>10}{'q25':>10}{'q75':>10}{'min':>10}{'max':>10}{'failed':>8}"]
+    lines = [
+        f"profile of {param} ({unit or 'no unit'}): {vals.size} values x {len(seed_list)} seeds, "
+        f"other parameters at the best fit; best fit {param} = {best_value:.6g}",
+        f"{'value':>12}{'median':>10}{'q25':>10}{'q75':>10}{'min':>10}{'max':>10}{'failed':>8}",
+    ]
     for i, x in enumerate(vals):
         mark = "  <- best fit" if np.isclose(x, best_value) else ""
-        lines.append(f"{x:>12.6g}{med[i]:>10.4f}{q1[i]:>10.4f}{q3[i]:>10.4f}{D[i].min():>10.4f}"
-                     f"{D[i].max():>10.4f}{int(failed[i].sum()):>8d}{mark}")
+        lines.append(
+            f"{x:>12.6g}{med[i]:>10.4f}{q1[i]:>10.4f}{q3[i]:>10.4f}{D[i].min():>10.4f}"
+            f"{D[i].max():>10.4f}{int(failed[i].sum()):>8d}{mark}"
+        )
     k = int(np.argmin(med))
     lines.append(f"lowest median distance {med[k]:.4f} at {param} = {vals[k]:.6g}")
     return lines

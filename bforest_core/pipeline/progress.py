@@ -1,4 +1,5 @@
 """Progress bars of the pipeline's long stages (a silent stand-in when switched off)."""
+
 from __future__ import annotations
 
 
@@ -18,4 +19,5 @@ def progress_bar(total, desc: str, unit: str, enabled: bool = True):
     if not enabled:
         return _NoBar()
     from tqdm.auto import tqdm
+
     return tqdm(total=total, unit=unit, desc=desc, dynamic_ncols=True)

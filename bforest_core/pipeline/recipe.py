@@ -7,6 +7,7 @@ suits the tree best (or the one asked for) and writes the whole recipe around it
 size term, the robust search of the real-tree recipes (docs/validation.md section 4) and the
 answer chosen on held-out seeds.
 """
+
 from __future__ import annotations
 
 import os
@@ -59,8 +60,10 @@ def draft_recipes(measures: TreeMeasures, model: str | None = None) -> list[tupl
         draft = ssm.draft_recipe(measures)
         if draft is None:
             if model:
-                raise ConfigError(f"--model {model}: this growth model writes no recipes (bforest init "
-                                  "knows the models whose plugin drafts one)")
+                raise ConfigError(
+                    f"--model {model}: this growth model writes no recipes (bforest init "
+                    "knows the models whose plugin drafts one)"
+                )
             continue
         draft.free = [_within(ssm.parameter_spec(k), lo, hi, c) for k, lo, hi, c in draft.free]
         draft.fixed = [(k, _clip(ssm.parameter_spec(k), v), c) for k, v, c in draft.fixed]
@@ -119,11 +122,19 @@ def measured_lines(m: TreeMeasures) -> list[str]:
 
 def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choices, picked: bool) -> str:
     """The recipe's TOML text, every choice commented."""
-    L = [f"# Recipe written by `bforest init {qsm.name}` for {qsm.name}: fit {name} to it and grow clones.",
-         "#", "#   bforest fit THIS.toml -o runs/NAME", "#   bforest clones runs/NAME -n 30", "#",
-         "# What the tree measured:"]
+    L = [
+        f"# Recipe written by `bforest init {qsm.name}` for {qsm.name}: fit {name} to it and grow clones.",
+        "#",
+        "#   bforest fit THIS.toml -o runs/NAME",
+        "#   bforest clones runs/NAME -n 30",
+        "#",
+        "# What the tree measured:",
+    ]
     L += [f"#   {s}" for s in measured_lines(m)]
-    L += ["#", f"# Model: {name}" + (" (the one that suits the tree best)" if picked else " (asked for)") + f": {d.why}."]
+    L += [
+        "#",
+        f"# Model: {name}" + (" (the one that suits the tree best)" if picked else " (asked for)") + f": {d.why}.",
+    ]
     for n, suits, why in choices:
         if n != name:
             L.append(f"# Not {n} (suits {suits:.1f} against {d.suits:.1f}): {why}.")
@@ -136,32 +147,68 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         L.append(_line(f"fixed.{k} = {_value(v)}", c))
     for k, lo, hi, c in d.free:
         L.append(_line(f"free.{k} = {{ lower = {_value(lo)}, upper = {_value(hi)} }}", c))
-    L += ["",
-          "# Two terms: the structural distance on branch and segment tables (how branches look) and a",
-          "# summary term on tree-level statistics (how large the tree is, where the crown starts, how many",
-          "# branches it has), which the structural distance cannot see.",
-          "[features]", 'kind = "branch-segment"', 'sets = ["S0,1", "B1,2"]', "",
-          "[distance]", 'kind = "sliced"', 'statistic = "ks"', "lines = 128", "",
-          "[objective]",
-          _line("seeds = 3", "the mean over 3 model seeds: clones vary, the fit must not chase one"),
-          _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take"),
-          _line("structure_weight = 2.0", "structure and size weigh alike"), "",
-          ("# The headline statistics weigh as the model's recipes calibrated them." if d.size_weights else
-           "# The headline statistics weigh by the inverse of the error a forester tolerates (height 7.5 %,\n"
-           "# DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %)."),
-          "[[objective.terms]]", 'name = "size"', "weight = 2.0",
-          'features = { kind = "tree-summary", min_branch_diameter = 0.0 }',
-          'distance = { kind = "summary", form = "logratio", weights = { '
-          + ", ".join(f"{k} = {v}" for k, v in (d.size_weights or SIZE_WEIGHTS).items()) + " } }", "",
-          "# A search that does not hinge on one trajectory: 32 Sobol' points over the box, four lq-CMA-ES",
-          "# runs from the best distinct ones raced by successive halving, each restarting with a doubled",
-          "# population once it converges.",
-          "[optimizer]", 'kind = "cma"', "population = 16", "restarts = 4", "sigma0 = 0.15", 'surrogate = "lq"',
-          "surrogate_batch = 2", "init_design = 32", "starts = 4", "",
-          "[stop]", "max_evaluations = 1200",
-          _line(f"wall_time = {d.wall_time:.1f}", "seconds the search may take (the answer's re-scoring comes after)"), "",
-          "# The answer is chosen on model seeds the search never used: the 8 best distinct points are each",
-          "# grown again with 8 sets of held-out seeds; the lowest held-out distance is the answer.",
-          "[select]", "top = 8", "sets = 8", "",
-          "[executor]", 'kind = "process"', "workers = 2", "", "[clones]", "count = 30", ""]
+    L += [
+        "",
+        "# Two terms: the structural distance on branch and segment tables (how branches look) and a",
+        "# summary term on tree-level statistics (how large the tree is, where the crown starts, how many",
+        "# branches it has), which the structural distance cannot see.",
+        "[features]",
+        'kind = "branch-segment"',
+        'sets = ["S0,1", "B1,2"]',
+        "",
+        "[distance]",
+        'kind = "sliced"',
+        'statistic = "ks"',
+        "lines = 128",
+        "",
+        "[objective]",
+        _line("seeds = 3", "the mean over 3 model seeds: clones vary, the fit must not chase one"),
+        _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take"),
+        _line("structure_weight = 2.0", "structure and size weigh alike"),
+        "",
+        (
+            "# The headline statistics weigh as the model's recipes calibrated them."
+            if d.size_weights
+            else "# The headline statistics weigh by the inverse of the error a forester tolerates (height 7.5 %,\n"
+            "# DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %)."
+        ),
+        "[[objective.terms]]",
+        'name = "size"',
+        "weight = 2.0",
+        'features = { kind = "tree-summary", min_branch_diameter = 0.0 }',
+        'distance = { kind = "summary", form = "logratio", weights = { '
+        + ", ".join(f"{k} = {v}" for k, v in (d.size_weights or SIZE_WEIGHTS).items())
+        + " } }",
+        "",
+        "# A search that does not hinge on one trajectory: 32 Sobol' points over the box, four lq-CMA-ES",
+        "# runs from the best distinct ones raced by successive halving, each restarting with a doubled",
+        "# population once it converges.",
+        "[optimizer]",
+        'kind = "cma"',
+        "population = 16",
+        "restarts = 4",
+        "sigma0 = 0.15",
+        'surrogate = "lq"',
+        "surrogate_batch = 2",
+        "init_design = 32",
+        "starts = 4",
+        "",
+        "[stop]",
+        "max_evaluations = 1200",
+        _line(f"wall_time = {d.wall_time:.1f}", "seconds the search may take (the answer's re-scoring comes after)"),
+        "",
+        "# The answer is chosen on model seeds the search never used: the 8 best distinct points are each",
+        "# grown again with 8 sets of held-out seeds; the lowest held-out distance is the answer.",
+        "[select]",
+        "top = 8",
+        "sets = 8",
+        "",
+        "[executor]",
+        'kind = "process"',
+        "workers = 2",
+        "",
+        "[clones]",
+        "count = 30",
+        "",
+    ]
     return "\n".join(L)

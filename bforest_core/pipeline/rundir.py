@@ -11,6 +11,7 @@ while its ``fit`` and ``clones`` take it again).
 those (:func:`clear_derived`), and :func:`foreign_files` finds files of those names that no run
 wrote (a user's own ``config.toml`` in ``-o .``), which no command may overwrite.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -27,7 +28,7 @@ from .store import RunDirError, RunFiles
 #: files and folders a run writes into its directory (globs), all derived from its config
 DERIVED = RunFiles.DERIVED
 
-_held: dict[str, list] = {}   # resolved path -> [fd, depth] of the locks this process holds
+_held: dict[str, list] = {}  # resolved path -> [fd, depth] of the locks this process holds
 _guard = threading.Lock()
 
 
@@ -93,13 +94,16 @@ def _acquire(path: Path, run_dir: Path):
     if os.name != "posix":  # no flock: the run folder is unguarded (documented)
         return None
     import fcntl
+
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
         os.close(fd)
-        raise RunDirError(f"{run_dir}: in use by another bforest command ({_holder_text(path)}); wait for it "
-                          "to end, or choose another -o") from None
+        raise RunDirError(
+            f"{run_dir}: in use by another bforest command ({_holder_text(path)}); wait for it "
+            "to end, or choose another -o"
+        ) from None
     os.ftruncate(fd, 0)
     os.pwrite(fd, json.dumps({"pid": os.getpid(), "command": _command_line(), "since": time.time()}).encode(), 0)
     return fd
@@ -109,6 +113,7 @@ def _release(fd) -> None:
     if fd is None:
         return
     import fcntl
+
     try:
         os.ftruncate(fd, 0)
         fcntl.flock(fd, fcntl.LOCK_UN)
@@ -159,6 +164,7 @@ def holding_run_lock(fn):
     holding that directory's lock (created unless the call resumes or reads an existing run)."""
     import functools
     import inspect
+
     sig = inspect.signature(fn)
     creates = fn.__name__ == "fit"
 
@@ -169,4 +175,5 @@ def holding_run_lock(fn):
         create = creates and not bound.arguments.get("resume", False)
         with run_lock(bound.arguments["run_dir"], create=create):
             return fn(*args, **kwargs)
+
     return wrapper

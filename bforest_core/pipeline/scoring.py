@@ -6,6 +6,7 @@ distance prepared on the term's data sets. The fit's workers hold one (:mod:`.wo
 report builds one to recompute a run's numbers. :func:`score_tree` and :func:`combine_terms` use
 it; ``_simulate_with_timeout`` grows a tree under the objective's time limit.
 """
+
 from __future__ import annotations
 
 import os
@@ -43,8 +44,9 @@ class _Timeout(Exception):
 _MODEL_ERRORS = (Exception, SystemExit)
 
 
-def build_scoring(cfg, U_data: dict, columns: dict, feature_settings: dict,
-                  terms: list[dict] | None = None) -> dict[str, Any]:
+def build_scoring(
+    cfg, U_data: dict, columns: dict, feature_settings: dict, terms: list[dict] | None = None
+) -> dict[str, Any]:
     """What scores a tree against the target, built as the fit's workers build it.
 
     Parameters
@@ -66,6 +68,7 @@ def build_scoring(cfg, U_data: dict, columns: dict, feature_settings: dict,
         ``timeout`` and ``worker`` (host:pid).
     """
     from ..config import parse_config, ssm_settings
+
     if isinstance(cfg, dict):
         cfg = parse_config(cfg)
     if terms is None:  # rebuilt from the config (a report reading an older or partial run)
@@ -79,9 +82,15 @@ def build_scoring(cfg, U_data: dict, columns: dict, feature_settings: dict,
         built.append(PreparedTerm(spec, feature_set_for(cfg, "model", spec.features, spec.features_kind), dist, Ud))
     return dict(
         ssm=component("ssm", cfg.ssm.kind, **ssm_settings(cfg)),
-        features=built[0].features, distance=built[0].distance, terms=built,
-        U_data=U_data, weights=cfg.objective.weights, penalty=cfg.objective.penalty,
-        timeout=cfg.objective.timeout, worker=f"{socket.gethostname()}:{os.getpid()}")
+        features=built[0].features,
+        distance=built[0].distance,
+        terms=built,
+        U_data=U_data,
+        weights=cfg.objective.weights,
+        penalty=cfg.objective.penalty,
+        timeout=cfg.objective.timeout,
+        worker=f"{socket.gethostname()}:{os.getpid()}",
+    )
 
 
 def score_tree(tree, scoring: dict) -> tuple[dict[str, float | None], dict[str, int]]:
@@ -135,8 +144,9 @@ def _alarm(signum, frame):
 
 
 def _simulate_with_timeout(ssm, params, seed, timeout):
-    use_alarm = (timeout is not None and hasattr(signal, "setitimer")
-                 and threading.current_thread() is threading.main_thread())
+    use_alarm = (
+        timeout is not None and hasattr(signal, "setitimer") and threading.current_thread() is threading.main_thread()
+    )
     if not use_alarm:
         return _checked_tree(ssm, ssm.simulate(params, seed))
     old = signal.signal(signal.SIGALRM, _alarm)
@@ -152,6 +162,7 @@ def _simulate_with_timeout(ssm, params, seed, timeout):
 def _checked_tree(ssm, tree):
     """What ``simulate`` returned, when it is a :class:`Tree` (a plugin may return None)."""
     from ..tree import Tree
+
     if not isinstance(tree, Tree):
         raise TypeError(f"ssm '{ssm.name}': simulate returned {type(tree).__name__}, not a Tree")
     return tree

@@ -6,6 +6,7 @@ the evaluation index. Every stream derives from :class:`numpy.random.SeedSequenc
 and a tag of its own, never from worker state, so results do not depend on the executor or the
 number of workers, and no two streams share a seed.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -30,7 +31,7 @@ def heldout_seeds(run_seed: int, sets: int, per: int) -> list[list[int]]:
     """``sets`` sets of ``per`` model seeds that no fit, noise measurement or clone of this run
     seed uses: for scoring best points on trees the fits never saw (``bforest compare --heldout``)."""
     flat = _seed_stream([int(run_seed), 5], sets * per)
-    return [flat[i * per:(i + 1) * per] for i in range(sets)]
+    return [flat[i * per : (i + 1) * per] for i in range(sets)]
 
 
 def clone_seeds(run_seed: int, n: int, base: int | None = None) -> list[int]:

@@ -16,6 +16,7 @@ Only the main process writes; each row is committed on its own, so a killed run 
 that finished. :meth:`RunStore.replay` gives the stored evaluations back in index order, which is
 how ``--resume`` continues without repeating work.
 """
+
 from __future__ import annotations
 
 import json
@@ -59,7 +60,6 @@ CREATE TABLE IF NOT EXISTS heldout (
 """
 
 
-
 def slug(text: str) -> str:
     """A file-name-safe version of a set or parameter name (``"S0,1"`` -> ``"S0-1"``)."""
     s = re.sub(r"[^A-Za-z0-9_.-]+", "-", str(text)).strip("-")
@@ -95,6 +95,7 @@ def _json(x) -> str:
 def json_text(obj) -> str:
     """Strict JSON (indented) of results for people and other programs: NaN and infinities as
     null (strict JSON readers reject NaN), numpy scalars as numbers, paths as strings."""
+
     def clean(x):
         if isinstance(x, dict):
             return {str(k): clean(v) for k, v in x.items()}
@@ -107,6 +108,7 @@ def json_text(obj) -> str:
         if hasattr(x, "item"):  # numpy scalars
             return clean(x.item())
         return x
+
     return json.dumps(clean(obj), indent=2, allow_nan=False)
 
 
@@ -143,10 +145,32 @@ class RunFiles:
     LOCK = ".bforest.lock"
     #: files and folders a run writes into its directory (globs), all derived from its config
     #: (``heldout.json``: where older runs kept their held-out scores)
-    DERIVED = (CONFIG, EVALUATIONS, f"{EVALUATIONS}-wal", f"{EVALUATIONS}-shm", f"{EVALUATIONS}-journal", BEST,
-               f"{BEST}.tmp", BEST_TREE, TARGET_TREE, TARGET_SETS, DISTANCE, DIRECTIONS, DIAGNOSTICS, POSTERIOR_CSV,
-               POSTERIOR_NC, "heldout.json", "heldout.json.tmp", "profile_*.csv", REPORT_MD, REPORT_HTML, CLONES,
-               CLONES_POSTERIOR, FIGURES, EXPORT)
+    DERIVED = (
+        CONFIG,
+        EVALUATIONS,
+        f"{EVALUATIONS}-wal",
+        f"{EVALUATIONS}-shm",
+        f"{EVALUATIONS}-journal",
+        BEST,
+        f"{BEST}.tmp",
+        BEST_TREE,
+        TARGET_TREE,
+        TARGET_SETS,
+        DISTANCE,
+        DIRECTIONS,
+        DIAGNOSTICS,
+        POSTERIOR_CSV,
+        POSTERIOR_NC,
+        "heldout.json",
+        "heldout.json.tmp",
+        "profile_*.csv",
+        REPORT_MD,
+        REPORT_HTML,
+        CLONES,
+        CLONES_POSTERIOR,
+        FIGURES,
+        EXPORT,
+    )
 
     def __init__(self, path):
         self.path = Path(path)
@@ -267,16 +291,21 @@ class RunStore(RunFiles):
         holding files of a run's names that no run wrote (a user's ``config.toml``).
         """
         from .rundir import clear_derived, foreign_files
+
         path = Path(path)
         files = RunFiles(path)
         db = files.evaluations_path
         foreign = foreign_files(path)
         if foreign:
-            raise RunDirError(f"{path}: holds {', '.join(foreign)}, not written by a run, which a run would "
-                              "overwrite; choose another -o (a new or empty folder)")
+            raise RunDirError(
+                f"{path}: holds {', '.join(foreign)}, not written by a run, which a run would "
+                "overwrite; choose another -o (a new or empty folder)"
+            )
         if db.exists() and not overwrite and cls.held(path) > 0:
-            raise RunDirError(f"{path}: already holds a run; continue it with --resume, replace it with "
-                              "--overwrite, or choose another -o")
+            raise RunDirError(
+                f"{path}: already holds a run; continue it with --resume, replace it with "
+                "--overwrite, or choose another -o"
+            )
         path.mkdir(parents=True, exist_ok=True)
         if db.exists():  # --overwrite, or a run that failed before its first evaluation: nothing of it is kept
             clear_derived(path)
@@ -318,8 +347,20 @@ class RunStore(RunFiles):
     def add(self, ev: Evaluation) -> None:
         self._con.execute(
             "INSERT INTO evaluations VALUES (?,?,?,?,?,?,?,?,?,?,?)",
-            (ev.idx, _json(ev.params), _json(ev.seeds), float(ev.distance), _json(ev.per_set), ev.status,
-             ev.message, ev.seconds, ev.worker, _json(ev.n_rows), time.time()))
+            (
+                ev.idx,
+                _json(ev.params),
+                _json(ev.seeds),
+                float(ev.distance),
+                _json(ev.per_set),
+                ev.status,
+                ev.message,
+                ev.seconds,
+                ev.worker,
+                _json(ev.n_rows),
+                time.time(),
+            ),
+        )
 
     def count(self) -> int:
         return self._con.execute("SELECT COUNT(*) FROM evaluations").fetchone()[0]
@@ -328,9 +369,24 @@ class RunStore(RunFiles):
         """The logged evaluations that the SQL ``tail`` (WHERE / ORDER BY / LIMIT) selects."""
         rows = self._con.execute(
             "SELECT idx, params, seeds, distance, per_set, status, message, seconds, worker, n_rows "
-            f"FROM evaluations {tail}", args).fetchall()
-        return [Evaluation(r[0], json.loads(r[1]), json.loads(r[2]), r[3], json.loads(r[4]), r[5], r[6] or "",
-                           r[7] or 0.0, r[8] or "", json.loads(r[9] or "{}")) for r in rows]
+            f"FROM evaluations {tail}",
+            args,
+        ).fetchall()
+        return [
+            Evaluation(
+                r[0],
+                json.loads(r[1]),
+                json.loads(r[2]),
+                r[3],
+                json.loads(r[4]),
+                r[5],
+                r[6] or "",
+                r[7] or 0.0,
+                r[8] or "",
+                json.loads(r[9] or "{}"),
+            )
+            for r in rows
+        ]
 
     def evaluations(self) -> list[Evaluation]:
         """Every logged evaluation, in order."""
@@ -350,22 +406,25 @@ class RunStore(RunFiles):
         """The evaluation of lowest distance, a grown tree before any failure (whose distance is
         the config's penalty, which need not exceed every real distance); with ``before``, among
         the evaluations of index below it (the best after that many evaluations)."""
-        found = self._select("WHERE idx < ? ORDER BY status != 'ok', distance, idx LIMIT 1",
-                                 (2 ** 62 if before is None else int(before),))
+        found = self._select(
+            "WHERE idx < ? ORDER BY status != 'ok', distance, idx LIMIT 1", (2**62 if before is None else int(before),)
+        )
         return found[0] if found else None
 
     # ------------------------------------------------------------------ held-out scores
     def heldout_scores(self, scoring: str) -> dict[tuple[str, str], dict]:
         """Every kept held-out score of this scoring: ``(point, seeds)`` (both JSON text) ->
         ``{"distance", "status"}``."""
-        rows = self._con.execute("SELECT point, seeds, distance, status FROM heldout WHERE scoring = ?",
-                                 (scoring,)).fetchall()
+        rows = self._con.execute(
+            "SELECT point, seeds, distance, status FROM heldout WHERE scoring = ?", (scoring,)
+        ).fetchall()
         return {(r[0], r[1]): {"distance": r[2], "status": r[3]} for r in rows}
 
     def add_heldout(self, scoring: str, point: str, seeds: str, distance: float, status: str) -> None:
         """Keep one held-out score as soon as it is known (a killed scoring loses nothing)."""
-        self._con.execute("INSERT OR REPLACE INTO heldout VALUES (?,?,?,?,?)",
-                          (scoring, point, seeds, float(distance), status))
+        self._con.execute(
+            "INSERT OR REPLACE INTO heldout VALUES (?,?,?,?,?)", (scoring, point, seeds, float(distance), status)
+        )
 
     # ------------------------------------------------------------------ optimiser log
     def log(self, record: dict) -> None:
@@ -405,10 +464,13 @@ class RunStore(RunFiles):
         chain, a final population) go to ``diagnostics.npz``; the rest is returned for
         ``best.json`` with ``"arrays"`` naming the stored keys."""
         import numpy as np
+
         small, big = {}, {}
         for k, v in (diagnostics or {}).items():
             arr = None
-            if isinstance(v, np.ndarray) or (isinstance(v, (list, tuple)) and v and isinstance(v[0], (list, tuple, np.ndarray))):
+            if isinstance(v, np.ndarray) or (
+                isinstance(v, (list, tuple)) and v and isinstance(v[0], (list, tuple, np.ndarray))
+            ):
                 try:
                     arr = np.asarray(v, dtype=float)
                 except (TypeError, ValueError):
@@ -428,6 +490,7 @@ class RunStore(RunFiles):
     def read_diagnostics(self) -> dict:
         """The optimiser diagnostics of ``best.json`` with the stored arrays put back."""
         import numpy as np
+
         p = self.best_path
         diag = dict(json.loads(p.read_text(encoding="utf-8")).get("diagnostics") or {}) if p.exists() else {}
         npz = self.diagnostics_path
@@ -457,6 +520,7 @@ def json_default(o, loose: bool = False):
     ``TypeError``, or with ``loose`` (an optimiser's free-form diagnostics) becomes its text.
     """
     import numpy as np
+
     if isinstance(o, np.generic):
         return o.item()
     if isinstance(o, np.ndarray):

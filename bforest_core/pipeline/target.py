@@ -3,6 +3,7 @@
 Built once per run in the main process (:func:`build_target`); the tables travel to each worker
 once (:mod:`.worker`).
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -25,6 +26,7 @@ def feature_set_for(cfg, side: str, settings: dict | None = None, kind: str | No
     ``[features] kind`` (other terms name their own).
     """
     from ..config import section_settings
+
     settings = dict(section_settings(cfg, "features") if settings is None else settings)
     rule = cfg.target.topology if side == "target" else getattr(cfg.ssm, "topology", None)
     if rule is not None and "topology" in settings:
@@ -55,29 +57,47 @@ class Term:
         """The entries of ``by_set`` (keyed as in ``Target.U``) that are this term's, keyed by its
         own set names."""
         pre = self.prefix
-        return {k[len(pre):]: v for k, v in by_set.items() if k.startswith(pre) and (pre or "/" not in k)}
+        return {k[len(pre) :]: v for k, v in by_set.items() if k.startswith(pre) and (pre or "/" not in k)}
 
 
 def term_specs(cfg) -> list[Term]:
     """The terms of the objective: the ``[features]``/``[distance]`` term first, then each
     ``[[objective.terms]]`` entry."""
     from ..config import section_settings
+
     o = cfg.objective
-    specs = [Term(name=STRUCTURE, prefix="", weight=float(o.structure_weight), set_weights=o.weights,
-                  features_kind=cfg.features.kind, features=section_settings(cfg, "features"),
-                  distance_kind=cfg.distance.kind, distance=section_settings(cfg, "distance"))]
+    specs = [
+        Term(
+            name=STRUCTURE,
+            prefix="",
+            weight=float(o.structure_weight),
+            set_weights=o.weights,
+            features_kind=cfg.features.kind,
+            features=section_settings(cfg, "features"),
+            distance_kind=cfg.distance.kind,
+            distance=section_settings(cfg, "distance"),
+        )
+    ]
     for t in o.terms:
-        specs.append(Term(name=t.name, prefix=f"{t.name}/", weight=float(t.weight), set_weights=t.weights,
-                          features_kind=t.features["kind"],
-                          features={k: v for k, v in t.features.items() if k != "kind"},
-                          distance_kind=t.distance["kind"],
-                          distance={k: v for k, v in t.distance.items() if k != "kind"}))
+        specs.append(
+            Term(
+                name=t.name,
+                prefix=f"{t.name}/",
+                weight=float(t.weight),
+                set_weights=t.weights,
+                features_kind=t.features["kind"],
+                features={k: v for k, v in t.features.items() if k != "kind"},
+                distance_kind=t.distance["kind"],
+                distance={k: v for k, v in t.distance.items() if k != "kind"},
+            )
+        )
     return specs
 
 
 def load_target_trees(cfg) -> list:
     """The data tree(s) of the run: read from the QSM file or grown by the named SSM."""
     from ..io import read_qsm
+
     t = cfg.target
     if t.generate is not None:
         ssm = component("ssm", t.generate.ssm, **t.generate.settings)
@@ -92,9 +112,9 @@ def load_target_trees(cfg) -> list:
 @dataclass
 class Target:
     trees: list
-    U: dict[str, np.ndarray]         # every term's data sets (other terms' as "<term>/<set>")
+    U: dict[str, np.ndarray]  # every term's data sets (other terms' as "<term>/<set>")
     columns: dict[str, list[str]]
-    feature_settings: dict          # the data-side feature set after prepare (resolved sets)
+    feature_settings: dict  # the data-side feature set after prepare (resolved sets)
     terms: list[Term] | None = None  # term_specs with each term's resolved feature settings
 
 

@@ -6,6 +6,7 @@ loaded once per worker, never per evaluation. :func:`evaluate_task` and :func:`s
 in an initialised worker; a task whose worker dies or is stopped becomes a failed evaluation
 (:func:`_lost_task`, the executor's ``on_lost``).
 """
+
 from __future__ import annotations
 
 import functools
@@ -32,8 +33,9 @@ from .target import Target, Term
 _CTX: dict[str, Any] = {}
 
 
-def init_worker(cfg_dict: dict, U_data: dict, columns: dict, feature_settings: dict,
-                terms: list[Term] | None = None) -> None:
+def init_worker(
+    cfg_dict: dict, U_data: dict, columns: dict, feature_settings: dict, terms: list[Term] | None = None
+) -> None:
     """Executor initializer: build the components of every term once in this process and
     prepare each distance on its data sets."""
     ctx = build_scoring(cfg_dict, U_data, columns, feature_settings, terms)
@@ -70,6 +72,7 @@ def summary_task(task: tuple[dict, list[int]]) -> np.ndarray | None:
 def run_executor(cfg):
     """The executor of the run's ``[executor]`` section."""
     from ..config import section_settings
+
     return component("executor", cfg.executor.kind, **section_settings(cfg, "executor"))
 
 
@@ -77,6 +80,7 @@ def started_workers(cfg, tgt: Target, executor=None):
     """The run's executor (or ``executor``) started with :func:`init_worker` on the target, as a
     context manager: the target's tables travel to each worker once."""
     from ..config import config_to_dict
+
     ex = run_executor(cfg) if executor is None else executor
     # Executor.on_lost/time_limit: what a dead or stuck worker's task becomes, and when a task is
     # stuck (honoured by an executor that can stop a worker, ignored by the others)
@@ -99,8 +103,15 @@ def _lost_task(penalty: float, names: list, fn, item, status: str, message: str)
     ``on_lost``): a failed evaluation with the penalty, no summaries, or the task's own
     ``lost_result``; ``NotImplemented`` (the executor raises) for any other task."""
     if fn is evaluate_task:
-        return dict(distance=float(penalty), per_set={k: None for k in names}, status=status, message=message[:500],
-                    seconds=0.0, worker="", n_rows={})
+        return dict(
+            distance=float(penalty),
+            per_set={k: None for k in names},
+            status=status,
+            message=message[:500],
+            seconds=0.0,
+            worker="",
+            n_rows={},
+        )
     if fn is summary_task:
         return None
     hook = getattr(fn, "lost_result", None)
@@ -135,12 +146,26 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
     seconds = time.perf_counter() - t0
     if status != "ok":
         names = list(c["U_data"])
-        return dict(distance=float(c["penalty"]), per_set={k: None for k in names}, status=status,
-                    message=message, seconds=seconds, worker=c["worker"], n_rows={})
+        return dict(
+            distance=float(c["penalty"]),
+            per_set={k: None for k in names},
+            status=status,
+            message=message,
+            seconds=seconds,
+            worker=c["worker"],
+            n_rows={},
+        )
     per_set = {}
     for k in per_seed[0]:
         vals = [p[k] for p in per_seed if p[k] is not None]
         per_set[k] = float(np.mean(vals)) if vals else None
     total, values = combine_terms(per_set, c)
-    return dict(distance=float(total), per_set=with_term_values(per_set, values), status="ok", message="", seconds=seconds,
-                worker=c["worker"], n_rows={k: v // len(seeds) for k, v in n_rows.items()})
+    return dict(
+        distance=float(total),
+        per_set=with_term_values(per_set, values),
+        status="ok",
+        message="",
+        seconds=seconds,
+        worker=c["worker"],
+        n_rows={k: v // len(seeds) for k, v in n_rows.items()},
+    )

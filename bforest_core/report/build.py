@@ -19,7 +19,7 @@ Figures:
   distributions (Fig. 5);
 * ``profile_<param>.png``: made by ``bforest profile`` (Fig. 4), included when present.
 """
-from __future__ import annotations
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -36,8 +36,18 @@ from .datasets import fig_sets
 from .document import Document, slug
 from .posterior import fig_posterior
 from .run_view import RunView
-from .sections import (section_clones, section_evaluations, section_fit, section_model, section_optimizer,
-                       section_parameters, section_profiles, section_summary, section_target, stopped_short)
+from .sections import (
+    section_clones,
+    section_evaluations,
+    section_fit,
+    section_model,
+    section_optimizer,
+    section_parameters,
+    section_profiles,
+    section_summary,
+    section_target,
+    stopped_short,
+)
 from .trees import fig_clones, fig_trees
 
 __all__ = ["write_report", "RunView", "slug"]
@@ -48,7 +58,7 @@ class _Figures:
     def __init__(self, view: RunView, strict: bool):
         self.v = view
         self.strict = strict
-        self.dir = view.path / "figures"
+        self.dir = view.store.figures_dir
         self.dir.mkdir(exist_ok=True)
         self.made: dict[str, list[tuple[str, str]]] = {}
 
@@ -71,9 +81,13 @@ class _Figures:
 #: the machine has two cores or more (a fit's workers are idle by then), so the report takes
 #: about half as long: the two groups cost about the same
 _SIDE = [("sets", "data sets", fig_sets)]
-_MAIN = [("trees", "trees", fig_trees), ("convergence", "convergence", fig_convergence),
-         ("posterior", "posterior", fig_posterior), ("clones", "clones", fig_clones),
-         ("clones", "distributions", fig_distributions)]
+_MAIN = [
+    ("trees", "trees", fig_trees),
+    ("convergence", "convergence", fig_convergence),
+    ("posterior", "posterior", fig_posterior),
+    ("clones", "clones", fig_clones),
+    ("clones", "distributions", fig_distributions),
+]
 
 
 def _side_figures(run_dir, strict: bool, output: tuple = ("png", None)):
@@ -107,7 +121,7 @@ def _draw_figures(v: RunView, figs: _Figures, strict: bool) -> None:
             v.note(f"figures drawn in one process ({exc})")
             pool = None
     try:
-        for section, name, fn in (_MAIN if pool else _SIDE + _MAIN):
+        for section, name, fn in _MAIN if pool else _SIDE + _MAIN:
             figs.run(section, name, fn, v)
         if pool:
             try:
@@ -129,8 +143,9 @@ def _draw_figures(v: RunView, figs: _Figures, strict: bool) -> None:
 
 
 # ---------------------------------------------------------------------------------- entry point
-def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool = False,
-                 format: str = "png", dpi: int | None = None) -> Path:
+def write_report(
+    run_dir, figures: bool = True, html: bool = True, strict: bool = False, format: str = "png", dpi: int | None = None
+) -> Path:
     """Write the figures, ``report.md`` and ``report.html`` of a run directory.
 
     Parameters
@@ -171,7 +186,7 @@ def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool 
         if not v.clone_rows:  # figures drawn from clones that are gone would contradict the folder
             for stale in ("clones", "clone_metrics"):
                 for suffix in FORMATS:
-                    (v.path / "figures" / f"{stale}.{suffix}").unlink(missing_ok=True)
+                    (v.store.figures_dir / f"{stale}.{suffix}").unlink(missing_ok=True)
     doc = Document()
     title = f"Bayes Forest run report: {v.path.name}"
     doc.h(1, title)
@@ -186,17 +201,20 @@ def write_report(run_dir, figures: bool = True, html: bool = True, strict: bool 
     section_profiles(doc, v)
     doc.h(2, "Notes")
     from .. import __version__
+
     notes = list(v.notes)
     if stopped_short(v):
         notes.insert(0, f"WARNING: the sampler stopped short of its target: {stopped_short(v)}")
     if not figures:
         notes.append("figures were not drawn (figures=False)")
     doc.items(notes or ["none"])
-    doc.p(f"Written {_dt.datetime.now().strftime('%Y-%m-%d %H:%M:%S')} by bforest {__version__} "
-          f"in {time.monotonic() - t0:.1f} s.")
-    md = v.path / "report.md"
+    doc.p(
+        f"Written {_dt.datetime.now().strftime('%Y-%m-%d %H:%M:%S')} by bforest {__version__} "
+        f"in {time.monotonic() - t0:.1f} s."
+    )
+    md = v.store.report_md_path
     md.write_text(doc.markdown(), encoding="utf-8")
     if html:
-        (v.path / "report.html").write_text(doc.html(v.path, title), encoding="utf-8")
+        v.store.report_html_path.write_text(doc.html(v.path, title), encoding="utf-8")
     v.store.close()
     return md

@@ -1,5 +1,5 @@
-"""Figure of a calibration study (``bforest calibrate``): SBC rank histograms and intervals.
-"""
+"""Figure of a calibration study (``bforest calibrate``): SBC rank histograms and intervals."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -37,13 +37,24 @@ def calibration_figure(res: dict, path, title: str | None = None, dpi: int = 120
         edges = np.arange(bins + 1) * (draws + 1) / bins
         ax.axhspan(lo_band, hi_band, color="#bbbbbb", alpha=0.5, lw=0, label="99 % band of uniform ranks")
         ax.axhline(n / bins, color="black", ls="--", lw=0.8, label="uniform expectation", zorder=3)
-        ax.bar(edges[:-1], counts, width=np.diff(edges), align="edge", color="#e06666", edgecolor="white",
-               label="runs", zorder=2)
+        ax.bar(
+            edges[:-1],
+            counts,
+            width=np.diff(edges),
+            align="edge",
+            color="#e06666",
+            edgecolor="white",
+            label="runs",
+            zorder=2,
+        )
         ax.set_xlim(0, draws + 1)
         ax.set_xlabel(f"rank of the truth among {draws} posterior draws", fontsize="small")
         ax.set_ylabel("number of runs" if j == 0 else "", fontsize="small")
-        cov = (f"50 %: {100 * t['coverage50']:.0f} %, 90 %: {100 * t['coverage90']:.0f} % covered"
-               if t["runs"] else "no runs")
+        cov = (
+            f"50 %: {100 * t['coverage50']:.0f} %, 90 %: {100 * t['coverage90']:.0f} % covered"
+            if t["runs"]
+            else "no runs"
+        )
         ax.set_title(f"{label}\n{cov}", fontsize="medium")
         if j == 0:
             ax.legend(fontsize="x-small", loc="upper right")
@@ -61,8 +72,9 @@ def calibration_figure(res: dict, path, title: str | None = None, dpi: int = 120
         ax.set_xlim(lo, hi)
         ax.set_ylim(lo, hi)
         ax.set_xlabel(f"truth: {label}", fontsize="small")
-        ax.set_ylabel(f"posterior 50 / 90 % interval ({unit})" if unit else "posterior 50 / 90 % interval",
-                      fontsize="small")
+        ax.set_ylabel(
+            f"posterior 50 / 90 % interval ({unit})" if unit else "posterior 50 / 90 % interval", fontsize="small"
+        )
         ax.grid(True, lw=0.3, alpha=0.5)
     fig.suptitle(title or f"simulation-based calibration of {res['optimizer']} ({n} runs)")
     return save_figure(fig, path, dpi)

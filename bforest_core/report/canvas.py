@@ -6,6 +6,7 @@ pyplot, no global backend switch: it renders with Agg and never needs a display)
 Conventions follow Potapov et al. (GigaScience 2017): the data side (QSM) is blue, the model side
 (SSM) red; branch orders have fixed colours; lengths are in metres and angles in degrees.
 """
+
 from __future__ import annotations
 
 from contextlib import contextmanager
@@ -14,12 +15,11 @@ from pathlib import Path
 from matplotlib.figure import Figure
 
 #: colours of branch orders 0 (trunk), 1, 2, ...; the last one repeats for higher orders
-ORDER_COLORS = ("#5a3a1a", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#d62728", "#17becf",
-                "#e377c2", "#8c8c8c")
-DATA_COLOR = "#1f5fbf"   # QSM / target (blue, as in the GigaScience figures)
+ORDER_COLORS = ("#5a3a1a", "#1f77b4", "#2ca02c", "#ff7f0e", "#9467bd", "#d62728", "#17becf", "#e377c2", "#8c8c8c")
+DATA_COLOR = "#1f5fbf"  # QSM / target (blue, as in the GigaScience figures)
 MODEL_COLOR = "#d62728"  # SSM / model (red)
 TARGET_LINE = "black"
-TRUE_COLOR = "#2ca02c"   # the true parameters of a generated target (green)
+TRUE_COLOR = "#2ca02c"  # the true parameters of a generated target (green)
 
 #: view name -> (horizontal coordinate, vertical coordinate, coordinate pointing at the viewer,
 #: sign). "xz" looks along +y (y points away), "yz" along -x, "xy" down from above.
@@ -28,10 +28,28 @@ _AXIS_NAMES = "xyz"
 _VIEW_TITLES = {"xz": "side view (XZ)", "yz": "side view (YZ)", "xy": "top view (XY)"}
 
 #: units of the branch-segment feature columns (docs/features-and-distance.md §2)
-COLUMN_UNITS = {"beta": "deg", "alpha": "deg", "gamma": "deg", "zeta": "deg", "L_t": "m", "R_f": "m",
-                "L_a": "m", "R": "m", "L": "m", "angle": "deg", "length": "m"}
-_GREEK = {"beta": r"$\beta$", "alpha": r"$\alpha$", "gamma": r"$\gamma$", "zeta": r"$\zeta$",
-          "L_t": r"$L_t$", "R_f": r"$R_f$", "L_a": r"$L_a$"}
+COLUMN_UNITS = {
+    "beta": "deg",
+    "alpha": "deg",
+    "gamma": "deg",
+    "zeta": "deg",
+    "L_t": "m",
+    "R_f": "m",
+    "L_a": "m",
+    "R": "m",
+    "L": "m",
+    "angle": "deg",
+    "length": "m",
+}
+_GREEK = {
+    "beta": r"$\beta$",
+    "alpha": r"$\alpha$",
+    "gamma": r"$\gamma$",
+    "zeta": r"$\zeta$",
+    "L_t": r"$L_t$",
+    "R_f": r"$R_f$",
+    "L_a": r"$L_a$",
+}
 
 
 # ---------------------------------------------------------------------------------- figures

@@ -1,9 +1,9 @@
-"""Figures of studies built on fits: likelihood profiles and optimiser comparisons.
-"""
+"""Figures of studies built on fits: likelihood profiles and optimiser comparisons."""
+
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -11,10 +11,18 @@ from .canvas import MODEL_COLOR, new_figure, save_figure
 
 
 # ---------------------------------------------------------------------------------- profiles, comparison
-def profile_figure(values: np.ndarray, distances: np.ndarray, path, param: str,
-                   failed: np.ndarray | None = None, best_value: float | None = None,
-                   best_distance: float | None = None, unit: str = "", title: str | None = None,
-                   dpi: int = 130) -> Path:
+def profile_figure(
+    values: np.ndarray,
+    distances: np.ndarray,
+    path,
+    param: str,
+    failed: np.ndarray | None = None,
+    best_value: float | None = None,
+    best_distance: float | None = None,
+    unit: str = "",
+    title: str | None = None,
+    dpi: int = 130,
+) -> Path:
     """Distance profile along one parameter (GigaScience Fig. 4): one thin line per seed (a
     realisation of the distance surface), the median over seeds, the interquartile and
     min-max bands, and the best-fit value marked.
@@ -42,11 +50,25 @@ def profile_figure(values: np.ndarray, distances: np.ndarray, path, param: str,
         ax.scatter(v[ii], D[ii, jj], marker="x", color="#e6550d", s=25, label="failed simulation", zorder=4)
     if best_value is not None:
         ax.axvline(best_value, color="black", lw=1.0, ls="--")
-        ax.annotate(f"best fit {best_value:.4g}", (best_value, 1.0), xycoords=("data", "axes fraction"),
-                    xytext=(4, -12), textcoords="offset points", ha="left", fontsize="small")
+        ax.annotate(
+            f"best fit {best_value:.4g}",
+            (best_value, 1.0),
+            xycoords=("data", "axes fraction"),
+            xytext=(4, -12),
+            textcoords="offset points",
+            ha="left",
+            fontsize="small",
+        )
         if best_distance is not None:
-            ax.plot([best_value], [best_distance], marker="v", color="black", ms=9, ls="",
-                    label=f"best fit (D = {best_distance:.3f})")
+            ax.plot(
+                [best_value],
+                [best_distance],
+                marker="v",
+                color="black",
+                ms=9,
+                ls="",
+                label=f"best fit (D = {best_distance:.3f})",
+            )
     ax.set_xlabel(f"{param} ({unit})" if unit else param)
     ax.set_ylabel("distance D")
     ax.grid(True, lw=0.3, alpha=0.5)
@@ -64,15 +86,20 @@ def _pad_curves(curves: Sequence[np.ndarray]) -> np.ndarray:
     n = max(c.size for c in curves)
     out = np.empty((len(curves), n))
     for r, c in enumerate(curves):
-        out[r, :c.size] = c
-        out[r, c.size:] = c[-1]
+        out[r, : c.size] = c
+        out[r, c.size :] = c[-1]
     return out
 
 
-def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: float | None = None,
-                   title: str | None = None, dpi: int = 130,
-                   heldout: Mapping[str, Sequence[tuple[int, float]]] | None = None,
-                   heldout_threshold: float | None = None) -> Path:
+def compare_figure(
+    curves: Mapping[str, Sequence[np.ndarray]],
+    path,
+    threshold: float | None = None,
+    title: str | None = None,
+    dpi: int = 130,
+    heldout: Mapping[str, Sequence[tuple[int, float]]] | None = None,
+    heldout_threshold: float | None = None,
+) -> Path:
     """Optimiser comparison: best-so-far distance against evaluations, median over repeats
     (line) and the interquartile and min-max spread (bands), one colour per optimiser.
 
@@ -89,6 +116,7 @@ def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: 
         ``heldout_threshold`` as a dotted black line.
     """
     from matplotlib import colormaps
+
     pal = colormaps["tab10"].colors
     fig = new_figure(12.0, 4.8)
     ax, zoom = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.2, 1.0]})
@@ -102,12 +130,13 @@ def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: 
         x = np.arange(1, M.shape[1] + 1)
         med = np.median(M, axis=0)
         with np.errstate(invalid="ignore"):  # inf (no grown tree yet) beside a distance: no band there
-            bands = [(M.min(0), M.max(0), 0.08), (*np.quantile(M, [0.25, 0.75], axis=0), 0.25)] if M.shape[0] > 1 else []
+            bands = (
+                [(M.min(0), M.max(0), 0.08), (*np.quantile(M, [0.25, 0.75], axis=0), 0.25)] if M.shape[0] > 1 else []
+            )
         for a in (ax, zoom):
             for low, high, alpha in bands:
                 a.fill_between(x, low, high, color=col, alpha=alpha, lw=0, step="post")
-            a.step(x, med, where="post", color=col, lw=2.0,
-                   label=f"{name} (median of {M.shape[0]}: {med[-1]:.4g})")
+            a.step(x, med, where="post", color=col, lw=2.0, label=f"{name} (median of {M.shape[0]}: {med[-1]:.4g})")
         fin = M[np.isfinite(M)]
         all_pos &= bool(np.all(fin > 0))
         lo_all, hi_all = min(lo_all, fin.min(initial=np.inf)), max(hi_all, fin.max(initial=-np.inf))
@@ -115,11 +144,22 @@ def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: 
         pts = sorted((heldout or {}).get(name, []))
         if pts:
             hx, hy = np.array(pts, float).T
-            ax.plot(hx, hy, color=col, ls=":", lw=1.2, marker="o", mfc="white", ms=6,
-                    label=f"{name}, best point held out ({hy[-1]:.4g})")
+            ax.plot(
+                hx,
+                hy,
+                color=col,
+                ls=":",
+                lw=1.2,
+                marker="o",
+                mfc="white",
+                ms=6,
+                label=f"{name}, best point held out ({hy[-1]:.4g})",
+            )
             hi_all = max(hi_all, float(hy.max()))
     if heldout_threshold is not None:
-        ax.axhline(heldout_threshold, color="black", ls=":", lw=1.0, label=f"held-out threshold {heldout_threshold:.4g}")
+        ax.axhline(
+            heldout_threshold, color="black", ls=":", lw=1.0, label=f"held-out threshold {heldout_threshold:.4g}"
+        )
     if threshold is not None:
         for a in (ax, zoom):
             a.axhline(threshold, color="black", ls="--", lw=1.0, label=f"threshold {threshold:.4g}")
@@ -133,23 +173,28 @@ def compare_figure(curves: Mapping[str, Sequence[np.ndarray]], path, threshold: 
         a.set_xlabel("evaluations")
         a.grid(True, which="both", lw=0.3, alpha=0.5)
     ax.set_ylabel("best distance so far")
-    zoom.set_title("the end game: from the lowest distance to the medians at a fifth of the budget",
-                   fontsize="small")
+    zoom.set_title("the end game: from the lowest distance to the medians at a fifth of the budget", fontsize="small")
     ax.legend(fontsize="small", title="optimizer (final median)", title_fontsize="small")
-    ax.set_title(title or "optimiser comparison (bands: interquartile and min–max over repeats)",
-                 fontsize="medium")
+    ax.set_title(title or "optimiser comparison (bands: interquartile and min–max over repeats)", fontsize="medium")
     return save_figure(fig, path, dpi)
 
 
 def write_profile_figure(res: dict) -> Path:
     """Draw ``figures/profile_<param>.png`` of a :func:`bforest_core.pipeline.profile.profile` result."""
-    from ..pipeline.store import slug
+    from ..pipeline.store import RunFiles, slug
+
     param = res["param"]
-    return profile_figure(res["values"], res["distances"], Path(res["run_dir"]) / "figures" / f"profile_{slug(param)}.png",
-                          param, failed=res["failed"], best_value=res["best_value"],
-                          best_distance=res["best_distance"], unit=res["unit"],
-                          title=f"Distance profile along {param} ({len(res['seeds'])} seeds; other parameters "
-                                f"at the best fit)")
+    return profile_figure(
+        res["values"],
+        res["distances"],
+        RunFiles(res["run_dir"]).figures_dir / f"profile_{slug(param)}.png",
+        param,
+        failed=res["failed"],
+        best_value=res["best_value"],
+        best_distance=res["best_distance"],
+        unit=res["unit"],
+        title=f"Distance profile along {param} ({len(res['seeds'])} seeds; other parameters at the best fit)",
+    )
 
 
 def write_compare_figure(res: dict) -> Path:
@@ -159,9 +204,16 @@ def write_compare_figure(res: dict) -> Path:
     heldout = {}
     for t in res["table"] if res.get("heldout") else []:
         n_end = max(len(c) for c in res["curves"][t["optimizer"]])
-        heldout[t["optimizer"]] = [(n_end if cp == "final" else min(int(cp), n_end), v) for cp, v in t["heldout"].items()]
-    fig = compare_figure(res["curves"], out / "compare.png", threshold=res["threshold"], heldout=heldout,
-                         heldout_threshold=(res.get("heldout") or {}).get("threshold"))
+        heldout[t["optimizer"]] = [
+            (n_end if cp == "final" else min(int(cp), n_end), v) for cp, v in t["heldout"].items()
+        ]
+    fig = compare_figure(
+        res["curves"],
+        out / "compare.png",
+        threshold=res["threshold"],
+        heldout=heldout,
+        heldout_threshold=(res.get("heldout") or {}).get("threshold"),
+    )
     md = out / "compare.md"
     if md.exists() and "](compare.png)" not in md.read_text():
         md.write_text(md.read_text() + "\n![curves](compare.png)\n")

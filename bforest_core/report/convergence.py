@@ -1,26 +1,30 @@
-"""Figures of an optimiser run: distance per evaluation and where the search went.
-"""
+"""Figures of an optimiser run: distance per evaluation and where the search went."""
+
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import math
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .document import cfg_kind
 from .canvas import MODEL_COLOR, capped_size, new_figure, save_figure
+from .document import cfg_kind
 
 if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
     from .run_view import RunView
 
 
 # ---------------------------------------------------------------------------------- fit diagnostics
-def convergence_figure(distances: np.ndarray, path, statuses: Sequence[str] | None = None,
-                       records: Sequence[Mapping] | None = None, title: str | None = None,
-                       dpi: int = 130) -> Path:
+def convergence_figure(
+    distances: np.ndarray,
+    path,
+    statuses: Sequence[str] | None = None,
+    records: Sequence[Mapping] | None = None,
+    title: str | None = None,
+    dpi: int = 130,
+) -> Path:
     """Distance of every evaluation with the best so far (left) and, when the optimiser logs
     generations/iterations, the best and mean distance per generation (right).
 
@@ -39,8 +43,17 @@ def convergence_figure(distances: np.ndarray, path, statuses: Sequence[str] | No
     best = np.minimum.accumulate(np.where(np.isfinite(d), d, np.inf)) if d.size else d
     ax.step(x, best, where="post", color=MODEL_COLOR, lw=1.8, label="best so far")
     if (~ok).any():
-        ax.scatter(x[~ok], np.full((~ok).sum(), 0.97), transform=ax.get_xaxis_transform(), marker="x",
-                   color="#e6550d", s=18, lw=1.0, label=f"failed ({(~ok).sum()}, penalty)", clip_on=False)
+        ax.scatter(
+            x[~ok],
+            np.full((~ok).sum(), 0.97),
+            transform=ax.get_xaxis_transform(),
+            marker="x",
+            color="#e6550d",
+            s=18,
+            lw=1.0,
+            label=f"failed ({(~ok).sum()}, penalty)",
+            clip_on=False,
+        )
     if ok.any():
         lo, hi = float(np.min(d[ok])), float(np.max(d[ok]))
         pad = 0.05 * (hi - lo) if hi > lo else 0.05 * max(abs(hi), 1e-3)
@@ -54,9 +67,11 @@ def convergence_figure(distances: np.ndarray, path, statuses: Sequence[str] | No
     if gen is not None:
         ax = axes[1]
         xkey, xs, series = gen
-        for key, style in (("best", dict(color=MODEL_COLOR, lw=1.8, marker="o", ms=3)),
-                           ("mean", dict(color="#1f77b4", lw=1.2, marker=".", ms=3)),
-                           ("median", dict(color="#2ca02c", lw=1.2, ls="--"))):
+        for key, style in (
+            ("best", dict(color=MODEL_COLOR, lw=1.8, marker="o", ms=3)),
+            ("mean", dict(color="#1f77b4", lw=1.2, marker=".", ms=3)),
+            ("median", dict(color="#2ca02c", lw=1.2, ls="--")),
+        ):
             if key in series:
                 ax.plot(xs, series[key], label=key, **style)
         if "mean" in series and "std" in series:
@@ -91,11 +106,17 @@ def _generation_series(records):
     return (xkey or "record"), xs, series
 
 
-def parameter_scatter_figure(names: Sequence[str], X: np.ndarray, distances: np.ndarray, path,
-                             best: Mapping[str, float] | None = None,
-                             bounds: Mapping[str, tuple[float, float]] | None = None,
-                             units: Mapping[str, str] | None = None,
-                             title: str | None = None, dpi: int = 130) -> Path:
+def parameter_scatter_figure(
+    names: Sequence[str],
+    X: np.ndarray,
+    distances: np.ndarray,
+    path,
+    best: Mapping[str, float] | None = None,
+    bounds: Mapping[str, tuple[float, float]] | None = None,
+    units: Mapping[str, str] | None = None,
+    title: str | None = None,
+    dpi: int = 130,
+) -> Path:
     """Distance against each free parameter over the successful evaluations, coloured by
     evaluation number (where the optimiser looked, and when); the best fit is a red star."""
     X = np.asarray(X, float).reshape(len(distances), len(names))
@@ -110,8 +131,17 @@ def parameter_scatter_figure(names: Sequence[str], X: np.ndarray, distances: np.
     for j, (ax, name) in enumerate(zip(axes, names)):
         sc = ax.scatter(X[:, j], d, c=np.arange(d.size), cmap="viridis", s=10, alpha=0.7, lw=0)
         if best and name in best:
-            ax.scatter([best[name]], [np.min(d)] if d.size else [np.nan], marker="*", s=160, color=MODEL_COLOR,
-                       edgecolor="black", lw=0.6, zorder=5, label=f"best {best[name]:.4g}")
+            ax.scatter(
+                [best[name]],
+                [np.min(d)] if d.size else [np.nan],
+                marker="*",
+                s=160,
+                color=MODEL_COLOR,
+                edgecolor="black",
+                lw=0.6,
+                zorder=5,
+                label=f"best {best[name]:.4g}",
+            )
             ax.legend(fontsize="small")
         if bounds and name in bounds:
             lo, hi = bounds[name]
@@ -134,17 +164,26 @@ def parameter_scatter_figure(names: Sequence[str], X: np.ndarray, distances: np.
 
 
 # ---------------------------------------------------------------------------------- run report
-def fig_convergence(v: "RunView"):
+def fig_convergence(v: RunView):
     evs = v.evaluations
     if not evs:
         v.note("no evaluations logged: convergence figures skipped")
         return []
     d = np.array([e.distance for e in evs], float)
     st = [e.status for e in evs]
-    out = [(convergence_figure(d, v.path / "figures" / "convergence.png", statuses=st, records=v.records,
-                               title=f"Convergence ({(v.best or {}).get('optimizer') or cfg_kind(v, 'optimizer')})"),
+    out = [
+        (
+            convergence_figure(
+                d,
+                v.store.figures_dir / "convergence.png",
+                statuses=st,
+                records=v.records,
+                title=f"Convergence ({(v.best or {}).get('optimizer') or cfg_kind(v, 'optimizer')})",
+            ),
             "Distance of every evaluation and the best so far; per-generation best and mean when the "
-            "optimiser logs generations")]
+            "optimiser logs generations",
+        )
+    ]
     names = [n for n in v.free_names if all(n in e.params for e in evs)]
     ok = [e for e in evs if e.ok]
     if names and ok:
@@ -152,10 +191,20 @@ def fig_convergence(v: "RunView"):
         bounds = {}
         if v.cfg is not None:
             bounds = {n: (v.cfg.ssm.free[n].lower, v.cfg.ssm.free[n].upper) for n in names}
-        out.append((parameter_scatter_figure(names, X, [e.distance for e in ok],
-                                             v.path / "figures" / "parameters.png", best=v.best_params,
-                                             bounds=bounds, units={n: s.unit for n, s in v.param_specs.items()},
-                                             title="Where the optimiser searched"),
-                    "Distance against each free parameter over the successful evaluations (colour: "
-                    "evaluation number; star: best fit; x-range: the bounds)"))
+        out.append(
+            (
+                parameter_scatter_figure(
+                    names,
+                    X,
+                    [e.distance for e in ok],
+                    v.store.figures_dir / "parameters.png",
+                    best=v.best_params,
+                    bounds=bounds,
+                    units={n: s.unit for n, s in v.param_specs.items()},
+                    title="Where the optimiser searched",
+                ),
+                "Distance against each free parameter over the successful evaluations (colour: "
+                "evaluation number; star: best fit; x-range: the bounds)",
+            )
+        )
     return out

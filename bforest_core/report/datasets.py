@@ -1,5 +1,5 @@
-"""Figures of the data sets: data against model per set, ECDFs on the worst projection lines.
-"""
+"""Figures of the data sets: data against model per set, ECDFs on the worst projection lines."""
+
 from __future__ import annotations
 
 import re
@@ -56,9 +56,16 @@ def _subsample(x: np.ndarray, k: int, rng) -> np.ndarray:
     return x[np.sort(rng.choice(x.shape[0], k, replace=False))]
 
 
-def set_scatter_figure(data: np.ndarray, model: np.ndarray, columns: Sequence[str], path,
-                       title: str | None = None, max_points: int = 4000, seed: int = 0,
-                       dpi: int = 120) -> Path:
+def set_scatter_figure(
+    data: np.ndarray,
+    model: np.ndarray,
+    columns: Sequence[str],
+    path,
+    title: str | None = None,
+    max_points: int = 4000,
+    seed: int = 0,
+    dpi: int = 120,
+) -> Path:
     """Data (QSM, blue) against model (SSM, red) for one data set: every pair of variates as a
     scatter (lower triangle), each variate's distribution on the diagonal (GigaScience Fig. 3).
 
@@ -93,8 +100,7 @@ def set_scatter_figure(data: np.ndarray, model: np.ndarray, columns: Sequence[st
             if i == j:
                 bins = np.linspace(*lims[j], 31)
                 if d_tab.shape[0]:
-                    ax.hist(d_tab[:, j], bins=bins, density=True, histtype="stepfilled", color=DATA_COLOR,
-                            alpha=0.35)
+                    ax.hist(d_tab[:, j], bins=bins, density=True, histtype="stepfilled", color=DATA_COLOR, alpha=0.35)
                     ax.hist(d_tab[:, j], bins=bins, density=True, histtype="step", color=DATA_COLOR, lw=1.0)
                 if m_tab.shape[0]:
                     ax.hist(m_tab[:, j], bins=bins, density=True, histtype="step", color=MODEL_COLOR, lw=1.4)
@@ -102,8 +108,7 @@ def set_scatter_figure(data: np.ndarray, model: np.ndarray, columns: Sequence[st
             else:
                 ax.scatter(d_pts[:, j], d_pts[:, i], s=ms, c=DATA_COLOR, alpha=0.45, lw=0, rasterized=True)
                 if m_pts.shape[0]:
-                    ax.scatter(m_pts[:, j], m_pts[:, i], s=ms, c=MODEL_COLOR, alpha=0.45, lw=0,
-                               rasterized=True)
+                    ax.scatter(m_pts[:, j], m_pts[:, i], s=ms, c=MODEL_COLOR, alpha=0.45, lw=0, rasterized=True)
                 ax.set_ylim(*lims[i])
             ax.set_xlim(*lims[j])
             ax.tick_params(labelsize="x-small")
@@ -115,11 +120,12 @@ def set_scatter_figure(data: np.ndarray, model: np.ndarray, columns: Sequence[st
                 ax.set_ylabel(column_label(names[i]), fontsize="small")
             elif j > 0 and i != j:
                 ax.set_yticklabels([])
-    handles = [Line2D([], [], marker="o", ls="", color=DATA_COLOR, label=f"data: target (n = {d_tab.shape[0]})"),
-               Line2D([], [], marker="o", ls="", color=MODEL_COLOR, label=f"model: best fit (n = {m_tab.shape[0]})")]
+    handles = [
+        Line2D([], [], marker="o", ls="", color=DATA_COLOR, label=f"data: target (n = {d_tab.shape[0]})"),
+        Line2D([], [], marker="o", ls="", color=MODEL_COLOR, label=f"model: best fit (n = {m_tab.shape[0]})"),
+    ]
     if k > 1:  # in the empty upper triangle, outside the layout
-        fig.legend(handles=handles, loc="upper right", bbox_to_anchor=(0.98, 0.93), fontsize="medium",
-                   frameon=False)
+        fig.legend(handles=handles, loc="upper right", bbox_to_anchor=(0.98, 0.93), fontsize="medium", frameon=False)
     else:
         axes[0, 0].legend(handles=handles, fontsize="small")
     if title:
@@ -139,7 +145,7 @@ def per_line_ks(u_model: np.ndarray, u_data: np.ndarray, directions: np.ndarray)
     nm, nd = u_model.shape[0], u_data.shape[0]
     if nm == 0 or nd == 0:
         return np.ones(A.shape[0])
-    z = np.concatenate([u_data @ A.T, u_model @ A.T], axis=0)          # (N, L)
+    z = np.concatenate([u_data @ A.T, u_model @ A.T], axis=0)  # (N, L)
     w = np.concatenate([np.full(nd, 1.0 / nd), np.full(nm, -1.0 / nm)])
     order = np.argsort(z, axis=0, kind="stable")
     zs = np.take_along_axis(z, order, axis=0)
@@ -173,8 +179,14 @@ def plot_ecdf_line(ax, x_model: np.ndarray, x_data: np.ndarray, label: str | Non
         k = int(np.argmax(np.abs(F1 - F2)))
         ks = float(abs(F1[k] - F2[k]))
         ax.plot([z[k], z[k]], [F1[k], F2[k]], color="black", lw=2.0, solid_capstyle="butt")
-        ax.annotate(f"KS = {ks:.3f}", (z[k], 0.5 * (F1[k] + F2[k])), xytext=(6, 0), textcoords="offset points",
-                    fontsize="small", va="center")
+        ax.annotate(
+            f"KS = {ks:.3f}",
+            (z[k], 0.5 * (F1[k] + F2[k])),
+            xytext=(6, 0),
+            textcoords="offset points",
+            fontsize="small",
+            va="center",
+        )
     ax.set_ylim(-0.02, 1.02)
     ax.set_ylabel("ECDF")
     if label:
@@ -193,10 +205,19 @@ def _line_formula(a: np.ndarray, names: Sequence[str], top: int = 3) -> str:
     return " ".join(parts) + more
 
 
-def worst_lines_figure(u_model: np.ndarray, u_data: np.ndarray, directions: np.ndarray,
-                       columns: Sequence[str], path, line_values: np.ndarray | None = None,
-                       statistic: str = "ks", k: int = 4, title: str | None = None, normalised: bool = False,
-                       dpi: int = 120) -> Path:
+def worst_lines_figure(
+    u_model: np.ndarray,
+    u_data: np.ndarray,
+    directions: np.ndarray,
+    columns: Sequence[str],
+    path,
+    line_values: np.ndarray | None = None,
+    statistic: str = "ks",
+    k: int = 4,
+    title: str | None = None,
+    normalised: bool = False,
+    dpi: int = 120,
+) -> Path:
     """Where the model misses the data: the distribution of the per-line statistic and the
     ECDFs of both sides on the ``k`` worst lines, with the KS gap marked.
 
@@ -212,7 +233,7 @@ def worst_lines_figure(u_model: np.ndarray, u_data: np.ndarray, directions: np.n
     nrow = -(-(k + 1) // ncol)
     fig = new_figure(*capped_size(3.6 * ncol, 3.4 * nrow, dpi))
     axes = fig.subplots(nrow, ncol, squeeze=False).ravel()
-    for ax in axes[k + 1:]:
+    for ax in axes[k + 1 :]:
         ax.set_visible(False)
     ax = axes[0]
     ax.hist(vals, bins=min(30, max(5, vals.size // 4)), color="#bbbbbb", edgecolor="#777777")
@@ -225,8 +246,12 @@ def worst_lines_figure(u_model: np.ndarray, u_data: np.ndarray, directions: np.n
     ax.legend(fontsize="x-small")
     for ax, i in zip(axes[1:], worst):
         a = A[i]
-        plot_ecdf_line(ax, u_model @ a, u_data @ a,
-                       label=f"line {i} ({stat_name} {vals[i]:.3f})\n{_line_formula(a, list(columns))}")
+        plot_ecdf_line(
+            ax,
+            u_model @ a,
+            u_data @ a,
+            label=f"line {i} ({stat_name} {vals[i]:.3f})\n{_line_formula(a, list(columns))}",
+        )
         ax.set_xlabel("projection" + (" (normalised units)" if normalised else ""), fontsize="small")
     axes[1].legend(fontsize="x-small", loc="lower right")
     if title:
@@ -276,7 +301,7 @@ def fig_sets(v: RunView):
         cols = v.columns.get(name) or [f"x{i}" for i in range(ud.shape[1])]
         D = per_set.get(name)
         title = f"data set {name}: data (target) vs best-fit model (SSM)" + (f", D = {D:.4f}" if D is not None else "")
-        p = set_scatter_figure(ud, um, cols, v.path / "figures" / f"set_{slug(name)}.png", title=title)
+        p = set_scatter_figure(ud, um, cols, v.store.figures_dir / f"set_{slug(name)}.png", title=title)
         out.append((p, f"Set {name}: every pair of variates, data blue, model red (angles in degrees)"))
         if dist is None or um.shape[0] == 0 or ud.shape[0] == 0:
             continue
@@ -287,9 +312,22 @@ def fig_sets(v: RunView):
             dist = None
             continue
         um2, ud2, lines, stat, normalised = distance_view(dist, name, um, ud)
-        p = worst_lines_figure(um2, ud2, A, cols, v.path / "figures" / f"lines_{slug(name)}.png",
-                               line_values=lines, statistic=stat, normalised=normalised,
-                               title=f"data set {name}: the worst-fitting projection lines")
-        out.append((p, f"Set {name}: per-line statistic over all {A.shape[0]} lines and the ECDFs of data "
-                       "(blue) and model (red) on the worst lines, KS gap in black"))
+        p = worst_lines_figure(
+            um2,
+            ud2,
+            A,
+            cols,
+            v.store.figures_dir / f"lines_{slug(name)}.png",
+            line_values=lines,
+            statistic=stat,
+            normalised=normalised,
+            title=f"data set {name}: the worst-fitting projection lines",
+        )
+        out.append(
+            (
+                p,
+                f"Set {name}: per-line statistic over all {A.shape[0]} lines and the ECDFs of data "
+                "(blue) and model (red) on the worst lines, KS gap in black",
+            )
+        )
     return out

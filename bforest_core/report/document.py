@@ -1,13 +1,13 @@
 """The report document (Markdown and HTML from one list of blocks) and its number formats."""
-from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from __future__ import annotations
 
 import base64
 import html as _html
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,9 +17,12 @@ if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
     from .run_view import RunView
 
 
-
-METRIC_ROWS = (("height", "height (m)", "d_h"), ("girth", "base diameter (m)", "d_g"),
-                ("crown_spread", "crown spread (m)", "d_c"), ("dbh", "DBH at 1.3 m (m)", None))
+METRIC_ROWS = (
+    ("height", "height (m)", "d_h"),
+    ("girth", "base diameter (m)", "d_g"),
+    ("crown_spread", "crown spread (m)", "d_c"),
+    ("dbh", "DBH at 1.3 m (m)", None),
+)
 
 
 def fmt(v, digits: int = 4) -> str:
@@ -51,6 +54,7 @@ def seconds_text(s) -> str:
 
 # ---------------------------------------------------------------------------------- document
 _TAG_START = re.compile(r"<(?=[A-Za-z/!?])")
+
 
 @dataclass
 class Document:
@@ -103,8 +107,7 @@ class Document:
             elif kind == "table":
                 header, rows = b[1], b[2]
                 esc = lambda c: md(c).replace("|", "\\|").replace("\n", " ")
-                lines = ["| " + " | ".join(esc(c) for c in header) + " |",
-                         "|" + "|".join("---" for _ in header) + "|"]
+                lines = ["| " + " | ".join(esc(c) for c in header) + " |", "|" + "|".join("---" for _ in header) + "|"]
                 lines += ["| " + " | ".join(esc(c) for c in r) + " |" for r in rows]
                 out.append("\n".join(lines))
             elif kind == "fig":
@@ -136,8 +139,7 @@ class Document:
                 parts.append("<ul>" + "".join(f"<li>{self._inline(x)}</li>" for x in b[1]) + "</ul>")
             elif kind == "table":
                 head = "".join(f"<th>{self._inline(str(c))}</th>" for c in b[1])
-                body = "".join("<tr>" + "".join(f"<td>{self._inline(str(c))}</td>" for c in r) + "</tr>"
-                               for r in b[2])
+                body = "".join("<tr>" + "".join(f"<td>{self._inline(str(c))}</td>" for c in r) + "</tr>" for r in b[2])
                 parts.append(f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>")
             elif kind == "fig":
                 shown, pdf = _shown(b[1])
@@ -147,21 +149,27 @@ class Document:
                     mime = "image/svg+xml" if p.suffix == ".svg" else "image/png"
                     src = f"data:{mime};base64," + base64.b64encode(p.read_bytes()).decode("ascii")
                 link = f' (<a href="{_html.escape(b[1])}">PDF</a>)' if pdf else ""
-                parts.append(f'<figure><img src="{src}" alt="{_html.escape(b[2])}">'
-                             f"<figcaption>{self._inline(b[2])}{link}</figcaption></figure>")
+                parts.append(
+                    f'<figure><img src="{src}" alt="{_html.escape(b[2])}">'
+                    f"<figcaption>{self._inline(b[2])}{link}</figcaption></figure>"
+                )
             elif kind == "raw":
                 parts.append(b[1])
             elif kind == "code":
                 parts.append(f"<pre>{_html.escape(b[1])}</pre>")
-        style = ("body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1200px;"
-                 "margin:2em auto;padding:0 1em;color:#222;line-height:1.45}"
-                 "table{border-collapse:collapse;margin:0.6em 0}th,td{border:1px solid #ccc;padding:3px 8px;"
-                 "text-align:left;font-size:0.92em}th{background:#f2f2f2}"
-                 "img{max-width:100%;border:1px solid #eee}figure{margin:1em 0}"
-                 "figcaption{font-size:0.9em;color:#555}code,pre{background:#f6f6f6;padding:1px 3px}"
-                 "h1{border-bottom:2px solid #ddd}h2{border-bottom:1px solid #eee;margin-top:1.6em}")
-        return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>{_html.escape(title)}"
-                f"</title><style>{style}</style></head><body>\n" + "\n".join(parts) + "\n</body></html>\n")
+        style = (
+            "body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1200px;"
+            "margin:2em auto;padding:0 1em;color:#222;line-height:1.45}"
+            "table{border-collapse:collapse;margin:0.6em 0}th,td{border:1px solid #ccc;padding:3px 8px;"
+            "text-align:left;font-size:0.92em}th{background:#f2f2f2}"
+            "img{max-width:100%;border:1px solid #eee}figure{margin:1em 0}"
+            "figcaption{font-size:0.9em;color:#555}code,pre{background:#f6f6f6;padding:1px 3px}"
+            "h1{border-bottom:2px solid #ddd}h2{border-bottom:1px solid #eee;margin-top:1.6em}"
+        )
+        return (
+            f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{_html.escape(title)}'
+            f"</title><style>{style}</style></head><body>\n" + "\n".join(parts) + "\n</body></html>\n"
+        )
 
 
 def _shown(rel: str) -> tuple[str, bool]:
@@ -172,7 +180,7 @@ def _shown(rel: str) -> tuple[str, bool]:
     return rel, False
 
 
-def cfg_kind(v: "RunView", section: str) -> str:
+def cfg_kind(v: RunView, section: str) -> str:
     if v.cfg is not None:
         return getattr(v.cfg, section).kind
     return str((v.raw_config.get(section) or {}).get("kind", "?"))

@@ -3,23 +3,31 @@ and pairs, weighted for a population), the trace of a chain, and a population's 
 acceptance rate and effective sample size per generation. The true parameters are drawn where
 the target was grown by the fitted model.
 """
+
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..pipeline.store import RunFiles
 from .canvas import MODEL_COLOR, TRUE_COLOR, capped_size, new_figure, save_figure
 
 if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
     from .run_view import RunView
 
 
-def chain_figure(chain: np.ndarray, names: Sequence[str], path, burn_in: int = 0,
-                 distances: np.ndarray | None = None, title: str | None = None, dpi: int = 120) -> Path:
+def chain_figure(
+    chain: np.ndarray,
+    names: Sequence[str],
+    path,
+    burn_in: int = 0,
+    distances: np.ndarray | None = None,
+    title: str | None = None,
+    dpi: int = 120,
+) -> Path:
     """Trace of every walker of an MCMC chain ``(steps, walkers, parameters)`` per parameter
     (and of each walker's distance, ``(steps, walkers)``), the burn-in shaded."""
     chain = np.asarray(chain, float)
@@ -35,8 +43,9 @@ def chain_figure(chain: np.ndarray, names: Sequence[str], path, burn_in: int = 0
     if distances is not None:
         dd = np.asarray(distances, float)
         ax = axes[p]
-        ax.plot(t, np.where(np.isfinite(dd), dd, np.nan), color="#1f77b4",
-                alpha=max(0.05, min(0.5, 8.0 / walkers)), lw=0.6)
+        ax.plot(
+            t, np.where(np.isfinite(dd), dd, np.nan), color="#1f77b4", alpha=max(0.05, min(0.5, 8.0 / walkers)), lw=0.6
+        )
         ax.set_ylabel("distance D", fontsize="small")
     for ax in axes:
         if burn_in > 0:
@@ -48,11 +57,20 @@ def chain_figure(chain: np.ndarray, names: Sequence[str], path, burn_in: int = 0
     return save_figure(fig, path, dpi)
 
 
-def corner_figure(samples: np.ndarray, names: Sequence[str], path, truths: Sequence[float] | None = None,
-                  bins: int | None = None, bounds: Sequence[tuple[float, float]] | None = None,
-                  smooth: float = 1.0, title: str | None = None, dpi: int = 120,
-                  units: Sequence[str] | None = None, weights: np.ndarray | None = None,
-                  true_values: Sequence[float | None] | None = None) -> Path:
+def corner_figure(
+    samples: np.ndarray,
+    names: Sequence[str],
+    path,
+    truths: Sequence[float] | None = None,
+    bins: int | None = None,
+    bounds: Sequence[tuple[float, float]] | None = None,
+    smooth: float = 1.0,
+    title: str | None = None,
+    dpi: int = 120,
+    units: Sequence[str] | None = None,
+    weights: np.ndarray | None = None,
+    true_values: Sequence[float | None] | None = None,
+) -> Path:
     """Corner plot of posterior samples ``(n, p)`` (with ``weights``, a weighted population):
     marginal histograms with the 5/50/95 % quantiles on the diagonal (those of ``best.json``),
     2-D histograms (Gaussian-smoothed by ``smooth`` bins) with 39/86 % (1σ/2σ) contours below;
@@ -60,7 +78,9 @@ def corner_figure(samples: np.ndarray, names: Sequence[str], path, truths: Seque
     was grown with; None where unknown) in green. ``bins`` defaults to about sqrt(n)/2, between
     8 and 30."""
     from scipy.ndimage import gaussian_filter
+
     from ..metrics import weighted_quantiles
+
     S = np.asarray(samples, float)
     W = np.ones(S.shape[0]) if weights is None else np.asarray(weights, float)
     keep = np.isfinite(S).all(1) & np.isfinite(W)
@@ -98,8 +118,9 @@ def corner_figure(samples: np.ndarray, names: Sequence[str], path, truths: Seque
                     q = weighted_quantiles(S[:, j], W / W.sum(), [5, 50, 95])
                     for v, ls in zip(q, (":", "-", ":")):
                         ax.axvline(v, color="#1f77b4", ls=ls, lw=1.0)
-                    ax.set_title(f"{names[j]} = {q[1]:.3g}$^{{+{q[2] - q[1]:.2g}}}_{{-{q[1] - q[0]:.2g}}}$",
-                                 fontsize="small")
+                    ax.set_title(
+                        f"{names[j]} = {q[1]:.3g}$^{{+{q[2] - q[1]:.2g}}}_{{-{q[1] - q[0]:.2g}}}$", fontsize="small"
+                    )
                 ax.set_yticks([])
                 if truths is not None:
                     ax.axvline(truths[j], color=MODEL_COLOR, lw=1.2)
@@ -132,12 +153,24 @@ def corner_figure(samples: np.ndarray, names: Sequence[str], path, truths: Seque
             elif i != j:
                 ax.set_yticklabels([])
     from matplotlib.lines import Line2D
+
     keys = [Line2D([], [], color="#1f77b4", lw=1.0, label="5/50/95 % quantiles")]
     if truths is not None:
         keys.append(Line2D([], [], color=MODEL_COLOR, lw=1.2, label="best evaluation"))
     if any(t is not None for t in true_values):
-        keys.append(Line2D([], [], color=TRUE_COLOR, lw=1.6, ls="--", marker="D", mec="black", mew=0.5,
-                           label="true value (generated target)"))
+        keys.append(
+            Line2D(
+                [],
+                [],
+                color=TRUE_COLOR,
+                lw=1.6,
+                ls="--",
+                marker="D",
+                mec="black",
+                mew=0.5,
+                label="true value (generated target)",
+            )
+        )
     if p >= 2:  # in the empty upper-right corner
         key_ax = axes[0, p - 1]
         key_ax.set_visible(True)
@@ -166,9 +199,16 @@ def _hpd_levels(H: np.ndarray, masses=(0.393, 0.865)):
     return levels if levels.size else None
 
 
-def generations_figure(epsilon: Sequence, acceptance: Sequence, ess: Sequence, path,
-                       epsilon_target: Sequence | float | None = None, particles: int | None = None,
-                       title: str | None = None, dpi: int = 130) -> Path:
+def generations_figure(
+    epsilon: Sequence,
+    acceptance: Sequence,
+    ess: Sequence,
+    path,
+    epsilon_target: Sequence | float | None = None,
+    particles: int | None = None,
+    title: str | None = None,
+    dpi: int = 130,
+) -> Path:
     """A population sampler's progress per generation: the tolerance ε (log scale, with its
     target where there is one), the acceptance rate and the effective sample size of the
     weights (with the population size). Generation 0 (the prior draws) has no ε."""
@@ -186,8 +226,15 @@ def generations_figure(epsilon: Sequence, acceptance: Sequence, ess: Sequence, p
         else:
             tgt = np.array([np.nan if t is None else float(t) for t in epsilon_target], float)
             # the target measured before generation t (t = 1, 2, ...)
-            ax.plot(np.arange(1, tgt.size + 1), np.where(tgt > 0, tgt, np.nan), "s--", color="black",
-                    ms=3, lw=1.0, label="ε target (noise floor)")
+            ax.plot(
+                np.arange(1, tgt.size + 1),
+                np.where(tgt > 0, tgt, np.nan),
+                "s--",
+                color="black",
+                ms=3,
+                lw=1.0,
+                label="ε target (noise floor)",
+            )
     if np.isfinite(eps).any() and np.nanmin(eps) > 0:
         ax.set_yscale("log")
     ax.set_ylabel("tolerance ε")
@@ -255,10 +302,11 @@ def _per_generation(diag: dict, key: str):
     return None
 
 
-def fig_posterior(v: "RunView"):
+def fig_posterior(v: RunView):
     """The posterior figures of a sampler's run: the corner plot for every posterior, the chain's
     trace for a chain, and tolerance, acceptance and ESS per generation for a population."""
     from ..pipeline.posterior import posterior_kind, posterior_samples
+
     diag = v.store.read_diagnostics()
     names = list(diag.get("names") or v.free_names)
     kind = posterior_kind(diag, (v.best or {}).get("posterior_kind"))
@@ -272,13 +320,23 @@ def fig_posterior(v: "RunView"):
         ch = mcmc_chain(diag, names)
         if ch is not None:
             chain, dist, burn, names = ch
-            out.append((chain_figure(chain, names, v.path / "figures" / "chain.png", burn_in=burn, distances=dist,
-                                     title="MCMC chain"),
-                        f"Trace of every walker per parameter ({chain.shape[1]} walkers, {chain.shape[0]} steps; "
-                        f"burn-in of {burn} steps shaded)"))
+            out.append(
+                (
+                    chain_figure(
+                        chain,
+                        names,
+                        v.store.figures_dir / "chain.png",
+                        burn_in=burn,
+                        distances=dist,
+                        title="MCMC chain",
+                    ),
+                    f"Trace of every walker per parameter ({chain.shape[1]} walkers, {chain.shape[0]} steps; "
+                    f"burn-in of {burn} steps shaded)",
+                )
+            )
         what = f"{X.shape[0]} draws of {int(diag.get('walkers') or 0) or '?'} walkers after burn-in"
     else:
-        ess = 1.0 / float(np.sum(w ** 2))
+        ess = 1.0 / float(np.sum(w**2))
         what = f"a population of {X.shape[0]} weighted particles, effective sample size {ess:.0f}"
     best = [v.best_params.get(n) for n in names] if v.best_params else None
     best = best if best and all(t is not None for t in best) else None
@@ -287,14 +345,26 @@ def fig_posterior(v: "RunView"):
         bounds = [(v.cfg.ssm.free[n].lower, v.cfg.ssm.free[n].upper) for n in names]
     specs = v.param_specs
     units = [specs[n].unit if n in specs else "" for n in names]
-    out.append((corner_figure(X, names, v.path / "figures" / "corner.png", truths=best, bounds=bounds, units=units,
-                              weights=None if kind == "chain" else w,
-                              true_values=true if any(t is not None for t in true) else None,
-                              title=f"Posterior: {what}"),
-                "Posterior marginals (5/50/95 % quantiles, as in best.json) and pairwise densities (39 %/86 % "
-                "contours)" + (", weighted by the particles' weights" if kind != "chain" else "")
-                + "; red: the best evaluation"
-                + ("; green: the true values the target was grown with" if any(t is not None for t in true) else "")))
+    out.append(
+        (
+            corner_figure(
+                X,
+                names,
+                v.store.figures_dir / "corner.png",
+                truths=best,
+                bounds=bounds,
+                units=units,
+                weights=None if kind == "chain" else w,
+                true_values=true if any(t is not None for t in true) else None,
+                title=f"Posterior: {what}",
+            ),
+            f"Posterior marginals (5/50/95 % quantiles, as in {RunFiles.BEST}) and pairwise densities (39 %/86 % "
+            "contours)"
+            + (", weighted by the particles' weights" if kind != "chain" else "")
+            + "; red: the best evaluation"
+            + ("; green: the true values the target was grown with" if any(t is not None for t in true) else ""),
+        )
+    )
     if kind == "population":
         eps, acc, ess = (_per_generation(diag, k) for k in ("epsilon", "acceptance", "ess"))
         if eps is not None and acc is not None and ess is not None and len(eps) == len(acc) == len(ess):
@@ -302,11 +372,24 @@ def fig_posterior(v: "RunView"):
             if target is None:
                 opt = (v.raw_config.get("optimizer") or {}).get("epsilon_target")
                 target = opt if isinstance(opt, (int, float)) and not isinstance(opt, bool) else None
-            n_pop = len(diag["population"]["particles"]) if isinstance(diag.get("population"), dict) \
-                and diag["population"].get("particles") is not None else X.shape[0]
-            out.append((generations_figure(eps, acc, ess, v.path / "figures" / "generations.png",
-                                           epsilon_target=target, particles=n_pop,
-                                           title="Population per generation"),
-                        "Tolerance ε (log scale; dashed: its target), acceptance rate and effective sample size "
-                        "of the weights per complete generation (generation 0: the prior draws)"))
+            n_pop = (
+                len(diag["population"]["particles"])
+                if isinstance(diag.get("population"), dict) and diag["population"].get("particles") is not None
+                else X.shape[0]
+            )
+            out.append(
+                (
+                    generations_figure(
+                        eps,
+                        acc,
+                        ess,
+                        v.store.figures_dir / "generations.png",
+                        epsilon_target=target,
+                        particles=n_pop,
+                        title="Population per generation",
+                    ),
+                    "Tolerance ε (log scale; dashed: its target), acceptance rate and effective sample size "
+                    "of the weights per complete generation (generation 0: the prior draws)",
+                )
+            )
     return out

@@ -1,4 +1,5 @@
 """Everything the report reads from a run directory, read once (:class:`RunView`)."""
+
 from __future__ import annotations
 
 import csv
@@ -10,9 +11,7 @@ import numpy as np
 
 from ..errors import BayesForestError
 from ..pipeline.clones import CSV_COLUMNS
-from ..pipeline.store import RunStore
-
-
+from ..pipeline.store import RunFiles, RunStore
 
 # ---------------------------------------------------------------------------------- run data
 #: clones.csv header -> row key (headers carry units)
@@ -37,27 +36,31 @@ class RunView:
     @cached_property
     def raw_config(self) -> dict:
         import tomllib
+
         try:
             return tomllib.loads(self.store.config_path.read_text(encoding="utf-8"))
         except Exception as exc:
-            self.note(f"config.toml could not be read: {exc}")
+            self.note(f"{RunFiles.CONFIG} could not be read: {exc}")
             return {}
 
     @cached_property
     def cfg(self):
         from ..config import load_config
+
         try:
             return load_config(self.store.config_path)
         except BayesForestError as exc:
-            self.note(f"config.toml does not validate with the installed plugins ({exc}); "
-                      "figures that need the models are skipped")
+            self.note(
+                f"{RunFiles.CONFIG} does not validate with the installed plugins ({exc}); "
+                "figures that need the models are skipped"
+            )
             return None
 
     @cached_property
     def best(self) -> dict | None:
-        p = self.path / "best.json"
+        p = self.store.best_path
         if not p.exists():
-            self.note("no best.json: the fit has not finished (the report shows the evaluations so far)")
+            self.note(f"no {RunFiles.BEST}: the fit has not finished (the report shows the evaluations so far)")
             return None
         return json.loads(p.read_text(encoding="utf-8"))
 
@@ -77,6 +80,7 @@ class RunView:
         try:
             from ..config import ssm_settings
             from ..registry import component
+
             ssm = component("ssm", self.cfg.ssm.kind, **ssm_settings(self.cfg))
             return {p.name: p for p in ssm.parameters}
         except Exception:
@@ -115,33 +119,37 @@ class RunView:
     def best_seeds(self) -> list[int]:
         if self.best is not None and self.best.get("seeds"):
             return list(self.best["seeds"])
-        from ..pipeline.objective import model_seeds
+        from ..pipeline.seeds import model_seeds
+
         c = self.cfg
         return model_seeds(c.seed, c.objective.seeds, "fixed") if c is not None else [1]
 
     # ----------------------------------------------------------------- target and data sets
     @cached_property
     def target(self):
-        """The :class:`~bforest_core.objective.Target` rebuilt from the config (or None)."""
+        """The :class:`~bforest_core.pipeline.target.Target` rebuilt from the config (or None)."""
         if self.cfg is None:
             return None
-        from ..pipeline.objective import build_target
+        from ..pipeline.target import build_target
+
         try:
             return build_target(self.cfg)
         except Exception as exc:  # a moved QSM file must not stop the report
-            self.note(f"the target could not be rebuilt from the config ({type(exc).__name__}: {exc}); "
-                      "using the run's saved copies")
+            self.note(
+                f"the target could not be rebuilt from the config ({type(exc).__name__}: {exc}); "
+                "using the run's saved copies"
+            )
             return None
 
     @cached_property
     def U_data(self) -> dict[str, np.ndarray]:
-        p = self.path / "target_sets.npz"
+        p = self.store.target_sets_path
         if p.exists():
             with np.load(p) as z:
                 return {k: np.asarray(z[k]) for k in z.files}
         if self.target is not None:
             return dict(self.target.U)
-        self.note("no target_sets.npz and the target could not be rebuilt: data-set figures skipped")
+        self.note(f"no {RunFiles.TARGET_SETS} and the target could not be rebuilt: data-set figures skipped")
         return {}
 
     @cached_property
@@ -150,32 +158,35 @@ class RunView:
             return dict(self.target.columns)
         if self.cfg is not None and self.U_data:
             try:
-                from ..pipeline.objective import feature_set_for
+                from ..pipeline.target import feature_set_for
+
                 fs = feature_set_for(self.cfg, "target")
                 return {k: list(fs.columns(k)) for k in self.U_data}
             except Exception:
                 pass
         return {k: [f"x{i}" for i in range(v.shape[1])] for k, v in self.U_data.items()}
 
-    def _read_tree(self, name: str):
-        p = self.path / name
+    def _read_tree(self, p: Path):
         if not p.exists():
             return None
         try:
             from ..io import read_qsm
+
             t = read_qsm(p)
             return t[0] if isinstance(t, list) else t
         except Exception as exc:
-            self.note(f"{name} could not be read ({type(exc).__name__}: {exc})")
+            self.note(f"{p.name} could not be read ({type(exc).__name__}: {exc})")
             return None
 
     @cached_property
     def target_tree(self):
         if self.target is not None:
             return self.target.trees[0]
-        t = self._read_tree("target.txt")
+        t = self._read_tree(self.store.target_tree_path)
         if t is None:
-            self.note("the target tree is not available (no target.txt and no readable target in the config)")
+            self.note(
+                f"the target tree is not available (no {RunFiles.TARGET_TREE} and no readable target in the config)"
+            )
         return t
 
     @cached_property
@@ -190,40 +201,39 @@ class RunView:
             try:
                 from ..config import ssm_settings
                 from ..registry import component
+
                 ssm = component("ssm", self.cfg.ssm.kind, **ssm_settings(self.cfg))
                 tree = ssm.simulate(self.best_params, int(self.best_seeds[0]))
                 self.best_tree_source = "regrown"
                 return tree
             except Exception as exc:
-                self.note(f"the best-fit tree could not be regrown ({type(exc).__name__}: {exc}); "
-                          "using best_tree.txt")
-        t = self._read_tree("best_tree.txt")
+                self.note(
+                    f"the best-fit tree could not be regrown ({type(exc).__name__}: {exc}); using {RunFiles.BEST_TREE}"
+                )
+        t = self._read_tree(self.store.best_tree_path)
         if t is not None:
-            self.best_tree_source = "best_tree.txt"
+            self.best_tree_source = RunFiles.BEST_TREE
         return t
 
     @cached_property
     def worker_parts(self):
-        """(features, distance) built exactly as the fit's workers build them (``init_worker``),
-        or None."""
+        """(features, distance) built exactly as the fit's workers build them
+        (:func:`~bforest_core.pipeline.scoring.build_scoring`), or None."""
         if self.cfg is None or not self.U_data:
             return None
-        from ..pipeline import objective
         from ..config import config_to_dict, section_settings
+        from ..pipeline.scoring import build_scoring
+
         if self.target is not None:
             fs_settings = self.target.feature_settings
         else:
             fs_settings = section_settings(self.cfg, "features")
-        saved = dict(objective._CTX)
         try:
-            objective.init_worker(config_to_dict(self.cfg), self.U_data, self.columns, fs_settings)
-            return objective._CTX["features"], objective._CTX["distance"]
+            ctx = build_scoring(config_to_dict(self.cfg), self.U_data, self.columns, fs_settings)
         except Exception as exc:
             self.note(f"the feature set and distance could not be set up ({type(exc).__name__}: {exc})")
             return None
-        finally:
-            objective._CTX.clear()
-            objective._CTX.update(saved)
+        return ctx["features"], ctx["distance"]
 
     @cached_property
     def U_model(self) -> dict[str, np.ndarray] | None:
@@ -241,6 +251,7 @@ class RunView:
             return self.best["target_metrics"]
         if self.target_tree is not None:
             from ..metrics import classical_metrics
+
             return classical_metrics(self.target_tree)
         return None
 
@@ -250,13 +261,14 @@ class RunView:
             return self.best["model_metrics"]
         if self.best_tree is not None:
             from ..metrics import classical_metrics
+
             return classical_metrics(self.best_tree)
         return None
 
     # ----------------------------------------------------------------- clones
     @cached_property
     def clone_rows(self) -> list[dict]:
-        p = self.path / "clones" / "clones.csv"
+        p = self.store.clones_dir() / RunFiles.CLONE_TABLE
         if not p.exists():
             return []
         rows = []
@@ -279,26 +291,29 @@ class RunView:
         """The first ``k`` clones grown ok, read from their files: ``(label, tree)`` with the
         label ``"clone <i>\nD = <distance>"``; a file that cannot be read is a note."""
         from ..io import read_qsm
+
         shown = []
         for r in self.clone_rows:
             if len(shown) >= k:
                 break
             f = r.get("file")
-            if r.get("status") != "ok" or not f or not (self.path / "clones" / f).exists():
+            if r.get("status") != "ok" or not f or not (self.store.clones_dir() / f).exists():
                 continue
             try:
-                t = read_qsm(self.path / "clones" / f)
+                t = read_qsm(self.store.clones_dir() / f)
                 t = t[0] if isinstance(t, list) else t
             except Exception as exc:
                 self.note(f"clone file {f} could not be read ({type(exc).__name__}: {exc})")
                 continue
             d = r.get("distance")
-            shown.append((f"clone {int(r['index'])}" + (f"\nD = {d:.3f}" if d is not None and np.isfinite(d) else ""), t))
+            shown.append(
+                (f"clone {int(r['index'])}" + (f"\nD = {d:.3f}" if d is not None and np.isfinite(d) else ""), t)
+            )
         return shown
 
     @cached_property
     def clone_summary(self) -> dict | None:
-        p = self.path / "clones" / "summary.json"
+        p = self.store.clones_dir() / RunFiles.CLONE_SUMMARY
         if not p.exists():
             return None
         return json.loads(p.read_text(encoding="utf-8"))

@@ -1,13 +1,13 @@
 """Figures of trees: one tree in three views, target beside best fit, clones beside the target,
 and the clones' classical metrics. The drawing primitives (:func:`plot_tree`, ...) take an ``Axes``
 so they can be reused in notebooks and other figures."""
+
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import math
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.collections import LineCollection
@@ -15,7 +15,17 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.ticker import MaxNLocator
 
-from .canvas import (ORDER_COLORS, DATA_COLOR, MODEL_COLOR, TARGET_LINE, VIEWS, new_figure, save_figure, _AXIS_NAMES, _VIEW_TITLES)
+from .canvas import (
+    _AXIS_NAMES,
+    _VIEW_TITLES,
+    DATA_COLOR,
+    MODEL_COLOR,
+    ORDER_COLORS,
+    TARGET_LINE,
+    VIEWS,
+    new_figure,
+    save_figure,
+)
 
 if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
     from .run_view import RunView
@@ -25,12 +35,14 @@ if TYPE_CHECKING:  # annotations only: run_view imports this module's neighbours
 def order_colors(order: np.ndarray) -> np.ndarray:
     """RGBA colour of each cylinder from its branch order (vectorised lookup)."""
     from matplotlib.colors import to_rgba_array
+
     palette = to_rgba_array(ORDER_COLORS)
     return palette[np.clip(np.asarray(order, int), 0, len(ORDER_COLORS) - 1)]
 
 
-def radius_linewidths(radius: np.ndarray, lw_max: float = 4.0, lw_min: float = 0.35,
-                      r_max: float | None = None) -> np.ndarray:
+def radius_linewidths(
+    radius: np.ndarray, lw_max: float = 4.0, lw_min: float = 0.35, r_max: float | None = None
+) -> np.ndarray:
     """Line widths in points proportional to the cylinder radius.
 
     The thickest cylinder (or ``r_max``, to draw several trees on one scale) gets ``lw_max``;
@@ -80,9 +92,23 @@ def tree_segments(tree, view: str = "xz", origin="base", offset=(0.0, 0.0)):
     return segs, perm
 
 
-def plot_tree(ax, tree, view: str = "xz", color_by: str = "order", *, origin="base", offset=(0.0, 0.0),
-              lw_max: float = 4.0, lw_min: float = 0.35, r_max: float | None = None, cmap: str = "viridis",
-              alpha: float = 1.0, label_axes: bool = True, autoscale: bool = True, zorder: float = 2):
+def plot_tree(
+    ax,
+    tree,
+    view: str = "xz",
+    color_by: str = "order",
+    *,
+    origin="base",
+    offset=(0.0, 0.0),
+    lw_max: float = 4.0,
+    lw_min: float = 0.35,
+    r_max: float | None = None,
+    cmap: str = "viridis",
+    alpha: float = 1.0,
+    label_axes: bool = True,
+    autoscale: bool = True,
+    zorder: float = 2,
+):
     """Draw a cylinder tree in one 2-D projection as a single :class:`LineCollection`.
 
     Parameters
@@ -121,8 +147,7 @@ def plot_tree(ax, tree, view: str = "xz", color_by: str = "order", *, origin="ba
         pass
     else:
         kw["colors"] = color_by
-    lc = LineCollection(segs, linewidths=lw, capstyle="round", joinstyle="round", alpha=alpha,
-                        zorder=zorder, **kw)
+    lc = LineCollection(segs, linewidths=lw, capstyle="round", joinstyle="round", alpha=alpha, zorder=zorder, **kw)
     if color_by == "radius":
         lc.set_array(radius * 100.0)
         lc.set_cmap(cmap)
@@ -140,8 +165,15 @@ def plot_tree(ax, tree, view: str = "xz", color_by: str = "order", *, origin="ba
 def order_legend(ax, orders: Sequence[int], loc: str = "upper right", title: str = "branch order", **kw):
     """Legend of the branch-order colours present in ``orders`` (``ax`` may be an Axes or a
     Figure)."""
-    return ax.legend(handles=order_handles(orders), loc=loc, title=title, fontsize="small",
-                     title_fontsize="small", framealpha=0.85, **kw)
+    return ax.legend(
+        handles=order_handles(orders),
+        loc=loc,
+        title=title,
+        fontsize="small",
+        title_fontsize="small",
+        framealpha=0.85,
+        **kw,
+    )
 
 
 def order_handles(orders: Sequence[int]) -> list:
@@ -183,9 +215,12 @@ def _set_limits(ax, ext, pad=0.04):
 def _tree_caption(tree) -> str:
     try:
         from ..metrics import classical_metrics
+
         m = classical_metrics(tree)
-        return (f"{tree.n} cylinders, {tree.n_branches} branches, height {m['height']:.2f} m, "
-                f"base diameter {m['base_diameter']:.3f} m, crown spread {m['crown_spread']:.2f} m")
+        return (
+            f"{tree.n} cylinders, {tree.n_branches} branches, height {m['height']:.2f} m, "
+            f"base diameter {m['base_diameter']:.3f} m, crown spread {m['crown_spread']:.2f} m"
+        )
     except Exception:
         return f"{tree.n} cylinders, {tree.n_branches} branches, max order {tree.max_order}"
 
@@ -213,16 +248,28 @@ def _fit_ratio(ext, ratio: float):
     return h0, h1, v0, v1
 
 
-def save_tree_figure(tree, path, title: str | None = None, views: Sequence[str] = ("xz", "yz", "xy"),
-                     color_by: str = "order", dpi: int = 130) -> Path:
+def save_tree_figure(
+    tree,
+    path,
+    title: str | None = None,
+    views: Sequence[str] = ("xz", "yz", "xy"),
+    color_by: str = "order",
+    dpi: int = 130,
+) -> Path:
     """One tree in three projections (side views XZ, YZ and the top view XY), coloured by
     branch order, line width proportional to radius (GigaScience Fig. 6)."""
     return tree_comparison_figure({"": tree}, path, title=title, views=views, color_by=color_by, dpi=dpi)
 
 
-def tree_comparison_figure(trees: Mapping[str, object], path, title: str | None = None,
-                           views: Sequence[str] = ("xz", "yz", "xy"), color_by: str = "order",
-                           dpi: int = 130, captions: bool = True) -> Path:
+def tree_comparison_figure(
+    trees: Mapping[str, object],
+    path,
+    title: str | None = None,
+    views: Sequence[str] = ("xz", "yz", "xy"),
+    color_by: str = "order",
+    dpi: int = 130,
+    captions: bool = True,
+) -> Path:
     """Several trees (rows, e.g. target and best fit) in the same projections (columns), on one
     scale: every panel of a column has the same limits and widths use one radius scale."""
     items = list(trees.items())
@@ -272,8 +319,14 @@ def _slots(trees, min_width: float = 0.0, gap_frac: float = 0.1):
     return offs, edges
 
 
-def clones_figure(target, clones: Sequence[tuple[str, object]], path, title: str | None = None,
-                  views: Sequence[str] = ("xz", "xy"), dpi: int = 130) -> Path:
+def clones_figure(
+    target,
+    clones: Sequence[tuple[str, object]],
+    path,
+    title: str | None = None,
+    views: Sequence[str] = ("xz", "xy"),
+    dpi: int = 130,
+) -> Path:
     """The target and several clones side by side on one scale (GigaScience Fig. 5): one row
     per view ("xz" side view, "xy" top view); a tree keeps the same x slot in every row, so its
     top view sits under its side view."""
@@ -302,14 +355,32 @@ def clones_figure(target, clones: Sequence[tuple[str, object]], path, title: str
     axes = fig.subplots(len(views), 1, squeeze=False, gridspec_kw={"height_ratios": hr})[:, 0]
     for r, (ax, vw) in enumerate(zip(axes, views)):
         for (label, t), off, (e0, e1) in zip(trees, offs, edges):
-            plot_tree(ax, t, vw, "order", offset=(off, 0.0), r_max=r_max, lw_max=3.0, lw_min=0.3,
-                      autoscale=False, label_axes=False)
+            plot_tree(
+                ax,
+                t,
+                vw,
+                "order",
+                offset=(off, 0.0),
+                r_max=r_max,
+                lw_max=3.0,
+                lw_min=0.3,
+                autoscale=False,
+                label_axes=False,
+            )
             if r == 0:
                 if label == "target":
                     label = f"target\n{t.n} cylinders"
-                ax.text(0.5 * (e0 + e1), 1.01, label, transform=ax.get_xaxis_transform(), ha="center",
-                        va="bottom", fontsize="small", color=DATA_COLOR if label.startswith("target") else "black",
-                        fontweight="bold" if label.startswith("target") else "normal")
+                ax.text(
+                    0.5 * (e0 + e1),
+                    1.01,
+                    label,
+                    transform=ax.get_xaxis_transform(),
+                    ha="center",
+                    va="bottom",
+                    fontsize="small",
+                    color=DATA_COLOR if label.startswith("target") else "black",
+                    fontweight="bold" if label.startswith("target") else "normal",
+                )
         _set_limits(ax, (x0, x1, vext[vw][0], vext[vw][1]), pad=0.02)
         h, v = VIEWS[vw][:2]
         ax.set_ylabel(f"{_AXIS_NAMES[v]} (m)")
@@ -324,15 +395,26 @@ def clones_figure(target, clones: Sequence[tuple[str, object]], path, title: str
     return save_figure(fig, path, dpi)
 
 
-_METRIC_PANELS = (("height", "height (m)"), ("girth", "base diameter (m)"), ("crown_spread", "crown spread (m)"),
-                  ("distance", "structural distance D"),
-                  ("d_h", "$d_h$: height error (%)"), ("d_g", "$d_g$: base diameter error (%)"),
-                  ("d_c", "$d_c$: crown spread error (%)"), ("n_cylinders", "cylinders"))
+_METRIC_PANELS = (
+    ("height", "height (m)"),
+    ("girth", "base diameter (m)"),
+    ("crown_spread", "crown spread (m)"),
+    ("distance", "structural distance D"),
+    ("d_h", "$d_h$: height error (%)"),
+    ("d_g", "$d_g$: base diameter error (%)"),
+    ("d_c", "$d_c$: crown spread error (%)"),
+    ("n_cylinders", "cylinders"),
+)
 
 
-def clone_metrics_figure(values: Mapping[str, np.ndarray], path, target: Mapping[str, float] | None = None,
-                         best: Mapping[str, float] | None = None, title: str | None = None,
-                         dpi: int = 130) -> Path:
+def clone_metrics_figure(
+    values: Mapping[str, np.ndarray],
+    path,
+    target: Mapping[str, float] | None = None,
+    best: Mapping[str, float] | None = None,
+    title: str | None = None,
+    dpi: int = 130,
+) -> Path:
     """Distributions over the clones of height, base diameter, crown spread, distance and the relative
     errors d_h, d_g, d_c (GigaScience Fig. 5D); the target's value is a black line, the best-fit
     tree's a red dashed line."""
@@ -362,12 +444,14 @@ def clone_metrics_figure(values: Mapping[str, np.ndarray], path, target: Mapping
             bv = bv * pct
             ax.axvline(bv, color=MODEL_COLOR, lw=1.5, ls="--", label="best fit")
         ax.set_title(f"median {np.median(x):.3g}, n = {x.size}", fontsize="small")
-    for ax in axes[len(panels):]:
+    for ax in axes[len(panels) :]:
         ax.set_visible(False)
     if panels:
-        handles = [Line2D([], [], color=TARGET_LINE, lw=1.8, label="target"),
-                   Line2D([], [], color=MODEL_COLOR, lw=1.5, ls="--", label="best-fit tree"),
-                   Patch(facecolor="#9bbcd9", edgecolor="#4a6f94", label="clones")]
+        handles = [
+            Line2D([], [], color=TARGET_LINE, lw=1.8, label="target"),
+            Line2D([], [], color=MODEL_COLOR, lw=1.5, ls="--", label="best-fit tree"),
+            Patch(facecolor="#9bbcd9", edgecolor="#4a6f94", label="clones"),
+        ]
         fig.legend(handles=handles, loc="outside lower center", ncols=3, fontsize="small")
     if title:
         fig.suptitle(title)
@@ -375,7 +459,7 @@ def clone_metrics_figure(values: Mapping[str, np.ndarray], path, target: Mapping
 
 
 # ---------------------------------------------------------------------------------- run report
-def fig_trees(v: "RunView"):
+def fig_trees(v: RunView):
     trees = {}
     if v.target_tree is not None:
         trees["target (QSM)" if v.cfg is None or v.cfg.target.qsm else "target"] = v.target_tree
@@ -384,15 +468,18 @@ def fig_trees(v: "RunView"):
     if not trees:
         v.note("trees figure skipped: neither the target nor the best-fit tree is available")
         return []
-    p = tree_comparison_figure(trees, v.path / "figures" / "trees.png",
-                               title="Target and best-fit tree (line width ∝ radius, colour = branch order)")
+    p = tree_comparison_figure(
+        trees,
+        v.store.figures_dir / "trees.png",
+        title="Target and best-fit tree (line width ∝ radius, colour = branch order)",
+    )
     cap = "Target and best-fit tree in the side views XZ, YZ and the top view XY, on one scale"
     if v.best_tree_source == "regrown":
         cap += " (best fit grown with the best parameters and the first model seed)"
     return [(p, cap)]
 
 
-def fig_clones(v: "RunView"):
+def fig_clones(v: RunView):
     rows = v.clone_rows
     ok = [r for r in rows if r.get("status") == "ok"]
     if not ok:
@@ -401,10 +488,18 @@ def fig_clones(v: "RunView"):
     k = v.cfg.report.clones_in_figure if v.cfg is not None else 6
     shown = v.clone_trees(k)
     if shown and v.target_tree is not None:
-        out.append((clones_figure(v.target_tree, shown, v.path / "figures" / "clones.png",
-                                  title=f"Target and {len(shown)} morphological clones of the best fit"),
-                    f"The target and {len(shown)} clones (the best-fit model with fresh seeds) on one scale, "
-                    "side view XZ and top view XY"))
+        out.append(
+            (
+                clones_figure(
+                    v.target_tree,
+                    shown,
+                    v.store.figures_dir / "clones.png",
+                    title=f"Target and {len(shown)} morphological clones of the best fit",
+                ),
+                f"The target and {len(shown)} clones (the best-fit model with fresh seeds) on one scale, "
+                "side view XZ and top view XY",
+            )
+        )
     keys = ("height", "girth", "crown_spread", "distance", "d_h", "d_g", "d_c", "n_cylinders")
     values = {k: np.array([r.get(k, np.nan) for r in ok], float) for k in keys}
     tm = dict(v.target_metrics or {})
@@ -413,11 +508,20 @@ def fig_clones(v: "RunView"):
     bm = dict(v.model_metrics or {})
     if v.best is not None:
         bm["distance"] = v.best.get("distance")
-        bm.update((v.best.get("relative_errors") or {}))
+        bm.update(v.best.get("relative_errors") or {})
     if v.best_tree is not None:
         bm["n_cylinders"] = v.best_tree.n
-    out.append((clone_metrics_figure(values, v.path / "figures" / "clone_metrics.png", target=tm, best=bm,
-                                     title=f"Classical metrics of {len(ok)} clones"),
-                "Distributions over the clones: height, base diameter, crown spread, structural distance and the "
-                "relative errors d_h, d_g, d_c; black: target, red dashed: best-fit tree"))
+    out.append(
+        (
+            clone_metrics_figure(
+                values,
+                v.store.figures_dir / "clone_metrics.png",
+                target=tm,
+                best=bm,
+                title=f"Classical metrics of {len(ok)} clones",
+            ),
+            "Distributions over the clones: height, base diameter, crown spread, structural distance and the "
+            "relative errors d_h, d_g, d_c; black: target, red dashed: best-fit tree",
+        )
+    )
     return out

@@ -9,11 +9,12 @@ Nothing is loaded from elsewhere (no library, no CDN, no font), so the page work
 copied folder. When it has drawn, the canvas carries ``data-drawn="<segments drawn>"``, and once
 the page is laid out its place on it (``data-top``, ``data-left``, CSS pixels).
 """
+
 from __future__ import annotations
 
 import html as _html
 import json
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -34,8 +35,14 @@ def tree_json(tree, label: str, max_cylinders: int = MAX_CYLINDERS) -> dict:
         keep = np.sort(np.argsort(-radius, kind="stable")[:max_cylinders])
     base = start[0] if tree.n else np.zeros(3)
     mm = lambda a: np.rint(1000.0 * a).astype(np.int64).ravel().tolist()  # noqa: E731
-    return {"label": label, "n": int(tree.n), "s": mm(start[keep] - base), "e": mm(end[keep] - base),
-            "r": mm(radius[keep]), "o": order[keep].tolist()}
+    return {
+        "label": label,
+        "n": int(tree.n),
+        "s": mm(start[keep] - base),
+        "e": mm(end[keep] - base),
+        "r": mm(radius[keep]),
+        "o": order[keep].tolist(),
+    }
 
 
 def view3d_html(trees: Sequence[tuple[str, object]], element_id: str = "bf-view3d", height: int = 560) -> str:
@@ -45,12 +52,14 @@ def view3d_html(trees: Sequence[tuple[str, object]], element_id: str = "bf-view3
     # "</" cannot end the script early inside a JSON string
     payload = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
     eid = _html.escape(element_id)
-    return (f'<div class="bf-view3d"><canvas id="{eid}" style="width:100%;height:{int(height)}px;'
-            'border:1px solid #ddd;touch-action:none;cursor:grab;background:#fff"></canvas>'
-            '<div style="font-size:0.9em;color:#555">Drag to turn the trees and tilt the view; double-click '
-            'resets it. Colour: branch order; line width: cylinder diameter; one scale for all trees.</div></div>\n'
-            f'<script type="application/json" id="{eid}-data">{payload}</script>\n'
-            f"<script>\n{_SCRIPT.replace('__ID__', json.dumps(element_id))}\n</script>")
+    return (
+        f'<div class="bf-view3d"><canvas id="{eid}" style="width:100%;height:{int(height)}px;'
+        'border:1px solid #ddd;touch-action:none;cursor:grab;background:#fff"></canvas>'
+        '<div style="font-size:0.9em;color:#555">Drag to turn the trees and tilt the view; double-click '
+        "resets it. Colour: branch order; line width: cylinder diameter; one scale for all trees.</div></div>\n"
+        f'<script type="application/json" id="{eid}-data">{payload}</script>\n'
+        f"<script>\n{_SCRIPT.replace('__ID__', json.dumps(element_id))}\n</script>"
+    )
 
 
 _SCRIPT = r"""

@@ -49,6 +49,7 @@ qsm_reader / qsm_writer / optimizer / executor
     see :func:`reader_checks`, :func:`writer_checks`, :func:`optimizer_checks`,
     :func:`executor_checks`.
 """
+
 from ._base import Check, CheckResult, ConformanceError, Report, check_tree
 from .distance import check_distance, distance_checks
 from .executor import check_executor, executor_checks
@@ -59,8 +60,30 @@ from .registry_checks import check_component, component_checks, run_all
 from .samples import sample_tables, sample_tree, sample_trees
 from .ssm import check_ssm, ssm_checks
 
-__all__ = ["ConformanceError", "Check", "CheckResult", "Report", "check_tree", "sample_tree",
-           "sample_trees", "sample_tables", "component_checks", "check_component", "ssm_checks",
-           "check_ssm", "feature_set_checks", "check_feature_set", "distance_checks", "check_distance",
-           "reader_checks", "check_reader", "writer_checks", "check_writer", "optimizer_checks",
-           "check_optimizer", "executor_checks", "check_executor", "run_all"]
+__all__ = [
+    "ConformanceError",
+    "Check",
+    "CheckResult",
+    "Report",
+    "check_tree",
+    "sample_tree",
+    "sample_trees",
+    "sample_tables",
+    "component_checks",
+    "check_component",
+    "ssm_checks",
+    "check_ssm",
+    "feature_set_checks",
+    "check_feature_set",
+    "distance_checks",
+    "check_distance",
+    "reader_checks",
+    "check_reader",
+    "writer_checks",
+    "check_writer",
+    "optimizer_checks",
+    "check_optimizer",
+    "executor_checks",
+    "check_executor",
+    "run_all",
+]

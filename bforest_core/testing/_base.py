@@ -1,4 +1,5 @@
 """Results, the check machinery and the checks every component shares."""
+
 from __future__ import annotations
 
 import json
@@ -23,6 +24,7 @@ METADATA_KEYS = ("model", "params", "seed", "status")
 # ==============================================================================================
 # results
 # ==============================================================================================
+
 
 class ConformanceError(AssertionError):
     """A component failed one or more conformance checks.
@@ -101,8 +103,13 @@ class Check:
         except _Fail as exc:
             return CheckResult(self.component, self.name, False, str(exc), seconds=time.perf_counter() - t0)
         except Exception as exc:  # the component itself broke
-            return CheckResult(self.component, self.name, False, f"raised {type(exc).__name__}: {exc}",
-                               seconds=time.perf_counter() - t0)
+            return CheckResult(
+                self.component,
+                self.name,
+                False,
+                f"raised {type(exc).__name__}: {exc}",
+                seconds=time.perf_counter() - t0,
+            )
         return CheckResult(self.component, self.name, True, note=note, seconds=time.perf_counter() - t0)
 
     def __call__(self) -> CheckResult:
@@ -160,6 +167,7 @@ def _run(checks: Sequence[Check], label: str, raise_on_failure: bool) -> Report:
 # helpers
 # ==============================================================================================
 
+
 def _instance(obj, kind: str, settings: Mapping[str, Any] | None):
     """``(cls, instance-or-None, settings-dict, error)`` of a class or an instance."""
     if isinstance(obj, type):
@@ -167,8 +175,12 @@ def _instance(obj, kind: str, settings: Mapping[str, Any] | None):
         try:
             inst = cls(**dict(settings or {}))
         except Exception as exc:
-            return cls, None, dict(settings or {}), f"{cls.__qualname__}(**{dict(settings or {})!r}) raised " \
-                                                    f"{type(exc).__name__}: {exc}"
+            return (
+                cls,
+                None,
+                dict(settings or {}),
+                f"{cls.__qualname__}(**{dict(settings or {})!r}) raised {type(exc).__name__}: {exc}",
+            )
         return cls, inst, dict(settings or {}), ""
     if settings:
         raise TypeError("give settings only together with a component class, not an instance")
@@ -238,14 +250,18 @@ def check_tree(tree, what: str = "tree") -> None:
     _require(n >= 1, f"{what} has no cylinders")
     for k, shape in (("start", (n, 3)), ("axis", (n, 3)), ("length", (n,)), ("radius", (n,))):
         a = getattr(tree, k)
-        _require(a.shape == shape and a.dtype == np.float64, f"{what}.{k} has shape {a.shape} and dtype "
-                                                             f"{a.dtype}, expected {shape} float64")
+        _require(
+            a.shape == shape and a.dtype == np.float64,
+            f"{what}.{k} has shape {a.shape} and dtype {a.dtype}, expected {shape} float64",
+        )
         bad = np.flatnonzero(~np.isfinite(a).reshape(n, -1).all(axis=1))
         _require(bad.size == 0, f"{what}.{k} is not finite at rows {bad[:5].tolist()}")
     for k in ("parent", "extension"):
         a = getattr(tree, k)
-        _require(a.shape == (n,) and a.dtype == np.int64, f"{what}.{k} has shape {a.shape} and dtype {a.dtype}, "
-                                                          f"expected ({n},) int64")
+        _require(
+            a.shape == (n,) and a.dtype == np.int64,
+            f"{what}.{k} has shape {a.shape} and dtype {a.dtype}, expected ({n},) int64",
+        )
     for k in ("radius", "length"):
         bad = np.flatnonzero(getattr(tree, k) <= 0)
         _require(bad.size == 0, f"{what}.{k} <= 0 at rows {bad[:5].tolist()}")
@@ -256,8 +272,10 @@ def check_tree(tree, what: str = "tree") -> None:
     _require(p[0] == -1, f"{what}: row 0 is not the root (parent[0] = {p[0]})")
     rows = np.arange(1, n)
     bad = rows[(p[1:] < 0) | (p[1:] >= rows)]
-    _require(bad.size == 0, f"{what}: parent is not in [0, row) at rows {bad[:5].tolist()} "
-                            "(one root at row 0, parents before children)")
+    _require(
+        bad.size == 0,
+        f"{what}: parent is not in [0, row) at rows {bad[:5].tolist()} (one root at row 0, parents before children)",
+    )
     e = tree.extension
     has = np.flatnonzero(e >= 0)
     _require(np.all(e >= -1) and np.all(e < n), f"{what}.extension out of range")
@@ -272,17 +290,25 @@ def _common_checks(cls, inst, settings, label, kind, registered, make_error="") 
     def c_class():
         _require(getattr(cls, "kind", None) in KINDS, f"kind {getattr(cls, 'kind', None)!r} is not one of {KINDS}")
         _require(cls.kind == kind, f"kind is {cls.kind!r}, checked as {kind!r}")
-        _require(issubclass(cls, INTERFACES[kind]), f"{cls.__qualname__} does not subclass "
-                                                     f"bforest_core.{INTERFACES[kind].__name__}")
+        _require(
+            issubclass(cls, INTERFACES[kind]),
+            f"{cls.__qualname__} does not subclass bforest_core.{INTERFACES[kind].__name__}",
+        )
         name = getattr(cls, "name", None)
         _require(isinstance(name, str) and name != "", "class attribute 'name' is missing or empty")
-        _require(name.strip() == name and not any(ch.isspace() or ch in "\"'[]=#" for ch in name),
-                 f"name {name!r} has whitespace or TOML-special characters (it is typed in configs as kind = \"...\")")
+        _require(
+            name.strip() == name and not any(ch.isspace() or ch in "\"'[]=#" for ch in name),
+            f'name {name!r} has whitespace or TOML-special characters (it is typed in configs as kind = "...")',
+        )
         _require(isinstance(getattr(cls, "summary", ""), str), "summary is not a string")
-        _require(isinstance(cls.Settings, type) and issubclass(cls.Settings, ComponentSettings),
-                 "Settings is not a subclass of bforest_core.ComponentSettings")
-        _require(not getattr(cls, "__abstractmethods__", None),
-                 f"abstract methods not implemented: {', '.join(sorted(cls.__abstractmethods__))}")
+        _require(
+            isinstance(cls.Settings, type) and issubclass(cls.Settings, ComponentSettings),
+            "Settings is not a subclass of bforest_core.ComponentSettings",
+        )
+        _require(
+            not getattr(cls, "__abstractmethods__", None),
+            f"abstract methods not implemented: {', '.join(sorted(cls.__abstractmethods__))}",
+        )
 
     def c_settings():
         _require(inst is not None, make_error or "could not be instantiated")
@@ -299,36 +325,52 @@ def _common_checks(cls, inst, settings, label, kind, registered, make_error="") 
         except pydantic.ValidationError as exc:
             _require(UNKNOWN_KEY in str(exc), f"the error for an unknown key does not name it: {exc}")
         else:
-            raise _Fail(f"an unknown settings key ({UNKNOWN_KEY!r}) was accepted; Settings must forbid extra "
-                        "keys (subclass bforest_core.ComponentSettings)")
+            raise _Fail(
+                f"an unknown settings key ({UNKNOWN_KEY!r}) was accepted; Settings must forbid extra "
+                "keys (subclass bforest_core.ComponentSettings)"
+            )
 
     checks = [Check(label, "class", c_class), Check(label, "settings", c_settings)]
     if registered:
+
         def c_registered():
             from ..registry import discover
+
             reg = discover()
             entry = reg.components.get((kind, cls.name))
-            _require(entry is not None, f"not registered: bf.discover() has no {kind} {cls.name!r} "
-                     f"(known: {', '.join(reg.names(kind)) or 'none'}; plugin load errors: "
-                     f"{[e.error for e in reg.errors] or 'none'})")
-            _require(entry.cls is cls, f"the registry resolves {kind} {cls.name!r} to {entry.cls.__module__}."
-                                       f"{entry.cls.__qualname__}, not to {cls.__module__}.{cls.__qualname__}")
+            _require(
+                entry is not None,
+                f"not registered: bf.discover() has no {kind} {cls.name!r} "
+                f"(known: {', '.join(reg.names(kind)) or 'none'}; plugin load errors: "
+                f"{[e.error for e in reg.errors] or 'none'})",
+            )
+            _require(
+                entry.cls is cls,
+                f"the registry resolves {kind} {cls.name!r} to {entry.cls.__module__}."
+                f"{entry.cls.__qualname__}, not to {cls.__module__}.{cls.__qualname__}",
+            )
             if isinstance(registered, str):
-                _require(entry.distribution == registered, f"registered by distribution {entry.distribution!r}, "
-                                                           f"expected {registered!r}")
+                _require(
+                    entry.distribution == registered,
+                    f"registered by distribution {entry.distribution!r}, expected {registered!r}",
+                )
             from ..registry import component
+
             component(kind, cls.name, **settings)
             return f"from {entry.distribution} {entry.version} (entry point {entry.plugin!r})"
+
         checks.append(Check(label, "registered", c_registered))
     return checks
 
 
 def _priority_check(cls, label) -> Check:
     """``priority`` (``QSMReader``/``QSMWriter``, default 0) is a whole number."""
+
     def c_priority():
         p = cls.priority
         _require(isinstance(p, int) and not isinstance(p, bool), f"priority is {p!r}, expected an int (default 0)")
         return f"priority {p}"
+
     return Check(label, "priority", c_priority)
 
 
@@ -341,8 +383,10 @@ def _roundtrip(inst):
     try:
         data = pickle.dumps(inst)
     except Exception as exc:
-        raise _Fail(f"the instance cannot be pickled ({type(exc).__name__}: {exc}); executors send components "
-                    "to worker processes, so keep only picklable state (no lambdas, locks, open files)") from None
+        raise _Fail(
+            f"the instance cannot be pickled ({type(exc).__name__}: {exc}); executors send components "
+            "to worker processes, so keep only picklable state (no lambdas, locks, open files)"
+        ) from None
     try:
         other = pickle.loads(data)
     except Exception as exc:

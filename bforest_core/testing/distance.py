@@ -1,4 +1,5 @@
 """Conformance checks of a distance."""
+
 from __future__ import annotations
 
 import math
@@ -12,8 +13,16 @@ from .samples import sample_tables
 
 # Over 80 lines by design: the nested checks share one prepared instance and its extracted
 # tables through the closure; each check on its own is a few lines.
-def distance_checks(distance, tables=None, *, settings=None, atol: float = 1e-9, separates: bool = True,
-                    empty: bool = True, registered: bool | str = False) -> list[Check]:
+def distance_checks(
+    distance,
+    tables=None,
+    *,
+    settings=None,
+    atol: float = 1e-9,
+    separates: bool = True,
+    empty: bool = True,
+    registered: bool | str = False,
+) -> list[Check]:
     """The conformance checks of a distance.
 
     Parameters
@@ -42,11 +51,15 @@ def distance_checks(distance, tables=None, *, settings=None, atol: float = 1e-9,
 
     def values(d, U):
         per = d.compute_per_set(U, U_data)
-        _require(isinstance(per, dict) and set(per) == set(U_data),
-                 f"compute_per_set returned {per!r}, expected a dict with the sets {sorted(U_data)}")
+        _require(
+            isinstance(per, dict) and set(per) == set(U_data),
+            f"compute_per_set returned {per!r}, expected a dict with the sets {sorted(U_data)}",
+        )
         for k, v in per.items():
-            _require(v is None or (isinstance(v, (float, int, np.floating)) and math.isfinite(v) and v >= 0),
-                     f"set {k!r}: distance {v!r} is not a finite non-negative number")
+            _require(
+                v is None or (isinstance(v, (float, int, np.floating)) and math.isfinite(v) and v >= 0),
+                f"set {k!r}: distance {v!r} is not a finite non-negative number",
+            )
         return per
 
     def c_identical():
@@ -67,8 +80,11 @@ def distance_checks(distance, tables=None, *, settings=None, atol: float = 1e-9,
     def c_separates():
         per = values(prepared(), U_model)
         zero = [k for k, v in per.items() if v is None or v <= 0]
-        _require(not zero, f"tables shifted by 1 in every column give distance 0 (or None) for sets {zero} "
-                           "(pass separates=False if that is intended)")
+        _require(
+            not zero,
+            f"tables shifted by 1 in every column give distance 0 (or None) for sets {zero} "
+            "(pass separates=False if that is intended)",
+        )
 
     def c_determinism():
         d = prepared()
@@ -85,9 +101,10 @@ def distance_checks(distance, tables=None, *, settings=None, atol: float = 1e-9,
         d = prepared()
         _require(isinstance(d.statistic, str) and d.statistic, f"statistic is {d.statistic!r}, expected a name")
         norms = d.normalizations()
-        _require(isinstance(norms, dict) and set(norms) <= set(U_data)
-                 and all(isinstance(v, dict) for v in norms.values()),
-                 f"normalizations() returned {norms!r}, expected a dict of dicts keyed by prepared sets")
+        _require(
+            isinstance(norms, dict) and set(norms) <= set(U_data) and all(isinstance(v, dict) for v in norms.values()),
+            f"normalizations() returned {norms!r}, expected a dict of dicts keyed by prepared sets",
+        )
         k = next(k for k in U_data if len(U_data[k]) and len(U_model[k]))
         try:
             lines = d.line_values(U_model[k], U_data[k], set_name=k)
@@ -98,8 +115,10 @@ def distance_checks(distance, tables=None, *, settings=None, atol: float = 1e-9,
             n = d.directions(U_data[k].shape[1]).shape[0]
         except NotImplementedError:
             raise _Fail("line_values gives values but directions() raises: which lines are they?") from None
-        _require(lines.shape == (n,) and np.all(np.isfinite(lines)),
-                 f"line_values of set {k!r} has shape {lines.shape}, expected ({n},) finite values, one per direction")
+        _require(
+            lines.shape == (n,) and np.all(np.isfinite(lines)),
+            f"line_values of set {k!r} has shape {lines.shape}, expected ({n},) finite values, one per direction",
+        )
         return f"statistic {d.statistic!r}; {n} lines"
 
     def c_pickle():
@@ -109,7 +128,9 @@ def distance_checks(distance, tables=None, *, settings=None, atol: float = 1e-9,
         _require(a == b, f"the unpickled (prepared) distance gives {b}, the original {a}")
 
     checks = _common_checks(cls, inst, settings, label, "distance", registered, err) + [
-        Check(label, "identical", c_identical), Check(label, "finite", c_finite)]
+        Check(label, "identical", c_identical),
+        Check(label, "finite", c_finite),
+    ]
     if separates:
         checks.append(Check(label, "separates", c_separates))
     checks.append(Check(label, "determinism", c_determinism))

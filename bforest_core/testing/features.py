@@ -1,20 +1,27 @@
 """Conformance checks of a feature set."""
+
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
 from ..tree import Tree
-
-from ._base import (Check, Report, _common_checks, _instance, _label, _need, _require, _roundtrip, _run, _tables_diff)
+from ._base import Check, Report, _common_checks, _instance, _label, _need, _require, _roundtrip, _run, _tables_diff
 from .samples import sample_trees
 
 
 # Over 80 lines by design: the nested checks share one prepared instance and its extracted
 # tables through the closure; each check on its own is a few lines.
-def feature_set_checks(features, trees: Sequence[Tree] | None = None, *, settings=None,
-                       allow_nan: bool = False, registered: bool | str = False) -> list[Check]:
+def feature_set_checks(
+    features,
+    trees: Sequence[Tree] | None = None,
+    *,
+    settings=None,
+    allow_nan: bool = False,
+    registered: bool | str = False,
+) -> list[Check]:
     """The conformance checks of a feature set.
 
     Parameters
@@ -49,8 +56,10 @@ def feature_set_checks(features, trees: Sequence[Tree] | None = None, *, setting
         _require(len(set(names)) == len(names), f"duplicate set names: {names!r}")
         for n in names:
             cols = fs.columns(n)
-            _require(isinstance(cols, list) and len(cols) > 0 and all(isinstance(c, str) and c for c in cols),
-                     f"columns({n!r}) is {cols!r}, expected a non-empty list of strings")
+            _require(
+                isinstance(cols, list) and len(cols) > 0 and all(isinstance(c, str) and c for c in cols),
+                f"columns({n!r}) is {cols!r}, expected a non-empty list of strings",
+            )
             _require(len(set(cols)) == len(cols), f"columns({n!r}) has duplicates: {cols!r}")
         return ", ".join(f"{n} ({len(fs.columns(n))} columns)" for n in names)
 
@@ -66,8 +75,10 @@ def feature_set_checks(features, trees: Sequence[Tree] | None = None, *, setting
                 _require(isinstance(a, np.ndarray), f"set {k!r} is a {type(a).__name__}, not a numpy array")
                 _require(a.ndim == 2, f"set {k!r} has shape {a.shape}; tables are 2-D (rows, columns)")
                 _require(a.dtype == np.float64, f"set {k!r} has dtype {a.dtype}, expected float64")
-                _require(a.shape[1] == len(cols), f"set {k!r} has {a.shape[1]} columns but columns({k!r}) names "
-                                                  f"{len(cols)}: {cols}")
+                _require(
+                    a.shape[1] == len(cols),
+                    f"set {k!r} has {a.shape[1]} columns but columns({k!r}) names {len(cols)}: {cols}",
+                )
                 _require(not np.isinf(a).any(), f"set {k!r} of tree {i} holds inf values")
                 if not allow_nan:
                     bad = np.flatnonzero(np.isnan(a).any(axis=1))
@@ -86,8 +97,10 @@ def feature_set_checks(features, trees: Sequence[Tree] | None = None, *, setting
         _require(list(pooled) == list(fs.set_names), f"extract_pooled gave sets {list(pooled)}")
         for k in fs.set_names:
             n = sum(fs.extract(t)[k].shape[0] for t in trees)
-            _require(pooled[k].shape[0] == n, f"extract_pooled set {k!r} has {pooled[k].shape[0]} rows, the trees "
-                                              f"have {n} together")
+            _require(
+                pooled[k].shape[0] == n,
+                f"extract_pooled set {k!r} has {pooled[k].shape[0]} rows, the trees have {n} together",
+            )
 
     def c_pickle():
         fs = prepared()
@@ -96,9 +109,12 @@ def feature_set_checks(features, trees: Sequence[Tree] | None = None, *, setting
         _require(d is None, f"the unpickled (prepared) feature set extracts different tables: {d}")
 
     return _common_checks(cls, inst, settings, label, "features", registered, err) + [
-        Check(label, "set_names", c_names), Check(label, "extract", c_extract),
-        Check(label, "determinism", c_determinism), Check(label, "pooled", c_pooled),
-        Check(label, "pickle", c_pickle)]
+        Check(label, "set_names", c_names),
+        Check(label, "extract", c_extract),
+        Check(label, "determinism", c_determinism),
+        Check(label, "pooled", c_pooled),
+        Check(label, "pickle", c_pickle),
+    ]
 
 
 def check_feature_set(features, trees=None, *, raise_on_failure: bool = True, **options) -> Report:

@@ -1,4 +1,5 @@
 """Conformance checks of QSM readers and writers."""
+
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
@@ -25,8 +26,15 @@ from ._base import (
 from .samples import sample_tree
 
 
-def reader_checks(reader, paths: Sequence[str | Path], *, settings=None, foreign: Sequence[str | Path] = (),
-                  options: Mapping[str, Any] | None = None, registered: bool | str = False) -> list[Check]:
+def reader_checks(
+    reader,
+    paths: Sequence[str | Path],
+    *,
+    settings=None,
+    foreign: Sequence[str | Path] = (),
+    options: Mapping[str, Any] | None = None,
+    registered: bool | str = False,
+) -> list[Check]:
     """The conformance checks of a QSM reader.
 
     Parameters
@@ -59,8 +67,10 @@ def reader_checks(reader, paths: Sequence[str | Path], *, settings=None, foreign
     def c_suffixes():
         s = cls.suffixes
         _require(isinstance(s, tuple) and len(s) > 0, f"suffixes is {s!r}, expected a non-empty tuple")
-        _require(all(isinstance(x, str) and x.startswith(".") and x == x.lower() for x in s),
-                 f"suffixes must be lower-case strings with the dot: {s!r}")
+        _require(
+            all(isinstance(x, str) and x.startswith(".") and x == x.lower() for x in s),
+            f"suffixes must be lower-case strings with the dot: {s!r}",
+        )
         bad = [p.name for p in paths if p.suffix.lower() not in s]
         _require(not bad, f"sample files {bad} have suffixes outside {s}")
 
@@ -94,9 +104,13 @@ def reader_checks(reader, paths: Sequence[str | Path], *, settings=None, foreign
     if not paths:
         raise ValueError("reader_checks needs at least one sample file in `paths`")
     return _common_checks(cls, inst, settings, label, "qsm_reader", registered, err) + [
-        Check(label, "suffixes", c_suffixes), _priority_check(cls, label), Check(label, "sniff", c_sniff),
+        Check(label, "suffixes", c_suffixes),
+        _priority_check(cls, label),
+        Check(label, "sniff", c_sniff),
         Check(label, "read", c_read),
-        Check(label, "determinism", c_determinism), Check(label, "pickle", c_pickle)]
+        Check(label, "determinism", c_determinism),
+        Check(label, "pickle", c_pickle),
+    ]
 
 
 def check_reader(reader, paths, *, raise_on_failure: bool = True, **options) -> Report:
@@ -105,8 +119,16 @@ def check_reader(reader, paths, *, raise_on_failure: bool = True, **options) -> 
     return _run(checks, checks[0].component, raise_on_failure)
 
 
-def writer_checks(writer, out_dir: str | Path, tree: Tree | None = None, *, settings=None,
-                  roundtrip: bool = False, atol: float = 1e-6, registered: bool | str = False) -> list[Check]:
+def writer_checks(
+    writer,
+    out_dir: str | Path,
+    tree: Tree | None = None,
+    *,
+    settings=None,
+    roundtrip: bool = False,
+    atol: float = 1e-6,
+    registered: bool | str = False,
+) -> list[Check]:
     """The conformance checks of a QSM writer.
 
     Parameters
@@ -130,10 +152,13 @@ def writer_checks(writer, out_dir: str | Path, tree: Tree | None = None, *, sett
         _require(isinstance(cls.suffixes, tuple) and cls.suffixes, f"suffixes is {cls.suffixes!r}")
         path = out_dir / f"conformance_{cls.name}{cls.suffixes[0]}"
         out = w.write(tree, path)
-        _require(out is not None and Path(out).exists() and Path(out).stat().st_size > 0,
-                 f"write returned {out!r}, which is not a non-empty file")
+        _require(
+            out is not None and Path(out).exists() and Path(out).stat().st_size > 0,
+            f"write returned {out!r}, which is not a non-empty file",
+        )
         if roundtrip:
             from ..io import read_qsm
+
             back = read_qsm(out)
             back = back[0] if isinstance(back, (list, tuple)) else back
             _require(back.n == tree.n, f"read back {back.n} cylinders of {tree.n}")
@@ -147,7 +172,10 @@ def writer_checks(writer, out_dir: str | Path, tree: Tree | None = None, *, sett
         _roundtrip(_need(inst, err))
 
     return _common_checks(cls, inst, settings, label, "qsm_writer", registered, err) + [
-        _priority_check(cls, label), Check(label, "write", c_write), Check(label, "pickle", c_pickle)]
+        _priority_check(cls, label),
+        Check(label, "write", c_write),
+        Check(label, "pickle", c_pickle),
+    ]
 
 
 def check_writer(writer, out_dir, tree=None, *, raise_on_failure: bool = True, **options) -> Report:

@@ -1,4 +1,5 @@
 """Checks of any component by kind, and of every registered component."""
+
 from __future__ import annotations
 
 import tempfile
@@ -16,9 +17,15 @@ from .optimizer import optimizer_checks
 from .samples import sample_tree
 from .ssm import ssm_checks
 
-_CHECKS = {"ssm": ssm_checks, "features": feature_set_checks, "distance": distance_checks,
-           "qsm_reader": reader_checks, "qsm_writer": writer_checks, "optimizer": optimizer_checks,
-           "executor": executor_checks}
+_CHECKS = {
+    "ssm": ssm_checks,
+    "features": feature_set_checks,
+    "distance": distance_checks,
+    "qsm_reader": reader_checks,
+    "qsm_writer": writer_checks,
+    "optimizer": optimizer_checks,
+    "executor": executor_checks,
+}
 
 
 def component_checks(component, **options) -> list[Check]:
@@ -55,9 +62,14 @@ def _written_sample(reg, name: str, folder: Path) -> Path | None:
     return Path(writer.cls().write(sample_tree(), folder / f"sample_{name}{writer.cls.suffixes[0]}"))
 
 
-def run_all(distribution: str | None = None, kinds: Iterable[str] | None = None,
-            names: Iterable[str] | None = None, options: Mapping[tuple[str, str], Mapping[str, Any]] | None = None,
-            *, raise_on_failure: bool = True) -> dict[tuple[str, str], Report]:
+def run_all(
+    distribution: str | None = None,
+    kinds: Iterable[str] | None = None,
+    names: Iterable[str] | None = None,
+    options: Mapping[tuple[str, str], Mapping[str, Any]] | None = None,
+    *,
+    raise_on_failure: bool = True,
+) -> dict[tuple[str, str], Report]:
     """Check every registered component (of one distribution, kinds or names).
 
     Parameters
@@ -81,6 +93,7 @@ def run_all(distribution: str | None = None, kinds: Iterable[str] | None = None,
         ``(kind, name) -> Report``.
     """
     from ..registry import discover
+
     reg = discover()
     options = dict(options or {})
     kinds = set(kinds) if kinds is not None else None
@@ -100,15 +113,25 @@ def run_all(distribution: str | None = None, kinds: Iterable[str] | None = None,
             if kind == "qsm_reader" and "paths" not in opts:
                 sample = _written_sample(reg, name, Path(tmp))
                 if sample is None:
-                    reports[(kind, name)] = Report(label, skipped="needs sample files (no writer of the same name "
-                                                   "writes one): options={(kind, name): {'paths': [...]}}")
+                    reports[(kind, name)] = Report(
+                        label,
+                        skipped="needs sample files (no writer of the same name "
+                        "writes one): options={(kind, name): {'paths': [...]}}",
+                    )
                     continue
                 opts["paths"] = [sample]
             reports[(kind, name)] = _run(component_checks(entry.cls, **opts), label, False)
     if distribution is not None and not reports:
-        raise ConformanceError(f"distribution {distribution!r}",
-                               [("registered", "registers no components (is it installed? known distributions: "
-                                 f"{sorted({e.distribution for e in reg.components.values()})})")])
+        raise ConformanceError(
+            f"distribution {distribution!r}",
+            [
+                (
+                    "registered",
+                    "registers no components (is it installed? known distributions: "
+                    f"{sorted({e.distribution for e in reg.components.values()})})",
+                )
+            ],
+        )
     if raise_on_failure:
         failures = [(f"{r.component}: {f.check}", f.problem) for r in reports.values() for f in r.failures]
         if failures:

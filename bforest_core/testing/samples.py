@@ -1,12 +1,12 @@
 """Small inputs the checks run on: a sample tree with known branches, sample tables."""
+
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
 from ..tree import Tree
-
 
 
 def _branches(parent_rows, starts, dirs, ncyl, clen, rad, offset):
@@ -53,8 +53,11 @@ def sample_tree(seed: int = 0, trunk: int = 16, laterals: int = 2) -> Tree:
         With ``source`` topology and metadata ``{"model": "conformance-sample", "seed": seed}``.
     """
     rng = np.random.default_rng(seed)
-    parts = [_branches(np.array([-1]), np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), [trunk],
-                       np.array([0.5]), np.array([0.15]), 0)]
+    parts = [
+        _branches(
+            np.array([-1]), np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]), [trunk], np.array([0.5]), np.array([0.15]), 0
+        )
+    ]
     n = trunk
     # first order: `laterals` branches on trunk cylinders 2..trunk-1 (at their start)
     host = np.repeat(np.arange(2, trunk), laterals)
@@ -62,8 +65,7 @@ def sample_tree(seed: int = 0, trunk: int = 16, laterals: int = 2) -> Tree:
     up = np.tile([0.0, 0.0, 1.0], (k, 1))
     d1 = _directions(rng, up, rng.uniform(40, 75, k), k)
     nc1 = rng.integers(3, 6, k)
-    parts.append(_branches(host, parts[0][0][host], d1, nc1, rng.uniform(0.25, 0.45, k),
-                           np.full(k, 0.04), n))
+    parts.append(_branches(host, parts[0][0][host], d1, nc1, rng.uniform(0.25, 0.45, k), np.full(k, 0.04), n))
     s1, a1, l1 = parts[1][0], parts[1][1], parts[1][2]
     rows1 = n + np.arange(s1.shape[0])
     n += s1.shape[0]
@@ -72,11 +74,19 @@ def sample_tree(seed: int = 0, trunk: int = 16, laterals: int = 2) -> Tree:
     loc = sel - rows1[0]
     m = sel.size
     d2 = _directions(rng, a1[loc], rng.uniform(30, 70, m), m)
-    parts.append(_branches(sel, s1[loc] + l1[loc, None] * a1[loc], d2, rng.integers(1, 4, m),
-                           rng.uniform(0.1, 0.25, m), np.full(m, 0.012), n))
+    parts.append(
+        _branches(
+            sel,
+            s1[loc] + l1[loc, None] * a1[loc],
+            d2,
+            rng.integers(1, 4, m),
+            rng.uniform(0.1, 0.25, m),
+            np.full(m, 0.012),
+            n,
+        )
+    )
     start, axis, length, radius, parent, ext = (np.concatenate(c) for c in zip(*parts))
-    return Tree(start, axis, length, radius, parent, ext,
-                metadata={"model": "conformance-sample", "seed": seed})
+    return Tree(start, axis, length, radius, parent, ext, metadata={"model": "conformance-sample", "seed": seed})
 
 
 def sample_trees(n: int = 2) -> list[Tree]:

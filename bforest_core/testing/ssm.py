@@ -1,17 +1,32 @@
 """Conformance checks of a growth model (SSM)."""
+
 from __future__ import annotations
 
 import keyword
 import math
 import pickle
-from typing import Any, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from ..errors import SimulationFailed
 from ..interfaces import ParameterSpec
-
-from ._base import (METADATA_KEYS, Check, Report, _Fail, _common_checks, _instance, _label, _need, _require, _roundtrip, _run, _tree_diff, check_tree)
+from ._base import (
+    METADATA_KEYS,
+    Check,
+    Report,
+    _common_checks,
+    _Fail,
+    _instance,
+    _label,
+    _need,
+    _require,
+    _roundtrip,
+    _run,
+    _tree_diff,
+    check_tree,
+)
 
 
 class _SSMCase:
@@ -31,8 +46,10 @@ class _SSMCase:
         try:
             return model.simulate(dict(p), seed)
         except SimulationFailed as exc:
-            raise _Fail(f"simulate({p!r}, seed={seed}) raised SimulationFailed ({exc.status}): {exc}; choose "
-                        "params for which the model succeeds") from None
+            raise _Fail(
+                f"simulate({p!r}, seed={seed}) raised SimulationFailed ({exc.status}): {exc}; choose "
+                "params for which the model succeeds"
+            ) from None
 
     def first_tree(self):
         inst, params, seeds, err, cache = self.inst, self.params, self.seeds, self.err, self.cache
@@ -41,8 +58,10 @@ class _SSMCase:
             try:
                 cache["tree"] = _need(inst, err).simulate(given, seeds[0])
             except SimulationFailed as exc:
-                raise _Fail(f"simulate({params!r}, seed={seeds[0]}) raised SimulationFailed ({exc.status}): {exc}; "
-                            "choose params for which the model succeeds") from None
+                raise _Fail(
+                    f"simulate({params!r}, seed={seeds[0]}) raised SimulationFailed ({exc.status}): {exc}; "
+                    "choose params for which the model succeeds"
+                ) from None
             cache["mutated"] = given if given != params else None
         return cache["tree"]
 
@@ -61,8 +80,10 @@ class _SSMCase:
             if not (isinstance(s.name, str) and s.name.isidentifier() and not keyword.iskeyword(s.name)):
                 problems.append(f"name {s.name!r} is not a Python identifier (it is a TOML key and a column name)")
             vals = {"default": s.default, "lower": s.lower, "upper": s.upper}
-            if not all(isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
-                       and math.isfinite(v) for v in vals.values()):
+            if not all(
+                isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool) and math.isfinite(v)
+                for v in vals.values()
+            ):
                 problems.append(f"{s.name}: default/lower/upper must be finite numbers (got {vals})")
                 continue
             if not s.lower <= s.upper:
@@ -89,25 +110,35 @@ class _SSMCase:
         try:
             m.resolve_params({bogus: 1.0})
         except ValueError as exc:
-            _require(bogus in str(exc), f"resolve_params raised ValueError for an unknown name without naming it: {exc}")
+            _require(
+                bogus in str(exc), f"resolve_params raised ValueError for an unknown name without naming it: {exc}"
+            )
         else:
             raise _Fail(f"resolve_params accepted an unknown parameter name ({bogus!r}); it must raise ValueError")
         d = m.resolve_params({})
-        _require(set(d) == {s.name for s in specs}, f"resolve_params({{}}) gives names {sorted(d)}, "
-                                                    f"not the parameters {sorted(s.name for s in specs)}")
+        _require(
+            set(d) == {s.name for s in specs},
+            f"resolve_params({{}}) gives names {sorted(d)}, not the parameters {sorted(s.name for s in specs)}",
+        )
         for s in specs:
             if s.integer:
-                _require(isinstance(d[s.name], (int, np.integer)) and d[s.name] == s.default,
-                         f"resolve_params({{}})[{s.name!r}] is {d[s.name]!r}, expected the integer default {s.default}")
+                _require(
+                    isinstance(d[s.name], (int, np.integer)) and d[s.name] == s.default,
+                    f"resolve_params({{}})[{s.name!r}] is {d[s.name]!r}, expected the integer default {s.default}",
+                )
             else:
-                _require(d[s.name] == s.default, f"resolve_params({{}})[{s.name!r}] is {d[s.name]!r}, "
-                                                 f"expected the default {s.default}")
+                _require(
+                    d[s.name] == s.default,
+                    f"resolve_params({{}})[{s.name!r}] is {d[s.name]!r}, expected the default {s.default}",
+                )
         ints = [s for s in specs if s.integer and s.upper > s.lower]
         if ints:
             s = ints[0]
             v = m.resolve_params({s.name: s.lower + 0.6})[s.name]
-            _require(v == s.lower + 1 and isinstance(v, (int, np.integer)),
-                     f"resolve_params({{{s.name!r}: {s.lower + 0.6}}}) gives {v!r}; integer parameters are rounded")
+            _require(
+                v == s.lower + 1 and isinstance(v, (int, np.integer)),
+                f"resolve_params({{{s.name!r}: {s.lower + 0.6}}}) gives {v!r}; integer parameters are rounded",
+            )
 
     def c_unknown(self):
         inst, params, seeds, err = self.inst, self.params, self.seeds, self.err
@@ -117,11 +148,14 @@ class _SSMCase:
         except ValueError as exc:
             _require(bogus in str(exc), f"simulate raised ValueError for an unknown parameter without naming it: {exc}")
         except SimulationFailed as exc:
-            raise _Fail(f"simulate with an unknown parameter raised SimulationFailed ({exc.status}), not ValueError") \
-                from None
+            raise _Fail(
+                f"simulate with an unknown parameter raised SimulationFailed ({exc.status}), not ValueError"
+            ) from None
         else:
-            raise _Fail(f"simulate accepted an unknown parameter ({bogus!r}); unknown names must raise ValueError "
-                        "(use self.resolve_params)")
+            raise _Fail(
+                f"simulate accepted an unknown parameter ({bogus!r}); unknown names must raise ValueError "
+                "(use self.resolve_params)"
+            )
 
     def c_simulate(self):
         inst, params, seeds, cache, cls = self.inst, self.params, self.seeds, self.cache, self.cls
@@ -138,12 +172,16 @@ class _SSMCase:
         _require(md["status"] == "ok", f"metadata['status'] is {md['status']!r} for a successful run, expected 'ok'")
         _require(isinstance(md["params"], Mapping), "metadata['params'] is not a mapping")
         known = {s.name for s in inst.parameters}
-        _require(set(md["params"]) <= known | set(params) and set(params) <= set(md["params"]),
-                 f"metadata['params'] ({sorted(md['params'])}) should hold the resolved parameters")
+        _require(
+            set(md["params"]) <= known | set(params) and set(params) <= set(md["params"]),
+            f"metadata['params'] ({sorted(md['params'])}) should hold the resolved parameters",
+        )
         for k, v in params.items():
             spec = inst.parameter_spec(k)
             want = int(round(v)) if spec.integer else v
-            _require(md["params"][k] == want, f"metadata['params'][{k!r}] is {md['params'][k]!r}, the run used {want!r}")
+            _require(
+                md["params"][k] == want, f"metadata['params'][{k!r}] is {md['params'][k]!r}, the run used {want!r}"
+            )
         return f"{t.n} cylinders, max order {t.max_order}"
 
     def c_determinism(self):
@@ -151,13 +189,19 @@ class _SSMCase:
         t1 = self.first_tree()
         t2 = self.sim()
         d = _tree_diff(t1, t2)
-        _require(d is None, f"the same params and seed {seeds[0]} gave different trees: {d}; draw every random "
-                            "number from one numpy Generator seeded with `seed`")
+        _require(
+            d is None,
+            f"the same params and seed {seeds[0]} gave different trees: {d}; draw every random "
+            "number from one numpy Generator seeded with `seed`",
+        )
         if isinstance(ssm, type):
             fresh = cls(**settings)
             d = _tree_diff(t1, self.sim(model=fresh))
-            _require(d is None, f"a second instance gave a different tree for the same params and seed: {d} "
-                                "(state leaks between runs?)")
+            _require(
+                d is None,
+                f"a second instance gave a different tree for the same params and seed: {d} "
+                "(state leaks between runs?)",
+            )
         # interleaving another seed must not change the result (no hidden state)
         self.sim(seed=seeds[1])
         d = _tree_diff(t1, self.sim())
@@ -168,8 +212,10 @@ class _SSMCase:
         trees = [self.first_tree()] + [self.sim(seed=s) for s in seeds[1:]]
         same = [s for s, t in zip(seeds[1:], trees[1:]) if _tree_diff(trees[0], t) is None]
         if same:
-            raise _Fail(f"seeds {seeds[0]} and {same[0]} gave identical trees; the model ignores its seed "
-                        "(pass stochastic=False for a deterministic model)")
+            raise _Fail(
+                f"seeds {seeds[0]} and {same[0]} gave identical trees; the model ignores its seed "
+                "(pass stochastic=False for a deterministic model)"
+            )
 
     def c_pickle(self):
         inst, err = self.inst, self.err
@@ -185,13 +231,17 @@ class _SSMCase:
         inst, params, seeds, err, hold, bounds = self.inst, self.params, self.seeds, self.err, self.hold, self.bounds
         m = _need(inst, err)
         specs = [s for s in m.parameters if s.name not in hold]
-        cases = [("all at lower bounds", {s.name: s.lower for s in specs}),
-                 ("all at upper bounds", {s.name: s.upper for s in specs})]
+        cases = [
+            ("all at lower bounds", {s.name: s.lower for s in specs}),
+            ("all at upper bounds", {s.name: s.upper for s in specs}),
+        ]
         if bounds == "each":
             for s in specs:
                 if s.upper > s.lower:
-                    cases += [(f"{s.name} = {s.lower:g} (lower)", {s.name: s.lower}),
-                              (f"{s.name} = {s.upper:g} (upper)", {s.name: s.upper})]
+                    cases += [
+                        (f"{s.name} = {s.lower:g} (lower)", {s.name: s.lower}),
+                        (f"{s.name} = {s.upper:g} (upper)", {s.name: s.upper}),
+                    ]
         errors, failed = [], []
         for what, over in cases:
             p = {**params, **over}
@@ -207,21 +257,32 @@ class _SSMCase:
                 continue
             try:
                 check_tree(t, "tree")
-                _require(t.metadata.get("status") == "ok", f"status {t.metadata.get('status')!r} without SimulationFailed")
+                _require(
+                    t.metadata.get("status") == "ok", f"status {t.metadata.get('status')!r} without SimulationFailed"
+                )
             except _Fail as exc:
                 errors.append(f"{what}: {exc}")
         shown = "; ".join(errors[:6]) + (f"; ... ({len(errors)} cases)" if len(errors) > 6 else "")
         _require(not errors, f"parameters at their bounds must give a valid tree or raise SimulationFailed: {shown}")
         note = f"{len(cases)} bound settings"
         if failed:
-            note += f", {len(failed)} raised SimulationFailed ({'; '.join(failed[:4])}{' ...' if len(failed) > 4 else ''})"
+            note += (
+                f", {len(failed)} raised SimulationFailed ({'; '.join(failed[:4])}{' ...' if len(failed) > 4 else ''})"
+            )
         return note
 
 
-def ssm_checks(ssm, params: Mapping[str, float] | None = None, seeds: Sequence[int] = (1, 2), *,
-               settings: Mapping[str, Any] | None = None, stochastic: bool = True,
-               bounds: str | bool = "each", hold: Iterable[str] | None = None,
-               registered: bool | str = False) -> list[Check]:
+def ssm_checks(
+    ssm,
+    params: Mapping[str, float] | None = None,
+    seeds: Sequence[int] = (1, 2),
+    *,
+    settings: Mapping[str, Any] | None = None,
+    stochastic: bool = True,
+    bounds: str | bool = "each",
+    hold: Iterable[str] | None = None,
+    registered: bool | str = False,
+) -> list[Check]:
     """The conformance checks of a growth model.
 
     Parameters
@@ -267,9 +328,13 @@ def ssm_checks(ssm, params: Mapping[str, float] | None = None, seeds: Sequence[i
         raise ValueError(f"bounds must be 'each', 'corners' or 'none' (got {bounds!r})")
     case = _SSMCase(ssm, cls, inst, settings, err, params, seeds, hold, bounds)
     checks = _common_checks(cls, inst, settings, label, "ssm", registered, err)
-    checks += [Check(label, "parameters", case.c_parameters), Check(label, "resolve_params", case.c_resolve),
-               Check(label, "unknown_params", case.c_unknown), Check(label, "simulate", case.c_simulate),
-               Check(label, "determinism", case.c_determinism)]
+    checks += [
+        Check(label, "parameters", case.c_parameters),
+        Check(label, "resolve_params", case.c_resolve),
+        Check(label, "unknown_params", case.c_unknown),
+        Check(label, "simulate", case.c_simulate),
+        Check(label, "determinism", case.c_determinism),
+    ]
     if stochastic:
         checks.append(Check(label, "seeds", case.c_seeds))
     checks.append(Check(label, "pickle", case.c_pickle))

@@ -11,6 +11,7 @@ runs): a width factor below 1 says by how much the sampler's intervals are too w
 is close to nominal by construction (the runs are exchangeable), so it is a check of the script,
 not of the sampler. An analysis of docs/validation.md, not part of the product.
 """
+
 from __future__ import annotations
 
 import argparse

@@ -14,6 +14,7 @@ is replayed, not simulated again. ``--doc`` writes the section
 fidelity section, which examples/real/run_fidelity.py owns) and copies the figures to
 docs/img/validation/.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,23 +28,39 @@ ROOT = HERE.parents[1]
 RUNS = ROOT / "runs" / "calibration"
 DOC = ROOT / "docs" / "validation.md"
 IMG = ROOT / "docs" / "img" / "validation"
-STUDIES = ("sot_abc_smc", "sot_abc_smc_noise", "sot_abc_smc_recycled", "sot_abc_smc_scaled", "sot_abc_smc_adjusted",
-           "sot_abc_smc_scaled_adjusted", "sot_emcee_noise", "sot_emcee_auto")
+STUDIES = (
+    "sot_abc_smc",
+    "sot_abc_smc_noise",
+    "sot_abc_smc_recycled",
+    "sot_abc_smc_scaled",
+    "sot_abc_smc_adjusted",
+    "sot_abc_smc_scaled_adjusted",
+    "sot_emcee_noise",
+    "sot_emcee_auto",
+)
 BEGIN = "<!-- calibration: written by examples/calibration/run_calibration.py --doc -->"
 END = "<!-- /calibration -->"
 FIDELITY = "<!-- real-tree fidelity: written by examples/real/run_fidelity.py --doc -->"
-LABEL = {"sot_abc_smc": "abc-smc, 7 generations", "sot_abc_smc_noise": 'abc-smc, epsilon_target = "noise"',
-         "sot_abc_smc_recycled": 'abc-smc, epsilon_target = "noise", posterior = "recycled"',
-         "sot_abc_smc_scaled": 'abc-smc as the recycled study, KS scaled by sample size',
-         "sot_abc_smc_adjusted": 'abc-smc as the recycled study, adjust = "linear"',
-         "sot_abc_smc_scaled_adjusted": 'abc-smc as the scaled-KS study, adjust = "linear"',
-         "sot_emcee_noise": 'emcee, epsilon = "noise"', "sot_emcee_auto": 'emcee, epsilon = "auto"'}
-SHORT = {"sot_abc_smc": "abc-smc (7 gen.)", "sot_abc_smc_noise": "abc-smc (noise floor)",
-         "sot_abc_smc_recycled": "abc-smc (noise floor, recycled)",
-         "sot_abc_smc_scaled": "abc-smc (recycled, scaled KS)",
-         "sot_abc_smc_adjusted": "abc-smc (recycled, adjusted)",
-         "sot_abc_smc_scaled_adjusted": "abc-smc (recycled, scaled KS, adjusted)",
-         "sot_emcee_noise": "emcee noise", "sot_emcee_auto": "emcee auto"}
+LABEL = {
+    "sot_abc_smc": "abc-smc, 7 generations",
+    "sot_abc_smc_noise": 'abc-smc, epsilon_target = "noise"',
+    "sot_abc_smc_recycled": 'abc-smc, epsilon_target = "noise", posterior = "recycled"',
+    "sot_abc_smc_scaled": "abc-smc as the recycled study, KS scaled by sample size",
+    "sot_abc_smc_adjusted": 'abc-smc as the recycled study, adjust = "linear"',
+    "sot_abc_smc_scaled_adjusted": 'abc-smc as the scaled-KS study, adjust = "linear"',
+    "sot_emcee_noise": 'emcee, epsilon = "noise"',
+    "sot_emcee_auto": 'emcee, epsilon = "auto"',
+}
+SHORT = {
+    "sot_abc_smc": "abc-smc (7 gen.)",
+    "sot_abc_smc_noise": "abc-smc (noise floor)",
+    "sot_abc_smc_recycled": "abc-smc (noise floor, recycled)",
+    "sot_abc_smc_scaled": "abc-smc (recycled, scaled KS)",
+    "sot_abc_smc_adjusted": "abc-smc (recycled, adjusted)",
+    "sot_abc_smc_scaled_adjusted": "abc-smc (recycled, scaled KS, adjusted)",
+    "sot_emcee_noise": "emcee noise",
+    "sot_emcee_auto": "emcee auto",
+}
 #: the acceptance bands of issue 14 (coverage in %)
 BAND = {50: (38, 62), 90: (80, 97)}
 
@@ -51,8 +68,11 @@ BAND = {50: (38, 62), 90: (80, 97)}
 #: a study that starts from the evaluation logs of another: the noise-floor abc-smc proposes the
 #: same particles as the 7-generation one until its own stop rule changes a generation; an
 #: adjusted study proposes exactly those of its unadjusted one (only the posterior differs)
-SEEDED_FROM = {"sot_abc_smc_noise": "sot_abc_smc", "sot_abc_smc_adjusted": "sot_abc_smc_recycled",
-               "sot_abc_smc_scaled_adjusted": "sot_abc_smc_scaled"}
+SEEDED_FROM = {
+    "sot_abc_smc_noise": "sot_abc_smc",
+    "sot_abc_smc_adjusted": "sot_abc_smc_recycled",
+    "sot_abc_smc_scaled_adjusted": "sot_abc_smc_scaled",
+}
 
 
 def seed_logs(name: str, source: str, n: int) -> None:
@@ -65,6 +85,7 @@ def seed_logs(name: str, source: str, n: int) -> None:
 
     from bforest_core.config import config_to_dict
     from bforest_core.pipeline.calibrate import _read_study_config, _study_spec, prior_draw, run_config
+
     cfg = _read_study_config(HERE / f"{name}.toml")
     names, lo, hi, integer, _ = _study_spec(cfg)
     base = config_to_dict(cfg)
@@ -84,6 +105,7 @@ def seed_logs(name: str, source: str, n: int) -> None:
 def trim_log(run: Path, first_unused: int) -> None:
     """Drop the copied evaluations from index ``first_unused`` on (and the run's result)."""
     import sqlite3
+
     with sqlite3.connect(run / "evaluations.sqlite") as con:
         con.execute("DELETE FROM evaluations WHERE idx >= ?", (first_unused,))
     (run / "best.json").unlink(missing_ok=True)
@@ -93,6 +115,7 @@ def stale_copies(out: Path) -> list[tuple[Path, int]]:
     """Finished seeded runs that stopped before using the whole copied log: (run, evaluations
     the run asked for); their unused copies must go (they would count as the run's own)."""
     import sqlite3
+
     bad = []
     for run in sorted(out.glob("run_*")):
         if not (run / "best.json").exists():
@@ -112,6 +135,7 @@ def run_study(name: str, n: int) -> dict:
     from bforest_core.pipeline.calibrate import calibrate
     from bforest_core.pipeline.store import RunDirError
     from bforest_core.report.calibration import write_calibration_figure
+
     out = RUNS / name
     t0 = time.monotonic()
     if name in SEEDED_FROM:
@@ -142,14 +166,19 @@ def run_study(name: str, n: int) -> dict:
 
 
 def _table(res: dict) -> list[str]:
-    lines = ["| parameter | 50 % interval covers | 90 % interval covers | rank uniformity p | "
-             "50 % width / prior | 90 % width / prior |", "|---|---|---|---|---|---|"]
+    lines = [
+        "| parameter | 50 % interval covers | 90 % interval covers | rank uniformity p | "
+        "50 % width / prior | 90 % width / prior |",
+        "|---|---|---|---|---|---|",
+    ]
     for t, unit in zip(res["table"], res["units"]):
         name = f"`{t['parameter']}`" + (f" ({unit})" if unit else "")
         p = "–" if t["rank_p"] is None else f"{t['rank_p']:.3f}"
-        lines.append(f"| {name} | {100 * t['coverage50']:.1f} % ({t['covered50']}/{t['runs']}) | "
-                     f"{100 * t['coverage90']:.1f} % ({t['covered90']}/{t['runs']}) | {p} | "
-                     f"{t['width50']:.3f} | {t['width90']:.3f} |")
+        lines.append(
+            f"| {name} | {100 * t['coverage50']:.1f} % ({t['covered50']}/{t['runs']}) | "
+            f"{100 * t['coverage90']:.1f} % ({t['covered90']}/{t['runs']}) | {p} | "
+            f"{t['width50']:.3f} | {t['width90']:.3f} |"
+        )
     return lines
 
 
@@ -159,6 +188,7 @@ def population_result(name: str, res: dict) -> dict:
     import numpy as np
 
     from bforest_core.pipeline.calibrate import _read_study_config, _study_spec, coverage_table, posterior_params
+
     names = res["names"]
     cfg = _read_study_config(HERE / f"{name}.toml")
     integer = _study_spec(cfg)[3]
@@ -169,24 +199,42 @@ def population_result(name: str, res: dict) -> dict:
         diag = json.loads((RUNS / name / r["run"] / "best.json").read_text())["diagnostics"]
         pop = diag["population"]
         theta = [r["params"][nm]["truth"] for nm in names]
-        rows.append({"run": r["run"], "status": "ok",
-                     "params": posterior_params(np.asarray(pop["particles"], float), np.asarray(pop["weights"], float),
-                                                names, theta, integer, cfg.seed, int(r["run"][4:]))})
+        rows.append(
+            {
+                "run": r["run"],
+                "status": "ok",
+                "params": posterior_params(
+                    np.asarray(pop["particles"], float),
+                    np.asarray(pop["weights"], float),
+                    names,
+                    theta,
+                    integer,
+                    cfg.seed,
+                    int(r["run"][4:]),
+                ),
+            }
+        )
         eps = [e for e in diag["epsilon"] if e is not None]
         ratios.append(diag["epsilon_posterior"] / eps[-1])
-    return {"table": coverage_table(rows, names, res["lower"], res["upper"]), "units": res["units"],
-            "eps_ratio": ratios}
+    return {
+        "table": coverage_table(rows, names, res["lower"], res["upper"]),
+        "units": res["units"],
+        "eps_ratio": ratios,
+    }
 
 
 def _times(name: str, res: dict) -> str:
     import numpy as np
+
     ok = [r for r in res["runs"] if r["status"] == "ok"]
     log = RUNS / name / "sessions.json"
     wall = sum(s["seconds"] for s in json.loads(log.read_text())) if log.exists() else None
     ev = np.median([r["n_evaluations"] for r in ok])
     sec = np.median([r["seconds"] for r in ok])
-    text = (f"{len(ok)} runs, median {ev:.0f} evaluations and {sec:.0f} s per run; fit time "
-            f"{res['wall_seconds'] / 60:.0f} min in all")
+    text = (
+        f"{len(ok)} runs, median {ev:.0f} evaluations and {sec:.0f} s per run; fit time "
+        f"{res['wall_seconds'] / 60:.0f} min in all"
+    )
     if wall:
         text += f", study wall time {wall / 60:.0f} min"
     return text
@@ -217,10 +265,14 @@ the studies and wrote this section: `examples/calibration/`.
 def _summary(results: dict) -> list[str]:
     """One line per sampler: coverage of both intervals for each parameter, in band or not."""
     import numpy as np
+
     first = next(iter(results.values()))
     names = first["names"]
-    head = "| sampler | runs | evaluations per run (median) | " + " | ".join(
-        f"`{n}` 50 % / 90 %" for n in names) + " | all in the issue's bands |"
+    head = (
+        "| sampler | runs | evaluations per run (median) | "
+        + " | ".join(f"`{n}` 50 % / 90 %" for n in names)
+        + " | all in the issue's bands |"
+    )
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for name, res in results.items():
         ok = [r for r in res["runs"] if r["status"] == "ok"]
@@ -246,6 +298,7 @@ def noise_floors(name: str = "sot_abc_smc", seeds: int = 20) -> dict[str, float]
     from bforest_core.pipeline.seeds import spread_seeds
     from bforest_core.pipeline.target import build_target
     from bforest_core.pipeline.worker import evaluate_task, init_worker
+
     cache = RUNS / "floors.json"
     floors = json.loads(cache.read_text()) if cache.exists() else {}
     for run in sorted((RUNS / name).glob("run_*")):
@@ -272,8 +325,7 @@ def facts(results: dict) -> dict:
 
     floors = noise_floors()
     out = {}
-    best = {n: {p.parent.name: json.loads(p.read_text()) for p in (RUNS / n).glob("run_*/best.json")}
-            for n in results}
+    best = {n: {p.parent.name: json.loads(p.read_text()) for p in (RUNS / n).glob("run_*/best.json")} for n in results}
     for n, key in (("sot_abc_smc", "gen7"), ("sot_abc_smc_noise", "noise")):
         if n not in best:
             continue
@@ -287,12 +339,16 @@ def facts(results: dict) -> dict:
         b = {r["run"]: r for r in results["sot_abc_smc_noise"]["runs"] if r["status"] == "ok"}
         both = sorted(set(a) & set(b))
         names = results["sot_abc_smc"]["names"]
-        w = [np.mean([b[k]["params"][n]["hi90"] - b[k]["params"][n]["lo90"] for k in both])
-             / np.mean([a[k]["params"][n]["hi90"] - a[k]["params"][n]["lo90"] for k in both]) for n in names]
+        w = [
+            np.mean([b[k]["params"][n]["hi90"] - b[k]["params"][n]["lo90"] for k in both])
+            / np.mean([a[k]["params"][n]["hi90"] - a[k]["params"][n]["lo90"] for k in both])
+            for n in names
+        ]
         out["paired"] = str(len(both))
         out["width_ratio"] = f"{min(w):.2f}–{max(w):.2f}"
-        out["noise_verdict"] = (_verdict(a, b, both, names, results["sot_abc_smc_noise"]["n"])
-                                + _all_runs(results["sot_abc_smc_noise"], len(both)))
+        out["noise_verdict"] = _verdict(a, b, both, names, results["sot_abc_smc_noise"]["n"]) + _all_runs(
+            results["sot_abc_smc_noise"], len(both)
+        )
     return out
 
 
@@ -301,10 +357,14 @@ def _span(v) -> str:
 
 
 def _bands_phrase(cov: dict, names: list) -> str:
-    """"all inside the issue's bands" or "outside the issue's bands for <cells>", from the coverage
+    """ "all inside the issue's bands" or "outside the issue's bands for <cells>", from the coverage
     (in %) per interval level, one value per parameter in ``names``."""
-    out = [f"`{nm}` {lev} % ({c:.1f} %)" for lev in (50, 90) for nm, c in zip(names, cov[lev])
-           if not BAND[lev][0] <= c <= BAND[lev][1]]
+    out = [
+        f"`{nm}` {lev} % ({c:.1f} %)"
+        for lev in (50, 90)
+        for nm, c in zip(names, cov[lev])
+        if not BAND[lev][0] <= c <= BAND[lev][1]
+    ]
     return f"outside the issue's bands for {', '.join(out)}" if out else "all inside the issue's bands"
 
 
@@ -314,12 +374,16 @@ def _all_runs(res: dict, paired: int) -> str:
     if len(ok) <= paired:
         return ""
     cov = {lev: [100 * t[f"coverage{lev}"] for t in res["table"]] for lev in (50, 90)}
-    text = (f" Over all {len(ok)} runs of the extended study ({len(res['runs'])} draws) the coverage is "
-            f"{_span(cov[50])} (50 %) and {_span(cov[90])} (90 %), "
-            + _bands_phrase(cov, [t["parameter"] for t in res["table"]]))
+    text = (
+        f" Over all {len(ok)} runs of the extended study ({len(res['runs'])} draws) the coverage is "
+        f"{_span(cov[50])} (50 %) and {_span(cov[90])} (90 %), "
+        + _bands_phrase(cov, [t["parameter"] for t in res["table"]])
+    )
     if all(x >= lev for lev in (50, 90) for x in cov[lev]):
-        text += ("; every cell is at or above its nominal level, so the intervals are, if anything, slightly "
-                 "too wide (conservative), as a tolerance above zero makes them")
+        text += (
+            "; every cell is at or above its nominal level, so the intervals are, if anything, slightly "
+            "too wide (conservative), as a tolerance above zero makes them"
+        )
     return text + "."
 
 
@@ -328,21 +392,32 @@ def _verdict(a: dict, b: dict, both: list, names: list, n_asked: int) -> str:
     from bforest_core.pipeline.calibrate import coverage_range
 
     def cov(rows, lev):
-        return [100.0 * sum(rows[k]["params"][nm][f"lo{lev}"] <= rows[k]["params"][nm]["truth"]
-                            <= rows[k]["params"][nm][f"hi{lev}"] for k in both) / len(both) for nm in names]
+        return [
+            100.0
+            * sum(
+                rows[k]["params"][nm][f"lo{lev}"] <= rows[k]["params"][nm]["truth"] <= rows[k]["params"][nm][f"hi{lev}"]
+                for k in both
+            )
+            / len(both)
+            for nm in names
+        ]
 
     new, old = {lev: cov(b, lev) for lev in (50, 90)}, {lev: cov(a, lev) for lev in (50, 90)}
-    text = (f"Its coverage on these {len(both)} draws is {_span(new[50])} (50 %) and {_span(new[90])} (90 %) "
-            f"over the three parameters, {_bands_phrase(new, names)}; with 7 generations the same draws gave "
-            f"{_span(old[50])} and {_span(old[90])}.")
+    text = (
+        f"Its coverage on these {len(both)} draws is {_span(new[50])} (50 %) and {_span(new[90])} (90 %) "
+        f"over the three parameters, {_bands_phrase(new, names)}; with 7 generations the same draws gave "
+        f"{_span(old[50])} and {_span(old[90])}."
+    )
     if len(both) < 39:
         r50, r90 = coverage_range(len(both), 50), coverage_range(len(both), 90)
-        text += (f" {len(both)} runs cannot settle the acceptance, though: over {len(both)} runs a calibrated "
-                 f"sampler's coverage varies within {r50[0]:.0f}–{r50[1]:.0f} % and {r90[0]:.0f}–{r90[1]:.0f} %. "
-                 f"The study was stopped after {len(both)} of the 40 draws to keep to the compute budget "
-                 "(about 3500 evaluations per run, 2–4 min each beside other jobs); the rest is one command "
-                 "away: `nice -n 19 .venv/bin/python examples/calibration/run_calibration.py --only "
-                 "sot_abc_smc_noise`.")
+        text += (
+            f" {len(both)} runs cannot settle the acceptance, though: over {len(both)} runs a calibrated "
+            f"sampler's coverage varies within {r50[0]:.0f}–{r50[1]:.0f} % and {r90[0]:.0f}–{r90[1]:.0f} %. "
+            f"The study was stopped after {len(both)} of the 40 draws to keep to the compute budget "
+            "(about 3500 evaluations per run, 2–4 min each beside other jobs); the rest is one command "
+            "away: `nice -n 19 .venv/bin/python examples/calibration/run_calibration.py --only "
+            "sot_abc_smc_noise`."
+        )
     return text
 
 
@@ -350,14 +425,16 @@ def _wrap(text: str, width: int = 98) -> list[str]:
     """Paragraphs and "- " list items re-wrapped to ``width`` (the filled-in numbers change the
     line lengths)."""
     import textwrap
+
     out = []
     for para in text.strip().split("\n\n"):
         items = [para] if not para.startswith("- ") else ["- " + x for x in para[2:].split("\n- ")]
         for item in items:
             words = " ".join(line.strip() for line in item.split("\n"))
             if item.startswith("- "):
-                out += textwrap.wrap(words[2:], width, initial_indent="- ", subsequent_indent="  ",
-                                     break_on_hyphens=False)
+                out += textwrap.wrap(
+                    words[2:], width, initial_indent="- ", subsequent_indent="  ", break_on_hyphens=False
+                )
             else:
                 out += textwrap.wrap(words, width, break_on_hyphens=False)
         out.append("")
@@ -366,29 +443,44 @@ def _wrap(text: str, width: int = 98) -> list[str]:
 
 def section(results: dict) -> str:
     from bforest_core.pipeline.calibrate import coverage_range
+
     n_ok = {name: len([r for r in res["runs"] if r["status"] == "ok"]) for name, res in results.items()}
     first = next(iter(results.values()))
     more = {name: len(res["runs"]) for name, res in results.items() if len(res["runs"]) > len(first["runs"])}
-    extended = "".join(f" (the first {len(first['runs'])} of them; {SHORT[name]} was extended to {k} draws "
-                       "afterwards, for a more precise measure, decided before its outcome was known)"
-                       for name, k in more.items())
+    extended = "".join(
+        f" (the first {len(first['runs'])} of them; {SHORT[name]} was extended to {k} draws "
+        "afterwards, for a more precise measure, decided before its outcome was known)"
+        for name, k in more.items()
+    )
     longest = max(results.values(), key=lambda res: len(res["runs"]))
     failed = [r for r in longest["runs"] if r["status"] != "ok"]
     why = failed[0]["status"].split(": ", 1)[-1] if failed else ""
-    failed_text = ("" if not failed else
-                   (f"One draw ({failed[0]['run']}) grows" if len(failed) == 1 else
-                    f"{len(failed)} draws ({', '.join(r['run'] for r in failed)}) grow")
-                   + f" a target that fails ({why}): there is no tree to fit, and "
-                   + ("it is" if len(failed) == 1 else "they are") + " left out.")
+    failed_text = (
+        ""
+        if not failed
+        else (
+            f"One draw ({failed[0]['run']}) grows"
+            if len(failed) == 1
+            else f"{len(failed)} draws ({', '.join(r['run'] for r in failed)}) grow"
+        )
+        + f" a target that fails ({why}): there is no tree to fit, and "
+        + ("it is" if len(failed) == 1 else "they are")
+        + " left out."
+    )
     bands = []
     for n in sorted(set(n_ok.values())):
         r50, r90 = coverage_range(n, 50), coverage_range(n, 90)
-        bands.append(f"with {n} runs a calibrated sampler's coverage falls within {r50[0]:.0f}–{r50[1]:.0f} % "
-                     f"(50 % intervals) and {r90[0]:.0f}–{r90[1]:.0f} % (90 %) in 95 % of studies")
+        bands.append(
+            f"with {n} runs a calibrated sampler's coverage falls within {r50[0]:.0f}–{r50[1]:.0f} % "
+            f"(50 % intervals) and {r90[0]:.0f}–{r90[1]:.0f} % (90 %) in 95 % of studies"
+        )
     bands = "; ".join(bands)
     out = [BEGIN, "", "## Calibrated intervals: simulation-based calibration of the samplers", ""]
-    out += _wrap(INTRO.format(n_runs=len(first["runs"]), failed_text=failed_text, extended=extended,
-                              bands=bands[0].upper() + bands[1:]))
+    out += _wrap(
+        INTRO.format(
+            n_runs=len(first["runs"]), failed_text=failed_text, extended=extended, bands=bands[0].upper() + bands[1:]
+        )
+    )
     out += ["", "Coverage per parameter (50 % / 90 % intervals; ✗ outside the issue's band):", ""]
     out += _summary(results)
     notes = HERE / "findings.md"
@@ -396,24 +488,36 @@ def section(results: dict) -> str:
         out += [""] + _wrap(notes.read_text(encoding="utf-8").format(**facts(results)))
     for name, res in results.items():
         if name in SEEDED_FROM:  # started from the other study's logs: the script does that
-            cmd = (f"`nice -n 19 .venv/bin/python examples/calibration/run_calibration.py --only {name} "
-                   f"-n {res['n']}` (each run starts from the evaluation log of the same run of "
-                   f"{SEEDED_FROM[name]}, replayed as far as the two agree)")
+            cmd = (
+                f"`nice -n 19 .venv/bin/python examples/calibration/run_calibration.py --only {name} "
+                f"-n {res['n']}` (each run starts from the evaluation log of the same run of "
+                f"{SEEDED_FROM[name]}, replayed as far as the two agree)"
+            )
         else:
-            cmd = (f"`bforest calibrate examples/calibration/{name}.toml -n {res['n']} -o runs/calibration/{name} "
-                   f"--resume`")
-        times = _times(name, res) + (" (the fit time counts the replayed generations, first spent in "
-                                     f"{SEEDED_FROM[name]})" if name in SEEDED_FROM else "")
+            cmd = (
+                f"`bforest calibrate examples/calibration/{name}.toml -n {res['n']} -o runs/calibration/{name} "
+                f"--resume`"
+            )
+        times = _times(name, res) + (
+            f" (the fit time counts the replayed generations, first spent in {SEEDED_FROM[name]})"
+            if name in SEEDED_FROM
+            else ""
+        )
         out += ["", f"### {LABEL[name]}", "", cmd + " — " + times + ".", ""]
         out += _table(res)
         if (res.get("optimizer_settings") or {}).get("posterior") == "recycled":
             import numpy as np
+
             pop = population_result(name, res)
             r = np.array(pop["eps_ratio"])
-            out += ["", f"The recycled posterior's tolerance is {np.median(r):.3f} times the last generation's "
-                    f"(median; {np.quantile(r, 0.1):.3f}–{np.quantile(r, 0.9):.3f} for 80 % of the runs). The "
-                    "last generation of the same runs (`posterior = \"population\"`, kept in "
-                    "`diagnostics.population`):", ""]
+            out += [
+                "",
+                f"The recycled posterior's tolerance is {np.median(r):.3f} times the last generation's "
+                f"(median; {np.quantile(r, 0.1):.3f}–{np.quantile(r, 0.9):.3f} for 80 % of the runs). The "
+                'last generation of the same runs (`posterior = "population"`, kept in '
+                "`diagnostics.population`):",
+                "",
+            ]
             out += _table(pop)
         img = IMG / f"calibration_{name}.png"
         shutil.copy(RUNS / name / "calibration.png", img)

@@ -10,6 +10,7 @@ Usage (from the repository root)::
 
     .venv/bin/python examples/real/heldout_best.py runs/p1_ga runs/p1_new --at 300 600 --sets 16 --threshold ga
 """
+
 from __future__ import annotations
 
 import argparse
@@ -23,12 +24,19 @@ from bforest_core.pipeline.target import build_target
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("compare_dirs", type=Path, nargs="+", help="bforest compare folders (runs <optimizer>-<repeat>) "
-                    "of one recipe and target")
+    ap.add_argument(
+        "compare_dirs",
+        type=Path,
+        nargs="+",
+        help="bforest compare folders (runs <optimizer>-<repeat>) of one recipe and target",
+    )
     ap.add_argument("--at", type=int, nargs="+", default=[], help="also score the best after N evaluations")
     ap.add_argument("--sets", type=int, default=16, help="held-out sets of model seeds (default 16)")
-    ap.add_argument("--threshold", default=None, help="an optimiser's name: count the repeats at or below its "
-                    "median held-out final best")
+    ap.add_argument(
+        "--threshold",
+        default=None,
+        help="an optimiser's name: count the repeats at or below its median held-out final best",
+    )
     args = ap.parse_args(argv)
     runs = defaultdict(list)
     for d in args.compare_dirs:
@@ -45,9 +53,14 @@ def main(argv=None) -> int:
     print("\n".join(lines))
     for name, reps in scores.items():
         for r, cps in enumerate(reps):
-            print(f"{name}-{r}: " + "; ".join(f"{cp} (evaluation {v['evaluations']}): own {v['own']:.4f}, held out "
-                                              f"{v['heldout']:.4f}" + (f", {v['failed']} failed" if v["failed"] else "")
-                                              for cp, v in cps.items()))
+            print(
+                f"{name}-{r}: "
+                + "; ".join(
+                    f"{cp} (evaluation {v['evaluations']}): own {v['own']:.4f}, held out "
+                    f"{v['heldout']:.4f}" + (f", {v['failed']} failed" if v["failed"] else "")
+                    for cp, v in cps.items()
+                )
+            )
     return 0
 
 

@@ -18,6 +18,7 @@ Finished fits are kept in ``OUT/broadleaved.json`` and not refitted (``--again``
 ``docs/img/validation/broadleaved_<tree>.png``; ``--doc`` rewrites the "Broadleaved trees"
 section of ``docs/validation.md``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -40,9 +41,17 @@ PINES = [f"pine_ruotsinkyla_{k}" for k in (1, 2, 3)]
 TREES = WYTHAM + ["coffeetree_treeqsm_optqsm"] + PINES
 #: the issue's limits for broadleaved trees (fractions of the target's value)
 BROADLEAF = {"height": 0.10, "dbh": 0.20, "crown_spread": 0.25, "n_branches_o1": 0.30}
-NAMES = {"height": "height", "dbh": "DBH", "crown_spread": "crown spread",
-         "crown_base_height": "crown base", "n_branches_o1": "1st-order branches"}
-BEGIN, END = "<!-- broadleaved trees: written by examples/real/run_broadleaved.py --doc -->", "<!-- /broadleaved trees -->"
+NAMES = {
+    "height": "height",
+    "dbh": "DBH",
+    "crown_spread": "crown spread",
+    "crown_base_height": "crown base",
+    "n_branches_o1": "1st-order branches",
+}
+BEGIN, END = (
+    "<!-- broadleaved trees: written by examples/real/run_broadleaved.py --doc -->",
+    "<!-- /broadleaved trees -->",
+)
 
 
 def path_of(tree: str) -> Path:
@@ -69,19 +78,30 @@ def run_one(tree: str, seed: int, out: Path, n_clones: int) -> dict:
     res, fit_seconds, best, s, fid, d_clones = fit_and_judge(rec, run, path_of(tree), n_clones)
     target = bf.read_qsm(path_of(tree))
     d_near = {n: judge_distance(bf.read_qsm(path_of(n)), target) for n in neighbours(tree)}
-    return {"tree": tree, "seed": seed, "model": r.model, "run": str(run), "fit_seconds": fit_seconds,
-            "evaluations": res.n_evaluations, "best_distance": res.distance,
-            "heldout_distance": best.get("heldout_distance"), "params": res.params,
-            "stop_reason": res.stop_reason, "clones_ok": s["ok"],
-            "errors": {n: fid[n]["error"] for n in NAMES if n in fid},
-            "judge_clones_median": float(np.median(d_clones)) if d_clones else None,
-            "judge_neighbours": d_near, "warnings": s["fidelity"]["warnings"]}
+    return {
+        "tree": tree,
+        "seed": seed,
+        "model": r.model,
+        "run": str(run),
+        "fit_seconds": fit_seconds,
+        "evaluations": res.n_evaluations,
+        "best_distance": res.distance,
+        "heldout_distance": best.get("heldout_distance"),
+        "params": res.params,
+        "stop_reason": res.stop_reason,
+        "clones_ok": s["ok"],
+        "errors": {n: fid[n]["error"] for n in NAMES if n in fid},
+        "judge_clones_median": float(np.median(d_clones)) if d_clones else None,
+        "judge_neighbours": d_near,
+        "warnings": s["fidelity"]["warnings"],
+    }
 
 
 def verdict(row: dict) -> str:
     lim = limits(row["tree"])
-    bad = [f"{NAMES[k]} {100 * v:+.0f}%" for k, v in row["errors"].items()
-           if k in lim and (v is None or abs(v) > lim[k])]
+    bad = [
+        f"{NAMES[k]} {100 * v:+.0f}%" for k, v in row["errors"].items() if k in lim and (v is None or abs(v) > lim[k])
+    ]
     near = float(np.median(list(row["judge_neighbours"].values())))
     if row["judge_clones_median"] is None or row["judge_clones_median"] > near:
         bad.append(f"judge {row['judge_clones_median']:.3f} > neighbours {near:.3f}")
@@ -93,31 +113,50 @@ def figure(row: dict) -> str:
     summary = json.loads((run / "clones" / "summary.json").read_text())
     trees = [bf.read_qsm(run / "clones" / r["file"]) for r in summary["rows"] if r["status"] == "ok"][:5]
     name = f"img/validation/broadleaved_{row['tree']}.png"
-    clones_figure(bf.read_qsm(path_of(row["tree"])), [(f"clone {i}", t) for i, t in enumerate(trees)],
-                  DOC.parent / name, title=f"{row['tree']} (left) and 5 clones, {row['model']} recipe by "
-                  f"bforest init, run seed {row['seed']}, one scale")
+    clones_figure(
+        bf.read_qsm(path_of(row["tree"])),
+        [(f"clone {i}", t) for i, t in enumerate(trees)],
+        DOC.parent / name,
+        title=f"{row['tree']} (left) and 5 clones, {row['model']} recipe by "
+        f"bforest init, run seed {row['seed']}, one scale",
+    )
     return name
 
 
 def doc_section(results: dict, figures: dict) -> str:
-    head = ("| tree | model | run seed | fit | " + " | ".join(NAMES.values())
-            + " | judge: clones (median) | judge: neighbours (median) | verdict |")
-    L = [BEGIN, "", "## Broadleaved trees", "",
-         "Each tree's recipe is written by `bforest init` and used without an edit: fit, 30 clones. Errors "
-         "are those of the clones' mean against the QSM. Limits for the broadleaved trees: height 10 %, DBH "
-         "20 %, crown spread 25 %, first-order branches 30 %, and the judge (S¹ and B¹, sliced KS, z-score, "
-         "256 gp2 lines, subtree topology; the median over clones) no larger than the median distance from "
-         "the tree to the other Wytham trees; for the pines the robust-fit limits of section 4. Fit times are "
-         "wall times on the 2-core machine, shared with other work when these runs were made.", "",
-         "```", ".venv/bin/python examples/real/run_broadleaved.py --out runs/broadleaved --figures --doc", "```", "",
-         head, "|" + "---|" * (head.count("|") - 1)]
+    head = (
+        "| tree | model | run seed | fit | "
+        + " | ".join(NAMES.values())
+        + " | judge: clones (median) | judge: neighbours (median) | verdict |"
+    )
+    L = [
+        BEGIN,
+        "",
+        "## Broadleaved trees",
+        "",
+        "Each tree's recipe is written by `bforest init` and used without an edit: fit, 30 clones. Errors "
+        "are those of the clones' mean against the QSM. Limits for the broadleaved trees: height 10 %, DBH "
+        "20 %, crown spread 25 %, first-order branches 30 %, and the judge (S¹ and B¹, sliced KS, z-score, "
+        "256 gp2 lines, subtree topology; the median over clones) no larger than the median distance from "
+        "the tree to the other Wytham trees; for the pines the robust-fit limits of section 4. Fit times are "
+        "wall times on the 2-core machine, shared with other work when these runs were made.",
+        "",
+        "```",
+        ".venv/bin/python examples/real/run_broadleaved.py --out runs/broadleaved --figures --doc",
+        "```",
+        "",
+        head,
+        "|" + "---|" * (head.count("|") - 1),
+    ]
     for key in sorted(results, key=lambda k: (TREES.index(results[k]["tree"]), results[k]["seed"])):
         r = results[key]
         errs = " | ".join("–" if r["errors"].get(n) is None else f"{100 * r['errors'][n]:+.1f} %" for n in NAMES)
         near = float(np.median(list(r["judge_neighbours"].values())))
         judge = "–" if r["judge_clones_median"] is None else f"{r['judge_clones_median']:.3f}"
-        L.append(f"| {r['tree']} | {r['model']} | {r['seed']} | {r['fit_seconds']:.0f} s | {errs} | {judge} | "
-                 f"{near:.3f} | {verdict(r)} |")
+        L.append(
+            f"| {r['tree']} | {r['model']} | {r['seed']} | {r['fit_seconds']:.0f} s | {errs} | {judge} | "
+            f"{near:.3f} | {verdict(r)} |"
+        )
     L.append("")
     for tree, img in sorted(figures.items(), key=lambda kv: TREES.index(kv[0])):
         L += [f"![{tree} beside 5 of its clones]({img})", ""]
@@ -130,8 +169,11 @@ def write_doc(results: dict, figures: dict) -> None:
     if BEGIN in text:
         before, rest = text.split(BEGIN, 1)
         section, after = rest.split(END, 1) if END in rest else (rest, "")
-        old = {line.split("](")[0][2:].split(" beside")[0]: line.split("](")[1].rstrip(")")
-               for line in section.splitlines() if line.startswith("![")}
+        old = {
+            line.split("](")[0][2:].split(" beside")[0]: line.split("](")[1].rstrip(")")
+            for line in section.splitlines()
+            if line.startswith("![")
+        }
     else:
         before, after = text.rstrip() + "\n\n", "\n"
     DOC.write_text(before + doc_section(results, {**old, **figures}) + after, encoding="utf-8")
@@ -141,8 +183,12 @@ def write_doc(results: dict, figures: dict) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default="runs/broadleaved", help="folder of the runs and broadleaved.json")
-    ap.add_argument("--trees", nargs="*", default=WYTHAM + ["coffeetree_treeqsm_optqsm"],
-                    help=f"trees of ../shared/data/qsm (default: the broadleaved ones; also {', '.join(PINES)})")
+    ap.add_argument(
+        "--trees",
+        nargs="*",
+        default=WYTHAM + ["coffeetree_treeqsm_optqsm"],
+        help=f"trees of ../shared/data/qsm (default: the broadleaved ones; also {', '.join(PINES)})",
+    )
     ap.add_argument("--seeds", nargs="+", type=int, default=[1], help="run seeds of each tree")
     ap.add_argument("--clones", type=int, default=30, help="clones per fit")
     ap.add_argument("--again", action="store_true", help="refit fits already in OUT/broadleaved.json")
@@ -164,12 +210,17 @@ def main(argv=None) -> int:
             results[key] = row
             result_path.write_text(json.dumps(results, indent=2))
             errs = ", ".join(f"{n} {100 * v:+.1f}%" for n, v in row["errors"].items() if v is not None)
-            print(f"{tree} seed {seed} ({row['model']}): fit {row['fit_seconds']:.0f} s, {errs}; judge "
-                  f"{row['judge_clones_median']:.3f} -> {verdict(row)}", flush=True)
+            print(
+                f"{tree} seed {seed} ({row['model']}): fit {row['fit_seconds']:.0f} s, {errs}; judge "
+                f"{row['judge_clones_median']:.3f} -> {verdict(row)}",
+                flush=True,
+            )
     figures = {}
     if args.figures:
         for r in results.values():
-            if Path(r["run"]).is_dir() and r["seed"] == min(x["seed"] for x in results.values() if x["tree"] == r["tree"]):
+            if Path(r["run"]).is_dir() and r["seed"] == min(
+                x["seed"] for x in results.values() if x["tree"] == r["tree"]
+            ):
                 figures[r["tree"]] = figure(r)
     if args.doc:
         write_doc(results, figures)

@@ -31,6 +31,7 @@ to ``docs/img/validation/fidelity_<recipe>_pine<k>.png`` with ``--figures``; ``-
 real-tree fidelity section at the end of ``docs/validation.md`` from ``OUT/fidelity.json``
 (``--doc`` alone, without fits: ``--pines`` empty, i.e. ``--pines``).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -80,7 +81,7 @@ def recipe_for(recipe: Path, pine: Path, out: Path, seed: int) -> Path:
     if n != 1:
         raise SystemExit(f"{recipe}: expected exactly one 'qsm = ...' line, found {n}")
     cut = re.search(r"(?m)^\[", new)
-    head, tail = (new[:cut.start()], new[cut.start():]) if cut else (new, "")
+    head, tail = (new[: cut.start()], new[cut.start() :]) if cut else (new, "")
     head, n = re.subn(r"(?m)^seed\s*=\s*\d+", f"seed = {int(seed)}", head, count=1)
     new = head + tail
     if n != 1:
@@ -112,15 +113,26 @@ def run_one(recipe: Path, k: int, seed: int, out: Path, n_clones: int) -> dict:
     res, fit_seconds, best, s, fid, d_clones = fit_and_judge(cfg_path, run, PINES[k], n_clones)
     pine = bf.read_qsm(PINES[k])
     d_mates = {j: judge_distance(bf.read_qsm(PINES[j]), pine) for j in PINES if j != k}
-    row = {"recipe": recipe.stem, "pine": k, "seed": seed, "run": str(run), "fit_seconds": fit_seconds,
-           "evaluations": res.n_evaluations, "best_distance": res.distance,
-           "heldout_distance": best.get("heldout_distance"), "params": res.params, "stop_reason": res.stop_reason,
-           "clones_ok": s["ok"], "errors": {name: fid[name]["error"] for name in LIMITS if name in fid},
-           "target": {name: fid[name]["target"] for name in LIMITS if name in fid},
-           "clones_mean": {name: fid[name]["mean"] for name in LIMITS if name in fid},
-           "judge_clones_median": float(np.median(d_clones)) if d_clones else None,
-           "judge_stand_mates": d_mates, "warnings": s["fidelity"]["warnings"],
-           "flags": s["fidelity"]["flags"]}
+    row = {
+        "recipe": recipe.stem,
+        "pine": k,
+        "seed": seed,
+        "run": str(run),
+        "fit_seconds": fit_seconds,
+        "evaluations": res.n_evaluations,
+        "best_distance": res.distance,
+        "heldout_distance": best.get("heldout_distance"),
+        "params": res.params,
+        "stop_reason": res.stop_reason,
+        "clones_ok": s["ok"],
+        "errors": {name: fid[name]["error"] for name in LIMITS if name in fid},
+        "target": {name: fid[name]["target"] for name in LIMITS if name in fid},
+        "clones_mean": {name: fid[name]["mean"] for name in LIMITS if name in fid},
+        "judge_clones_median": float(np.median(d_clones)) if d_clones else None,
+        "judge_stand_mates": d_mates,
+        "warnings": s["fidelity"]["warnings"],
+        "flags": s["fidelity"]["flags"],
+    }
     return row
 
 
@@ -130,15 +142,18 @@ def figure(row: dict, which: str) -> str:
     summary = json.loads((run / "clones" / "summary.json").read_text())
     trees = [bf.read_qsm(run / "clones" / r["file"]) for r in summary["rows"] if r["status"] == "ok"][:5]
     name = f"img/validation/fidelity_{row['recipe']}_pine{k}_{which}.png"
-    clones_figure(bf.read_qsm(PINES[k]), [(f"clone {i}", t) for i, t in enumerate(trees)], DOC.parent / name,
-                  title=f"Pine {k} (left) and 5 clones, {row['recipe']} recipe, run seed {row['seed']} "
-                        f"({which} of the run seeds by the judge), one scale")
+    clones_figure(
+        bf.read_qsm(PINES[k]),
+        [(f"clone {i}", t) for i, t in enumerate(trees)],
+        DOC.parent / name,
+        title=f"Pine {k} (left) and 5 clones, {row['recipe']} recipe, run seed {row['seed']} "
+        f"({which} of the run seeds by the judge), one scale",
+    )
     return name
 
 
 def verdict(row: dict) -> str:
-    bad = [f"{k} {100 * v:+.0f}%" for k, v in row["errors"].items()
-           if v is None or abs(v) > ACCEPT[k]]
+    bad = [f"{k} {100 * v:+.0f}%" for k, v in row["errors"].items() if v is None or abs(v) > ACCEPT[k]]
     mates = np.median(list(row["judge_stand_mates"].values()))
     if row["judge_clones_median"] is not None and row["judge_clones_median"] > mates:
         bad.append(f"judge {row['judge_clones_median']:.3f} > stand-mates {mates:.3f}")
@@ -148,8 +163,13 @@ def verdict(row: dict) -> str:
 DOC = ROOT / "docs" / "validation.md"
 #: docs/validation.md keeps everything above this line; the section below it is this script's
 MARKER = "<!-- real-tree fidelity: written by examples/real/run_fidelity.py --doc -->"
-NAMES = {"height": "height", "dbh": "DBH", "crown_spread": "crown spread",
-         "crown_base_height": "crown base", "n_branches_o1": "1st-order branches"}
+NAMES = {
+    "height": "height",
+    "dbh": "DBH",
+    "crown_spread": "crown spread",
+    "crown_base_height": "crown base",
+    "n_branches_o1": "1st-order branches",
+}
 
 
 def spread(results: dict) -> dict[tuple[str, int], tuple[float, int]]:
@@ -163,24 +183,37 @@ def spread(results: dict) -> dict[tuple[str, int], tuple[float, int]]:
 
 def doc_section(results: dict, figures: dict | None = None) -> str:
     """The fidelity section of docs/validation.md from the rows of fidelity.json."""
-    head = ("| recipe | pine | run seed | fit | distance own / held out | " + " | ".join(NAMES.values())
-            + " | judge: clones (median) | judge: stand-mates | verdict |")
-    lines = [MARKER, "", "## 4. Real trees: clones that look like the scanned pine, over run seeds", "",
-             "The real-tree recipes `examples/real/pine_sot.toml` and `examples/real/pine_lignum.toml` "
-             "fitted to each pine of the Ruotsinkylä stand with only the `[target] qsm` line and the run "
-             "`seed` changed; 30 clones per fit. Errors are those of the clones' mean against the QSM; "
-             "branch counts leave out branches thinner than 1 cm at the base in both (the scan's detection "
-             "limit). The judge is a distance no recipe optimises (S¹ and B¹, sliced KS, z-score, 256 gp2 "
-             "lines, subtree topology): the median over clones of their distance to the pine, beside the "
-             "pine's distance to the other two pines. A fit meets the limits when height is within 7.5 %, "
-             "DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %, and the judge is no "
-             "larger than the median of the stand-mate distances; every fit must. The answer of a fit is "
-             "chosen on held-out model seeds (`[select]`); its held-out distance must vary by at most 15 % "
-             f"(max/min <= {SPREAD}) over the run seeds of one pine. Fit times are wall times on the 2-core "
-             "machine, shared with other work when these runs were made (quiet-machine timings: "
-             "performance.md).", "",
-             "```", ".venv/bin/python examples/real/run_fidelity.py --out runs/fidelity --seeds 1 2 3 4 5 --figures --doc",
-             "```", "", head, "|" + "---|" * (head.count("|") - 1)]
+    head = (
+        "| recipe | pine | run seed | fit | distance own / held out | "
+        + " | ".join(NAMES.values())
+        + " | judge: clones (median) | judge: stand-mates | verdict |"
+    )
+    lines = [
+        MARKER,
+        "",
+        "## 4. Real trees: clones that look like the scanned pine, over run seeds",
+        "",
+        "The real-tree recipes `examples/real/pine_sot.toml` and `examples/real/pine_lignum.toml` "
+        "fitted to each pine of the Ruotsinkylä stand with only the `[target] qsm` line and the run "
+        "`seed` changed; 30 clones per fit. Errors are those of the clones' mean against the QSM; "
+        "branch counts leave out branches thinner than 1 cm at the base in both (the scan's detection "
+        "limit). The judge is a distance no recipe optimises (S¹ and B¹, sliced KS, z-score, 256 gp2 "
+        "lines, subtree topology): the median over clones of their distance to the pine, beside the "
+        "pine's distance to the other two pines. A fit meets the limits when height is within 7.5 %, "
+        "DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %, and the judge is no "
+        "larger than the median of the stand-mate distances; every fit must. The answer of a fit is "
+        "chosen on held-out model seeds (`[select]`); its held-out distance must vary by at most 15 % "
+        f"(max/min <= {SPREAD}) over the run seeds of one pine. Fit times are wall times on the 2-core "
+        "machine, shared with other work when these runs were made (quiet-machine timings: "
+        "performance.md).",
+        "",
+        "```",
+        ".venv/bin/python examples/real/run_fidelity.py --out runs/fidelity --seeds 1 2 3 4 5 --figures --doc",
+        "```",
+        "",
+        head,
+        "|" + "---|" * (head.count("|") - 1),
+    ]
     order = lambda k: (results[k]["recipe"], [3, 1, 2].index(results[k]["pine"]), results[k].get("seed", 1))
     for key in sorted(results, key=order):
         r = results[key]
@@ -188,8 +221,10 @@ def doc_section(results: dict, figures: dict | None = None) -> str:
         mates = ", ".join(f"{v:.3f}" for v in r["judge_stand_mates"].values())
         judge = "–" if r["judge_clones_median"] is None else f"{r['judge_clones_median']:.3f}"
         held = "–" if r.get("heldout_distance") is None else f"{r['heldout_distance']:.4f}"
-        lines.append(f"| {r['recipe']} | {r['pine']} | {r.get('seed', 1)} | {r['fit_seconds']:.0f} s | "
-                     f"{r['best_distance']:.4f} / {held} | {errs} | {judge} | {mates} | {verdict(r)} |")
+        lines.append(
+            f"| {r['recipe']} | {r['pine']} | {r.get('seed', 1)} | {r['fit_seconds']:.0f} s | "
+            f"{r['best_distance']:.4f} / {held} | {errs} | {judge} | {mates} | {verdict(r)} |"
+        )
     n_ok = {}
     for r in results.values():
         n = n_ok.setdefault(r["recipe"], [0, 0])
@@ -197,8 +232,11 @@ def doc_section(results: dict, figures: dict | None = None) -> str:
         n[1] += 1
     lines += ["", "| recipe | fits meeting the limits |", "|---|---|"]
     lines += [f"| {k} | {v[0]} of {v[1]} |" for k, v in sorted(n_ok.items())]
-    lines += ["", "| recipe | pine | run seeds | held-out distance of the answer, max/min | within 15 % |",
-              "|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| recipe | pine | run seeds | held-out distance of the answer, max/min | within 15 % |",
+        "|---|---|---|---|---|",
+    ]
     for (rec, k), (ratio, n) in sorted(spread(results).items()):
         lines.append(f"| {rec} | {k} | {n} | {ratio:.3f} | {'yes' if ratio <= SPREAD else 'no'} |")
     lines.append("")
@@ -219,16 +257,28 @@ def write_doc(results: dict, figures: dict | None = None) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default="runs/fidelity", help="folder of the runs and fidelity.json")
-    ap.add_argument("--recipes", nargs="+", default=["sot", "lignum"],
-                    help="recipes: sot, lignum (examples/real/pine_<name>.toml) or the path of your own .toml")
-    ap.add_argument("--pines", nargs="*", type=int, default=[3, 1, 2],
-                    help="pines of the stand (1, 2, 3); none with --doc only rewrites the page")
+    ap.add_argument(
+        "--recipes",
+        nargs="+",
+        default=["sot", "lignum"],
+        help="recipes: sot, lignum (examples/real/pine_<name>.toml) or the path of your own .toml",
+    )
+    ap.add_argument(
+        "--pines",
+        nargs="*",
+        type=int,
+        default=[3, 1, 2],
+        help="pines of the stand (1, 2, 3); none with --doc only rewrites the page",
+    )
     ap.add_argument("--seeds", nargs="+", type=int, default=[1], help="run seeds of each recipe and pine")
     ap.add_argument("--clones", type=int, default=30, help="clones per fit")
     ap.add_argument("--again", action="store_true", help="refit fits already in OUT/fidelity.json")
-    ap.add_argument("--figures", action="store_true",
-                    help="write docs/img/validation/fidelity_<recipe>_pine3_{best,worst}.png (pine 3: the "
-                         "best and the worst run seed by the judge)")
+    ap.add_argument(
+        "--figures",
+        action="store_true",
+        help="write docs/img/validation/fidelity_<recipe>_pine3_{best,worst}.png (pine 3: the "
+        "best and the worst run seed by the judge)",
+    )
     ap.add_argument("--doc", action="store_true", help="rewrite the fidelity section of docs/validation.md")
     args = ap.parse_args(argv)
     warnings.filterwarnings("ignore", category=RuntimeWarning)
@@ -250,15 +300,20 @@ def main(argv=None) -> int:
                 result_path.write_text(json.dumps(results, indent=2))
                 errs = ", ".join(f"{key} {100 * v:+.1f}%" for key, v in row["errors"].items() if v is not None)
                 held = row["heldout_distance"]
-                print(f"{name} pine {k} seed {seed}: fit {row['fit_seconds']:.0f} s ({row['evaluations']} "
-                      f"evaluations), distance {row['best_distance']:.4f}"
-                      + (f" (held out {held:.4f})" if held is not None else "") + f"; {errs}; judge clones "
-                      f"{row['judge_clones_median']:.3f} vs stand-mates "
-                      f"{', '.join(f'{v:.3f}' for v in row['judge_stand_mates'].values())} -> {verdict(row)}",
-                      flush=True)
+                print(
+                    f"{name} pine {k} seed {seed}: fit {row['fit_seconds']:.0f} s ({row['evaluations']} "
+                    f"evaluations), distance {row['best_distance']:.4f}"
+                    + (f" (held out {held:.4f})" if held is not None else "")
+                    + f"; {errs}; judge clones "
+                    f"{row['judge_clones_median']:.3f} vs stand-mates "
+                    f"{', '.join(f'{v:.3f}' for v in row['judge_stand_mates'].values())} -> {verdict(row)}",
+                    flush=True,
+                )
     for (rec, k), (ratio, n) in sorted(spread(results).items()):
-        print(f"{rec} pine {k}: held-out distance of the answer over {n} run seeds, max/min {ratio:.3f} "
-              f"({'within' if ratio <= SPREAD else 'NOT within'} {SPREAD})")
+        print(
+            f"{rec} pine {k}: held-out distance of the answer over {n} run seeds, max/min {ratio:.3f} "
+            f"({'within' if ratio <= SPREAD else 'NOT within'} {SPREAD})"
+        )
     figures = {}
     if args.figures:  # the best and the worst run seed of each recipe on pine 3, by the judge
         groups: dict[tuple[str, int], list[dict]] = {}

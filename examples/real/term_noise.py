@@ -8,6 +8,7 @@ Usage (from the repository root)::
 
     .venv/bin/python examples/real/term_noise.py runs/t8 examples/real/pine_lignum.toml [other.toml ...] --seeds 12
 """
+
 from __future__ import annotations
 
 import argparse

@@ -9,6 +9,7 @@
 Fits already finished in runs/validation/<name> (best.json present) are reused; an interrupted
 fit is resumed. Every number in docs/validation.md comes from these runs.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -30,11 +31,30 @@ IMG = ROOT / "docs" / "img" / "validation"
 QSM = ROOT.parent / "shared" / "data" / "qsm"
 
 PAPER_TABLE2 = {  # Silva Fennica 2016, Table 2: relative error, %
-    "lr_mean": 4.65, "lr_sd": 6.95, "q_mean": 2.88, "q_sd": 28.88, "years": 6.67,
-    "beta_incr": 2.33, "zeta_sd": 12.58, "beta_init": 15.61}
-SYMBOL = {"lr_mean": "L_R mean", "lr_sd": "L_R sd", "q_mean": "Q mean", "q_sd": "Q sd", "years": "T",
-          "beta_incr": "Δβ", "zeta_sd": "Δζ", "beta_init": "β_init", "alpha1": "α₁", "branch_angle": "branch angle",
-          "drop_thresh": "drop threshold", "shadow_a": "shadow a", "init_lambda": "λ (initial)"}
+    "lr_mean": 4.65,
+    "lr_sd": 6.95,
+    "q_mean": 2.88,
+    "q_sd": 28.88,
+    "years": 6.67,
+    "beta_incr": 2.33,
+    "zeta_sd": 12.58,
+    "beta_init": 15.61,
+}
+SYMBOL = {
+    "lr_mean": "L_R mean",
+    "lr_sd": "L_R sd",
+    "q_mean": "Q mean",
+    "q_sd": "Q sd",
+    "years": "T",
+    "beta_incr": "Δβ",
+    "zeta_sd": "Δζ",
+    "beta_init": "β_init",
+    "alpha1": "α₁",
+    "branch_angle": "branch angle",
+    "drop_thresh": "drop threshold",
+    "shadow_a": "shadow a",
+    "init_lambda": "λ (initial)",
+}
 
 
 def run_fit(name: str, clones_n: int | None = None, runs: Path = RUNS) -> Path:
@@ -48,8 +68,10 @@ def run_fit(name: str, clones_n: int | None = None, runs: Path = RUNS) -> Path:
         t0 = time.monotonic()
         cfg = bf.load_config(out / "config.toml" if resume else cfg_path)
         res = bf.fit(cfg, out, resume=resume, progress=False)
-        print(f"[{name}] best {res.distance:.4f} after {res.n_evaluations} evaluations, "
-              f"{time.monotonic() - t0:.0f} s", flush=True)
+        print(
+            f"[{name}] best {res.distance:.4f} after {res.n_evaluations} evaluations, {time.monotonic() - t0:.0f} s",
+            flush=True,
+        )
     if clones_n and not (out / "clones" / "summary.json").exists():
         print(f"[{name}] {clones_n} clones ...", flush=True)
         clones(out, n=clones_n, progress=False)
@@ -75,16 +97,22 @@ def recovery_table(kind: str, seeds=(1, 2, 3)) -> tuple[str, dict]:
         return "(not run)\n", {}
     first_cfg = bf.load_config(RUNS / f"{kind}_seed{rows[0][0]}" / "config.toml")
     target = first_cfg.target.generate.params
-    head = "| parameter | target | bounds | " + " | ".join(f"estimate (seed {s})" for s, _ in rows) + \
-           " | rel. error % (per seed) | median error % |" + (" paper error % |" if kind.startswith("lignum") else "")
+    head = (
+        "| parameter | target | bounds | "
+        + " | ".join(f"estimate (seed {s})" for s, _ in rows)
+        + " | rel. error % (per seed) | median error % |"
+        + (" paper error % |" if kind.startswith("lignum") else "")
+    )
     sep = "|" + "---|" * (head.count("|") - 1)
     lines = [head, sep]
     for n in names:
         fp = first_cfg.ssm.free[n]
         ests = " | ".join(f"{float(b['params'][n]):.4g}" for _, b in rows)
         e = errs[n]
-        line = (f"| {SYMBOL.get(n, n)} (`{n}`) | {float(target[n]):.4g} | {fp.lower:g}–{fp.upper:g} | {ests} | "
-                f"{', '.join(f'{x:.1f}' for x in e)} | {np.median(e):.1f} |")
+        line = (
+            f"| {SYMBOL.get(n, n)} (`{n}`) | {float(target[n]):.4g} | {fp.lower:g}–{fp.upper:g} | {ests} | "
+            f"{', '.join(f'{x:.1f}' for x in e)} | {np.median(e):.1f} |"
+        )
         if kind.startswith("lignum"):
             line += f" {PAPER_TABLE2[n]:.2f} |"
         lines.append(line)
@@ -92,19 +120,30 @@ def recovery_table(kind: str, seeds=(1, 2, 3)) -> tuple[str, dict]:
     per_seed = [np.median([errs[n][i] for n in names]) for i in range(len(rows))]
     within15 = [all(errs[n][i] <= 15 for n in names) for i in range(len(rows))]
     dist = [f"{b['distance']:.4f} ({b['n_evaluations']} eval.)" for _, b in rows]
-    summary = {"median_error_per_seed": per_seed, "all_within_15": within15, "median_all": float(np.median(all_e)),
-               "max_all": float(all_e.max()), "best_distance": dist}
+    summary = {
+        "median_error_per_seed": per_seed,
+        "all_within_15": within15,
+        "median_all": float(np.median(all_e)),
+        "max_all": float(all_e.max()),
+        "best_distance": dist,
+    }
     if kind.startswith("lignum"):
         better = [SYMBOL.get(n, n) for n in names if np.median(errs[n]) < PAPER_TABLE2[n]]
         worse = [SYMBOL.get(n, n) for n in names if np.median(errs[n]) > PAPER_TABLE2[n]]
         summary["better_than_paper"] = better
-        lines += ["", f"Median error (over the three targets) below the paper's single-run error for "
-                  f"{len(better)} of {len(names)} parameters ({', '.join(better) or 'none'}); above it for "
-                  f"{', '.join(worse) or 'none'}."]
-    lines += ["", f"Best distance per seed: {', '.join(dist)}. Median relative error per seed: "
-              f"{', '.join(f'{x:.1f} %' for x in per_seed)}; over all parameters and seeds: median "
-              f"{np.median(all_e):.1f} %, maximum {all_e.max():.1f} %. Every parameter within 15 %: "
-              f"{', '.join('yes' if w else 'no' for w in within15)} (per seed)."]
+        lines += [
+            "",
+            f"Median error (over the three targets) below the paper's single-run error for "
+            f"{len(better)} of {len(names)} parameters ({', '.join(better) or 'none'}); above it for "
+            f"{', '.join(worse) or 'none'}.",
+        ]
+    lines += [
+        "",
+        f"Best distance per seed: {', '.join(dist)}. Median relative error per seed: "
+        f"{', '.join(f'{x:.1f} %' for x in per_seed)}; over all parameters and seeds: median "
+        f"{np.median(all_e):.1f} %, maximum {all_e.max():.1f} %. Every parameter within 15 %: "
+        f"{', '.join('yes' if w else 'no' for w in within15)} (per seed).",
+    ]
     return "\n".join(lines) + "\n", summary
 
 
@@ -113,38 +152,71 @@ def real_tree_section(name: str = "lignum_pine3") -> str:
     if not (out / "best.json").exists():
         return "(not run)\n"
     best = json.loads((out / "best.json").read_text())
-    summ = json.loads((out / "clones" / "summary.json").read_text()) if (out / "clones" / "summary.json").exists() else None
+    summ = (
+        json.loads((out / "clones" / "summary.json").read_text())
+        if (out / "clones" / "summary.json").exists()
+        else None
+    )
     cfg = bf.load_config(out / "config.toml")
-    lines = [f"Best distance {best['distance']:.4f} after {best['n_evaluations']} evaluations "
-             f"({best['stop_reason']}); per set: " +
-             ", ".join(f"{k} {v:.4f}" for k, v in best["per_set"].items() if v is not None) + ".", "",
-             "| parameter | bounds | best fit | paper (SF Fig. 4) |", "|---|---|---|---|"]
-    paper = {"lr_mean": 0.01, "lr_sd": 0.002, "q_mean": 0.11, "q_sd": 0.03, "years": 32, "shadow_len": 0.87,
-             "shadow_max": 72.4, "r_env_mean": 0.83, "r_env_sd": 0.23, "beta_init": 34.6, "beta_incr": 5.5,
-             "zeta_sd": 8.9, "beta_max": 77.1, "gamma_sd": 7.6, "shed_year": 12, "shed_mu": 5.2}
+    lines = [
+        f"Best distance {best['distance']:.4f} after {best['n_evaluations']} evaluations "
+        f"({best['stop_reason']}); per set: "
+        + ", ".join(f"{k} {v:.4f}" for k, v in best["per_set"].items() if v is not None)
+        + ".",
+        "",
+        "| parameter | bounds | best fit | paper (SF Fig. 4) |",
+        "|---|---|---|---|",
+    ]
+    paper = {
+        "lr_mean": 0.01,
+        "lr_sd": 0.002,
+        "q_mean": 0.11,
+        "q_sd": 0.03,
+        "years": 32,
+        "shadow_len": 0.87,
+        "shadow_max": 72.4,
+        "r_env_mean": 0.83,
+        "r_env_sd": 0.23,
+        "beta_init": 34.6,
+        "beta_incr": 5.5,
+        "zeta_sd": 8.9,
+        "beta_max": 77.1,
+        "gamma_sd": 7.6,
+        "shed_year": 12,
+        "shed_mu": 5.2,
+    }
     for n, fp in cfg.ssm.free.items():
         lines.append(f"| `{n}` | {fp.lower:g}–{fp.upper:g} | {float(best['params'][n]):.4g} | {paper.get(n, '–')} |")
     lines.append("")
     if summ:
         tm = summ["target_metrics"]
-        lines += [f"**{summ['ok']} clones** (of {summ['count']}; fresh seeds, the best-fit parameters). "
-                  "Classical metrics of the clones against the QSM (not fitted):", "",
-                  "| metric | QSM | clones: mean ± sd [min, max] | relative error: mean (median) | paper |",
-                  "|---|---|---|---|---|"]
-        for key, ek, paper_txt in (("height", "d_h", "height underestimated by about 7 %"),
-                                   ("girth", "d_g", "breast-height diameter overestimated by about 55 %"),
-                                   ("crown_spread", "d_c", "–")):
+        lines += [
+            f"**{summ['ok']} clones** (of {summ['count']}; fresh seeds, the best-fit parameters). "
+            "Classical metrics of the clones against the QSM (not fitted):",
+            "",
+            "| metric | QSM | clones: mean ± sd [min, max] | relative error: mean (median) | paper |",
+            "|---|---|---|---|---|",
+        ]
+        for key, ek, paper_txt in (
+            ("height", "d_h", "height underestimated by about 7 %"),
+            ("girth", "d_g", "breast-height diameter overestimated by about 55 %"),
+            ("crown_spread", "d_c", "–"),
+        ):
             v, e = summ.get(key), summ.get(ek)
             if v and e:
-                lines.append(f"| {key} (m) | {tm[key]:.3f} | {v['mean']:.3f} ± {v['sd']:.3f} [{v['min']:.3f}, "
-                             f"{v['max']:.3f}] | {100 * e['mean']:.1f} % ({100 * e['median']:.1f} %) | {paper_txt} |")
+                lines.append(
+                    f"| {key} (m) | {tm[key]:.3f} | {v['mean']:.3f} ± {v['sd']:.3f} [{v['min']:.3f}, "
+                    f"{v['max']:.3f}] | {100 * e['mean']:.1f} % ({100 * e['median']:.1f} %) | {paper_txt} |"
+                )
         dbh = [r.get("dbh") for r in summ["rows"] if r.get("status") == "ok" and r.get("dbh") is not None]
         dbh = np.array([x for x in dbh if np.isfinite(x)], float)
         if dbh.size and np.isfinite(tm.get("dbh", np.nan)):
             e = np.abs(dbh - tm["dbh"]) / tm["dbh"]
-            lines.append(f"| DBH at 1.3 m (m) | {tm['dbh']:.3f} | {dbh.mean():.3f} ± {dbh.std(ddof=1):.3f} "
-                         f"[{dbh.min():.3f}, {dbh.max():.3f}] | {100 * e.mean():.1f} % ({100 * np.median(e):.1f} %) | "
-                         "overestimated by about 55 % |")
+            lines.append(
+                f"| DBH at 1.3 m (m) | {tm['dbh']:.3f} | {dbh.mean():.3f} ± {dbh.std(ddof=1):.3f} "
+                f"[{dbh.min():.3f}, {dbh.max():.3f}] | {100 * e.mean():.1f} % ({100 * np.median(e):.1f} %) | "
+                "overestimated by about 55 % |"
+            )
         lines.append("")
         lines += stand_mates_section(out, cfg, summ)
     return "\n".join(lines) + "\n"
@@ -154,6 +226,7 @@ def stand_mates_section(out, cfg, summ) -> list[str]:
     """Distances of the clones to pine 3 against those of its two stand-mates (same features,
     distance and data-side normalisation as the fit)."""
     from bforest_core.pipeline.target import build_target
+
     tgt = build_target(cfg)
     fs = bf.component("features", cfg.features.kind, **tgt.feature_settings)
     dist = bf.component("distance", cfg.distance.kind, **cfg.distance.model_dump(exclude={"kind"}))
@@ -166,29 +239,50 @@ def stand_mates_section(out, cfg, summ) -> list[str]:
             per = dist.compute_per_set(U, tgt.U)
             mates[name] = (dist.combine(per, cfg.objective.weights), per)
     clone_d = np.array([r["distance"] for r in summ["rows"] if r.get("status") == "ok"], float)
-    lines = ["Structural distance to pine 3 (KS, 256 gp2 lines, z-scored on pine 3, circular angles, "
-             f"subtree topology; sets {', '.join(tgt.U)}):", "",
-             "| tree | distance to pine 3 | per set |", "|---|---|---|"]
+    lines = [
+        "Structural distance to pine 3 (KS, 256 gp2 lines, z-scored on pine 3, circular angles, "
+        f"subtree topology; sets {', '.join(tgt.U)}):",
+        "",
+        "| tree | distance to pine 3 | per set |",
+        "|---|---|---|",
+    ]
     set_names = list(tgt.U)
-    per_clone = {s: np.array([r["per_set"][s] for r in summ["rows"] if r.get("status") == "ok"], float) for s in set_names}
-    lines.append(f"| clones (n = {clone_d.size}): median [min, max] | {np.median(clone_d):.3f} "
-                 f"[{clone_d.min():.3f}, {clone_d.max():.3f}] | " +
-                 ", ".join(f"{s} {np.median(v):.3f}" for s, v in per_clone.items()) + " |")
+    per_clone = {
+        s: np.array([r["per_set"][s] for r in summ["rows"] if r.get("status") == "ok"], float) for s in set_names
+    }
+    lines.append(
+        f"| clones (n = {clone_d.size}): median [min, max] | {np.median(clone_d):.3f} "
+        f"[{clone_d.min():.3f}, {clone_d.max():.3f}] | "
+        + ", ".join(f"{s} {np.median(v):.3f}" for s, v in per_clone.items())
+        + " |"
+    )
     for name, (d, per) in mates.items():
         frac = float(np.mean(clone_d < d)) if clone_d.size else float("nan")
-        lines.append(f"| {name} (stand-mate) | {d:.3f} | " + ", ".join(f"{k} {v:.3f}" for k, v in per.items())
-                     + f" (clones closer than this tree: {100 * frac:.0f} %) |")
+        lines.append(
+            f"| {name} (stand-mate) | {d:.3f} | "
+            + ", ".join(f"{k} {v:.3f}" for k, v in per.items())
+            + f" (clones closer than this tree: {100 * frac:.0f} %) |"
+        )
     return lines + [""]
 
 
 def figures():
     """Copy the run figures the doc shows into docs/img/validation."""
     import shutil
+
     IMG.mkdir(parents=True, exist_ok=True)
-    picks = [("lignum_synthetic_seed1", "trees.png"), ("lignum_synthetic_seed1", "convergence.png"),
-             ("sot_synthetic_seed1", "trees.png"), ("lignum_pine3", "trees.png"), ("lignum_pine3", "clones.png"),
-             ("lignum_pine3", "clone_metrics.png"), ("lignum_pine3", "set_S1.png"), ("lignum_pine3", "convergence.png"),
-             ("lignum_pine3_rich", "clones.png"), ("lignum_pine3_trunk", "clones.png")]
+    picks = [
+        ("lignum_synthetic_seed1", "trees.png"),
+        ("lignum_synthetic_seed1", "convergence.png"),
+        ("sot_synthetic_seed1", "trees.png"),
+        ("lignum_pine3", "trees.png"),
+        ("lignum_pine3", "clones.png"),
+        ("lignum_pine3", "clone_metrics.png"),
+        ("lignum_pine3", "set_S1.png"),
+        ("lignum_pine3", "convergence.png"),
+        ("lignum_pine3_rich", "clones.png"),
+        ("lignum_pine3_trunk", "clones.png"),
+    ]
     shown = {}
     for run, fig in picks:
         src = RUNS / run / "figures" / fig
@@ -201,8 +295,14 @@ def figures():
 
 def write_doc():
     from bforest_core.report import write_report
-    for name in ("lignum_synthetic_seed1", "sot_synthetic_seed1", "lignum_pine3", "lignum_pine3_rich",
-                 "lignum_pine3_trunk"):
+
+    for name in (
+        "lignum_synthetic_seed1",
+        "sot_synthetic_seed1",
+        "lignum_pine3",
+        "lignum_pine3_rich",
+        "lignum_pine3_trunk",
+    ):
         if (RUNS / name / "best.json").exists():
             write_report(RUNS / name)
     lig, lig_s = recovery_table("lignum_synthetic")
@@ -374,22 +474,31 @@ distance is the largest), so the simplified LIGNUM cannot reproduce this pine's 
 """
     marker = "<!-- real-tree fidelity: written by examples/real/run_fidelity.py --doc -->"
     old = DOC.read_text(encoding="utf-8") if DOC.exists() else ""
-    cal, cal_end = ("<!-- calibration: written by examples/calibration/run_calibration.py --doc -->",
-                    "<!-- /calibration -->")
+    cal, cal_end = (
+        "<!-- calibration: written by examples/calibration/run_calibration.py --doc -->",
+        "<!-- /calibration -->",
+    )
     if cal in old and cal_end in old:  # the calibration section is examples/calibration/run_calibration.py's
         text = text.rstrip() + "\n\n" + cal + old.split(cal, 1)[1].split(cal_end, 1)[0] + cal_end + "\n"
     if marker in old:  # the real-tree fidelity section is examples/real/run_fidelity.py's: keep it
         text = text.rstrip() + "\n\n" + marker + old.split(marker, 1)[1]
     DOC.write_text(text, encoding="utf-8")
-    (RUNS / "summary.json").write_text(json.dumps({"lignum": lig_s, "lignum_k3": lig3_s, "lignum_rich": ligr_s,
-                                                         "sot": sot_s, "sot_k3": sot3_s}, indent=2))
+    (RUNS / "summary.json").write_text(
+        json.dumps(
+            {"lignum": lig_s, "lignum_k3": lig3_s, "lignum_rich": ligr_s, "sot": sot_s, "sot_k3": sot3_s}, indent=2
+        )
+    )
     print(f"wrote {DOC}")
 
 
 #: heading of each synthetic recovery's section on the page -> its configs (seed appended)
-RECOVERIES = {"## 1. ": "lignum_synthetic_seed", "### 1b. ": "lignum_synthetic_k3_seed",
-              "### 1c. ": "lignum_synthetic_rich_seed", "## 2. ": "sot_synthetic_seed",
-              "### 2b. ": "sot_synthetic_k3_seed"}
+RECOVERIES = {
+    "## 1. ": "lignum_synthetic_seed",
+    "### 1b. ": "lignum_synthetic_k3_seed",
+    "### 1c. ": "lignum_synthetic_rich_seed",
+    "## 2. ": "sot_synthetic_seed",
+    "### 2b. ": "sot_synthetic_k3_seed",
+}
 
 
 def check_recoveries(runs: Path) -> bool:
@@ -401,7 +510,7 @@ def check_recoveries(runs: Path) -> bool:
     same_all = True
     for head, stem in RECOVERIES.items():
         i = page.index(head)
-        text = page[i:min([k for k in heads if k > i] or [len(page)])]
+        text = page[i : min([k for k in heads if k > i] or [len(page)])]
         recorded = re.search(r"Best distance per seed: (.*?)\. ", text).group(1).split("), ")
         for s in (1, 2, 3):
             b = json.loads((run_fit(f"{stem}{s}", runs=runs) / "best.json").read_text())
@@ -414,8 +523,10 @@ def check_recoveries(runs: Path) -> bool:
                     diffs.append(f"{name} {cell} -> {v:.4g}")
             same = recorded[s - 1].startswith(got) and not diffs
             same_all &= same
-            print(f"{head.strip('# ')}{stem}{s}: page {recorded[s - 1].rstrip(')')}), re-run {got}); "
-                  f"estimates {'as on the page' if not diffs else ', '.join(diffs)} -> {'same' if same else 'DIFFERENT'}")
+            print(
+                f"{head.strip('# ')}{stem}{s}: page {recorded[s - 1].rstrip(')')}), re-run {got}); "
+                f"estimates {'as on the page' if not diffs else ', '.join(diffs)} -> {'same' if same else 'DIFFERENT'}"
+            )
     print("every recovery gives the recorded result" if same_all else "some recoveries differ from the page")
     return same_all
 
@@ -424,16 +535,27 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--only", default=None, help="run only configs whose name starts with this")
     ap.add_argument("--report", action="store_true", help="only rewrite docs/validation.md")
-    ap.add_argument("--check", type=Path, metavar="DIR", help="refit the synthetic recoveries into DIR and "
-                    "compare them with docs/validation.md (the page is not rewritten)")
+    ap.add_argument(
+        "--check",
+        type=Path,
+        metavar="DIR",
+        help="refit the synthetic recoveries into DIR and "
+        "compare them with docs/validation.md (the page is not rewritten)",
+    )
     args = ap.parse_args()
     if args.check:
         raise SystemExit(0 if check_recoveries(args.check) else 1)
     RUNS.mkdir(parents=True, exist_ok=True)
     if not args.report:
-        plan = [f"sot_synthetic_seed{s}" for s in (1, 2, 3)] + [f"lignum_synthetic_seed{s}" for s in (1, 2, 3)] + \
-               ["lignum_pine3"] + [f"lignum_synthetic_{v}_seed{s}" for v in ("k3", "rich") for s in (1, 2, 3)] + \
-               ["lignum_pine3_rich"] + [f"sot_synthetic_k3_seed{s}" for s in (1, 2, 3)] + ["lignum_pine3_trunk"]
+        plan = (
+            [f"sot_synthetic_seed{s}" for s in (1, 2, 3)]
+            + [f"lignum_synthetic_seed{s}" for s in (1, 2, 3)]
+            + ["lignum_pine3"]
+            + [f"lignum_synthetic_{v}_seed{s}" for v in ("k3", "rich") for s in (1, 2, 3)]
+            + ["lignum_pine3_rich"]
+            + [f"sot_synthetic_k3_seed{s}" for s in (1, 2, 3)]
+            + ["lignum_pine3_trunk"]
+        )
         for name in plan:
             if args.only and not name.startswith(args.only):
                 continue

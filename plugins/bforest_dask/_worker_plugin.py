@@ -1,5 +1,6 @@
 """The worker plugin that runs a fit's initializer on every Dask worker (imported only when a
 dask run starts, so discovering the plugin does not import ``distributed``)."""
+
 from __future__ import annotations
 
 from collections.abc import Callable

@@ -11,13 +11,15 @@ in a worker plugin: it runs once on every worker that is connected when the run 
 every worker that joins later (an adaptive cluster, a restarted worker), and its arguments
 travel to each worker once, inside the plugin, never with the tasks.
 """
+
 from __future__ import annotations
 
 import importlib.util
 import logging
 import os
 import uuid
-from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any
 
 from pydantic import Field
 
@@ -29,23 +31,36 @@ if TYPE_CHECKING:
 # checked without importing: `distributed` costs ~0.3 s, paid only when a dask run starts
 for _mod in ("dask", "distributed"):
     if importlib.util.find_spec(_mod) is None:  # pragma: no cover - exercised where dask is absent
-        raise ImportError(f"the 'dask' executor needs dask and distributed; '{_mod}' is not installed. "
-                          "Install them with: pip install 'bayesforest[dask]'")
+        raise ImportError(
+            f"the 'dask' executor needs dask and distributed; '{_mod}' is not installed. "
+            "Install them with: pip install 'bayesforest[dask]'"
+        )
 
 
 class DaskSettings(ComponentSettings):
-    address: str | None = Field(None, description="address of a running Dask scheduler (e.g. "
-                                "tcp://10.0.0.5:8786 or a scheduler file path with scheduler_file); "
-                                "none: start a local cluster")
-    scheduler_file: str | None = Field(None, description="JSON scheduler file written by `dask scheduler "
-                                       "--scheduler-file` (alternative to address)")
-    workers: int | None = Field(None, ge=1, description="local cluster: number of worker processes "
-                                "(default: all cores); remote scheduler: wait until this many workers "
-                                "are connected (default 1)")
+    address: str | None = Field(
+        None,
+        description="address of a running Dask scheduler (e.g. "
+        "tcp://10.0.0.5:8786 or a scheduler file path with scheduler_file); "
+        "none: start a local cluster",
+    )
+    scheduler_file: str | None = Field(
+        None, description="JSON scheduler file written by `dask scheduler --scheduler-file` (alternative to address)"
+    )
+    workers: int | None = Field(
+        None,
+        ge=1,
+        description="local cluster: number of worker processes "
+        "(default: all cores); remote scheduler: wait until this many workers "
+        "are connected (default 1)",
+    )
     timeout: float = Field(120.0, gt=0, description="seconds to wait for the scheduler and its workers")
-    dashboard_address: str | None = Field(None, description="local cluster: where to serve the Dask "
-                                          "dashboard (e.g. ':8787', on 127.0.0.1 unless a host is given; "
-                                          "needs bokeh); none: no dashboard and no HTTP port")
+    dashboard_address: str | None = Field(
+        None,
+        description="local cluster: where to serve the Dask "
+        "dashboard (e.g. ':8787', on 127.0.0.1 unless a host is given; "
+        "needs bokeh); none: no dashboard and no HTTP port",
+    )
 
 
 def dashboard_address(address: str | None) -> str:
@@ -111,20 +126,24 @@ class DaskExecutor(Executor):
         from distributed import Client, LocalCluster
 
         from ._worker_plugin import RunInitializer
+
         s: DaskSettings = self.settings
         if self._client is not None:
             raise RuntimeError("dask executor already started")
         if s.address and s.scheduler_file:
             raise ValueError("dask executor: give address or scheduler_file, not both")
         if s.address or s.scheduler_file:
-            client = Client(s.address, scheduler_file=s.scheduler_file, timeout=s.timeout,
-                            set_as_default=False)
+            client = Client(s.address, scheduler_file=s.scheduler_file, timeout=s.timeout, set_as_default=False)
             n_wait = s.workers or 1
         else:
             n = s.workers or max(1, os.cpu_count() or 1)
-            self._cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                         dashboard_address=dashboard_address(s.dashboard_address),
-                                         silence_logs=logging.WARNING)
+            self._cluster = LocalCluster(
+                n_workers=n,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=dashboard_address(s.dashboard_address),
+                silence_logs=logging.WARNING,
+            )
             if s.dashboard_address is None:  # the scheduler starts an HTTP server whatever it is told
                 self._cluster.sync(_stop_http_server, self._cluster.scheduler)  # on the cluster's event loop
             client = Client(self._cluster, set_as_default=False)
@@ -134,8 +153,7 @@ class DaskExecutor(Executor):
             client.wait_for_workers(n_wait, timeout=s.timeout)
             # a unique name: several runs may share one scheduler, each with its own target
             self._plugin_name = f"bforest-init-{uuid.uuid4().hex}"
-            client.register_plugin(RunInitializer(initializer, initargs, self._plugin_name),
-                                   name=self._plugin_name)
+            client.register_plugin(RunInitializer(initializer, initargs, self._plugin_name), name=self._plugin_name)
         except BaseException:
             self.shutdown()
             raise
@@ -147,6 +165,7 @@ class DaskExecutor(Executor):
         pending.
         """
         from distributed import as_completed
+
         client = self.client
         items = list(items)
         if not items:

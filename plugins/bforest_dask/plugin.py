@@ -4,6 +4,7 @@ Needs the optional extra ``bayesforest[dask]`` (dask + distributed). Without the
 module raises ``ImportError`` with the install command, and the registry lists the plugin as a
 load error while every other plugin keeps working.
 """
+
 from bforest_core.hookspecs import hookimpl
 
 from .executor import DaskExecutor

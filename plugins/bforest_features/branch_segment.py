@@ -14,6 +14,7 @@ With ``angles = "circular"`` alpha, gamma and zeta are each replaced in place by
 
 Everything is vectorised over cylinders and branches; there is no Python loop over either.
 """
+
 from __future__ import annotations
 
 import re
@@ -27,8 +28,17 @@ from pydantic import Field, field_validator
 from bforest_core.errors import ConfigError
 from bforest_core.interfaces import ComponentSettings, FeatureSet
 
-__all__ = ["BranchSegmentFeatures", "SetSpec", "parse_set", "branch_table", "segment_table", "along_branch",
-           "azimuth_frame", "B_COLUMNS", "S_COLUMNS"]
+__all__ = [
+    "BranchSegmentFeatures",
+    "SetSpec",
+    "parse_set",
+    "branch_table",
+    "segment_table",
+    "along_branch",
+    "azimuth_frame",
+    "B_COLUMNS",
+    "S_COLUMNS",
+]
 
 B_COLUMNS = ("beta", "alpha", "L_t", "R_f", "L_a")
 S_COLUMNS = ("R", "L", "gamma", "zeta")
@@ -82,8 +92,7 @@ def parse_set(text: str) -> SetSpec:
         raise ValueError(f"set {text!r} is not a string like 'S1' or 'B2,3,4'")
     m = _SET_RE.match(text)
     if not m:
-        raise ValueError(f"set {text!r} is not of the form <S|B><orders>, e.g. 'S1', 'S0,1', "
-                         "'B2-4', 'B2+'")
+        raise ValueError(f"set {text!r} is not of the form <S|B><orders>, e.g. 'S1', 'S0,1', 'B2-4', 'B2+'")
     kind = m.group(1).upper()
     body = re.sub(r"\s+", "", m.group(2))
     orders: set[int] = set()
@@ -100,11 +109,9 @@ def parse_set(text: str) -> SetSpec:
             w = int(item[:-1])
             open_from = w if open_from is None else min(open_from, w)
         else:
-            raise ValueError(f"set {text!r}: cannot read order item {item!r} "
-                             "(use numbers, ranges 'a-b' or 'a+')")
+            raise ValueError(f"set {text!r}: cannot read order item {item!r} (use numbers, ranges 'a-b' or 'a+')")
     if kind == "B" and (0 in orders or open_from == 0):
-        raise ValueError(f"set {text!r}: B0 is not a data set (the trunk has no branch row; "
-                         "use S0 for trunk segments)")
+        raise ValueError(f"set {text!r}: B0 is not a data set (the trunk has no branch row; use S0 for trunk segments)")
     if open_from is not None:
         orders = {w for w in orders if w < open_from}
     return SetSpec(kind + body, kind, tuple(sorted(orders)), open_from)
@@ -113,6 +120,7 @@ def parse_set(text: str) -> SetSpec:
 # ----------------------------------------------------------------------------------------------
 # the geometry kernels
 # ----------------------------------------------------------------------------------------------
+
 
 def azimuth_frame(p: np.ndarray):
     """Reference vectors ``v, w`` of the branch azimuth for unit parent axes ``p`` (k, 3).
@@ -152,9 +160,7 @@ def _segment_angles(p: np.ndarray, t: np.ndarray):
     xy = np.where(use_p, p[:, 1] / safe_hp, np.where(use_t, t[:, 1] / safe_ht, xy))
     # y' = Z x x' = (-x'_y, x'_x, 0)
     yx, yy = -xy, xx
-    gamma = np.where(ht >= _TAU,
-                     np.degrees(np.arctan2(t[:, 0] * yx + t[:, 1] * yy, t[:, 0] * xx + t[:, 1] * xy)),
-                     0.0)
+    gamma = np.where(ht >= _TAU, np.degrees(np.arctan2(t[:, 0] * yx + t[:, 1] * yy, t[:, 0] * xx + t[:, 1] * xy)), 0.0)
     y3 = np.stack([yx, yy, np.zeros_like(yx)], axis=1)
     z2 = np.cross(p, y3)
     tperp = t - _rowdot(t, y3)[:, None] * y3
@@ -176,10 +182,10 @@ def along_branch(bt, ln: np.ndarray) -> np.ndarray:
         return L
     order = np.argsort(-bt.n_cyl, kind="stable")
     first = bt.ptr[:-1][order]
-    counts = bt.n_cyl[order]                       # longest branch first
+    counts = bt.n_cyl[order]  # longest branch first
     active = np.searchsorted(-counts, -np.arange(int(counts[0])), side="left")  # branches longer than k
     for k in range(1, int(counts[0])):
-        i = first[:active[k]] + k
+        i = first[: active[k]] + k
         L[i] = L[i - 1] + ln[i - 1]
     return L
 
@@ -246,8 +252,8 @@ def branch_table(tree, clip_la: bool = True, seg_L: np.ndarray | None = None):
     v, w = azimuth_frame(ap)
     alpha = np.degrees(np.arctan2(_rowdot(af, w), _rowdot(af, v)))
     alpha = np.where(alpha <= -180.0, 180.0, alpha)  # range (-180, 180]
-    last = bt.cylinders[bt.ptr[2:] - 1]             # tip cylinder of each lateral branch
-    Lt = seg_L[last] + tree.length[last]            # summed base to tip, as L
+    last = bt.cylinders[bt.ptr[2:] - 1]  # tip cylinder of each lateral branch
+    Lt = seg_L[last] + tree.length[last]  # summed base to tip, as L
     Rf = tree.radius[f]
     proj = _rowdot(tree.start[f] - tree.start[p], ap)
     if clip_la:
@@ -260,11 +266,13 @@ def branch_table(tree, clip_la: bool = True, seg_L: np.ndarray | None = None):
 # the component
 # ----------------------------------------------------------------------------------------------
 
+
 class BranchSegmentSettings(ComponentSettings):
     """Settings of the ``branch-segment`` feature set (docs/features-and-distance.md §2-§3)."""
 
-    sets: list[str] = Field(default_factory=lambda: ["S1"],
-                            description="data sets, e.g. ['S0,1', 'B2,3,4'], 'B2-4', 'B2+'")
+    sets: list[str] = Field(
+        default_factory=lambda: ["S1"], description="data sets, e.g. ['S0,1', 'B2,3,4'], 'B2-4', 'B2+'"
+    )
     topology: Literal["subtree", "source", "thickest"] = "subtree"
     angles: Literal["circular", "linear"] = "circular"
     exclude_added: bool = False
@@ -272,11 +280,12 @@ class BranchSegmentSettings(ComponentSettings):
     nan_policy: Literal["drop", "error"] = "drop"
     min_rows: int = Field(10, ge=0)
     small_sets: Literal["error", "drop", "keep"] = "error"
-    clip_la: bool = Field(True, description="clip L_a's projection to the parent cylinder "
-                                            "(False = toolbox parity)")
+    clip_la: bool = Field(True, description="clip L_a's projection to the parent cylinder (False = toolbox parity)")
     orders: dict[str, list[int]] | None = Field(
-        None, description="resolved orders per set name; written by prepare() so that a model-side "
-                          "instance built from these settings extracts exactly the data side's sets")
+        None,
+        description="resolved orders per set name; written by prepare() so that a model-side "
+        "instance built from these settings extracts exactly the data side's sets",
+    )
 
     @field_validator("sets", mode="before")
     @classmethod
@@ -334,12 +343,12 @@ class BranchSegmentFeatures(FeatureSet):
         self._specs = [parse_set(s) for s in self.settings.sets]
         # resolved orders per set name; open ranges stay unresolved until prepare()
         self._orders: dict[str, tuple[int, ...] | None] = {
-            s.name: (s.orders if s.open_from is None else None) for s in self._specs}
+            s.name: (s.orders if s.open_from is None else None) for s in self._specs
+        }
         given = self.settings.orders or {}
         unknown = sorted(set(given) - set(self._orders))
         if unknown:
-            raise ConfigError(f"features: 'orders' names unknown set(s) {unknown} "
-                              f"(sets: {', '.join(self._orders)})")
+            raise ConfigError(f"features: 'orders' names unknown set(s) {unknown} (sets: {', '.join(self._orders)})")
         for k, v in given.items():
             bad = [w for w in v if w < (1 if self._spec(k).kind == "B" else 0)]
             if bad:
@@ -373,8 +382,10 @@ class BranchSegmentFeatures(FeatureSet):
         """Resolved orders of a set (raises when an open range is not resolved yet)."""
         o = self._orders[set_name]
         if o is None:
-            raise ConfigError(f"features: set '{set_name}' has an open order range; call "
-                              "prepare(data_trees) first so it is resolved on the data tree")
+            raise ConfigError(
+                f"features: set '{set_name}' has an open order range; call "
+                "prepare(data_trees) first so it is resolved on the data tree"
+            )
         return o
 
     def columns(self, set_name: str) -> list[str]:
@@ -426,14 +437,19 @@ class BranchSegmentFeatures(FeatureSet):
                 raise ConfigError(
                     f"features: set '{spec.name}' asks for order {missing[0]}, but the data tree has "
                     f"no {'branches' if spec.kind == 'B' else 'segments'} of that order "
-                    f"(orders present: {sorted(have)})")
+                    f"(orders present: {sorted(have)})"
+                )
             if missing and spec.open_from is None:
-                warnings.warn(f"features: set '{spec.name}': order(s) {missing} absent from the data "
-                              "tree are ignored", RuntimeWarning, stacklevel=2)
+                warnings.warn(
+                    f"features: set '{spec.name}': order(s) {missing} absent from the data tree are ignored",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
             resolved = tuple(w for w in wanted if w in have)
             if not resolved:
-                raise ConfigError(f"features: set '{spec.name}' matches no order of the data tree "
-                                  f"(orders present: {sorted(have)})")
+                raise ConfigError(
+                    f"features: set '{spec.name}' matches no order of the data tree (orders present: {sorted(have)})"
+                )
             self._orders[spec.name] = resolved
         self.prepared = True
         # minimum sizes of the pooled data tables
@@ -444,18 +460,23 @@ class BranchSegmentFeatures(FeatureSet):
             if nrows >= self.settings.min_rows:
                 kept.append(spec.name)
                 continue
-            msg = (f"features: data set '{spec.name}' has {nrows} rows in the data tree(s), fewer "
-                   f"than min_rows = {self.settings.min_rows}")
+            msg = (
+                f"features: data set '{spec.name}' has {nrows} rows in the data tree(s), fewer "
+                f"than min_rows = {self.settings.min_rows}"
+            )
             if self.settings.small_sets == "error":
-                raise ConfigError(msg + "; pool it with neighbouring orders (e.g. 'B2,3,4' or "
-                                  "'B2+'), or set small_sets = 'drop' or 'keep'")
+                raise ConfigError(
+                    msg + "; pool it with neighbouring orders (e.g. 'B2,3,4' or "
+                    "'B2+'), or set small_sets = 'drop' or 'keep'"
+                )
             if self.settings.small_sets == "drop":
                 warnings.warn(msg + "; the pair is dropped", RuntimeWarning, stacklevel=2)
                 continue
             kept.append(spec.name)
         if not kept:
-            raise ConfigError("features: every data set was dropped as too small "
-                              f"(min_rows = {self.settings.min_rows})")
+            raise ConfigError(
+                f"features: every data set was dropped as too small (min_rows = {self.settings.min_rows})"
+            )
         self._active = kept
         self.settings.orders = {k: list(self._orders[k]) for k in kept}
 
@@ -486,8 +507,10 @@ class BranchSegmentFeatures(FeatureSet):
             if nbad:
                 if self.settings.nan_policy == "error":
                     src = tree.metadata.get("source") or tree.metadata.get("model") or "tree"
-                    raise ValueError(f"features: set '{name}' of {src} has {nbad} row(s) with "
-                                     "non-finite values (nan_policy = 'error')")
+                    raise ValueError(
+                        f"features: set '{name}' of {src} has {nbad} row(s) with "
+                        "non-finite values (nan_policy = 'error')"
+                    )
                 table = table[ok]
             out[name] = table
         self.last_dropped = dropped
@@ -536,8 +559,7 @@ class BranchSegmentFeatures(FeatureSet):
         keep = ~t.added[rows] if self.settings.exclude_added else None
         if keep is not None:
             rows, S, s_order = rows[keep], S[keep], s_order[keep]
-        return {"S": S, "S_order": s_order, "S_row": rows,
-                "B": B, "B_order": t.branches.order[1:], "B_id": ids}
+        return {"S": S, "S_order": s_order, "S_row": rows, "B": B, "B_order": t.branches.order[1:], "B_id": ids}
 
     def _embed(self, table: np.ndarray, kind: str) -> np.ndarray:
         if self.settings.angles != "circular":

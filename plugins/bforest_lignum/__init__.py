@@ -1,4 +1,5 @@
 """Bundled Bayes Forest plugin `bforest_lignum`: the simplified stochastic LIGNUM SSM."""
-from .ssm import LignumSSM, LignumSettings
+
+from .ssm import LignumSettings, LignumSSM
 
 __all__ = ["LignumSSM", "LignumSettings"]

@@ -36,11 +36,12 @@ Implementation choices where docs/models.md leaves room (all documented in docs/
   its end cell holds a live segment that is not its ancestor and not its sibling, or the end of an
   earlier shoot of the same year (shoot-list order) that is not a sibling.
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
 
 import numpy as np
 from scipy.optimize import brentq
@@ -51,7 +52,7 @@ from bforest_core.tree import Tree, group_by_level
 
 from .shadow import q_max_of, shadow_fast, voxel_coords
 
-FOLIATED = 1e-5                        # W_f above this counts as foliated (light and P)
+FOLIATED = 1e-5  # W_f above this counts as foliated (light and P)
 PF = np.array([1.0, 0.9, 0.7, 0.5, 0.3])  # foliage survival at ages 0-4, then 0
 _TN_EPS = 1e-16
 BUD_TABLE_ROWS = {
@@ -157,7 +158,7 @@ def depth_levels(idx: np.ndarray, depth: np.ndarray) -> list[np.ndarray]:
         return []
     order, bounds = group_by_level(depth[idx])
     s = idx[order]
-    return [s[bounds[k]:bounds[k + 1]] for k in range(bounds.size - 1)]
+    return [s[bounds[k] : bounds[k + 1]] for k in range(bounds.size - 1)]
 
 
 # ------------------------------------------------------------------------------------ output
@@ -171,8 +172,9 @@ def render_rng(seed: int) -> np.random.Generator:
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), RENDER_STREAM])))
 
 
-def render_pieces(start, axis, length, parent, ext, order, piece_length: float, wind_sd: float,
-                  rng: np.random.Generator):
+def render_pieces(
+    start, axis, length, parent, ext, order, piece_length: float, wind_sd: float, rng: np.random.Generator
+):
     """Draw every segment as ``k = ceil(length / piece_length)`` consecutive cylinders.
 
     A QSM draws a branch as short cylinders fitted to the scan (median 0.08-0.16 m on the
@@ -193,7 +195,7 @@ def render_pieces(start, axis, length, parent, ext, order, piece_length: float, 
     np.cumsum(k[:-1], out=first[1:])
     last = first + k - 1
     keep = np.repeat(np.arange(n), k)
-    j = np.arange(keep.size) - first[keep]                    # piece number within its segment
+    j = np.arange(keep.size) - first[keep]  # piece number within its segment
     kk = k[keep].astype(np.float64)
     vec = axis[keep] * (length[keep] / kk)[:, None]
     wind = (order[keep] > 0) & (kk > 1)
@@ -206,7 +208,7 @@ def render_pieces(start, axis, length, parent, ext, order, piece_length: float, 
         v = _cross(a, u)
         g = rng.standard_normal((rows.size, 2)) * math.radians(wind_sd)
         e = g[:, :1] * u + g[:, 1:] * v
-        seg = keep[rows]                                       # centre e within each segment
+        seg = keep[rows]  # centre e within each segment
         sums = np.zeros((n, 3))
         np.add.at(sums, seg, e)
         e -= sums[seg] / kk[rows, None]
@@ -229,11 +231,23 @@ def render_pieces(start, axis, length, parent, ext, order, piece_length: float, 
 
 # ------------------------------------------------------------------------------------ state
 _FIELDS = {
-    "start": (np.float64, 3), "axis": (np.float64, 3), "length": (np.float64, 0),
-    "radius": (np.float64, 0), "hw": (np.float64, 0), "wf0": (np.float64, 0), "wf": (np.float64, 0),
-    "age": (np.int64, 0), "order": (np.int64, 0), "parent": (np.int64, 0), "is_lat": (bool, 0),
-    "depth": (np.int64, 0), "axis_id": (np.int64, 0), "has_bud": (bool, 0),
-    "deleted": (bool, 0), "dead": (bool, 0), "born": (np.int64, 0),
+    "start": (np.float64, 3),
+    "axis": (np.float64, 3),
+    "length": (np.float64, 0),
+    "radius": (np.float64, 0),
+    "hw": (np.float64, 0),
+    "wf0": (np.float64, 0),
+    "wf": (np.float64, 0),
+    "age": (np.int64, 0),
+    "order": (np.int64, 0),
+    "parent": (np.int64, 0),
+    "is_lat": (bool, 0),
+    "depth": (np.int64, 0),
+    "axis_id": (np.int64, 0),
+    "has_bud": (bool, 0),
+    "deleted": (bool, 0),
+    "dead": (bool, 0),
+    "born": (np.int64, 0),
 }
 
 
@@ -266,7 +280,7 @@ class _State:
             self.cap = cap
         rows = np.arange(self.n, need)
         for f in _FIELDS:
-            getattr(self, "_" + f)[self.n:need] = cols[f]
+            getattr(self, "_" + f)[self.n : need] = cols[f]
         self.n = need
         self._views()
         return rows
@@ -295,7 +309,7 @@ class LignumView:
     output table exactly as a ``years = t`` run would return it.
     """
 
-    def __init__(self, sim: "_Simulation", t: int, S, I, fL, Pv, Mv):
+    def __init__(self, sim: _Simulation, t: int, S, I, fL, Pv, Mv):
         st = sim.st
         live = ~st.deleted
         self.t = t
@@ -332,8 +346,17 @@ class _Failed(Exception):
 
 
 class _Simulation:
-    def __init__(self, p: dict, seed: int, *, preset: str, order_mode: str, max_live: int,
-                 on_step: Callable | None = None, trace: list | None = None):
+    def __init__(
+        self,
+        p: dict,
+        seed: int,
+        *,
+        preset: str,
+        order_mode: str,
+        max_live: int,
+        on_step: Callable | None = None,
+        trace: list | None = None,
+    ):
         self.p = p
         self.seed = seed
         self.preset = preset
@@ -363,26 +386,57 @@ class _Simulation:
         ext[parent_out[ap]] = np.flatnonzero(ap)
         axis = st.axis[idx]
         axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
-        meta = {"model": "lignum", "preset": self.preset, "params": dict(self.p), "seed": int(self.seed),
-                "status": status, "years": int(self.p["years"]), "year_reached": int(t),
-                "order_mode": self.order_mode, "units": {"length": "m", "angle": "deg"},
-                "frame": "right-handed, z up, stem base at the origin", "root_mass": float(self.Wr),
-                "segments_created": int(st.n), "dead_segments": int(np.count_nonzero(st.dead[idx]))}
-        extras = {"is_dead": st.dead[idx].copy(), "age": st.age[idx].copy(),
-                  "foliage_mass": st.wf[idx].copy(), "heartwood_radius": st.hw[idx].copy(),
-                  "is_lateral": st.is_lat[idx].copy(), "segment_id": idx.copy(),
-                  "birth_year": st.born[idx].copy()}
+        meta = {
+            "model": "lignum",
+            "preset": self.preset,
+            "params": dict(self.p),
+            "seed": int(self.seed),
+            "status": status,
+            "years": int(self.p["years"]),
+            "year_reached": int(t),
+            "order_mode": self.order_mode,
+            "units": {"length": "m", "angle": "deg"},
+            "frame": "right-handed, z up, stem base at the origin",
+            "root_mass": float(self.Wr),
+            "segments_created": int(st.n),
+            "dead_segments": int(np.count_nonzero(st.dead[idx])),
+        }
+        extras = {
+            "is_dead": st.dead[idx].copy(),
+            "age": st.age[idx].copy(),
+            "foliage_mass": st.wf[idx].copy(),
+            "heartwood_radius": st.hw[idx].copy(),
+            "is_lateral": st.is_lat[idx].copy(),
+            "segment_id": idx.copy(),
+            "birth_year": st.born[idx].copy(),
+        }
         start, length, radius = st.start[idx], st.length[idx], st.radius[idx]
         if self.p["piece_length"] > 0:
             start, axis, length, parent_out, ext, keep = render_pieces(
-                start, axis, length, parent_out, ext, st.order[idx], self.p["piece_length"],
-                self.p["wind_sd"], render_rng(self.seed))
+                start,
+                axis,
+                length,
+                parent_out,
+                ext,
+                st.order[idx],
+                self.p["piece_length"],
+                self.p["wind_sd"],
+                render_rng(self.seed),
+            )
             radius = radius[keep]
             extras = {k: v[keep] for k, v in extras.items()}
             meta["pieces"] = {"piece_length": float(self.p["piece_length"]), "wind_sd": float(self.p["wind_sd"])}
-        return Tree(start, axis, length, radius, parent_out, ext,
-                    topology="thickest" if self.order_mode == "thickest" else "source",
-                    extras=extras, metadata=meta)
+        return Tree(
+            start,
+            axis,
+            length,
+            radius,
+            parent_out,
+            ext,
+            topology="thickest" if self.order_mode == "thickest" else "source",
+            extras=extras,
+            metadata=meta,
+        )
 
     # -------------------------------------------------------------- run
     def run(self) -> Tree:
@@ -401,10 +455,25 @@ class _Simulation:
         L = p["init_len"]
         r = p["lr_mean"] * L
         wf0 = p["foliage_per_area"] * 2 * np.pi * r * L
-        self.st.append(start=[[0.0, 0.0, 0.0]], axis=[[0.0, 0.0, 1.0]], length=[L], radius=[r],
-                       hw=[math.sqrt(p["heartwood_share"]) * r], wf0=[wf0], wf=[wf0], age=[0],
-                       order=[0], parent=[-1], is_lat=[False], depth=[0], axis_id=[0],
-                       has_bud=[True], deleted=[False], dead=[False], born=[0])
+        self.st.append(
+            start=[[0.0, 0.0, 0.0]],
+            axis=[[0.0, 0.0, 1.0]],
+            length=[L],
+            radius=[r],
+            hw=[math.sqrt(p["heartwood_share"]) * r],
+            wf0=[wf0],
+            wf=[wf0],
+            age=[0],
+            order=[0],
+            parent=[-1],
+            is_lat=[False],
+            depth=[0],
+            axis_id=[0],
+            has_bud=[True],
+            deleted=[False],
+            dead=[False],
+            born=[0],
+        )
         self.Wr = p["root_per_foliage"] * wf0
 
     def _run(self) -> int:
@@ -418,9 +487,12 @@ class _Simulation:
             # a. ageing
             st.age[live] += 1
             # b. respiration
-            sap = np.pi * (st.radius ** 2 - st.hw ** 2)
-            Mv = (p["resp_foliage"] * float(st.wf[live].sum()) + p["resp_root"] * self.Wr
-                  + p["resp_sapwood"] * p["wood_density"] * float(np.sum((st.length * sap)[live])))
+            sap = np.pi * (st.radius**2 - st.hw**2)
+            Mv = (
+                p["resp_foliage"] * float(st.wf[live].sum())
+                + p["resp_root"] * self.Wr
+                + p["resp_sapwood"] * p["wood_density"] * float(np.sum((st.length * sap)[live]))
+            )
             # c. light
             S, I, fL, Pv = self._light(live)
             if self.on_step is not None:
@@ -444,8 +516,9 @@ class _Simulation:
         st = self.st
         idx = np.flatnonzero(live)
         mid = st.start[idx] + 0.5 * st.length[idx, None] * st.axis[idx]
-        z_top = (float((st.start[idx, 2] + st.length[idx] * st.axis[idx, 2]).max())
-                 if self.p["stand_shade"] > 0.0 else 0.0)
+        z_top = (
+            float((st.start[idx, 2] + st.length[idx] * st.axis[idx, 2]).max()) if self.p["stand_shade"] > 0.0 else 0.0
+        )
         S_l, I_l, fL_l, Pv = light(mid, st.wf[idx], self.p, z_top)
         S = np.zeros(st.n)
         I = np.zeros(st.n)
@@ -466,8 +539,8 @@ class _Simulation:
         # ---- e. buds -> provisional shoots
         bud = np.flatnonzero(live & st.has_bud)
         nb = bud.size
-        renv = tn_inverse_cdf(rng.random(nb), p["r_env_mean"], p["r_env_sd"])       # draw 1
-        q_fate = tn_inverse_cdf(rng.random(nb), p["q_mean"], p["q_sd"])             # draw 2
+        renv = tn_inverse_cdf(rng.random(nb), p["r_env_mean"], p["r_env_sd"])  # draw 1
+        q_fate = tn_inverse_cdf(rng.random(nb), p["q_mean"], p["q_sd"])  # draw 2
         bend_ = st.start[bud] + st.length[bud, None] * st.axis[bud]
         hdist = np.hypot(bend_[:, 0], bend_[:, 1])
         killed = hdist > renv
@@ -480,8 +553,15 @@ class _Simulation:
         nL = lateral_count(st.wf[bud], p["bud_table"])
         nL[(flb < p["fl_min_buds"]) | apical_only | ~active] = 0
         if tr is not None:
-            tr.data.update(bud=bud.copy(), bud_hdist=hdist, bud_renv=renv, bud_killed=killed,
-                           bud_active=active, bud_nL=nL.copy(), bud_fL=flb)
+            tr.data.update(
+                bud=bud.copy(),
+                bud_hdist=hdist,
+                bud_renv=renv,
+                bud_killed=killed,
+                bud_active=active,
+                bud_nL=nL.copy(),
+                bud_fL=flb,
+            )
         prod = bud[active]
         nLp = nL[active]
         st.has_bud[prod] = False
@@ -492,15 +572,15 @@ class _Simulation:
         j = np.arange(ns) - first[grp]
         par = prod[grp]
         s_lat = j < nLp[grp]
-        u_q = rng.random(ns)                                                        # draw 3
-        u_lr = rng.random(ns)                                                       # draw 4
+        u_q = rng.random(ns)  # draw 3
+        u_lr = rng.random(ns)  # draw 4
         qs = tn_inverse_cdf(u_q, p["q_mean"], p["q_sd"])
         lrs = tn_inverse_cdf(u_lr, p["lr_mean"], p["lr_sd"])
         wp = st.order[par]
         gmask = ~s_lat & (wp > 0)
-        gam = rng.standard_normal(int(gmask.sum())) * math.radians(p["gamma_sd"])   # draw 5
+        gam = rng.standard_normal(int(gmask.sum())) * math.radians(p["gamma_sd"])  # draw 5
         trunk_whorl = (st.order[prod] == 0) & (nLp >= 1)
-        wnoise = rng.standard_normal(int(trunk_whorl.sum()))                        # draw 6
+        wnoise = rng.standard_normal(int(trunk_whorl.sum()))  # draw 6
         turns = math.radians(p["init_rot_angle"]) + math.radians(p["whorl_rotation_sd"]) * wnoise
 
         # provisional size
@@ -509,7 +589,7 @@ class _Simulation:
         r0 = lrs * l0
 
         # directions
-        a_b = st.axis[prod]                                   # per producing bud
+        a_b = st.axis[prod]  # per producing bud
         dref = np.empty((prod.size, 3))
         tw = np.flatnonzero(trunk_whorl)
         if tw.size:
@@ -544,9 +624,14 @@ class _Simulation:
             dirs = _unit(dirs)
         keep = (l0 > 0) & (r0 > 0)
         if tr is not None:
-            tr.data.update(shoot_parent=par[keep].copy(), shoot_lat=s_lat[keep].copy(),
-                           shoot_dir=dirs[keep].copy(), shoot_parent_axis=st.axis[par[keep]].copy(),
-                           shoot_l0=l0[keep].copy(), shoot_r0=r0[keep].copy())
+            tr.data.update(
+                shoot_parent=par[keep].copy(),
+                shoot_lat=s_lat[keep].copy(),
+                shoot_dir=dirs[keep].copy(),
+                shoot_parent_axis=st.axis[par[keep]].copy(),
+                shoot_l0=l0[keep].copy(),
+                shoot_r0=r0[keep].copy(),
+            )
         par, s_lat, l0, r0, lrs, dirs = par[keep], s_lat[keep], l0[keep], r0[keep], lrs[keep], dirs[keep]
         ns = par.size
         wf0_s = p["foliage_per_area"] * 2 * np.pi * r0 * l0
@@ -555,13 +640,13 @@ class _Simulation:
         xi = p["heartwood_share"]
         cp = p["pipe_coeff"]
         ss = np.where(st.age > p["ss_start"], p["sapwood_senescence"], 0.0)
-        A = np.pi * st.radius ** 2
-        As = np.pi * (st.radius ** 2 - st.hw ** 2)
-        Ah = np.pi * st.hw ** 2 + ss * As
+        A = np.pi * st.radius**2
+        As = np.pi * (st.radius**2 - st.hw**2)
+        Ah = np.pi * st.hw**2 + ss * As
         alive_idx = np.flatnonzero(live)
         levels = depth_levels(alive_idx, st.depth)
         wlink = np.where(st.is_lat, cp, 1.0)
-        B = np.bincount(par, weights=np.where(s_lat, cp, 1.0) * np.pi * r0 ** 2 * (1 - xi), minlength=n)
+        B = np.bincount(par, weights=np.where(s_lat, cp, 1.0) * np.pi * r0**2 * (1 - xi), minlength=n)
         nonroot = alive_idx[st.parent[alive_idx] >= 0]
         nchild = np.bincount(st.parent[nonroot], minlength=n)
         tip = live & (nchild == 0)
@@ -573,7 +658,7 @@ class _Simulation:
             B += np.bincount(pr, weights=wl * B[rows], minlength=n)
             C += np.bincount(pr, weights=wl * C[rows], minlength=n)
         sumW = float(wf0_s.sum())
-        sumV = float(np.sum(np.pi * r0 ** 2 * l0))
+        sumV = float(np.sum(np.pi * r0**2 * l0))
         Lw = np.where(live, st.length, 0.0)
         rho = p["wood_density"]
         ar = p["root_per_foliage"]
@@ -581,7 +666,7 @@ class _Simulation:
         def G(lam: float) -> float:
             """G(lambda) of A.7, evaluated directly (O(n))."""
             extra = np.maximum(0.0, Ah + lam * lam * B + C - A)
-            return balance - ((1 + ar) * lam * lam * sumW + rho * lam ** 3 * sumV + rho * float(np.dot(Lw, extra)))
+            return balance - ((1 + ar) * lam * lam * sumW + rho * lam**3 * sumV + rho * float(np.dot(Lw, extra)))
 
         # the same function in O(log n): segment i adds L_i (base_i + lam^2 B_i) once lam^2
         # passes its threshold max(0, -base_i / B_i); prefix sums over the sorted thresholds
@@ -622,9 +707,18 @@ class _Simulation:
             tr.lam = lam
             tr.G_at_lam = G(lam) if ns and not futile else float("nan")
             tr.futile = futile
-            tr.data.update(n_shoots=ns, B=B.copy(), C=C.copy(), Ah=Ah.copy(), A_before=A.copy(),
-                           hw_before=st.hw.copy(), r_before=st.radius.copy(), old_live=live.copy(),
-                           balance=balance, cost_terms=((1 + ar) * sumW, rho * sumV))
+            tr.data.update(
+                n_shoots=ns,
+                B=B.copy(),
+                C=C.copy(),
+                Ah=Ah.copy(),
+                A_before=A.copy(),
+                hw_before=st.hw.copy(),
+                r_before=st.radius.copy(),
+                old_live=live.copy(),
+                balance=balance,
+                cost_terms=((1 + ar) * sumW, rho * sumV),
+            )
 
         if futile:
             st.has_bud[prod] = True
@@ -664,8 +758,9 @@ class _Simulation:
             collided = self._collides(par, send, ok)
             ok &= ~collided
         if tr is not None:
-            tr.data.update(shoot_L=L.copy(), shoot_kept=ok.copy(), ground_removed=np.flatnonzero(gone),
-                           shoot_collided=collided)
+            tr.data.update(
+                shoot_L=L.copy(), shoot_kept=ok.copy(), ground_removed=np.flatnonzero(gone), shoot_collided=collided
+            )
         k = np.flatnonzero(ok)
         if k.size:
             pk = par[k]
@@ -673,12 +768,24 @@ class _Simulation:
             wf0_k = p["foliage_per_area"] * 2 * np.pi * r[k] * L[k]
             rows = np.arange(st.n, st.n + k.size)
             self.st.append(
-                start=sstart[k], axis=dirs[k], length=L[k], radius=r[k], hw=math.sqrt(xi) * r[k],
-                wf0=wf0_k, wf=wf0_k, age=np.zeros(k.size, np.int64), order=st.order[pk] + lat_k,
-                parent=pk, is_lat=lat_k, depth=st.depth[pk] + 1,
-                axis_id=np.where(lat_k, rows, st.axis_id[pk]), has_bud=np.ones(k.size, bool),
-                deleted=np.zeros(k.size, bool), dead=np.zeros(k.size, bool),
-                born=np.full(k.size, t, np.int64))
+                start=sstart[k],
+                axis=dirs[k],
+                length=L[k],
+                radius=r[k],
+                hw=math.sqrt(xi) * r[k],
+                wf0=wf0_k,
+                wf=wf0_k,
+                age=np.zeros(k.size, np.int64),
+                order=st.order[pk] + lat_k,
+                parent=pk,
+                is_lat=lat_k,
+                depth=st.depth[pk] + 1,
+                axis_id=np.where(lat_k, rows, st.axis_id[pk]),
+                has_bud=np.ones(k.size, bool),
+                deleted=np.zeros(k.size, bool),
+                dead=np.zeros(k.size, bool),
+                born=np.full(k.size, t, np.int64),
+            )
             self.Wr += ar * float(wf0_k.sum())
 
         # ---- i. secondary growth, foliage, roots
@@ -694,11 +801,22 @@ class _Simulation:
 
     def _trace_end(self, tr):
         st = self.st
-        tr.data.update(end_radius=st.radius.copy(), end_hw=st.hw.copy(), end_wf=st.wf.copy(),
-                       end_wf0=st.wf0.copy(), end_age=st.age.copy(), end_deleted=st.deleted.copy(),
-                       end_dead=st.dead.copy(), end_order=st.order.copy(), end_axis_id=st.axis_id.copy(),
-                       end_parent=st.parent.copy(), end_is_lat=st.is_lat.copy(),
-                       end_start=st.start.copy(), end_axis=st.axis.copy(), end_length=st.length.copy())
+        tr.data.update(
+            end_radius=st.radius.copy(),
+            end_hw=st.hw.copy(),
+            end_wf=st.wf.copy(),
+            end_wf0=st.wf0.copy(),
+            end_age=st.age.copy(),
+            end_deleted=st.deleted.copy(),
+            end_dead=st.dead.copy(),
+            end_order=st.order.copy(),
+            end_axis_id=st.axis_id.copy(),
+            end_parent=st.parent.copy(),
+            end_is_lat=st.is_lat.copy(),
+            end_start=st.start.copy(),
+            end_axis=st.axis.copy(),
+            end_length=st.length.copy(),
+        )
 
     # -------------------------------------------------------------- pieces
     def _secondary(self, rows_mask, Ah, B, C, A, lam):
@@ -741,7 +859,7 @@ class _Simulation:
             k /= kn[:, None]
             mother = st.parent[st.axis_id[rows]]
             phi = _angle(st.axis[rows], st.axis[mother])
-            delta = binc + zsd * self.rng.standard_normal(rows.size)                 # draw 7
+            delta = binc + zsd * self.rng.standard_normal(rows.size)  # draw 7
             delta = np.where(phi + delta > bmax, bmax - phi, delta)
             st.axis[rows] = _unit(rotate(st.axis[rows], k, delta))
 
@@ -773,8 +891,14 @@ class _Simulation:
             lat_on_axis = np.zeros(n, dtype=bool)
             lat_on_axis[st.axis_id[st.parent[latc]]] = True
             tip = live & ~has_ext
-            cand = (tip & (st.order >= 1) & ~st.dead & (st.wf < p["fol_threshold"])
-                    & (st.age >= Tsh) & ~lat_on_axis[st.axis_id])
+            cand = (
+                tip
+                & (st.order >= 1)
+                & ~st.dead
+                & (st.wf < p["fol_threshold"])
+                & (st.age >= Tsh)
+                & ~lat_on_axis[st.axis_id]
+            )
             tips = np.flatnonzero(cand)
             if tips.size == 0:
                 break
@@ -786,10 +910,10 @@ class _Simulation:
             kk = nseg.copy()
             o1 = np.flatnonzero(st.order[tips] == 1)
             if dist == 1 and o1.size:
-                u = rng.random(o1.size)                                              # draw 8
+                u = rng.random(o1.size)  # draw 8
                 kk[o1] = np.ceil(u * nseg[o1]).astype(np.int64)
             elif dist == 2 and o1.size:
-                k1 = rng.poisson(mu, o1.size)                                        # draw 8
+                k1 = rng.poisson(mu, o1.size)  # draw 8
                 nn = nseg[o1]
                 bad = np.flatnonzero(k1 > nn)
                 tries = 1
@@ -827,7 +951,7 @@ class _Simulation:
         ids = np.concatenate([live, -1 - np.arange(par.size)])  # shoots: negative ids
         c = np.floor(pts / cell).astype(np.int64)
         keyv = np.unique(c, axis=0, return_inverse=True)[1].reshape(-1)
-        ks = keyv[live.size:]
+        ks = keyv[live.size :]
         ko = keyv
         # candidate pairs (shoot s, occupant o) sharing a cell
         srt = np.argsort(ko, kind="stable")

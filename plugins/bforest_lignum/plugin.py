@@ -1,4 +1,5 @@
 """Entry point of this plugin: registers its components with Bayes Forest."""
+
 from bforest_core.hookspecs import hookimpl
 
 

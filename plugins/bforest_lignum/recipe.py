@@ -5,6 +5,7 @@ the form of an excurrent conifer. The bounds are those that meet the robust-fit 
 Ruotsinkylä pines (docs/validation.md), with the years scaled from the tree's height and the
 branch-angle ranges from its first-order branches' angles.
 """
+
 from __future__ import annotations
 
 from bforest_core.interfaces import RecipeDraft
@@ -21,37 +22,65 @@ def _r5(x: float) -> float:
 def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
     years_lo = max(7, round(1.5 * m.height))
     if years_lo > MAX_YEARS - 5:
-        return RecipeDraft(suits=0.0, why=f"a {m.height:.1f} m tree needs more than LIGNUM's {MAX_YEARS} years "
-                           "at a conifer's growth (1.5 years per m of height at the least)")
-    b_lo, b_mid, b_hi = max(10.0, _r5(m.beta_q10 - 35)), min(90.0, _r5(m.beta_q50 + 20)), min(120.0, _r5(m.beta_q90 - 5))
+        return RecipeDraft(
+            suits=0.0,
+            why=f"a {m.height:.1f} m tree needs more than LIGNUM's {MAX_YEARS} years "
+            "at a conifer's growth (1.5 years per m of height at the least)",
+        )
+    b_lo, b_mid, b_hi = (
+        max(10.0, _r5(m.beta_q10 - 35)),
+        min(90.0, _r5(m.beta_q50 + 20)),
+        min(120.0, _r5(m.beta_q90 - 5)),
+    )
     b_lo, b_max_lo = min(b_lo, b_mid - 20), max(20.0, _r5(m.beta_q50 - 30))
     free = [
-        ("years", years_lo, MAX_YEARS, f"growth years: from 1.5 per m of height ({m.height:.1f} m) to the model's {MAX_YEARS}"),
+        (
+            "years",
+            years_lo,
+            MAX_YEARS,
+            f"growth years: from 1.5 per m of height ({m.height:.1f} m) to the model's {MAX_YEARS}",
+        ),
         ("photo_eff", 0.0003, 0.006, "wider than the papers': stand shade takes light"),
         ("lr_mean", 0.0045, 0.025, "branches' base radius 1-2.5 % of their length"),
-        ("q_mean", 0.0, 0.4, None), ("shadow_len", 0.5, 1.5, None), ("shadow_max", 20.0, 80.0, None),
+        ("q_mean", 0.0, 0.4, None),
+        ("shadow_len", 0.5, 1.5, None),
+        ("shadow_max", 20.0, 80.0, None),
         ("r_env_mean", 0.3, 2.0, "buds die farther from the stem: the crown radius"),
-        ("beta_init", b_lo, b_mid, f"first-order branches at {m.beta_q10:.0f}-{m.beta_q90:.0f} deg to the stem "
-         "(10-90 %): young branches start steeper"),
+        (
+            "beta_init",
+            b_lo,
+            b_mid,
+            f"first-order branches at {m.beta_q10:.0f}-{m.beta_q90:.0f} deg to the stem "
+            "(10-90 %): young branches start steeper",
+        ),
         ("beta_incr", 0.0, 15.0, None),
         ("beta_max", b_max_lo, max(b_hi, b_max_lo + 20), "and bend down to this with age"),
-        ("shed_year", 3, 15, None), ("shed_mu", 0.0, 6.0, None), ("fl_min_buds", 0.0, 0.8, None),
+        ("shed_year", 3, 15, None),
+        ("shed_mu", 0.0, 6.0, None),
+        ("fl_min_buds", 0.0, 0.8, None),
         ("stand_shade", 0.0, 30.0, "shade of the neighbours (per m below the top): 0 = open-grown"),
         ("wind_sd", 0.0, 40.0, "branch shoots winding (output only)"),
     ]
     if m.decurrent:
-        why = (f"its crown is decurrent (limbs hold {m.limb_ratio:.1f} x the stem's wood in the crown): "
-               "LIGNUM's leader stays the stem, it cannot grow a crown of limbs")
+        why = (
+            f"its crown is decurrent (limbs hold {m.limb_ratio:.1f} x the stem's wood in the crown): "
+            "LIGNUM's leader stays the stem, it cannot grow a crown of limbs"
+        )
         suits = 0.2
     else:
-        why = (f"its crown is excurrent (the three largest limbs hold {m.limb_ratio:.1f} x the stem's wood in "
-               "the crown): LIGNUM grows a leader and yearly whorls from a carbon balance, a conifer's form, "
-               "and meets the robust-fit limits on the Ruotsinkylä pines")
+        why = (
+            f"its crown is excurrent (the three largest limbs hold {m.limb_ratio:.1f} x the stem's wood in "
+            "the crown): LIGNUM grows a leader and yearly whorls from a carbon balance, a conifer's form, "
+            "and meets the robust-fit limits on the Ruotsinkylä pines"
+        )
         suits = 0.8
     return RecipeDraft(
-        suits=suits, why=why,
+        suits=suits,
+        why=why,
         settings=[("preset", "sf_real", "the papers' real-tree values for what is not fitted")],
         fixed=[("piece_length", 0.15, "drawn as a scan's QSM draws a tree: shoots as cylinders of at most 15 cm")],
-        free=free, timeout=60.0,
+        free=free,
+        timeout=60.0,
         # the calibrated balance of the pine recipe (examples/real/pine_lignum.toml)
-        size_weights={"height": 8.0, "dbh": 2.7, "crown_spread": 2.0, "crown_base_height": 1.6, "n_branches_o1": 1.6})
+        size_weights={"height": 8.0, "dbh": 2.7, "crown_spread": 2.0, "crown_base_height": 1.6, "n_branches_o1": 1.6},
+    )

@@ -22,6 +22,7 @@ Four exact evaluations, chosen per call by a cost estimate (:func:`shadow_fast`)
 The weights are accumulated as the integers (q_max - dZ) and scaled by S_max / q_max once, so
 every method and the brute-force reference give bit-identical sums.
 """
+
 from __future__ import annotations
 
 import math
@@ -34,11 +35,11 @@ __all__ = ["q_max_of", "voxel_coords", "shadow_fast", "shadow_brute", "METHODS"]
 
 METHODS = ("auto", "grid", "pairs", "two_tree", "sat")
 # rough per-item costs (s) of the methods, measured on this implementation; only ratios matter
-_C_GRID = 3e-9        # per candidate of the compiled bucket scan (numba)
-_C_PAIR = 120e-9       # per estimated symmetric pair (query + filter)
-_C_TWO = 250e-9        # per estimated receiver-source candidate of the two-tree search
-_C_CELL = 13e-9        # per cell of the layer integral images
-_C_QUERY = 60e-9       # per receiver and layer of the box-sum queries
+_C_GRID = 3e-9  # per candidate of the compiled bucket scan (numba)
+_C_PAIR = 120e-9  # per estimated symmetric pair (query + filter)
+_C_TWO = 250e-9  # per estimated receiver-source candidate of the two-tree search
+_C_CELL = 13e-9  # per cell of the layer integral images
+_C_QUERY = 60e-9  # per receiver and layer of the box-sum queries
 _SAT_CHUNK_CELLS = 4_000_000  # integral-image cells built at once (memory bound)
 
 
@@ -52,8 +53,9 @@ def voxel_coords(points: np.ndarray, voxel_size: float) -> np.ndarray:
     return np.floor(np.asarray(points, dtype=np.float64) / voxel_size).astype(np.int64)
 
 
-def shadow_fast(vox: np.ndarray, shadow_max: float, q_max: int, receivers: np.ndarray | None = None,
-                method: str = "auto") -> np.ndarray:
+def shadow_fast(
+    vox: np.ndarray, shadow_max: float, q_max: int, receivers: np.ndarray | None = None, method: str = "auto"
+) -> np.ndarray:
     """Shadow S_i at voxel points, equal (bit for bit) to :func:`shadow_brute`.
 
     Parameters
@@ -112,13 +114,15 @@ def choose_method(rel: np.ndarray, n_rcv: int, q_max: int) -> str:
     for dx in (-1, 0, 1):
         for dy in (-1, 0, 1):
             for dz in (-1, 0, 1):
-                nb[core] += h[1 + dx:dims[0] - 1 + dx, 1 + dy:dims[1] - 1 + dy, 1 + dz:dims[2] - 1 + dz]
+                nb[core] += h[1 + dx : dims[0] - 1 + dx, 1 + dy : dims[1] - 1 + dy, 1 + dz : dims[2] - 1 + dz]
     near = float(np.sum(h * nb)) * ((2 * q_max - 1) / (3.0 * q_max)) ** 3  # ordered pairs in the cube
     cells = float(np.prod(rel.max(axis=0) + 1))
-    cost = {"grid": _C_GRID * near * (n_rcv / n),
-            "pairs": _C_PAIR * near / 2,
-            "two_tree": _C_TWO * near / 2 * (n_rcv / n),
-            "sat": _C_CELL * cells + _C_QUERY * n_rcv * (q_max - 1)}
+    cost = {
+        "grid": _C_GRID * near * (n_rcv / n),
+        "pairs": _C_PAIR * near / 2,
+        "two_tree": _C_TWO * near / 2 * (n_rcv / n),
+        "sat": _C_CELL * cells + _C_QUERY * n_rcv * (q_max - 1),
+    }
     return min(cost, key=cost.get)
 
 
@@ -243,7 +247,7 @@ def _counts_sat(rel: np.ndarray, rcv: np.ndarray, q_max: int) -> np.ndarray:
         # receivers whose pyramid reaches into [z0, z1): Z_r + 1 <= z1 - 1 and Z_r + q - 1 >= z0
         ra, rb = np.searchsorted(Zs, [z0 - q_max + 1, z1 - 1])
         for c0 in range(ra, rb, block):
-            rows = o_r[c0:min(rb, c0 + block)]
+            rows = o_r[c0 : min(rb, c0 + block)]
             x = Xr[rows, None]
             y = Yr[rows, None]
             z = Zr[rows, None] + d
@@ -258,17 +262,18 @@ def _counts_sat(rel: np.ndarray, rcv: np.ndarray, q_max: int) -> np.ndarray:
     return counts
 
 
-def shadow_brute(vox: np.ndarray, shadow_max: float, q_max: int, receivers: np.ndarray | None = None,
-                 chunk: int = 512) -> np.ndarray:
+def shadow_brute(
+    vox: np.ndarray, shadow_max: float, q_max: int, receivers: np.ndarray | None = None, chunk: int = 512
+) -> np.ndarray:
     """Reference O(n^2) evaluation of the pyramid sum (for tests; chunked over receivers)."""
     vox = np.asarray(vox, dtype=np.int64)
     n = vox.shape[0]
     rcv = np.arange(n) if receivers is None else np.flatnonzero(receivers)
     counts = np.full(n, np.nan)
     for a in range(0, rcv.size, chunk):
-        rows = rcv[a:a + chunk]
+        rows = rcv[a : a + chunk]
         r = vox[rows]
-        d = vox[None, :, :] - r[:, None, :]          # (m, n, 3): source - receiver
+        d = vox[None, :, :] - r[:, None, :]  # (m, n, 3): source - receiver
         dz = d[..., 2]
         dxy = np.maximum(np.abs(d[..., 0]), np.abs(d[..., 1]))
         ok = (dz >= 1) & (dz <= q_max - 1) & (dxy <= dz)

@@ -1,7 +1,9 @@
 """The ``lignum`` SSM component: simplified stochastic LIGNUM (docs/models.md part A)."""
+
 from __future__ import annotations
 
-from typing import Callable, Literal, Mapping
+from collections.abc import Callable, Mapping
+from typing import Literal
 
 from pydantic import Field
 
@@ -62,8 +64,9 @@ class LignumSSM(SSM):
         P.validate(out)
         return out
 
-    def simulate(self, params: Mapping[str, float], seed: int, on_step: Callable | None = None,
-                 *, trace: list | None = None) -> Tree:
+    def simulate(
+        self, params: Mapping[str, float], seed: int, on_step: Callable | None = None, *, trace: list | None = None
+    ) -> Tree:
         """Grow one tree.
 
         Parameters
@@ -92,6 +95,13 @@ class LignumSSM(SSM):
             ``negative_balance``, ``too_many_segments`` or ``no_root``, carrying the partial tree.
         """
         p = self.resolve_params(params)
-        sim = _Simulation(p, int(seed), preset=self.settings.preset, order_mode=self.settings.order_mode,
-                          max_live=self.settings.max_live_segments, on_step=on_step, trace=trace)
+        sim = _Simulation(
+            p,
+            int(seed),
+            preset=self.settings.preset,
+            order_mode=self.settings.order_mode,
+            max_live=self.settings.max_live_segments,
+            on_step=on_step,
+            trace=trace,
+        )
         return sim.run()

@@ -82,6 +82,7 @@ trees, ``summaries`` per tree, and per parameter the ridge ``penalty``, the fit'
 ``r2``; or a ``note`` saying why the posterior was not adjusted) and ``unadjusted`` (the
 posterior before the adjustment).
 """
+
 from __future__ import annotations
 
 import math
@@ -104,40 +105,63 @@ class AbcSmcSettings(OptimizerSettings):
 
     particles: int = Field(100, ge=4, description="population size (accepted particles per generation)")
     generations: int = Field(30, ge=1, description="largest number of generations (generation 0 = the prior)")
-    quantile: float = Field(0.5, gt=0, lt=1, description="epsilon_t = this quantile of the previous "
-                            "generation's distances")
+    quantile: float = Field(
+        0.5, gt=0, lt=1, description="epsilon_t = this quantile of the previous generation's distances"
+    )
     epsilon_target: float | Literal["noise"] = Field(
-        0.0, description="epsilon never goes below this distance and the run stops once it is reached (0: "
+        0.0,
+        description="epsilon never goes below this distance and the run stops once it is reached (0: "
         "never); noise = the median distance under noise_seeds fresh model seeds at the best particle or the "
         "population's weighted mean, whichever is lower (what a perfect model still shows), measured before "
-        "every generation")
+        "every generation",
+    )
     noise_seeds: int = Field(8, ge=2, description="model seeds of the noise target's measurement")
-    min_acceptance: float = Field(0.02, gt=0, le=1, description="stop when a generation's acceptance rate "
-                                  "falls below this (it would need more than particles / min_acceptance proposals)")
-    kernel: Literal["mvn", "local"] = Field("mvn", description="perturbation kernel: mvn (normal, twice the "
-                                            "weighted population covariance) or local (normal per parent, twice "
-                                            "the covariance of its nearest particles)")
-    neighbours: int | None = Field(None, ge=2, description="particles per local covariance (local kernel; "
-                                   "default max(2 * dimension + 1, particles / 5))")
+    min_acceptance: float = Field(
+        0.02,
+        gt=0,
+        le=1,
+        description="stop when a generation's acceptance rate "
+        "falls below this (it would need more than particles / min_acceptance proposals)",
+    )
+    kernel: Literal["mvn", "local"] = Field(
+        "mvn",
+        description="perturbation kernel: mvn (normal, twice the "
+        "weighted population covariance) or local (normal per parent, twice "
+        "the covariance of its nearest particles)",
+    )
+    neighbours: int | None = Field(
+        None,
+        ge=2,
+        description="particles per local covariance (local kernel; default max(2 * dimension + 1, particles / 5))",
+    )
     posterior: Literal["population", "recycled"] = Field(
-        "population", description="the posterior reported: population, the last complete generation's particles; "
+        "population",
+        description="the posterior reported: population, the last complete generation's particles; "
         "recycled, every proposal of every generation with a distance at or below the lowest tolerance at which "
         "they still have the effective sample size of a population, weighted by multiple importance sampling "
-        "(a lower tolerance, so closer to the exact posterior, for no extra evaluation)")
+        "(a lower tolerance, so closer to the exact posterior, for no extra evaluation)",
+    )
     adjust: Literal["none", "linear"] = Field(
-        "none", description="regression adjustment of the posterior (Beaumont et al. 2002): linear regresses "
+        "none",
+        description="regression adjustment of the posterior (Beaumont et al. 2002): linear regresses "
         "the parameters (logit of their place in the bounds) on the summary statistics of every proposal within "
         "the last tolerance (Epanechnikov weights; ridge chosen by generalised cross-validation) and moves each "
         "particle to the data's statistics, which takes out most of the width the tolerance adds; regrows those "
-        "proposals' trees once with their logged seeds (not counted as evaluations)")
-    batch: int | None = Field(None, ge=1, description="proposals per evaluation batch (default: the "
-                              "expected number still needed, from the last acceptance rate, at least workers' "
-                              "worth; at most particles)")
+        "proposals' trees once with their logged seeds (not counted as evaluations)",
+    )
+    batch: int | None = Field(
+        None,
+        ge=1,
+        description="proposals per evaluation batch (default: the "
+        "expected number still needed, from the last acceptance rate, at least workers' "
+        "worth; at most particles)",
+    )
 
     @model_validator(mode="after")
     def _check(self):
-        if not isinstance(self.epsilon_target, str) and not (self.epsilon_target >= 0
-                                                              and math.isfinite(self.epsilon_target)):
+        if not isinstance(self.epsilon_target, str) and not (
+            self.epsilon_target >= 0 and math.isfinite(self.epsilon_target)
+        ):
             raise ValueError(f"epsilon_target must be a distance >= 0 or 'noise' (got {self.epsilon_target})")
         if self.neighbours is not None and self.neighbours > self.particles:
             raise ValueError(f"neighbours ({self.neighbours}) must not exceed particles ({self.particles})")
@@ -196,14 +220,15 @@ class _Pool:
         top = terms.max(axis=0)
         log_q = top + np.log(np.exp(terms - top).sum(axis=0))
         w = np.exp(self.log_prior - log_q - np.max(self.log_prior - log_q))
-        ess = np.cumsum(w) ** 2 / np.cumsum(w ** 2)
+        ess = np.cumsum(w) ** 2 / np.cumsum(w**2)
         reach = np.flatnonzero(ess >= target_ess)
         k = len(X) if reach.size == 0 else int(np.searchsorted(d, d[reach[0]], side="right"))
         return X[:k], w[:k] / w[:k].sum(), d[:k], float(d[k - 1])
 
 
-def regression_adjust(X: np.ndarray, w: np.ndarray, S: np.ndarray, s_obs: np.ndarray, lo, hi,
-                      penalties=np.logspace(-4, 2, 13)) -> tuple[np.ndarray, dict]:
+def regression_adjust(
+    X: np.ndarray, w: np.ndarray, S: np.ndarray, s_obs: np.ndarray, lo, hi, penalties=np.logspace(-4, 2, 13)
+) -> tuple[np.ndarray, dict]:
     """Local-linear regression adjustment of weighted ABC particles (Beaumont, Zhang & Balding
     2002): per parameter, y = logit of its place in ``[lo, hi]`` is regressed on the standardised
     summaries ``S - s_obs`` by weighted ridge regression (the penalty chosen by generalised
@@ -214,7 +239,7 @@ def regression_adjust(X: np.ndarray, w: np.ndarray, S: np.ndarray, s_obs: np.nda
     adjusted particles (inside the bounds) and per parameter the ``penalty``, ``df`` and ``r2``."""
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     w = np.asarray(w, float) / np.sum(w)
-    n_eff = 1.0 / np.sum(w ** 2)
+    n_eff = 1.0 / np.sum(w**2)
     Z = np.asarray(S, float) - np.asarray(s_obs, float)
     sd = np.sqrt(w @ (Z - w @ Z) ** 2)
     Z = Z[:, sd > 0] / sd[sd > 0]
@@ -238,7 +263,7 @@ def regression_adjust(X: np.ndarray, w: np.ndarray, S: np.ndarray, s_obs: np.nda
         for lam, M, df in fits:
             beta = M @ Y[:, j]
             r = Y[:, j] - A @ beta
-            gcv = float(w @ r ** 2) / (1.0 - df / n_eff) ** 2
+            gcv = float(w @ r**2) / (1.0 - df / n_eff) ** 2
             if best is None or gcv < best[0]:
                 best = (gcv, lam, beta, r, df)
         if best is None:  # too few particles for any fit: this parameter stays unadjusted
@@ -248,7 +273,7 @@ def regression_adjust(X: np.ndarray, w: np.ndarray, S: np.ndarray, s_obs: np.nda
             _, lam, beta, r, df = best
             out[:, j] = beta[0] + math.sqrt(n_eff / (n_eff - df)) * r
             tot = float(w @ (Y[:, j] - w @ Y[:, j]) ** 2)
-            lam, r2 = float(lam), (1.0 - float(w @ r ** 2) / tot if tot > 0 else 0.0)
+            lam, r2 = float(lam), (1.0 - float(w @ r**2) / tot if tot > 0 else 0.0)
         fit["penalty"].append(lam)
         fit["df"].append(df)
         fit["r2"].append(r2)
@@ -300,7 +325,8 @@ class AbcSmc(Optimizer):
             target_hist.append(target)
             if eps_hist[-1] <= target:
                 reason = f"epsilon {eps_hist[-1]:.4g} at or below the target {target:.4g}" + (
-                    " (the distance's noise floor)" if s.epsilon_target == "noise" else "")
+                    " (the distance's noise floor)" if s.epsilon_target == "noise" else ""
+                )
                 break
             # a failure (inf) ranks above every grown tree: where the quantile falls among the
             # failures, epsilon is the largest distance of a grown tree
@@ -322,14 +348,27 @@ class AbcSmc(Optimizer):
                 got += int(np.sum(np.isfinite(d) & (d <= eps)))
                 rate = max(got / proposals, 1.0 / (proposals + 1))
             if gen_X:  # the share of the kernel mixture inside the bounds normalises its density
-                pool.add(np.vstack(gen_X), np.concatenate(gen_d), (kern, theta, weights),
-                         drawn_inside[1] / max(drawn_inside[0], 1))
+                pool.add(
+                    np.vstack(gen_X),
+                    np.concatenate(gen_d),
+                    (kern, theta, weights),
+                    drawn_inside[1] / max(drawn_inside[0], 1),
+                )
             if got < n:
-                reason = (f"generation {t} incomplete ({got} of {n} particles): "
-                          + (ev.stop_reason("stopped") if ev.stopped else
-                             f"acceptance {got / max(proposals, 1):.3g} below min_acceptance {s.min_acceptance:g}"))
-                log(ev, generation=t, epsilon=eps, acceptance=got / max(proposals, 1), ess=None,
-                    proposals=proposals, complete=False)
+                reason = f"generation {t} incomplete ({got} of {n} particles): " + (
+                    ev.stop_reason("stopped")
+                    if ev.stopped
+                    else f"acceptance {got / max(proposals, 1):.3g} below min_acceptance {s.min_acceptance:g}"
+                )
+                log(
+                    ev,
+                    generation=t,
+                    epsilon=eps,
+                    acceptance=got / max(proposals, 1),
+                    ess=None,
+                    proposals=proposals,
+                    complete=False,
+                )
                 break
             X, d = np.vstack(gen_X), np.concatenate(gen_d)
             ok = np.isfinite(d) & (d <= eps)
@@ -339,8 +378,15 @@ class AbcSmc(Optimizer):
             eps_hist.append(eps)
             acc_hist.append(n / proposals)
             ess_hist.append(_ess(weights))
-            log(ev, generation=t, epsilon=eps, acceptance=n / proposals, ess=ess_hist[-1], proposals=proposals,
-                complete=True)
+            log(
+                ev,
+                generation=t,
+                epsilon=eps,
+                acceptance=n / proposals,
+                ess=ess_hist[-1],
+                proposals=proposals,
+                complete=True,
+            )
         population = (theta, weights, dist)
         if s.posterior == "recycled" and len(eps_hist) > 1:
             theta, weights, dist, eps_post = pool.posterior(eps_hist[-1], n, self._log_kernel_mix)
@@ -350,10 +396,18 @@ class AbcSmc(Optimizer):
         if s.adjust == "linear" and len(eps_hist) > 1:
             adjusted = self._adjusted(problem, ev, pool, eps_hist[-1], lo, hi)
             if "particles" in adjusted:
-                unadjusted = {"particles": ev.project(theta), "weights": weights, "distances": dist,
-                              "epsilon": eps_post}
-                theta, weights, dist, eps_post = (adjusted.pop("particles"), adjusted.pop("weights"),
-                                                  adjusted.pop("distances"), eps_hist[-1])
+                unadjusted = {
+                    "particles": ev.project(theta),
+                    "weights": weights,
+                    "distances": dist,
+                    "epsilon": eps_post,
+                }
+                theta, weights, dist, eps_post = (
+                    adjusted.pop("particles"),
+                    adjusted.pop("weights"),
+                    adjusted.pop("distances"),
+                    eps_hist[-1],
+                )
         diag = self._diagnostics(ev, theta, weights, dist, eps_hist, acc_hist, ess_hist)
         diag["epsilon_posterior"] = None if not math.isfinite(eps_post) else float(eps_post)
         if adjusted is not None:
@@ -361,8 +415,11 @@ class AbcSmc(Optimizer):
         if unadjusted is not None:
             diag["unadjusted"] = unadjusted
         if s.posterior == "recycled":
-            diag["population"] = {"particles": ev.project(population[0]), "weights": population[1],
-                                  "distances": population[2]}
+            diag["population"] = {
+                "particles": ev.project(population[0]),
+                "weights": population[1],
+                "distances": population[2],
+            }
         if s.epsilon_target == "noise":
             diag["epsilon_target"] = target_hist
         diag["note"] = f"{reason}; the posterior is generation {len(eps_hist) - 1}, the last complete one"
@@ -381,14 +438,17 @@ class AbcSmc(Optimizer):
         target = target_hist[-1] if target_hist else (0.0 if noise else float(s.epsilon_target))
         floor = ", the distance's noise floor," if noise else ""
         if len(eps_hist) == 1:
-            return (f"stopped before its first generation ({reason}): the posterior is the prior draws, "
-                    "not a posterior")
+            return f"stopped before its first generation ({reason}): the posterior is the prior draws, not a posterior"
         if target > 0 and eps > target:
-            return (f"epsilon stopped at {eps:.4g}, above its target {target:.4g}{floor} ({reason}): the "
-                    "intervals are wider than the data warrant; raise generations or the budget")
+            return (
+                f"epsilon stopped at {eps:.4g}, above its target {target:.4g}{floor} ({reason}): the "
+                "intervals are wider than the data warrant; raise generations or the budget"
+            )
         if target <= 0 and (capped or reason.endswith("generations done")):
-            return (f"stopped at a cap with epsilon {eps:.4g} and no epsilon target ({reason}): the posterior "
-                    "may still be narrowing")
+            return (
+                f"stopped at a cap with epsilon {eps:.4g} and no epsilon target ({reason}): the posterior "
+                "may still be narrowing"
+            )
         return None
 
     def _target(self, problem: Problem, ev: BoxEvaluator, theta: np.ndarray, w: np.ndarray) -> float:
@@ -426,8 +486,15 @@ class AbcSmc(Optimizer):
             return {"note": "no regrown proposal has weight; the posterior is not adjusted"}
         k /= k.sum()
         Xa, fit = regression_adjust(X[kept], k[kept], S[kept], np.asarray(problem.target_summaries, float), lo, hi)
-        return {"method": "linear", "particles": ev.project(Xa), "weights": k[kept], "distances": d[kept],
-                "regrown": int(len(X)), "summaries": int(S.shape[1]), **fit}
+        return {
+            "method": "linear",
+            "particles": ev.project(Xa),
+            "weights": k[kept],
+            "distances": d[kept],
+            "regrown": int(len(X)),
+            "summaries": int(S.shape[1]),
+            **fit,
+        }
 
     # ------------------------------------------------------------------ kernels
     def _kernel(self, theta: np.ndarray, w: np.ndarray) -> list[np.ndarray]:
@@ -441,7 +508,7 @@ class AbcSmc(Optimizer):
         if self.settings.kernel == "mvn":
             mu = w @ theta
             c = theta - mu
-            return [chol(2.0 * (c * w[:, None]).T @ c / (1.0 - np.sum(w ** 2) + 1e-12))]
+            return [chol(2.0 * (c * w[:, None]).T @ c / (1.0 - np.sum(w**2) + 1e-12))]
         m = self.settings.neighbours or max(2 * p + 1, theta.shape[0] // 5)
         scale = np.where(np.ptp(theta, axis=0) > 0, np.ptp(theta, axis=0), 1.0)
         _, idx = cKDTree(theta / scale).query(theta / scale, k=min(m, theta.shape[0]))
@@ -490,9 +557,20 @@ class AbcSmc(Optimizer):
         for j, name in enumerate(ev.names):
             q = weighted_quantiles(X[:, j], w, QUANTILES)
             mean = float(w @ X[:, j])
-            post[name] = {"mean": mean, "std": float(np.sqrt(w @ (X[:, j] - mean) ** 2)),
-                          **{f"p{q_:g}": float(v) for q_, v in zip(QUANTILES, q)},
-                          "median": float(q[QUANTILES.index(50.0)])}
-        return {"names": list(ev.names), "particles": X, "weights": w, "distances": dist,
-                "epsilon": [None if not math.isfinite(e) else e for e in eps_hist],
-                "acceptance": acc_hist, "ess": ess_hist, "generations": len(eps_hist), "posterior": post}
+            post[name] = {
+                "mean": mean,
+                "std": float(np.sqrt(w @ (X[:, j] - mean) ** 2)),
+                **{f"p{q_:g}": float(v) for q_, v in zip(QUANTILES, q)},
+                "median": float(q[QUANTILES.index(50.0)]),
+            }
+        return {
+            "names": list(ev.names),
+            "particles": X,
+            "weights": w,
+            "distances": dist,
+            "epsilon": [None if not math.isfinite(e) else e for e in eps_hist],
+            "acceptance": acc_hist,
+            "ess": ess_hist,
+            "generations": len(eps_hist),
+            "posterior": post,
+        }

@@ -14,6 +14,7 @@ records), ``best`` (best distance so far, ``None`` while nothing finite was seen
 ``n_evaluations`` (``problem.n_evaluations``); each optimiser adds its own (``generation``,
 ``mean``, ``step``, ``acceptance``...). Values are plain Python numbers (JSON friendly).
 """
+
 from __future__ import annotations
 
 import math
@@ -94,17 +95,21 @@ class BoxEvaluator:
         lo = np.where(integer, np.ceil(lo), lo)
         hi = np.where(integer, np.floor(hi), hi)
         for i in np.flatnonzero(integer & (lo > hi)):
-            raise ValueError(f"integer parameter {names[i]!r}: the bounds "
-                             f"[{problem.lower[i]}, {problem.upper[i]}] hold no whole number")
+            raise ValueError(
+                f"integer parameter {names[i]!r}: the bounds "
+                f"[{problem.lower[i]}, {problem.upper[i]}] hold no whole number"
+            )
         ilo, ihi = problem.init_box()
         ilo = np.clip(_as_vector(ilo, p, "init_lower"), lo, hi)
         ihi = np.clip(_as_vector(ihi, p, "init_upper"), lo, hi)
         ilo = np.where(integer, np.ceil(ilo), ilo)
         ihi = np.where(integer, np.floor(ihi), ihi)
         for i in np.flatnonzero(ilo > ihi):
-            raise ValueError(f"parameter {names[i]!r}: the initial range "
-                             f"[{problem.init_box()[0][i]}, {problem.init_box()[1][i]}] lies outside "
-                             f"the bounds [{problem.lower[i]}, {problem.upper[i]}] or holds no whole number")
+            raise ValueError(
+                f"parameter {names[i]!r}: the initial range "
+                f"[{problem.init_box()[0][i]}, {problem.init_box()[1][i]}] lies outside "
+                f"the bounds [{problem.lower[i]}, {problem.upper[i]}] or holds no whole number"
+            )
         self.names = names
         self.lower, self.upper, self.integer = lo, hi, integer
         self.init_lower, self.init_upper = ilo, ihi
@@ -257,23 +262,38 @@ def make_result(ev: BoxEvaluator, history: History, own_reason: str, diagnostics
     else:
         x, fun = ev.project(0.5 * (ev.init_lower + ev.init_upper))[0], math.inf
     diagnostics = {"n_batches": ev.n_batches, "n_points": ev.n_points, **diagnostics}
-    return OptimizeResult(x=x, fun=float(fun), n_evaluations=int(pr.n_evaluations),
-                          stop_reason=ev.stop_reason(own_reason), history=list(history.records),
-                          diagnostics=diagnostics)
+    return OptimizeResult(
+        x=x,
+        fun=float(fun),
+        n_evaluations=int(pr.n_evaluations),
+        stop_reason=ev.stop_reason(own_reason),
+        history=list(history.records),
+        diagnostics=diagnostics,
+    )
 
 
 def sampling_field(default: str = "halton"):
-    return Field(default, description="how the initial points are spread over the initial box: "
-                 "halton or sobol (scrambled low-discrepancy), lhs (Latin hypercube), random")
+    return Field(
+        default,
+        description="how the initial points are spread over the initial box: "
+        "halton or sobol (scrambled low-discrepancy), lhs (Latin hypercube), random",
+    )
 
 
 def noise_stop_fields():
     """The settings of the noise-aware early stop (:class:`NoiseStop`), shared by optimisers."""
     return dict(
-        patience=Field(None, ge=1, description="stop when the best distance has not improved by more than the "
-                       "objective's seed noise in this many generations (None: off)"),
-        noise=Field("auto", description="the noise of that stop: 'auto' = the sd of the distance over "
-                    "noise_seeds model seeds at the best point (Problem.seed_spread), or a number"),
+        patience=Field(
+            None,
+            ge=1,
+            description="stop when the best distance has not improved by more than the "
+            "objective's seed noise in this many generations (None: off)",
+        ),
+        noise=Field(
+            "auto",
+            description="the noise of that stop: 'auto' = the sd of the distance over "
+            "noise_seeds model seeds at the best point (Problem.seed_spread), or a number",
+        ),
         noise_seeds=Field(5, ge=2, description="model seeds of the 'auto' noise"),
     )
 
@@ -302,8 +322,8 @@ class NoiseStop:
     def __init__(self, problem: Problem, patience: int | None, noise="auto", noise_seeds: int = 5):
         self.problem, self.patience, self.noise_setting, self.k = problem, patience, noise, int(noise_seeds)
         self.noise: float | None = None if noise == "auto" else float(noise)
-        self.anchor = math.inf   # best value that last counted as an improvement
-        self.since = 0           # generations since then
+        self.anchor = math.inf  # best value that last counted as an improvement
+        self.since = 0  # generations since then
         self.reason = ""
 
     def _measure(self, ev: BoxEvaluator) -> float:
@@ -331,6 +351,8 @@ class NoiseStop:
         if gain > self.noise:
             self.anchor, self.since = best, 0
             return False
-        self.reason = (f"the best distance improved by {gain:.4g}, not more than the seed noise {self.noise:.4g}, "
-                       f"in {self.since} generations")
+        self.reason = (
+            f"the best distance improved by {gain:.4g}, not more than the seed noise {self.noise:.4g}, "
+            f"in {self.since} generations"
+        )
         return True

@@ -26,6 +26,7 @@ no worker waits. On a smooth distance (2) saves most evaluations; on a real tree
 seed noise keeps tau at 0.2-0.5, nearly every point is grown, and the gain is (1) (see
 ``docs/performance.md``).
 """
+
 from __future__ import annotations
 
 import math
@@ -45,19 +46,31 @@ class CMASettings(OptimizerSettings):
     population: Optional[int] = Field(None, ge=4, description="points per generation (default cma's 4 + 3 ln p)")
     sigma0: float = Field(0.3, gt=0, le=1, description="initial step size, as a fraction of each parameter's range")
     restarts: int = Field(1, ge=0, description="restarts with doubled population after a run converges (IPOP)")
-    init_design: int = Field(0, ge=0, description="points of a scrambled Sobol' design over the initial box "
-                             "evaluated first; CMA-ES then starts at the best of them instead of the box's "
-                             "centre (0: no design)")
-    starts: int = Field(1, ge=1, description="independent CMA-ES runs raced against each other: they start at "
-                        "the best distinct points of the init_design (then at Sobol' points of the initial box), "
-                        "take turns generation by generation, and successive halving drops the worse half at "
-                        "equal shares of the budget, so the answer does not hinge on one trajectory (1: one run)")
-    surrogate: Literal["none", "lq"] = Field("none", description="'lq': lq-CMA-ES, a quadratic regression of "
-                                             "the distance adds its optimum to every generation and, where it "
-                                             "ranks points as the truth does, stands in for growing them (see "
-                                             "the module); 'none': every point is grown")
-    surrogate_batch: int = Field(2, ge=1, description="with a surrogate: points grown together (set it to the "
-                                 "executor's workers)")
+    init_design: int = Field(
+        0,
+        ge=0,
+        description="points of a scrambled Sobol' design over the initial box "
+        "evaluated first; CMA-ES then starts at the best of them instead of the box's "
+        "centre (0: no design)",
+    )
+    starts: int = Field(
+        1,
+        ge=1,
+        description="independent CMA-ES runs raced against each other: they start at "
+        "the best distinct points of the init_design (then at Sobol' points of the initial box), "
+        "take turns generation by generation, and successive halving drops the worse half at "
+        "equal shares of the budget, so the answer does not hinge on one trajectory (1: one run)",
+    )
+    surrogate: Literal["none", "lq"] = Field(
+        "none",
+        description="'lq': lq-CMA-ES, a quadratic regression of "
+        "the distance adds its optimum to every generation and, where it "
+        "ranks points as the truth does, stands in for growing them (see "
+        "the module); 'none': every point is grown",
+    )
+    surrogate_batch: int = Field(
+        2, ge=1, description="with a surrogate: points grown together (set it to the executor's workers)"
+    )
     max_generations: Optional[int] = Field(None, ge=1, description="generations per run (default: until cma stops)")
     tolfun: float = Field(1e-4, ge=0, description="cma's stop when the distances of a generation differ by less")
     patience: Optional[int] = _NOISE["patience"]
@@ -83,7 +96,7 @@ class CMAES(Optimizer):
         if s.max_generations is None or s.surrogate != "none":
             return None
         pop = s.population or 4 + int(3 * math.log(dim))
-        return s.init_design + s.starts * sum(pop * 2 ** r * s.max_generations for r in range(s.restarts + 1))
+        return s.init_design + s.starts * sum(pop * 2**r * s.max_generations for r in range(s.restarts + 1))
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         s: CMASettings = self.settings
@@ -112,8 +125,9 @@ class CMAES(Optimizer):
             starts = _start_points(U0, f, s.starts, ilo, ihi, lo, hi, int(problem.seed))
         else:
             starts = [x0]
-        slots = [_Start(j, u, _LQSurrogate(s.surrogate_batch) if s.surrogate == "lq" else None)
-                 for j, u in enumerate(starts)]
+        slots = [
+            _Start(j, u, _LQSurrogate(s.surrogate_batch) if s.surrogate == "lq" else None) for j, u in enumerate(starts)
+        ]
         race = _Race(slots, problem)
         reason, generation = "cma stopped", 0
         while race.active and not ev.stopped:
@@ -141,23 +155,36 @@ class CMAES(Optimizer):
         else:
             done = [sl for sl in slots if sl.runs]
             last = dict(done[-1].es.stop()) if done and done[-1].es is not None else {}
-            reason = (f"cma converged ({', '.join(last) or 'stopped'}) after "
-                      f"{sum(len(sl.runs) for sl in slots)} run(s)")
+            reason = f"cma converged ({', '.join(last) or 'stopped'}) after {sum(len(sl.runs) for sl in slots)} run(s)"
         for slot in slots:
             if slot.es is not None and (not slot.runs or slot.runs[-1]["run"] != slot.run):
                 slot.finish()
         runs = [r for sl in slots for r in sl.runs]
         diag = {"generations": generation, "runs": runs, "seed_noise": stop.noise}
         if s.starts > 1:
-            diag["starts"] = [{"start": sl.j, "x0": (lo + sl.x0 * (hi - lo)).tolist(), "best": sl.best_f,
-                               "dropped_after": sl.dropped_after} for sl in slots]
+            diag["starts"] = [
+                {
+                    "start": sl.j,
+                    "x0": (lo + sl.x0 * (hi - lo)).tolist(),
+                    "best": sl.best_f,
+                    "dropped_after": sl.dropped_after,
+                }
+                for sl in slots
+            ]
         return make_result(ev, log, reason, diag)
 
     def _es(self, slot: _Start, pop0: int, seed: int):
         import cma
+
         s = self.settings
-        opts = {"bounds": [0.0, 1.0], "popsize": pop0 * 2 ** slot.run, "seed": seed * 1009 + slot.run + 1 + 7919 * slot.j,
-                "verbose": -9, "tolfun": s.tolfun, "tolx": 1e-6}
+        opts = {
+            "bounds": [0.0, 1.0],
+            "popsize": pop0 * 2**slot.run,
+            "seed": seed * 1009 + slot.run + 1 + 7919 * slot.j,
+            "verbose": -9,
+            "tolfun": s.tolfun,
+            "tolx": 1e-6,
+        }
         if s.max_generations is not None:
             opts["maxiter"] = s.max_generations
         return cma.CMAEvolutionStrategy(slot.x0, s.sigma0, opts)
@@ -176,8 +203,15 @@ class CMAES(Optimizer):
             slot.best_f = min(slot.best_f, float(finite.min()))
         if self.settings.starts > 1:
             extra = {"start": slot.j, **extra}
-        log(ev, generation=generation, run=slot.run, population=len(U), sigma=float(es.sigma),
-            **extra, **finite_stats(f, "mean", "median"))
+        log(
+            ev,
+            generation=generation,
+            run=slot.run,
+            population=len(U),
+            sigma=float(es.sigma),
+            **extra,
+            **finite_stats(f, "mean", "median"),
+        )
 
 
 class _Start:
@@ -194,10 +228,15 @@ class _Start:
 
     def finish(self) -> None:
         es = self.es
-        self.runs.append({"start": self.j, "run": self.run, "population": int(es.popsize),
-                          "generations": int(es.countiter),
-                          "stop": {k: (float(v) if isinstance(v, (int, float)) else str(v))
-                                   for k, v in dict(es.stop()).items()}})
+        self.runs.append(
+            {
+                "start": self.j,
+                "run": self.run,
+                "population": int(es.popsize),
+                "generations": int(es.countiter),
+                "stop": {k: (float(v) if isinstance(v, (int, float)) else str(v)) for k, v in dict(es.stop()).items()},
+            }
+        )
 
 
 class _Race:
@@ -221,7 +260,7 @@ class _Race:
             self.marks.pop(0)
             if len(self.active) > 1:
                 ranked = sorted(self.active, key=lambda sl: (sl.best_f, sl.j))
-                for sl in ranked[(len(ranked) + 1) // 2:]:
+                for sl in ranked[(len(ranked) + 1) // 2 :]:
                     sl.dropped_after = n
                     self.active.remove(sl)
 
@@ -231,6 +270,7 @@ def _start_points(U: np.ndarray | None, f: np.ndarray | None, k: int, ilo, ihi, 
     of the cube's side from those taken before it (in the largest coordinate), then points of a
     scrambled Sobol' sequence over the initial box, equally spread, where the design has too few."""
     from scipy.stats import qmc
+
     out: list[np.ndarray] = []
     if U is not None and f is not None:
         for i in np.argsort(np.where(np.isfinite(f), f, np.inf), kind="stable"):
@@ -241,7 +281,8 @@ def _start_points(U: np.ndarray | None, f: np.ndarray | None, k: int, ilo, ihi, 
             if len(out) == k:
                 return out
     V = qmc.Sobol(len(lo), scramble=True, rng=np.random.default_rng([seed, 0x57A7])).random_base2(
-        max(0, math.ceil(math.log2(2 * k))))
+        max(0, math.ceil(math.log2(2 * k)))
+    )
     for i, v in enumerate(V):
         u = np.clip((ilo + v * (ihi - ilo) - lo) / (hi - lo), 0.0, 1.0)
         # apart from those taken, unless the points left are only as many as the starts missing
@@ -260,6 +301,7 @@ class _LQSurrogate:
 
     def __init__(self, batch: int, min_true: int = 6):
         from cma.fitness_models import LQModel, SurrogatePopulationSettings
+
         self.model, self.batch, self.S = LQModel(), int(batch), SurrogatePopulationSettings
         self.min_true = int(min_true)
 
@@ -306,5 +348,6 @@ class _LQSurrogate:
 
 def _kendall(a: np.ndarray, b: np.ndarray) -> float:
     from scipy.stats import kendalltau
+
     t = kendalltau(a, b).statistic
     return float(t) if np.isfinite(t) else 0.0

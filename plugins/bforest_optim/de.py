@@ -4,6 +4,7 @@ Run vectorised with deferred updating: scipy hands each whole generation to the 
 once, which passes it to ``problem.evaluate`` in one call (so it runs in parallel). Integer
 parameters use scipy's ``integrality``; the initial population is spread over the initial box.
 """
+
 from __future__ import annotations
 
 from typing import Literal
@@ -25,8 +26,20 @@ from .box import (
     sampling_field,
 )
 
-Strategy = Literal["best1bin", "best1exp", "rand1bin", "rand1exp", "rand2bin", "rand2exp", "randtobest1bin",
-                   "randtobest1exp", "currenttobest1bin", "currenttobest1exp", "best2bin", "best2exp"]
+Strategy = Literal[
+    "best1bin",
+    "best1exp",
+    "rand1bin",
+    "rand1exp",
+    "rand2bin",
+    "rand2exp",
+    "randtobest1bin",
+    "randtobest1exp",
+    "currenttobest1bin",
+    "currenttobest1exp",
+    "best2bin",
+    "best2exp",
+]
 
 
 class DESettings(OptimizerSettings):
@@ -35,13 +48,17 @@ class DESettings(OptimizerSettings):
     popsize: int = Field(15, ge=1, description="population = popsize * dimension (at least 5)")
     maxiter: int = Field(100, ge=1, description="maximum number of generations")
     strategy: Strategy = Field("best1bin", description="scipy differential evolution strategy")
-    mutation: float | tuple[float, float] = Field((0.5, 1.0), description="differential weight, or a "
-                                                  "(min, max) range for dithering")
+    mutation: float | tuple[float, float] = Field(
+        (0.5, 1.0), description="differential weight, or a (min, max) range for dithering"
+    )
     recombination: float = Field(0.7, ge=0, le=1, description="crossover probability")
     tol: float = Field(0.01, ge=0, description="relative convergence tolerance on the population's distances")
     atol: float = Field(0.0, ge=0, description="absolute convergence tolerance")
-    polish: bool = Field(False, description="polish the best point with L-BFGS-B (finite differences: "
-                         "one evaluation at a time, rarely useful for a stochastic-model distance)")
+    polish: bool = Field(
+        False,
+        description="polish the best point with L-BFGS-B (finite differences: "
+        "one evaluation at a time, rarely useful for a stochastic-model distance)",
+    )
     init_sampling: SamplingName = sampling_field("lhs")
 
 
@@ -84,17 +101,34 @@ class DifferentialEvolution(Optimizer):
 
         def callback(intermediate_result):
             e = np.asarray(intermediate_result.population_energies, float)
-            log(ev, generation=int(intermediate_result.nit), **finite_stats(e, "mean"),
-                convergence=float(getattr(intermediate_result, "convergence", np.nan)))
+            log(
+                ev,
+                generation=int(intermediate_result.nit),
+                **finite_stats(e, "mean"),
+                convergence=float(getattr(intermediate_result, "convergence", np.nan)),
+            )
             return ev.stopped
 
         message, nit = "", None
         try:
             res = differential_evolution(
-                func, bounds=list(zip(ev.lower, ev.upper)), strategy=s.strategy, maxiter=s.maxiter,
-                popsize=s.popsize, tol=s.tol, atol=s.atol, mutation=s.mutation, recombination=s.recombination,
-                rng=np.random.default_rng(de_ss), callback=callback, polish=s.polish, init=init,
-                updating="deferred", vectorized=True, integrality=ev.integer)
+                func,
+                bounds=list(zip(ev.lower, ev.upper)),
+                strategy=s.strategy,
+                maxiter=s.maxiter,
+                popsize=s.popsize,
+                tol=s.tol,
+                atol=s.atol,
+                mutation=s.mutation,
+                recombination=s.recombination,
+                rng=np.random.default_rng(de_ss),
+                callback=callback,
+                polish=s.polish,
+                init=init,
+                updating="deferred",
+                vectorized=True,
+                integrality=ev.integer,
+            )
             message, nit = str(res.message), int(res.nit)
         except StopOptimization:
             message = "stopped"

@@ -26,6 +26,7 @@ balance needs), and ``vectorize=True`` hands each half to the log-probability at
 ``problem.evaluate`` call holds ``walkers / 2`` points (the initial ensemble: all walkers).
 Proposals outside the bounds get ``-inf`` without being evaluated.
 """
+
 from __future__ import annotations
 
 import logging
@@ -55,17 +56,20 @@ PERCENTILES = (2.5, 16.0, 50.0, 84.0, 97.5)
 class EmceeSettings(OptimizerSettings):
     """Settings of the ``emcee`` sampler."""
 
-    walkers: int | None = Field(None, ge=2, description="walkers (even, at least 2 * dimension; default "
-                                "max(2 * dimension + 2, 16))")
+    walkers: int | None = Field(
+        None, ge=2, description="walkers (even, at least 2 * dimension; default max(2 * dimension + 2, 16))"
+    )
     steps: int = Field(200, ge=1, description="ensemble steps (each evaluates every walker once)")
     burn_in: int = Field(50, ge=0, description="steps discarded before the posterior summaries")
     moves: Literal["stretch", "de", "de_snooker", "walk"] = Field(
-        "stretch", description="emcee move: stretch (affine-invariant), de (differential evolution), "
-        "de_snooker, walk")
+        "stretch", description="emcee move: stretch (affine-invariant), de (differential evolution), de_snooker, walk"
+    )
     epsilon: float | Literal["noise", "auto"] = Field(
-        "noise", description="temperature of exp(-D/epsilon): noise = the sd of D between model seeds at the "
+        "noise",
+        description="temperature of exp(-D/epsilon): noise = the sd of D between model seeds at the "
         "best initial walker (falls back to auto where there is no seed noise), auto = 1.4826 * MAD of the "
-        "initial walkers' distances, or a positive number")
+        "initial walkers' distances, or a positive number",
+    )
     epsilon_scale: float = Field(1.0, gt=0, description="multiplies the noise or auto epsilon")
     noise_seeds: int = Field(8, ge=2, description="model seeds of the noise epsilon's measurement")
     init_sampling: SamplingName = sampling_field("lhs")
@@ -95,8 +99,12 @@ def auto_epsilon(f: np.ndarray) -> float:
 def _move(name: str):
     import emcee
 
-    return {"stretch": emcee.moves.StretchMove, "de": emcee.moves.DEMove,
-            "de_snooker": emcee.moves.DESnookerMove, "walk": emcee.moves.WalkMove}[name]()
+    return {
+        "stretch": emcee.moves.StretchMove,
+        "de": emcee.moves.DEMove,
+        "de_snooker": emcee.moves.DESnookerMove,
+        "walk": emcee.moves.WalkMove,
+    }[name]()
 
 
 class EmceeSampler(Optimizer):
@@ -162,23 +170,30 @@ class EmceeSampler(Optimizer):
         lp0 = np.where(np.isfinite(f0), -f0 / eps, -np.inf)
         sampler = emcee.EnsembleSampler(nw, p, log_prob, moves=_move(s.moves), vectorize=True)
         sampler.random_state = np.random.RandomState(np.random.MT19937(mcmc_ss)).get_state()
-        log(ev, step=0, mean=float(np.mean(f0[np.isfinite(f0)])) if np.isfinite(f0).any() else math.inf,
-            acceptance=None)
+        log(
+            ev, step=0, mean=float(np.mean(f0[np.isfinite(f0)])) if np.isfinite(f0).any() else math.inf, acceptance=None
+        )
         reason = f"{s.steps} steps done"
         if not ev.stopped:
             state = emcee.State(coords, log_prob=lp0)
             for i, state in enumerate(sampler.sample(state, iterations=s.steps, progress=False), start=1):  # noqa: B020
                 d = -state.log_prob * eps
                 fin = np.isfinite(d)
-                log(ev, step=i, mean=float(d[fin].mean()) if fin.any() else math.inf,
-                    acceptance=float(np.mean(sampler.acceptance_fraction)))
+                log(
+                    ev,
+                    step=i,
+                    mean=float(d[fin].mean()) if fin.any() else math.inf,
+                    acceptance=float(np.mean(sampler.acceptance_fraction)),
+                )
                 if ev.stopped:
                     break
         diagnostics = self._summaries(sampler, ev, eps, nw)
         diagnostics["epsilon_rule"] = eps_rule
         if int(sampler.iteration) < s.steps:
-            diagnostics["stopped_short"] = (f"stopped after {int(sampler.iteration)} of {s.steps} steps "
-                                            f"({ev.stop_reason('stopped')}): the chain may not have mixed")
+            diagnostics["stopped_short"] = (
+                f"stopped after {int(sampler.iteration)} of {s.steps} steps "
+                f"({ev.stop_reason('stopped')}): the chain may not have mixed"
+            )
         return make_result(ev, log, reason, diagnostics)
 
     def _epsilon(self, problem: Problem, ev: BoxEvaluator, f0: np.ndarray) -> tuple[float, str]:
@@ -233,9 +248,15 @@ class EmceeSampler(Optimizer):
         n_done = int(sampler.iteration)
         out = {"epsilon": eps, "walkers": nw, "steps": n_done, "names": list(ev.names)}
         if n_done == 0:
-            return {**out, "burn_in": 0, "posterior": {}, "acceptance_fraction": None,
-                    "autocorr_time": None, "chain": np.empty((0, nw, ev.dim)),
-                    "distances": np.empty((0, nw))}
+            return {
+                **out,
+                "burn_in": 0,
+                "posterior": {},
+                "acceptance_fraction": None,
+                "autocorr_time": None,
+                "chain": np.empty((0, nw, ev.dim)),
+                "distances": np.empty((0, nw)),
+            }
         burn = self.settings.burn_in
         if burn >= n_done:  # stopped early: keep the second half of what there is
             out["note"] = f"only {n_done} steps done (burn_in {burn}); summaries use the last {n_done - n_done // 2}"
@@ -244,15 +265,29 @@ class EmceeSampler(Optimizer):
         flat = chain[burn:].reshape(-1, ev.dim)
         flat = np.clip(np.where(ev.integer, np.rint(flat), flat), ev.lower, ev.upper)
         q = np.percentile(flat, PERCENTILES, axis=0)
-        posterior = {n: {"median": float(q[2, j]), "p2.5": float(q[0, j]), "p16": float(q[1, j]),
-                         "p84": float(q[3, j]), "p97.5": float(q[4, j]), "mean": float(flat[:, j].mean()),
-                         "std": float(flat[:, j].std())} for j, n in enumerate(ev.names)}
+        posterior = {
+            n: {
+                "median": float(q[2, j]),
+                "p2.5": float(q[0, j]),
+                "p16": float(q[1, j]),
+                "p84": float(q[3, j]),
+                "p97.5": float(q[4, j]),
+                "mean": float(flat[:, j].mean()),
+                "std": float(flat[:, j].std()),
+            }
+            for j, n in enumerate(ev.names)
+        }
         tau = self._autocorr(sampler, burn, ev.dim)
         n_kept = n_done - burn
-        return {**out, "burn_in": burn, "posterior": posterior,
-                "acceptance_fraction": float(np.mean(sampler.acceptance_fraction)),
-                "acceptance_fraction_per_walker": np.asarray(sampler.acceptance_fraction, float),
-                "autocorr_time": {n: finite_or_none(t) for n, t in zip(ev.names, tau)},
-                # emcee's rule of thumb: the estimate is trustworthy for chains longer than 50 tau
-                "autocorr_reliable": bool(np.all(np.isfinite(tau)) and n_kept >= 50 * np.max(tau)),
-                "chain": chain, "distances": -sampler.get_log_prob() * eps}
+        return {
+            **out,
+            "burn_in": burn,
+            "posterior": posterior,
+            "acceptance_fraction": float(np.mean(sampler.acceptance_fraction)),
+            "acceptance_fraction_per_walker": np.asarray(sampler.acceptance_fraction, float),
+            "autocorr_time": {n: finite_or_none(t) for n, t in zip(ev.names, tau)},
+            # emcee's rule of thumb: the estimate is trustworthy for chains longer than 50 tau
+            "autocorr_reliable": bool(np.all(np.isfinite(tau)) and n_kept >= 50 * np.max(tau)),
+            "chain": chain,
+            "distances": -sampler.get_log_prob() * eps,
+        }

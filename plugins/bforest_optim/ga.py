@@ -23,6 +23,7 @@ The run stops after ``generations`` generations, after ``stall_generations`` gen
 row without the best distance improving by more than ``function_tolerance * max(1, |best|)``,
 or when the problem stops (budget, wall time, target).
 """
+
 from __future__ import annotations
 
 import math
@@ -54,27 +55,49 @@ class GASettings(OptimizerSettings):
 
     population: int = Field(40, ge=4, description="individuals per generation")
     generations: int = Field(30, ge=1, description="maximum number of generations after the initial one")
-    elite_count: int | None = Field(None, ge=0, description="best individuals copied unchanged into the "
-                                    "next generation (default: 5 % of the population, at least 1)")
-    crossover_fraction: float = Field(0.8, ge=0.0, le=1.0, description="share of the non-elite children "
-                                      "made by crossover (the rest by mutation)")
+    elite_count: int | None = Field(
+        None,
+        ge=0,
+        description="best individuals copied unchanged into the "
+        "next generation (default: 5 % of the population, at least 1)",
+    )
+    crossover_fraction: float = Field(
+        0.8, ge=0.0, le=1.0, description="share of the non-elite children made by crossover (the rest by mutation)"
+    )
     crossover: Literal["scattered", "intermediate"] = Field(
-        "scattered", description="scattered: each gene from either parent; intermediate: a random "
-        "point between the parents (integer genes rounded)")
+        "scattered",
+        description="scattered: each gene from either parent; intermediate: a random "
+        "point between the parents (integer genes rounded)",
+    )
     selection: Literal["stochastic_uniform", "tournament"] = Field(
-        "stochastic_uniform", description="parent selection: stochastic uniform sampling on "
-        "rank-scaled fitness, or tournaments of tournament_size")
+        "stochastic_uniform",
+        description="parent selection: stochastic uniform sampling on "
+        "rank-scaled fitness, or tournaments of tournament_size",
+    )
     tournament_size: int = Field(4, ge=2, description="individuals per tournament (selection = tournament)")
-    mutation_rate: float = Field(0.2, gt=0.0, le=1.0, description="probability that a gene of a mutation "
-                                 "child is mutated (at least one gene always is)")
-    mutation_scale: float = Field(0.3, gt=0.0, description="standard deviation of a mutation step in "
-                                  "generation 1, as a fraction of the initial range of the parameter")
-    mutation_scale_final: float = Field(0.02, gt=0.0, description="the same in the last generation; the "
-                                        "step shrinks geometrically from mutation_scale to this")
-    stall_generations: int | None = Field(10, ge=1, description="stop after this many generations "
-                                          "without improvement (None: never)")
-    function_tolerance: float = Field(1e-6, ge=0.0, description="an improvement smaller than "
-                                      "function_tolerance * max(1, |best|) does not count")
+    mutation_rate: float = Field(
+        0.2,
+        gt=0.0,
+        le=1.0,
+        description="probability that a gene of a mutation child is mutated (at least one gene always is)",
+    )
+    mutation_scale: float = Field(
+        0.3,
+        gt=0.0,
+        description="standard deviation of a mutation step in "
+        "generation 1, as a fraction of the initial range of the parameter",
+    )
+    mutation_scale_final: float = Field(
+        0.02,
+        gt=0.0,
+        description="the same in the last generation; the step shrinks geometrically from mutation_scale to this",
+    )
+    stall_generations: int | None = Field(
+        10, ge=1, description="stop after this many generations without improvement (None: never)"
+    )
+    function_tolerance: float = Field(
+        1e-6, ge=0.0, description="an improvement smaller than function_tolerance * max(1, |best|) does not count"
+    )
     init_sampling: SamplingName = sampling_field("halton")
     patience: int | None = _NOISE["patience"]
     noise: Union[float, str] = _NOISE["noise"]
@@ -163,14 +186,26 @@ class GeneticAlgorithm(Optimizer):
             if noise_stop(ev):
                 reason = noise_stop.reason
                 break
-        diagnostics = {"generations": done, "elite_count": n_elite, "final_population": pop,
-                       "final_distances": f, "seed_noise": noise_stop.noise}
+        diagnostics = {
+            "generations": done,
+            "elite_count": n_elite,
+            "final_population": pop,
+            "final_distances": f,
+            "seed_noise": noise_stop.noise,
+        }
         return make_result(ev, log, reason, diagnostics)
 
     @staticmethod
     def _log(log, ev, g, f, n_new, *, sigma, stall):
-        log(ev, generation=g, **finite_stats(f, "mean", "median", "std"), n_new=int(n_new),
-            n_failed=int(np.count_nonzero(~np.isfinite(f))), sigma=float(sigma), stall=int(stall))
+        log(
+            ev,
+            generation=g,
+            **finite_stats(f, "mean", "median", "std"),
+            n_new=int(n_new),
+            n_failed=int(np.count_nonzero(~np.isfinite(f))),
+            sigma=float(sigma),
+            stall=int(stall),
+        )
 
     def expected_evaluations(self, dim: int) -> int:
         """Population x (generations + 1): what the run evaluates when no stop comes first."""
@@ -207,7 +242,7 @@ class GeneticAlgorithm(Optimizer):
         n_x = int(round(s.crossover_fraction * n_kids))
         n_m = n_kids - n_x
         parents = pop[self._select(f, 2 * n_x + n_m, rng)]
-        a, b, m = parents[:n_x], parents[n_x:2 * n_x], parents[2 * n_x:]
+        a, b, m = parents[:n_x], parents[n_x : 2 * n_x], parents[2 * n_x :]
         # crossover
         if s.crossover == "scattered":
             xkids = np.where(rng.random((n_x, p)) < 0.5, a, b)

@@ -4,6 +4,7 @@ NLopt calls the objective one point at a time, so every evaluation is a separate
 ``problem.evaluate(x[None, :])`` call (no parallelism inside one run: use ``ga``, ``de`` or
 ``emcee`` to keep several workers busy).
 """
+
 from __future__ import annotations
 
 import math
@@ -25,8 +26,7 @@ def derivative_free_algorithms() -> list[str]:
     """Names of the derivative-free bound-constrained NLopt algorithms of the installed NLopt."""
     import nlopt
 
-    return sorted(a for a in dir(nlopt)
-                  if (a.startswith(("GN_", "LN_")) or a in _NEEDS_LOCAL) and "AUGLAG" not in a)
+    return sorted(a for a in dir(nlopt) if (a.startswith(("GN_", "LN_")) or a in _NEEDS_LOCAL) and "AUGLAG" not in a)
 
 
 def resolve_algorithm(name: str) -> str:
@@ -44,34 +44,54 @@ def resolve_algorithm(name: str) -> str:
         if cand in known:
             return cand
     if key.startswith(("GD_", "LD_")) or key in ("MMA", "CCSAQ", "SLSQP", "LBFGS", "TNEWTON", "STOGO"):
-        raise ValueError(f"NLopt algorithm {name!r} needs gradients, which the structural distance does "
-                         f"not have; use a derivative-free one: {', '.join(known)}")
+        raise ValueError(
+            f"NLopt algorithm {name!r} needs gradients, which the structural distance does "
+            f"not have; use a derivative-free one: {', '.join(known)}"
+        )
     raise ValueError(f"unknown NLopt algorithm {name!r}; derivative-free ones: {', '.join(known)}")
 
 
 class NloptSettings(OptimizerSettings):
     """Settings of the ``nlopt`` optimiser."""
 
-    algorithm: str = Field("GN_CRS2_LM", description="a derivative-free NLopt algorithm, with or without "
-                           "the GN_/LN_ prefix, any case: GN_CRS2_LM, GN_ISRES, GN_ESCH, GN_DIRECT_L, "
-                           "GN_MLSL_LDS, LN_SBPLX, LN_NELDERMEAD, LN_BOBYQA, LN_COBYLA, ...")
-    maxeval: int | None = Field(None, ge=1, description="NLopt calls of the main run (default: the "
-                                "problem's remaining budget less local_maxeval, or 1000 without a budget; "
-                                "repeats of a point the run has already evaluated count here but not in "
-                                "the budget)")
-    population: int | None = Field(None, ge=1, description="population of CRS2, ISRES, ESCH, MLSL "
-                                   "(default: NLopt's own)")
-    local_algorithm: str | None = Field(None, description="local derivative-free algorithm: polishes the "
-                                        "best point after the main run, or serves as MLSL's local "
-                                        "optimiser (MLSL default: LN_SBPLX)")
-    local_maxeval: int | None = Field(None, ge=1, description="evaluations of the local polish "
-                                      "(default 20 * (dimension + 1))")
-    xtol_rel: float | None = Field(None, gt=0, description="stop when a step changes every parameter by "
-                                   "less than this relative amount")
-    ftol_rel: float | None = Field(None, gt=0, description="stop when the distance changes by less than "
-                                   "this relative amount")
-    initial_step: float | None = Field(None, gt=0, le=1, description="first step of local algorithms as a "
-                                       "fraction of each parameter's initial range (default: NLopt's)")
+    algorithm: str = Field(
+        "GN_CRS2_LM",
+        description="a derivative-free NLopt algorithm, with or without "
+        "the GN_/LN_ prefix, any case: GN_CRS2_LM, GN_ISRES, GN_ESCH, GN_DIRECT_L, "
+        "GN_MLSL_LDS, LN_SBPLX, LN_NELDERMEAD, LN_BOBYQA, LN_COBYLA, ...",
+    )
+    maxeval: int | None = Field(
+        None,
+        ge=1,
+        description="NLopt calls of the main run (default: the "
+        "problem's remaining budget less local_maxeval, or 1000 without a budget; "
+        "repeats of a point the run has already evaluated count here but not in "
+        "the budget)",
+    )
+    population: int | None = Field(
+        None, ge=1, description="population of CRS2, ISRES, ESCH, MLSL (default: NLopt's own)"
+    )
+    local_algorithm: str | None = Field(
+        None,
+        description="local derivative-free algorithm: polishes the "
+        "best point after the main run, or serves as MLSL's local "
+        "optimiser (MLSL default: LN_SBPLX)",
+    )
+    local_maxeval: int | None = Field(
+        None, ge=1, description="evaluations of the local polish (default 20 * (dimension + 1))"
+    )
+    xtol_rel: float | None = Field(
+        None, gt=0, description="stop when a step changes every parameter by less than this relative amount"
+    )
+    ftol_rel: float | None = Field(
+        None, gt=0, description="stop when the distance changes by less than this relative amount"
+    )
+    initial_step: float | None = Field(
+        None,
+        gt=0,
+        le=1,
+        description="first step of local algorithms as a fraction of each parameter's initial range (default: NLopt's)",
+    )
 
     @field_validator("algorithm")
     @classmethod
@@ -152,8 +172,9 @@ class NloptOptimizer(Optimizer):
             if s.ftol_rel is not None:
                 opt.set_ftol_rel(s.ftol_rel)
             if s.initial_step is not None:
-                opt.set_initial_step(s.initial_step * np.where(ev.integer, np.maximum(ev.init_width, 1.0),
-                                                               ev.init_width))
+                opt.set_initial_step(
+                    s.initial_step * np.where(ev.integer, np.maximum(ev.init_width, 1.0), ev.init_width)
+                )
             return opt
 
         codes = {}
@@ -172,21 +193,32 @@ class NloptOptimizer(Optimizer):
             phase = "local"
             opt = current = build(s.local_algorithm, local_maxeval)
             codes["local"] = self._run(opt, np.clip(ev.best_x, lo, hi), seed=problem.seed)
-        reason = f"NLopt {s.algorithm}: {codes['global']}" + \
-            (f"; polish {s.local_algorithm}: {codes['local']}" if "local" in codes else "")
-        diagnostics = {"algorithm": s.algorithm, "local_algorithm": s.local_algorithm,
-                       "maxeval": maxeval, "nlopt_result": codes}
+        reason = f"NLopt {s.algorithm}: {codes['global']}" + (
+            f"; polish {s.local_algorithm}: {codes['local']}" if "local" in codes else ""
+        )
+        diagnostics = {
+            "algorithm": s.algorithm,
+            "local_algorithm": s.local_algorithm,
+            "maxeval": maxeval,
+            "nlopt_result": codes,
+        }
         return make_result(ev, log, reason, diagnostics)
 
     @staticmethod
     def _run(opt, x0, seed) -> str:
         import nlopt
 
-        names = {nlopt.SUCCESS: "success", nlopt.STOPVAL_REACHED: "stopval reached",
-                 nlopt.FTOL_REACHED: "ftol reached", nlopt.XTOL_REACHED: "xtol reached",
-                 nlopt.MAXEVAL_REACHED: "maxeval reached", nlopt.MAXTIME_REACHED: "maxtime reached",
-                 nlopt.FORCED_STOP: "forced stop", nlopt.ROUNDOFF_LIMITED: "roundoff limited"}
-        nlopt.srand(int(seed) % (2 ** 63))
+        names = {
+            nlopt.SUCCESS: "success",
+            nlopt.STOPVAL_REACHED: "stopval reached",
+            nlopt.FTOL_REACHED: "ftol reached",
+            nlopt.XTOL_REACHED: "xtol reached",
+            nlopt.MAXEVAL_REACHED: "maxeval reached",
+            nlopt.MAXTIME_REACHED: "maxtime reached",
+            nlopt.FORCED_STOP: "forced stop",
+            nlopt.ROUNDOFF_LIMITED: "roundoff limited",
+        }
+        nlopt.srand(int(seed) % (2**63))
         try:
             opt.optimize(np.asarray(x0, float))
         except nlopt.ForcedStop:

@@ -1,4 +1,5 @@
 """Entry point of the ``bforest_optim`` plugin: the optimisers ``ga``, ``cma``, ``nlopt``, ``emcee``, ``abc-smc``, ``de``, ``turbo``."""
+
 from bforest_core.hookspecs import hookimpl
 
 from .abc_smc import AbcSmc

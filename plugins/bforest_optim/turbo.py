@@ -32,6 +32,7 @@ points. Failed simulations count as the worst distance so far. Everything is see
 points: a resumed fit replays. Settings compared on the LIGNUM pine recipe, and the cost of the
 model per batch: ``docs/performance.md``.
 """
+
 from __future__ import annotations
 
 import math
@@ -50,29 +51,50 @@ _NOISE = noise_stop_fields()
 
 class TurboSettings(OptimizerSettings):
     batch: int = Field(2, ge=1, description="points per iteration, grown together (set it to the executor's workers)")
-    init_points: Optional[int] = Field(None, ge=2, description="points of the Sobol' design that starts each run "
-                                       "(default 2 x the number of free parameters)")
+    init_points: Optional[int] = Field(
+        None,
+        ge=2,
+        description="points of the Sobol' design that starts each run (default 2 x the number of free parameters)",
+    )
     length_init: float = Field(0.8, gt=0, le=2, description="initial side of the trust region (unit cube)")
-    length_min: float = Field(0.5 ** 7, gt=0, description="a trust region smaller than this restarts the run")
+    length_min: float = Field(0.5**7, gt=0, description="a trust region smaller than this restarts the run")
     length_max: float = Field(1.6, gt=0, le=2, description="largest side of the trust region")
     success_tol: int = Field(3, ge=1, description="improving batches in a row that double the trust region")
-    failure_tol: Optional[int] = Field(None, ge=1, description="batches in a row without improvement that halve "
-                                       "it (default ceil(max(4, dimension) / batch))")
+    failure_tol: Optional[int] = Field(
+        None,
+        ge=1,
+        description="batches in a row without improvement that halve it (default ceil(max(4, dimension) / batch))",
+    )
     candidates: int = Field(1000, ge=10, description="candidate points per Thompson draw")
-    centre: Literal["best", "model"] = Field("model", description="centre of the trust region: 'best', the point "
-                                             "with the lowest distance; 'model', the point the GP expects lowest "
-                                             "(robust to a lucky draw of a noisy distance)")
-    restart: Literal["best", "design"] = Field("best", description="when the trust region has shrunk below "
-                                               "length_min: 'best', it starts again at length_init around its "
-                                               "centre with every point kept (for budgets of a few hundred "
-                                               "evaluations per dimension or less); 'design', a fresh Sobol' "
-                                               "design and the earlier points dropped (TuRBO-1)")
-    restarts: int = Field(10, ge=0, description="new runs after the first one's trust region has shrunk below "
-                          "length_min (the budget or a stop usually ends the search first)")
-    hyper_every: int = Field(5, ge=1, description="batches between maximum-likelihood fits of the GP's "
-                             "hyperparameters (in between the GP takes the new points with the last ones)")
-    max_train: int = Field(300, ge=10, description="points the Gaussian process is fitted to: the run's points "
-                           "nearest its best one")
+    centre: Literal["best", "model"] = Field(
+        "model",
+        description="centre of the trust region: 'best', the point "
+        "with the lowest distance; 'model', the point the GP expects lowest "
+        "(robust to a lucky draw of a noisy distance)",
+    )
+    restart: Literal["best", "design"] = Field(
+        "best",
+        description="when the trust region has shrunk below "
+        "length_min: 'best', it starts again at length_init around its "
+        "centre with every point kept (for budgets of a few hundred "
+        "evaluations per dimension or less); 'design', a fresh Sobol' "
+        "design and the earlier points dropped (TuRBO-1)",
+    )
+    restarts: int = Field(
+        10,
+        ge=0,
+        description="new runs after the first one's trust region has shrunk below "
+        "length_min (the budget or a stop usually ends the search first)",
+    )
+    hyper_every: int = Field(
+        5,
+        ge=1,
+        description="batches between maximum-likelihood fits of the GP's "
+        "hyperparameters (in between the GP takes the new points with the last ones)",
+    )
+    max_train: int = Field(
+        300, ge=10, description="points the Gaussian process is fitted to: the run's points nearest its best one"
+    )
     patience: Optional[int] = _NOISE["patience"]
     noise: Union[float, str] = _NOISE["noise"]
     noise_seeds: int = _NOISE["noise_seeds"]
@@ -145,14 +167,27 @@ class Turbo(Optimizer):
                     length, fail = length / 2.0, 0
                 generation += 1
                 n_batches += 1
-                log(ev, generation=generation, run=run, length=float(length), population=len(fb),
-                    noise=gp.noise_sd, **finite_stats(fb, "mean"))
+                log(
+                    ev,
+                    generation=generation,
+                    run=run,
+                    length=float(length),
+                    population=len(fb),
+                    noise=gp.noise_sd,
+                    **finite_stats(fb, "mean"),
+                )
                 if stop(ev):
                     reason = stop.reason
                     break
-            runs.append({"run": run, "points": int(len(f)), "batches": n_batches,
-                         "best": float(np.min(f)) if np.isfinite(f).any() else None,
-                         "end": "trust region below length_min" if length < s.length_min else "stopped"})
+            runs.append(
+                {
+                    "run": run,
+                    "points": int(len(f)),
+                    "batches": n_batches,
+                    "best": float(np.min(f)) if np.isfinite(f).any() else None,
+                    "end": "trust region below length_min" if length < s.length_min else "stopped",
+                }
+            )
             if reason:
                 break
         reason = reason or f"the trust region shrank below length_min in {run + 1} run(s)"
@@ -178,6 +213,7 @@ def _candidates(centre, lo, hi, n, prob, rng) -> np.ndarray:
     """Sobol' points in the box ``[lo, hi]`` that keep the centre's value in each coordinate
     except those a Bernoulli(``prob``) mask moves (at least one per point)."""
     from scipy.stats import qmc
+
     d = len(centre)
     m = int(math.ceil(math.log2(n)))
     pert = lo + qmc.Sobol(d, scramble=True, rng=rng).random_base2(m)[:n] * (hi - lo)
@@ -193,9 +229,10 @@ class _GP:
 
     def __init__(self, dim: int):
         from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
-        self.kernel = (ConstantKernel(1.0, (0.05, 20.0))
-                       * Matern(length_scale=np.full(dim, 0.5), length_scale_bounds=(0.005, 2.0), nu=2.5)
-                       + WhiteKernel(0.01, (5e-4, 0.5)))  # TuRBO's noise floor (standardised units)
+
+        self.kernel = ConstantKernel(1.0, (0.05, 20.0)) * Matern(
+            length_scale=np.full(dim, 0.5), length_scale_bounds=(0.005, 2.0), nu=2.5
+        ) + WhiteKernel(0.01, (5e-4, 0.5))  # TuRBO's noise floor (standardised units)
         self.model = None
 
     @property
@@ -213,8 +250,14 @@ class _GP:
         with them as they are."""
         from sklearn.exceptions import ConvergenceWarning
         from sklearn.gaussian_process import GaussianProcessRegressor
-        gp = GaussianProcessRegressor(self.kernel, normalize_y=True, n_restarts_optimizer=0, random_state=0,
-                                      optimizer="fmin_l_bfgs_b" if hyper or self.model is None else None)
+
+        gp = GaussianProcessRegressor(
+            self.kernel,
+            normalize_y=True,
+            n_restarts_optimizer=0,
+            random_state=0,
+            optimizer="fmin_l_bfgs_b" if hyper or self.model is None else None,
+        )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
             gp.fit(U, y)
@@ -228,6 +271,7 @@ class _GP:
         """``q`` distinct candidates, each the minimum of one joint draw of the latent function
         (the noise term left out) over ``cand``."""
         from scipy.linalg import cholesky, solve_triangular
+
         gp = self.model
         k_signal = gp.kernel_.k1
         Ks = k_signal(cand, gp.X_train_)

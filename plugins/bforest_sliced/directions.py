@@ -5,6 +5,7 @@ construction (*Number-theoretic methods in statistics*, pp. 167-170; toolbox
 ``dt_distance/lin_1d_transforms.m``). Results are cached by
 ``(net, d, lines, scramble, seed, parity)`` and returned as read-only arrays.
 """
+
 from __future__ import annotations
 
 import threading
@@ -40,7 +41,7 @@ def net_points(net: str, lines: int, dim: int, *, scramble: bool = False, seed: 
     if net == "sobol":
         m = int(np.ceil(np.log2(lines + 1)))
         pts = qmc.Sobol(dim, scramble=scramble, seed=seed if scramble else None).random_base2(m)
-        return pts[1:lines + 1]
+        return pts[1 : lines + 1]
     if net == "halton":
         return qmc.Halton(dim, scramble=scramble, seed=seed if scramble else None).random(lines + 1)[1:]
     raise ValueError(f"unknown net {net!r} (choose from {', '.join(NETS)})")
@@ -86,8 +87,9 @@ def fang_wang(c: np.ndarray, d: int, parity: bool = False) -> np.ndarray:
     return a
 
 
-def make_directions(d: int, lines: int, net: str = "gp2", *, scramble: bool = False, seed: int = 0,
-                    parity: bool = False) -> np.ndarray:
+def make_directions(
+    d: int, lines: int, net: str = "gp2", *, scramble: bool = False, seed: int = 0, parity: bool = False
+) -> np.ndarray:
     """Compute (uncached) the ``(lines, d)`` unit directions; see :func:`directions`."""
     if d < 1:
         raise ValueError(f"directions need a dimension >= 1, got d = {d}")
@@ -112,8 +114,9 @@ def make_directions(d: int, lines: int, net: str = "gp2", *, scramble: bool = Fa
     return a / np.linalg.norm(a, axis=1, keepdims=True)
 
 
-def directions(d: int, lines: int, net: str = "gp2", *, scramble: bool = False, seed: int = 0,
-               parity: bool = False) -> np.ndarray:
+def directions(
+    d: int, lines: int, net: str = "gp2", *, scramble: bool = False, seed: int = 0, parity: bool = False
+) -> np.ndarray:
     """Cached, read-only ``(lines, d)`` unit directions (one line for d = 1), each component
     snapped to the distance's grid of ``2**-DIRECTION_BITS`` (:mod:`.grid`: the projections
     are then exact).

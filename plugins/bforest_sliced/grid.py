@@ -11,6 +11,7 @@ order a BLAS kernel sums in, on every CPU. Equal rows give equal projections and
 round-off from another numbering of the tree, a translation or another machine's last bit (far
 below the grid) snaps away. See ``docs/validation.md``, "What the distance resolves".
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -30,7 +31,7 @@ def snap(x: np.ndarray, bits: int) -> np.ndarray:
     the scaling back); ``-0.0`` becomes ``+0.0`` (equal values, equal bits: the KS label
     encoding reads the bits).
     """
-    s = float(2 ** bits)
+    s = float(2**bits)
     out = np.multiply(x, s)
     np.rint(out, out=out)
     out /= s

@@ -1,4 +1,5 @@
 """Entry point of this plugin: registers the ``sliced`` distance with Bayes Forest."""
+
 from bforest_core.hookspecs import hookimpl
 
 from .sliced import SlicedDistance

@@ -17,6 +17,7 @@ model table on every line at once, sorts each line and evaluates KS with ``np.se
 Lines are processed in blocks on a thread pool (NumPy releases the GIL while sorting and
 searching).
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -40,8 +41,7 @@ from .directions import directions as _directions
 from .grid import VALUE_BITS, snap
 from .stats import ALIASES, ks_encoded, stat_from_labels, stat_sorted
 
-__all__ = ["SlicedDistance", "SlicedSettings", "Normalization", "fit_normalization",
-           "PermutationResult", "holm"]
+__all__ = ["SlicedDistance", "SlicedSettings", "Normalization", "fit_normalization", "PermutationResult", "holm"]
 
 _CIRC_RE = re.compile(r"^(sin|cos)\((.+)\)$")
 
@@ -49,6 +49,7 @@ _CIRC_RE = re.compile(r"^(sin|cos)\((.+)\)$")
 # ----------------------------------------------------------------------------------------------
 # normalisation (§3) and the resolution the distance sees
 # ----------------------------------------------------------------------------------------------
+
 
 @dataclass(frozen=True)
 class Normalization:
@@ -68,8 +69,12 @@ class Normalization:
         return np.ascontiguousarray(snap(self.apply(u), VALUE_BITS).T)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"method": self.method, "center": self.center.tolist(), "scale": self.scale.tolist(),
-                "columns": list(self.columns) if self.columns is not None else None}
+        return {
+            "method": self.method,
+            "center": self.center.tolist(),
+            "scale": self.scale.tolist(),
+            "columns": list(self.columns) if self.columns is not None else None,
+        }
 
 
 def circular_pairs(columns) -> list[tuple[int, int]]:
@@ -84,7 +89,9 @@ def circular_pairs(columns) -> list[tuple[int, int]]:
     return [(v["sin"], v["cos"]) for v in where.values() if "sin" in v and "cos" in v]
 
 
-def fit_normalization(u: np.ndarray, method: str = "zscore", columns=None, set_name: str | None = None) -> Normalization:
+def fit_normalization(
+    u: np.ndarray, method: str = "zscore", columns=None, set_name: str | None = None
+) -> Normalization:
     """Fit the normalisation of §3 on a data table.
 
     Parameters
@@ -130,9 +137,12 @@ def fit_normalization(u: np.ndarray, method: str = "zscore", columns=None, set_n
     bad = np.flatnonzero(~np.isfinite(scale) | (scale <= 0))
     if bad.size:
         names = [cols[j] if cols else f"column {j}" for j in bad]
-        warnings.warn(f"sliced distance: set {set_name or '(unnamed)'}: the data table has zero or "
-                      f"non-finite spread in {', '.join(names)}; its scale is set to 1",
-                      RuntimeWarning, stacklevel=3)
+        warnings.warn(
+            f"sliced distance: set {set_name or '(unnamed)'}: the data table has zero or "
+            f"non-finite spread in {', '.join(names)}; its scale is set to 1",
+            RuntimeWarning,
+            stacklevel=3,
+        )
         scale = scale.copy()
         scale[bad] = 1.0
     return Normalization(method, center, scale, cols)
@@ -152,6 +162,7 @@ def holm(p: Mapping[str, float]) -> dict[str, float]:
 # ----------------------------------------------------------------------------------------------
 # settings and per-set state
 # ----------------------------------------------------------------------------------------------
+
 
 class SlicedSettings(ComponentSettings):
     """Settings of the ``sliced`` distance (docs/features-and-distance.md §3-§4)."""
@@ -179,16 +190,18 @@ class SlicedSettings(ComponentSettings):
     @model_validator(mode="after")
     def _empty_cost_needed(self):
         if self.empty_cost is None and self.statistic != "ks":
-            raise ValueError(f"empty_cost must be set for statistic '{self.statistic}': 1.0 is the "
-                             "maximum of unscaled KS only (docs/features-and-distance.md §4.5)")
+            raise ValueError(
+                f"empty_cost must be set for statistic '{self.statistic}': 1.0 is the "
+                "maximum of unscaled KS only (docs/features-and-distance.md §4.5)"
+            )
         return self
 
 
 @dataclass
 class _PairState:
     norm: Normalization
-    A: np.ndarray               # (L, d) directions on their grid: A @ norm.snapped(u) = exact projections
-    data: np.ndarray            # the raw data table (reference)
+    A: np.ndarray  # (L, d) directions on their grid: A @ norm.snapped(u) = exact projections
+    data: np.ndarray  # the raw data table (reference)
     sorted_data: np.ndarray | None = None  # (L, n) sorted projections, when within the memory limit
     digest: str = ""
 
@@ -211,8 +224,10 @@ class PermutationResult:
 
     def summary(self) -> str:
         verdict = "distinguishable" if self.distinguishable else "not distinguishable"
-        return (f"p = {self.p_value:.4f} ({self.draws} draws, SE {self.se:.4f}, CV {self.cv:.3f}); "
-                f"D0 = {self.d0:.4f}; {verdict} at alpha = {self.alpha}")
+        return (
+            f"p = {self.p_value:.4f} ({self.draws} draws, SE {self.se:.4f}, CV {self.cv:.3f}); "
+            f"D0 = {self.d0:.4f}; {verdict} at alpha = {self.alpha}"
+        )
 
 
 def _digest(a: np.ndarray) -> str:
@@ -226,9 +241,11 @@ def _check_finite(u: np.ndarray, what: str, set_name) -> None:
     ok = np.isfinite(u).all(axis=1)
     if not ok.all():
         bad = np.flatnonzero(~ok)
-        raise ValueError(f"set {set_name or '(unnamed)'}: the {what} table has non-finite values in "
-                         f"{bad.size} row(s) (first rows {bad[:5].tolist()}); drop them first "
-                         "(features nan_policy = 'drop')")
+        raise ValueError(
+            f"set {set_name or '(unnamed)'}: the {what} table has non-finite values in "
+            f"{bad.size} row(s) (first rows {bad[:5].tolist()}); drop them first "
+            "(features nan_policy = 'drop')"
+        )
 
 
 def _as_table(u, what: str, d: int | None = None) -> np.ndarray:
@@ -245,6 +262,7 @@ def _as_table(u, what: str, d: int | None = None) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 # the component
 # ----------------------------------------------------------------------------------------------
+
 
 class SlicedDistance(Distance):
     """Sliced (tomographic) distance: mean (or max) over projection lines of a 1-D statistic.
@@ -378,6 +396,7 @@ class SlicedDistance(Distance):
                 blk.sort(axis=1)
                 blk += 0.0  # -0.0 -> +0.0 (bit-level label encoding of ks_encoded)
                 srt[lo:hi] = blk
+
             self._run_blocks(A.shape[0], job)
             srt.flags.writeable = False
             st.sorted_data = srt
@@ -448,6 +467,7 @@ class SlicedDistance(Distance):
                 Y = A[lo:hi] @ umT
                 Y.sort(axis=1)
                 out[lo:hi] = stat_sorted(X, Y, stat, scaled)
+
         self._run_blocks(L, job)
         return out
 
@@ -466,8 +486,9 @@ class SlicedDistance(Distance):
     @staticmethod
     def _check_dims(um, ud, set_name):
         if um.shape[0] and ud.shape[0] and um.shape[1] != ud.shape[1]:
-            raise ValueError(f"set {set_name or '(unnamed)'}: model table has {um.shape[1]} columns, "
-                             f"data table {ud.shape[1]}")
+            raise ValueError(
+                f"set {set_name or '(unnamed)'}: model table has {um.shape[1]} columns, data table {ud.shape[1]}"
+            )
 
     def compute_pair(self, set_name: str | None, u_model, u_data, columns=None) -> float | None:
         """Distance of one named pair (§4.5 rules for empty sides; ``None`` = skipped)."""
@@ -526,9 +547,20 @@ class SlicedDistance(Distance):
             raise ValueError(f"weights must be finite and >= 0, got {bad}")
 
     # ------------------------------------------------------------------ permutation test (§4.6)
-    def permutation_test(self, U_model, U_data, weights=None, *, seed: int = 0, max_draws: int = 500,
-                         min_draws: int = 100, se_max: float = 0.025, cv_max: float = 0.5,
-                         alpha: float = 0.05, parity: bool = False) -> PermutationResult:
+    def permutation_test(
+        self,
+        U_model,
+        U_data,
+        weights=None,
+        *,
+        seed: int = 0,
+        max_draws: int = 500,
+        min_draws: int = 100,
+        se_max: float = 0.025,
+        cv_max: float = 0.5,
+        alpha: float = 0.05,
+        parity: bool = False,
+    ) -> PermutationResult:
         """Is the model tree distinguishable from the data tree? (docs/features-and-distance.md §4.6)
 
         Every pair's pooled rows are shuffled and split into ``n_d`` and ``n_m`` rows; ``D_b``
@@ -583,14 +615,13 @@ class SlicedDistance(Distance):
                 continue
             _check_finite(um, "model", k)
             st = self._state(k, ud)
-            P = st.A @ st.norm.snapped(np.concatenate([ud, um]))   # (L, N), as in compute
+            P = st.A @ st.norm.snapped(np.concatenate([ud, um]))  # (L, N), as in compute
             order = np.argsort(P, axis=1, kind="stable")
             Z = np.take_along_axis(P, order, axis=1)
             N = nd + nm
             lab0 = np.arange(N) >= nd
             d0 = self._aggregate(stat_from_labels(Z, lab0[order], nd, nm, s.statistic, s.scale_by_sample_size))
-            pairs.append(dict(name=k, nd=nd, nm=nm, N=N, order=order, Z=Z, d0=d0,
-                              rng=np.random.default_rng(sq)))
+            pairs.append(dict(name=k, nd=nd, nm=nm, N=N, order=order, Z=Z, d0=d0, rng=np.random.default_rng(sq)))
         if not pairs:
             return PermutationResult(1.0, 0, 0.0, math.inf, 0.0, alpha, False)
         w = {p["name"]: (1.0 if weights is None else float(weights.get(p["name"], 1.0))) for p in pairs}
@@ -628,9 +659,19 @@ class SlicedDistance(Distance):
         for k, parts in per_set_draws.items():
             v = np.concatenate(parts)[:i]
             per_set[k] = self._p_stats(v, d0_set[k], parity)[0]
-        return PermutationResult(p_value=p, draws=int(i), se=se, cv=cv, d0=D0, alpha=alpha,
-                                 distinguishable=bool(p < alpha), per_set=per_set,
-                                 per_set_holm=holm(per_set), per_set_d0=d0_set, null=Db)
+        return PermutationResult(
+            p_value=p,
+            draws=int(i),
+            se=se,
+            cv=cv,
+            d0=D0,
+            alpha=alpha,
+            distinguishable=bool(p < alpha),
+            per_set=per_set,
+            per_set_holm=holm(per_set),
+            per_set_d0=d0_set,
+            null=Db,
+        )
 
     @staticmethod
     def _perm_batch(pairs) -> int:
@@ -642,7 +683,7 @@ class SlicedDistance(Distance):
         N, nd, nm = p["N"], p["nd"], p["nm"]
         perms = p["rng"].permuted(np.broadcast_to(np.arange(N), (bs, N)), axis=1)
         lab = np.zeros((bs, N), dtype=bool)
-        lab[np.arange(bs)[:, None], perms[:, nd:]] = True     # shuffled rows that go to the model side
+        lab[np.arange(bs)[:, None], perms[:, nd:]] = True  # shuffled rows that go to the model side
         vals = stat_from_labels(p["Z"], lab[:, p["order"]], nd, nm, s.statistic, s.scale_by_sample_size)
         return vals.max(axis=1) if s.aggregate == "max" else vals.mean(axis=1)
 

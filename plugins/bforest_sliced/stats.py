@@ -14,6 +14,7 @@ Two engines:
   statistics (after :func:`merge_sorted`) and by the permutation test, where the pooled values
   of a pair are sorted once and only the labels move.
 """
+
 from __future__ import annotations
 
 import sys
@@ -94,12 +95,12 @@ def ks_sorted(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     last[:, :-1] = neq
     first = np.ones((B, m), dtype=bool)
     first[:, 1:] = neq
-    return np.maximum(np.max(t1, axis=1, where=last, initial=0.0),
-                      np.max(t2, axis=1, where=first, initial=0.0))
+    return np.maximum(np.max(t1, axis=1, where=last, initial=0.0), np.max(t2, axis=1, where=first, initial=0.0))
 
 
-def ks_encoded(Xs: np.ndarray, Y: np.ndarray | None = None, *, A: np.ndarray | None = None,
-               UT: np.ndarray | None = None) -> np.ndarray:
+def ks_encoded(
+    Xs: np.ndarray, Y: np.ndarray | None = None, *, A: np.ndarray | None = None, UT: np.ndarray | None = None
+) -> np.ndarray:
     """Exact KS per row from sorted data ``Xs`` and *unsorted* model projections.
 
     The fast path of a fit. The sample label is written into the last mantissa bit (data
@@ -155,7 +156,7 @@ def ks_encoded(Xs: np.ndarray, Y: np.ndarray | None = None, *, A: np.ndarray | N
     jm1 = np.arange(m, dtype=np.int64)
     q -= jm1
     q *= m
-    q -= (jm1 + 1) * n                          # w just after model point j
+    q -= (jm1 + 1) * n  # w just after model point j
     D = np.maximum(np.maximum(q.max(axis=1) + n, 0), -q.min(axis=1)) * (1.0 / (n * m))
     x = np.bitwise_xor(bits[:, 1:], bits[:, :-1], out=_workspace("xor", (B, N - 1), np.int64))
     near = np.equal(x, 1, out=_workspace("near", (B, N - 1), np.bool_))
@@ -191,8 +192,9 @@ def merge_sorted(X: np.ndarray, Y: np.ndarray):
     return Z, lab
 
 
-def stat_from_labels(Z: np.ndarray, lab: np.ndarray, n: int, m: int, statistic: str,
-                     scaled: bool = False) -> np.ndarray:
+def stat_from_labels(
+    Z: np.ndarray, lab: np.ndarray, n: int, m: int, statistic: str, scaled: bool = False
+) -> np.ndarray:
     """A two-sample statistic per row from pooled sorted values and model labels.
 
     Parameters

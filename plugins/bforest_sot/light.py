@@ -10,6 +10,7 @@ The field is stored as ``log E`` in a flat float64 array (C order of (i, j, k)),
 shadows is added or removed with one ``np.bincount`` of ``log f``: exact, independent of the order
 of operations and free of drift. The top layer (the "roof") is a mask with E = 0, never a log 0.
 """
+
 from __future__ import annotations
 
 from collections import OrderedDict
@@ -57,7 +58,7 @@ def shadow_kernel(depth: int, spread: float, shadow_a: float, shadow_b: float):
     di = np.concatenate(di).astype(np.int64)
     dj = np.concatenate(dj).astype(np.int64)
     dk = np.concatenate(dk).astype(np.int64)
-    dist = np.sqrt(dk.astype(float) ** 2 + di ** 2 + dj ** 2)
+    dist = np.sqrt(dk.astype(float) ** 2 + di**2 + dj**2)
     f = 1.0 - shadow_a * shadow_b ** (-dist)
     log_f = np.log(np.maximum(f, 1e-12))
     return di, dj, dk, log_f
@@ -91,8 +92,20 @@ class LightField:
     shadow parts) are never read.
     """
 
-    def __init__(self, span, voxel_size, depth, spread, shadow_a, shadow_b, ran=0.0, vert=0.0,
-                 uniforms=None, stand_shade=0.0, initial_key=None):
+    def __init__(
+        self,
+        span,
+        voxel_size,
+        depth,
+        spread,
+        shadow_a,
+        shadow_b,
+        ran=0.0,
+        vert=0.0,
+        uniforms=None,
+        stand_shade=0.0,
+        initial_key=None,
+    ):
         self.span = float(span)
         #: extinction (1/m) of the surrounding stand's canopy below the tree's top ``z_top``
         #: (kept current by the model); 0 = an open-grown tree (the papers' model)
@@ -127,7 +140,7 @@ class LightField:
     def _initial(self, n, ran, vert, uniforms):
         """The padded flat log E0 and roof mask (read-only)."""
         k = np.arange(n)
-        u = np.zeros(n ** 3) if uniforms is None else np.asarray(uniforms, dtype=np.float64)
+        u = np.zeros(n**3) if uniforms is None else np.asarray(uniforms, dtype=np.float64)
         e0 = (1.0 - ran - vert) + ran * u.reshape(n, n, n) + vert * k[None, None, :] / n
         e0 = np.minimum(e0, 1.0)
         log0 = np.zeros(self.shape_pad)
@@ -151,8 +164,7 @@ class LightField:
 
     def _flat(self, ijk: np.ndarray) -> np.ndarray:
         """Padded flat index of in-grid voxel indices."""
-        return ((ijk[:, 0] + self.pad_xy) * self._si + (ijk[:, 1] + self.pad_xy) * self._sj
-                + ijk[:, 2] + self.pad_z)
+        return (ijk[:, 0] + self.pad_xy) * self._si + (ijk[:, 1] + self.pad_xy) * self._sj + ijk[:, 2] + self.pad_z
 
     def _apply(self, points, sign: float) -> None:
         if len(points) == 0 or self.log_f.size == 0:

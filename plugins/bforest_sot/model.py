@@ -22,11 +22,12 @@ Random draws, all from one ``numpy.random.Generator(PCG64(seed))`` (docs/models.
   drawn even when its sd is 0; no draw depends on ``max_iter``, so a run of length t equals the
   ``on_step`` snapshot at t of any longer run (prefix property).
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -51,6 +52,7 @@ class GrowthFailure(Exception):
 # ------------------------------------------------------------------------------------------------
 # small vector helpers
 # ------------------------------------------------------------------------------------------------
+
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product of (m, 3) arrays of one shape: the arithmetic of ``np.cross`` (so
@@ -82,8 +84,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / _norm(v)[:, None]
 
 
-def lambda_schedule(age: float, init_lambda: float, targ_lambda: float, delay: float,
-                    transition: float) -> float:
+def lambda_schedule(age: float, init_lambda: float, targ_lambda: float, delay: float, transition: float) -> float:
     """Apical control at schedule age (B.5 step 1): ``init_lambda`` up to ``delay``, then a
     linear ramp over ``transition`` cycles to ``targ_lambda``."""
     if age <= delay:
@@ -95,8 +96,23 @@ def lambda_schedule(age: float, init_lambda: float, targ_lambda: float, delay: f
 # the two passes, on a compact node set (local indices 0..m-1, children given as local ids)
 # ------------------------------------------------------------------------------------------------
 
-def accumulate(api_state, lat_state, api_child, lat_child, q_api, q_lat, api_stub_w, lat_stub_w,
-               depth, lam, kappa, pipe_exp, init_width, levels=None):
+
+def accumulate(
+    api_state,
+    lat_state,
+    api_child,
+    lat_child,
+    q_api,
+    q_lat,
+    api_stub_w,
+    lat_stub_w,
+    depth,
+    lam,
+    kappa,
+    pipe_exp,
+    init_width,
+    levels=None,
+):
     """Basipetal pass (B.5 step 3) over a compact set of m living segments.
 
     Slot contributions (N, Q, width): CHILD c -> (N_c, Q_c, d_c); BUD -> (1, Q_bud, -);
@@ -132,8 +148,10 @@ def accumulate(api_state, lat_state, api_child, lat_child, q_api, q_lat, api_stu
     base = np.zeros((m + 1, 3))
     base[:m, 0] = a_bud.astype(float) + l_bud
     base[:m, 1] = np.where(a_bud, q_api, 0.0) + np.where(l_bud, q_lat, 0.0)
-    base[:m, 2] = (np.where(api_state == STUB, api_stub_w, 0.0) ** pipe_exp
-                   + np.where(lat_state == STUB, lat_stub_w, 0.0) ** pipe_exp)
+    base[:m, 2] = (
+        np.where(api_state == STUB, api_stub_w, 0.0) ** pipe_exp
+        + np.where(lat_state == STUB, lat_stub_w, 0.0) ** pipe_exp
+    )
     base[:m, 0] += 1.0
     ac = np.where(api_state == CHILD, api_child, sent)
     lc = np.where(lat_state == CHILD, lat_child, sent)
@@ -141,7 +159,7 @@ def accumulate(api_state, lat_state, api_child, lat_child, q_api, q_lat, api_stu
     V = np.zeros((m + 1, 3))
     order, bounds = group_by_level(depth) if levels is None else levels
     for j in range(bounds.shape[0] - 2, -1, -1):
-        L = order[bounds[j]:bounds[j + 1]]
+        L = order[bounds[j] : bounds[j + 1]]
         x = base[L] + V[ac[L]] + V[lc[L]]
         w = x[:, 2]
         w[w <= 0.0] = d0n
@@ -156,13 +174,13 @@ def accumulate(api_state, lat_state, api_child, lat_child, q_api, q_lat, api_stu
     if kappa == 1.0:
         D = lam * Qm + (1.0 - lam) * Ql
     else:
-        D = (lam * np.where(Nm > 0, Nm * (Qm / np.maximum(Nm, 1.0)) ** kappa, 0.0)
-             + (1.0 - lam) * np.where(Nl > 0, Nl * (Ql / np.maximum(Nl, 1.0)) ** kappa, 0.0))
+        D = lam * np.where(Nm > 0, Nm * (Qm / np.maximum(Nm, 1.0)) ** kappa, 0.0) + (1.0 - lam) * np.where(
+            Nl > 0, Nl * (Ql / np.maximum(Nl, 1.0)) ** kappa, 0.0
+        )
     D = np.where((Nm + Nl) > 0, D, 1.0)
-    woody = (np.isin(api_state, (CHILD, STUB)) | np.isin(lat_state, (CHILD, STUB)))
+    woody = np.isin(api_state, (CHILD, STUB)) | np.isin(lat_state, (CHILD, STUB))
     width = np.where(woody, W ** (1.0 / pipe_exp), float(init_width))
-    return {"N": N.copy(), "Q": Q.copy(), "D": D, "W": W.copy(), "width": width,
-            "Nm": Nm, "Qm": Qm, "Nl": Nl, "Ql": Ql}
+    return {"N": N.copy(), "Q": Q.copy(), "D": D, "W": W.copy(), "width": width, "Nm": Nm, "Qm": Qm, "Nl": Nl, "Ql": Ql}
 
 
 def _pointer_jump_rounds(parent: np.ndarray):
@@ -220,13 +238,23 @@ def path_any(flag: np.ndarray, rounds) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------
 
 _FIELDS = {
-    "start": (np.float64, 3), "h": (np.float64, 3), "u": (np.float64, 3),
-    "length": (np.float64, 0), "width": (np.float64, 0), "parent": (np.int64, 0),
-    "is_lateral": (np.bool_, 0), "order": (np.int64, 0), "depth": (np.int64, 0),
-    "alive": (np.bool_, 0), "born": (np.int64, 0),
-    "api_state": (np.int8, 0), "lat_state": (np.int8, 0),
-    "api_child": (np.int64, 0), "lat_child": (np.int64, 0),
-    "api_stub_w": (np.float64, 0), "lat_stub_w": (np.float64, 0),
+    "start": (np.float64, 3),
+    "h": (np.float64, 3),
+    "u": (np.float64, 3),
+    "length": (np.float64, 0),
+    "width": (np.float64, 0),
+    "parent": (np.int64, 0),
+    "is_lateral": (np.bool_, 0),
+    "order": (np.int64, 0),
+    "depth": (np.int64, 0),
+    "alive": (np.bool_, 0),
+    "born": (np.int64, 0),
+    "api_state": (np.int8, 0),
+    "lat_state": (np.int8, 0),
+    "api_child": (np.int64, 0),
+    "lat_child": (np.int64, 0),
+    "api_stub_w": (np.float64, 0),
+    "lat_stub_w": (np.float64, 0),
     "twin": (np.bool_, 0),
 }
 
@@ -248,7 +276,7 @@ class SegmentStore:
         for name, (dt, k) in _FIELDS.items():
             old = getattr(self, name)
             new = np.zeros((cap, k) if k else cap, dtype=dt)
-            new[:self.n] = old[:self.n]
+            new[: self.n] = old[: self.n]
             setattr(self, name, new)
         self.cap = cap
 
@@ -276,7 +304,7 @@ class SegmentStore:
     @property
     def live(self) -> np.ndarray:
         """Ids of the living segments in creation (parent-before-child) order."""
-        return np.flatnonzero(self.alive[:self.n])
+        return np.flatnonzero(self.alive[: self.n])
 
 
 @dataclass
@@ -314,29 +342,38 @@ class AllocationRecord:
 class ShootRecord:
     """Inspection record of one cycle's shoots (one entry per growing shoot, in draw order)."""
 
-    bearing: np.ndarray       # global id of the bearing segment
-    lateral: np.ndarray       # bool
-    vigor: np.ndarray         # capped bud vigor v
-    planned: np.ndarray       # floor(v)
-    built: np.ndarray         # metamers actually built (fewer only at the walls)
-    first: np.ndarray         # global id of the first metamer (-1 if none)
+    bearing: np.ndarray  # global id of the bearing segment
+    lateral: np.ndarray  # bool
+    vigor: np.ndarray  # capped bud vigor v
+    planned: np.ndarray  # floor(v)
+    built: np.ndarray  # metamers actually built (fewer only at the walls)
+    first: np.ndarray  # global id of the first metamer (-1 if none)
     metamer_length: np.ndarray
     branch_angle: np.ndarray  # drawn branch angle (deg; NaN for apical shoots)
-    target: np.ndarray        # (k, 3) unit target direction (0 if |t| = 0)
-    tau: np.ndarray           # turning fraction
+    target: np.ndarray  # (k, 3) unit target direction (0 if |t| = 0)
+    tau: np.ndarray  # turning fraction
 
 
 # ------------------------------------------------------------------------------------------------
 # the growth run
 # ------------------------------------------------------------------------------------------------
 
+
 class SOTGrowth:
     """One SOT run. ``run()`` executes cycles 1 .. max_iter; failures raise
     :class:`GrowthFailure` and leave the state in place for the partial tree."""
 
-    def __init__(self, p: dict, seed: int, *, max_live_segments: int = 200_000,
-                 sympodial: bool = False, buds_per_node: int = 1, on_step: Callable | None = None,
-                 record: bool = False):
+    def __init__(
+        self,
+        p: dict,
+        seed: int,
+        *,
+        max_live_segments: int = 200_000,
+        sympodial: bool = False,
+        buds_per_node: int = 1,
+        on_step: Callable | None = None,
+        record: bool = False,
+    ):
         self.p = p
         self.seed = seed
         self.max_live = int(max_live_segments)
@@ -348,10 +385,19 @@ class SOTGrowth:
         n3 = int(round(p["span"] / p["voxel_size"])) ** 3
         # draw 1; the field of a seed seen before comes from the field's cache, and the generator
         # then skips the n3 draws it was made of (PCG64 advance: the same stream after it)
-        self.field = LightField(p["span"], p["voxel_size"], int(p["depth"]), p["spread"],
-                                p["shadow_a"], p["shadow_b"], p["ran"], p["vert"], lambda: self.rng.random(n3),
-                                stand_shade=p["stand_shade"],
-                                initial_key=("sot", int(seed)) if isinstance(seed, (int, np.integer)) else None)
+        self.field = LightField(
+            p["span"],
+            p["voxel_size"],
+            int(p["depth"]),
+            p["spread"],
+            p["shadow_a"],
+            p["shadow_b"],
+            p["ran"],
+            p["vert"],
+            lambda: self.rng.random(n3),
+            stand_shade=p["stand_shade"],
+            initial_key=("sot", int(seed)) if isinstance(seed, (int, np.integer)) else None,
+        )
         if self.field.from_cache:
             self.rng.bit_generator.advance(n3)
         self.s = SegmentStore()
@@ -380,8 +426,9 @@ class SOTGrowth:
         s.n = 1
         if self.buds_per_node > 1:
             s.reserve(self.buds_per_node)
-            last = self._add_bud_nodes(1, np.zeros(1, np.int64), s.start[:1] + s.length[0] * s.h[:1],
-                                       s.h[:1], s.u[:1], s.order[:1])
+            last = self._add_bud_nodes(
+                1, np.zeros(1, np.int64), s.start[:1] + s.length[0] * s.h[:1], s.h[:1], s.u[:1], s.order[:1]
+            )
             s.api_state[last] = BUD
         self.created = s.n
         self.field.cast(s.start[:1])  # falls below ground: no effect
@@ -416,8 +463,21 @@ class SOTGrowth:
         ids, loc, lpar, ac, lc = self._compact()
         p = self.p
         z = np.zeros(ids.size)
-        acc = accumulate(s.api_state[ids], s.lat_state[ids], ac, lc, z, z, s.api_stub_w[ids],
-                         s.lat_stub_w[ids], s.depth[ids], self.lam, 1.0, p["pipe_exp"], p["init_width"])
+        acc = accumulate(
+            s.api_state[ids],
+            s.lat_state[ids],
+            ac,
+            lc,
+            z,
+            z,
+            s.api_stub_w[ids],
+            s.lat_stub_w[ids],
+            s.depth[ids],
+            self.lam,
+            1.0,
+            p["pipe_exp"],
+            p["init_width"],
+        )
         return ids, acc["width"]
 
     # -------------------------------------------------------------- one growth cycle
@@ -444,8 +504,21 @@ class SOTGrowth:
         q_api, q_lat = self._bud_light(ids)
         api_state0 = s.api_state[ids].copy()
         lat_state0 = s.lat_state[ids].copy()
-        acc = accumulate(api_state0, lat_state0, ac, lc, q_api, q_lat, s.api_stub_w[ids],
-                         s.lat_stub_w[ids], s.depth[ids], lam, kappa, p["pipe_exp"], p["init_width"])
+        acc = accumulate(
+            api_state0,
+            lat_state0,
+            ac,
+            lc,
+            q_api,
+            q_lat,
+            s.api_stub_w[ids],
+            s.lat_stub_w[ids],
+            s.depth[ids],
+            lam,
+            kappa,
+            p["pipe_exp"],
+            p["init_width"],
+        )
         N, Q, D, width = acc["N"], acc["Q"], acc["D"], acc["width"]
         s.width[ids] = width
 
@@ -473,16 +546,31 @@ class SOTGrowth:
         # 5. bud vigor (uncapped values kept for inspection)
         Dpos = D > 0
         Dsafe = np.where(Dpos, D, 1.0)
-        vA_raw = np.where((api_state0 == BUD) & Dpos, v * lam * q_api ** kappa / Dsafe, 0.0)
-        vL_raw = np.where((lat_state0 == BUD) & Dpos, v * (1.0 - lam) * q_lat ** kappa / Dsafe, 0.0)
+        vA_raw = np.where((api_state0 == BUD) & Dpos, v * lam * q_api**kappa / Dsafe, 0.0)
+        vL_raw = np.where((lat_state0 == BUD) & Dpos, v * (1.0 - lam) * q_lat**kappa / Dsafe, 0.0)
         if self.record:
             self.last_alloc = AllocationRecord(
-                cycle=c, lam=lam, ids=ids, parent=s.parent[ids].copy(), is_lateral=is_lat.copy(),
-                api_state=api_state0, lat_state=lat_state0,
+                cycle=c,
+                lam=lam,
+                ids=ids,
+                parent=s.parent[ids].copy(),
+                is_lateral=is_lat.copy(),
+                api_state=api_state0,
+                lat_state=lat_state0,
                 api_child=np.where(api_state0 == CHILD, s.api_child[ids], -1),
                 lat_child=np.where(lat_state0 == CHILD, s.lat_child[ids], -1),
-                q_api=q_api, q_lat=q_lat, N=N, Q=Q, D=D, width=width, v=v, v_base=v_base,
-                dropped=dead, vA_raw=vA_raw, vL_raw=vL_raw)
+                q_api=q_api,
+                q_lat=q_lat,
+                N=N,
+                Q=Q,
+                D=D,
+                width=width,
+                v=v,
+                v_base=v_base,
+                dropped=dead,
+                vA_raw=vA_raw,
+                vL_raw=vL_raw,
+            )
         keep = ~dead
         mg = float(p["max_grow"])
         vA = np.minimum(vA_raw, mg)
@@ -506,7 +594,7 @@ class SOTGrowth:
         il = np.flatnonzero(grow_l)
         key = np.concatenate([2 * ia, 2 * il + 1])
         srt = np.argsort(key, kind="stable")
-        sl = np.concatenate([ia, il])[srt]               # local ids of bearing segments
+        sl = np.concatenate([ia, il])[srt]  # local ids of bearing segments
         lateral = np.concatenate([np.zeros(ia.size, bool), np.ones(il.size, bool)])[srt]
         vig = np.concatenate([vA[ia], vL[il]])[srt]
         bearing = ids[sl]
@@ -515,9 +603,11 @@ class SOTGrowth:
         if self.buds_per_node > 1:  # bud nodes are not segments of the tree
             n_live -= int(np.count_nonzero(s.twin[ids] & ~dead))
         if n_live + int(planned.sum()) > self.max_live:
-            raise GrowthFailure("too_many_segments",
-                                f"cycle {c} would grow {int(planned.sum())} metamers on {n_live} "
-                                f"live segments (max_live_segments = {self.max_live})")
+            raise GrowthFailure(
+                "too_many_segments",
+                f"cycle {c} would grow {int(planned.sum())} metamers on {n_live} "
+                f"live segments (max_live_segments = {self.max_live})",
+            )
         self._build_shoots(c, bearing, lateral, vig, planned)
 
     def _build_shoots(self, c, bearing, lateral, vig, planned) -> None:
@@ -560,8 +650,14 @@ class SOTGrowth:
             if not want.any():
                 break
             q = pos[want]
-            out = ((q[:, 0] < -half) | (q[:, 0] > half) | (q[:, 1] < -half) | (q[:, 1] > half)
-                   | (q[:, 2] < 0.0) | (q[:, 2] > p["span"]))
+            out = (
+                (q[:, 0] < -half)
+                | (q[:, 0] > half)
+                | (q[:, 1] < -half)
+                | (q[:, 1] > half)
+                | (q[:, 2] < 0.0)
+                | (q[:, 2] > p["span"])
+            )
             wi = np.flatnonzero(want)
             stopped[wi[out]] = True
             act = wi[~out]
@@ -599,8 +695,7 @@ class SOTGrowth:
             nid = s.n + np.arange(act.size)
             new = slice(s.n, s.n + act.size)  # the rows nid, as a slice (cheaper to write)
             par = bearing[act] if k == 0 else last[act]
-            s.append(new, pos[act], ha, ua, seg_len[act], p["init_width"], par, lateral[act] & (k == 0),
-                     order[act], c)
+            s.append(new, pos[act], ha, ua, seg_len[act], p["init_width"], par, lateral[act] & (k == 0), order[act], c)
             if k == 0:
                 la = lateral[act]
                 s.lat_state[par[la]] = CHILD
@@ -625,9 +720,18 @@ class SOTGrowth:
         if new_starts:
             self.field.cast(np.concatenate(new_starts))
         if self.record:
-            self.last_shoots = ShootRecord(bearing=bearing, lateral=lateral, vigor=vig, planned=planned,
-                                           built=built, first=first, metamer_length=seg_len,
-                                           branch_angle=ang, target=that, tau=tau)
+            self.last_shoots = ShootRecord(
+                bearing=bearing,
+                lateral=lateral,
+                vigor=vig,
+                planned=planned,
+                built=built,
+                first=first,
+                metamer_length=seg_len,
+                branch_angle=ang,
+                target=that,
+                tau=tau,
+            )
 
     def _add_bud_nodes(self, c, nid, end, h, u, order) -> np.ndarray:
         """Further lateral buds at the ends of the metamers ``nid`` (``buds_per_node`` > 1, an
@@ -644,8 +748,18 @@ class SOTGrowth:
         for j in range(1, self.buds_per_node):
             tid = s.n + np.arange(m)
             new = slice(s.n, s.n + m)
-            s.append(new, end, h, rotate(u, h, np.full(m, 2.0 * math.pi * j / self.buds_per_node)), 0.0,
-                     self.p["init_width"], prev, False, order, c)
+            s.append(
+                new,
+                end,
+                h,
+                rotate(u, h, np.full(m, 2.0 * math.pi * j / self.buds_per_node)),
+                0.0,
+                self.p["init_width"],
+                prev,
+                False,
+                order,
+                c,
+            )
             s.twin[new] = True
             s.api_state[prev] = CHILD
             s.api_child[prev] = tid
@@ -661,7 +775,7 @@ class SOTGrowth:
                 self._seed()
             else:
                 self._grow_cycle(c)
-            n_live = int(np.count_nonzero(self.s.alive[:self.s.n]))
+            n_live = int(np.count_nonzero(self.s.alive[: self.s.n]))
             if c >= 5 and n_live < 10:
                 raise GrowthFailure("collapsed", f"{n_live} live segments at the end of cycle {c} (< 10)")
             if self.on_step is not None:
@@ -744,14 +858,28 @@ def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
     settings = getattr(run, "settings", None)
     order_mode = getattr(settings, "order_mode", "growth")
     meta = {
-        "model": "sot", "model_version": MODEL_VERSION, "params": dict(run.p), "seed": run.seed,
-        "status": status, "cycles": int(run.cycle), "order_mode": order_mode,
-        "units": {"length": "m", "angle": "deg"}, "frame": "Z up, stem base at the origin",
+        "model": "sot",
+        "model_version": MODEL_VERSION,
+        "params": dict(run.p),
+        "seed": run.seed,
+        "status": status,
+        "cycles": int(run.cycle),
+        "order_mode": order_mode,
+        "units": {"length": "m", "angle": "deg"},
+        "frame": "Z up, stem base at the origin",
         "segments_created": int(s.n),
     }
-    tree = Tree(s.start[ids], s.h[ids], s.length[ids], 0.5 * width, parent, ext,
-                topology="thickest" if order_mode == "thickest" else "source",
-                extras={"age": (run.cycle - s.born[ids]).astype(np.int64)}, metadata=meta)
+    tree = Tree(
+        s.start[ids],
+        s.h[ids],
+        s.length[ids],
+        0.5 * width,
+        parent,
+        ext,
+        topology="thickest" if order_mode == "thickest" else "source",
+        extras={"age": (run.cycle - s.born[ids]).astype(np.int64)},
+        metadata=meta,
+    )
     # C: is_lateral = starts a new branch (in "growth" mode: the first metamer of a lateral shoot)
     tree.extras["is_lateral"] = (tree.parent >= 0) & (tree.position_in_branch == 0)
     return tree

@@ -5,9 +5,10 @@ III apical dominance; IV shadow propagation; V angles/branching); the geometry c
 ``node_length``, ``voxel_size`` and ``span`` are in group ``"fixed"`` with ``lower == upper``.
 Ranges of the clone-noise sds are project choices (docs/models.md E gives only their defaults).
 """
+
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 from bforest_core.interfaces import ParameterSpec
 
@@ -18,14 +19,38 @@ PARAMETERS: list[ParameterSpec] = [
     P("max_iter", 18, 8, 30, True, "cycles", "growth cycles including the seed cycle", "I"),
     P("alpha0", 1.0, 0.0, 5.0, False, "internode", "base vigor offset: v_base = alpha0 + alpha1 * Q_base", "I"),
     P("alpha1", 1.5, 0.5, 3.0, False, "internode", "vigor per unit of light collected by the tree", "I"),
-    P("max_grow", 3.0, 2.0, 20.0, False, "internode",
-      "vigor cap of a bud; a shoot has floor(v) <= floor(max_grow) metamers per cycle", "I"),
-    P("drop_thresh", 0.2, 0.05, 0.5, False, "internode",
-      "a branch is shed when its vigor per distal element v/N falls to this value", "I"),
+    P(
+        "max_grow",
+        3.0,
+        2.0,
+        20.0,
+        False,
+        "internode",
+        "vigor cap of a bud; a shoot has floor(v) <= floor(max_grow) metamers per cycle",
+        "I",
+    ),
+    P(
+        "drop_thresh",
+        0.2,
+        0.05,
+        0.5,
+        False,
+        "internode",
+        "a branch is shed when its vigor per distal element v/N falls to this value",
+        "I",
+    ),
     P("init_width", 0.02, 0.01, 0.04, False, "m", "diameter of a terminal segment", "I"),
     P("pipe_exp", 2.6, 2.0, 3.0, False, "", "pipe-model exponent n: d^n = sum of children's d_i^n", "I"),
-    P("nonlinear", 1.0, 0.5, 2.0, False, "",
-      "light exponent kappa of the Borchert-Honda allocation (1 = linear BH; docs/models.md B.3 groups it I/III)", "I"),
+    P(
+        "nonlinear",
+        1.0,
+        0.5,
+        2.0,
+        False,
+        "",
+        "light exponent kappa of the Borchert-Honda allocation (1 = linear BH; docs/models.md B.3 groups it I/III)",
+        "I",
+    ),
     # ---- II: environment
     P("reorient", 0.4, 0.0, 1.0, False, "", "weight xi of the light gradient in the shoot target direction", "II"),
     P("redir_strength", 0.4, 0.0, 1.0, False, "", "cap of the fraction of the angle turned per metamer", "II"),
@@ -33,8 +58,17 @@ PARAMETERS: list[ParameterSpec] = [
     P("sample_rad", 0.32, 0.1, 0.6, False, "m", "probe distance of the light-gradient estimate", "II"),
     P("ran", 0.05, 0.0, 0.2, False, "", "initial exposure noise: E0 += ran * U(0, 1) per voxel", "II"),
     P("vert", 0.0, 0.0, 0.3, False, "", "vertical gradient of the initial exposure", "II"),
-    P("stand_shade", 0.0, 0.0, 2.0, False, "1/m", "extinction of the surrounding stand's canopy: exposure "
-      "times exp(-stand_shade * depth below the tree's top); 0 = open-grown (the papers' model)", "II"),
+    P(
+        "stand_shade",
+        0.0,
+        0.0,
+        2.0,
+        False,
+        "1/m",
+        "extinction of the surrounding stand's canopy: exposure "
+        "times exp(-stand_shade * depth below the tree's top); 0 = open-grown (the papers' model)",
+        "II",
+    ),
     # ---- III: apical dominance
     P("init_lambda", 0.65, 0.35, 0.9, False, "", "apical control lambda up to `delay` cycles", "III"),
     P("targ_lambda", 0.51, 0.35, 0.9, False, "", "apical control lambda after delay + transition", "III"),
@@ -53,21 +87,73 @@ PARAMETERS: list[ParameterSpec] = [
     P("branch_angle_sd", 5.0, 0.0, 15.0, False, "deg", "clone noise: sd of the branch angle, per lateral shoot", "V"),
     P("phyllotaxis_sd", 10.0, 0.0, 30.0, False, "deg", "clone noise: sd of the phyllotaxis angle, per metamer", "V"),
     P("tropism_sd", 0.0, 0.0, 0.05, False, "", "clone noise: sd of the tropism, per shoot", "V"),
-    P("heading_sd", 0.0, 0.0, 20.0, False, "deg", "clone noise (an addition): sd of a bend of each branch metamer "
-      "about its up vector, so that branches wind as scanned ones do (the stem stays straight); 0 = smooth axes", "V"),
-    P("leader_death", 0.0, 0.0, 1.0, False, "", "an addition: probability per cycle that a growing apical bud "
-      "dies (terminal flowering, frost, damage), so the lateral buds below it take over; with opposite buds a "
-      "fork (sympodial growth of many broadleaved trees; 1 = every shoot forks); 0 = the papers' model (no draws)", "V"),
-    P("death_delay", 0.0, 0.0, 30.0, False, "cycles", "an addition: apical buds die (leader_death) from cycle "
-      "death_delay + 1 on, e.g. from the onset of flowering", "V"),
+    P(
+        "heading_sd",
+        0.0,
+        0.0,
+        20.0,
+        False,
+        "deg",
+        "clone noise (an addition): sd of a bend of each branch metamer "
+        "about its up vector, so that branches wind as scanned ones do (the stem stays straight); 0 = smooth axes",
+        "V",
+    ),
+    P(
+        "leader_death",
+        0.0,
+        0.0,
+        1.0,
+        False,
+        "",
+        "an addition: probability per cycle that a growing apical bud "
+        "dies (terminal flowering, frost, damage), so the lateral buds below it take over; with opposite buds a "
+        "fork (sympodial growth of many broadleaved trees; 1 = every shoot forks); 0 = the papers' model (no draws)",
+        "V",
+    ),
+    P(
+        "death_delay",
+        0.0,
+        0.0,
+        30.0,
+        False,
+        "cycles",
+        "an addition: apical buds die (leader_death) from cycle death_delay + 1 on, e.g. from the onset of flowering",
+        "V",
+    ),
     # ---- fixed geometry (GS)
-    P("node_length", 0.2, 0.1, 0.6, False, "m", "internode length (1 node unit of vigor; one lateral bud per "
-      "internode, so it sets how many branches a metre of stem can carry); GS: 0.2 m; up to 0.6 m for trees of "
-      "18-20 m", "fixed"),
-    P("voxel_size", 0.2, 0.2, 0.5, False, "m", "light voxel edge; GS: 0.2 m; coarser for large trees, "
-      "whose internodes are longer (the field's cost grows with (span / voxel_size)^3)", "fixed"),
-    P("span", 12.0, 12.0, 30.0, False, "m", "edge of the world cube (tree at the XY centre, Z up); GS: 12 m, "
-      "larger for trees taller than about 11 m", "fixed"),
+    P(
+        "node_length",
+        0.2,
+        0.1,
+        0.6,
+        False,
+        "m",
+        "internode length (1 node unit of vigor; one lateral bud per "
+        "internode, so it sets how many branches a metre of stem can carry); GS: 0.2 m; up to 0.6 m for trees of "
+        "18-20 m",
+        "fixed",
+    ),
+    P(
+        "voxel_size",
+        0.2,
+        0.2,
+        0.5,
+        False,
+        "m",
+        "light voxel edge; GS: 0.2 m; coarser for large trees, "
+        "whose internodes are longer (the field's cost grows with (span / voxel_size)^3)",
+        "fixed",
+    ),
+    P(
+        "span",
+        12.0,
+        12.0,
+        30.0,
+        False,
+        "m",
+        "edge of the world cube (tree at the XY centre, Z up); GS: 12 m, larger for trees taller than about 11 m",
+        "fixed",
+    ),
 ]
 
 INTEGER_NAMES = tuple(p.name for p in PARAMETERS if p.integer)
@@ -75,6 +161,7 @@ INTEGER_NAMES = tuple(p.name for p in PARAMETERS if p.integer)
 
 def validate(p: Mapping[str, float]) -> None:
     """Raise ``ValueError`` naming the first invalid parameter of a resolved parameter dict."""
+
     # numbers and finiteness are checked (and integers rounded) by SSM.resolve_params
     def need(ok: bool, name: str, rule: str):
         if not ok:
@@ -88,8 +175,17 @@ def validate(p: Mapping[str, float]) -> None:
     need(p["ran"] >= 0, "ran", ">= 0")
     need(p["vert"] >= 0, "vert", ">= 0")
     need(p["ran"] + p["vert"] <= 1, "ran", f"such that ran + vert <= 1 (vert = {p['vert']!r})")
-    for name in ("node_length", "voxel_size", "span", "init_width", "sample_rad", "max_grow",
-                 "pipe_exp", "nonlinear", "transition"):
+    for name in (
+        "node_length",
+        "voxel_size",
+        "span",
+        "init_width",
+        "sample_rad",
+        "max_grow",
+        "pipe_exp",
+        "nonlinear",
+        "transition",
+    ):
         need(p[name] > 0, name, "> 0")
     need(round(p["span"] / p["voxel_size"]) >= 2, "voxel_size", f"<= span / 2 (span = {p['span']!r})")
     for name in ("alpha0", "alpha1", "delay"):

@@ -4,11 +4,12 @@
 Palubicki et al. (2009) with multiplicative shadow propagation, as used by Potapov et al. (2017),
 following docs/models.md part B (calibrated for the 12 m cube of B.4).
 """
+
 from __future__ import annotations
 
-from typing import Any, Callable, Literal, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any, Literal
 
-import numpy as np
 from pydantic import Field
 
 from bforest_core.errors import SimulationFailed
@@ -16,24 +17,34 @@ from bforest_core.hookspecs import hookimpl
 from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
 from bforest_core.tree import Tree
 
-from .model import MODEL_VERSION, GrowthFailure, SOTGrowth, build_tree
+from .model import GrowthFailure, SOTGrowth, build_tree
 from .params import PARAMETERS, validate
 from .recipe import sot_recipe
+
 
 class SOTSettings(ComponentSettings):
     """Switches of the SOT model (not fitted)."""
 
     order_mode: Literal["growth", "thickest"] = Field(
-        "growth", description="branch topology of the output: 'growth' (apical bud continues the "
-        "branch) or 'thickest' (the thickest child continues it, as in QSMs)")
+        "growth",
+        description="branch topology of the output: 'growth' (apical bud continues the "
+        "branch) or 'thickest' (the thickest child continues it, as in QSMs)",
+    )
     light_model: Literal["multiplicative"] = Field(
-        "multiplicative", description="light field: multiplicative shadow propagation (LPFG-SOT)")
+        "multiplicative", description="light field: multiplicative shadow propagation (LPFG-SOT)"
+    )
     max_live_segments: int = Field(200_000, ge=1, description="status 'too_many_segments' above this")
     sympodial: bool = Field(False, description="remove apical buds (sympodial branching)")
-    buds_per_node: int = Field(1, ge=1, le=6, description=(
-        "lateral buds per node, an addition to the papers' model: 1 = one bud per node in a spiral "
-        "(the papers' model), 2 = opposite buds (maples, ash; phyllotaxis 90 makes them decussate), "
-        "3 or more = a whorl; see docs/growth-forms.md"))
+    buds_per_node: int = Field(
+        1,
+        ge=1,
+        le=6,
+        description=(
+            "lateral buds per node, an addition to the papers' model: 1 = one bud per node in a spiral "
+            "(the papers' model), 2 = opposite buds (maples, ash; phyllotaxis 90 makes them decussate), "
+            "3 or more = a whorl; see docs/growth-forms.md"
+        ),
+    )
 
 
 class SOT(SSM):
@@ -66,8 +77,9 @@ class SOT(SSM):
         """SOT's recipe for a measured tree (:func:`bforest_sot.recipe.sot_recipe`)."""
         return sot_recipe(measures)
 
-    def simulate(self, params: Mapping[str, float], seed: int,
-                 on_step: Callable[[int, Any], None] | None = None) -> Tree:
+    def simulate(
+        self, params: Mapping[str, float], seed: int, on_step: Callable[[int, Any], None] | None = None
+    ) -> Tree:
         """Grow one tree.
 
         Parameters
@@ -103,8 +115,14 @@ class SOT(SSM):
         validate(p)
         seed = int(seed)
         st = self.settings
-        run = SOTGrowth(p, seed, max_live_segments=st.max_live_segments, sympodial=st.sympodial,
-                        buds_per_node=st.buds_per_node, on_step=on_step)
+        run = SOTGrowth(
+            p,
+            seed,
+            max_live_segments=st.max_live_segments,
+            sympodial=st.sympodial,
+            buds_per_node=st.buds_per_node,
+            on_step=on_step,
+        )
         run.settings = st
         try:
             run.run(p["max_iter"])

@@ -8,6 +8,7 @@ a pine's) gets strong apical control and one bud per node; a decurrent one (the 
 into limbs, like a maple's) gets weak apical control, opposite buds and leaders that may die
 so the buds below them fork.
 """
+
 from __future__ import annotations
 
 import math
@@ -36,51 +37,111 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
     ]
     fixed = [("span", span, f"world cube (m): room for a tree 1.8 x this one's height ({h:.1f} m)")]
     if voxel != 0.2:
-        fixed += [("voxel_size", voxel, f"light voxels of 1/50 of the height (the papers' 0.2 m for a 10 m tree)"),
-                  ("sample_rad", _r(1.6 * voxel, 0.01), "the light-gradient probe: 1.6 voxels, as the papers' 0.32 m for 0.2 m")]
+        fixed += [
+            ("voxel_size", voxel, "light voxels of 1/50 of the height (the papers' 0.2 m for a 10 m tree)"),
+            (
+                "sample_rad",
+                _r(1.6 * voxel, 0.01),
+                "the light-gradient probe: 1.6 voxels, as the papers' 0.32 m for 0.2 m",
+            ),
+        ]
     free = [
         ("max_iter", 8, 30, "growth cycles: the model's whole range"),
-        ("alpha1", 0.5, 3.0, None), ("max_grow", 2.0, 12.0, None),
+        ("alpha1", 0.5, 3.0, None),
+        ("max_grow", 2.0, 12.0, None),
     ]
     if m.decurrent:
-        free += [("init_lambda", 0.35, 0.8, f"apical control: weak, the crown is decurrent (limbs hold "
-                  f"{m.limb_ratio:.1f} x the stem's wood in the crown)"),
-                 ("targ_lambda", 0.35, 0.8, None)]
+        free += [
+            (
+                "init_lambda",
+                0.35,
+                0.8,
+                f"apical control: weak, the crown is decurrent (limbs hold "
+                f"{m.limb_ratio:.1f} x the stem's wood in the crown)",
+            ),
+            ("targ_lambda", 0.35, 0.8, None),
+        ]
     else:
-        free += [("init_lambda", 0.6, 0.9, f"apical control: the leader dominates, the crown is excurrent "
-                  f"(limbs hold {m.limb_ratio:.1f} x the stem's wood in the crown)"),
-                 ("targ_lambda", 0.45, 0.9, None)]
+        free += [
+            (
+                "init_lambda",
+                0.6,
+                0.9,
+                f"apical control: the leader dominates, the crown is excurrent "
+                f"(limbs hold {m.limb_ratio:.1f} x the stem's wood in the crown)",
+            ),
+            ("targ_lambda", 0.45, 0.9, None),
+        ]
     free += [
-        ("delay", 0.0, 20.0, None), ("drop_thresh", 0.05, 0.5, None),
-        ("branch_angle", ang_lo, ang_hi, f"first-order branches at {m.beta_q10:.0f}-{m.beta_q90:.0f} deg "
-         "to the stem (10-90 %)"),
-        ("tropism", -0.1, 0.3, None), ("reorient", 0.0, 1.0, "how much shoots turn towards light"),
+        ("delay", 0.0, 20.0, None),
+        ("drop_thresh", 0.05, 0.5, None),
+        (
+            "branch_angle",
+            ang_lo,
+            ang_hi,
+            f"first-order branches at {m.beta_q10:.0f}-{m.beta_q90:.0f} deg to the stem (10-90 %)",
+        ),
+        ("tropism", -0.1, 0.3, None),
+        ("reorient", 0.0, 1.0, "how much shoots turn towards light"),
         ("heading_sd", 0.0, 20.0, "winding of the axes (deg per internode)"),
-        ("shadow_a", 0.1, 0.9, None), ("shadow_b", 1.1, 4.0, None), ("alpha0", 0.0, 3.0, None),
-        ("init_width", width_lo, 0.04, f"diameter of a new shoot (m): the QSM's thinnest branch is "
-         f"{100 * m.thinnest_branch:.1f} cm"),
+        ("shadow_a", 0.1, 0.9, None),
+        ("shadow_b", 1.1, 4.0, None),
+        ("alpha0", 0.0, 3.0, None),
+        (
+            "init_width",
+            width_lo,
+            0.04,
+            f"diameter of a new shoot (m): the QSM's thinnest branch is {100 * m.thinnest_branch:.1f} cm",
+        ),
         ("pipe_exp", 2.0, 3.0, None),
-        ("node_length", node_lo, node_hi, f"internode (m): 1/100-1/33 of the height (one lateral bud per "
-         "node: it sets how many branches a metre of stem can carry)"),
+        (
+            "node_length",
+            node_lo,
+            node_hi,
+            "internode (m): 1/100-1/33 of the height (one lateral bud per "
+            "node: it sets how many branches a metre of stem can carry)",
+        ),
         ("stand_shade", 0.0, 1.0, "shade of the neighbours (1/m below the top): 0 = open-grown"),
     ]
     notes = []
     if m.decurrent:
-        settings.append(("buds_per_node", 2, "opposite buds (maple, ash, sycamore): with dying leaders, forks; "
-                         "set 1 for a tree with alternate buds (oak, beech, birch)"))
+        settings.append(
+            (
+                "buds_per_node",
+                2,
+                "opposite buds (maple, ash, sycamore): with dying leaders, forks; "
+                "set 1 for a tree with alternate buds (oak, beech, birch)",
+            )
+        )
         fixed.append(("phyllotaxis", 90.0, "opposite pairs at right angles (decussate)"))
-        free += [("leader_death", 0.0, 0.5, "leaders that die each cycle: the buds below them take over (forks)"),
-                 ("death_delay", 0.0, 30.0, "cycles before leaders may die")]
-        why = (f"its crown is decurrent (the three largest limbs hold {m.limb_ratio:.1f} x the stem's wood "
-               "in the crown): SOT grows limbs that take over from the stem by bud competition for light, "
-               "with opposite buds and dying leaders (the GigaScience paper fits SOT to a maple)")
+        free += [
+            ("leader_death", 0.0, 0.5, "leaders that die each cycle: the buds below them take over (forks)"),
+            ("death_delay", 0.0, 30.0, "cycles before leaders may die"),
+        ]
+        why = (
+            f"its crown is decurrent (the three largest limbs hold {m.limb_ratio:.1f} x the stem's wood "
+            "in the crown): SOT grows limbs that take over from the stem by bud competition for light, "
+            "with opposite buds and dying leaders (the GigaScience paper fits SOT to a maple)"
+        )
         suits = 0.9
     else:
-        why = (f"its crown is excurrent (limbs hold {m.limb_ratio:.1f} x the stem's wood in the crown); SOT "
-               "can grow it, LIGNUM's yearly whorls on a leader fit such a conifer more closely")
+        why = (
+            f"its crown is excurrent (limbs hold {m.limb_ratio:.1f} x the stem's wood in the crown); SOT "
+            "can grow it, LIGNUM's yearly whorls on a leader fit such a conifer more closely"
+        )
         suits = 0.6
     if m.thinnest_branch > 0.012:
-        notes.append(f"the QSM has no branch thinner than {100 * m.thinnest_branch:.1f} cm (a simplified "
-                     "QSM?): the model's shoots start that thick, so both sides show the same branches")
-    return RecipeDraft(suits=suits, why=why, settings=settings, fixed=fixed, free=free,
-                       timeout=60.0 if big else 20.0, wall_time=480.0 if big else 840.0, notes=notes)
+        notes.append(
+            f"the QSM has no branch thinner than {100 * m.thinnest_branch:.1f} cm (a simplified "
+            "QSM?): the model's shoots start that thick, so both sides show the same branches"
+        )
+    return RecipeDraft(
+        suits=suits,
+        why=why,
+        settings=settings,
+        fixed=fixed,
+        free=free,
+        timeout=60.0 if big else 20.0,
+        wall_time=480.0 if big else 840.0,
+        notes=notes,
+    )

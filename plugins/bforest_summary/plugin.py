@@ -1,4 +1,5 @@
 """Registers the summary components with Bayes Forest: ``tree-summary`` and ``summary``."""
+
 from bforest_core.hookspecs import hookimpl
 
 from .summary import SummaryDistance, TreeSummary

@@ -6,6 +6,7 @@ turns a tree into one row of such statistics (:func:`bforest_core.metrics.tree_s
 code for QSMs and model trees) and ``summary`` scores a model row against the data row,
 statistic by statistic, so that one objective can weigh both (``[[objective.terms]]``).
 """
+
 from __future__ import annotations
 
 from typing import Literal
@@ -18,24 +19,47 @@ from bforest_core.metrics import DETECTION_DIAMETER, summary_unit, tree_summary
 
 SET = "summary"
 #: the statistics of the default set: size, stem, crown, branch counts and the vertical profile
-DEFAULT_STATISTICS = ("height", "dbh", "crown_spread", "crown_base_height", "n_branches_o1", "n_branches_o2",
-                      "length_o1", "length_o2", "volume_o0", "profile_len_b0", "profile_len_b1",
-                      "profile_len_b2", "profile_len_b3", "profile_len_b4")
+DEFAULT_STATISTICS = (
+    "height",
+    "dbh",
+    "crown_spread",
+    "crown_base_height",
+    "n_branches_o1",
+    "n_branches_o2",
+    "length_o1",
+    "length_o2",
+    "volume_o0",
+    "profile_len_b0",
+    "profile_len_b1",
+    "profile_len_b2",
+    "profile_len_b3",
+    "profile_len_b4",
+)
 #: offset c of the log ratio |log((m + c) / (d + c))| by unit: a count of 0 is fine, a length or
 #: volume near 0 does not blow up
 OFFSETS = {"": 1.0, "m": 0.05, "m^3": 1e-4}
 
 
 class TreeSummarySettings(ComponentSettings):
-    statistics: list[str] = Field(list(DEFAULT_STATISTICS), min_length=1, description=(
-        "statistics of bforest_core.metrics.tree_summary (height, dbh, base_diameter, crown_spread, "
-        "crown_base_height, stem_length, n_branches_o<w>, n_all_branches_o<w>, length_o<w>, volume_o<w>, profile_n_b<k>, "
-        "profile_len_b<k>)"))
+    statistics: list[str] = Field(
+        list(DEFAULT_STATISTICS),
+        min_length=1,
+        description=(
+            "statistics of bforest_core.metrics.tree_summary (height, dbh, base_diameter, crown_spread, "
+            "crown_base_height, stem_length, n_branches_o<w>, n_all_branches_o<w>, length_o<w>, volume_o<w>, profile_n_b<k>, "
+            "profile_len_b<k>)"
+        ),
+    )
     max_order: int = Field(3, ge=1, le=10, description="highest branch order with its own statistics")
     bands: int = Field(5, ge=1, le=50, description="height bands of the vertical profile")
-    min_branch_diameter: float = Field(DETECTION_DIAMETER, ge=0, description=(
-        "detection limit (m): branches thinner at the base are left out of the branch counts, lengths "
-        "and profile, in the target and the model alike (a TLS QSM rarely resolves them); 0 counts all"))
+    min_branch_diameter: float = Field(
+        DETECTION_DIAMETER,
+        ge=0,
+        description=(
+            "detection limit (m): branches thinner at the base are left out of the branch counts, lengths "
+            "and profile, in the target and the model alike (a TLS QSM rarely resolves them); 0 counts all"
+        ),
+    )
 
 
 class TreeSummary(FeatureSet):
@@ -57,8 +81,10 @@ class TreeSummary(FeatureSet):
         stats = tree_summary(tree, max_order=s.max_order, bands=s.bands, min_diameter=s.min_branch_diameter)
         missing = [k for k in s.statistics if k not in stats]
         if missing:
-            raise ValueError(f"tree-summary: unknown statistic(s) {', '.join(missing)} (known with max_order = "
-                             f"{s.max_order}, bands = {s.bands}: {', '.join(stats)})")
+            raise ValueError(
+                f"tree-summary: unknown statistic(s) {', '.join(missing)} (known with max_order = "
+                f"{s.max_order}, bands = {s.bands}: {', '.join(stats)})"
+            )
         return np.array([[stats[k] for k in s.statistics]], float)
 
     def prepare(self, data_trees) -> None:
@@ -70,12 +96,18 @@ class TreeSummary(FeatureSet):
 
 
 class SummaryDistanceSettings(ComponentSettings):
-    form: Literal["logratio", "relative"] = Field("logratio", description=(
-        "logratio: |log((m + c) / (d + c))| (symmetric; c by unit: 1 for counts, 0.05 m, 1e-4 m^3); "
-        "relative: |m - d| / |d|"))
+    form: Literal["logratio", "relative"] = Field(
+        "logratio",
+        description=(
+            "logratio: |log((m + c) / (d + c))| (symmetric; c by unit: 1 for counts, 0.05 m, 1e-4 m^3); "
+            "relative: |m - d| / |d|"
+        ),
+    )
     weights: dict[str, float] = Field(default_factory=dict, description="weight per statistic (default 1)")
-    scales: dict[str, float] = Field(default_factory=dict, description=(
-        "scale per statistic: its term is divided by it (e.g. 0.05 for height: a 5 % miss counts 1)"))
+    scales: dict[str, float] = Field(
+        default_factory=dict,
+        description=("scale per statistic: its term is divided by it (e.g. 0.05 for height: a 5 % miss counts 1)"),
+    )
     cap: float = Field(2.0, gt=0, description="largest term of one statistic (a missing value counts this)")
 
     @field_validator("weights", "scales")
@@ -112,8 +144,10 @@ class SummaryDistance(Distance):
         for k, cols in self._columns.items():
             unknown = sorted((set(self.settings.weights) | set(self.settings.scales)) - set(cols))
             if unknown:
-                raise ValueError(f"summary distance: weights/scales name statistics that set {k!r} does not have: "
-                                 f"{', '.join(unknown)} (it has: {', '.join(cols)})")
+                raise ValueError(
+                    f"summary distance: weights/scales name statistics that set {k!r} does not have: "
+                    f"{', '.join(unknown)} (it has: {', '.join(cols)})"
+                )
 
     def per_statistic(self, u_model: np.ndarray, u_data: np.ndarray, names=None) -> dict[str, float]:
         """The (scaled, capped) term of each statistic; the model and data rows are averaged

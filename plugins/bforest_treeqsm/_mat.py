@@ -1,5 +1,6 @@
 """MAT-file readers: TreeQSM structs (§1), flat variables (§2, §3) and the 14-column CylData
 matrix (§4), from MAT v5 (scipy) and MAT v7.3 / HDF5 (h5py) containers alike."""
+
 from __future__ import annotations
 
 import warnings
@@ -33,6 +34,7 @@ NON_NUMERIC = {"struct", "cell", "char", "function_handle", "object", "opaque", 
 # container level
 # ------------------------------------------------------------------------------------------
 
+
 def mat_kind(head: bytes) -> Optional[str]:
     """``"v5"``, ``"hdf5"`` or ``None`` from the first bytes of a file."""
     if head[:8] == HDF5_MAGIC or head[512:520] == HDF5_MAGIC:
@@ -63,8 +65,7 @@ def _container_name(kind: str) -> str:
 
 
 def _corrupt(path, kind, exc) -> QSMFormatError:
-    return QSMFormatError(path, f"file is truncated or corrupt ({_container_name(kind)}: "
-                          f"{type(exc).__name__}: {exc})")
+    return QSMFormatError(path, f"file is truncated or corrupt ({_container_name(kind)}: {type(exc).__name__}: {exc})")
 
 
 class MatFile:
@@ -77,12 +78,14 @@ class MatFile:
         try:
             if kind == "v5":
                 import scipy.io as sio
+
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
                     info = sio.whosmat(str(path))
                 self.variables = {name: (tuple(shape), cls) for name, shape, cls in info}
             else:
                 import h5py
+
                 self._h5 = h5py.File(str(path), "r")
                 self.variables = {}
                 for name in self._h5.keys():
@@ -121,11 +124,17 @@ class MatFile:
 
     def load_v5(self, names, squeeze: bool):
         import scipy.io as sio
+
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                return sio.loadmat(str(self.path), squeeze_me=squeeze, struct_as_record=False,
-                                   variable_names=list(names), verify_compressed_data_integrity=True)
+                return sio.loadmat(
+                    str(self.path),
+                    squeeze_me=squeeze,
+                    struct_as_record=False,
+                    variable_names=list(names),
+                    verify_compressed_data_integrity=True,
+                )
         except QSMFormatError:
             raise
         except Exception as exc:
@@ -175,8 +184,10 @@ def _attr_str(obj, key) -> str:
 # HDF5 (MAT v7.3) values and structs
 # ------------------------------------------------------------------------------------------
 
+
 def _is_ref_dataset(ds) -> bool:
     import h5py
+
     return h5py.check_dtype(ref=ds.dtype) is not None
 
 
@@ -184,6 +195,7 @@ def h5_value(f, obj):
     """A MATLAB value from an HDF5 object: arrays transposed to MATLAB orientation, ``char``
     decoded, structs wrapped in :class:`H5Struct`, cells as object arrays of values."""
     import h5py
+
     if isinstance(obj, h5py.Group):
         return H5Struct(f, obj)
     if _attr(obj, "MATLAB_empty"):
@@ -223,9 +235,11 @@ class H5Struct:
     def is_array(self) -> bool:
         """True for a struct array: every field is a dataset of references (not a cell)."""
         import h5py
+
         objs = self._field_objs()
-        return bool(objs) and all(isinstance(o, h5py.Dataset) and _is_ref_dataset(o) and
-                                  _attr_str(o, "MATLAB_class") != "cell" for o in objs)
+        return bool(objs) and all(
+            isinstance(o, h5py.Dataset) and _is_ref_dataset(o) and _attr_str(o, "MATLAB_class") != "cell" for o in objs
+        )
 
     def n_elements(self) -> int:
         objs = self._field_objs()
@@ -235,6 +249,7 @@ class H5Struct:
         if name.startswith("_") and name != "_fieldnames":
             raise AttributeError(name)
         import h5py
+
         try:
             obj = self.group[name]
         except KeyError:
@@ -274,13 +289,17 @@ def struct_elements(path, f_kind, value, label: str):
             if not _is_struct(e):
                 raise QSMFormatError(path, f"{label}({i + 1}) is not a struct ({type(e).__name__})")
         return elems
-    raise QSMFormatError(path, f"variable '{label}' is not a struct (found {type(value).__name__}"
-                         f"{' ' + str(value.dtype) if hasattr(value, 'dtype') else ''})")
+    raise QSMFormatError(
+        path,
+        f"variable '{label}' is not a struct (found {type(value).__name__}"
+        f"{' ' + str(value.dtype) if hasattr(value, 'dtype') else ''})",
+    )
 
 
 # ------------------------------------------------------------------------------------------
 # detection (docs/qsm-formats.md §8, .mat)
 # ------------------------------------------------------------------------------------------
+
 
 @dataclass
 class MatDetection:
@@ -309,6 +328,7 @@ def detect_mat(path: Path, head: bytes) -> MatDetection:
 # ------------------------------------------------------------------------------------------
 # readers
 # ------------------------------------------------------------------------------------------
+
 
 class _MatReader(BaseReader):
     suffixes = (".mat",)
@@ -387,8 +407,9 @@ class TreeQSMMatReader(_MatReader):
         label = var if k == 1 else f"{var}({index + 1})"
         cyl = _get(q, "cylinder")
         if cyl is None or not _is_struct(cyl):
-            raise QSMFormatError(path, f"'{label}' has no struct field 'cylinder' (fields: "
-                                 f"{', '.join(_fields(q)) or 'none'})")
+            raise QSMFormatError(
+                path, f"'{label}' has no struct field 'cylinder' (fields: {', '.join(_fields(q)) or 'none'})"
+            )
         raw, has24 = cylinder_struct_to_raw(path, cyl, f"{label}.cylinder")
         version = None
         rd = _get(q, "rundata")
@@ -400,8 +421,12 @@ class TreeQSMMatReader(_MatReader):
                 version = str(v.ravel()[0]).strip()
         if version is None:
             version = "2.4.x" if has24 else "2.3.x"
-        meta = {"variable": var, "model_index": index, "n_models": k,
-                "container": "MAT v5" if mf.kind == "v5" else "MAT v7.3 (HDF5)"}
+        meta = {
+            "variable": var,
+            "model_index": index,
+            "n_models": k,
+            "container": "MAT v5" if mf.kind == "v5" else "MAT v7.3 (HDF5)",
+        }
         if note:
             meta["select_note"] = note
         return build_tree(path, raw, fmt=self.name, version=version, opts=opts, metadata=meta)
@@ -422,15 +447,28 @@ def cylinder_struct_to_raw(path, cyl, label: str):
     start = float_column(path, f"{label}.start", need("start"), n, 3)
     axis = float_column(path, f"{label}.axis", need("axis"), n, 3)
     parent = ids_to_rows(path, f"{label}.parent", need("parent"), n, 1, what="parent")
-    extension = (ids_to_rows(path, f"{label}.extension", cyl.extension, n, 1, what="extension")
-                 if "extension" in fields else None)
+    extension = (
+        ids_to_rows(path, f"{label}.extension", cyl.extension, n, 1, what="extension")
+        if "extension" in fields
+        else None
+    )
     added = None
     if "added" in fields:
         added = float_column(path, f"{label}.added", cyl.added, n)  # NaN is refused in build_tree, not taken for True
     branch = labels_to_int(path, f"{label}.branch", cyl.branch, n) if "branch" in fields else None
     order = labels_to_int(path, f"{label}.BranchOrder", cyl.BranchOrder, n) if "BranchOrder" in fields else None
-    used = {"radius", "length", "start", "axis", "parent", "extension", "added", "branch",
-            "BranchOrder", "PositionInBranch"}
+    used = {
+        "radius",
+        "length",
+        "start",
+        "axis",
+        "parent",
+        "extension",
+        "added",
+        "branch",
+        "BranchOrder",
+        "PositionInBranch",
+    }
     extras = {}
     for name in fields:
         if name in used:
@@ -491,12 +529,17 @@ class TreeQSMFlatReader(_MatReader):
                     bord = labels_to_int(path, "BOrd", np.asarray(a["BOrd"]).ravel(), np.asarray(a["BOrd"]).size)
                     bad = np.flatnonzero((branch < 1) | (branch > bord.size))
                     if bad.size:
-                        raise QSMFormatError(path, f"BoC {branch[bad[0]]} at row {bad[0] + 1} is outside "
-                                             f"1...{bord.size} (BOrd has {bord.size} branches)", bad + 1)
+                        raise QSMFormatError(
+                            path,
+                            f"BoC {branch[bad[0]]} at row {bad[0] + 1} is outside "
+                            f"1...{bord.size} (BOrd has {bord.size} branches)",
+                            bad + 1,
+                        )
                     order = bord[branch - 1]
             else:
-                raise QSMFormatError(path, f"'BoC' has shape {boc.shape}; expected {n}x3 (TreeQSM 2.0) "
-                                     f"or {n} values (branch index)")
+                raise QSMFormatError(
+                    path, f"'BoC' has shape {boc.shape}; expected {n}x3 (TreeQSM 2.0) or {n} values (branch index)"
+                )
         if "out_fn" in a and isinstance(a["out_fn"], str):
             meta["out_fn"] = a["out_fn"]
         meta["layout"] = fmt_layout
@@ -531,16 +574,23 @@ class CylDataMatReader(_MatReader):
                 if not cands:
                     self._wrong_layout(path, mf, "n x 14 numeric matrix")
                 if len(cands) > 1:
-                    raise QSMFormatError(path, f"several n x 14 matrices ({', '.join(cands)}); "
-                                         "pass variable=... to choose one")
+                    raise QSMFormatError(
+                        path, f"several n x 14 matrices ({', '.join(cands)}); pass variable=... to choose one"
+                    )
                 var = cands[0]
             data = np.asarray(mf.array(var))
         if data.dtype.kind not in "iufb" or data.ndim != 2 or data.shape[1] != 14:
-            raise QSMFormatError(path, f"variable '{var}' has shape {data.shape} ({data.dtype}); expected n x 14 numbers")
+            raise QSMFormatError(
+                path, f"variable '{var}' has shape {data.shape} ({data.dtype}); expected n x 14 numbers"
+            )
         _, as_list, _ = select_models(path, [0], opts.select, var)
         raw = cyldata14_to_raw(path, data, var)
-        meta = {"variable": var, "container": "MAT v5" if mf.kind == "v5" else "MAT v7.3 (HDF5)",
-                "model_index": 0, "n_models": 1}
+        meta = {
+            "variable": var,
+            "container": "MAT v5" if mf.kind == "v5" else "MAT v7.3 (HDF5)",
+            "model_index": 0,
+            "n_models": 1,
+        }
         tree = build_tree(path, raw, fmt=self.name, version=None, opts=opts, metadata=meta)
         return [tree] if as_list else tree
 
@@ -550,17 +600,23 @@ def cyldata14_to_raw(path, data: np.ndarray, label: str) -> RawCylinders:
     d = np.asarray(data, dtype=np.float64)
     n = d.shape[0]
     return RawCylinders(
-        radius=d[:, 0], length=d[:, 1], start=d[:, 2:5], axis=d[:, 5:8],
+        radius=d[:, 0],
+        length=d[:, 1],
+        start=d[:, 2:5],
+        axis=d[:, 5:8],
         parent=ids_to_rows(path, f"{label} column 9 (parent)", d[:, 8], n, 1, what="parent"),
         extension=ids_to_rows(path, f"{label} column 10 (extension)", d[:, 9], n, 1, what="extension"),
         added=_flag(path, f"{label} column 14 (added)", d[:, 13]),
         branch=labels_to_int(path, f"{label} column 11 (branch)", d[:, 10], n),
-        order=labels_to_int(path, f"{label} column 12 (branch order)", d[:, 11], n))
+        order=labels_to_int(path, f"{label} column 12 (branch order)", d[:, 11], n),
+    )
 
 
 def _flag(path, name, v):
     v = np.asarray(v, dtype=np.float64)
     bad = np.flatnonzero(~np.isfinite(v))
     if bad.size:
-        raise QSMFormatError(path, f"non-finite values in '{name}' at rows {', '.join(str(b + 1) for b in bad[:10])}", bad + 1)
+        raise QSMFormatError(
+            path, f"non-finite values in '{name}' at rows {', '.join(str(b + 1) for b in bad[:10])}", bad + 1
+        )
     return v != 0

@@ -4,6 +4,7 @@
 Parsing is vectorised: the field count of every line comes from byte masks (so a ragged line is
 reported by its number), the numbers from one ``np.loadtxt`` call.
 """
+
 from __future__ import annotations
 
 import io
@@ -31,9 +32,21 @@ from .raw_cylinders import (
     warn,
 )
 
-TREEQSM17_NAMES = ["radius (m)", "length (m)", "start_point", "axis_direction", "parent", "extension",
-                   "branch", "branch_order", "position_in_branch", "mad", "SurfCov", "added",
-                   "UnmodRadius (m)"]
+TREEQSM17_NAMES = [
+    "radius (m)",
+    "length (m)",
+    "start_point",
+    "axis_direction",
+    "parent",
+    "extension",
+    "branch",
+    "branch_order",
+    "position_in_branch",
+    "mad",
+    "SurfCov",
+    "added",
+    "UnmodRadius (m)",
+]
 TEXT_SUFFIXES = (".txt", ".dat")
 _SEP_TABLE = bytes.maketrans(b",\r\x0b\x0c", b"    ")
 _ZERO_HINT = "TreeQSM text rounds to 0.1 mm"
@@ -42,6 +55,7 @@ _ZERO_HINT = "TreeQSM text rounds to 0.1 mm"
 # ------------------------------------------------------------------------------------------
 # vectorised table parsing
 # ------------------------------------------------------------------------------------------
+
 
 def read_bytes(path: Path) -> bytes:
     with open(path, "rb") as fh:
@@ -92,7 +106,7 @@ def field_counts(body: bytes):
 
 def first_line_fields(body: bytes) -> int:
     """Fields on the first non-blank line of ``body``."""
-    for line in body[:1 << 16].split(b"\n"):
+    for line in body[: 1 << 16].split(b"\n"):
         k = len(line.translate(_SEP_TABLE).split())
         if k:
             return k
@@ -106,8 +120,11 @@ def _ragged(path, body: bytes, first_line: int, k: int, what: str):
     if bad.size:
         i = int(bad[0])
         more = f" (and {bad.size - 1} more lines)" if bad.size > 1 else ""
-        raise QSMFormatError(path, f"line {int(lines[i]) + first_line}: {int(counts[i])} {what}, "
-                             f"expected {k}{more}", (lines[bad[:10]] + first_line).tolist())
+        raise QSMFormatError(
+            path,
+            f"line {int(lines[i]) + first_line}: {int(counts[i])} {what}, expected {k}{more}",
+            (lines[bad[:10]] + first_line).tolist(),
+        )
 
 
 def parse_table(path, body: bytes, first_line: int, expected: Optional[int], what: str = "fields"):
@@ -138,8 +155,7 @@ def parse_table(path, body: bytes, first_line: int, expected: Optional[int], wha
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            values = np.loadtxt(io.BytesIO(body), dtype=np.float64, comments=None, ndmin=2,
-                                encoding="latin1")
+            values = np.loadtxt(io.BytesIO(body), dtype=np.float64, comments=None, ndmin=2, encoding="latin1")
     except Exception:
         _ragged(path, body, first_line, k, what)
         _locate_bad_token(path, body.decode("latin-1"), first_line)
@@ -160,8 +176,9 @@ def _locate_bad_token(path, text: str, first_line: int) -> None:
                 float(tok)
             except ValueError:
                 shown = tok if len(tok) <= 40 else tok[:37] + "..."
-                raise QSMFormatError(path, f"line {j + first_line}, field {c + 1}: cannot read "
-                                     f"{shown!r} as a number", [j + first_line]) from None
+                raise QSMFormatError(
+                    path, f"line {j + first_line}, field {c + 1}: cannot read {shown!r} as a number", [j + first_line]
+                ) from None
 
 
 def is_integral(col: np.ndarray) -> bool:
@@ -172,13 +189,18 @@ def is_integral(col: np.ndarray) -> bool:
 # TreeQSM text
 # ------------------------------------------------------------------------------------------
 
+
 class TextSettings(ReaderSettings):
     #: column layout; ``None`` detects it from the header / field count / content
     layout: Optional[Literal["treeqsm17", "treeqsm15-struct", "treeqsm15-cyldata", "cyldata14"]] = None
 
 
-LAYOUT_VERSION = {"treeqsm17": "2.4.x", "treeqsm15-cyldata": "2.3.x", "treeqsm15-struct": "2.3.x",
-                  "cyldata14": "<= 2.2"}
+LAYOUT_VERSION = {
+    "treeqsm17": "2.4.x",
+    "treeqsm15-cyldata": "2.3.x",
+    "treeqsm15-struct": "2.3.x",
+    "cyldata14": "<= 2.2",
+}
 
 
 class TreeQSMTextReader(BaseReader):
@@ -221,8 +243,11 @@ class TreeQSMTextReader(BaseReader):
             if names != TREEQSM17_NAMES and layout is None:
                 # tolerate a different header only when it names the 13 fields in order
                 if [s.lower() for s in names] != [s.lower() for s in TREEQSM17_NAMES]:
-                    raise QSMFormatError(path, f"line 1: header has {len(names)} names "
-                                         f"({', '.join(names[:5])}, ...); expected the 13 TreeQSM names")
+                    raise QSMFormatError(
+                        path,
+                        f"line 1: header has {len(names)} names "
+                        f"({', '.join(names[:5])}, ...); expected the 13 TreeQSM names",
+                    )
             body, first_line = data[after:], 2
             if layout is None:
                 layout = "treeqsm17"
@@ -243,19 +268,28 @@ class TreeQSMTextReader(BaseReader):
                 try:
                     [float(t) for t in first.replace(",", " ").split()]
                 except ValueError:
-                    raise QSMFormatError(path, f"line 1 is neither numbers nor the TreeQSM header "
-                                         f"(starts {first[:40]!r})") from None
+                    raise QSMFormatError(
+                        path, f"line 1 is neither numbers nor the TreeQSM header (starts {first[:40]!r})"
+                    ) from None
                 raise QSMFormatError(path, f"{k0} columns per row; expected 14, 15 or 17")
-        ncol = {"treeqsm17": 17, "treeqsm15": 15, "treeqsm15-struct": 15, "treeqsm15-cyldata": 15,
-                "cyldata14": 14}[layout]
+        ncol = {"treeqsm17": 17, "treeqsm15": 15, "treeqsm15-struct": 15, "treeqsm15-cyldata": 15, "cyldata14": 14}[
+            layout
+        ]
         values = parse_table(path, body, first_line, ncol)
         if layout == "treeqsm15":
             layout = detect_15(path, values)
         _, as_list, _ = select_models(path, [0], opts.select, "file")
         raw = text_to_raw(path, values, layout)
         meta = {"layout": layout, "model_index": 0, "n_models": 1, "header": bool(header)}
-        tree = build_tree(path, raw, fmt=self.name, version=LAYOUT_VERSION[layout], opts=opts,
-                          metadata=meta, zero_length_hint=_ZERO_HINT)
+        tree = build_tree(
+            path,
+            raw,
+            fmt=self.name,
+            version=LAYOUT_VERSION[layout],
+            opts=opts,
+            metadata=meta,
+            zero_length_hint=_ZERO_HINT,
+        )
         return [tree] if as_list else tree
 
 
@@ -269,8 +303,11 @@ def detect_15(path, values: np.ndarray) -> str:
         return "treeqsm15-struct"
     if cyldata and not struct:
         return "treeqsm15-cyldata"
-    raise QSMFormatError(path, "15 columns per row, but the column order cannot be told from the "
-                         "content; pass layout='treeqsm15-struct' or layout='treeqsm15-cyldata'")
+    raise QSMFormatError(
+        path,
+        "15 columns per row, but the column order cannot be told from the "
+        "content; pass layout='treeqsm15-struct' or layout='treeqsm15-cyldata'",
+    )
 
 
 def text_to_raw(path, v: np.ndarray, layout: str) -> RawCylinders:
@@ -288,13 +325,17 @@ def text_to_raw(path, v: np.ndarray, layout: str) -> RawCylinders:
         extras = {"UnmodRadius": v[:, 14]}
     c = cols
     return RawCylinders(
-        radius=v[:, 0], length=v[:, 1], start=v[:, 2:5], axis=v[:, 5:8],
+        radius=v[:, 0],
+        length=v[:, 1],
+        start=v[:, 2:5],
+        axis=v[:, 5:8],
         parent=ids_to_rows(path, "column 9 (parent)", v[:, 8], n, 1, what="parent"),
         extension=ids_to_rows(path, "column 10 (extension)", v[:, 9], n, 1, what="extension"),
         added=_flag(path, f"column {c['added'] + 1} (added)", v[:, c["added"]]),
         branch=labels_to_int(path, f"column {c['branch'] + 1} (branch)", v[:, c["branch"]], n),
         order=labels_to_int(path, f"column {c['order'] + 1} (branch order)", v[:, c["order"]], n),
-        extras=extras)
+        extras=extras,
+    )
 
 
 def _flag(path, name, v):
@@ -308,15 +349,64 @@ def _flag(path, name, v):
 # CSV layouts
 # ------------------------------------------------------------------------------------------
 
-SIMPLEFOREST_REQUIRED = ["ID", "parentID", "startX", "startY", "startZ", "endX", "endY", "endZ",
-                         "radius", "branchOrder"]
-ARCHI_REQUIRED = ["startX", "startY", "startZ", "endX", "endY", "endZ", "cyl_ID", "parent_ID",
-                  "radius_cyl", "axis_ID", "branching_order"]
-NATIVE_COLUMNS = ["id", "parent", "extension", "branch", "order", "position_in_branch", "added",
-                  "start_x", "start_y", "start_z", "axis_x", "axis_y", "axis_z", "length", "radius",
-                  "end_x", "end_y", "end_z"]
-NATIVE_REQUIRED = ["id", "parent", "extension", "start_x", "start_y", "start_z", "axis_x", "axis_y",
-                   "axis_z", "length", "radius"]
+SIMPLEFOREST_REQUIRED = [
+    "ID",
+    "parentID",
+    "startX",
+    "startY",
+    "startZ",
+    "endX",
+    "endY",
+    "endZ",
+    "radius",
+    "branchOrder",
+]
+ARCHI_REQUIRED = [
+    "startX",
+    "startY",
+    "startZ",
+    "endX",
+    "endY",
+    "endZ",
+    "cyl_ID",
+    "parent_ID",
+    "radius_cyl",
+    "axis_ID",
+    "branching_order",
+]
+NATIVE_COLUMNS = [
+    "id",
+    "parent",
+    "extension",
+    "branch",
+    "order",
+    "position_in_branch",
+    "added",
+    "start_x",
+    "start_y",
+    "start_z",
+    "axis_x",
+    "axis_y",
+    "axis_z",
+    "length",
+    "radius",
+    "end_x",
+    "end_y",
+    "end_z",
+]
+NATIVE_REQUIRED = [
+    "id",
+    "parent",
+    "extension",
+    "start_x",
+    "start_y",
+    "start_z",
+    "axis_x",
+    "axis_y",
+    "axis_z",
+    "length",
+    "radius",
+]
 
 
 def csv_header_names(first_line: str) -> list[str]:
@@ -364,8 +454,11 @@ class _CSVReader(BaseReader):
         if missing:
             det = detect_csv(data[:4096])
             hint = f"; it looks like reader '{det}'" if det and det != self.name else ""
-            raise QSMFormatError(path, f"line 1: {self.layout_label} header lacks column(s) "
-                                 f"{', '.join(missing)} (found: {', '.join(names[:20])}){hint}")
+            raise QSMFormatError(
+                path,
+                f"line 1: {self.layout_label} header lacks column(s) "
+                f"{', '.join(missing)} (found: {', '.join(names[:20])}){hint}",
+            )
         dup = sorted({c for c in names if names.count(c) > 1})
         if dup:
             raise QSMFormatError(path, f"line 1: column name(s) {', '.join(dup)} appear more than once")
@@ -396,8 +489,12 @@ def lookup_ids(path, pids, srt, sids, name, none_value):
     found = sids[pos] == pids
     bad = np.flatnonzero(~none & ~found)
     if bad.size:
-        raise QSMFormatError(path, f"{name} {pids[bad[0]]} at row {bad[0] + 1} is not an id of the file "
-                             f"({none_value} = none){f' ({bad.size} rows)' if bad.size > 1 else ''}", bad + 1)
+        raise QSMFormatError(
+            path,
+            f"{name} {pids[bad[0]]} at row {bad[0] + 1} is not an id of the file "
+            f"({none_value} = none){f' ({bad.size} rows)' if bad.size > 1 else ''}",
+            bad + 1,
+        )
     return np.where(none, -1, srt[pos]).astype(np.int64)
 
 
@@ -415,9 +512,12 @@ def geometry_from_ends(path, cols, length_col: Optional[str]):
         diff = np.abs(lc - length)
         off = np.flatnonzero(np.isfinite(diff) & (diff > 1e-3))
         if off.size:
-            warn(path, f"the '{length_col}' column differs from the end-point distance by more than "
-                       f"1 mm in {plural(off.size, 'row')} (rows {rows_text(off + 1)}; up to "
-                       f"{diff[off].max():.4g} m); the end points are used")
+            warn(
+                path,
+                f"the '{length_col}' column differs from the end-point distance by more than "
+                f"1 mm in {plural(off.size, 'row')} (rows {rows_text(off + 1)}; up to "
+                f"{diff[off].max():.4g} m); the end points are used",
+            )
     return start, axis, length
 
 
@@ -439,8 +539,11 @@ def extension_by_label(path, parent: np.ndarray, label: np.ndarray, what: str) -
     ext[ps[first]] = cand[srt][first]
     multi = np.unique(ps[~first])
     if multi.size:
-        warn(path, f"{plural(multi.size, 'cylinder')} have several children with their {what} "
-                   f"(rows {rows_text(multi + 1)}); the earliest child continues the branch")
+        warn(
+            path,
+            f"{plural(multi.size, 'cylinder')} have several children with their {what} "
+            f"(rows {rows_text(multi + 1)}); the earliest child continues the branch",
+        )
     return ext
 
 
@@ -465,8 +568,7 @@ class SimpleForestCSVReader(_CSVReader):
         used = set(SIMPLEFOREST_REQUIRED) | {"length"}
         extras = {k: v for k, v in cols.items() if k not in used}
         raw = RawCylinders(cols["radius"], length, start, axis, parent, ext, None, None, order, extras)
-        tree = build_tree(path, raw, fmt=self.name, version=None, opts=opts,
-                          metadata={"model_index": 0, "n_models": 1})
+        tree = build_tree(path, raw, fmt=self.name, version=None, opts=opts, metadata={"model_index": 0, "n_models": 1})
         return [tree] if as_list else tree
 
 
@@ -561,24 +663,43 @@ class NativeCSVReader(_CSVReader):
         meta = {}
         for k, v in dict(side.get("metadata") or {}).items():
             # keys this read sets itself keep the written values under "original_<key>"
-            if k in ("source", "format", "version", "units", "repairs", "n_file_rows", "height",
-                     "base", "model_index", "n_models", "topology"):
+            if k in (
+                "source",
+                "format",
+                "version",
+                "units",
+                "repairs",
+                "n_file_rows",
+                "height",
+                "base",
+                "model_index",
+                "n_models",
+                "topology",
+            ):
                 meta["original_" + k] = v
             else:
                 meta[k] = v
         for k in ("model", "params", "seed"):
             if side.get(k) is not None:
                 meta.setdefault(k, side[k])
-        meta.update({"model_index": 0, "n_models": 1, "written_topology": rule,
-                     "format_version": side.get("format_version")})
+        meta.update(
+            {"model_index": 0, "n_models": 1, "written_topology": rule, "format_version": side.get("format_version")}
+        )
         # the stored extension is the written tree's; with a source_extension column the source
         # links are rebuilt first and the written rule applied on top (same result, and
         # with_topology('source') still restores the original branching)
         base_ext = src_ext if src_ext is not None else ext
         default_rule = rule
         raw = RawCylinders(cols["radius"], cols["length"], start, axis, parent, base_ext, added, extras=extras)
-        tree = build_tree(path, raw, fmt=self.name, version=str(side.get("format_version", "1")),
-                          opts=opts, metadata=meta, default_topology=default_rule)
+        tree = build_tree(
+            path,
+            raw,
+            fmt=self.name,
+            version=str(side.get("format_version", "1")),
+            opts=opts,
+            metadata=meta,
+            default_topology=default_rule,
+        )
         if (opts.topology or default_rule) == rule and tree.n == n:
             srow = tree.source_row
             want = ext[srow]
@@ -587,7 +708,10 @@ class NativeCSVReader(_CSVReader):
             want = np.where(want >= 0, inv[np.maximum(want, 0)], -1)
             diff = np.flatnonzero(want != tree.extension)
             if diff.size:
-                warn(path, f"{plural(diff.size, 'row')} have a stored extension that differs from the "
-                           f"'{rule}' rule recomputed on read (rows {rows_text(srow[diff] + 1)}); the "
-                           "recomputed one is used")
+                warn(
+                    path,
+                    f"{plural(diff.size, 'row')} have a stored extension that differs from the "
+                    f"'{rule}' rule recomputed on read (rows {rows_text(srow[diff] + 1)}); the "
+                    "recomputed one is used",
+                )
         return [tree] if as_list else tree

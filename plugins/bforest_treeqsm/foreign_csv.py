@@ -1,6 +1,7 @@
 """Writers of the CSV layouts of other QSM tools: SimpleForest and aRchi (docs/qsm-formats.md §6,
 §7), so that clones open where those tools' users work. Written back through the bundled readers
 they give the same cylinder table (at ``%.9g``, about 1e-6 m)."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -12,10 +13,14 @@ from bforest_core.tree import jump_to_head, levels, subtree_sum
 
 from .writers import _options, format_rows
 
-SIMPLEFOREST_HEADER = (" ID, parentID, startX, startY, startZ, endX, endY, endZ, radius, length, growthLength, "
-                       "averagePointDistance,segmentID, parentSegmentID, branchOrder, reverseBranchOrder, branchID")
-ARCHI_HEADER = ("startX,startY,startZ,endX,endY,endZ,cyl_ID,parent_ID,extension_ID,radius_cyl,length,volume,"
-                "axis_ID,segment_ID,node_ID,branching_order")
+SIMPLEFOREST_HEADER = (
+    " ID, parentID, startX, startY, startZ, endX, endY, endZ, radius, length, growthLength, "
+    "averagePointDistance,segmentID, parentSegmentID, branchOrder, reverseBranchOrder, branchID"
+)
+ARCHI_HEADER = (
+    "startX,startY,startZ,endX,endY,endZ,cyl_ID,parent_ID,extension_ID,radius_cyl,length,volume,"
+    "axis_ID,segment_ID,node_ID,branching_order"
+)
 
 
 def segments(tree):
@@ -40,7 +45,7 @@ def segments(tree):
     reverse = np.ones(heads.size, dtype=np.int64)
     order, bounds = levels(seg_parent)
     for k in range(len(bounds) - 1, 1, -1):
-        rows = order[bounds[k - 1]:bounds[k]]
+        rows = order[bounds[k - 1] : bounds[k]]
         np.maximum.at(reverse, seg_parent[rows], reverse[rows] + 1)
     return seg, seg_parent, last, reverse
 
@@ -68,9 +73,23 @@ class SimpleForestCSVWriter(QSMWriter):
         _options(self, options)
         path = Path(path)
         seg, seg_parent, _, reverse = segments(tree)
-        cols = np.column_stack([np.arange(tree.n), tree.parent, tree.start, tree.end, tree.radius, tree.length,
-                                subtree_sum(tree.parent, tree.length), np.zeros(tree.n), seg, seg_parent[seg],
-                                tree.order, reverse[seg], stem_branch_id(tree)]).astype(float)
+        cols = np.column_stack(
+            [
+                np.arange(tree.n),
+                tree.parent,
+                tree.start,
+                tree.end,
+                tree.radius,
+                tree.length,
+                subtree_sum(tree.parent, tree.length),
+                np.zeros(tree.n),
+                seg,
+                seg_parent[seg],
+                tree.order,
+                reverse[seg],
+                stem_branch_id(tree),
+            ]
+        ).astype(float)
         fmts = ["%d", "%d"] + ["%.9g"] * 8 + ["%.9g", "%g"] + ["%d"] * 5
         path.write_text(SIMPLEFOREST_HEADER + "\n" + format_rows(cols, fmts, sep=","), encoding="utf-8")
         return path
@@ -89,9 +108,22 @@ class ArchiCSVWriter(QSMWriter):
         path = Path(path)
         seg, seg_parent, last, _ = segments(tree)
         node = np.where(seg_parent[seg] >= 0, last[np.maximum(seg_parent[seg], 0)] + 1, 0)
-        cols = np.column_stack([tree.start, tree.end, np.arange(1, tree.n + 1), tree.parent + 1, tree.extension + 1,
-                                tree.radius, tree.length, np.pi * tree.radius ** 2 * tree.length, tree.branch + 1,
-                                last[seg] + 1, node, tree.order + 1]).astype(float)
+        cols = np.column_stack(
+            [
+                tree.start,
+                tree.end,
+                np.arange(1, tree.n + 1),
+                tree.parent + 1,
+                tree.extension + 1,
+                tree.radius,
+                tree.length,
+                np.pi * tree.radius**2 * tree.length,
+                tree.branch + 1,
+                last[seg] + 1,
+                node,
+                tree.order + 1,
+            ]
+        ).astype(float)
         fmts = ["%.9g"] * 6 + ["%d"] * 3 + ["%.9g"] * 3 + ["%d"] * 4
         path.write_text(ARCHI_HEADER + "\n" + format_rows(cols, fmts, sep=","), encoding="utf-8")
         return path

@@ -17,6 +17,7 @@ Writers (``bf.write_tree``; by suffix or ``format=<name>``): ``treeqsm-text`` (.
 tools' CSV layouts ``simpleforest-csv`` and ``archi-csv`` (by name), and the synthetic laser scans
 ``las`` (.las, .laz) and ``xyz`` (.xyz).
 """
+
 from bforest_core.hookspecs import hookimpl
 
 from ._mat import CylDataMatReader, TreeQSMFlatReader, TreeQSMMatReader
@@ -26,10 +27,26 @@ from .raw_cylinders import QSMReadWarning
 from .scan import LASWriter, XYZWriter
 from .writers import CSVWriter, OBJWriter, PLYWriter, TreeQSMMatWriter, TreeQSMTextWriter
 
-READERS = [TreeQSMMatReader, TreeQSMFlatReader, CylDataMatReader, TreeQSMTextReader,
-           SimpleForestCSVReader, ArchiCSVReader, NativeCSVReader]
-WRITERS = [TreeQSMTextWriter, CSVWriter, TreeQSMMatWriter, PLYWriter, OBJWriter, LASWriter, XYZWriter,
-           SimpleForestCSVWriter, ArchiCSVWriter]
+READERS = [
+    TreeQSMMatReader,
+    TreeQSMFlatReader,
+    CylDataMatReader,
+    TreeQSMTextReader,
+    SimpleForestCSVReader,
+    ArchiCSVReader,
+    NativeCSVReader,
+]
+WRITERS = [
+    TreeQSMTextWriter,
+    CSVWriter,
+    TreeQSMMatWriter,
+    PLYWriter,
+    OBJWriter,
+    LASWriter,
+    XYZWriter,
+    SimpleForestCSVWriter,
+    ArchiCSVWriter,
+]
 
 __all__ = ["READERS", "WRITERS", "QSMReadWarning", "bforest_components"]
 

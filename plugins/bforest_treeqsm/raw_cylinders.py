@@ -10,6 +10,7 @@ renormalisation, the check of the stored branch/order against the recomputed one
 topology rule. Everything is vectorised; Python loops only run over repaired *chains* (a handful
 of iterations) or in error paths.
 """
+
 from __future__ import annotations
 
 import warnings
@@ -57,6 +58,7 @@ def plural(k: int, word: str, many: str | None = None) -> str:
 def _caller_level() -> int:
     """Stack level of the first frame outside this plugin and the core (the user's call)."""
     import sys
+
     level, f = 1, sys._getframe(1)
     while f is not None:
         name = f.f_globals.get("__name__", "")
@@ -75,6 +77,7 @@ def warn(path, message: str) -> None:
 # ------------------------------------------------------------------------------------------
 # options
 # ------------------------------------------------------------------------------------------
+
 
 class ReaderSettings(ComponentSettings):
     """Options every QSM reader accepts (``bf.read_qsm(path, **options)``).
@@ -123,8 +126,7 @@ def select_models(path, models: list, select, label: str):
         raise QSMFormatError(path, f"{label} holds no reconstructions (empty struct array)")
     if select is None:
         if k > 1:
-            note = (f"holds {k} reconstructions ({label} 1x{k}); using select=0 "
-                    f"(choose 0...{k - 1} or 'all')")
+            note = f"holds {k} reconstructions ({label} 1x{k}); using select=0 (choose 0...{k - 1} or 'all')"
             warn(path, note)
             return [0], False, note
         return [0], False, None
@@ -134,15 +136,19 @@ def select_models(path, models: list, select, label: str):
     idx = list(select) if as_list else [select]
     bad = [i for i in idx if not (0 <= i < k)]
     if bad:
-        raise QSMFormatError(path, f"select={bad[0]} is outside 0...{k - 1}: the file holds {k} "
-                             f"reconstruction{'s' if k > 1 else ''} ({label} 1x{k}; "
-                             f"MATLAB {label}({bad[0] + 1}))")
+        raise QSMFormatError(
+            path,
+            f"select={bad[0]} is outside 0...{k - 1}: the file holds {k} "
+            f"reconstruction{'s' if k > 1 else ''} ({label} 1x{k}; "
+            f"MATLAB {label}({bad[0] + 1}))",
+        )
     return idx, as_list, None
 
 
 # ------------------------------------------------------------------------------------------
 # id conversion
 # ------------------------------------------------------------------------------------------
+
 
 def ids_to_rows(path, name: str, values, n: int, base: int = 1, *, what: str | None = None) -> np.ndarray:
     """File ids (``base``-based, ``base - 1`` = none) to 0-based rows (-1 = none), int64.
@@ -165,8 +171,9 @@ def ids_to_rows(path, name: str, values, n: int, base: int = 1, *, what: str | N
             raise QSMFormatError(path, f"non-finite values in '{name}' at rows {rows_text(bad + 1)}", bad + 1)
         bad = np.flatnonzero(v != np.round(v))
         if bad.size:
-            raise QSMFormatError(path, f"'{name}' holds non-integer values at rows {rows_text(bad + 1)} "
-                                 f"(value {v[bad[0]]:g})", bad + 1)
+            raise QSMFormatError(
+                path, f"'{name}' holds non-integer values at rows {rows_text(bad + 1)} (value {v[bad[0]]:g})", bad + 1
+            )
         lo, hi = base - 1, n - 1 + base
         bad = np.flatnonzero((v < lo) | (v > hi))
         if bad.size:
@@ -185,7 +192,7 @@ def _range_msg(name, v, bad, n, base):
     val = int(val) if float(val).is_integer() else float(val)
     lo, hi = base, n - 1 + base
     more = f" ({len(bad)} rows: {rows_text(bad + 1)})" if len(bad) > 1 else ""
-    return (f"{name} {val} at row {i + 1} is outside {lo}...{hi} ({base - 1} = none){more}")
+    return f"{name} {val} at row {i + 1} is outside {lo}...{hi} ({base - 1} = none){more}"
 
 
 def labels_to_int(path, name: str, values, n: int) -> np.ndarray:
@@ -198,13 +205,14 @@ def labels_to_int(path, name: str, values, n: int) -> np.ndarray:
     if v.dtype.kind not in "iuf":
         raise QSMFormatError(path, f"'{name}' is not numeric (dtype {v.dtype})")
     if v.dtype.kind == "f":
-        bad = np.flatnonzero(~np.isfinite(v) | (np.abs(v) > 2.0 ** 53))
+        bad = np.flatnonzero(~np.isfinite(v) | (np.abs(v) > 2.0**53))
         if bad.size:
             raise QSMFormatError(path, f"non-finite or huge values in '{name}' at rows {rows_text(bad + 1)}", bad + 1)
         bad = np.flatnonzero(v != np.round(v))
         if bad.size:
-            raise QSMFormatError(path, f"'{name}' holds non-integer values at rows {rows_text(bad + 1)} "
-                                 f"(value {v[bad[0]]:g})", bad + 1)
+            raise QSMFormatError(
+                path, f"'{name}' holds non-integer values at rows {rows_text(bad + 1)} (value {v[bad[0]]:g})", bad + 1
+            )
     return v.astype(np.int64)
 
 
@@ -232,6 +240,7 @@ def float_column(path, name: str, values, n: int | None = None, width: int | Non
 # ------------------------------------------------------------------------------------------
 # the raw table and the Tree builder
 # ------------------------------------------------------------------------------------------
+
 
 @dataclass
 class RawCylinders:
@@ -267,7 +276,7 @@ def _find_cycle(parent: np.ndarray, start: int) -> list[int]:
         path.append(i)
         i = int(parent[i])
     if i in seen:
-        return path[seen[i]:] + [i]
+        return path[seen[i] :] + [i]
     return path
 
 
@@ -302,8 +311,18 @@ def _resolve_through(mask: np.ndarray, link: np.ndarray, values: np.ndarray) -> 
         out[hit] = link[out[hit]]
 
 
-def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, metadata=None,
-               zero_length_hint: str = "", row_offset: int = 0, default_topology: str = "source") -> Tree:
+def build_tree(
+    path,
+    raw: RawCylinders,
+    *,
+    fmt: str,
+    version=None,
+    opts=None,
+    metadata=None,
+    zero_length_hint: str = "",
+    row_offset: int = 0,
+    default_topology: str = "source",
+) -> Tree:
     """Validate and repair a raw cylinder table and build the :class:`Tree` (docs/qsm-formats.md §0).
 
     Parameters
@@ -340,8 +359,11 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
     start = np.asarray(raw.start, dtype=np.float64).reshape(n, 3)
     axis = np.asarray(raw.axis, dtype=np.float64).reshape(n, 3)
     parent = np.asarray(raw.parent, dtype=np.int64).reshape(-1)
-    extension = (np.full(n, -1, dtype=np.int64) if raw.extension is None
-                 else np.asarray(raw.extension, dtype=np.int64).reshape(-1))
+    extension = (
+        np.full(n, -1, dtype=np.int64)
+        if raw.extension is None
+        else np.asarray(raw.extension, dtype=np.int64).reshape(-1)
+    )
     added = np.zeros(n, dtype=bool) if raw.added is None else np.asarray(raw.added).reshape(-1)
     if added.dtype.kind == "f" and not np.all(np.isfinite(added)):
         bad = np.flatnonzero(~np.isfinite(added))
@@ -359,15 +381,18 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
         ok = np.isfinite(a) if a.ndim == 1 else np.isfinite(a).all(axis=1)
         if not ok.all():
             bad = np.flatnonzero(~ok) + 1
-            problems.append(f"non-finite values in '{name}' at rows {rows_text(bad)}"
-                            f"{f' ({bad.size} rows)' if 1 < bad.size <= MAX_ROWS_SHOWN else ''}")
+            problems.append(
+                f"non-finite values in '{name}' at rows {rows_text(bad)}"
+                f"{f' ({bad.size} rows)' if 1 < bad.size <= MAX_ROWS_SHOWN else ''}"
+            )
             prow += bad[:MAX_ROWS_SHOWN].tolist()
     if problems:
         raise QSMFormatError(path, "; ".join(problems), prow)
     bad = np.flatnonzero(radius <= 0)
     if bad.size:
-        problems.append(f"radius <= 0 at rows {rows_text(bad + 1)} (value {radius[bad[0]]:g}); "
-                        "a cylinder needs a positive radius")
+        problems.append(
+            f"radius <= 0 at rows {rows_text(bad + 1)} (value {radius[bad[0]]:g}); a cylinder needs a positive radius"
+        )
         prow += (bad[:MAX_ROWS_SHOWN] + 1).tolist()
     bad = np.flatnonzero(length < 0)
     if bad.size:
@@ -400,14 +425,23 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
         j = int(extension[i])
         pj = int(parent[j])
         more = f" ({bad.size} rows: {rows_text(bad + 1)})" if bad.size > 1 else ""
-        raise QSMFormatError(path, f"extension of row {i + 1} is row {j + 1}, whose parent is "
-                             f"{'row ' + str(pj + 1) if pj >= 0 else 'none'}{more}", bad + 1)
+        raise QSMFormatError(
+            path,
+            f"extension of row {i + 1} is row {j + 1}, whose parent is "
+            f"{'row ' + str(pj + 1) if pj >= 0 else 'none'}{more}",
+            bad + 1,
+        )
     label, reached = components(parent)
     if not reached.all():
         bad = np.flatnonzero(~reached)
         cyc = _find_cycle(parent, int(bad[0]))
-        raise QSMFormatError(path, "cylinders " + " -> ".join(str(c + 1) for c in cyc) +
-                             f" form a cycle ({bad.size} cylinders are not connected to a root)", bad + 1)
+        raise QSMFormatError(
+            path,
+            "cylinders "
+            + " -> ".join(str(c + 1) for c in cyc)
+            + f" form a cycle ({bad.size} cylinders are not connected to a root)",
+            bad + 1,
+        )
 
     # ---- repair 1: detached fragments
     keep = np.ones(n, dtype=bool)
@@ -417,19 +451,32 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
         sizes = np.bincount(label, minlength=n)
         keep = label == base
         kept = int(keep.sum())
-        msg = (f"{roots.size} cylinders have no parent (rows {rows_text(roots + 1)}); "
-               f"kept the connected part with the stem base ({kept} of {n} cylinders)")
+        msg = (
+            f"{roots.size} cylinders have no parent (rows {rows_text(roots + 1)}); "
+            f"kept the connected part with the stem base ({kept} of {n} cylinders)"
+        )
         biggest = int(roots[np.argmax(sizes[roots])])
         if sizes[biggest] > sizes[base]:
-            msg += (f"; note: the stem base (row {base + 1}, lowest start) is not the root of the "
-                    f"largest part (row {biggest + 1}, {int(sizes[biggest])} cylinders)")
+            msg += (
+                f"; note: the stem base (row {base + 1}, lowest start) is not the root of the "
+                f"largest part (row {biggest + 1}, {int(sizes[biggest])} cylinders)"
+            )
         if fragments == "error":
             raise QSMFormatError(path, msg + " [fragments='error']", roots + 1)
         warn(path, msg)
         dropped = np.flatnonzero(~keep)
-        repairs.append(Repair({"repair": "dropped_fragments", "roots": (roots + 1).tolist(),
-                        "stem_base_row": base + 1, "n_dropped": int(dropped.size),
-                        "dropped_rows": (dropped + 1).tolist(), "message": msg}))
+        repairs.append(
+            Repair(
+                {
+                    "repair": "dropped_fragments",
+                    "roots": (roots + 1).tolist(),
+                    "stem_base_row": base + 1,
+                    "n_dropped": int(dropped.size),
+                    "dropped_rows": (dropped + 1).tolist(),
+                    "message": msg,
+                }
+            )
+        )
 
     # ---- repair 2: zero-length cylinders (exactly 0 as read)
     zl = np.flatnonzero(zero_len & keep)
@@ -438,8 +485,11 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
         hint = f"; {zero_length_hint}" if zero_length_hint else ""
         zrows = rows_text(zl + 1)
         if not drop_degenerate:
-            raise QSMFormatError(path, f"length <= 0 at row{'s' if zl.size > 1 else ''} {zrows} "
-                                 f"(value 0{hint}) [drop_degenerate=False]", zl + 1)
+            raise QSMFormatError(
+                path,
+                f"length <= 0 at row{'s' if zl.size > 1 else ''} {zrows} (value 0{hint}) [drop_degenerate=False]",
+                zl + 1,
+            )
         zroot = zl[parent[zl] < 0]
         if zroot.size:
             raise QSMFormatError(path, f"the root cylinder (row {zroot[0] + 1}) has zero length", zroot + 1)
@@ -449,11 +499,16 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
         # a removed extension is replaced by its own extension (resolved through removed rows)
         ext_new = _resolve_through(removed, extension, extension)
         extension = np.where(removed, -1, ext_new)
-        msg = (f"removed {plural(zl.size, 'zero-length cylinder')} (row{'s' if zl.size > 1 else ''} "
-               f"{zrows}{hint}); children were attached to the parent")
+        msg = (
+            f"removed {plural(zl.size, 'zero-length cylinder')} (row{'s' if zl.size > 1 else ''} "
+            f"{zrows}{hint}); children were attached to the parent"
+        )
         warn(path, msg)
-        repairs.append(Repair({"repair": "removed_zero_length", "rows": (zl + 1).tolist(),
-                        "n_removed": int(zl.size), "message": msg}))
+        repairs.append(
+            Repair(
+                {"repair": "removed_zero_length", "rows": (zl + 1).tolist(), "n_removed": int(zl.size), "message": msg}
+            )
+        )
         keep &= ~removed
 
     file_rows = np.flatnonzero(keep)
@@ -461,8 +516,13 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
         new = np.full(n, -1, dtype=np.int64)
         new[file_rows] = np.arange(file_rows.size)
         remap = lambda a: np.where(a >= 0, new[np.maximum(a, 0)], -1)
-        radius, length, start, axis, added = (radius[file_rows], length[file_rows], start[file_rows],
-                                              axis[file_rows], added[file_rows])
+        radius, length, start, axis, added = (
+            radius[file_rows],
+            length[file_rows],
+            start[file_rows],
+            axis[file_rows],
+            added[file_rows],
+        )
         parent = remap(parent[file_rows])
         extension = remap(extension[file_rows])
         norms = norms[file_rows]
@@ -472,11 +532,21 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
     dev = np.abs(norms - 1.0)
     off = np.flatnonzero(dev > AXIS_WARN_TOL)
     if off.size:
-        msg = (f"{plural(off.size, 'axis', 'axes')} not unit vectors (norms {norms[off].min():.4g}..."
-               f"{norms[off].max():.4g}; rows {rows_text(file_rows[off] + 1)}); renormalised")
+        msg = (
+            f"{plural(off.size, 'axis', 'axes')} not unit vectors (norms {norms[off].min():.4g}..."
+            f"{norms[off].max():.4g}; rows {rows_text(file_rows[off] + 1)}); renormalised"
+        )
         warn(path, msg)
-        repairs.append(Repair({"repair": "renormalised_axes", "n_rows": int(off.size),
-                        "rows": (file_rows[off] + 1).tolist(), "message": msg}))
+        repairs.append(
+            Repair(
+                {
+                    "repair": "renormalised_axes",
+                    "n_rows": int(off.size),
+                    "rows": (file_rows[off] + 1).tolist(),
+                    "message": msg,
+                }
+            )
+        )
     axis = axis / norms[:, None]
 
     extras = {}
@@ -487,19 +557,33 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
 
     # ---- sizes whose volume or end point overflows (radius 1e300): no tree, in any unit
     with np.errstate(over="ignore", invalid="ignore"):
-        finite = np.isfinite(np.pi * radius ** 2 * length) & np.isfinite(start + axis * length[:, None]).all(axis=1)
+        finite = np.isfinite(np.pi * radius**2 * length) & np.isfinite(start + axis * length[:, None]).all(axis=1)
     if not finite.all():
         bad = file_rows[np.flatnonzero(~finite)] + 1
-        raise QSMFormatError(path, f"cylinder sizes too large to compute with (volume or end point not a finite "
-                             f"number; largest radius {radius.max():.4g}, length {length.max():.4g}) at rows "
-                             f"{rows_text(bad)}", bad)
+        raise QSMFormatError(
+            path,
+            f"cylinder sizes too large to compute with (volume or end point not a finite "
+            f"number; largest radius {radius.max():.4g}, length {length.max():.4g}) at rows "
+            f"{rows_text(bad)}",
+            bad,
+        )
 
-    meta = {"source": str(path), "format": fmt, "version": version, "units": "m",
-            "n_file_rows": n, "repairs": repairs}
+    meta = {"source": str(path), "format": fmt, "version": version, "units": "m", "n_file_rows": n, "repairs": repairs}
     meta.update(metadata or {})
     try:
-        tree = Tree(start, axis, length, radius, parent, extension, topology="source", added=added,
-                    source_row=file_rows, extras=extras, metadata=meta)
+        tree = Tree(
+            start,
+            axis,
+            length,
+            radius,
+            parent,
+            extension,
+            topology="source",
+            added=added,
+            source_row=file_rows,
+            extras=extras,
+            metadata=meta,
+        )
     except TreeError as exc:
         rows_ = [int(file_rows[r]) + 1 for r in exc.rows if 0 <= r < m]
         raise QSMFormatError(path, f"invalid cylinder tree: {exc.problem}", rows_) from None
@@ -528,8 +612,10 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
         if bad.size:
             mism["branch"] = np.sort(tree.source_row[bad] + 1)
     if mism:
-        parts = [f"{plural(v.size, 'row')} with a stored {k} that differs from the recomputed one "
-                 f"(rows {rows_text(v)})" for k, v in mism.items()]
+        parts = [
+            f"{plural(v.size, 'row')} with a stored {k} that differs from the recomputed one (rows {rows_text(v)})"
+            for k, v in mism.items()
+        ]
         msg = "; ".join(parts) + " -- the recomputed branches and orders are used"
         warn(path, msg)
         tree.metadata["stored_topology_mismatch"] = {k: v.tolist() for k, v in mism.items()}
@@ -540,8 +626,11 @@ def build_tree(path, raw: RawCylinders, *, fmt: str, version=None, opts=None, me
     tree.metadata["height"] = height
     tree.metadata["base"] = tree.start[0].tolist()
     if radius.max() > 5.0 or height > 150.0:
-        warn(path, f"values look like millimetres (largest radius {radius.max():.4g}, height "
-                   f"{height:.4g}); QSM readers never convert units, metres are expected")
+        warn(
+            path,
+            f"values look like millimetres (largest radius {radius.max():.4g}, height "
+            f"{height:.4g}); QSM readers never convert units, metres are expected",
+        )
     if topology != "source":
         tree = tree.with_topology(topology)
     return tree
@@ -568,13 +657,16 @@ class BaseReader(QSMReader):
         except TreeError as exc:
             raise QSMFormatError(path, f"invalid cylinder tree: {exc.problem}", [r + 1 for r in exc.rows]) from None
         except MemoryError:
-            raise QSMFormatError(path, f"file is truncated or corrupt ({self.container}: "
-                                 "a size field asks for more memory than available)") from None
+            raise QSMFormatError(
+                path,
+                f"file is truncated or corrupt ({self.container}: a size field asks for more memory than available)",
+            ) from None
         except (KeyboardInterrupt, SystemExit):
             raise
         except Exception as exc:  # scipy/h5py/struct/zlib/ValueError/IndexError/...
-            raise QSMFormatError(path, f"file is truncated or corrupt ({self.container}: "
-                                 f"{type(exc).__name__}: {exc})") from None
+            raise QSMFormatError(
+                path, f"file is truncated or corrupt ({self.container}: {type(exc).__name__}: {exc})"
+            ) from None
 
     def _read(self, path: Path, opts):  # pragma: no cover - abstract
         raise NotImplementedError
@@ -582,11 +674,13 @@ class BaseReader(QSMReader):
 
 def sniff_safely(fn):
     """Decorator: a sniffer never raises (a broken file just does not match)."""
+
     def wrapper(self, path, head):
         try:
             return bool(fn(self, path, head))
         except Exception:
             return False
+
     wrapper.__name__ = fn.__name__
     wrapper.__doc__ = fn.__doc__
     return wrapper

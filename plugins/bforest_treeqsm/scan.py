@@ -18,6 +18,7 @@ reconstruct it, compare. Two sampling modes:
 Extra dimensions of a LAS file: ``cylinder_id`` (row of the tree's cylinder table, 0-based),
 ``branch_id`` (0-based) and ``branch_order`` (0 = stem).
 """
+
 from __future__ import annotations
 
 import json
@@ -37,12 +38,18 @@ LAS_CLASS = 5
 
 
 class ScanSettings(ComponentSettings):
-    density: float = Field(2000.0, gt=0, description="points per m² of lateral cylinder surface (scanner mode: at "
-                           "reference_range and normal incidence)")
-    mode: Literal["uniform", "scanner"] = Field("uniform", description="uniform: every surface point equally likely; "
-                                                "scanner: one occlusion-free scanner position")
-    scanner: Optional[tuple[float, float, float]] = Field(None, description="scanner position (m); default: 10 m "
-                                                          "from the stem base along -y, 1.5 m above it")
+    density: float = Field(
+        2000.0,
+        gt=0,
+        description="points per m² of lateral cylinder surface (scanner mode: at reference_range and normal incidence)",
+    )
+    mode: Literal["uniform", "scanner"] = Field(
+        "uniform",
+        description="uniform: every surface point equally likely; scanner: one occlusion-free scanner position",
+    )
+    scanner: Optional[tuple[float, float, float]] = Field(
+        None, description="scanner position (m); default: 10 m from the stem base along -y, 1.5 m above it"
+    )
     reference_range: float = Field(10.0, gt=0, description="range (m) at which the scanner mode has `density`")
     noise: float = Field(0.0, ge=0, description="sd (m) of Gaussian range noise")
     seed: int = Field(0, description="seed of the sampling and the noise")
@@ -56,8 +63,15 @@ def _frames(axis: np.ndarray):
     return u, np.cross(axis, u)
 
 
-def scan_points(tree, density: float = 2000.0, mode: str = "uniform", scanner=None, reference_range: float = 10.0,
-                noise: float = 0.0, seed: int = 0) -> dict[str, np.ndarray]:
+def scan_points(
+    tree,
+    density: float = 2000.0,
+    mode: str = "uniform",
+    scanner=None,
+    reference_range: float = 10.0,
+    noise: float = 0.0,
+    seed: int = 0,
+) -> dict[str, np.ndarray]:
     """Points on the lateral cylinder surfaces (see the module docstring for the two modes).
 
     Returns
@@ -66,16 +80,21 @@ def scan_points(tree, density: float = 2000.0, mode: str = "uniform", scanner=No
         ``xyz`` (n, 3) m, ``cylinder_id`` (n,), ``branch_id`` (n,), ``branch_order`` (n,) and
         ``normal`` (n, 3): the outward surface normal at each point before noise.
     """
-    s = ScanSettings(density=density, mode=mode, scanner=scanner, reference_range=reference_range, noise=noise,
-                     seed=seed)
+    s = ScanSettings(
+        density=density, mode=mode, scanner=scanner, reference_range=reference_range, noise=noise, seed=seed
+    )
     rng = np.random.default_rng(s.seed)
     area = 2.0 * np.pi * tree.radius * tree.length
     base = tree.start[0]
     if s.mode == "scanner":
         pos = np.asarray(s.scanner if s.scanner is not None else base + [0.0, -10.0, 1.5], float)
         # candidates at the highest density any cylinder can reach, then thinned (vectorised)
-        near = np.maximum(np.linalg.norm(tree.start + 0.5 * tree.length[:, None] * tree.axis - pos, axis=1)
-                          - tree.length - tree.radius, 1e-3)
+        near = np.maximum(
+            np.linalg.norm(tree.start + 0.5 * tree.length[:, None] * tree.axis - pos, axis=1)
+            - tree.length
+            - tree.radius,
+            1e-3,
+        )
         boost = np.clip((s.reference_range / near) ** 2, 1.0, None)
         lam = s.density * area * boost
     else:
@@ -99,8 +118,13 @@ def scan_points(tree, density: float = 2000.0, mode: str = "uniform", scanner=No
             xyz = xyz + s.noise * rng.standard_normal(cyl.size)[:, None] * beam
     elif s.noise:
         xyz = xyz + s.noise * rng.standard_normal(cyl.size)[:, None] * normal
-    return {"xyz": xyz, "cylinder_id": cyl.astype(np.uint32), "branch_id": tree.branch[cyl].astype(np.uint32),
-            "branch_order": tree.order[cyl].astype(np.uint8), "normal": normal}
+    return {
+        "xyz": xyz,
+        "cylinder_id": cyl.astype(np.uint32),
+        "branch_id": tree.branch[cyl].astype(np.uint32),
+        "branch_order": tree.order[cyl].astype(np.uint8),
+        "normal": normal,
+    }
 
 
 class LASWriter(QSMWriter):
@@ -118,23 +142,31 @@ class LASWriter(QSMWriter):
 
     def write(self, tree, path, **options) -> Path:
         import laspy
+
         o = _options(self, options)
         path = Path(path)
         if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
             raise QSMFormatError(path, "writing LAZ needs a LAZ backend: pip install lazrs (or write .las)")
         pts = scan_points(tree, **o.model_dump())
         header = laspy.LasHeader(point_format=6, version="1.4")
-        header.add_extra_dims([laspy.ExtraBytesParams(name="cylinder_id", type=np.uint32),
-                               laspy.ExtraBytesParams(name="branch_id", type=np.uint32),
-                               laspy.ExtraBytesParams(name="branch_order", type=np.uint8)])
+        header.add_extra_dims(
+            [
+                laspy.ExtraBytesParams(name="cylinder_id", type=np.uint32),
+                laspy.ExtraBytesParams(name="branch_id", type=np.uint32),
+                laspy.ExtraBytesParams(name="branch_order", type=np.uint8),
+            ]
+        )
         xyz = pts["xyz"]
         header.offsets = np.floor(xyz.min(axis=0)) if xyz.size else np.zeros(3)
         header.scales = np.array([0.001, 0.001, 0.001])
         header.generating_software = provenance(tree)["software"][:32]
         header.system_identifier = "synthetic scan (cylinder QSM)"
         info = json.dumps(provenance(tree, scan=o.model_dump()), separators=(",", ":"), allow_nan=False)
-        header.vlrs.append(laspy.VLR(user_id="BayesForest", record_id=1, description="provenance (JSON)",
-                                     record_data=info.encode("utf-8")))
+        header.vlrs.append(
+            laspy.VLR(
+                user_id="BayesForest", record_id=1, description="provenance (JSON)", record_data=info.encode("utf-8")
+            )
+        )
         las = laspy.LasData(header)
         las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
         n = xyz.shape[0]

@@ -4,6 +4,7 @@
 Text output is produced by one ``%`` formatting of a repeated row template over the flattened
 table (no Python loop over cylinders).
 """
+
 from __future__ import annotations
 
 import json
@@ -78,6 +79,7 @@ def provenance(tree, **extra) -> dict:
     tree's metadata has them, model, parameters, fixed parameters, seed, role, run folder and
     source file (``extra`` adds e.g. scan settings). JSON-ready."""
     from bforest_core import __version__
+
     md = tree.metadata
     out = {"software": f"Bayes Forest {__version__}"}
     for k in ("model", "params", "fixed", "seed", "role", "run", "source"):
@@ -96,6 +98,7 @@ def provenance_line(tree, **extra) -> str:
 # TreeQSM text
 # ------------------------------------------------------------------------------------------
 
+
 class TreeQSMTextSettings(ComponentSettings):
     #: ``None``: ``%.9g`` (round trip within 1e-6 m); an int copies TreeQSM's rounding
     decimals: Optional[int] = Field(default=None, ge=1, le=12)
@@ -107,12 +110,19 @@ class TreeQSMTextSettings(ComponentSettings):
 def treeqsm_columns(tree) -> dict[str, np.ndarray]:
     """The TreeQSM cylinder columns of a tree (1-based ids, 0 = none; trunk branch = 1)."""
     return {
-        "radius": tree.radius, "length": tree.length, "start": tree.start, "axis": tree.axis,
-        "parent": _one_based(tree.parent), "extension": _one_based(tree.extension),
-        "branch": (tree.branch + 1).astype(np.float64), "BranchOrder": tree.order.astype(np.float64),
+        "radius": tree.radius,
+        "length": tree.length,
+        "start": tree.start,
+        "axis": tree.axis,
+        "parent": _one_based(tree.parent),
+        "extension": _one_based(tree.extension),
+        "branch": (tree.branch + 1).astype(np.float64),
+        "BranchOrder": tree.order.astype(np.float64),
         "PositionInBranch": (tree.position_in_branch + 1).astype(np.float64),
-        "mad": _extra(tree, "mad", 0.0), "SurfCov": _extra(tree, "SurfCov", 1.0),
-        "added": tree.added.astype(np.float64), "UnmodRadius": _extra(tree, "UnmodRadius", tree.radius),
+        "mad": _extra(tree, "mad", 0.0),
+        "SurfCov": _extra(tree, "SurfCov", 1.0),
+        "added": tree.added.astype(np.float64),
+        "UnmodRadius": _extra(tree, "UnmodRadius", tree.radius),
     }
 
 
@@ -141,19 +151,47 @@ class TreeQSMTextWriter(QSMWriter):
             for k in ("radius", "length"):
                 bad = np.flatnonzero(c[k] <= 0)
                 if bad.size:
-                    raise QSMFormatError(path, f"{k} of row {bad[0] + 1} ({getattr(tree, k)[bad[0]]:.3g} m) "
-                                         f"rounds to 0 with decimals={d} ({bad.size} rows); "
-                                         "use more decimals", bad + 1)
+                    raise QSMFormatError(
+                        path,
+                        f"{k} of row {bad[0] + 1} ({getattr(tree, k)[bad[0]]:.3g} m) "
+                        f"rounds to 0 with decimals={d} ({bad.size} rows); "
+                        "use more decimals",
+                        bad + 1,
+                    )
             ff = f"%.{d}f"
         else:
             ff = "%.9g"
         if o.layout == "treeqsm17":
-            order = ["radius", "length", "start", "axis", "parent", "extension", "branch", "BranchOrder",
-                     "PositionInBranch", "mad", "SurfCov", "added", "UnmodRadius"]
+            order = [
+                "radius",
+                "length",
+                "start",
+                "axis",
+                "parent",
+                "extension",
+                "branch",
+                "BranchOrder",
+                "PositionInBranch",
+                "mad",
+                "SurfCov",
+                "added",
+                "UnmodRadius",
+            ]
             header = "\t".join(TREEQSM17_NAMES) + "\n"
         else:
-            order = ["radius", "length", "start", "axis", "parent", "extension", "added", "UnmodRadius",
-                     "branch", "BranchOrder", "PositionInBranch"]
+            order = [
+                "radius",
+                "length",
+                "start",
+                "axis",
+                "parent",
+                "extension",
+                "added",
+                "UnmodRadius",
+                "branch",
+                "BranchOrder",
+                "PositionInBranch",
+            ]
             header = ""
         blocks, fmts = [], []
         for k in order:
@@ -166,13 +204,23 @@ class TreeQSMTextWriter(QSMWriter):
             fh.write(header)
             fh.write(format_rows(table, fmts))
         if o.branch_file:
-            stem = path.name[len("cylinder_"):] if path.name.startswith("cylinder_") else path.name
+            stem = path.name[len("cylinder_") :] if path.name.startswith("cylinder_") else path.name
             write_branch_file(tree, path.with_name("branch_" + stem))
         return path
 
 
-BRANCH_NAMES = ["order", "parent", "diameter (m)", "volume (L)", "area (m^2)", "length (m)",
-                "height (m)", "angle (deg)", "azimuth (deg)", "zenith (deg)"]
+BRANCH_NAMES = [
+    "order",
+    "parent",
+    "diameter (m)",
+    "volume (L)",
+    "area (m^2)",
+    "length (m)",
+    "height (m)",
+    "angle (deg)",
+    "azimuth (deg)",
+    "zenith (deg)",
+]
 
 
 def branch_table(tree) -> np.ndarray:
@@ -180,9 +228,22 @@ def branch_table(tree) -> np.ndarray:
     :func:`bforest_core.attributes.branch_table`: parent 1-based (0 for the trunk), volume in
     litres."""
     from bforest_core.attributes import branch_table as btab
+
     b = btab(tree)
-    return np.column_stack([b["order"], _one_based(b["parent"]), b["diameter"], 1000.0 * b["volume"], b["area"],
-                            b["length"], b["height"], b["angle"], b["azimuth"], b["zenith"]])
+    return np.column_stack(
+        [
+            b["order"],
+            _one_based(b["parent"]),
+            b["diameter"],
+            1000.0 * b["volume"],
+            b["area"],
+            b["length"],
+            b["height"],
+            b["angle"],
+            b["azimuth"],
+            b["zenith"],
+        ]
+    )
 
 
 def write_branch_file(tree, path: Path) -> Path:
@@ -196,6 +257,7 @@ def write_branch_file(tree, path: Path) -> Path:
 # ------------------------------------------------------------------------------------------
 # native CSV + JSON sidecar
 # ------------------------------------------------------------------------------------------
+
 
 class CSVSettings(ComponentSettings):
     #: write ``<name>.json`` beside the CSV
@@ -221,9 +283,20 @@ class CSVWriter(QSMWriter):
         o = _options(self, options)
         path = Path(path)
         n = tree.n
-        cols = [np.arange(n), tree.parent, tree.extension, tree.branch, tree.order,
-                tree.position_in_branch, tree.added.astype(np.int64),
-                tree.start, tree.axis, tree.length, tree.radius, tree.end]
+        cols = [
+            np.arange(n),
+            tree.parent,
+            tree.extension,
+            tree.branch,
+            tree.order,
+            tree.position_in_branch,
+            tree.added.astype(np.int64),
+            tree.start,
+            tree.axis,
+            tree.length,
+            tree.radius,
+            tree.end,
+        ]
         names = list(NATIVE_COLUMNS)
         fmts = ["%d"] * 7 + ["%.17g"] * 11
         src = tree.extras.get("_source_extension")
@@ -246,10 +319,18 @@ class CSVWriter(QSMWriter):
             fh.write(format_rows(table, fmts, sep=","))
         if o.sidecar:
             md = dict(tree.metadata)
-            side = {"format": "bforest-csv", "format_version": CSV_FORMAT_VERSION, "units": "m",
-                    "topology": tree.topology, "source": md.get("source"), "model": md.get("model"),
-                    "params": md.get("params"), "seed": md.get("seed"), "provenance": provenance(tree),
-                    "metadata": jsonable({k: v for k, v in md.items() if k not in ("topology",)})}
+            side = {
+                "format": "bforest-csv",
+                "format_version": CSV_FORMAT_VERSION,
+                "units": "m",
+                "topology": tree.topology,
+                "source": md.get("source"),
+                "model": md.get("model"),
+                "params": md.get("params"),
+                "seed": md.get("seed"),
+                "provenance": provenance(tree),
+                "metadata": jsonable({k: v for k, v in md.items() if k not in ("topology",)}),
+            }
             path.with_suffix(".json").write_text(json.dumps(side, indent=2, allow_nan=False), encoding="utf-8")
         return path
 
@@ -258,6 +339,7 @@ class CSVWriter(QSMWriter):
 # TreeQSM .mat
 # ------------------------------------------------------------------------------------------
 
+
 class MatSettings(ComponentSettings):
     #: MATLAB variable name of the struct
     variable: Literal["qsm", "QSM", "OptQSM"] = "qsm"
@@ -265,48 +347,116 @@ class MatSettings(ComponentSettings):
 
 #: TreeQSM 2.4's ``treedata`` fields in its order (``tree_data.m`` with triangulation on)
 TREEDATA_FIELDS = (
-    "TotalVolume", "TrunkVolume", "BranchVolume", "TreeHeight", "TrunkLength", "BranchLength",
-    "TotalLength", "NumberBranches", "MaxBranchOrder", "TrunkArea", "BranchArea", "TotalArea",
-    "DBHqsm", "DBHcyl", "CrownDiamAve", "CrownDiamMax", "CrownAreaConv", "CrownAreaAlpha",
-    "CrownBaseHeight", "CrownLength", "CrownRatio", "CrownVolumeConv", "CrownVolumeAlpha",
-    "DBHtri", "TriaTrunkVolume", "MixTrunkVolume", "MixTotalVolume", "TriaTrunkArea",
-    "MixTrunkArea", "MixTotalArea", "TriaTrunkLength", "location", "StemTaper", "VerticalProfile",
-    "spreads")
+    "TotalVolume",
+    "TrunkVolume",
+    "BranchVolume",
+    "TreeHeight",
+    "TrunkLength",
+    "BranchLength",
+    "TotalLength",
+    "NumberBranches",
+    "MaxBranchOrder",
+    "TrunkArea",
+    "BranchArea",
+    "TotalArea",
+    "DBHqsm",
+    "DBHcyl",
+    "CrownDiamAve",
+    "CrownDiamMax",
+    "CrownAreaConv",
+    "CrownAreaAlpha",
+    "CrownBaseHeight",
+    "CrownLength",
+    "CrownRatio",
+    "CrownVolumeConv",
+    "CrownVolumeAlpha",
+    "DBHtri",
+    "TriaTrunkVolume",
+    "MixTrunkVolume",
+    "MixTotalVolume",
+    "TriaTrunkArea",
+    "MixTrunkArea",
+    "MixTotalArea",
+    "TriaTrunkLength",
+    "location",
+    "StemTaper",
+    "VerticalProfile",
+    "spreads",
+)
 #: the distributions after them, in TreeQSM's order
 DISTRIBUTION_FIELDS = tuple(
     [f"{q}Cyl{x}" for x in ("Dia", "Hei", "Zen", "Azi") for q in ("Vol", "Are", "Len")]
     + [f"{q}BranchOrd" for q in ("Vol", "Are", "Len", "Num")]
-    + [f"{q}Branch{one}{x}" for x in ("Dia", "Hei", "Ang", "Azi", "Zen") for q in ("Vol", "Are", "Len", "Num")
-       for one in ("", "1")])
+    + [
+        f"{q}Branch{one}{x}"
+        for x in ("Dia", "Hei", "Ang", "Azi", "Zen")
+        for q in ("Vol", "Are", "Len", "Num")
+        for one in ("", "1")
+    ]
+)
 #: our attribute behind each scalar treedata field (volumes are converted to litres)
 _TREEDATA_FROM = {
-    "TotalVolume": "total_volume", "TrunkVolume": "trunk_volume", "BranchVolume": "branch_volume",
-    "TreeHeight": "tree_height", "TrunkLength": "trunk_length", "BranchLength": "branch_length",
-    "TotalLength": "total_length", "NumberBranches": "n_branches", "MaxBranchOrder": "max_branch_order",
-    "TrunkArea": "trunk_area", "BranchArea": "branch_area", "TotalArea": "total_area", "DBHqsm": "dbh",
-    "DBHcyl": "dbh", "CrownDiamAve": "crown_diameter_mean", "CrownDiamMax": "crown_diameter_max",
-    "CrownAreaConv": "crown_area_conv", "CrownAreaAlpha": "crown_area_alpha",
-    "CrownBaseHeight": "crown_base_height", "CrownLength": "crown_length", "CrownRatio": "crown_ratio",
-    "CrownVolumeConv": "crown_volume_conv", "CrownVolumeAlpha": "crown_volume_alpha",
+    "TotalVolume": "total_volume",
+    "TrunkVolume": "trunk_volume",
+    "BranchVolume": "branch_volume",
+    "TreeHeight": "tree_height",
+    "TrunkLength": "trunk_length",
+    "BranchLength": "branch_length",
+    "TotalLength": "total_length",
+    "NumberBranches": "n_branches",
+    "MaxBranchOrder": "max_branch_order",
+    "TrunkArea": "trunk_area",
+    "BranchArea": "branch_area",
+    "TotalArea": "total_area",
+    "DBHqsm": "dbh",
+    "DBHcyl": "dbh",
+    "CrownDiamAve": "crown_diameter_mean",
+    "CrownDiamMax": "crown_diameter_max",
+    "CrownAreaConv": "crown_area_conv",
+    "CrownAreaAlpha": "crown_area_alpha",
+    "CrownBaseHeight": "crown_base_height",
+    "CrownLength": "crown_length",
+    "CrownRatio": "crown_ratio",
+    "CrownVolumeConv": "crown_volume_conv",
+    "CrownVolumeAlpha": "crown_volume_alpha",
     # without a point cloud there is no triangulation: TreeQSM then repeats the cylinder values
-    "DBHtri": "dbh", "TriaTrunkVolume": "trunk_volume", "MixTrunkVolume": "trunk_volume",
-    "MixTotalVolume": "total_volume", "TriaTrunkArea": "trunk_area", "MixTrunkArea": "trunk_area",
+    "DBHtri": "dbh",
+    "TriaTrunkVolume": "trunk_volume",
+    "MixTrunkVolume": "trunk_volume",
+    "MixTotalVolume": "total_volume",
+    "TriaTrunkArea": "trunk_area",
+    "MixTrunkArea": "trunk_area",
     "MixTotalArea": "total_area",
 }
 #: TreeQSM 2.4's reconstruction inputs (``rundata.inputs``): NaN, as no reconstruction made the tree
-TREEQSM_INPUTS = ("PatchDiam1", "PatchDiam2Min", "PatchDiam2Max", "BallRad1", "BallRad2", "nmin1", "nmin2",
-                  "OnlyTree", "Tria", "Dist", "MinCylRad", "ParentCor", "TaperCor", "GrowthVolCor",
-                  "GrowthVolFac")
+TREEQSM_INPUTS = (
+    "PatchDiam1",
+    "PatchDiam2Min",
+    "PatchDiam2Max",
+    "BallRad1",
+    "BallRad2",
+    "nmin1",
+    "nmin2",
+    "OnlyTree",
+    "Tria",
+    "Dist",
+    "MinCylRad",
+    "ParentCor",
+    "TaperCor",
+    "GrowthVolCor",
+    "GrowthVolFac",
+)
 TREEQSM_FILTER_INPUTS = ("k", "radius", "nsigma", "PatchDiam1", "BallRad1", "ncomp", "EdgeLength", "plot")
 PMDISTANCE_FIELDS = ("CylDist", "median", "mean", "max", "std") + tuple(
-    f"{p}{s}" for p in ("Trunk", "Branch", "Branch1", "Branch2") for s in ("Median", "Mean", "Max", "Std"))
+    f"{p}{s}" for p in ("Trunk", "Branch", "Branch1", "Branch2") for s in ("Median", "Mean", "Max", "Std")
+)
 
 
 def _uint(a) -> np.ndarray:
     """Non-negative integers as a column in the smallest unsigned class TreeQSM uses."""
     a = np.asarray(a).reshape(-1, 1)
     top = int(a.max()) if a.size else 0
-    dt = np.uint8 if top < 2 ** 8 else np.uint16 if top < 2 ** 16 else np.uint32
+    dt = np.uint8 if top < 2**8 else np.uint16 if top < 2**16 else np.uint32
     return a.astype(dt)
 
 
@@ -333,24 +483,45 @@ def treeqsm_struct(tree, provenance: Optional[dict] = None) -> dict:
     metadata: model, parameters, seed, source file) and the Bayes Forest version.
     """
     from bforest_core import __version__
-    from bforest_core.attributes import branch_table as btab, crown_points, crown_spreads
-    from bforest_core.attributes import distributions, stem_taper, tree_attributes
+    from bforest_core.attributes import branch_table as btab
+    from bforest_core.attributes import crown_points, crown_spreads, distributions, stem_taper, tree_attributes
+
     c = treeqsm_columns(tree)
     n = tree.n
     cyl = {}
-    for k in ("radius", "length", "start", "axis", "parent", "extension", "added", "UnmodRadius", "branch",
-              "SurfCov", "mad", "BranchOrder", "PositionInBranch"):
+    for k in (
+        "radius",
+        "length",
+        "start",
+        "axis",
+        "parent",
+        "extension",
+        "added",
+        "UnmodRadius",
+        "branch",
+        "SurfCov",
+        "mad",
+        "BranchOrder",
+        "PositionInBranch",
+    ):
         v = np.asarray(c[k])
         if k in ("parent", "extension", "added", "branch", "BranchOrder", "PositionInBranch"):
             cyl[k] = _uint(v)
         else:
             cyl[k] = np.ascontiguousarray(np.asarray(v, dtype=np.float64).reshape(n, -1))
     b = btab(tree)
-    branch = {"order": _uint(b["order"]), "parent": _uint(_one_based(b["parent"])),
-              "diameter": _col(b["diameter"], np.float32), "volume": _col(1000.0 * b["volume"], np.float32),
-              "area": _col(b["area"], np.float32), "length": _col(b["length"], np.float32),
-              "angle": _col(b["angle"], np.float32), "height": _col(b["height"], np.float32),
-              "azimuth": _col(b["azimuth"], np.float32), "zenith": _col(b["zenith"], np.float32)}
+    branch = {
+        "order": _uint(b["order"]),
+        "parent": _uint(_one_based(b["parent"])),
+        "diameter": _col(b["diameter"], np.float32),
+        "volume": _col(1000.0 * b["volume"], np.float32),
+        "area": _col(b["area"], np.float32),
+        "length": _col(b["length"], np.float32),
+        "angle": _col(b["angle"], np.float32),
+        "height": _col(b["height"], np.float32),
+        "azimuth": _col(b["azimuth"], np.float32),
+        "zenith": _col(b["zenith"], np.float32),
+    }
     P = crown_points(tree)
     att = tree_attributes(tree, P)
     spreads = crown_spreads(tree, P)
@@ -381,8 +552,7 @@ def treeqsm_struct(tree, provenance: Optional[dict] = None) -> dict:
         if v is None:
             continue
         if k in ("params", "fixed") and isinstance(v, dict):
-            bf[k] = {str(p): (float(x) if isinstance(x, (int, float, np.number)) else str(x))
-                            for p, x in v.items()}
+            bf[k] = {str(p): (float(x) if isinstance(x, (int, float, np.number)) else str(x)) for p, x in v.items()}
         elif isinstance(v, (int, float, np.number)) and not isinstance(v, bool):
             bf[k] = float(v)
         else:
@@ -391,21 +561,36 @@ def treeqsm_struct(tree, provenance: Optional[dict] = None) -> dict:
     inputs = {k: np.array([[np.nan]]) for k in TREEQSM_INPUTS}
     inputs["filter"] = {k: np.array([[np.nan]]) for k in TREEQSM_FILTER_INPUTS}
     inputs.update(name=name, tree=1.0, model=1.0, savemat=0.0, savetxt=0.0, plot=0.0, disp=0.0, metric="")
-    rundata = {"inputs": inputs,
-               "time": np.zeros((12, 1), np.float32), "date": np.zeros((2, 6), np.float32),
-               "version": f"bforest {__version__} (TreeQSM 2.4.1 layout)", "bforest": bf}
+    rundata = {
+        "inputs": inputs,
+        "time": np.zeros((12, 1), np.float32),
+        "date": np.zeros((2, 6), np.float32),
+        "version": f"bforest {__version__} (TreeQSM 2.4.1 layout)",
+        "bforest": bf,
+    }
     nan = np.float64("nan")
     pmd = {k: (np.full((n, 1), np.nan, np.float32) if k == "CylDist" else np.array([[nan]])) for k in PMDISTANCE_FIELDS}
     tri = {"vert": np.zeros((0, 3)), "facet": np.zeros((0, 3)), "fvd": np.zeros((0, 1))}
-    tri.update({k: np.array([[0.0]]) for k in ("volume", "SideArea", "BottomArea", "TopArea", "bottom", "top",
-                                                "triah", "triaw", "cylind")})
-    return {"cylinder": cyl, "branch": branch, "treedata": td, "rundata": rundata, "pmdistance": pmd,
-            "triangulation": tri}
+    tri.update(
+        {
+            k: np.array([[0.0]])
+            for k in ("volume", "SideArea", "BottomArea", "TopArea", "bottom", "top", "triah", "triaw", "cylind")
+        }
+    )
+    return {
+        "cylinder": cyl,
+        "branch": branch,
+        "treedata": td,
+        "rundata": rundata,
+        "pmdistance": pmd,
+        "triangulation": tri,
+    }
 
 
 def _now_iso() -> str:
     import datetime
-    return datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0).isoformat()
+
+    return datetime.datetime.now(datetime.UTC).replace(microsecond=0).isoformat()
 
 
 class TreeQSMMatWriter(QSMWriter):
@@ -422,16 +607,17 @@ class TreeQSMMatWriter(QSMWriter):
 
     def write(self, tree, path, **options) -> Path:
         import scipy.io as sio
+
         o = _options(self, options)
         path = Path(path)
-        sio.savemat(str(path), {o.variable: treeqsm_struct(tree)}, do_compression=True,
-                    oned_as="column")
+        sio.savemat(str(path), {o.variable: treeqsm_struct(tree)}, do_compression=True, oned_as="column")
         return path
 
 
 # ------------------------------------------------------------------------------------------
 # meshes
 # ------------------------------------------------------------------------------------------
+
 
 class MeshSettings(ComponentSettings):
     #: sides of each prism (>= 3)
@@ -446,8 +632,7 @@ class MeshSettings(ComponentSettings):
     translate_to_base: bool = False
 
 
-def cylinder_mesh(tree, sides: int = 12, caps: bool = True, min_radius: float = 0.0,
-                  translate_to_base: bool = False):
+def cylinder_mesh(tree, sides: int = 12, caps: bool = True, min_radius: float = 0.0, translate_to_base: bool = False):
     """Triangle mesh of every cylinder as a ``sides``-sided prism (docs/qsm-formats.md §9).
 
     Frame: u = normalise(a x e) with e the coordinate axis least aligned with a, w = a x u; ring
@@ -481,7 +666,7 @@ def cylinder_mesh(tree, sides: int = 12, caps: bool = True, min_radius: float = 
     local = [side]
     if caps and k >= 3:
         m = np.arange(1, k - 1)
-        local.append(np.stack([np.full(k - 2, k), k + m, k + m + 1], axis=1))   # top, normal +a
+        local.append(np.stack([np.full(k - 2, k), k + m, k + m + 1], axis=1))  # top, normal +a
         local.append(np.stack([np.zeros(k - 2, dtype=np.int64), m + 1, m], axis=1))  # bottom, -a
     local = np.concatenate(local).astype(np.int64)
     base = (np.arange(n, dtype=np.int64) * 2 * k)[:, None, None]
@@ -490,9 +675,21 @@ def cylinder_mesh(tree, sides: int = 12, caps: bool = True, min_radius: float = 
     return vertices, faces, face_cyl
 
 
-ORDER_PALETTE = np.array([[120, 72, 38], [214, 140, 45], [235, 200, 60], [120, 190, 70], [40, 150, 110],
-                          [50, 120, 200], [120, 80, 200], [200, 70, 160], [220, 60, 60], [140, 140, 140]],
-                         dtype=np.uint8)
+ORDER_PALETTE = np.array(
+    [
+        [120, 72, 38],
+        [214, 140, 45],
+        [235, 200, 60],
+        [120, 190, 70],
+        [40, 150, 110],
+        [50, 120, 200],
+        [120, 80, 200],
+        [200, 70, 160],
+        [220, 60, 60],
+        [140, 140, 140],
+    ],
+    dtype=np.uint8,
+)
 
 
 def _hsv_to_rgb(h, s, v):
@@ -546,14 +743,23 @@ class PLYWriter(QSMWriter):
         col = np.repeat(cylinder_colors(tree, o.color_by), 2 * o.sides, axis=0)
         big = np.abs(v).max() > 1e4 if v.size else False
         ftype = "double" if big else "float"
-        header = ["ply", f"format {'ascii' if o.ascii else 'binary_little_endian'} 1.0",
-                  f"comment Bayes Forest cylinder mesh: {tree.n} cylinders, {o.sides} sides, "
-                  f"caps {'on' if o.caps else 'off'}, colour by {o.color_by}",
-                  "comment " + provenance_line(tree),
-                  f"element vertex {v.shape[0]}",
-                  f"property {ftype} x", f"property {ftype} y", f"property {ftype} z",
-                  "property uchar red", "property uchar green", "property uchar blue",
-                  f"element face {f.shape[0]}", "property list uchar int vertex_indices", "end_header"]
+        header = [
+            "ply",
+            f"format {'ascii' if o.ascii else 'binary_little_endian'} 1.0",
+            f"comment Bayes Forest cylinder mesh: {tree.n} cylinders, {o.sides} sides, "
+            f"caps {'on' if o.caps else 'off'}, colour by {o.color_by}",
+            "comment " + provenance_line(tree),
+            f"element vertex {v.shape[0]}",
+            f"property {ftype} x",
+            f"property {ftype} y",
+            f"property {ftype} z",
+            "property uchar red",
+            "property uchar green",
+            "property uchar blue",
+            f"element face {f.shape[0]}",
+            "property list uchar int vertex_indices",
+            "end_header",
+        ]
         with open(path, "wb") as fh:
             fh.write(("\n".join(header) + "\n").encode("ascii"))
             if o.ascii:
@@ -563,8 +769,9 @@ class PLYWriter(QSMWriter):
                 fh.write(format_rows(ft, ["%d"] * 4, sep=" ").encode("ascii"))
             else:
                 fdt = "<f8" if big else "<f4"
-                vrec = np.empty(v.shape[0], dtype=[("x", fdt), ("y", fdt), ("z", fdt),
-                                                   ("r", "u1"), ("g", "u1"), ("b", "u1")])
+                vrec = np.empty(
+                    v.shape[0], dtype=[("x", fdt), ("y", fdt), ("z", fdt), ("r", "u1"), ("g", "u1"), ("b", "u1")]
+                )
                 vrec["x"], vrec["y"], vrec["z"] = v[:, 0], v[:, 1], v[:, 2]
                 vrec["r"], vrec["g"], vrec["b"] = col[:, 0], col[:, 1], col[:, 2]
                 frec = np.empty(f.shape[0], dtype=[("n", "u1"), ("i", "<i4", (3,))])

@@ -6,6 +6,7 @@ trunk cylinder bearing one lateral of ``lateral_len`` m at ``angle`` degrees (wi
 ToyFeatures gives one table per tree: [angle of each lateral to the vertical, lateral length].
 ToyDistance is the absolute difference of column means (cheap, exact, known answers).
 """
+
 from __future__ import annotations
 
 import time
@@ -39,10 +40,12 @@ class ToySSM(SSM):
 
     @property
     def parameters(self):
-        return [ParameterSpec("angle", 45.0, 0.0, 90.0, unit="deg", description="lateral angle"),
-                ParameterSpec("segments", 10, 2, 40, integer=True, description="trunk cylinders"),
-                ParameterSpec("lateral_len", 0.5, 0.05, 3.0, unit="m"),
-                ParameterSpec("noise", 2.0, 0.0, 20.0, unit="deg")]
+        return [
+            ParameterSpec("angle", 45.0, 0.0, 90.0, unit="deg", description="lateral angle"),
+            ParameterSpec("segments", 10, 2, 40, integer=True, description="trunk cylinders"),
+            ParameterSpec("lateral_len", 0.5, 0.05, 3.0, unit="m"),
+            ParameterSpec("noise", 2.0, 0.0, 20.0, unit="deg"),
+        ]
 
     def simulate(self, params, seed):
         p = self.resolve_params(params)
@@ -63,8 +66,15 @@ class ToySSM(SSM):
         radius = np.r_[np.linspace(0.2, 0.05, n), np.full(n, 0.02)]
         parent = np.r_[-1, np.arange(n - 1), np.arange(n)]
         ext = np.r_[np.arange(1, n), -1, np.full(n, -1)]
-        return Tree(start, axis, length, radius, parent, ext,
-                    metadata={"model": "toy", "params": p, "seed": seed, "status": "ok"})
+        return Tree(
+            start,
+            axis,
+            length,
+            radius,
+            parent,
+            ext,
+            metadata={"model": "toy", "params": p, "seed": seed, "status": "ok"},
+        )
 
 
 class ToyFeatureSettings(ComponentSettings):
@@ -125,11 +135,18 @@ class ToyRandomSearch(Optimizer):
         for b in range(self.settings.batches):
             X = lo + (hi - lo) * rng.random((self.settings.batch, problem.dim))
             f = problem.evaluate(X)
-            problem.log({"generation": b, "best": float(problem.best_f), "mean": float(np.mean(f[np.isfinite(f)])) if np.isfinite(f).any() else None})
+            problem.log(
+                {
+                    "generation": b,
+                    "best": float(problem.best_f),
+                    "mean": float(np.mean(f[np.isfinite(f)])) if np.isfinite(f).any() else None,
+                }
+            )
             if problem.stopped:
                 break
-        return OptimizeResult(x=problem.best_x, fun=problem.best_f, n_evaluations=problem.n_evaluations,
-                              stop_reason=problem.stop_reason)
+        return OptimizeResult(
+            x=problem.best_x, fun=problem.best_f, n_evaluations=problem.n_evaluations, stop_reason=problem.stop_reason
+        )
 
 
 @hookimpl

@@ -1,2 +1,3 @@
 import sys
+
 sys.exit()  # a plugin that ends the process when imported (tests: discovery survives it)

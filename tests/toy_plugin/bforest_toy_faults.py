@@ -5,6 +5,7 @@ whose angle lies above ``fault_above``, in the way ``fault`` names: ``exit`` (sy
 ``own`` (an exception class of its own), ``none`` (returns None), ``unpicklable`` (an exception
 that cannot be pickled) or ``c-block`` (blocks in C holding the interpreter lock, deaf to alarms).
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -14,10 +15,10 @@ import sys
 from pathlib import Path
 from typing import Literal
 
+from bforest_toy import ToySSM, ToySSMSettings
 from pydantic import Field
 
 from bforest_core.hookspecs import hookimpl
-from bforest_toy import ToySSM, ToySSMSettings
 
 FAULTS = ("exit", "abort", "segv", "attribute", "own", "none", "unpicklable", "c-block")
 

@@ -6,6 +6,7 @@ ratio is the cost of the rewriting + turtle + pipe model on top of the core tree
 
     python docs/examples/bforest-example-ssm/benchmarks/bench_lsystem.py
 """
+
 import time
 
 import numpy as np

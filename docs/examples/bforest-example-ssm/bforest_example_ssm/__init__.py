@@ -1,4 +1,5 @@
 """bforest-example-ssm: an example third-party Bayes Forest plugin (a stochastic L-system SSM)."""
+
 from .model import PARAMETERS, LSystemSettings, LSystemSSM, grow
 
 __all__ = ["LSystemSSM", "LSystemSettings", "PARAMETERS", "grow"]

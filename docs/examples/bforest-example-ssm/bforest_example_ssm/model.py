@@ -21,9 +21,10 @@ The string is never materialised: every step rewrites all apices at once as nump
 (position, heading, roll reference, order, mother row), so the only Python loop is over the
 ``iterations`` rewriting steps.
 """
+
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 from pydantic import Field
@@ -37,42 +38,115 @@ _DEG = np.pi / 180.0
 _UP = np.array([0.0, 0.0, 1.0])
 
 PARAMETERS: tuple[ParameterSpec, ...] = (
-    ParameterSpec("iterations", 6, 1, 10, integer=True, unit="",
-                  description="rewriting steps; every apex grows one internode per step", group="growth"),
-    ParameterSpec("internode_length", 0.4, 0.05, 1.5, unit="m",
-                  description="internode length of the trunk (order 0)", group="growth"),
-    ParameterSpec("length_decay", 0.65, 0.3, 1.0, unit="",
-                  description="internode length factor per branch order", group="growth"),
-    ParameterSpec("branch_angle", 50.0, 10.0, 90.0, unit="deg",
-                  description="angle between a lateral and its mother axis", group="geometry"),
-    ParameterSpec("divergence", 137.5, 0.0, 180.0, unit="deg",
-                  description="roll of the apex between successive whorls (phyllotaxis)", group="geometry"),
-    ParameterSpec("bare_steps", 1, 0, 5, integer=True, unit="",
-                  description="first rewriting steps in which the trunk makes no whorl (clear bole)",
-                  group="branching"),
-    ParameterSpec("whorl_size", 3, 1, 6, integer=True, unit="",
-                  description="lateral buds per whorl", group="branching"),
-    ParameterSpec("lateral_prob", 0.8, 0.0, 1.0, unit="",
-                  description="probability that a lateral bud grows (stochastic branching)", group="branching"),
-    ParameterSpec("max_order", 3, 1, 4, integer=True, unit="",
-                  description="highest branch order that is produced", group="branching"),
-    ParameterSpec("angle_sd", 4.0, 0.0, 30.0, unit="deg",
-                  description="sd of the random deviation of headings and branch angles", group="geometry"),
-    ParameterSpec("tropism", 0.25, -0.5, 0.5, unit="",
-                  description="pull of every internode towards the vertical (negative: drooping)",
-                  group="geometry"),
-    ParameterSpec("tip_radius", 0.004, 0.001, 0.02, unit="m",
-                  description="radius of a shoot tip", group="radius"),
-    ParameterSpec("pipe_exponent", 2.5, 1.5, 3.5, unit="",
-                  description="pipe-model exponent e: r**e = sum of the children's r**e", group="radius"),
+    ParameterSpec(
+        "iterations",
+        6,
+        1,
+        10,
+        integer=True,
+        unit="",
+        description="rewriting steps; every apex grows one internode per step",
+        group="growth",
+    ),
+    ParameterSpec(
+        "internode_length",
+        0.4,
+        0.05,
+        1.5,
+        unit="m",
+        description="internode length of the trunk (order 0)",
+        group="growth",
+    ),
+    ParameterSpec(
+        "length_decay", 0.65, 0.3, 1.0, unit="", description="internode length factor per branch order", group="growth"
+    ),
+    ParameterSpec(
+        "branch_angle",
+        50.0,
+        10.0,
+        90.0,
+        unit="deg",
+        description="angle between a lateral and its mother axis",
+        group="geometry",
+    ),
+    ParameterSpec(
+        "divergence",
+        137.5,
+        0.0,
+        180.0,
+        unit="deg",
+        description="roll of the apex between successive whorls (phyllotaxis)",
+        group="geometry",
+    ),
+    ParameterSpec(
+        "bare_steps",
+        1,
+        0,
+        5,
+        integer=True,
+        unit="",
+        description="first rewriting steps in which the trunk makes no whorl (clear bole)",
+        group="branching",
+    ),
+    ParameterSpec(
+        "whorl_size", 3, 1, 6, integer=True, unit="", description="lateral buds per whorl", group="branching"
+    ),
+    ParameterSpec(
+        "lateral_prob",
+        0.8,
+        0.0,
+        1.0,
+        unit="",
+        description="probability that a lateral bud grows (stochastic branching)",
+        group="branching",
+    ),
+    ParameterSpec(
+        "max_order",
+        3,
+        1,
+        4,
+        integer=True,
+        unit="",
+        description="highest branch order that is produced",
+        group="branching",
+    ),
+    ParameterSpec(
+        "angle_sd",
+        4.0,
+        0.0,
+        30.0,
+        unit="deg",
+        description="sd of the random deviation of headings and branch angles",
+        group="geometry",
+    ),
+    ParameterSpec(
+        "tropism",
+        0.25,
+        -0.5,
+        0.5,
+        unit="",
+        description="pull of every internode towards the vertical (negative: drooping)",
+        group="geometry",
+    ),
+    ParameterSpec("tip_radius", 0.004, 0.001, 0.02, unit="m", description="radius of a shoot tip", group="radius"),
+    ParameterSpec(
+        "pipe_exponent",
+        2.5,
+        1.5,
+        3.5,
+        unit="",
+        description="pipe-model exponent e: r**e = sum of the children's r**e",
+        group="radius",
+    ),
 )
 
 
 class LSystemSettings(ComponentSettings):
     """Settings of the L-system model (not fitted; set in the ``[ssm]`` section)."""
 
-    max_segments: int = Field(20000, ge=1, description="cap on the number of internodes; larger trees "
-                                                      "fail with status 'too_many_segments'")
+    max_segments: int = Field(
+        20000, ge=1, description="cap on the number of internodes; larger trees fail with status 'too_many_segments'"
+    )
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -132,8 +206,8 @@ def grow(p: Mapping[str, float], rng: np.random.Generator, max_segments: int = 2
     head = _UP[None, :].copy()
     left = np.array([[1.0, 0.0, 0.0]])
     order = np.zeros(1, dtype=np.int64)
-    mother = np.full(1, -1, dtype=np.int64)     # row of the internode the apex sits on
-    cont = np.zeros(1, dtype=bool)              # apex continues its mother's axis (extension)
+    mother = np.full(1, -1, dtype=np.int64)  # row of the internode the apex sits on
+    cont = np.zeros(1, dtype=bool)  # apex continues its mother's axis (extension)
     phase = rng.uniform(0.0, 2 * np.pi, 1)
     chunks = []
     n = 0
@@ -141,9 +215,10 @@ def grow(p: Mapping[str, float], rng: np.random.Generator, max_segments: int = 2
     for it in range(n_iter):
         m = order.shape[0]
         if n + m > max_segments:
-            raise SimulationFailed("too_many_segments",
-                                   f"step {it + 1} of {n_iter} would make {n + m} internodes "
-                                   f"(max_segments = {max_segments})")
+            raise SimulationFailed(
+                "too_many_segments",
+                f"step {it + 1} of {n_iter} would make {n + m} internodes (max_segments = {max_segments})",
+            )
         # random deviation of the heading, then tropism towards the vertical
         dev = np.clip(rng.normal(0.0, 1.0, m) * sd, -80 * _DEG, 80 * _DEG)
         turn = rng.uniform(0.0, 2 * np.pi, m)
@@ -151,7 +226,7 @@ def grow(p: Mapping[str, float], rng: np.random.Generator, max_segments: int = 2
         head = _unit(head + np.tan(dev)[:, None] * side)
         head = _unit(head + trop * _UP)
         left = _perpendicular(head, left)
-        length = l0 * decay ** order
+        length = l0 * decay**order
         rows = n + np.arange(m)
         end = pos + head * length[:, None]
         chunks.append((pos, head, length, mother, cont, order))
@@ -170,8 +245,7 @@ def grow(p: Mapping[str, float], rng: np.random.Generator, max_segments: int = 2
                 h, l = head[ii], left[ii]
                 d = np.cos(b) * h + np.sin(b) * (np.cos(psi) * l + np.sin(psi) * np.cross(h, l))
                 d = _unit(d)
-                lat = (end[ii], d, _perpendicular(d, h), order[ii] + 1, rows[ii],
-                       rng.uniform(0.0, 2 * np.pi, ii.size))
+                lat = (end[ii], d, _perpendicular(d, h), order[ii] + 1, rows[ii], rng.uniform(0.0, 2 * np.pi, ii.size))
         # the continuing apices (rolled by the divergence angle), then the new laterals
         pos, mother, cont, phase = end, rows, np.ones(m, dtype=bool), phase + div
         if lat is not None:
@@ -191,8 +265,7 @@ def grow(p: Mapping[str, float], rng: np.random.Generator, max_segments: int = 2
     n_children = np.bincount(parent[1:], minlength=n)
     tips = subtree_sum(parent, (n_children == 0).astype(np.float64))
     radius = float(p["tip_radius"]) * tips ** (1.0 / float(p["pipe_exponent"]))
-    return dict(start=start, axis=axis, length=length, radius=radius, parent=parent,
-                extension=extension, order=order)
+    return dict(start=start, axis=axis, length=length, radius=radius, parent=parent, extension=extension, order=order)
 
 
 class LSystemSSM(SSM):
@@ -239,6 +312,19 @@ class LSystemSSM(SSM):
         p = self.resolve_params(params)
         rng = np.random.default_rng(seed)
         a = grow(p, rng, self.settings.max_segments)
-        return Tree(a["start"], a["axis"], a["length"], a["radius"], a["parent"], a["extension"],
-                    metadata={"model": self.name, "params": p, "seed": int(seed), "status": "ok",
-                              "n_segments": int(a["length"].shape[0]), "units": "m"})
+        return Tree(
+            a["start"],
+            a["axis"],
+            a["length"],
+            a["radius"],
+            a["parent"],
+            a["extension"],
+            metadata={
+                "model": self.name,
+                "params": p,
+                "seed": int(seed),
+                "status": "ok",
+                "n_segments": int(a["length"].shape[0]),
+                "units": "m",
+            },
+        )

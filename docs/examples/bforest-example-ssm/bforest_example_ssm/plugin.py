@@ -2,6 +2,7 @@
 
 Bayes Forest imports this module at discovery and calls its ``bforest_components`` hook.
 """
+
 from bforest_core.hookspecs import hookimpl
 
 from .model import LSystemSSM

@@ -3,6 +3,7 @@ conformance kit plus a few known answers of the model.
 
 Run with ``pytest docs/examples/bforest-example-ssm/tests`` (after installing the plugin).
 """
+
 import numpy as np
 import pytest
 
@@ -11,8 +12,9 @@ from bforest_example_ssm import LSystemSSM
 
 
 # one pytest test per conformance check: a failure names the check
-@pytest.mark.parametrize("check", ssm_checks(LSystemSSM, params={"iterations": 5},
-                                             registered="bforest-example-ssm"), ids=str)
+@pytest.mark.parametrize(
+    "check", ssm_checks(LSystemSSM, params={"iterations": 5}, registered="bforest-example-ssm"), ids=str
+)
 def test_conformance(check):
     check()
 

@@ -1,4 +1,4 @@
-"""Benchmark of the QSM readers (plugin bforest_treeqsm).
+"""Benchmark of the QSM readers (plugins bforest_treeqsm and bforest_formats).
 
 Prints the time to read every sample in ../shared/data/qsm (the largest first) and a synthetic
 100 000-cylinder TreeQSM text file (17 columns + header, written to a temp dir with the plugin's
@@ -80,7 +80,7 @@ def main(argv=None) -> None:
     a = ap.parse_args(argv)
 
     bf.discover()  # plugin loading is not part of the timings
-    print(f"bforest_treeqsm reader benchmark (best of {a.repeat})")
+    print(f"QSM reader benchmark (best of {a.repeat})")
     if a.data.is_dir():
         files = sorted(a.data.iterdir(), key=lambda p: -p.stat().st_size)
         for p in files:

@@ -7,9 +7,6 @@ Public names (see docs/architecture.md)::
     ssm = bf.component("ssm", "sot"); t = ssm.simulate({}, seed=1)
 """
 
-from importlib.metadata import PackageNotFoundError
-from importlib.metadata import version as _version
-
 from .config import load_config
 from .errors import BayesForestError, ConfigError, PluginError, QSMFormatError, SimulationFailed, TreeError
 from .interfaces import (
@@ -33,13 +30,9 @@ from .pipeline.clones import clones
 
 # binding the functions after importing their modules keeps `bf.fit`/`bf.clones` callable
 from .pipeline.fit import fit
+from .provenance import __version__
 from .registry import component, component_class, discover
 from .tree import TOPOLOGY_RULES, BranchTable, Tree
-
-try:
-    __version__ = _version("bayesforest")
-except PackageNotFoundError:  # running from a source tree
-    __version__ = "0.0.0+local"
 
 
 def __getattr__(name):

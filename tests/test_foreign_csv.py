@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import bforest_core as bf
-from bforest_treeqsm.foreign_csv import segments, stem_branch_id
+from bforest_formats.foreign_csv import segments, stem_branch_id
 from conftest import hand_tree, qsm_path, read_sample
 
 

@@ -1,4 +1,4 @@
-"""QSM readers (plugin bforest_treeqsm) on the real samples and on small hand-made bad files.
+"""QSM readers (plugins bforest_treeqsm and bforest_formats) on the real samples and on small hand-made bad files.
 
 Known numbers come from docs/qsm-formats.md (the sample files of §11 and the formats; cylinder
 counts, branch counts, heights) or are read independently from the raw file in the test.
@@ -14,9 +14,8 @@ import numpy as np
 import pytest
 
 import bforest_core as bf
-from bforest_core import QSMFormatError, Tree
-from bforest_treeqsm import raw_cylinders
-from bforest_treeqsm.raw_cylinders import QSMReadWarning
+from bforest_core import QSMFormatError, Tree, cylinders
+from bforest_core.cylinders import QSMReadWarning
 from conftest import hand_tree, qsm_path
 
 
@@ -571,8 +570,8 @@ def test_invalid_options_are_config_errors():
 def test_ids_helper_rejects_wraparound_and_reports_range():
     v = np.array([0, 1, 2, 9], dtype=np.uint8)
     with pytest.raises(QSMFormatError, match=r"parent 9 at row 4 is outside 1\.\.\.4 \(0 = none\)"):
-        raw_cylinders.ids_to_rows("f.mat", "parent", v, 4, 1)
-    out = raw_cylinders.ids_to_rows("f.mat", "parent", v[:3], 3, 1)
+        cylinders.ids_to_rows("f.mat", "parent", v, 4, 1)
+    out = cylinders.ids_to_rows("f.mat", "parent", v[:3], 3, 1)
     assert out.dtype == np.int64 and out.tolist() == [-1, 0, 1]
 
 

@@ -1,4 +1,4 @@
-"""Writers of the bforest_treeqsm plugin: TreeQSM text, native CSV + JSON, .mat, PLY, OBJ.
+"""Writers of the bforest_treeqsm and bforest_formats plugins: TreeQSM text, native CSV + JSON, .mat, PLY, OBJ.
 
 Round trips: written and read back, a tree is the same to the written precision.
 """
@@ -13,7 +13,8 @@ import pytest
 
 import bforest_core as bf
 from bforest_core import QSMFormatError
-from bforest_treeqsm.writers import ORDER_PALETTE, branch_table, cylinder_mesh
+from bforest_formats.writers import ORDER_PALETTE, cylinder_mesh
+from bforest_treeqsm.writers import branch_table
 from conftest import hand_tree, qsm_path
 
 ROUND_TRIP_SAMPLES = [

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import bforest_core as bf
-from bforest_treeqsm.scan import scan_points
+from bforest_formats.scan import scan_points
 from conftest import hand_tree, read_sample
 
 

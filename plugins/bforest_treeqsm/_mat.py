@@ -10,9 +10,7 @@ from typing import Optional
 
 import numpy as np
 
-from bforest_core.errors import QSMFormatError
-
-from .raw_cylinders import (
+from bforest_core.cylinders import (
     BaseReader,
     RawCylinders,
     ReaderSettings,
@@ -23,8 +21,9 @@ from .raw_cylinders import (
     select_models,
     sniff_safely,
 )
+from bforest_core.errors import QSMFormatError
+from bforest_core.tables import mat_kind
 
-HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 STRUCT_NAMES = ("qsm", "QSM", "OptQSM", "QSMs")
 FLAT_NAMES = ("Rad", "Len", "Sta", "Axe", "CPar")
 NON_NUMERIC = {"struct", "cell", "char", "function_handle", "object", "opaque", "sparse", "?"}
@@ -33,20 +32,6 @@ NON_NUMERIC = {"struct", "cell", "char", "function_handle", "object", "opaque", 
 # ------------------------------------------------------------------------------------------
 # container level
 # ------------------------------------------------------------------------------------------
-
-
-def mat_kind(head: bytes) -> Optional[str]:
-    """``"v5"``, ``"hdf5"`` or ``None`` from the first bytes of a file."""
-    if head[:8] == HDF5_MAGIC or head[512:520] == HDF5_MAGIC:
-        return "hdf5"
-    if len(head) >= 128 and head[126:128] in (b"IM", b"MI"):
-        ver = head[124:126]
-        return "hdf5" if ver in (b"\x00\x02", b"\x02\x00") else "v5"
-    if head.startswith(b"MATLAB 7.3"):
-        return "hdf5"
-    if head.startswith(b"MATLAB 5.0"):
-        return "v5"
-    return None
 
 
 def describe_non_mat(head: bytes) -> str:

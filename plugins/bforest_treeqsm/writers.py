@@ -1,43 +1,26 @@
-"""Writers for ``bf.write_tree`` (docs/qsm-formats.md §9): TreeQSM text, native CSV + JSON sidecar, TreeQSM
-``.mat`` struct, PLY and OBJ cylinder meshes.
+"""TreeQSM writers for ``bf.write_tree`` (docs/qsm-formats.md §9): TreeQSM cylinder text (and its
+branch file) and the TreeQSM 2.4 ``.mat`` struct.
 
-Text output is produced by one ``%`` formatting of a repeated row template over the flattened
-table (no Python loop over cylinders).
+Text output is assembled by :func:`bforest_core.tables.format_columns` (no Python loop over
+cylinders).
 """
 
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Literal, Optional
 
 import numpy as np
-from pydantic import Field, ValidationError
+from pydantic import Field
 
-from bforest_core.errors import ConfigError, QSMFormatError
+from bforest_core.cylinders import resolve_options
+from bforest_core.errors import QSMFormatError
 from bforest_core.interfaces import ComponentSettings, QSMWriter
+from bforest_core.provenance import jsonable
+from bforest_core.tables import format_rows
 
-from ._text import NATIVE_COLUMNS, TREEQSM17_NAMES
-
-CSV_FORMAT_VERSION = 1
-
-
-def _options(writer, options) -> ComponentSettings:
-    try:
-        return writer.Settings(**{**writer.settings.model_dump(), **options})
-    except ValidationError as exc:
-        parts = [f"{'.'.join(str(x) for x in e.get('loc', ()))}: {e.get('msg')}" for e in exc.errors()]
-        raise ConfigError(f"qsm_writer '{writer.name}': invalid option(s): " + "; ".join(parts)) from None
-
-
-def format_rows(values: np.ndarray, formats: list[str], sep: str = "\t") -> str:
-    """Rows of ``values`` (n, k) formatted with one printf format per column, LF line ends."""
-    n = values.shape[0]
-    if n == 0:
-        return ""
-    row = sep.join(formats) + "\n"
-    return (row * n) % tuple(values.ravel().tolist())
+from ._text import TREEQSM17_NAMES
 
 
 def _extra(tree, name, default):
@@ -51,47 +34,6 @@ def _extra(tree, name, default):
 
 def _one_based(a: np.ndarray) -> np.ndarray:
     return np.where(a >= 0, a + 1, 0).astype(np.float64)
-
-
-def jsonable(obj, depth: int = 0):
-    """Metadata as plain JSON values (numpy scalars/arrays converted, unknown objects as str)."""
-    if depth > 8:
-        return str(obj)
-    if obj is None or isinstance(obj, (bool, int, str)):
-        return obj
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else str(obj)
-    if isinstance(obj, np.generic):
-        return jsonable(obj.item(), depth + 1)
-    if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist(), depth + 1)
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v, depth + 1) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [jsonable(v, depth + 1) for v in obj]
-    if isinstance(obj, Path):
-        return str(obj)
-    return str(obj)
-
-
-def provenance(tree, **extra) -> dict:
-    """Where a tree came from, for the file that holds it: the Bayes Forest version and, when the
-    tree's metadata has them, model, parameters, fixed parameters, seed, role, run folder and
-    source file (``extra`` adds e.g. scan settings). JSON-ready."""
-    from bforest_core import __version__
-
-    md = tree.metadata
-    out = {"software": f"Bayes Forest {__version__}"}
-    for k in ("model", "params", "fixed", "seed", "role", "run", "source"):
-        if md.get(k) is not None:
-            out[k] = jsonable(md[k])
-    out.update(jsonable(extra))
-    return out
-
-
-def provenance_line(tree, **extra) -> str:
-    """:func:`provenance` as one line of compact JSON (for PLY, OBJ and XYZ comments)."""
-    return "provenance " + json.dumps(provenance(tree, **extra), separators=(",", ":"), allow_nan=False)
 
 
 # ------------------------------------------------------------------------------------------
@@ -139,7 +81,7 @@ class TreeQSMTextWriter(QSMWriter):
     priority = 10
 
     def write(self, tree, path, **options) -> Path:
-        o = _options(self, options)
+        o = resolve_options(self, options)
         path = Path(path)
         c = treeqsm_columns(tree)
         fcols = ["radius", "length", "start", "axis", "mad", "SurfCov", "UnmodRadius"]
@@ -252,87 +194,6 @@ def write_branch_file(tree, path: Path) -> Path:
         fh.write("\t".join(BRANCH_NAMES) + "\n")
         fh.write(format_rows(t, ["%d", "%d"] + ["%.9g"] * 8))
     return path
-
-
-# ------------------------------------------------------------------------------------------
-# native CSV + JSON sidecar
-# ------------------------------------------------------------------------------------------
-
-
-class CSVSettings(ComponentSettings):
-    #: write ``<name>.json`` beside the CSV
-    sidecar: bool = True
-
-
-class CSVWriter(QSMWriter):
-    """Native CSV (docs/qsm-formats.md §9): named columns, 0-based ids, -1 = none, floats at ``repr``
-    precision (``%.17g``), plus 1-D numeric extras as further columns and, for a tree under a
-    non-source topology, its ``source_extension``; a JSON sidecar keeps format version, units,
-    topology rule, source, model, parameters and seed, and the ``provenance`` the other formats
-    write as a comment (with the Bayes Forest version). The CSV itself has no comment line, so
-    any CSV reader (pandas, R's ``read.csv``) takes its first line as the header. Read back it
-    gives the same tree."""
-
-    name = "bforest-csv"
-    summary = "Bayes Forest native cylinder CSV with a JSON sidecar"
-    suffixes = (".csv",)
-    Settings = CSVSettings
-    priority = 10
-
-    def write(self, tree, path, **options) -> Path:
-        o = _options(self, options)
-        path = Path(path)
-        n = tree.n
-        cols = [
-            np.arange(n),
-            tree.parent,
-            tree.extension,
-            tree.branch,
-            tree.order,
-            tree.position_in_branch,
-            tree.added.astype(np.int64),
-            tree.start,
-            tree.axis,
-            tree.length,
-            tree.radius,
-            tree.end,
-        ]
-        names = list(NATIVE_COLUMNS)
-        fmts = ["%d"] * 7 + ["%.17g"] * 11
-        src = tree.extras.get("_source_extension")
-        if tree.topology != "source" and src is not None and np.shape(src) == (n,):
-            cols.append(np.asarray(src))
-            names.append("source_extension")
-            fmts.append("%d")
-        for k, v in tree.extras.items():
-            v = np.asarray(v)
-            if k.startswith("_") or k in names or v.shape != (n,) or v.dtype.kind not in "iufb":
-                continue
-            if "," in k or "\n" in k:
-                continue
-            cols.append(v.astype(np.float64))
-            names.append(k)
-            fmts.append("%.17g")
-        table = np.hstack([np.asarray(c, dtype=np.float64).reshape(n, -1) for c in cols])
-        with open(path, "w", encoding="utf-8", newline="\n") as fh:
-            fh.write(",".join(names) + "\n")
-            fh.write(format_rows(table, fmts, sep=","))
-        if o.sidecar:
-            md = dict(tree.metadata)
-            side = {
-                "format": "bforest-csv",
-                "format_version": CSV_FORMAT_VERSION,
-                "units": "m",
-                "topology": tree.topology,
-                "source": md.get("source"),
-                "model": md.get("model"),
-                "params": md.get("params"),
-                "seed": md.get("seed"),
-                "provenance": provenance(tree),
-                "metadata": jsonable({k: v for k, v in md.items() if k not in ("topology",)}),
-            }
-            path.with_suffix(".json").write_text(json.dumps(side, indent=2, allow_nan=False), encoding="utf-8")
-        return path
 
 
 # ------------------------------------------------------------------------------------------
@@ -608,202 +469,7 @@ class TreeQSMMatWriter(QSMWriter):
     def write(self, tree, path, **options) -> Path:
         import scipy.io as sio
 
-        o = _options(self, options)
+        o = resolve_options(self, options)
         path = Path(path)
         sio.savemat(str(path), {o.variable: treeqsm_struct(tree)}, do_compression=True, oned_as="column")
-        return path
-
-
-# ------------------------------------------------------------------------------------------
-# meshes
-# ------------------------------------------------------------------------------------------
-
-
-class MeshSettings(ComponentSettings):
-    #: sides of each prism (>= 3)
-    sides: int = Field(default=12, ge=3, le=1024)
-    #: close both ends of every cylinder
-    caps: bool = True
-    #: per-vertex colour
-    color_by: Literal["order", "branch", "radius", "none"] = "order"
-    #: thinner cylinders are drawn with this radius (m)
-    min_radius: float = Field(default=0.0, ge=0.0)
-    #: move the tree so that the base (root start point) is at the origin
-    translate_to_base: bool = False
-
-
-def cylinder_mesh(tree, sides: int = 12, caps: bool = True, min_radius: float = 0.0, translate_to_base: bool = False):
-    """Triangle mesh of every cylinder as a ``sides``-sided prism (docs/qsm-formats.md §9).
-
-    Frame: u = normalise(a x e) with e the coordinate axis least aligned with a, w = a x u; ring
-    vertices s + r(u cos t + w sin t), top ring shifted by l a. Faces are counter-clockwise seen
-    from outside.
-
-    Returns
-    -------
-    vertices : (n * 2k, 3) float64
-    faces : (F, 3) int64, F = n * (2k + (2(k - 2) if caps))
-    face_cyl : (F,) int64
-        Cylinder of every face.
-    """
-    k = int(sides)
-    n = tree.n
-    a = np.asarray(tree.axis, dtype=np.float64)
-    e = np.eye(3)[np.argmin(np.abs(a), axis=1)]
-    u = np.cross(a, e)
-    u /= np.linalg.norm(u, axis=1)[:, None]
-    w = np.cross(a, u)
-    t = 2 * np.pi * np.arange(k) / k
-    r = np.maximum(tree.radius, min_radius)
-    s = tree.start - (tree.start[0] if translate_to_base else 0.0)
-    ring = r[:, None, None] * (u[:, None, :] * np.cos(t)[None, :, None] + w[:, None, :] * np.sin(t)[None, :, None])
-    bottom = s[:, None, :] + ring
-    top = bottom + (tree.length[:, None] * a)[:, None, :]
-    vertices = np.concatenate([bottom, top], axis=1).reshape(-1, 3)
-    j = np.arange(k)
-    j1 = (j + 1) % k
-    side = np.concatenate([np.stack([j, j1, k + j1], axis=1), np.stack([j, k + j1, k + j], axis=1)])
-    local = [side]
-    if caps and k >= 3:
-        m = np.arange(1, k - 1)
-        local.append(np.stack([np.full(k - 2, k), k + m, k + m + 1], axis=1))  # top, normal +a
-        local.append(np.stack([np.zeros(k - 2, dtype=np.int64), m + 1, m], axis=1))  # bottom, -a
-    local = np.concatenate(local).astype(np.int64)
-    base = (np.arange(n, dtype=np.int64) * 2 * k)[:, None, None]
-    faces = (base + local[None, :, :]).reshape(-1, 3)
-    face_cyl = np.repeat(np.arange(n, dtype=np.int64), local.shape[0])
-    return vertices, faces, face_cyl
-
-
-ORDER_PALETTE = np.array(
-    [
-        [120, 72, 38],
-        [214, 140, 45],
-        [235, 200, 60],
-        [120, 190, 70],
-        [40, 150, 110],
-        [50, 120, 200],
-        [120, 80, 200],
-        [200, 70, 160],
-        [220, 60, 60],
-        [140, 140, 140],
-    ],
-    dtype=np.uint8,
-)
-
-
-def _hsv_to_rgb(h, s, v):
-    i = np.floor(h * 6).astype(np.int64) % 6
-    f = h * 6 - np.floor(h * 6)
-    p, q, t = v * (1 - s), v * (1 - f * s), v * (1 - (1 - f) * s)
-    r = np.choose(i, [v, q, p, p, t, v])
-    g = np.choose(i, [t, v, v, q, p, p])
-    b = np.choose(i, [p, p, t, v, v, q])
-    return np.stack([r, g, b], axis=1)
-
-
-def cylinder_colors(tree, by: str) -> np.ndarray:
-    """(n, 3) uint8 colour of every cylinder: by order (fixed palette), branch (golden-ratio
-    hues) or radius (log-scaled ramp from brown to green)."""
-    n = tree.n
-    if by == "order":
-        return ORDER_PALETTE[np.asarray(tree.order) % len(ORDER_PALETTE)]
-    if by == "branch":
-        h = (np.asarray(tree.branch) * 0.618033988749895) % 1.0
-        return (_hsv_to_rgb(h, np.full(n, 0.65), np.full(n, 0.9)) * 255).round().astype(np.uint8)
-    if by == "radius":
-        lr = np.log(np.asarray(tree.radius))
-        span = lr.max() - lr.min()
-        x = (lr - lr.min()) / span if span > 0 else np.zeros(n)
-        lo, hi = np.array([110, 70, 40.0]), np.array([150, 220, 90.0])
-        return (hi[None, :] * (1 - x[:, None]) + lo[None, :] * x[:, None]).round().astype(np.uint8)
-    return np.full((n, 3), 200, dtype=np.uint8)
-
-
-class PLYSettings(MeshSettings):
-    #: ASCII instead of binary little-endian
-    ascii: bool = False
-
-
-class PLYWriter(QSMWriter):
-    """PLY cylinder mesh (binary little-endian by default, ``ascii=True`` option) with per-vertex
-    RGB colours (by order, branch or radius). Coordinates are float32, or float64 when they
-    exceed 1e4 m in magnitude (georeferenced trees)."""
-
-    name = "ply"
-    summary = "PLY cylinder mesh (binary LE or ASCII, RGB by order/branch/radius)"
-    suffixes = (".ply",)
-    Settings = PLYSettings
-    priority = 10
-
-    def write(self, tree, path, **options) -> Path:
-        o = _options(self, options)
-        path = Path(path)
-        v, f, _ = cylinder_mesh(tree, o.sides, o.caps, o.min_radius, o.translate_to_base)
-        col = np.repeat(cylinder_colors(tree, o.color_by), 2 * o.sides, axis=0)
-        big = np.abs(v).max() > 1e4 if v.size else False
-        ftype = "double" if big else "float"
-        header = [
-            "ply",
-            f"format {'ascii' if o.ascii else 'binary_little_endian'} 1.0",
-            f"comment Bayes Forest cylinder mesh: {tree.n} cylinders, {o.sides} sides, "
-            f"caps {'on' if o.caps else 'off'}, colour by {o.color_by}",
-            "comment " + provenance_line(tree),
-            f"element vertex {v.shape[0]}",
-            f"property {ftype} x",
-            f"property {ftype} y",
-            f"property {ftype} z",
-            "property uchar red",
-            "property uchar green",
-            "property uchar blue",
-            f"element face {f.shape[0]}",
-            "property list uchar int vertex_indices",
-            "end_header",
-        ]
-        with open(path, "wb") as fh:
-            fh.write(("\n".join(header) + "\n").encode("ascii"))
-            if o.ascii:
-                vt = np.hstack([v, col.astype(np.float64)])
-                fh.write(format_rows(vt, ["%.9g"] * 3 + ["%d"] * 3, sep=" ").encode("ascii"))
-                ft = np.hstack([np.full((f.shape[0], 1), 3.0), f.astype(np.float64)])
-                fh.write(format_rows(ft, ["%d"] * 4, sep=" ").encode("ascii"))
-            else:
-                fdt = "<f8" if big else "<f4"
-                vrec = np.empty(
-                    v.shape[0], dtype=[("x", fdt), ("y", fdt), ("z", fdt), ("r", "u1"), ("g", "u1"), ("b", "u1")]
-                )
-                vrec["x"], vrec["y"], vrec["z"] = v[:, 0], v[:, 1], v[:, 2]
-                vrec["r"], vrec["g"], vrec["b"] = col[:, 0], col[:, 1], col[:, 2]
-                frec = np.empty(f.shape[0], dtype=[("n", "u1"), ("i", "<i4", (3,))])
-                frec["n"] = 3
-                frec["i"] = f
-                fh.write(vrec.tobytes())
-                fh.write(frec.tobytes())
-        return path
-
-
-class OBJWriter(QSMWriter):
-    """Wavefront OBJ cylinder mesh with one group per branch order (``g order_<w>``)."""
-
-    name = "obj"
-    summary = "Wavefront OBJ cylinder mesh (one group per order)"
-    suffixes = (".obj",)
-    Settings = MeshSettings
-    priority = 10
-
-    def write(self, tree, path, **options) -> Path:
-        o = _options(self, options)
-        path = Path(path)
-        v, f, fc = cylinder_mesh(tree, o.sides, o.caps, o.min_radius, o.translate_to_base)
-        order = np.asarray(tree.order)[fc]
-        srt = np.argsort(order, kind="stable")
-        f, order = f[srt], order[srt]
-        with open(path, "w", encoding="ascii", newline="\n") as fh:
-            fh.write(f"# Bayes Forest cylinder mesh: {tree.n} cylinders, {o.sides} sides\n")
-            fh.write(f"# {provenance_line(tree)}\n")
-            fh.write(format_rows(v, ["v %.9g", "%.9g", "%.9g"], sep=" "))
-            bounds = np.flatnonzero(np.diff(order)) + 1
-            for chunk, w in zip(np.split(f + 1, bounds), order[np.concatenate([[0], bounds])] if f.size else []):
-                fh.write(f"g order_{int(w)}\n")
-                fh.write(format_rows(chunk.astype(np.float64), ["f %d", "%d", "%d"], sep=" "))
         return path

@@ -1,5 +1,5 @@
-"""The raw cylinder table every reader makes, and how it becomes a Tree: option handling, id
-conversion, validation, repairs, Tree building.
+"""The raw cylinder table every QSM reader makes, and how it becomes a Tree: option handling, id
+conversion, validation, repairs, Tree building (kernel: readers of every plugin share it).
 
 Every reader turns its file into a :class:`RawCylinders` table (file row order, 0-based ids,
 -1 = none) and hands it to :func:`build_tree`, which applies the rules of
@@ -21,9 +21,9 @@ from typing import Literal, Optional, Union
 import numpy as np
 from pydantic import ValidationError
 
-from bforest_core.errors import ConfigError, QSMFormatError, TreeError
-from bforest_core.interfaces import ComponentSettings, QSMReader
-from bforest_core.tree import Tree
+from .errors import ConfigError, QSMFormatError, TreeError
+from .interfaces import ComponentSettings, QSMReader, QSMWriter
+from .tree import Tree
 
 #: a deviation of the axis norm from 1 above this is reported (docs/qsm-formats.md §0)
 AXIS_WARN_TOL = 1e-3
@@ -56,13 +56,14 @@ def plural(k: int, word: str, many: str | None = None) -> str:
 
 
 def _caller_level() -> int:
-    """Stack level of the first frame outside this plugin and the core (the user's call)."""
+    """Stack level of the first frame outside the core and the bundled plugins (``bforest_*``:
+    the reader's own modules), i.e. the user's call."""
     import sys
 
     level, f = 1, sys._getframe(1)
     while f is not None:
         name = f.f_globals.get("__name__", "")
-        if not (name.startswith("bforest_treeqsm") or name.startswith("bforest_core")):
+        if not name.startswith("bforest_"):
             return level
         f = f.f_back
         level += 1
@@ -102,17 +103,17 @@ class ReaderSettings(ComponentSettings):
     drop_degenerate: bool = True
 
 
-def resolve_options(reader: QSMReader, options: dict) -> ComponentSettings:
-    """Merge per-call options into the reader's settings; unknown or invalid ones raise
-    :class:`ConfigError` naming them."""
+def resolve_options(component: QSMReader | QSMWriter, options: dict) -> ComponentSettings:
+    """Merge per-call options into a reader's or writer's settings; unknown or invalid ones raise
+    :class:`ConfigError` naming them (``qsm_reader 'treeqsm-text': invalid option(s): ...``)."""
     try:
-        return reader.Settings(**{**reader.settings.model_dump(), **options})
+        return component.Settings(**{**component.settings.model_dump(), **options})
     except ValidationError as exc:
         parts = []
         for e in exc.errors():
             loc = ".".join(str(x) for x in e.get("loc", ()))
             parts.append(f"{loc}: {e.get('msg')}")
-        raise ConfigError(f"qsm_reader '{reader.name}': invalid option(s): " + "; ".join(parts)) from None
+        raise ConfigError(f"{component.kind} '{component.name}': invalid option(s): " + "; ".join(parts)) from None
 
 
 def select_models(path, models: list, select, label: str):

@@ -28,10 +28,11 @@ from typing import Literal, Optional
 import numpy as np
 from pydantic import Field
 
+from bforest_core.cylinders import resolve_options
 from bforest_core.errors import QSMFormatError
 from bforest_core.interfaces import ComponentSettings, QSMWriter
-
-from .writers import _options, format_rows, provenance, provenance_line
+from bforest_core.provenance import provenance, provenance_line
+from bforest_core.tables import format_rows
 
 #: ASPRS class of every point: 5 = high vegetation (the points are a tree's wood)
 LAS_CLASS = 5
@@ -143,7 +144,7 @@ class LASWriter(QSMWriter):
     def write(self, tree, path, **options) -> Path:
         import laspy
 
-        o = _options(self, options)
+        o = resolve_options(self, options)
         path = Path(path)
         if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
             raise QSMFormatError(path, "writing LAZ needs a LAZ backend: pip install lazrs (or write .las)")
@@ -188,7 +189,7 @@ class XYZWriter(QSMWriter):
     Settings = ScanSettings
 
     def write(self, tree, path, **options) -> Path:
-        o = _options(self, options)
+        o = resolve_options(self, options)
         path = Path(path)
         pts = scan_points(tree, **o.model_dump())
         table = np.column_stack([pts["xyz"], pts["cylinder_id"], pts["branch_order"], pts["branch_id"]])

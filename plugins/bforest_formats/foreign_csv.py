@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
+from bforest_core.cylinders import resolve_options
 from bforest_core.interfaces import ComponentSettings, QSMWriter
+from bforest_core.tables import format_rows
 from bforest_core.tree import jump_to_head, levels, subtree_sum
-
-from .writers import _options, format_rows
 
 SIMPLEFOREST_HEADER = (
     " ID, parentID, startX, startY, startZ, endX, endY, endZ, radius, length, growthLength, "
@@ -70,7 +70,7 @@ class SimpleForestCSVWriter(QSMWriter):
     Settings = ComponentSettings
 
     def write(self, tree, path, **options) -> Path:
-        _options(self, options)
+        resolve_options(self, options)
         path = Path(path)
         seg, seg_parent, _, reverse = segments(tree)
         cols = np.column_stack(
@@ -104,7 +104,7 @@ class ArchiCSVWriter(QSMWriter):
     Settings = ComponentSettings
 
     def write(self, tree, path, **options) -> Path:
-        _options(self, options)
+        resolve_options(self, options)
         path = Path(path)
         seg, seg_parent, last, _ = segments(tree)
         node = np.where(seg_parent[seg] >= 0, last[np.maximum(seg_parent[seg], 0)] + 1, 0)

@@ -1,0 +1,1 @@
+"""Bundled Bayes Forest plugin `bforest_formats`."""

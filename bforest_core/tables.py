@@ -200,6 +200,8 @@ def format_columns(columns, sep: str = "\t") -> str:
         One LF-terminated line per cylinder.
     """
     n = np.asarray(columns[0][0]).shape[0]
+    if n == 0:  # a scan with no points
+        return ""
     blocks, formats = [], []
     for values, fmt in columns:
         v = np.asarray(values, dtype=np.float64).reshape(n, -1)

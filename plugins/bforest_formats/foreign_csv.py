@@ -10,7 +10,7 @@ import numpy as np
 
 from bforest_core.cylinders import resolve_options
 from bforest_core.interfaces import ComponentSettings, QSMWriter
-from bforest_core.tables import format_rows
+from bforest_core.tables import format_columns
 from bforest_core.tree import jump_to_head, levels, subtree_sum
 
 SIMPLEFOREST_HEADER = (
@@ -73,25 +73,25 @@ class SimpleForestCSVWriter(QSMWriter):
         resolve_options(self, options)
         path = Path(path)
         seg, seg_parent, _, reverse = segments(tree)
-        cols = np.column_stack(
+        rows = format_columns(
             [
-                np.arange(tree.n),
-                tree.parent,
-                tree.start,
-                tree.end,
-                tree.radius,
-                tree.length,
-                subtree_sum(tree.parent, tree.length),
-                np.zeros(tree.n),
-                seg,
-                seg_parent[seg],
-                tree.order,
-                reverse[seg],
-                stem_branch_id(tree),
-            ]
-        ).astype(float)
-        fmts = ["%d", "%d"] + ["%.9g"] * 8 + ["%.9g", "%g"] + ["%d"] * 5
-        path.write_text(SIMPLEFOREST_HEADER + "\n" + format_rows(cols, fmts, sep=","), encoding="utf-8")
+                (np.arange(tree.n), "%d"),
+                (tree.parent, "%d"),
+                (tree.start, "%.9g"),
+                (tree.end, "%.9g"),
+                (tree.radius, "%.9g"),
+                (tree.length, "%.9g"),
+                (subtree_sum(tree.parent, tree.length), "%.9g"),
+                (np.zeros(tree.n), "%g"),
+                (seg, "%d"),
+                (seg_parent[seg], "%d"),
+                (tree.order, "%d"),
+                (reverse[seg], "%d"),
+                (stem_branch_id(tree), "%d"),
+            ],
+            sep=",",
+        )
+        path.write_text(SIMPLEFOREST_HEADER + "\n" + rows, encoding="utf-8")
         return path
 
 
@@ -108,22 +108,22 @@ class ArchiCSVWriter(QSMWriter):
         path = Path(path)
         seg, seg_parent, last, _ = segments(tree)
         node = np.where(seg_parent[seg] >= 0, last[np.maximum(seg_parent[seg], 0)] + 1, 0)
-        cols = np.column_stack(
+        rows = format_columns(
             [
-                tree.start,
-                tree.end,
-                np.arange(1, tree.n + 1),
-                tree.parent + 1,
-                tree.extension + 1,
-                tree.radius,
-                tree.length,
-                np.pi * tree.radius**2 * tree.length,
-                tree.branch + 1,
-                last[seg] + 1,
-                node,
-                tree.order + 1,
-            ]
-        ).astype(float)
-        fmts = ["%.9g"] * 6 + ["%d"] * 3 + ["%.9g"] * 3 + ["%d"] * 4
-        path.write_text(ARCHI_HEADER + "\n" + format_rows(cols, fmts, sep=","), encoding="utf-8")
+                (tree.start, "%.9g"),
+                (tree.end, "%.9g"),
+                (np.arange(1, tree.n + 1), "%d"),
+                (tree.parent + 1, "%d"),
+                (tree.extension + 1, "%d"),
+                (tree.radius, "%.9g"),
+                (tree.length, "%.9g"),
+                (np.pi * tree.radius**2 * tree.length, "%.9g"),
+                (tree.branch + 1, "%d"),
+                (last[seg] + 1, "%d"),
+                (node, "%d"),
+                (tree.order + 1, "%d"),
+            ],
+            sep=",",
+        )
+        path.write_text(ARCHI_HEADER + "\n" + rows, encoding="utf-8")
         return path

@@ -32,7 +32,7 @@ from bforest_core.cylinders import resolve_options
 from bforest_core.errors import QSMFormatError
 from bforest_core.interfaces import ComponentSettings, QSMWriter
 from bforest_core.provenance import provenance, provenance_line
-from bforest_core.tables import format_rows
+from bforest_core.tables import format_columns
 
 #: ASPRS class of every point: 5 = high vegetation (the points are a tree's wood)
 LAS_CLASS = 5
@@ -192,9 +192,12 @@ class XYZWriter(QSMWriter):
         o = resolve_options(self, options)
         path = Path(path)
         pts = scan_points(tree, **o.model_dump())
-        table = np.column_stack([pts["xyz"], pts["cylinder_id"], pts["branch_order"], pts["branch_id"]])
+        rows = format_columns(
+            [(pts["xyz"], "%.4f"), (pts["cylinder_id"], "%d"), (pts["branch_order"], "%d"), (pts["branch_id"], "%d")],
+            sep=" ",
+        )
         with open(path, "w", newline="\n") as fh:
             fh.write("# x y z cylinder_id branch_order branch_id (m; synthetic scan, Bayes Forest)\n")
             fh.write(f"# {provenance_line(tree, scan=o.model_dump())}\n")
-            fh.write(format_rows(table.astype(float), ["%.4f"] * 3 + ["%d"] * 3, sep=" "))
+            fh.write(rows)
         return path

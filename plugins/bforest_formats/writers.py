@@ -16,7 +16,7 @@ from pydantic import Field
 from bforest_core.cylinders import resolve_options
 from bforest_core.interfaces import ComponentSettings, QSMWriter
 from bforest_core.provenance import jsonable, provenance, provenance_line
-from bforest_core.tables import format_rows
+from bforest_core.tables import format_columns, format_rows
 
 from .csv_readers import NATIVE_COLUMNS
 
@@ -52,40 +52,25 @@ class CSVWriter(QSMWriter):
         o = resolve_options(self, options)
         path = Path(path)
         n = tree.n
-        cols = [
-            np.arange(n),
-            tree.parent,
-            tree.extension,
-            tree.branch,
-            tree.order,
-            tree.position_in_branch,
-            tree.added.astype(np.int64),
-            tree.start,
-            tree.axis,
-            tree.length,
-            tree.radius,
-            tree.end,
-        ]
+        ids = [np.arange(n), tree.parent, tree.extension, tree.branch, tree.order, tree.position_in_branch, tree.added]
+        geometry = [tree.start, tree.axis, tree.length, tree.radius, tree.end]
+        cols = [(c, "%d") for c in ids] + [(c, "%.17g") for c in geometry]
         names = list(NATIVE_COLUMNS)
-        fmts = ["%d"] * 7 + ["%.17g"] * 11
         src = tree.extras.get("_source_extension")
         if tree.topology != "source" and src is not None and np.shape(src) == (n,):
-            cols.append(np.asarray(src))
+            cols.append((src, "%d"))
             names.append("source_extension")
-            fmts.append("%d")
         for k, v in tree.extras.items():
             v = np.asarray(v)
             if k.startswith("_") or k in names or v.shape != (n,) or v.dtype.kind not in "iufb":
                 continue
             if "," in k or "\n" in k:
                 continue
-            cols.append(v.astype(np.float64))
+            cols.append((v, "%.17g"))
             names.append(k)
-            fmts.append("%.17g")
-        table = np.hstack([np.asarray(c, dtype=np.float64).reshape(n, -1) for c in cols])
         with open(path, "w", encoding="utf-8", newline="\n") as fh:
             fh.write(",".join(names) + "\n")
-            fh.write(format_rows(table, fmts, sep=","))
+            fh.write(format_columns(cols, sep=","))
         if o.sidecar:
             md = dict(tree.metadata)
             side = {

@@ -18,7 +18,7 @@ from bforest_core.cylinders import resolve_options
 from bforest_core.errors import QSMFormatError
 from bforest_core.interfaces import ComponentSettings, QSMWriter
 from bforest_core.provenance import jsonable
-from bforest_core.tables import format_rows
+from bforest_core.tables import format_columns, format_rows
 
 from ._text import TREEQSM17_NAMES
 
@@ -135,16 +135,10 @@ class TreeQSMTextWriter(QSMWriter):
                 "PositionInBranch",
             ]
             header = ""
-        blocks, fmts = [], []
-        for k in order:
-            v = np.asarray(c[k], dtype=np.float64)
-            v = v.reshape(tree.n, -1)
-            blocks.append(v)
-            fmts += [ff if k in fcols else "%d"] * v.shape[1]
-        table = np.hstack(blocks)
+        rows = format_columns([(c[k], ff if k in fcols else "%d") for k in order])
         with open(path, "w", encoding="ascii", newline="\n") as fh:
             fh.write(header)
-            fh.write(format_rows(table, fmts))
+            fh.write(rows)
         if o.branch_file:
             stem = path.name[len("cylinder_") :] if path.name.startswith("cylinder_") else path.name
             write_branch_file(tree, path.with_name("branch_" + stem))

@@ -23,11 +23,19 @@ from pydantic import ValidationError
 
 from .errors import ConfigError, QSMFormatError, TreeError
 from .interfaces import ComponentSettings, QSMReader, QSMWriter
-from .tree import Tree
+from .tree import (
+    MAX_ROWS_SHOWN,
+    Tree,
+    components,
+    cycle_problems,
+    extension_problems,
+    id_problems,
+    rows_text,
+    value_problems,
+)
 
 #: a deviation of the axis norm from 1 above this is reported (docs/qsm-formats.md §0)
 AXIS_WARN_TOL = 1e-3
-MAX_ROWS_SHOWN = 10
 
 
 class QSMReadWarning(UserWarning):
@@ -40,15 +48,6 @@ class Repair(dict):
 
     def __str__(self) -> str:
         return str(self.get("message", dict.__repr__(self)))
-
-
-def rows_text(rows, limit: int = MAX_ROWS_SHOWN) -> str:
-    """``"1, 3020, 3582"`` -- the first ``limit`` rows, then the total count."""
-    rows = [int(r) for r in np.asarray(rows).ravel()]
-    shown = ", ".join(str(r) for r in rows[:limit])
-    if len(rows) > limit:
-        return f"{shown}, ... ({len(rows)} rows)"
-    return shown
 
 
 def plural(k: int, word: str, many: str | None = None) -> str:
@@ -267,40 +266,6 @@ class RawCylinders:
         return int(np.asarray(self.length).shape[0])
 
 
-def _find_cycle(parent: np.ndarray, start: int) -> list[int]:
-    """Rows of one parent cycle reached from ``start`` (error path only)."""
-    seen: dict[int, int] = {}
-    i = int(start)
-    path = []
-    while i >= 0 and i not in seen and len(path) <= parent.shape[0]:
-        seen[i] = len(path)
-        path.append(i)
-        i = int(parent[i])
-    if i in seen:
-        return path[seen[i] :] + [i]
-    return path
-
-
-def components(parent: np.ndarray):
-    """Root row of every row's connected part, by pointer doubling (O(n log depth)).
-
-    Returns ``(label, reached)``: ``label[i]`` is the root above row i (-1 where no root is
-    reached, i.e. rows on or below a parent cycle). Parents must be in ``-1 .. n-1``.
-    """
-    n = parent.shape[0]
-    is_root = parent < 0
-    anc = np.where(is_root, np.arange(n), parent)
-    # after k rounds anc is the 2^k-th ancestor (roots are fixed points); a row on or below a
-    # cycle never reaches a root, so ceil(log2 n) + 1 rounds decide every row
-    for _ in range(max(1, int(np.ceil(np.log2(max(n, 2))))) + 1):
-        nxt = anc[anc]
-        if np.array_equal(nxt, anc):
-            break
-        anc = nxt
-    reached = is_root[anc]
-    return np.where(reached, anc, -1), reached
-
-
 def _resolve_through(mask: np.ndarray, link: np.ndarray, values: np.ndarray) -> np.ndarray:
     """Follow ``link`` from ``values`` while the target is in ``mask`` (pointer chasing over the
     removed rows only; iterations = longest chain of removed rows)."""
@@ -321,10 +286,16 @@ def build_tree(
     opts=None,
     metadata=None,
     zero_length_hint: str = "",
-    row_offset: int = 0,
     default_topology: str = "source",
 ) -> Tree:
     """Validate and repair a raw cylinder table and build the :class:`Tree` (docs/qsm-formats.md §0).
+
+    The phases, in order: the columns as arrays; the always-errors on values and on ids (the
+    checks :class:`Tree` makes, shared with it: :func:`~bforest_core.tree.value_problems`,
+    :func:`~bforest_core.tree.id_problems`, :func:`~bforest_core.tree.cycle_problems`, here on
+    the whole file before any repair and naming 1-based file rows); the repairs (detached
+    fragments, zero-length cylinders, axes); the Tree; the comparison of the file's stored
+    branches and orders with the recomputed ones; the plausibility of the units.
 
     Parameters
     ----------
@@ -340,234 +311,57 @@ def build_tree(
         Extra metadata (variable, model index, notes).
     zero_length_hint : str
         Appended to the zero-length message (e.g. the TreeQSM text rounding).
-    row_offset : int
-        Added to 1-based data rows to give file lines in messages (header lines); rows are
-        still reported as data rows, the line only where given.
+    default_topology : str
+        The topology rule when ``opts`` sets none.
 
     Raises
     ------
     QSMFormatError
         For every always-error condition, and for repairs when the strict options are set.
     """
-    fragments = getattr(opts, "fragments", "drop")
-    drop_degenerate = getattr(opts, "drop_degenerate", True)
     topology = getattr(opts, "topology", None) or default_topology
     n = raw.n
     if n == 0:
         raise QSMFormatError(path, "file contains no cylinders")
-    radius = np.asarray(raw.radius, dtype=np.float64).reshape(-1)
-    length = np.asarray(raw.length, dtype=np.float64).reshape(-1)
-    start = np.asarray(raw.start, dtype=np.float64).reshape(n, 3)
-    axis = np.asarray(raw.axis, dtype=np.float64).reshape(n, 3)
-    parent = np.asarray(raw.parent, dtype=np.int64).reshape(-1)
-    extension = (
-        np.full(n, -1, dtype=np.int64)
-        if raw.extension is None
-        else np.asarray(raw.extension, dtype=np.int64).reshape(-1)
-    )
-    added = np.zeros(n, dtype=bool) if raw.added is None else np.asarray(raw.added).reshape(-1)
-    if added.dtype.kind == "f" and not np.all(np.isfinite(added)):
-        bad = np.flatnonzero(~np.isfinite(added))
-        raise QSMFormatError(path, f"non-finite values in 'added' at rows {rows_text(bad + 1)}", bad + 1)
-    added = added != 0
-    for name, a in (("radius", radius), ("parent", parent), ("extension", extension), ("added", added)):
-        if a.shape[0] != n:
-            raise QSMFormatError(path, f"'{name}' has {a.shape[0]} values, expected {n} (one per cylinder)")
+    radius, length, start, axis, parent, extension, added = _columns(path, raw)
+    _check_values(path, start, axis, length, radius)
+    _check_ids(path, parent, extension)
     repairs: list[dict] = []
-    problems: list[str] = []
-    prow: list[int] = []
-
-    # ---- always errors: non-finite values, negative radii/lengths, zero radius, zero axis
-    for name, a in (("radius", radius), ("length", length), ("start", start), ("axis", axis)):
-        ok = np.isfinite(a) if a.ndim == 1 else np.isfinite(a).all(axis=1)
-        if not ok.all():
-            bad = np.flatnonzero(~ok) + 1
-            problems.append(
-                f"non-finite values in '{name}' at rows {rows_text(bad)}"
-                f"{f' ({bad.size} rows)' if 1 < bad.size <= MAX_ROWS_SHOWN else ''}"
-            )
-            prow += bad[:MAX_ROWS_SHOWN].tolist()
-    if problems:
-        raise QSMFormatError(path, "; ".join(problems), prow)
-    bad = np.flatnonzero(radius <= 0)
-    if bad.size:
-        problems.append(
-            f"radius <= 0 at rows {rows_text(bad + 1)} (value {radius[bad[0]]:g}); a cylinder needs a positive radius"
-        )
-        prow += (bad[:MAX_ROWS_SHOWN] + 1).tolist()
-    bad = np.flatnonzero(length < 0)
-    if bad.size:
-        problems.append(f"length < 0 at rows {rows_text(bad + 1)} (value {length[bad[0]]:g})")
-        prow += (bad[:MAX_ROWS_SHOWN] + 1).tolist()
-    zero_len = length == 0
     norms = np.sqrt(np.einsum("ij,ij->i", axis, axis))
-    bad = np.flatnonzero((norms == 0) & ~zero_len)
-    if bad.size:
-        problems.append(f"axis has zero length at rows {rows_text(bad + 1)}")
-        prow += (bad[:MAX_ROWS_SHOWN] + 1).tolist()
-    if problems:
-        raise QSMFormatError(path, "; ".join(problems), prow)
 
-    # ---- always errors: ids
-    bad = np.flatnonzero((parent < -1) | (parent >= n))
-    if bad.size:
-        raise QSMFormatError(path, f"parent out of range at rows {rows_text(bad + 1)}", bad + 1)
-    bad = np.flatnonzero((extension < -1) | (extension >= n))
-    if bad.size:
-        raise QSMFormatError(path, f"extension out of range at rows {rows_text(bad + 1)}", bad + 1)
-    rows = np.arange(n)
-    bad = np.flatnonzero(parent == rows)
-    if bad.size:
-        raise QSMFormatError(path, f"cylinder {bad[0] + 1} is its own parent (rows {rows_text(bad + 1)})", bad + 1)
-    has_ext = np.flatnonzero(extension >= 0)
-    bad = has_ext[parent[extension[has_ext]] != has_ext]
-    if bad.size:
-        i = int(bad[0])
-        j = int(extension[i])
-        pj = int(parent[j])
-        more = f" ({bad.size} rows: {rows_text(bad + 1)})" if bad.size > 1 else ""
-        raise QSMFormatError(
-            path,
-            f"extension of row {i + 1} is row {j + 1}, whose parent is "
-            f"{'row ' + str(pj + 1) if pj >= 0 else 'none'}{more}",
-            bad + 1,
-        )
-    label, reached = components(parent)
-    if not reached.all():
-        bad = np.flatnonzero(~reached)
-        cyc = _find_cycle(parent, int(bad[0]))
-        raise QSMFormatError(
-            path,
-            "cylinders "
-            + " -> ".join(str(c + 1) for c in cyc)
-            + f" form a cycle ({bad.size} cylinders are not connected to a root)",
-            bad + 1,
-        )
-
-    # ---- repair 1: detached fragments
-    keep = np.ones(n, dtype=bool)
-    roots = np.flatnonzero(parent < 0)
-    if roots.size > 1:
-        base = int(roots[np.argmin(start[roots, 2])])  # lowest start z; ties -> earlier row
-        sizes = np.bincount(label, minlength=n)
-        keep = label == base
-        kept = int(keep.sum())
-        msg = (
-            f"{roots.size} cylinders have no parent (rows {rows_text(roots + 1)}); "
-            f"kept the connected part with the stem base ({kept} of {n} cylinders)"
-        )
-        biggest = int(roots[np.argmax(sizes[roots])])
-        if sizes[biggest] > sizes[base]:
-            msg += (
-                f"; note: the stem base (row {base + 1}, lowest start) is not the root of the "
-                f"largest part (row {biggest + 1}, {int(sizes[biggest])} cylinders)"
-            )
-        if fragments == "error":
-            raise QSMFormatError(path, msg + " [fragments='error']", roots + 1)
-        warn(path, msg)
-        dropped = np.flatnonzero(~keep)
-        repairs.append(
-            Repair(
-                {
-                    "repair": "dropped_fragments",
-                    "roots": (roots + 1).tolist(),
-                    "stem_base_row": base + 1,
-                    "n_dropped": int(dropped.size),
-                    "dropped_rows": (dropped + 1).tolist(),
-                    "message": msg,
-                }
-            )
-        )
-
-    # ---- repair 2: zero-length cylinders (exactly 0 as read)
-    zl = np.flatnonzero(zero_len & keep)
-    removed = np.zeros(n, dtype=bool)
-    if zl.size:
-        hint = f"; {zero_length_hint}" if zero_length_hint else ""
-        zrows = rows_text(zl + 1)
-        if not drop_degenerate:
-            raise QSMFormatError(
-                path,
-                f"length <= 0 at row{'s' if zl.size > 1 else ''} {zrows} (value 0{hint}) [drop_degenerate=False]",
-                zl + 1,
-            )
-        zroot = zl[parent[zl] < 0]
-        if zroot.size:
-            raise QSMFormatError(path, f"the root cylinder (row {zroot[0] + 1}) has zero length", zroot + 1)
-        removed[zl] = True
-        # children -> nearest kept ancestor
-        parent = _resolve_through(removed, parent, parent)
-        # a removed extension is replaced by its own extension (resolved through removed rows)
-        ext_new = _resolve_through(removed, extension, extension)
-        extension = np.where(removed, -1, ext_new)
-        msg = (
-            f"removed {plural(zl.size, 'zero-length cylinder')} (row{'s' if zl.size > 1 else ''} "
-            f"{zrows}{hint}); children were attached to the parent"
-        )
-        warn(path, msg)
-        repairs.append(
-            Repair(
-                {"repair": "removed_zero_length", "rows": (zl + 1).tolist(), "n_removed": int(zl.size), "message": msg}
-            )
-        )
-        keep &= ~removed
-
+    keep = _drop_fragments(path, parent, start, getattr(opts, "fragments", "drop"), repairs)
+    parent, extension, keep = _drop_zero_length(
+        path,
+        parent,
+        extension,
+        (length == 0) & keep,
+        keep,
+        getattr(opts, "drop_degenerate", True),
+        zero_length_hint,
+        repairs,
+    )
     file_rows = np.flatnonzero(keep)
     if file_rows.size < n:
         new = np.full(n, -1, dtype=np.int64)
         new[file_rows] = np.arange(file_rows.size)
         remap = lambda a: np.where(a >= 0, new[np.maximum(a, 0)], -1)
-        radius, length, start, axis, added = (
+        radius, length, start, axis, added, norms = (
             radius[file_rows],
             length[file_rows],
             start[file_rows],
             axis[file_rows],
             added[file_rows],
+            norms[file_rows],
         )
         parent = remap(parent[file_rows])
         extension = remap(extension[file_rows])
-        norms = norms[file_rows]
-    m = file_rows.size
-
-    # ---- axes: renormalise in float64, report larger deviations
-    dev = np.abs(norms - 1.0)
-    off = np.flatnonzero(dev > AXIS_WARN_TOL)
-    if off.size:
-        msg = (
-            f"{plural(off.size, 'axis', 'axes')} not unit vectors (norms {norms[off].min():.4g}..."
-            f"{norms[off].max():.4g}; rows {rows_text(file_rows[off] + 1)}); renormalised"
-        )
-        warn(path, msg)
-        repairs.append(
-            Repair(
-                {
-                    "repair": "renormalised_axes",
-                    "n_rows": int(off.size),
-                    "rows": (file_rows[off] + 1).tolist(),
-                    "message": msg,
-                }
-            )
-        )
-    axis = axis / norms[:, None]
-
+    axis = _renormalised_axes(path, axis, norms, file_rows, repairs)
     extras = {}
     for k, v in (raw.extras or {}).items():
         v = np.asarray(v)
         if v.shape[:1] == (n,):
             extras[k] = v[file_rows]
-
-    # ---- sizes whose volume or end point overflows (radius 1e300): no tree, in any unit
-    with np.errstate(over="ignore", invalid="ignore"):
-        finite = np.isfinite(np.pi * radius**2 * length) & np.isfinite(start + axis * length[:, None]).all(axis=1)
-    if not finite.all():
-        bad = file_rows[np.flatnonzero(~finite)] + 1
-        raise QSMFormatError(
-            path,
-            f"cylinder sizes too large to compute with (volume or end point not a finite "
-            f"number; largest radius {radius.max():.4g}, length {length.max():.4g}) at rows "
-            f"{rows_text(bad)}",
-            bad,
-        )
+    _check_sizes(path, start, axis, length, radius, file_rows)
 
     meta = {"source": str(path), "format": fmt, "version": version, "units": "m", "n_file_rows": n, "repairs": repairs}
     meta.update(metadata or {})
@@ -586,12 +380,180 @@ def build_tree(
             metadata=meta,
         )
     except TreeError as exc:
-        rows_ = [int(file_rows[r]) + 1 for r in exc.rows if 0 <= r < m]
+        rows_ = [int(file_rows[r]) + 1 for r in exc.rows if 0 <= r < file_rows.size]
         raise QSMFormatError(path, f"invalid cylinder tree: {exc.problem}", rows_) from None
+    _compare_stored_topology(path, tree, raw, file_rows)
+    _check_units(path, tree)
+    if topology != "source":
+        tree = tree.with_topology(topology)
+    return tree
 
-    # ---- stored branch/order vs recomputed (under the file's own extension links)
-    pos = np.full(n, -1, dtype=np.int64)
-    pos[file_rows] = np.arange(m)
+
+def _columns(path, raw: RawCylinders):
+    """The raw columns as float64/int64/bool arrays of one length (``added``: NaN is an error,
+    not True)."""
+    n = raw.n
+    radius = np.asarray(raw.radius, dtype=np.float64).reshape(-1)
+    length = np.asarray(raw.length, dtype=np.float64).reshape(-1)
+    start = np.asarray(raw.start, dtype=np.float64).reshape(n, 3)
+    axis = np.asarray(raw.axis, dtype=np.float64).reshape(n, 3)
+    parent = np.asarray(raw.parent, dtype=np.int64).reshape(-1)
+    extension = (
+        np.full(n, -1, dtype=np.int64)
+        if raw.extension is None
+        else np.asarray(raw.extension, dtype=np.int64).reshape(-1)
+    )
+    added = np.zeros(n, dtype=bool) if raw.added is None else np.asarray(raw.added).reshape(-1)
+    if added.dtype.kind == "f" and not np.all(np.isfinite(added)):
+        bad = np.flatnonzero(~np.isfinite(added))
+        raise QSMFormatError(path, f"non-finite values in 'added' at rows {rows_text(bad + 1)}", bad + 1)
+    added = added != 0
+    for name, a in (("radius", radius), ("parent", parent), ("extension", extension), ("added", added)):
+        if a.shape[0] != n:
+            raise QSMFormatError(path, f"'{name}' has {a.shape[0]} values, expected {n} (one per cylinder)")
+    return radius, length, start, axis, parent, extension, added
+
+
+def _check_values(path, start, axis, length, radius) -> None:
+    """Always-errors on values (non-finite, radius <= 0, length < 0, zero axis), all reported
+    together with the first rows of each; zero lengths are repaired later."""
+    problems = value_problems(start, axis, length, radius, zero_length_ok=True, row_base=1)
+    if problems:
+        rows = np.concatenate([r[:MAX_ROWS_SHOWN] + 1 for _, r in problems])
+        raise QSMFormatError(path, "; ".join(m for m, _ in problems), rows)
+
+
+def _check_ids(path, parent, extension) -> None:
+    """Always-errors on ids: out of range, own parent, extension not a child, cycles."""
+    for check in (id_problems, extension_problems):
+        for message, rows in check(parent, extension, row_base=1):
+            raise QSMFormatError(path, message, rows + 1)
+    for message, rows in cycle_problems(parent, row_base=1):
+        raise QSMFormatError(path, message, rows + 1)
+
+
+def _drop_fragments(path, parent, start, fragments: str, repairs: list) -> np.ndarray:
+    """Repair 1: rows to keep when several cylinders have no parent: the connected part with the
+    lowest start (the stem base; ties: the earlier row), with a warning (an error with
+    ``fragments="error"``)."""
+    n = parent.shape[0]
+    roots = np.flatnonzero(parent < 0)
+    if roots.size <= 1:
+        return np.ones(n, dtype=bool)
+    label, _ = components(parent)
+    base = int(roots[np.argmin(start[roots, 2])])  # lowest start z; ties -> earlier row
+    sizes = np.bincount(label, minlength=n)
+    keep = label == base
+    kept = int(keep.sum())
+    msg = (
+        f"{roots.size} cylinders have no parent (rows {rows_text(roots + 1)}); "
+        f"kept the connected part with the stem base ({kept} of {n} cylinders)"
+    )
+    biggest = int(roots[np.argmax(sizes[roots])])
+    if sizes[biggest] > sizes[base]:
+        msg += (
+            f"; note: the stem base (row {base + 1}, lowest start) is not the root of the "
+            f"largest part (row {biggest + 1}, {int(sizes[biggest])} cylinders)"
+        )
+    if fragments == "error":
+        raise QSMFormatError(path, msg + " [fragments='error']", roots + 1)
+    warn(path, msg)
+    dropped = np.flatnonzero(~keep)
+    repairs.append(
+        Repair(
+            {
+                "repair": "dropped_fragments",
+                "roots": (roots + 1).tolist(),
+                "stem_base_row": base + 1,
+                "n_dropped": int(dropped.size),
+                "dropped_rows": (dropped + 1).tolist(),
+                "message": msg,
+            }
+        )
+    )
+    return keep
+
+
+def _drop_zero_length(path, parent, extension, zero, keep, drop_degenerate: bool, hint: str, repairs: list):
+    """Repair 2: remove the kept cylinders of length exactly 0 as read (``zero``), their
+    children attached to the nearest kept ancestor and a removed extension replaced by its own;
+    a warning (an error with ``drop_degenerate=False`` or for the root). Returns the new
+    ``(parent, extension, keep)``."""
+    zl = np.flatnonzero(zero)
+    if not zl.size:
+        return parent, extension, keep
+    hint = f"; {hint}" if hint else ""
+    zrows = rows_text(zl + 1)
+    if not drop_degenerate:
+        raise QSMFormatError(
+            path,
+            f"length <= 0 at row{'s' if zl.size > 1 else ''} {zrows} (value 0{hint}) [drop_degenerate=False]",
+            zl + 1,
+        )
+    zroot = zl[parent[zl] < 0]
+    if zroot.size:
+        raise QSMFormatError(path, f"the root cylinder (row {zroot[0] + 1}) has zero length", zroot + 1)
+    removed = np.zeros(parent.shape[0], dtype=bool)
+    removed[zl] = True
+    # children -> nearest kept ancestor
+    parent = _resolve_through(removed, parent, parent)
+    # a removed extension is replaced by its own extension (resolved through removed rows)
+    ext_new = _resolve_through(removed, extension, extension)
+    extension = np.where(removed, -1, ext_new)
+    msg = (
+        f"removed {plural(zl.size, 'zero-length cylinder')} (row{'s' if zl.size > 1 else ''} "
+        f"{zrows}{hint}); children were attached to the parent"
+    )
+    warn(path, msg)
+    repairs.append(
+        Repair({"repair": "removed_zero_length", "rows": (zl + 1).tolist(), "n_removed": int(zl.size), "message": msg})
+    )
+    return parent, extension, keep & ~removed
+
+
+def _renormalised_axes(path, axis, norms, file_rows, repairs: list) -> np.ndarray:
+    """Repair 3: the axes divided by their norms (float64); norms off 1 by more than
+    :data:`AXIS_WARN_TOL` are reported."""
+    off = np.flatnonzero(np.abs(norms - 1.0) > AXIS_WARN_TOL)
+    if off.size:
+        msg = (
+            f"{plural(off.size, 'axis', 'axes')} not unit vectors (norms {norms[off].min():.4g}..."
+            f"{norms[off].max():.4g}; rows {rows_text(file_rows[off] + 1)}); renormalised"
+        )
+        warn(path, msg)
+        repairs.append(
+            Repair(
+                {
+                    "repair": "renormalised_axes",
+                    "n_rows": int(off.size),
+                    "rows": (file_rows[off] + 1).tolist(),
+                    "message": msg,
+                }
+            )
+        )
+    return axis / norms[:, None]
+
+
+def _check_sizes(path, start, axis, length, radius, file_rows) -> None:
+    """Sizes whose volume or end point overflows (radius 1e300) make no tree, in any unit."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        finite = np.isfinite(np.pi * radius**2 * length) & np.isfinite(start + axis * length[:, None]).all(axis=1)
+    if not finite.all():
+        bad = file_rows[np.flatnonzero(~finite)] + 1
+        raise QSMFormatError(
+            path,
+            f"cylinder sizes too large to compute with (volume or end point not a finite "
+            f"number; largest radius {radius.max():.4g}, length {length.max():.4g}) at rows "
+            f"{rows_text(bad)}",
+            bad,
+        )
+
+
+def _compare_stored_topology(path, tree: Tree, raw: RawCylinders, file_rows) -> None:
+    """The file's stored branch/order against the recomputed ones (under the file's own
+    extension links): a warning and ``metadata["stored_topology_mismatch"]`` where they differ."""
+    pos = np.full(raw.n, -1, dtype=np.int64)
+    pos[file_rows] = np.arange(file_rows.size)
     at = pos[tree.source_row]  # tree row -> index into the compressed stored arrays
     mism = {}
     if raw.order is not None:
@@ -622,19 +584,18 @@ def build_tree(
         tree.metadata["stored_topology_mismatch"] = {k: v.tolist() for k, v in mism.items()}
         tree.metadata["stored_topology_message"] = msg
 
-    # ---- plausibility of units
+
+def _check_units(path, tree: Tree) -> None:
+    """Height and base into the metadata; a warning when the sizes look like millimetres."""
     height = float(max(tree.start[:, 2].max(), tree.end[:, 2].max()) - tree.start[0, 2])
     tree.metadata["height"] = height
     tree.metadata["base"] = tree.start[0].tolist()
-    if radius.max() > 5.0 or height > 150.0:
+    if tree.radius.max() > 5.0 or height > 150.0:
         warn(
             path,
-            f"values look like millimetres (largest radius {radius.max():.4g}, height "
+            f"values look like millimetres (largest radius {tree.radius.max():.4g}, height "
             f"{height:.4g}); QSM readers never convert units, metres are expected",
         )
-    if topology != "source":
-        tree = tree.with_topology(topology)
-    return tree
 
 
 class BaseReader(QSMReader):

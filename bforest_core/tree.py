@@ -21,11 +21,19 @@ TOPOLOGY_RULES = ("source", "subtree", "thickest")
 _AXIS_TOL = 1e-6  # silently renormalised below this deviation; readers renormalise larger ones
 
 
-def _rows_text(rows, limit: int = 10) -> str:
-    rows = [int(r) for r in rows]
+MAX_ROWS_SHOWN = 10
+
+
+def rows_text(rows, limit: int = MAX_ROWS_SHOWN, count: bool = False) -> str:
+    """``"1, 3020, 3582"``: the first ``limit`` rows, then the total count (``", ... (12 rows)"``);
+    with ``count``, a count of 2...``limit`` rows too (``"12, 40 (2 rows)"``)."""
+    rows = [int(r) for r in np.asarray(rows).ravel()]
     shown = ", ".join(str(r) for r in rows[:limit])
-    more = f", ... ({len(rows)} rows)" if len(rows) > limit else (f" ({len(rows)} rows)" if len(rows) > 1 else "")
-    return shown + more
+    if len(rows) > limit:
+        return f"{shown}, ... ({len(rows)} rows)"
+    if count and len(rows) > 1:
+        return f"{shown} ({len(rows)} rows)"
+    return shown
 
 
 # ----------------------------------------------------------------------------------------------
@@ -151,32 +159,14 @@ def derive_branches(parent: np.ndarray, extension: np.ndarray):
 
 
 def parent_first_order(parent: np.ndarray):
-    """A topological order (parents before children) that always takes the smallest available
-    row, so an already sorted table keeps its order. Raises :class:`TreeError` for several
-    roots, no root, out-of-range parents or cycles."""
+    """A topological order (parents before children) of a valid tree (one root, no cycle: see
+    :func:`id_problems`, :func:`cycle_problems`) that keeps an already sorted table as it is
+    (``None`` then)."""
     n = parent.shape[0]
-    bad = np.flatnonzero((parent < -1) | (parent >= n))
-    if bad.size:
-        raise TreeError(
-            f"parent out of range at rows {_rows_text(bad)} (values {parent[bad][:5].tolist()}; "
-            f"valid 0..{n - 1} or -1)",
-            bad,
-        )
-    selfp = np.flatnonzero(parent == np.arange(n))
-    if selfp.size:
-        raise TreeError(f"cylinder is its own parent at rows {_rows_text(selfp)}", selfp)
     roots = np.flatnonzero(parent < 0)
-    if roots.size == 0:
-        raise TreeError("no root: every cylinder has a parent (the parent links form a cycle)")
-    if roots.size > 1:
-        raise TreeError(
-            f"{roots.size} cylinders have no parent (rows {_rows_text(roots)}); a tree has exactly one root", roots
-        )
     if roots[0] == 0 and np.all(parent[1:] < np.arange(1, n)):
         return None  # already in order
-    # cycle detection: nodes not reachable from the root
-    d_ok = np.zeros(n, dtype=bool)
-    d_ok[roots[0]] = True
+    # depth of every row, level by level from the root
     ptr, idx = children_csr(parent)
     frontier = roots
     depth = np.zeros(n, dtype=np.int64)
@@ -188,28 +178,153 @@ def parent_first_order(parent: np.ndarray):
         ch = idx[starts + offs]
         k += 1
         depth[ch] = k
-        d_ok[ch] = True
         frontier = ch
-    if not d_ok.all():
-        bad = np.flatnonzero(~d_ok)
-        # walk one cycle for the message
-        i = int(bad[0])
-        seen = []
-        while i not in seen and len(seen) < 20:
-            seen.append(i)
-            i = int(parent[i])
-        cyc = seen[seen.index(i) :] + [i] if i in seen else seen
-        raise TreeError(
-            "cylinders "
-            + " -> ".join(str(c) for c in cyc)
-            + f" form a cycle ({bad.size} cylinders not connected to the root)",
-            bad,
-        )
-    # smallest-row-first topological order: sort by (depth?) no -- a stable order that keeps
-    # sorted files intact: order rows by (max depth constraint) using iterative relabel.
-    # Kahn's algorithm with a min-heap is O(n log n) but Python-level; use depth-stable sort,
-    # which is a valid topological order and keeps already-sorted prefixes when possible.
+    # a depth-stable sort is a valid topological order and keeps already-sorted prefixes
     return np.lexsort((np.arange(n), depth))
+
+
+# ----------------------------------------------------------------------------------------------
+# the checks of a cylinder table: Tree and the QSM readers (bforest_core.cylinders) share them
+# ----------------------------------------------------------------------------------------------
+
+
+def value_problems(start, axis, length, radius, *, zero_length_ok: bool = False, row_base: int = 0):
+    """The errors of a cylinder table's values, each naming all its rows.
+
+    Non-finite values in any column are reported alone (nothing else is checked then); else
+    radius <= 0, length < 0 (or <= 0 unless ``zero_length_ok``: readers remove zero-length
+    cylinders) and axes of zero length (of cylinders with a length).
+
+    Parameters
+    ----------
+    start, axis : (n, 3) float arrays
+    length, radius : (n,) float arrays
+    zero_length_ok : bool
+    row_base : int
+        Rows in messages are counted from it (1: a file's rows).
+
+    Returns
+    -------
+    list of (str, ndarray)
+        Message and 0-based rows of every problem; empty when the values are fine.
+    """
+    problems = []
+    for name, a in (("radius", radius), ("length", length), ("start", start), ("axis", axis)):
+        ok = np.isfinite(a) if a.ndim == 1 else np.isfinite(a).all(axis=1)
+        if not ok.all():
+            bad = np.flatnonzero(~ok)
+            problems.append((f"non-finite values in '{name}' at rows {rows_text(bad + row_base, count=True)}", bad))
+    if problems:
+        return problems
+    bad = np.flatnonzero(radius <= 0)
+    if bad.size:
+        problems.append(
+            (
+                f"radius <= 0 at rows {rows_text(bad + row_base)} (value {radius[bad[0]]:g}); "
+                "a cylinder needs a positive radius",
+                bad,
+            )
+        )
+    bad = np.flatnonzero(length < 0 if zero_length_ok else length <= 0)
+    if bad.size:
+        sign = "<" if zero_length_ok else "<="
+        problems.append((f"length {sign} 0 at rows {rows_text(bad + row_base)} (value {length[bad[0]]:g})", bad))
+    zero_axis = np.einsum("ij,ij->i", axis, axis) == 0
+    if zero_length_ok:
+        zero_axis &= length != 0
+    bad = np.flatnonzero(zero_axis)
+    if bad.size:
+        problems.append((f"axis has zero length at rows {rows_text(bad + row_base)}", bad))
+    return problems
+
+
+def id_problems(parent, extension, *, row_base: int = 0):
+    """The first error of a cylinder table's ids: a parent or extension out of range, a cylinder
+    that is its own parent.
+
+    ``parent`` and ``extension`` are 0-based rows (-1 = none), int64; ``row_base`` as in
+    :func:`value_problems`. Returns ``[(message, rows)]`` (0-based rows) or ``[]``.
+    """
+    n = parent.shape[0]
+    for name, ids in (("parent", parent), ("extension", extension)):
+        bad = np.flatnonzero((ids < -1) | (ids >= n))
+        if bad.size:
+            values = (ids[bad][:5] + row_base).tolist()
+            valid = f"{row_base}...{n - 1 + row_base}, {row_base - 1} = none"
+            return [(f"{name} out of range at rows {rows_text(bad + row_base)} (values {values}; valid {valid})", bad)]
+    bad = np.flatnonzero(parent == np.arange(n))
+    if bad.size:
+        return [(f"cylinder {bad[0] + row_base} is its own parent (rows {rows_text(bad + row_base)})", bad)]
+    return []
+
+
+def extension_problems(parent, extension, *, row_base: int = 0):
+    """Extensions that are not a child of their cylinder (ids in range, :func:`id_problems`):
+    ``[(message, rows)]`` or ``[]``."""
+    has_ext = np.flatnonzero(extension >= 0)
+    bad = has_ext[parent[extension[has_ext]] != has_ext]
+    if bad.size:
+        i = int(bad[0])
+        j = int(extension[i])
+        pj = int(parent[j])
+        more = f" ({bad.size} rows: {rows_text(bad + row_base)})" if bad.size > 1 else ""
+        whose = f"row {pj + row_base}" if pj >= 0 else "none"
+        return [(f"extension of row {i + row_base} is row {j + row_base}, whose parent is {whose}{more}", bad)]
+    return []
+
+
+def components(parent: np.ndarray):
+    """Root row of every row's connected part, by pointer doubling (O(n log depth)).
+
+    Returns ``(label, reached)``: ``label[i]`` is the root above row i (-1 where no root is
+    reached, i.e. rows on or below a parent cycle). Parents must be in ``-1 .. n-1``.
+    """
+    n = parent.shape[0]
+    is_root = parent < 0
+    anc = np.where(is_root, np.arange(n), parent)
+    # after k rounds anc is the 2^k-th ancestor (roots are fixed points); a row on or below a
+    # cycle never reaches a root, so ceil(log2 n) + 1 rounds decide every row
+    for _ in range(max(1, int(np.ceil(np.log2(max(n, 2))))) + 1):
+        nxt = anc[anc]
+        if np.array_equal(nxt, anc):
+            break
+        anc = nxt
+    reached = is_root[anc]
+    return np.where(reached, anc, -1), reached
+
+
+def _find_cycle(parent: np.ndarray, start: int) -> list[int]:
+    """Rows of one parent cycle reached from ``start`` (error path only)."""
+    seen: dict[int, int] = {}
+    i = int(start)
+    path = []
+    while i >= 0 and i not in seen and len(path) <= parent.shape[0]:
+        seen[i] = len(path)
+        path.append(i)
+        i = int(parent[i])
+    if i in seen:
+        return path[seen[i] :] + [i]
+    return path
+
+
+def cycle_problems(parent, *, row_base: int = 0):
+    """Rows on or below a parent cycle (connected to no root), with one cycle walked for the
+    message: ``[(message, rows)]`` or ``[]``. Parents must be in range (:func:`id_problems`)."""
+    if np.all(parent < np.arange(parent.shape[0])):
+        return []  # every parent comes first: no cycle
+    _, reached = components(parent)
+    if reached.all():
+        return []
+    bad = np.flatnonzero(~reached)
+    cyc = _find_cycle(parent, int(bad[0]))
+    path = " -> ".join(str(c + row_base) for c in cyc)
+    return [(f"cylinders {path} form a cycle ({bad.size} cylinders are not connected to a root)", bad)]
+
+
+def _raise(problems) -> None:
+    """Raise the problems of the check functions above as one :class:`TreeError`."""
+    if problems:
+        raise TreeError("; ".join(m for m, _ in problems), np.concatenate([r for _, r in problems]))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -237,15 +352,13 @@ class BranchTable:
 
 
 def _unit_axes(axis: np.ndarray) -> np.ndarray:
-    """The axes checked to be unit vectors (rows off by more than rounding are renormalised)."""
+    """The (non-zero) axes checked to be unit vectors (rows off by more than rounding are
+    renormalised)."""
     norm = np.linalg.norm(axis, axis=1)
-    bad = np.flatnonzero(norm == 0)
-    if bad.size:
-        raise TreeError(f"axis has zero length at rows {_rows_text(bad)}", bad)
     bad = np.flatnonzero(np.abs(norm - 1.0) > _AXIS_TOL)
     if bad.size:
         raise TreeError(
-            f"axis is not a unit vector at rows {_rows_text(bad)} (norm {norm[bad[0]]:.6g}); "
+            f"axis is not a unit vector at rows {rows_text(bad, count=True)} (norm {norm[bad[0]]:.6g}); "
             "renormalise it before building the tree",
             bad,
         )
@@ -367,7 +480,7 @@ class Tree:
         if not np.issubdtype(parent.dtype, np.integer):
             if not np.all(np.isfinite(parent)) or np.any(parent != np.round(parent)):
                 bad = np.flatnonzero(~np.isfinite(parent) | (parent != np.round(np.nan_to_num(parent))))
-                raise TreeError(f"'parent' holds non-integer values at rows {_rows_text(bad)}", bad)
+                raise TreeError(f"'parent' holds non-integer values at rows {rows_text(bad, count=True)}", bad)
         parent = parent.astype(np.int64)
         if extension is None:
             extension = np.full(n, -1, dtype=np.int64)
@@ -375,15 +488,7 @@ class Tree:
         if extension.shape != (n,):
             raise TreeError(f"'extension' has shape {extension.shape}, expected {(n,)}")
         extension = extension.astype(np.int64)
-        for name, arr in (("start", start), ("axis", axis), ("length", length), ("radius", radius)):
-            ok = np.isfinite(arr) if arr.ndim == 1 else np.isfinite(arr).all(axis=1)
-            if not ok.all():
-                bad = np.flatnonzero(~ok)
-                raise TreeError(f"non-finite values in '{name}' at rows {_rows_text(bad)}", bad)
-        for name, arr in (("length", length), ("radius", radius)):
-            bad = np.flatnonzero(arr <= 0)
-            if bad.size:
-                raise TreeError(f"{name} <= 0 at rows {_rows_text(bad)} (value {arr[bad[0]]:g})", bad)
+        _raise(value_problems(start, axis, length, radius))
         axis = _unit_axes(axis)
         if topology not in TOPOLOGY_RULES:
             raise TreeError(f"unknown topology rule {topology!r} (choose from {', '.join(TOPOLOGY_RULES)})")
@@ -398,18 +503,21 @@ class Tree:
             if v.shape[:1] != (n,):
                 raise TreeError(f"extra column '{k}' has shape {v.shape}, expected ({n}, ...)")
 
-        bad = np.flatnonzero((extension < -1) | (extension >= n))
-        if bad.size:
-            raise TreeError(f"extension out of range at rows {_rows_text(bad)}", bad)
+        _raise(id_problems(parent, extension))
+        roots = np.flatnonzero(parent < 0)
+        if roots.size == 0:
+            raise TreeError("no root: every cylinder has a parent (the parent links form a cycle)")
+        if roots.size > 1:
+            raise TreeError(
+                f"{roots.size} cylinders have no parent (rows {rows_text(roots, count=True)}); "
+                "a tree has exactly one root",
+                roots,
+            )
+        _raise(cycle_problems(parent))
+        _raise(extension_problems(parent, extension))
         start, axis, length, radius, parent, extension, added, source_row, extras = _parent_first(
             start, axis, length, radius, parent, extension, added, source_row, extras
         )
-        has_ext = np.flatnonzero(extension >= 0)
-        bad = has_ext[parent[extension[has_ext]] != has_ext]
-        if bad.size:
-            i = int(bad[0])
-            j = int(extension[i])
-            raise TreeError(f"extension of row {i} is row {j}, whose parent is row {int(parent[j])}", bad)
 
         self.start = start
         self.axis = axis

@@ -85,7 +85,7 @@ def test_unsorted_rows_are_resorted_and_keep_source_row():
         (dict(parent=[-1, 5]), "parent out of range at rows 1"),
         (dict(parent=[-1, -1]), "2 cylinders have no parent"),
         (dict(parent=[1, 0]), "no root"),
-        (dict(parent=[-1, 1]), "its own parent at rows 1"),
+        (dict(parent=[-1, 1]), "cylinder 1 is its own parent"),
         (dict(extension=[1, 0]), "extension of row 1 is row 0"),
         (dict(radius=[0.1, 0.1, 0.1]), "'radius' has shape (3,)"),
         (dict(length=[]), "no cylinders"),

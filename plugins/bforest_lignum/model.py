@@ -338,6 +338,32 @@ class LignumView:
         return self._tree
 
 
+@dataclass
+class _Shoots:
+    """The provisional shoots of a year (step e), one row per shoot in shoot-list order."""
+
+    prod: np.ndarray  # the segments whose buds produced shoots
+    par: np.ndarray  # parent segment
+    lat: np.ndarray  # lateral (else the apical shoot)
+    l0: np.ndarray  # provisional length and radius (m), before lambda
+    r0: np.ndarray
+    lr: np.ndarray  # radius/length ratio drawn
+    dirs: np.ndarray  # unit directions
+
+
+@dataclass
+class _Allocation:
+    """Step f: the growth multiplier and the per-segment terms of the wood demand (A.7)."""
+
+    lam: float
+    futile: bool
+    levels: list  # live rows by depth
+    A: np.ndarray  # cross-section areas before growth
+    Ah: np.ndarray  # heartwood area after senescence
+    B: np.ndarray  # pipe-model area the new shoots ask of each segment, per lambda^2
+    C: np.ndarray  # area the senesced sapwood of the tips above asks
+
+
 # ------------------------------------------------------------------------------------ model
 class _Failed(Exception):
     def __init__(self, status, message):
@@ -530,13 +556,30 @@ class _Simulation:
 
     # -------------------------------------------------------------- one growth year (e-j)
     def _grow_year(self, t: int, fL: np.ndarray, balance: float, tr: YearTrace | None):
+        """Steps e-j of year ``t``: one method per step. In a futile year (no positive lambda)
+        the buds stay, nothing bends or grows but heartwood, and nothing is shed."""
+        live = ~self.st.deleted
+        shoots = self._buds_to_shoots(live, fL, tr)  # e
+        alloc = self._allocate(live, shoots, balance, tr)  # f
+        if alloc.futile:
+            self.st.has_bud[shoots.prod] = True
+            self._secondary(live, alloc.Ah, None, None, None, 0.0)
+            self._foliage_and_roots()
+        else:
+            self._bend_year(live, shoots, alloc.levels, tr)  # g
+            gone = self._finalise_shoots(t, shoots, alloc, live, tr)  # h
+            self._secondary(live & ~gone, alloc.Ah, alloc.B, alloc.C, alloc.A, alloc.lam)  # i
+            self._foliage_and_roots()
+            self._shed(tr)  # j
+        if tr is not None:
+            self._trace_end(tr)
+
+    def _buds_to_shoots(self, live: np.ndarray, fL: np.ndarray, tr: YearTrace | None) -> _Shoots:
+        """Step e: bud fate (environment, dormancy, apical dominance), lateral counts, and the
+        provisional shoots with their sizes and directions (draws 1-6)."""
         p = self.p
         st = self.st
         rng = self.rng
-        n = st.n
-        live = ~st.deleted
-
-        # ---- e. buds -> provisional shoots
         bud = np.flatnonzero(live & st.has_bud)
         nb = bud.size
         renv = tn_inverse_cdf(rng.random(nb), p["r_env_mean"], p["r_env_sd"])  # draw 1
@@ -632,11 +675,18 @@ class _Simulation:
                 shoot_l0=l0[keep].copy(),
                 shoot_r0=r0[keep].copy(),
             )
-        par, s_lat, l0, r0, lrs, dirs = par[keep], s_lat[keep], l0[keep], r0[keep], lrs[keep], dirs[keep]
+        return _Shoots(prod, par[keep], s_lat[keep], l0[keep], r0[keep], lrs[keep], dirs[keep])
+
+    def _allocate(self, live: np.ndarray, shoots: _Shoots, balance: float, tr: YearTrace | None) -> _Allocation:
+        """Step f: the growth multiplier lambda that spends the carbon balance on the new shoots
+        and the wood the pipe model asks of the old segments (A.7); ``futile`` when even lambda = 0
+        costs more than the balance."""
+        p = self.p
+        st = self.st
+        n = st.n
+        par, s_lat, l0, r0 = shoots.par, shoots.lat, shoots.l0, shoots.r0
         ns = par.size
         wf0_s = p["foliage_per_area"] * 2 * np.pi * r0 * l0
-
-        # ---- f. lambda
         xi = p["heartwood_share"]
         cp = p["pipe_coeff"]
         ss = np.where(st.age > p["ss_start"], p["sapwood_senescence"], 0.0)
@@ -719,34 +769,40 @@ class _Simulation:
                 balance=balance,
                 cost_terms=((1 + ar) * sumW, rho * sumV),
             )
+        return _Allocation(lam, futile, levels, A, Ah, B, C)
 
-        if futile:
-            st.has_bud[prod] = True
-            self._secondary(live, Ah, None, None, None, 0.0)
-            st.wf[:] = foliage_survival(st.age) * st.wf0
-            self.Wr *= 1.0 - p["root_senescence"]
-            if tr is not None:
-                self._trace_end(tr)
-            return
-
-        # ---- g. bending (old segments; new shoots are the last of their axes)
-        has_next = np.zeros(n, dtype=bool)
+    def _bend_year(self, live: np.ndarray, shoots: _Shoots, levels: list, tr: YearTrace | None):
+        """Step g: bending of the old segments (new shoots are the last of their axes), then
+        the start points moved along."""
+        st = self.st
+        has_next = np.zeros(st.n, dtype=bool)
         ap_old = live & ~st.is_lat
         ap_old[0] = False
         has_next[st.parent[ap_old]] = True
-        has_next[par[~s_lat]] = True
+        has_next[shoots.par[~shoots.lat]] = True
         self._bend(live, has_next, tr)
         self._positions(levels)
 
-        # ---- h. finalise shoots
-        L = lam * l0
-        r = lrs * L
+    def _finalise_shoots(
+        self, t: int, shoots: _Shoots, alloc: _Allocation, live: np.ndarray, tr: YearTrace | None
+    ) -> np.ndarray:
+        """Step h: segments that bent below the ground go (with their subtrees); the shoots get
+        their final size (lambda times the provisional one) and are added unless they start on a
+        removed segment, end below the ground, are shorter than ``min_len`` or collide. Returns
+        the removed old segments."""
+        p = self.p
+        st = self.st
+        n = st.n
+        par, s_lat, dirs = shoots.par, shoots.lat, shoots.dirs
+        ns = par.size
+        L = alloc.lam * shoots.l0
+        r = shoots.lr * L
         end_old = st.start + st.length[:, None] * st.axis
         below = live & (end_old[:, 2] < 0)
         gone = np.zeros(n, dtype=bool)
         if below.any():
             gone |= below
-            for rows in levels[1:]:
+            for rows in alloc.levels[1:]:
                 gone[rows] |= gone[st.parent[rows]]
             st.deleted[gone] = True
             st.has_bud[gone] = False
@@ -772,7 +828,7 @@ class _Simulation:
                 axis=dirs[k],
                 length=L[k],
                 radius=r[k],
-                hw=math.sqrt(xi) * r[k],
+                hw=math.sqrt(p["heartwood_share"]) * r[k],
                 wf0=wf0_k,
                 wf=wf0_k,
                 age=np.zeros(k.size, np.int64),
@@ -786,18 +842,14 @@ class _Simulation:
                 dead=np.zeros(k.size, bool),
                 born=np.full(k.size, t, np.int64),
             )
-            self.Wr += ar * float(wf0_k.sum())
+            self.Wr += p["root_per_foliage"] * float(wf0_k.sum())
+        return gone
 
-        # ---- i. secondary growth, foliage, roots
-        old = live & ~gone
-        self._secondary(old, Ah, B, C, A, lam)
+    def _foliage_and_roots(self):
+        """Step i's end: foliage ages, roots senesce."""
+        st = self.st
         st.wf[:] = foliage_survival(st.age) * st.wf0
-        self.Wr *= 1.0 - p["root_senescence"]
-
-        # ---- j. shedding
-        self._shed(tr)
-        if tr is not None:
-            self._trace_end(tr)
+        self.Wr *= 1.0 - self.p["root_senescence"]
 
     def _trace_end(self, tr):
         st = self.st

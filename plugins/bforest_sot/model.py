@@ -354,6 +354,24 @@ class ShootRecord:
     tau: np.ndarray  # turning fraction
 
 
+@dataclass
+class _Basipetal:
+    """Steps 2-3 of a cycle over the segments alive at its start (local index; ``ids`` global):
+    bud states and exposures as before the drops, and the basipetal sums."""
+
+    ids: np.ndarray
+    lpar: np.ndarray  # local parent (-1 for the root)
+    is_lat: np.ndarray
+    api_state0: np.ndarray
+    lat_state0: np.ndarray
+    q_api: np.ndarray
+    q_lat: np.ndarray
+    N: np.ndarray
+    Q: np.ndarray
+    D: np.ndarray
+    width: np.ndarray
+
+
 # ------------------------------------------------------------------------------------------------
 # the growth run
 # ------------------------------------------------------------------------------------------------
@@ -482,12 +500,22 @@ class SOTGrowth:
 
     # -------------------------------------------------------------- one growth cycle
     def _grow_cycle(self, c: int) -> None:
-        p, s, rng = self.p, self.s, self.rng
-        kappa = float(p["nonlinear"])
-        # 1. lambda
+        """Cycle ``c``: one method per step (1 lambda; 2-3 bud light and the basipetal pass; 4
+        the acropetal pass and drops; 5 bud vigor; 6 the shoots)."""
+        lam = self._cycle_lambda()  # 1
+        bp = self._basipetal(lam)  # 2, 3
+        v, v_base, dead = self._allocate_and_drop(bp, lam)  # 4
+        vA, vL = self._vigor(c, bp, lam, v, v_base, dead)  # 5
+        self._grow_shoots(c, bp, dead, vA, vL)  # 6
+
+    def _cycle_lambda(self) -> float:
+        """Step 1: this cycle's apical control (schedule plus noise: the cycle's draw 1); with k
+        buds per node the share of one of a node's k splits. Also lifts the stand's canopy top to
+        the tree's."""
+        p, s = self.p, self.s
         self.age = min(self.age + 1.0, p["delay"] + p["transition"])
         lam = lambda_schedule(self.age, p["init_lambda"], p["targ_lambda"], p["delay"], p["transition"])
-        z_lam = rng.standard_normal()
+        z_lam = self.rng.standard_normal()
         lam = float(np.clip(lam + p["lambda_sd"] * z_lam, 0.0, 1.0))
         self.lam = lam
         if self.buds_per_node > 1:
@@ -498,8 +526,12 @@ class SOTGrowth:
         if p["stand_shade"] > 0.0:  # the stand's canopy grows with the tree: its top is the tree's
             live = s.live
             self.field.z_top = float((s.start[live, 2] + s.length[live] * s.h[live, 2]).max())
+        return lam
 
-        # 2. bud light; 3. basipetal pass
+    def _basipetal(self, lam: float) -> _Basipetal:
+        """Steps 2-3: the exposure of every bud and the basipetal pass (bud counts N, light Q,
+        the allocation denominators D, pipe-model widths, written to the store)."""
+        p, s = self.p, self.s
         ids, loc, lpar, ac, lc = self._compact()
         q_api, q_lat = self._bud_light(ids)
         api_state0 = s.api_state[ids].copy()
@@ -515,24 +547,40 @@ class SOTGrowth:
             s.lat_stub_w[ids],
             s.depth[ids],
             lam,
-            kappa,
+            float(p["nonlinear"]),
             p["pipe_exp"],
             p["init_width"],
         )
-        N, Q, D, width = acc["N"], acc["Q"], acc["D"], acc["width"]
-        s.width[ids] = width
+        s.width[ids] = acc["width"]
+        return _Basipetal(
+            ids,
+            lpar,
+            s.is_lateral[ids],
+            api_state0,
+            lat_state0,
+            q_api,
+            q_lat,
+            acc["N"],
+            acc["Q"],
+            acc["D"],
+            acc["width"],
+        )
 
-        # 4. acropetal pass and drops
-        v_base = p["alpha0"] + p["alpha1"] * Q[0]
-        is_lat = s.is_lateral[ids]
-        v, rounds = allocate(lpar, is_lat, N, Q, D, lam, kappa, v_base)
-        cand = (v / N <= p["drop_thresh"]) | (s.start[ids, 2] <= 0.0)
+    def _allocate_and_drop(self, bp: _Basipetal, lam: float):
+        """Step 4: the acropetal (Borchert-Honda) pass, and the drop of under-supplied branches
+        and of those below the ground (their parents' slots become stubs, they leave the light
+        field). Returns ``(v, v_base, dropped)``."""
+        p, s = self.p, self.s
+        ids, lpar, width = bp.ids, bp.lpar, bp.width
+        v_base = p["alpha0"] + p["alpha1"] * bp.Q[0]
+        v, rounds = allocate(lpar, bp.is_lat, bp.N, bp.Q, bp.D, lam, float(p["nonlinear"]), v_base)
+        cand = (v / bp.N <= p["drop_thresh"]) | (s.start[ids, 2] <= 0.0)
         cand[lpar < 0] = False  # the root is never dropped
         dead = path_any(cand, rounds)
         top = np.flatnonzero(dead & ~dead[np.maximum(lpar, 0)])
         if top.size:
             pg = ids[lpar[top]]
-            lat_top = is_lat[top]
+            lat_top = bp.is_lat[top]
             s.lat_state[pg[lat_top]] = STUB
             s.lat_stub_w[pg[lat_top]] = width[top[lat_top]]
             s.api_state[pg[~lat_top]] = STUB
@@ -542,41 +590,55 @@ class SOTGrowth:
             if self.buds_per_node > 1:  # bud nodes cast no shadow (see _add_bud_nodes)
                 gone = gone[~s.twin[gone]]
             self.field.remove(s.start[gone])
+        return v, v_base, dead
 
-        # 5. bud vigor (uncapped values kept for inspection)
+    def _vigor(self, c: int, bp: _Basipetal, lam: float, v, v_base: float, dead):
+        """Step 5: the vigor of every apical and lateral bud, capped at ``max_grow`` (the
+        uncapped values go to the inspection record). Returns ``(vA, vL)``."""
+        p, s = self.p, self.s
+        ids = bp.ids
+        kappa = float(p["nonlinear"])
+        D = bp.D
         Dpos = D > 0
         Dsafe = np.where(Dpos, D, 1.0)
-        vA_raw = np.where((api_state0 == BUD) & Dpos, v * lam * q_api**kappa / Dsafe, 0.0)
-        vL_raw = np.where((lat_state0 == BUD) & Dpos, v * (1.0 - lam) * q_lat**kappa / Dsafe, 0.0)
+        vA_raw = np.where((bp.api_state0 == BUD) & Dpos, v * lam * bp.q_api**kappa / Dsafe, 0.0)
+        vL_raw = np.where((bp.lat_state0 == BUD) & Dpos, v * (1.0 - lam) * bp.q_lat**kappa / Dsafe, 0.0)
         if self.record:
             self.last_alloc = AllocationRecord(
                 cycle=c,
                 lam=lam,
                 ids=ids,
                 parent=s.parent[ids].copy(),
-                is_lateral=is_lat.copy(),
-                api_state=api_state0,
-                lat_state=lat_state0,
-                api_child=np.where(api_state0 == CHILD, s.api_child[ids], -1),
-                lat_child=np.where(lat_state0 == CHILD, s.lat_child[ids], -1),
-                q_api=q_api,
-                q_lat=q_lat,
-                N=N,
-                Q=Q,
+                is_lateral=bp.is_lat.copy(),
+                api_state=bp.api_state0,
+                lat_state=bp.lat_state0,
+                api_child=np.where(bp.api_state0 == CHILD, s.api_child[ids], -1),
+                lat_child=np.where(bp.lat_state0 == CHILD, s.lat_child[ids], -1),
+                q_api=bp.q_api,
+                q_lat=bp.q_lat,
+                N=bp.N,
+                Q=bp.Q,
                 D=D,
-                width=width,
+                width=bp.width,
                 v=v,
                 v_base=v_base,
                 dropped=dead,
                 vA_raw=vA_raw,
                 vL_raw=vL_raw,
             )
-        keep = ~dead
         mg = float(p["max_grow"])
-        vA = np.minimum(vA_raw, mg)
-        vL = np.minimum(vL_raw, mg)
-        grow_a = keep & (api_state0 == BUD) & (np.floor(vA) >= 1.0)
-        grow_l = keep & (lat_state0 == BUD) & (vL > 1.0)
+        return np.minimum(vA_raw, mg), np.minimum(vL_raw, mg)
+
+    def _grow_shoots(self, c: int, bp: _Basipetal, dead, vA, vL) -> None:
+        """Step 6: the buds that grow (an apical bud with at least one metamer, a lateral bud
+        with vigor above 1; leader death and sympodial branching take apical buds away), in
+        draw order (by bearing segment, apical before lateral), checked against
+        ``max_live_segments`` and built."""
+        p, s, rng = self.p, self.s, self.rng
+        ids = bp.ids
+        keep = ~dead
+        grow_a = keep & (bp.api_state0 == BUD) & (np.floor(vA) >= 1.0)
+        grow_l = keep & (bp.lat_state0 == BUD) & (vL > 1.0)
         if p["leader_death"] > 0.0 and c > p["death_delay"]:
             # draw 1b (an addition): a growing apical bud dies with probability leader_death; the
             # lateral buds at its node take over (with opposite buds: a fork). Drawn only when
@@ -586,7 +648,7 @@ class SOTGrowth:
             s.api_state[ids[died]] = EMPTY
             grow_a[died] = False
         if self.sympodial:
-            s.api_state[ids[keep & (api_state0 == BUD)]] = EMPTY
+            s.api_state[ids[keep & (bp.api_state0 == BUD)]] = EMPTY
             grow_a[:] = False
 
         # shoots ordered by bearing segment, apical before lateral

@@ -4,10 +4,11 @@ conversion, validation, repairs, Tree building (kernel: readers of every plugin 
 Every reader turns its file into a :class:`RawCylinders` table (file row order, 0-based ids,
 -1 = none) and hands it to :func:`build_tree`, which applies the rules of
 docs/qsm-formats.md §0 in one place: always-errors (non-finite values, negative
-radii, zero axes, cycles, out-of-range ids, extensions that are not children), the default
+radii, zero axes, cycles, out-of-range ids, extensions that are not children: the checks of
+:class:`~bforest_core.tree.Tree`, which ``bforest_core.tree`` holds once), the default
 repairs (detached fragments, zero-length cylinders) with one warning each, axis
 renormalisation, the check of the stored branch/order against the recomputed ones, and the
-topology rule. Everything is vectorised; Python loops only run over repaired *chains* (a handful
+topology rule. Writers share :func:`resolve_options` with the readers. Everything is vectorised; Python loops only run over repaired *chains* (a handful
 of iterations) or in error paths.
 """
 
@@ -292,8 +293,9 @@ def build_tree(
 
     The phases, in order: the columns as arrays; the always-errors on values and on ids (the
     checks :class:`Tree` makes, shared with it: :func:`~bforest_core.tree.value_problems`,
-    :func:`~bforest_core.tree.id_problems`, :func:`~bforest_core.tree.cycle_problems`, here on
-    the whole file before any repair and naming 1-based file rows); the repairs (detached
+    :func:`~bforest_core.tree.id_problems`, :func:`~bforest_core.tree.extension_problems`,
+    :func:`~bforest_core.tree.cycle_problems`, here on the whole file before any repair and
+    naming 1-based file rows); the repairs (detached
     fragments, zero-length cylinders, axes); the Tree; the comparison of the file's stored
     branches and orders with the recomputed ones; the plausibility of the units.
 

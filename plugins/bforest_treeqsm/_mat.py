@@ -24,6 +24,8 @@ from bforest_core.cylinders import (
 from bforest_core.errors import QSMFormatError
 from bforest_core.tables import mat_kind
 
+from .columns import POINT_FIELDS, STRUCT_FIELDS, table_to_raw
+
 STRUCT_NAMES = ("qsm", "QSM", "OptQSM", "QSMs")
 FLAT_NAMES = ("Rad", "Len", "Sta", "Axe", "CPar")
 NON_NUMERIC = {"struct", "cell", "char", "function_handle", "object", "opaque", "sparse", "?"}
@@ -442,18 +444,7 @@ def cylinder_struct_to_raw(path, cyl, label: str):
         added = float_column(path, f"{label}.added", cyl.added, n)  # NaN is refused in build_tree, not taken for True
     branch = labels_to_int(path, f"{label}.branch", cyl.branch, n) if "branch" in fields else None
     order = labels_to_int(path, f"{label}.BranchOrder", cyl.BranchOrder, n) if "BranchOrder" in fields else None
-    used = {
-        "radius",
-        "length",
-        "start",
-        "axis",
-        "parent",
-        "extension",
-        "added",
-        "branch",
-        "BranchOrder",
-        "PositionInBranch",
-    }
+    used = set(STRUCT_FIELDS) - set(POINT_FIELDS)  # the point-derived fields stay as extras
     extras = {}
     for name in fields:
         if name in used:
@@ -569,7 +560,7 @@ class CylDataMatReader(_MatReader):
                 path, f"variable '{var}' has shape {data.shape} ({data.dtype}); expected n x 14 numbers"
             )
         _, as_list, _ = select_models(path, [0], opts.select, var)
-        raw = cyldata14_to_raw(path, data, var)
+        raw = table_to_raw(path, data, "cyldata14", var)
         meta = {
             "variable": var,
             "container": "MAT v5" if mf.kind == "v5" else "MAT v7.3 (HDF5)",
@@ -578,30 +569,3 @@ class CylDataMatReader(_MatReader):
         }
         tree = build_tree(path, raw, fmt=self.name, version=None, opts=opts, metadata=meta)
         return [tree] if as_list else tree
-
-
-def cyldata14_to_raw(path, data: np.ndarray, label: str) -> RawCylinders:
-    """Columns of the 14-column CylData layout (1-based ids)."""
-    d = np.asarray(data, dtype=np.float64)
-    n = d.shape[0]
-    return RawCylinders(
-        radius=d[:, 0],
-        length=d[:, 1],
-        start=d[:, 2:5],
-        axis=d[:, 5:8],
-        parent=ids_to_rows(path, f"{label} column 9 (parent)", d[:, 8], n, 1, what="parent"),
-        extension=ids_to_rows(path, f"{label} column 10 (extension)", d[:, 9], n, 1, what="extension"),
-        added=_flag(path, f"{label} column 14 (added)", d[:, 13]),
-        branch=labels_to_int(path, f"{label} column 11 (branch)", d[:, 10], n),
-        order=labels_to_int(path, f"{label} column 12 (branch order)", d[:, 11], n),
-    )
-
-
-def _flag(path, name, v):
-    v = np.asarray(v, dtype=np.float64)
-    bad = np.flatnonzero(~np.isfinite(v))
-    if bad.size:
-        raise QSMFormatError(
-            path, f"non-finite values in '{name}' at rows {', '.join(str(b + 1) for b in bad[:10])}", bad + 1
-        )
-    return v != 0

@@ -11,19 +11,15 @@ import numpy as np
 
 from bforest_core.cylinders import (
     BaseReader,
-    RawCylinders,
     ReaderSettings,
     build_tree,
-    ids_to_rows,
-    labels_to_int,
-    rows_text,
     select_models,
     sniff_safely,
 )
 from bforest_core.errors import QSMFormatError
 from bforest_core.tables import first_line_fields, looks_binary, parse_table, read_bytes, split_lines_head
 
-from ._mat import cyldata14_to_raw
+from .columns import table_to_raw
 
 TREEQSM17_NAMES = [
     "radius (m)",
@@ -142,7 +138,7 @@ class TreeQSMTextReader(BaseReader):
         if layout == "treeqsm15":
             layout = detect_15(path, values)
         _, as_list, _ = select_models(path, [0], opts.select, "file")
-        raw = text_to_raw(path, values, layout)
+        raw = table_to_raw(path, values, layout)
         meta = {"layout": layout, "model_index": 0, "n_models": 1, "header": bool(header)}
         tree = build_tree(
             path,
@@ -171,38 +167,3 @@ def detect_15(path, values: np.ndarray) -> str:
         "15 columns per row, but the column order cannot be told from the "
         "content; pass layout='treeqsm15-struct' or layout='treeqsm15-cyldata'",
     )
-
-
-def text_to_raw(path, v: np.ndarray, layout: str) -> RawCylinders:
-    n = v.shape[0]
-    if layout == "cyldata14":
-        return cyldata14_to_raw(path, v, "column")
-    if layout == "treeqsm17":
-        cols = {"branch": 10, "order": 11, "added": 15}
-        extras = {"mad": v[:, 13], "SurfCov": v[:, 14], "UnmodRadius": v[:, 16]}
-    elif layout == "treeqsm15-struct":
-        cols = {"added": 10, "branch": 12, "order": 13}
-        extras = {"UnmodRadius": v[:, 11]}
-    else:  # treeqsm15-cyldata
-        cols = {"branch": 10, "order": 11, "added": 13}
-        extras = {"UnmodRadius": v[:, 14]}
-    c = cols
-    return RawCylinders(
-        radius=v[:, 0],
-        length=v[:, 1],
-        start=v[:, 2:5],
-        axis=v[:, 5:8],
-        parent=ids_to_rows(path, "column 9 (parent)", v[:, 8], n, 1, what="parent"),
-        extension=ids_to_rows(path, "column 10 (extension)", v[:, 9], n, 1, what="extension"),
-        added=_flag(path, f"column {c['added'] + 1} (added)", v[:, c["added"]]),
-        branch=labels_to_int(path, f"column {c['branch'] + 1} (branch)", v[:, c["branch"]], n),
-        order=labels_to_int(path, f"column {c['order'] + 1} (branch order)", v[:, c["order"]], n),
-        extras=extras,
-    )
-
-
-def _flag(path, name, v):
-    bad = np.flatnonzero(~np.isfinite(v))
-    if bad.size:
-        raise QSMFormatError(path, f"non-finite values in '{name}' at rows {rows_text(bad + 1)}", bad + 1)
-    return v != 0

@@ -21,6 +21,7 @@ from bforest_core.provenance import jsonable
 from bforest_core.tables import format_columns, format_rows
 
 from ._text import TREEQSM17_NAMES
+from .columns import INTEGER_FIELDS, LAYOUTS, STRUCT_FIELDS
 
 
 def _extra(tree, name, default):
@@ -84,12 +85,9 @@ class TreeQSMTextWriter(QSMWriter):
         o = resolve_options(self, options)
         path = Path(path)
         c = treeqsm_columns(tree)
-        fcols = ["radius", "length", "start", "axis", "mad", "SurfCov", "UnmodRadius"]
         if o.decimals is not None:
             d = o.decimals
-            c = dict(c)
-            for k in fcols:
-                c[k] = np.round(c[k], d)
+            c = {k: v if k in INTEGER_FIELDS else np.round(v, d) for k, v in c.items()}
             for k in ("radius", "length"):
                 bad = np.flatnonzero(c[k] <= 0)
                 if bad.size:
@@ -103,39 +101,8 @@ class TreeQSMTextWriter(QSMWriter):
             ff = f"%.{d}f"
         else:
             ff = "%.9g"
-        if o.layout == "treeqsm17":
-            order = [
-                "radius",
-                "length",
-                "start",
-                "axis",
-                "parent",
-                "extension",
-                "branch",
-                "BranchOrder",
-                "PositionInBranch",
-                "mad",
-                "SurfCov",
-                "added",
-                "UnmodRadius",
-            ]
-            header = "\t".join(TREEQSM17_NAMES) + "\n"
-        else:
-            order = [
-                "radius",
-                "length",
-                "start",
-                "axis",
-                "parent",
-                "extension",
-                "added",
-                "UnmodRadius",
-                "branch",
-                "BranchOrder",
-                "PositionInBranch",
-            ]
-            header = ""
-        rows = format_columns([(c[k], ff if k in fcols else "%d") for k in order])
+        header = "\t".join(TREEQSM17_NAMES) + "\n" if o.layout == "treeqsm17" else ""
+        rows = format_columns([(c[k], "%d" if k in INTEGER_FIELDS else ff) for k in LAYOUTS[o.layout]])
         with open(path, "w", encoding="ascii", newline="\n") as fh:
             fh.write(header)
             fh.write(rows)
@@ -344,23 +311,9 @@ def treeqsm_struct(tree, provenance: Optional[dict] = None) -> dict:
     c = treeqsm_columns(tree)
     n = tree.n
     cyl = {}
-    for k in (
-        "radius",
-        "length",
-        "start",
-        "axis",
-        "parent",
-        "extension",
-        "added",
-        "UnmodRadius",
-        "branch",
-        "SurfCov",
-        "mad",
-        "BranchOrder",
-        "PositionInBranch",
-    ):
+    for k in STRUCT_FIELDS:
         v = np.asarray(c[k])
-        if k in ("parent", "extension", "added", "branch", "BranchOrder", "PositionInBranch"):
+        if k in INTEGER_FIELDS:
             cyl[k] = _uint(v)
         else:
             cyl[k] = np.ascontiguousarray(np.asarray(v, dtype=np.float64).reshape(n, -1))

@@ -353,6 +353,32 @@ def _set(lines, row, col, value):
     lines[row] = "\t".join(f)
 
 
+def test_every_text_layout_names_the_bad_column_by_its_number(tmp_path):
+    """The layouts share one column table (bforest_treeqsm.columns): a NaN flag or a fractional
+    order is reported with the column's number in that layout, in text and in a CylData .mat."""
+    import scipy.io as sio
+
+    t = hand_tree()
+    cyl = np.column_stack(
+        [t.radius, t.length, t.start, t.axis, t.parent + 1, t.extension + 1, t.branch + 1, t.order]
+        + [t.position_in_branch + 1, t.added]
+    )
+    for col, value, words in (
+        (13, np.nan, "non-finite values in '{}column 14 (added)'"),
+        (11, 0.5, "'{}column 12 (branch order)'"),
+    ):
+        bad = cyl.copy()
+        bad[2, col] = value
+        np.savetxt(tmp_path / "c14.txt", bad, fmt="%.9g")
+        sio.savemat(tmp_path / "c14.mat", {"CylData": bad})
+        for name, label in (("c14.txt", ""), ("c14.mat", "CylData ")):
+            with pytest.raises(QSMFormatError) as ei:
+                bf.read_qsm(tmp_path / name)
+            assert words.format(label) in str(ei.value) and ei.value.rows == [3], str(ei.value)
+    np.savetxt(tmp_path / "c14.txt", cyl, fmt="%.9g")
+    assert bf.read_qsm(tmp_path / "c14.txt").equals(t, atol=1e-8)
+
+
 def test_unsupported_suffix_and_wrong_content(tmp_path):
     p = tmp_path / "tree.xyz"
     p.write_text("1 2 3\n")

@@ -389,6 +389,30 @@ def test_no_root_failure():
     assert ei.value.status == "no_root"
 
 
+def test_a_year_without_new_shoots_grows_only_wood(monkeypatch):
+    """A year in which no bud makes a shoot (all dormant or killed) allocates nothing to shoots:
+    the tree adds no segment and keeps its wood (np.bincount of no shoots is an integer array;
+    the allocation used to fail on it with a casting error)."""
+    short = _ssm().simulate({"years": 5}, seed=1)
+    real = LM._Simulation._buds_to_shoots
+    sizes = {}
+
+    def no_shoots_after_year_4(self, live, fL, tr):
+        s = real(self, live, fL, tr)
+        sizes[len(sizes) + 1] = int(np.count_nonzero(~self.st.deleted))
+        if len(sizes) <= 4:
+            return s
+        keep = np.zeros(s.par.size, dtype=bool)
+        return LM._Shoots(s.prod[:0], s.par[keep], s.lat[keep], s.l0[keep], s.r0[keep], s.lr[keep], s.dirs[keep])
+
+    monkeypatch.setattr(LM._Simulation, "_buds_to_shoots", no_shoots_after_year_4)
+    tree = _ssm().simulate({"years": 8}, seed=1)
+    assert tree.metadata["status"] == "ok"
+    assert len(sizes) == 7 and sizes[5] == sizes[6] == sizes[7]
+    assert tree.n <= short.n  # no new segment after year 4 (shedding may take some)
+    assert tree.radius[0] >= short.radius[0]  # the stem keeps its wood (the pipe model asks no more)
+
+
 # ---------------------------------------------------------------------------- carbon (D.8)
 def test_carbon_balance_and_lambda(synth12):
     _, trace, _ = synth12

@@ -696,7 +696,10 @@ class _Simulation:
         alive_idx = np.flatnonzero(live)
         levels = depth_levels(alive_idx, st.depth)
         wlink = np.where(st.is_lat, cp, 1.0)
-        B = np.bincount(par, weights=np.where(s_lat, cp, 1.0) * np.pi * r0**2 * (1 - xi), minlength=n)
+        # float even for a year without shoots (np.bincount of nothing is an integer array)
+        B = np.bincount(par, weights=np.where(s_lat, cp, 1.0) * np.pi * r0**2 * (1 - xi), minlength=n).astype(
+            np.float64, copy=False
+        )
         nonroot = alive_idx[st.parent[alive_idx] >= 0]
         nchild = np.bincount(st.parent[nonroot], minlength=n)
         tip = live & (nchild == 0)

@@ -44,9 +44,10 @@ import numpy as np
 
 from ..config import config_to_dict, parse_config, read_toml
 from ..errors import BayesForestError, ConfigError
+from ..io import write_json
 from ..metrics import weighted_quantiles
 from .fit import _free_specs, fit, same_config
-from .store import RunDirError, RunFiles, RunStore, json_text
+from .store import RunDirError, RunFiles, RunStore
 
 __all__ = [
     "calibrate",
@@ -426,7 +427,9 @@ def calibrate(
         "out_dir": out_dir,
     }
     res["table_text"] = table_text(res)
-    res["json"] = _write_json(out_dir / "calibration.json", res)
+    res["json"] = write_json(
+        out_dir / "calibration.json", {k: v for k, v in res.items() if k not in ("json", "csv")}, strict=True
+    )
     res["csv"] = _write_csv(out_dir / "calibration.csv", rows, names)
     return res
 
@@ -472,11 +475,6 @@ def table_text(res: dict) -> str:
             f"{np.median(evals):.0f} evaluations per run"
         )
     return "\n".join(lines)
-
-
-def _write_json(path: Path, res: dict) -> Path:
-    path.write_text(json_text({k: v for k, v in res.items() if k not in ("json", "csv")}), encoding="utf-8")
-    return path
 
 
 def _write_csv(path: Path, rows: list[dict], names) -> Path:

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import contextlib
-import json
 from pathlib import Path
 
 import numpy as np
 
 from ..config import config_to_dict, load_config, parse_config
+from ..io import write_json
 from ..registry import component_class
 from .heldout import heldout_mean, point_key, score_points, scoring_fingerprint
 from .progress import progress_bar
@@ -280,18 +280,16 @@ def compare(
         for row in rows:
             row["heldout"] = scores[row["optimizer"]][row["repeat"]]
     text = "\n".join(lines)
-    (out_dir / "compare.json").write_text(
-        json.dumps(
-            {
-                "budget": budget,
-                "repeats": repeats,
-                "threshold": threshold,
-                **({"heldout": held} if held else {}),
-                "table": table,
-                "runs": rows,
-            },
-            indent=2,
-        )
+    write_json(
+        out_dir / "compare.json",
+        {
+            "budget": budget,
+            "repeats": repeats,
+            "threshold": threshold,
+            **({"heldout": held} if held else {}),
+            "table": table,
+            "runs": rows,
+        },
     )
     (out_dir / "compare.md").write_text(f"# Optimiser comparison\n\n```\n{text}\n```\n")
     return {

@@ -8,7 +8,6 @@ uninterrupted one.
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import time
@@ -21,6 +20,7 @@ import numpy as np
 from ..config import config_to_dict, load_config, parse_config, read_toml, section_settings, ssm_settings
 from ..errors import BayesForestError, ConfigError
 from ..interfaces import Problem
+from ..io import jsonable
 from ..registry import component
 from .checks import preflight
 from .heldout import select_answer
@@ -28,7 +28,7 @@ from .progress import progress_bar
 from .rundir import holding_run_lock
 from .scoring import _simulate_with_timeout, _Timeout, set_summaries
 from .seeds import model_seeds, spread_seeds
-from .store import Evaluation, RunDirError, RunFiles, RunStore, json_default
+from .store import Evaluation, RunDirError, RunFiles, RunStore
 from .target import Target
 from .worker import evaluate_task, run_executor, started_workers, summary_task
 
@@ -426,7 +426,7 @@ def finish_fit(
         "seconds": seconds,
         "target_metrics": target_metrics,
         "optimizer": cfg.optimizer.kind,
-        "diagnostics": _jsonable(store.write_diagnostics(getattr(result, "diagnostics", {}) or {})),
+        "diagnostics": jsonable(store.write_diagnostics(getattr(result, "diagnostics", {}) or {}), loose=True),
     }
     if selection:
         best["heldout_distance"] = next(c["heldout"] for c in selection["candidates"] if c["evaluation"] == ev.idx)
@@ -467,17 +467,3 @@ def finish_fit(
         best["note"] = f"best tree could not be regrown or written: {exc or 'timeout'}"
     store.write_json(store.BEST, best)
     return best
-
-
-def _jsonable(d):
-    """Diagnostics as plain JSON values (``json_default``, loose); an entry that cannot be written
-    at all (a mapping with tuple keys, say) as its text."""
-    default = functools.partial(json_default, loose=True)
-    out = {}
-    for k, v in d.items():
-        try:
-            json.dumps(v, default=default)
-            out[k] = v
-        except Exception:
-            out[k] = str(v)
-    return json.loads(json.dumps(out, default=default))

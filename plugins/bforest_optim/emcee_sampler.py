@@ -59,7 +59,12 @@ class EmceeSettings(OptimizerSettings):
     walkers: int | None = Field(
         None, ge=2, description="walkers (even, at least 2 * dimension; default max(2 * dimension + 2, 16))"
     )
-    steps: int = Field(200, ge=1, description="ensemble steps (each evaluates every walker once)")
+    steps: int = Field(
+        200,
+        ge=1,
+        description="length of the chain: ensemble steps, each evaluating every walker once (not the "
+        "evaluation budget, which is [stop] max_evaluations and may end the chain earlier)",
+    )
     burn_in: int = Field(50, ge=0, description="steps discarded before the posterior summaries")
     moves: Literal["stretch", "de", "de_snooker", "walk"] = Field(
         "stretch", description="emcee move: stretch (affine-invariant), de (differential evolution), de_snooker, walk"

@@ -421,6 +421,9 @@ class Problem:
     init_lower: np.ndarray | None = None
     init_upper: np.ndarray | None = None
     seed: int = 0
+    #: the evaluation budget (a fit's ``[stop] max_evaluations``; ``None``: none). ``evaluate``
+    #: enforces it (it evaluates what still fits, then sets ``stopped``); an optimiser reads
+    #: ``remaining()`` to plan and ``stopped`` to end, and keeps no budget setting of its own
     budget: int | None = None
     # progress state, maintained by the caller's evaluate
     stopped: bool = False
@@ -454,6 +457,7 @@ class Problem:
         return np.asarray(lo, float), np.asarray(hi, float)
 
     def remaining(self) -> int | None:
+        """Evaluations left in the budget (``None`` without one)."""
         return None if self.budget is None else max(0, self.budget - self.n_evaluations)
 
 

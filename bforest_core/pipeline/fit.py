@@ -94,11 +94,21 @@ class Evaluator:
         simulation when the optimiser asks for that (``Optimizer.failures_as_inf``)."""
         return math.inf if self.failures_as_inf and status != "ok" else float(distance)
 
+    def _stop_at_budget(self, pending: int = 0) -> bool:
+        """Stop the problem once its evaluations, with ``pending`` more on their way, reach
+        ``Problem.budget`` (``[stop] max_evaluations``): the one place the budget is enforced
+        (optimisers read ``Problem.remaining()`` to plan, ``Problem.stopped`` to end)."""
+        pr = self.problem
+        left = pr.remaining()
+        if left is not None and pending >= left:
+            pr.stopped, pr.stop_reason = True, f"evaluation budget ({pr.budget}) reached"
+        return pr.stopped
+
     def _check_stop(self):
         pr, st = self.problem, self.stop
-        if st.max_evaluations is not None and pr.n_evaluations >= st.max_evaluations:
-            pr.stopped, pr.stop_reason = True, f"evaluation budget ({st.max_evaluations}) reached"
-        elif st.wall_time is not None and self.elapsed() >= st.wall_time:
+        if self._stop_at_budget():
+            return
+        if st.wall_time is not None and self.elapsed() >= st.wall_time:
             pr.stopped, pr.stop_reason = True, f"wall time ({st.wall_time:g} s) reached"
         elif st.target_distance is not None and pr.best_f <= st.target_distance:
             pr.stopped, pr.stop_reason = True, f"target distance {st.target_distance:g} reached"
@@ -157,8 +167,7 @@ class Evaluator:
             if self.cfg.objective.cache and key in pending:
                 pending[key].append(r)  # identical point twice in one batch: evaluate once
                 continue
-            if self.stop.max_evaluations is not None and pr.n_evaluations + len(todo) >= self.stop.max_evaluations:
-                pr.stopped, pr.stop_reason = True, f"evaluation budget ({self.stop.max_evaluations}) reached"
+            if self._stop_at_budget(pending=len(todo)):
                 continue
             idx = self.next_index
             self.next_index += 1

@@ -14,7 +14,7 @@ from pydantic import Field, field_validator, model_validator
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from .box import BoxEvaluator, History, OptimizerSettings, make_result
+from .box import Box, History, OptimizerSettings, make_result
 
 #: algorithms that need a local optimiser (``set_local_optimizer``)
 _NEEDS_LOCAL = {"GN_MLSL", "GN_MLSL_LDS", "G_MLSL", "G_MLSL_LDS"}
@@ -133,7 +133,7 @@ class NloptOptimizer(Optimizer):
         import nlopt
 
         s: NloptSettings = self.settings
-        ev = BoxEvaluator(problem)
+        ev = Box(problem)
         log = History(problem)
         p = ev.dim
         lo, hi = ev.relaxed_bounds("bounds")

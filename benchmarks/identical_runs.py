@@ -11,7 +11,7 @@ Runs, with one checkout's own ``.venv/bin/bforest``, into a folder:
 
 and compares two such folders: every row of every ``evaluations.sqlite`` (tables ``evaluations``,
 ``heldout`` and ``log``; the columns that time an evaluation, ``seconds``, ``worker`` and
-``finished``, left out) and the bytes of every ``best.json`` (its ``"seconds"`` line, the run's
+``finished``, and the log's row counter ``seq`` left out, its records compared in order) and the bytes of every ``best.json`` (its ``"seconds"`` line, the run's
 wall time, left out). Prints one line per file and a verdict; exits 1 on a difference.
 
     python3 benchmarks/identical_runs.py run /path/to/checkout OUT_DIR
@@ -38,6 +38,7 @@ from pathlib import Path
 OPTIMIZERS = "abc-smc,cma,de,emcee,ga,nlopt,turbo"
 KILL_AFTER = 20  # evaluations logged before the resumed job's first session is killed
 TIMING_COLUMNS = {"seconds", "worker", "finished"}
+ROW_IDS = {"seq"}  # the log's row counter: a resumed run's log is rewritten under new numbers, in order
 
 
 def small_recipe(checkout: Path, out: Path) -> Path:
@@ -120,7 +121,7 @@ def _rows(db: Path) -> dict[str, list[tuple]]:
     with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as con:
         out = {}
         for table, order in (("evaluations", "idx"), ("heldout", "scoring, point, seeds"), ("log", "seq")):
-            cols = [r[1] for r in con.execute(f"PRAGMA table_info({table})") if r[1] not in TIMING_COLUMNS]
+            cols = [r[1] for r in con.execute(f"PRAGMA table_info({table})") if r[1] not in TIMING_COLUMNS | ROW_IDS]
             out[table] = con.execute(f"SELECT {', '.join(cols)} FROM {table} ORDER BY {order}").fetchall()
         return out
 

@@ -57,13 +57,11 @@ def _clone_task(task):
     i, params, seed, out_dir = task
     c = worker_context()
     try:
-        tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
+        tree = _simulate_with_timeout(c.ssm, params, seed, c.timeout)
     except SimulationFailed as exc:
         return dict(index=i, seed=seed, status=exc.status, message=str(exc), params=params)
     except _Timeout:
-        return dict(
-            index=i, seed=seed, status="timeout", message=f"simulation exceeded {c['timeout']} s", params=params
-        )
+        return dict(index=i, seed=seed, status="timeout", message=f"simulation exceeded {c.timeout} s", params=params)
     except _MODEL_ERRORS as exc:
         return dict(index=i, seed=seed, status="error", message=f"{type(exc).__name__}: {exc}"[:500], params=params)
     path = Path(out_dir) / f"clone_{i:03d}.txt"

@@ -85,10 +85,10 @@ def term_specs(cfg) -> list[Term]:
                 prefix=f"{t.name}/",
                 weight=float(t.weight),
                 set_weights=t.weights,
-                features_kind=t.features["kind"],
-                features={k: v for k, v in t.features.items() if k != "kind"},
-                distance_kind=t.distance["kind"],
-                distance={k: v for k, v in t.distance.items() if k != "kind"},
+                features_kind=t.features.kind,
+                features=t.features.settings,
+                distance_kind=t.distance.kind,
+                distance=t.distance.settings,
             )
         )
     return specs

@@ -389,7 +389,7 @@ def _allowed_keys(model, raw, loc) -> list[str]:
     return list(cur.model_fields) if cur is not None else []
 
 
-def check_ssm_parameters(cfg) -> None:
+def check_ssm_parameters(cfg: RunConfig) -> None:
     """``fixed`` and ``free`` entries must name parameters of the SSM, within its ranges."""
     from .registry import component
 
@@ -437,7 +437,7 @@ def _identifier(name) -> bool:
     return isinstance(name, str) and name.isidentifier() and not keyword.iskeyword(name)
 
 
-def check_generated_target(cfg) -> None:
+def check_generated_target(cfg: RunConfig) -> None:
     """``[target.generate]`` names an installed SSM, its parameters and settings."""
     from .registry import component
 
@@ -468,12 +468,12 @@ def check_generated_target(cfg) -> None:
         raise ConfigError("; ".join(problems))
 
 
-def ssm_settings(cfg) -> dict:
+def ssm_settings(cfg: RunConfig) -> dict:
     """The SSM plugin's own settings from the ``[ssm]`` section (without kind/fixed/free/topology)."""
     return cfg.ssm.model_dump(exclude={"kind", "fixed", "free", "topology"})
 
 
-def section_settings(cfg, section: str) -> dict:
+def section_settings(cfg: RunConfig, section: str) -> dict:
     return getattr(cfg, section).model_dump(exclude={"kind"})
 
 
@@ -523,7 +523,7 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
     return cfg
 
 
-def check_terms(cfg) -> None:
+def check_terms(cfg: RunConfig) -> None:
     """Every ``[[objective.terms]]`` entry names installed components with valid settings."""
     from .registry import component
 
@@ -575,7 +575,7 @@ def read_toml(path) -> dict:
         raise ConfigError(f"{path}: not a text file") from None
 
 
-def config_to_dict(cfg) -> dict:
+def config_to_dict(cfg: RunConfig) -> dict:
     """The resolved config as plain data (``None`` values removed, so it writes as TOML)."""
 
     def clean(x):
@@ -588,7 +588,7 @@ def config_to_dict(cfg) -> dict:
     return clean(cfg.model_dump(mode="json"))
 
 
-def dump_config(cfg, path) -> None:
+def dump_config(cfg: RunConfig, path) -> None:
     import tomli_w
 
     Path(path).write_text(tomli_w.dumps(config_to_dict(cfg)), encoding="utf-8")

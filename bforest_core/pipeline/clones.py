@@ -16,6 +16,7 @@ from __future__ import annotations
 import csv
 import shutil
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,6 +30,9 @@ from .seeds import clone_seeds
 from .store import RunFiles, RunStore
 from .target import build_target
 from .worker import started_workers, worker_context
+
+if TYPE_CHECKING:
+    from ..config import RunConfig
 
 METRIC_KEYS = ("height", "girth", "crown_spread")
 #: clones.csv column of each per-clone value (units in the header; girth is the base diameter)
@@ -243,7 +247,7 @@ def _write_progress(store: RunStore, out_dir: Path, rows, tgt, best, tm) -> None
     store.write_json(f"{out_dir.name}/{RunFiles.CLONE_SUMMARY}", summary)
 
 
-def _fidelity(cfg, tgt, best, rows) -> dict:
+def _fidelity(cfg: RunConfig, tgt, best, rows) -> dict:
     from ..attributes import fidelity_statistics
     from ..metrics import SUMMARY_UNITS
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -16,6 +17,9 @@ from .seeds import heldout_seeds
 from .store import RunDirError, RunFiles, RunStore
 from .target import build_target
 from .worker import started_workers
+
+if TYPE_CHECKING:
+    from ..config import RunConfig
 
 
 def _settings_for_budget(raw: dict, name: str, budget: int) -> dict:
@@ -36,7 +40,7 @@ def best_so_far(run_dir: Path) -> np.ndarray:
     return np.minimum.accumulate(np.array([e.distance if e.status == "ok" else np.inf for e in evs], float))
 
 
-def score_heldout(runs, cfg, target, sets: int, at=(), progress: bool = False) -> tuple[dict, int]:
+def score_heldout(runs, cfg: RunConfig, target, sets: int, at=(), progress: bool = False) -> tuple[dict, int]:
     """How good each run's best points are on model seeds no fit saw.
 
     A fit with fixed model seeds keeps the point whose trees, grown with *those* seeds, score

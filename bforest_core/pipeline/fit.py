@@ -17,7 +17,15 @@ from typing import Any
 
 import numpy as np
 
-from ..config import config_to_dict, load_config, parse_config, read_toml, section_settings, ssm_settings
+from ..config import (
+    RunConfig,
+    config_to_dict,
+    load_config,
+    parse_config,
+    read_toml,
+    section_settings,
+    ssm_settings,
+)
 from ..errors import BayesForestError, ConfigError
 from ..interfaces import Problem
 from ..io import jsonable
@@ -52,7 +60,15 @@ class Evaluator:
     """``Problem.evaluate`` of a run: replay from the store, cache, executor, stop criteria."""
 
     def __init__(
-        self, cfg, store: RunStore, executor, ssm, names, problem: Problem, progress=None, failures_as_inf: bool = False
+        self,
+        cfg: RunConfig,
+        store: RunStore,
+        executor,
+        ssm,
+        names,
+        problem: Problem,
+        progress=None,
+        failures_as_inf: bool = False,
     ):
         self.cfg = cfg
         self.failures_as_inf = failures_as_inf  # Optimizer.failures_as_inf
@@ -236,7 +252,7 @@ class _Progress:
         self.bar.close()
 
 
-def _expected_total(cfg, optimizer, dim: int) -> int | None:
+def _expected_total(cfg: RunConfig, optimizer, dim: int) -> int | None:
     """Evaluations the progress bar counts to: the budget, or what the optimiser plans
     (``Optimizer.expected_evaluations``), whichever is smaller."""
     planned = optimizer.expected_evaluations(dim)
@@ -244,7 +260,7 @@ def _expected_total(cfg, optimizer, dim: int) -> int | None:
     return min(totals) if totals else None
 
 
-def _result_relevant(cfg) -> dict:
+def _result_relevant(cfg: RunConfig) -> dict:
     """The parts of a config a run's results depend on (all but the executor and the report)."""
     d = config_to_dict(cfg)
     d.pop("executor", None)
@@ -252,7 +268,7 @@ def _result_relevant(cfg) -> dict:
     return d
 
 
-def same_config(run_dir, cfg) -> bool:
+def same_config(run_dir, cfg: RunConfig) -> bool:
     """Whether the run in ``run_dir`` was made with ``cfg`` (up to the executor and the report,
     which do not change results); False when its config.toml is missing or unreadable."""
     path = RunFiles(run_dir).config_path
@@ -263,7 +279,7 @@ def same_config(run_dir, cfg) -> bool:
     return _result_relevant(old) == _result_relevant(cfg)
 
 
-def _free_specs(cfg, ssm):
+def _free_specs(cfg: RunConfig, ssm):
     names, lo, hi, ilo, ihi, integer = [], [], [], [], [], []
     for name, fp in cfg.ssm.free.items():
         spec = ssm.parameter_spec(name)
@@ -279,7 +295,14 @@ def _free_specs(cfg, ssm):
 
 
 @holding_run_lock
-def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bool = False, target=None) -> FitResult:
+def fit(
+    cfg: RunConfig | str | Path,
+    run_dir,
+    resume: bool = False,
+    progress: bool = True,
+    overwrite: bool = False,
+    target=None,
+) -> FitResult:
     """Fit the SSM of ``cfg`` to its target; everything is written to ``run_dir``.
 
     Parameters
@@ -293,7 +316,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     """
     import tomli_w
 
-    if not hasattr(cfg, "ssm"):
+    if not isinstance(cfg, RunConfig):
         cfg = load_config(cfg)
     run_dir = Path(run_dir)
     cfg_dict = config_to_dict(cfg)
@@ -376,7 +399,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
         )
 
 
-def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
+def _save_target(store: RunStore, tgt: Target, cfg: RunConfig | None = None) -> None:
     """The data tables, and the distance's frozen data-side transforms and directions, so every
     number of the run can be recomputed from the run directory."""
     np.savez_compressed(store.target_sets_path, **tgt.U)
@@ -404,7 +427,7 @@ def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
 
 
 def finish_fit(
-    cfg,
+    cfg: RunConfig,
     store: RunStore,
     tgt: Target,
     stop_reason: str,

@@ -12,10 +12,14 @@ from __future__ import annotations
 import csv
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import ConfigError
+
+if TYPE_CHECKING:
+    from ..config import RunConfig
 
 __all__ = ["profile", "profile_values"]
 
@@ -37,7 +41,7 @@ def profile_values(
     return np.unique(v)
 
 
-def _profile_grid(cfg, spec, param: str, values, n: int, best_value: float):
+def _profile_grid(cfg: RunConfig, spec, param: str, values, n: int, best_value: float):
     """The values to profile and whether they are whole numbers: ``n`` across the fit bounds (or
     the model's range for a fixed parameter) plus the best value, or the user's ``values``
     checked against the model's range."""

@@ -72,14 +72,14 @@ def summary_task(task: tuple[dict, list[int]]) -> np.ndarray | None:
     return np.mean(rows, axis=0)
 
 
-def run_executor(cfg):
+def run_executor(cfg: RunConfig):
     """The executor of the run's ``[executor]`` section."""
     from ..config import section_settings
 
     return component("executor", cfg.executor.kind, **section_settings(cfg, "executor"))
 
 
-def started_workers(cfg, tgt: Target, executor=None):
+def started_workers(cfg: RunConfig, tgt: Target, executor=None):
     """The run's executor (or ``executor``) started with :func:`init_worker` on the target, as a
     context manager: the target's tables travel to each worker once."""
     ex = run_executor(cfg) if executor is None else executor

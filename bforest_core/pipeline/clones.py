@@ -22,6 +22,7 @@ import numpy as np
 
 from ..config import load_config
 from ..errors import BayesForestError, SimulationFailed
+from ..interfaces import parameter_value
 from .fidelity import bound_flags, fidelity_table, fidelity_text, fidelity_warnings
 from .progress import progress_bar
 from .rundir import holding_run_lock
@@ -128,7 +129,7 @@ def posterior_draw(run_dir: Path, base: dict, seed: int) -> dict:
     out = dict(base)
     for j, name in enumerate(names):
         v = float(data[k, j])
-        out[name] = int(round(v)) if isinstance(base.get(name), int) else v
+        out[name] = parameter_value(v, isinstance(base.get(name), int))
     return out
 
 

@@ -27,7 +27,7 @@ from ..config import (
     ssm_settings,
 )
 from ..errors import BayesForestError, ConfigError
-from ..interfaces import Problem
+from ..interfaces import Problem, parameter_value
 from ..io import jsonable
 from ..registry import component
 from .checks import preflight
@@ -76,9 +76,7 @@ class Evaluator:
         self.executor = executor
         self.names = names
         self.problem = problem
-        self.fixed = {
-            k: (int(round(v)) if ssm.parameter_spec(k).integer else float(v)) for k, v in cfg.ssm.fixed.items()
-        }
+        self.fixed = {k: parameter_value(v, ssm.parameter_spec(k).integer) for k, v in cfg.ssm.fixed.items()}
         self.integer = problem.integer
         self.replay = store.replay()
         self.cache: dict[tuple, float] = {}
@@ -95,7 +93,7 @@ class Evaluator:
     def _params(self, x) -> dict:
         p = dict(self.fixed)
         for name, v, is_int in zip(self.names, x, self.integer):
-            p[name] = int(round(v)) if is_int else float(v)
+            p[name] = parameter_value(v, is_int)
         return p
 
     @staticmethod

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import ConfigError
+from ..interfaces import parameter_value
 
 if TYPE_CHECKING:
     from ..config import RunConfig
@@ -127,7 +128,7 @@ def profile(
     tasks, where = [], []
     for i, x in enumerate(vals):
         p = dict(base)
-        p[param] = int(round(x)) if integer else float(x)
+        p[param] = parameter_value(x, integer)
         for j, s in enumerate(seed_list):
             tasks.append((p, [s]))
             where.append((i, j))

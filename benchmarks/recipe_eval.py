@@ -49,8 +49,13 @@ def measure(recipe: str, points: int, seed: int, run: str | None = None) -> dict
 
     cfg = load_config(recipe)
     tgt = tg_mod.build_target(cfg)
-    ob.init_worker(config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
-    names, lo, hi, _, _, integer = _free_specs(cfg, ob._CTX["ssm"])
+    if hasattr(ob, "_SCORING"):  # a worker takes the validated config and holds a Scoring (issue 34)
+        ob.init_worker(cfg, tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
+        ssm = ob.worker_context().ssm
+    else:  # a revision before: the config as a dict, the context a dict
+        ob.init_worker(config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
+        ssm = ob._CTX["ssm"]
+    names, lo, hi, _, _, integer = _free_specs(cfg, ssm)
     seeds = sd_mod.model_seeds(int(cfg.seed), cfg.objective.seeds)
     if run:
         from bforest_core.pipeline.store import RunStore

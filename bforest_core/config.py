@@ -117,6 +117,20 @@ def _check_weights(weights):
     return weights
 
 
+class ComponentPart(BaseModel):
+    """A component named inside an entry of the config: ``{ kind = NAME, settings... }``; the
+    settings are the component's own, validated when the config is checked (:func:`check_terms`)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    kind: str = Field(..., description="the plugin name")
+
+    @property
+    def settings(self) -> dict[str, Any]:
+        """The component's settings (everything but ``kind``)."""
+        return dict(self.model_extra or {})
+
+
 class TermConfig(_Strict):
     """One more term of the objective: its own feature set and distance, and a weight.
 
@@ -129,18 +143,20 @@ class TermConfig(_Strict):
         ..., pattern=r"^[A-Za-z][A-Za-z0-9_-]*$", description="name of the term (its sets are stored as NAME/SET)"
     )
     weight: float = Field(1.0, gt=0, description="weight of the term in the objective")
-    features: dict[str, Any] = Field(..., description="feature set: { kind = NAME, settings... }")
-    distance: dict[str, Any] = Field(..., description="distance: { kind = NAME, settings... }")
+    features: ComponentPart = Field(..., description="feature set: { kind = NAME, settings... }")
+    distance: ComponentPart = Field(..., description="distance: { kind = NAME, settings... }")
     weights: Optional[dict[str, float]] = Field(None, description="weight per data set within the term")
 
     _weights = field_validator("weights")(lambda cls, v: _check_weights(v))
 
-    @model_validator(mode="after")
-    def _kinds(self):
+    @model_validator(mode="before")
+    @classmethod
+    def _kinds(cls, data):
         for part in ("features", "distance"):
-            if not isinstance(getattr(self, part).get("kind"), str):
+            value = data.get(part) if isinstance(data, dict) else None
+            if isinstance(value, dict) and not isinstance(value.get("kind"), str):
                 raise ValueError(f'{part}: needs kind = "<{part} plugin name>"')
-        return self
+        return data
 
 
 class ObjectiveConfig(_Strict):
@@ -234,6 +250,47 @@ class ReportConfig(_Strict):
     clones_in_figure: int = Field(6, ge=1)
 
 
+class RunConfig(_Strict):
+    """A validated run configuration: the type of every ``cfg`` (:func:`load_config`,
+    :func:`parse_config`).
+
+    The sections every run has are declared here; the component sections (``ssm``, ``features``,
+    ``distance``, ``optimizer``, ``executor``) are the installed plugins' settings models, added
+    by :func:`run_config_model`, whose model this is the base of. A config pickles (by reference
+    to its models), so it travels to the executor's workers as the validated object.
+    """
+
+    seed: int = Field(1, ge=0, description="run seed: every evaluation seed and clone seed derives from it")
+    target: TargetConfig
+    objective: ObjectiveConfig = Field(default_factory=ObjectiveConfig)
+    stop: StopConfig = Field(default_factory=StopConfig)
+    select: SelectConfig = Field(default_factory=SelectConfig)
+    clones: ClonesConfig = Field(default_factory=ClonesConfig)
+    report: ReportConfig = Field(default_factory=ReportConfig)
+
+
+#: the models built from the installed plugins, by the module-level name pickle finds them under
+_BUILT: dict[str, type[BaseModel]] = {}
+
+
+def _register_built(model: type[BaseModel], name: str) -> type[BaseModel]:
+    """Give a model built at run time a name in this module, so its instances pickle by
+    reference and a process that unpickles one (a worker) finds the class (:func:`__getattr__`)."""
+    model.__module__ = __name__
+    model.__qualname__ = name
+    _BUILT[name] = model
+    return model
+
+
+def __getattr__(name: str):
+    """A model built from the installed plugins, built on first use (a worker unpickling a config)."""
+    if name.startswith("_built_"):
+        run_config_model()
+        if name in _BUILT:
+            return _BUILT[name]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 def _section_model(kind: str, name: str, cls: type) -> type[BaseModel]:
     """The config model of one component: its Settings plus ``kind`` (and SSM extras)."""
     fields: dict[str, Any] = {"kind": (Literal[name], Field(..., description=f"{kind} plugin name"))}
@@ -250,7 +307,7 @@ def _section_model(kind: str, name: str, cls: type) -> type[BaseModel]:
     base = cls.Settings
     model = create_model(f"{cls.__name__}_{kind}_config", __base__=base, **fields)
     model.__doc__ = (cls.__doc__ or "").strip().split("\n")[0]
-    return model
+    return _register_built(model, f"_built_{kind}_{name}")
 
 
 @functools.cache
@@ -265,21 +322,10 @@ def _run_config_model(registry_id: int):
             continue
         union = models[0] if len(models) == 1 else Annotated[Union[tuple(models)], Field(discriminator="kind")]
         fields[section] = (union, ...)  # parse_config fills the default kinds first
-    return create_model(
-        "RunConfig",
-        __base__=_Strict,
-        seed=(int, Field(1, ge=0, description="run seed: every evaluation seed and clone seed derives from it")),
-        target=(TargetConfig, ...),
-        objective=(ObjectiveConfig, Field(default_factory=ObjectiveConfig)),
-        stop=(StopConfig, Field(default_factory=StopConfig)),
-        select=(SelectConfig, Field(default_factory=SelectConfig)),
-        clones=(ClonesConfig, Field(default_factory=ClonesConfig)),
-        report=(ReportConfig, Field(default_factory=ReportConfig)),
-        **fields,
-    )
+    return _register_built(create_model("RunConfig", __base__=RunConfig, **fields), "_built_RunConfig")
 
 
-def run_config_model() -> type[BaseModel]:
+def run_config_model() -> type[RunConfig]:
     """The pydantic model of a run configuration, with the component unions of the installed
     plugins."""
     return _run_config_model(id(discover()))
@@ -343,7 +389,7 @@ def _allowed_keys(model, raw, loc) -> list[str]:
     return list(cur.model_fields) if cur is not None else []
 
 
-def check_ssm_parameters(cfg) -> None:
+def check_ssm_parameters(cfg: RunConfig) -> None:
     """``fixed`` and ``free`` entries must name parameters of the SSM, within its ranges."""
     from .registry import component
 
@@ -391,7 +437,7 @@ def _identifier(name) -> bool:
     return isinstance(name, str) and name.isidentifier() and not keyword.iskeyword(name)
 
 
-def check_generated_target(cfg) -> None:
+def check_generated_target(cfg: RunConfig) -> None:
     """``[target.generate]`` names an installed SSM, its parameters and settings."""
     from .registry import component
 
@@ -422,12 +468,12 @@ def check_generated_target(cfg) -> None:
         raise ConfigError("; ".join(problems))
 
 
-def ssm_settings(cfg) -> dict:
+def ssm_settings(cfg: RunConfig) -> dict:
     """The SSM plugin's own settings from the ``[ssm]`` section (without kind/fixed/free/topology)."""
     return cfg.ssm.model_dump(exclude={"kind", "fixed", "free", "topology"})
 
 
-def section_settings(cfg, section: str) -> dict:
+def section_settings(cfg: RunConfig, section: str) -> dict:
     return getattr(cfg, section).model_dump(exclude={"kind"})
 
 
@@ -477,19 +523,18 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
     return cfg
 
 
-def check_terms(cfg) -> None:
+def check_terms(cfg: RunConfig) -> None:
     """Every ``[[objective.terms]]`` entry names installed components with valid settings."""
     from .registry import component
 
     problems = []
     for i, t in enumerate(cfg.objective.terms):
         for kind, part in (("features", t.features), ("distance", t.distance)):
-            settings = {k: v for k, v in part.items() if k != "kind"}
             try:
-                component(kind, part["kind"], **settings)
+                component(kind, part.kind, **part.settings)
             except PluginError as exc:
                 problems.append(
-                    f"objective.terms[{i}] ({t.name}).{kind}: {exc}{did_you_mean(part['kind'], discover().names(kind))}"
+                    f"objective.terms[{i}] ({t.name}).{kind}: {exc}{did_you_mean(part.kind, discover().names(kind))}"
                 )
             except ConfigError as exc:
                 problems.append(f"objective.terms[{i}] ({t.name}).{kind}: {exc}")
@@ -530,7 +575,7 @@ def read_toml(path) -> dict:
         raise ConfigError(f"{path}: not a text file") from None
 
 
-def config_to_dict(cfg) -> dict:
+def config_to_dict(cfg: RunConfig) -> dict:
     """The resolved config as plain data (``None`` values removed, so it writes as TOML)."""
 
     def clean(x):
@@ -543,7 +588,7 @@ def config_to_dict(cfg) -> dict:
     return clean(cfg.model_dump(mode="json"))
 
 
-def dump_config(cfg, path) -> None:
+def dump_config(cfg: RunConfig, path) -> None:
     import tomli_w
 
     Path(path).write_text(tomli_w.dumps(config_to_dict(cfg)), encoding="utf-8")

@@ -113,6 +113,23 @@ class ParameterSpec:
     group: str = ""
 
 
+def parameter_value(value, integer: bool) -> int | float:
+    """A parameter's value as a model takes it: for a whole-number parameter (``years``, say) an
+    ``int``, rounded half to even, else a ``float``. The one rounding of a parameter: the fit's
+    points, ``SSM.resolve_params``, profiles and posterior clones all round through it, so a
+    model receives whole numbers and never rounds again.
+
+    Parameters
+    ----------
+    value : float
+        The value (a float from an optimiser, a config or a posterior draw).
+    integer : bool
+        Whether the parameter takes whole values (``ParameterSpec.integer``, or a ``free``
+        entry's own ``integer``).
+    """
+    return int(round(float(value))) if integer else float(value)
+
+
 @dataclass
 class RecipeDraft:
     """A growth model's part of a recipe for one tree (:meth:`SSM.draft_recipe`).
@@ -234,7 +251,7 @@ class SSM(Component):
             if not math.isfinite(fv):
                 raise ValueError(f"parameter {p.name!r} of SSM '{self.name}' must be finite, got {v!r}")
             if p.integer:
-                out[p.name] = int(round(fv))
+                out[p.name] = parameter_value(fv, integer=True)
         return out
 
 
@@ -421,6 +438,9 @@ class Problem:
     init_lower: np.ndarray | None = None
     init_upper: np.ndarray | None = None
     seed: int = 0
+    #: the evaluation budget (a fit's ``[stop] max_evaluations``; ``None``: none). ``evaluate``
+    #: enforces it (it evaluates what still fits, then sets ``stopped``); an optimiser reads
+    #: ``remaining()`` to plan and ``stopped`` to end, and keeps no budget setting of its own
     budget: int | None = None
     # progress state, maintained by the caller's evaluate
     stopped: bool = False
@@ -454,6 +474,7 @@ class Problem:
         return np.asarray(lo, float), np.asarray(hi, float)
 
     def remaining(self) -> int | None:
+        """Evaluations left in the budget (``None`` without one)."""
         return None if self.budget is None else max(0, self.budget - self.n_evaluations)
 
 

@@ -1,7 +1,11 @@
-"""``read_qsm`` and ``write_tree``: dispatch to the registered readers and writers."""
+"""Files in and out: ``read_qsm`` and ``write_tree`` dispatch to the registered readers and
+writers; ``jsonable``, ``json_text`` and ``write_json`` are the one way results become JSON (the
+run folder's files, the evaluation log's columns, ``--json`` output, a writer's metadata)."""
 
 from __future__ import annotations
 
+import json
+import math
 from pathlib import Path
 
 from .errors import PluginError, QSMFormatError
@@ -110,3 +114,86 @@ def write_tree(tree, path, format: str | None = None, **options) -> Path:
     cls = writer_for(path, format)
     path.parent.mkdir(parents=True, exist_ok=True)
     return cls().write(tree, path, **options)
+
+
+# ------------------------------------------------------------------------------------ JSON
+def jsonable(obj, *, loose: bool = False, strict: bool = False):
+    """``obj`` as plain JSON values: dicts, lists, text, numbers, booleans and ``None``.
+
+    Numpy scalars become Python numbers, numpy arrays and tuples lists, paths text; dict keys that
+    JSON takes (text, numbers, booleans, ``None``) stay, numpy scalar keys become numbers.
+
+    Parameters
+    ----------
+    obj : object
+        The value (nested dicts, lists and tuples of them).
+    loose : bool
+        Anything else (a free-form optimiser diagnostic, a writer's metadata) becomes its text;
+        without it, ``TypeError`` names its type.
+    strict : bool
+        NaN and infinities become ``None`` (strict JSON readers reject them); without it they stay
+        floats (Python's ``json`` writes them as ``NaN``/``Infinity``).
+
+    Returns
+    -------
+    object
+        The plain value; ``json.dumps`` writes it with no ``default``.
+    """
+    if obj is None or isinstance(obj, (bool, str)):
+        return obj
+    if isinstance(obj, float):  # numpy's float64 too: a float subclass
+        return None if strict and not math.isfinite(obj) else obj
+    if isinstance(obj, int):
+        return obj
+    if isinstance(obj, dict):
+        return {_json_key(k, loose): jsonable(v, loose=loose, strict=strict) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v, loose=loose, strict=strict) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    import numpy as np
+
+    if isinstance(obj, np.generic):
+        return jsonable(obj.item(), loose=loose, strict=strict)
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist(), loose=loose, strict=strict)
+    if loose:
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def _json_key(k, loose: bool):
+    if k is None or isinstance(k, (str, int, float, bool)):
+        return k
+    import numpy as np
+
+    if isinstance(k, np.generic):
+        return k.item()
+    if loose:
+        return str(k)
+    raise TypeError(f"not a JSON key: {type(k).__name__}")
+
+
+def json_text(
+    obj, *, indent: int | None = 2, sort_keys: bool = False, loose: bool = False, strict: bool = False
+) -> str:
+    """``obj`` as JSON text (:func:`jsonable` with ``loose`` and ``strict``).
+
+    ``strict`` is for people and other programs (``--json`` output, a study's summary file):
+    NaN and infinities as ``null``. Without it non-finite numbers are written as Python's
+    ``json`` writes them and read back by it (the run folder's own files). ``indent=None``
+    gives one line (the evaluation log's columns, with ``sort_keys``).
+    """
+    return json.dumps(
+        jsonable(obj, loose=loose, strict=strict), indent=indent, sort_keys=sort_keys, allow_nan=not strict
+    )
+
+
+def write_json(path, obj, **options) -> Path:
+    """Write :func:`json_text` of ``obj`` (``options`` as there) to ``path``, all or nothing:
+    through a temporary file beside it, so a reader never sees half a file."""
+    path = Path(path)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json_text(obj, **options), encoding="utf-8")
+    tmp.replace(path)
+    return path

@@ -130,7 +130,7 @@ def test_lignum_recipe_weights_statistics_by_their_fidelity_limits():
     limits = run_fidelity.LIMITS  # the limits the validation checks the clones against
     cfg = bf.load_config(real / "pine_lignum.toml")
     (size,) = [t for t in cfg.objective.terms if t.name == "size"]
-    w = size.distance["weights"]
+    w = size.distance.settings["weights"]
     ratio = [w[k] * limits[k] for k in limits]
     assert max(ratio) / min(ratio) == pytest.approx(1.0, abs=0.02)  # DBH: 2.7 for 8 / 3
     assert cfg.objective.structure_weight == pytest.approx(size.weight)

@@ -1,6 +1,7 @@
 """An objective of several terms: [[objective.terms]] beside the [features]/[distance] term."""
 
 import json
+import pickle
 
 import numpy as np
 import pytest
@@ -68,16 +69,15 @@ def test_score_tree_and_combine_terms(toy_plugin, tmp_path):
     assert total == pytest.approx(0.0) and values == {"structure": 0.0, "extra": 0.0}  # the target scores 0
     assert rows == {"L": 12, "extra/A": 12, "extra/B": 12}
     # a grown tree scores above 0, and a worker built from the config's dict scores it the same
-    tree = ctx["ssm"].simulate({}, 5)
+    tree = ctx.ssm.simulate({}, 5)
     per_set, _ = scoring.score_tree(tree, ctx)
     assert scoring.combine_terms(per_set, ctx)[0] > 0
-    saved = dict(worker._CTX)
-    try:
-        worker.init_worker(bf.config.config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
+    saved = worker._SCORING
+    try:  # a worker given the config as it travels to one (pickled) scores it the same
+        worker.init_worker(pickle.loads(pickle.dumps(cfg)), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
         assert scoring.score_tree(tree, worker.worker_context())[0] == per_set
     finally:
-        worker._CTX.clear()
-        worker._CTX.update(saved)
+        worker._SCORING = saved
 
 
 @pytest.mark.parametrize(

@@ -124,8 +124,8 @@ def make_problem(
 CASES = {
     "ga": (GeneticAlgorithm, {}, None, 0.1, 0.02),
     "ga-intermediate": (GeneticAlgorithm, {"crossover": "intermediate", "selection": "tournament"}, None, 0.1, 0.02),
-    "nlopt-crs2": (NloptOptimizer, {"maxeval": 1500}, None, 0.05, 1e-3),
-    "nlopt-sbplx": (NloptOptimizer, {"algorithm": "sbplx", "maxeval": 1500}, None, 0.05, 1e-3),
+    "nlopt-crs2": (NloptOptimizer, {}, 1500, 0.05, 1e-3),
+    "nlopt-sbplx": (NloptOptimizer, {"algorithm": "sbplx"}, 1500, 0.05, 1e-3),
     "nlopt-direct+bobyqa": (
         NloptOptimizer,
         {"algorithm": "direct_l", "local_algorithm": "LN_BOBYQA"},
@@ -305,9 +305,9 @@ def test_failed_evaluations_are_never_the_best():
     def failing(x):
         return math.nan if x[0] > 2.0 else quadratic(x)
 
-    for cls, settings in [(GeneticAlgorithm, {}), (DifferentialEvolution, {}), (NloptOptimizer, {"maxeval": 800})]:
-        pr, rec, _ = make_problem(fun=failing, seed=6)
-        res = cls(**settings).minimize(pr)
+    for cls, budget in [(GeneticAlgorithm, None), (DifferentialEvolution, None), (NloptOptimizer, 800)]:
+        pr, rec, _ = make_problem(fun=failing, seed=6, budget=budget)
+        res = cls().minimize(pr)
         assert math.isfinite(res.fun) and res.fun < 0.05 and res.x[2] == 3.0, cls
 
 
@@ -389,13 +389,15 @@ def test_nlopt_algorithm_names():
         bf.component("optimizer", "nlopt", algorithm="nonsense")
     with pytest.raises(ConfigError, match="local"):
         bf.component("optimizer", "nlopt", local_algorithm="GN_ISRES")
+    # the evaluation budget has one name, [stop] max_evaluations (Problem.budget)
+    with pytest.raises(ConfigError, match=r"maxeval is gone: use \[stop\] max_evaluations"):
+        bf.component("optimizer", "nlopt", maxeval=300)
 
 
 def test_nlopt_one_point_per_call_and_polish_after_global():
-    pr, rec, logs = make_problem(seed=1)
-    res = NloptOptimizer(
-        algorithm="GN_ISRES", population=30, maxeval=300, local_algorithm="sbplx", local_maxeval=200
-    ).minimize(pr)
+    # the main run gets the budget less the polish's 200
+    pr, rec, logs = make_problem(seed=1, budget=500)
+    res = NloptOptimizer(algorithm="GN_ISRES", population=30, local_algorithm="sbplx", local_maxeval=200).minimize(pr)
     assert all(len(X) == 1 for X, _ in rec.batches)
     phases = [r["phase"] for r in logs]
     assert phases.count("global") == 300 and 0 < phases.count("local") <= 200

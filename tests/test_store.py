@@ -112,13 +112,24 @@ def test_run_folder_file_names_are_spelled_only_in_the_store():
     assert not found, "run-folder file names spelled outside pipeline/store.py:\n" + "\n".join(found)
 
 
-def test_json_default_writes_numpy_and_paths_and_only_loosely_anything_else(tmp_path):
+def test_jsonable_writes_numpy_and_paths_and_only_loosely_anything_else(tmp_path):
     from pathlib import Path
 
-    from bforest_core.pipeline.store import json_default
+    from bforest_core.io import json_text, jsonable, write_json
 
-    data = {"a": np.float32(0.5), "b": np.arange(3), "c": np.int64(7), "p": Path("x") / "y"}
-    assert json.loads(json.dumps(data, default=json_default)) == {"a": 0.5, "b": [0, 1, 2], "c": 7, "p": "x/y"}
+    data = {"a": np.float32(0.5), "b": np.arange(3), "c": np.int64(7), "p": Path("x") / "y", "t": (1, 2)}
+    assert jsonable(data) == {"a": 0.5, "b": [0, 1, 2], "c": 7, "p": "x/y", "t": [1, 2]}
     with pytest.raises(TypeError, match="not JSON serialisable: object"):
-        json.dumps({"o": object()}, default=json_default)
-    assert json.dumps(1j, default=lambda o: json_default(o, loose=True)) == '"1j"'
+        jsonable({"o": object()})
+    assert jsonable({"o": 1j, (1, 2): 3}, loose=True) == {"o": "1j", "(1, 2)": 3}
+    # the run folder's files keep NaN (Python's json reads it back); strict text has null
+    assert json_text({"x": float("nan"), "y": np.float64("inf")}, indent=None) == '{"x": NaN, "y": Infinity}'
+    assert json_text({"x": float("nan"), "y": [np.float64("-inf"), 1.5]}, strict=True, indent=None) == (
+        '{"x": null, "y": [null, 1.5]}'
+    )
+    # the evaluation log's columns: one line, keys sorted, as json.dumps writes them
+    params = {"b": 2, "a": 0.1, "c": None}
+    assert json_text(params, indent=None, sort_keys=True) == json.dumps(params, sort_keys=True)
+    path = write_json(tmp_path / "x.json", {"v": np.arange(2)})
+    assert path.read_text(encoding="utf-8") == '{\n  "v": [\n    0,\n    1\n  ]\n}'
+    assert not list(tmp_path.glob("*.tmp"))

@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..pipeline.rundir import run_lock
 from ..pipeline.store import RunFiles
 from .common import UsageError, report
+
+if TYPE_CHECKING:
+    from ..config import RunConfig
 
 
 def cmd_fit(args):
@@ -24,7 +28,7 @@ def cmd_fit(args):
         return _fit_and_report(args, cfg, out, fit)
 
 
-def _fit_and_report(args, cfg, out, fit):
+def _fit_and_report(args, cfg: RunConfig, out, fit):
     res = fit(cfg, out, resume=args.resume, progress=not args.quiet, overwrite=args.overwrite)
     if res.already_finished:
         print(

@@ -4,8 +4,6 @@ and CSV rows."""
 
 from __future__ import annotations
 
-import numpy as np
-
 from ..attributes import (
     ATTRIBUTE_UNITS,
     BRANCH_COLUMNS,
@@ -130,7 +128,3 @@ def csv_rows(tree, table: str) -> tuple[list[str], list[list]]:
     head = ["branch"] + [f"{c}_{BRANCH_COLUMNS[c]}" if BRANCH_COLUMNS[c] else c for c in cols]
     n = b["order"].size
     return head, [[i] + [int(b[c][i]) if c in ("order", "parent") else float(b[c][i]) for c in cols] for i in range(n)]
-
-
-def finite(x):
-    return None if isinstance(x, float) and not np.isfinite(x) else x

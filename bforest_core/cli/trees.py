@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..pipeline.store import json_text
+from ..io import json_text
 from .common import UsageError, parse_set, read, select_arg, split_sets
 
 
@@ -79,7 +79,7 @@ def _info_table(args, trees) -> int:
         for k, t in enumerate(trees)
     ]
     if args.json:
-        print(json_text(out if len(out) > 1 else out[0]))
+        print(json_text(out if len(out) > 1 else out[0], strict=True))
         return 0
     cols = ["order", "n_branches", "length_m", "volume_m3", "mean_angle_deg", "mean_base_diameter_m"]
     w = csv.writer(sys.stdout)
@@ -189,7 +189,8 @@ def cmd_distance(args):
                     "metrics_model_m": ma,
                     "metrics_data_m": mb,
                     "relative_errors": relative_errors(mb, ma),
-                }
+                },
+                strict=True,
             )
         )
         return 0

@@ -39,14 +39,19 @@ import csv
 import math
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..config import config_to_dict, parse_config, read_toml
 from ..errors import BayesForestError, ConfigError
+from ..io import write_json
 from ..metrics import weighted_quantiles
 from .fit import _free_specs, fit, same_config
-from .store import RunDirError, RunFiles, RunStore, json_text
+from .store import RunDirError, RunFiles, RunStore
+
+if TYPE_CHECKING:
+    from ..config import RunConfig
 
 __all__ = [
     "calibrate",
@@ -181,7 +186,7 @@ def _read_study_config(path: Path):
     return parse_config(raw, base_dir=path.resolve().parent, source=str(path))
 
 
-def _check_sampler(cfg, source: str) -> None:
+def _check_sampler(cfg: RunConfig, source: str) -> None:
     from ..registry import component_class
 
     cls = component_class("optimizer", cfg.optimizer.kind)
@@ -192,7 +197,7 @@ def _check_sampler(cfg, source: str) -> None:
         )
 
 
-def _fixed_model_seeds(cfg) -> set[int]:
+def _fixed_model_seeds(cfg: RunConfig) -> set[int]:
     from .seeds import model_seeds
 
     o = cfg.objective
@@ -223,7 +228,7 @@ def run_config(base: dict, i: int, truth: dict, target_seed: int):
     return cfg
 
 
-def _study_spec(cfg):
+def _study_spec(cfg: RunConfig):
     from ..config import ssm_settings
     from ..registry import component
 
@@ -288,7 +293,7 @@ def posterior_params(X: np.ndarray, w: np.ndarray, names, theta, integer, seed: 
     return out
 
 
-def _plan_runs(cfg, base: dict, out_dir: Path, n: int, overwrite: bool, names, lo, hi, integer) -> list:
+def _plan_runs(cfg: RunConfig, base: dict, out_dir: Path, n: int, overwrite: bool, names, lo, hi, integer) -> list:
     """Per run: (index, truth vector, run config, run folder, state new/partial/finished); a
     held run made with another config is an error."""
     plans = []
@@ -426,7 +431,9 @@ def calibrate(
         "out_dir": out_dir,
     }
     res["table_text"] = table_text(res)
-    res["json"] = _write_json(out_dir / "calibration.json", res)
+    res["json"] = write_json(
+        out_dir / "calibration.json", {k: v for k, v in res.items() if k not in ("json", "csv")}, strict=True
+    )
     res["csv"] = _write_csv(out_dir / "calibration.csv", rows, names)
     return res
 
@@ -472,11 +479,6 @@ def table_text(res: dict) -> str:
             f"{np.median(evals):.0f} evaluations per run"
         )
     return "\n".join(lines)
-
-
-def _write_json(path: Path, res: dict) -> Path:
-    path.write_text(json_text({k: v for k, v in res.items() if k not in ("json", "csv")}), encoding="utf-8")
-    return path
 
 
 def _write_csv(path: Path, rows: list[dict], names) -> Path:

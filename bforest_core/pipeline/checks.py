@@ -11,19 +11,23 @@ once, in one :class:`ConfigError`.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ..config import did_you_mean, section_settings
 from ..errors import BayesForestError, ConfigError, PluginError
 from ..registry import component
 from .target import Target, build_target
 
+if TYPE_CHECKING:
+    from ..config import RunConfig
 
-def _named_files(cfg) -> list[tuple[str, str]]:
+
+def _named_files(cfg: RunConfig) -> list[tuple[str, str]]:
     named = [("target.qsm", cfg.target.qsm)] if cfg.target.qsm else []
     return named + [(f"target.references[{i}]", r) for i, r in enumerate(cfg.target.references)]
 
 
-def preflight(cfg, target: Target | None = None) -> Target:
+def preflight(cfg: RunConfig, target: Target | None = None) -> Target:
     """Check ``cfg`` as a fit would, and return its target (``target`` when given).
 
     Raises

@@ -16,11 +16,13 @@ from __future__ import annotations
 import csv
 import shutil
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..config import load_config
 from ..errors import BayesForestError, SimulationFailed
+from ..interfaces import parameter_value
 from .fidelity import bound_flags, fidelity_table, fidelity_text, fidelity_warnings
 from .progress import progress_bar
 from .rundir import holding_run_lock
@@ -29,6 +31,9 @@ from .seeds import clone_seeds
 from .store import RunFiles, RunStore
 from .target import build_target
 from .worker import started_workers, worker_context
+
+if TYPE_CHECKING:
+    from ..config import RunConfig
 
 METRIC_KEYS = ("height", "girth", "crown_spread")
 #: clones.csv column of each per-clone value (units in the header; girth is the base diameter)
@@ -57,13 +62,11 @@ def _clone_task(task):
     i, params, seed, out_dir = task
     c = worker_context()
     try:
-        tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
+        tree = _simulate_with_timeout(c.ssm, params, seed, c.timeout)
     except SimulationFailed as exc:
         return dict(index=i, seed=seed, status=exc.status, message=str(exc), params=params)
     except _Timeout:
-        return dict(
-            index=i, seed=seed, status="timeout", message=f"simulation exceeded {c['timeout']} s", params=params
-        )
+        return dict(index=i, seed=seed, status="timeout", message=f"simulation exceeded {c.timeout} s", params=params)
     except _MODEL_ERRORS as exc:
         return dict(index=i, seed=seed, status="error", message=f"{type(exc).__name__}: {exc}"[:500], params=params)
     path = Path(out_dir) / f"clone_{i:03d}.txt"
@@ -126,7 +129,7 @@ def posterior_draw(run_dir: Path, base: dict, seed: int) -> dict:
     out = dict(base)
     for j, name in enumerate(names):
         v = float(data[k, j])
-        out[name] = int(round(v)) if isinstance(base.get(name), int) else v
+        out[name] = parameter_value(v, isinstance(base.get(name), int))
     return out
 
 
@@ -245,7 +248,7 @@ def _write_progress(store: RunStore, out_dir: Path, rows, tgt, best, tm) -> None
     store.write_json(f"{out_dir.name}/{RunFiles.CLONE_SUMMARY}", summary)
 
 
-def _fidelity(cfg, tgt, best, rows) -> dict:
+def _fidelity(cfg: RunConfig, tgt, best, rows) -> dict:
     from ..attributes import fidelity_statistics
     from ..metrics import SUMMARY_UNITS
 

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import contextlib
-import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..config import config_to_dict, load_config, parse_config
+from ..io import write_json
 from ..registry import component_class
 from .heldout import heldout_mean, point_key, score_points, scoring_fingerprint
 from .progress import progress_bar
@@ -16,6 +17,9 @@ from .seeds import heldout_seeds
 from .store import RunDirError, RunFiles, RunStore
 from .target import build_target
 from .worker import started_workers
+
+if TYPE_CHECKING:
+    from ..config import RunConfig
 
 
 def _settings_for_budget(raw: dict, name: str, budget: int) -> dict:
@@ -36,7 +40,7 @@ def best_so_far(run_dir: Path) -> np.ndarray:
     return np.minimum.accumulate(np.array([e.distance if e.status == "ok" else np.inf for e in evs], float))
 
 
-def score_heldout(runs, cfg, target, sets: int, at=(), progress: bool = False) -> tuple[dict, int]:
+def score_heldout(runs, cfg: RunConfig, target, sets: int, at=(), progress: bool = False) -> tuple[dict, int]:
     """How good each run's best points are on model seeds no fit saw.
 
     A fit with fixed model seeds keeps the point whose trees, grown with *those* seeds, score
@@ -280,18 +284,16 @@ def compare(
         for row in rows:
             row["heldout"] = scores[row["optimizer"]][row["repeat"]]
     text = "\n".join(lines)
-    (out_dir / "compare.json").write_text(
-        json.dumps(
-            {
-                "budget": budget,
-                "repeats": repeats,
-                "threshold": threshold,
-                **({"heldout": held} if held else {}),
-                "table": table,
-                "runs": rows,
-            },
-            indent=2,
-        )
+    write_json(
+        out_dir / "compare.json",
+        {
+            "budget": budget,
+            "repeats": repeats,
+            "threshold": threshold,
+            **({"heldout": held} if held else {}),
+            "table": table,
+            "runs": rows,
+        },
     )
     (out_dir / "compare.md").write_text(f"# Optimiser comparison\n\n```\n{text}\n```\n")
     return {

@@ -8,7 +8,6 @@ uninterrupted one.
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import time
@@ -18,9 +17,18 @@ from typing import Any
 
 import numpy as np
 
-from ..config import config_to_dict, load_config, parse_config, read_toml, section_settings, ssm_settings
+from ..config import (
+    RunConfig,
+    config_to_dict,
+    load_config,
+    parse_config,
+    read_toml,
+    section_settings,
+    ssm_settings,
+)
 from ..errors import BayesForestError, ConfigError
-from ..interfaces import Problem
+from ..interfaces import Problem, parameter_value
+from ..io import jsonable
 from ..registry import component
 from .checks import preflight
 from .heldout import select_answer
@@ -28,7 +36,7 @@ from .progress import progress_bar
 from .rundir import holding_run_lock
 from .scoring import _simulate_with_timeout, _Timeout, set_summaries
 from .seeds import model_seeds, spread_seeds
-from .store import Evaluation, RunDirError, RunFiles, RunStore, json_default
+from .store import Evaluation, RunDirError, RunFiles, RunStore
 from .target import Target
 from .worker import evaluate_task, run_executor, started_workers, summary_task
 
@@ -52,7 +60,15 @@ class Evaluator:
     """``Problem.evaluate`` of a run: replay from the store, cache, executor, stop criteria."""
 
     def __init__(
-        self, cfg, store: RunStore, executor, ssm, names, problem: Problem, progress=None, failures_as_inf: bool = False
+        self,
+        cfg: RunConfig,
+        store: RunStore,
+        executor,
+        ssm,
+        names,
+        problem: Problem,
+        progress=None,
+        failures_as_inf: bool = False,
     ):
         self.cfg = cfg
         self.failures_as_inf = failures_as_inf  # Optimizer.failures_as_inf
@@ -60,9 +76,7 @@ class Evaluator:
         self.executor = executor
         self.names = names
         self.problem = problem
-        self.fixed = {
-            k: (int(round(v)) if ssm.parameter_spec(k).integer else float(v)) for k, v in cfg.ssm.fixed.items()
-        }
+        self.fixed = {k: parameter_value(v, ssm.parameter_spec(k).integer) for k, v in cfg.ssm.fixed.items()}
         self.integer = problem.integer
         self.replay = store.replay()
         self.cache: dict[tuple, float] = {}
@@ -79,7 +93,7 @@ class Evaluator:
     def _params(self, x) -> dict:
         p = dict(self.fixed)
         for name, v, is_int in zip(self.names, x, self.integer):
-            p[name] = int(round(v)) if is_int else float(v)
+            p[name] = parameter_value(v, is_int)
         return p
 
     @staticmethod
@@ -94,11 +108,21 @@ class Evaluator:
         simulation when the optimiser asks for that (``Optimizer.failures_as_inf``)."""
         return math.inf if self.failures_as_inf and status != "ok" else float(distance)
 
+    def _stop_at_budget(self, pending: int = 0) -> bool:
+        """Stop the problem once its evaluations, with ``pending`` more on their way, reach
+        ``Problem.budget`` (``[stop] max_evaluations``): the one place the budget is enforced
+        (optimisers read ``Problem.remaining()`` to plan, ``Problem.stopped`` to end)."""
+        pr = self.problem
+        left = pr.remaining()
+        if left is not None and pending >= left:
+            pr.stopped, pr.stop_reason = True, f"evaluation budget ({pr.budget}) reached"
+        return pr.stopped
+
     def _check_stop(self):
         pr, st = self.problem, self.stop
-        if st.max_evaluations is not None and pr.n_evaluations >= st.max_evaluations:
-            pr.stopped, pr.stop_reason = True, f"evaluation budget ({st.max_evaluations}) reached"
-        elif st.wall_time is not None and self.elapsed() >= st.wall_time:
+        if self._stop_at_budget():
+            return
+        if st.wall_time is not None and self.elapsed() >= st.wall_time:
             pr.stopped, pr.stop_reason = True, f"wall time ({st.wall_time:g} s) reached"
         elif st.target_distance is not None and pr.best_f <= st.target_distance:
             pr.stopped, pr.stop_reason = True, f"target distance {st.target_distance:g} reached"
@@ -157,8 +181,7 @@ class Evaluator:
             if self.cfg.objective.cache and key in pending:
                 pending[key].append(r)  # identical point twice in one batch: evaluate once
                 continue
-            if self.stop.max_evaluations is not None and pr.n_evaluations + len(todo) >= self.stop.max_evaluations:
-                pr.stopped, pr.stop_reason = True, f"evaluation budget ({self.stop.max_evaluations}) reached"
+            if self._stop_at_budget(pending=len(todo)):
                 continue
             idx = self.next_index
             self.next_index += 1
@@ -227,7 +250,7 @@ class _Progress:
         self.bar.close()
 
 
-def _expected_total(cfg, optimizer, dim: int) -> int | None:
+def _expected_total(cfg: RunConfig, optimizer, dim: int) -> int | None:
     """Evaluations the progress bar counts to: the budget, or what the optimiser plans
     (``Optimizer.expected_evaluations``), whichever is smaller."""
     planned = optimizer.expected_evaluations(dim)
@@ -235,7 +258,7 @@ def _expected_total(cfg, optimizer, dim: int) -> int | None:
     return min(totals) if totals else None
 
 
-def _result_relevant(cfg) -> dict:
+def _result_relevant(cfg: RunConfig) -> dict:
     """The parts of a config a run's results depend on (all but the executor and the report)."""
     d = config_to_dict(cfg)
     d.pop("executor", None)
@@ -243,7 +266,7 @@ def _result_relevant(cfg) -> dict:
     return d
 
 
-def same_config(run_dir, cfg) -> bool:
+def same_config(run_dir, cfg: RunConfig) -> bool:
     """Whether the run in ``run_dir`` was made with ``cfg`` (up to the executor and the report,
     which do not change results); False when its config.toml is missing or unreadable."""
     path = RunFiles(run_dir).config_path
@@ -254,7 +277,7 @@ def same_config(run_dir, cfg) -> bool:
     return _result_relevant(old) == _result_relevant(cfg)
 
 
-def _free_specs(cfg, ssm):
+def _free_specs(cfg: RunConfig, ssm):
     names, lo, hi, ilo, ihi, integer = [], [], [], [], [], []
     for name, fp in cfg.ssm.free.items():
         spec = ssm.parameter_spec(name)
@@ -270,7 +293,14 @@ def _free_specs(cfg, ssm):
 
 
 @holding_run_lock
-def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bool = False, target=None) -> FitResult:
+def fit(
+    cfg: RunConfig | str | Path,
+    run_dir,
+    resume: bool = False,
+    progress: bool = True,
+    overwrite: bool = False,
+    target=None,
+) -> FitResult:
     """Fit the SSM of ``cfg`` to its target; everything is written to ``run_dir``.
 
     Parameters
@@ -284,7 +314,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
     """
     import tomli_w
 
-    if not hasattr(cfg, "ssm"):
+    if not isinstance(cfg, RunConfig):
         cfg = load_config(cfg)
     run_dir = Path(run_dir)
     cfg_dict = config_to_dict(cfg)
@@ -367,7 +397,7 @@ def fit(cfg, run_dir, resume: bool = False, progress: bool = True, overwrite: bo
         )
 
 
-def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
+def _save_target(store: RunStore, tgt: Target, cfg: RunConfig | None = None) -> None:
     """The data tables, and the distance's frozen data-side transforms and directions, so every
     number of the run can be recomputed from the run directory."""
     np.savez_compressed(store.target_sets_path, **tgt.U)
@@ -395,7 +425,7 @@ def _save_target(store: RunStore, tgt: Target, cfg=None) -> None:
 
 
 def finish_fit(
-    cfg,
+    cfg: RunConfig,
     store: RunStore,
     tgt: Target,
     stop_reason: str,
@@ -426,7 +456,7 @@ def finish_fit(
         "seconds": seconds,
         "target_metrics": target_metrics,
         "optimizer": cfg.optimizer.kind,
-        "diagnostics": _jsonable(store.write_diagnostics(getattr(result, "diagnostics", {}) or {})),
+        "diagnostics": jsonable(store.write_diagnostics(getattr(result, "diagnostics", {}) or {}), loose=True),
     }
     if selection:
         best["heldout_distance"] = next(c["heldout"] for c in selection["candidates"] if c["evaluation"] == ev.idx)
@@ -467,17 +497,3 @@ def finish_fit(
         best["note"] = f"best tree could not be regrown or written: {exc or 'timeout'}"
     store.write_json(store.BEST, best)
     return best
-
-
-def _jsonable(d):
-    """Diagnostics as plain JSON values (``json_default``, loose); an entry that cannot be written
-    at all (a mapping with tuple keys, say) as its text."""
-    default = functools.partial(json_default, loose=True)
-    out = {}
-    for k, v in d.items():
-        try:
-            json.dumps(v, default=default)
-            out[k] = v
-        except Exception:
-            out[k] = str(v)
-    return json.loads(json.dumps(out, default=default))

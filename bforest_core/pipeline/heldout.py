@@ -19,6 +19,7 @@ import contextlib
 import hashlib
 import json
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -28,10 +29,13 @@ from .seeds import heldout_seeds
 from .store import Evaluation, RunStore
 from .worker import evaluate_task
 
+if TYPE_CHECKING:
+    from ..config import RunConfig
+
 __all__ = ["scoring_fingerprint", "point_key", "score_points", "candidates", "select_answer"]
 
 
-def scoring_fingerprint(cfg) -> str:
+def scoring_fingerprint(cfg: RunConfig) -> str:
     """What a held-out score depends on besides the point and the seeds: the target, the model
     and the objective (not the optimiser, the budget, the run seed or the executor)."""
     raw = config_to_dict(cfg)
@@ -126,7 +130,7 @@ def candidates(evaluations: list[Evaluation], top: int, lower, upper, names, spa
     return kept
 
 
-def select_answer(cfg, store: RunStore, executor, progress: bool = False) -> dict | None:
+def select_answer(cfg: RunConfig, store: RunStore, executor, progress: bool = False) -> dict | None:
     """The answer of a fit chosen on held-out seeds (``[select]``; None when ``top = 0``).
 
     The ``top`` best distinct points of the log are each scored on ``sets`` sets of held-out

@@ -12,10 +12,15 @@ from __future__ import annotations
 import csv
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import ConfigError
+from ..interfaces import parameter_value
+
+if TYPE_CHECKING:
+    from ..config import RunConfig
 
 __all__ = ["profile", "profile_values"]
 
@@ -37,7 +42,7 @@ def profile_values(
     return np.unique(v)
 
 
-def _profile_grid(cfg, spec, param: str, values, n: int, best_value: float):
+def _profile_grid(cfg: RunConfig, spec, param: str, values, n: int, best_value: float):
     """The values to profile and whether they are whole numbers: ``n`` across the fit bounds (or
     the model's range for a fixed parameter) plus the best value, or the user's ``values``
     checked against the model's range."""
@@ -123,7 +128,7 @@ def profile(
     tasks, where = [], []
     for i, x in enumerate(vals):
         p = dict(base)
-        p[param] = int(round(x)) if integer else float(x)
+        p[param] = parameter_value(x, integer)
         for j, s in enumerate(seed_list):
             tasks.append((p, [s]))
             where.append((i, j))

@@ -14,13 +14,16 @@ import signal
 import socket
 import threading
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..interfaces import Distance, FeatureSet
+from ..interfaces import SSM, Distance, FeatureSet
 from ..registry import component
 from .target import Term, feature_set_for, term_specs
+
+if TYPE_CHECKING:
+    from ..config import RunConfig
 
 
 @dataclass
@@ -44,15 +47,43 @@ class _Timeout(Exception):
 _MODEL_ERRORS = (Exception, SystemExit)
 
 
+@dataclass
+class Scoring:
+    """What scores a tree against the target (:func:`build_scoring`): a fit's worker holds one."""
+
+    #: the growth model
+    ssm: SSM
+    #: every term of the objective, the ``[features]``/``[distance]`` term first
+    terms: list[PreparedTerm]
+    #: the target's data sets of every term (keys as in ``Target.U``)
+    U_data: dict[str, np.ndarray]
+    #: ``[objective] penalty``: the distance of a failed simulation
+    penalty: float
+    #: ``[objective] timeout``: seconds a simulation may take (None: no limit)
+    timeout: float | None
+    #: the process that scores, ``host:pid`` (logged with each evaluation)
+    worker: str
+
+    @property
+    def features(self) -> FeatureSet:
+        """The model-side feature set of the ``[features]`` term."""
+        return self.terms[0].features
+
+    @property
+    def distance(self) -> Distance:
+        """The distance of the ``[distance]`` term, prepared on its data sets."""
+        return self.terms[0].distance
+
+
 def build_scoring(
-    cfg, U_data: dict, columns: dict, feature_settings: dict, terms: list[dict] | None = None
-) -> dict[str, Any]:
+    cfg: RunConfig, U_data: dict, columns: dict, feature_settings: dict, terms: list[Term] | None = None
+) -> Scoring:
     """What scores a tree against the target, built as the fit's workers build it.
 
     Parameters
     ----------
-    cfg : RunConfig or dict
-        The run's config (a dict as :func:`~bforest_core.config.config_to_dict` gives it).
+    cfg : RunConfig
+        The run's validated config.
     U_data, columns : dict
         The target's data tables and their column names (``Target.U``, ``Target.columns``).
     feature_settings : dict
@@ -62,15 +93,10 @@ def build_scoring(
 
     Returns
     -------
-    dict
-        ``ssm``; ``terms`` (a :class:`PreparedTerm` per term);
-        ``features``/``distance`` of the first term; ``U_data``, ``weights``, ``penalty``,
-        ``timeout`` and ``worker`` (host:pid).
+    Scoring
     """
-    from ..config import parse_config, ssm_settings
+    from ..config import ssm_settings
 
-    if isinstance(cfg, dict):
-        cfg = parse_config(cfg)
     if terms is None:  # rebuilt from the config (a report reading an older or partial run)
         terms = term_specs(cfg)
         terms[0] = replace(terms[0], features=feature_settings)
@@ -80,24 +106,21 @@ def build_scoring(
         dist = component("distance", spec.distance_kind, **spec.distance)
         dist.prepare(Ud, spec.own(columns))
         built.append(PreparedTerm(spec, feature_set_for(cfg, "model", spec.features, spec.features_kind), dist, Ud))
-    return dict(
+    return Scoring(
         ssm=component("ssm", cfg.ssm.kind, **ssm_settings(cfg)),
-        features=built[0].features,
-        distance=built[0].distance,
         terms=built,
         U_data=U_data,
-        weights=cfg.objective.weights,
         penalty=cfg.objective.penalty,
         timeout=cfg.objective.timeout,
         worker=f"{socket.gethostname()}:{os.getpid()}",
     )
 
 
-def score_tree(tree, scoring: dict) -> tuple[dict[str, float | None], dict[str, int]]:
+def score_tree(tree, scoring: Scoring) -> tuple[dict[str, float | None], dict[str, int]]:
     """Distance per data set of every term (keys as in ``Target.U``) and the model's rows per
     set, for one tree (``scoring`` from :func:`build_scoring`)."""
     per_set, n_rows = {}, {}
-    for t in scoring["terms"]:
+    for t in scoring.terms:
         U = t.features.extract(tree)
         for k, v in t.distance.compute_per_set(U, t.U_data).items():
             per_set[t.term.prefix + k] = v
@@ -106,10 +129,10 @@ def score_tree(tree, scoring: dict) -> tuple[dict[str, float | None], dict[str, 
     return per_set, n_rows
 
 
-def combine_terms(per_set: dict[str, float | None], scoring: dict) -> tuple[float, dict[str, float]]:
+def combine_terms(per_set: dict[str, float | None], scoring: Scoring) -> tuple[float, dict[str, float]]:
     """The objective (weighted mean of the terms) and each term's own value."""
     values, num, den = {}, 0.0, 0.0
-    for t in scoring["terms"]:
+    for t in scoring.terms:
         term = t.term
         values[term.name] = float(t.distance.combine(term.own(per_set), term.set_weights))
         num += term.weight * values[term.name]

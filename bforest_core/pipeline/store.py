@@ -20,7 +20,6 @@ how ``--resume`` continues without repeating work.
 from __future__ import annotations
 
 import json
-import math
 import re
 import sqlite3
 import time
@@ -29,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import BayesForestError
+from ..io import json_text, write_json
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS evaluations (
@@ -88,28 +88,9 @@ class Evaluation:
         return self.status == "ok"
 
 
-def _json(x) -> str:
-    return json.dumps(x, sort_keys=True, allow_nan=True)
-
-
-def json_text(obj) -> str:
-    """Strict JSON (indented) of results for people and other programs: NaN and infinities as
-    null (strict JSON readers reject NaN), numpy scalars as numbers, paths as strings."""
-
-    def clean(x):
-        if isinstance(x, dict):
-            return {str(k): clean(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [clean(v) for v in x]
-        if isinstance(x, Path):
-            return str(x)
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        if hasattr(x, "item"):  # numpy scalars
-            return clean(x.item())
-        return x
-
-    return json.dumps(clean(obj), indent=2, allow_nan=False)
+def _column(x) -> str:
+    """A JSON column of the evaluation log: one line, keys sorted."""
+    return json_text(x, indent=None, sort_keys=True)
 
 
 class RunFiles:
@@ -349,15 +330,15 @@ class RunStore(RunFiles):
             "INSERT INTO evaluations VALUES (?,?,?,?,?,?,?,?,?,?,?)",
             (
                 ev.idx,
-                _json(ev.params),
-                _json(ev.seeds),
+                _column(ev.params),
+                _column(ev.seeds),
                 float(ev.distance),
-                _json(ev.per_set),
+                _column(ev.per_set),
                 ev.status,
                 ev.message,
                 ev.seconds,
                 ev.worker,
-                _json(ev.n_rows),
+                _column(ev.n_rows),
                 time.time(),
             ),
         )
@@ -428,7 +409,7 @@ class RunStore(RunFiles):
 
     # ------------------------------------------------------------------ optimiser log
     def log(self, record: dict) -> None:
-        self._con.execute("INSERT INTO log (record) VALUES (?)", (_json(record),))
+        self._con.execute("INSERT INTO log (record) VALUES (?)", (_column(record),))
 
     def log_records(self) -> list[dict]:
         return [json.loads(r[0]) for r in self._con.execute("SELECT record FROM log ORDER BY seq")]
@@ -438,7 +419,7 @@ class RunStore(RunFiles):
 
     # ------------------------------------------------------------------ meta
     def set_meta(self, key: str, value: Any) -> None:
-        self._con.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, _json(value)))
+        self._con.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, _column(value)))
 
     def get_meta(self, key: str, default=None):
         r = self._con.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone()
@@ -446,11 +427,7 @@ class RunStore(RunFiles):
 
     # ------------------------------------------------------------------ json files
     def write_json(self, name: str, data) -> Path:
-        p = self.path / name
-        tmp = p.with_suffix(p.suffix + ".tmp")
-        tmp.write_text(json.dumps(data, indent=2, sort_keys=False, default=json_default), encoding="utf-8")
-        tmp.replace(p)
-        return p
+        return write_json(self.path / name, data)
 
     def read_json(self, name: str):
         p = self.path / name
@@ -511,20 +488,3 @@ class RunStore(RunFiles):
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def json_default(o, loose: bool = False):
-    """``json.dumps``'s ``default`` for the run folder's files.
-
-    Numpy scalars become Python numbers, numpy arrays lists, paths text; anything else raises
-    ``TypeError``, or with ``loose`` (an optimiser's free-form diagnostics) becomes its text.
-    """
-    import numpy as np
-
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path) or loose:
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

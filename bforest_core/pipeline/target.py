@@ -8,17 +8,20 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..registry import component
 
+if TYPE_CHECKING:
+    from ..config import RunConfig
+
 #: name of the [features]/[distance] term when the objective has more than one
 STRUCTURE = "structure"
 
 
-def feature_set_for(cfg, side: str, settings: dict | None = None, kind: str | None = None):
+def feature_set_for(cfg: RunConfig, side: str, settings: dict | None = None, kind: str | None = None):
     """The feature set of one side (``"target"`` or ``"model"``), honouring per-side topology.
 
     ``settings`` defaults to the ``[features]`` section; the model side passes the data side's
@@ -60,7 +63,7 @@ class Term:
         return {k[len(pre) :]: v for k, v in by_set.items() if k.startswith(pre) and (pre or "/" not in k)}
 
 
-def term_specs(cfg) -> list[Term]:
+def term_specs(cfg: RunConfig) -> list[Term]:
     """The terms of the objective: the ``[features]``/``[distance]`` term first, then each
     ``[[objective.terms]]`` entry."""
     from ..config import section_settings
@@ -85,16 +88,16 @@ def term_specs(cfg) -> list[Term]:
                 prefix=f"{t.name}/",
                 weight=float(t.weight),
                 set_weights=t.weights,
-                features_kind=t.features["kind"],
-                features={k: v for k, v in t.features.items() if k != "kind"},
-                distance_kind=t.distance["kind"],
-                distance={k: v for k, v in t.distance.items() if k != "kind"},
+                features_kind=t.features.kind,
+                features=t.features.settings,
+                distance_kind=t.distance.kind,
+                distance=t.distance.settings,
             )
         )
     return specs
 
 
-def load_target_trees(cfg) -> list:
+def load_target_trees(cfg: RunConfig) -> list:
     """The data tree(s) of the run: read from the QSM file or grown by the named SSM."""
     from ..io import read_qsm
 
@@ -118,7 +121,7 @@ class Target:
     terms: list[Term] | None = None  # term_specs with each term's resolved feature settings
 
 
-def build_target(cfg, trees=None) -> Target:
+def build_target(cfg: RunConfig, trees=None) -> Target:
     trees = load_target_trees(cfg) if trees is None else trees
     U, cols, terms = {}, {}, []
     for spec in term_specs(cfg):

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import functools
 import time
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -19,6 +19,7 @@ from ..errors import SimulationFailed
 from ..registry import component
 from .scoring import (
     _MODEL_ERRORS,
+    Scoring,
     _simulate_with_timeout,
     _Timeout,
     build_scoring,
@@ -29,25 +30,27 @@ from .scoring import (
 )
 from .target import Target, Term
 
+if TYPE_CHECKING:
+    from ..config import RunConfig
+
 #: this worker's scoring context (:func:`~.scoring.build_scoring`), set by :func:`init_worker`
-_CTX: dict[str, Any] = {}
+_SCORING: Scoring | None = None
 
 
 def init_worker(
-    cfg_dict: dict, U_data: dict, columns: dict, feature_settings: dict, terms: list[Term] | None = None
+    cfg: RunConfig, U_data: dict, columns: dict, feature_settings: dict, terms: list[Term] | None = None
 ) -> None:
     """Executor initializer: build the components of every term once in this process and
-    prepare each distance on its data sets."""
-    ctx = build_scoring(cfg_dict, U_data, columns, feature_settings, terms)
-    _CTX.clear()
-    _CTX.update(ctx)
+    prepare each distance on its data sets (``cfg`` arrives as the validated object)."""
+    global _SCORING
+    _SCORING = build_scoring(cfg, U_data, columns, feature_settings, terms)
 
 
-def worker_context() -> dict[str, Any]:
+def worker_context() -> Scoring:
     """This worker's scoring context; RuntimeError when :func:`init_worker` has not run here."""
-    if not _CTX:
+    if _SCORING is None:
         raise RuntimeError("worker not initialised (init_worker was not run)")
-    return _CTX
+    return _SCORING
 
 
 def summary_task(task: tuple[dict, list[int]]) -> np.ndarray | None:
@@ -59,35 +62,33 @@ def summary_task(task: tuple[dict, list[int]]) -> np.ndarray | None:
     rows = []
     for seed in seeds:
         try:
-            tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
+            tree = _simulate_with_timeout(c.ssm, params, seed, c.timeout)
             U = {}
-            for t in c["terms"]:
+            for t in c.terms:
                 U.update({t.term.prefix + k: v for k, v in t.features.extract(tree).items()})
         except (SimulationFailed, _Timeout, *_MODEL_ERRORS):
             return None
-        rows.append(set_summaries(U, list(c["U_data"])))
+        rows.append(set_summaries(U, list(c.U_data)))
     return np.mean(rows, axis=0)
 
 
-def run_executor(cfg):
+def run_executor(cfg: RunConfig):
     """The executor of the run's ``[executor]`` section."""
     from ..config import section_settings
 
     return component("executor", cfg.executor.kind, **section_settings(cfg, "executor"))
 
 
-def started_workers(cfg, tgt: Target, executor=None):
+def started_workers(cfg: RunConfig, tgt: Target, executor=None):
     """The run's executor (or ``executor``) started with :func:`init_worker` on the target, as a
     context manager: the target's tables travel to each worker once."""
-    from ..config import config_to_dict
-
     ex = run_executor(cfg) if executor is None else executor
     # Executor.on_lost/time_limit: what a dead or stuck worker's task becomes, and when a task is
     # stuck (honoured by an executor that can stop a worker, ignored by the others)
     ex.on_lost = functools.partial(_lost_task, cfg.objective.penalty, list(tgt.U))
     timeout = cfg.objective.timeout
     ex.time_limit = None if timeout is None else functools.partial(_task_limit, timeout)
-    return ex.started(init_worker, (config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms))
+    return ex.started(init_worker, (cfg, tgt.U, tgt.columns, tgt.feature_settings, tgt.terms))
 
 
 def _task_limit(timeout: float, item) -> float:
@@ -128,7 +129,7 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
     status, message = "ok", ""
     for seed in seeds:
         try:
-            tree = _simulate_with_timeout(c["ssm"], params, seed, c["timeout"])
+            tree = _simulate_with_timeout(c.ssm, params, seed, c.timeout)
             ps, rows = score_tree(tree, c)
             per_seed.append(ps)
             for k, v in rows.items():
@@ -137,7 +138,7 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
             status, message = exc.status, str(exc)
             break
         except _Timeout:
-            status, message = "timeout", f"simulation exceeded {c['timeout']} s"
+            status, message = "timeout", f"simulation exceeded {c.timeout} s"
             break
         except _MODEL_ERRORS as exc:
             status = "error"
@@ -145,14 +146,14 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
             break
     seconds = time.perf_counter() - t0
     if status != "ok":
-        names = list(c["U_data"])
+        names = list(c.U_data)
         return dict(
-            distance=float(c["penalty"]),
+            distance=float(c.penalty),
             per_set={k: None for k in names},
             status=status,
             message=message,
             seconds=seconds,
-            worker=c["worker"],
+            worker=c.worker,
             n_rows={},
         )
     per_set = {}
@@ -166,6 +167,6 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
         status="ok",
         message="",
         seconds=seconds,
-        worker=c["worker"],
+        worker=c.worker,
         n_rows={k: v // len(seeds) for k, v in n_rows.items()},
     )

@@ -221,7 +221,7 @@ class RunView:
         (:func:`~bforest_core.pipeline.scoring.build_scoring`), or None."""
         if self.cfg is None or not self.U_data:
             return None
-        from ..config import config_to_dict, section_settings
+        from ..config import section_settings
         from ..pipeline.scoring import build_scoring
 
         if self.target is not None:
@@ -229,11 +229,11 @@ class RunView:
         else:
             fs_settings = section_settings(self.cfg, "features")
         try:
-            ctx = build_scoring(config_to_dict(self.cfg), self.U_data, self.columns, fs_settings)
+            scoring = build_scoring(self.cfg, self.U_data, self.columns, fs_settings)
         except Exception as exc:
             self.note(f"the feature set and distance could not be set up ({type(exc).__name__}: {exc})")
             return None
-        return ctx["features"], ctx["distance"]
+        return scoring.features, scoring.distance
 
     @cached_property
     def U_model(self) -> dict[str, np.ndarray] | None:

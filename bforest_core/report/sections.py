@@ -319,9 +319,11 @@ def section_posterior(doc: Document, v: RunView, diag: dict):
     hdi = int(100 * HDI_PROB)
     true = v.true_params
     if kind == "chain":
-        steps, burn, walkers = diag.get("steps"), diag.get("burn_in"), diag.get("walkers")
+        # the chain as Optimizer.posterior_kind declares it: (length, walkers, parameters), burn_in
+        length, walkers = np.shape(diag.get("chain"))[:2] if np.ndim(diag.get("chain")) == 3 else ("?", "?")
+        burn = diag.get("burn_in")
         doc.p(
-            f"The posterior is the draws of a Markov chain: {walkers} walkers, {steps} steps, of which the "
+            f"The posterior is the draws of a Markov chain: {walkers} walkers, {length} draws each, of which the "
             f"first {burn} are burn-in and dropped; each walker is one chain of `{RunFiles.POSTERIOR_NC}` (R-hat and bulk "
             "ESS across them)"
             + (
@@ -332,7 +334,8 @@ def section_posterior(doc: Document, v: RunView, diag: dict):
         )
     else:
         eps = diag.get("epsilon_posterior")
-        gens = diag.get("generations")
+        tolerances = diag.get("epsilon")  # one per generation (Optimizer.posterior_kind)
+        gens = len(tolerances) if isinstance(tolerances, (list, np.ndarray)) else 0
         n = len(diag["particles"]) if diag.get("particles") is not None else "?"
         w = np.asarray(diag.get("weights") if diag.get("weights") is not None else [], float)
         ess = (

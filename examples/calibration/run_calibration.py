@@ -294,7 +294,6 @@ def noise_floors(name: str = "sot_abc_smc", seeds: int = 20) -> dict[str, float]
     import numpy as np
 
     import bforest_core as bf
-    from bforest_core.config import config_to_dict
     from bforest_core.pipeline.seeds import spread_seeds
     from bforest_core.pipeline.target import build_target
     from bforest_core.pipeline.worker import evaluate_task, init_worker
@@ -306,7 +305,7 @@ def noise_floors(name: str = "sot_abc_smc", seeds: int = 20) -> dict[str, float]
             continue
         cfg = bf.load_config(run / "config.toml")
         tgt = build_target(cfg)
-        init_worker(config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
+        init_worker(cfg, tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
         truth = dict(cfg.target.generate.params)
         truth.update({k: int(round(v)) for k, v in cfg.ssm.fixed.items() if float(v).is_integer()})
         d = [evaluate_task((truth, [s]))["distance"] for s in spread_seeds(cfg.seed + 10**6, seeds)]

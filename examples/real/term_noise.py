@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 
 import bforest_core as bf
-from bforest_core.config import config_to_dict
 from bforest_core.pipeline.target import build_target, term_specs
 from bforest_core.pipeline.worker import evaluate_task, init_worker
 
@@ -38,7 +37,7 @@ def main(argv=None) -> int:
     for path in args.configs:
         cfg = bf.load_config(path)
         tgt = build_target(cfg)
-        init_worker(config_to_dict(cfg), tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
+        init_worker(cfg, tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
         rows = [evaluate_task((params, [s])) for s in range(1000, 1000 + args.seeds)]
         bad = [r["message"] for r in rows if r["status"] != "ok"]
         if bad:

@@ -95,7 +95,7 @@ from scipy.spatial import cKDTree
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 from bforest_core.metrics import weighted_quantiles
 
-from .box import UNLIMITED, BoxEvaluator, History, OptimizerSettings, make_result
+from .box import UNLIMITED, Box, History, OptimizerSettings, make_result
 
 QUANTILES = (2.5, 5.0, 16.0, 25.0, 50.0, 75.0, 84.0, 95.0, 97.5)
 
@@ -297,7 +297,7 @@ class AbcSmc(Optimizer):
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         s: AbcSmcSettings = self.settings
-        ev = BoxEvaluator(problem)
+        ev = Box(problem)
         log = History(problem)
         lo, hi = ev.relaxed_bounds("bounds")
         rng = np.random.default_rng(np.random.SeedSequence([int(problem.seed), 0xABC5]))
@@ -451,7 +451,7 @@ class AbcSmc(Optimizer):
             )
         return None
 
-    def _target(self, problem: Problem, ev: BoxEvaluator, theta: np.ndarray, w: np.ndarray) -> float:
+    def _target(self, problem: Problem, ev: Box, theta: np.ndarray, w: np.ndarray) -> float:
         """The epsilon target of the next generation (see the module text); 0 where the noise
         cannot be measured (no ``problem.seed_spread``, or most seeds fail at both points)."""
         s = self.settings
@@ -470,7 +470,7 @@ class AbcSmc(Optimizer):
                 medians.append(median)
         return min(medians) if medians else 0.0
 
-    def _adjusted(self, problem: Problem, ev: BoxEvaluator, pool: _Pool, eps: float, lo, hi) -> dict:
+    def _adjusted(self, problem: Problem, ev: Box, pool: _Pool, eps: float, lo, hi) -> dict:
         """The regression-adjusted posterior (``adjust = "linear"``): ``particles``, ``weights``,
         ``distances`` and the fit's figures, or only a ``note`` saying why there is none."""
         if problem.summaries is None or problem.target_summaries is None:

@@ -1,13 +1,18 @@
-"""The box an optimiser searches, as the optimisers of this plugin see it: the checked box, the
-evaluation wrapper, logging, results, the noise-aware stop.
+"""The box an optimiser searches, as the optimisers of this plugin see it: the checked box and
+its geometry, logging, results, the noise-aware stop.
 
 Every optimiser of this plugin talks to its :class:`~bforest_core.interfaces.Problem` through a
-:class:`BoxEvaluator`, which
+:class:`Box`, which
 
-* rounds integer parameters and clips every point into the global bounds before it reaches
-  ``problem.evaluate`` (so the run store only ever sees feasible, integral points);
-* turns NaN values into ``+inf`` and remembers the best point it was told about;
-* knows when to stop (``problem.stopped`` or an exhausted ``problem.budget``).
+* checks the bounds and narrows integer parameters' bounds to whole numbers;
+* rounds integer parameters and clips every point into those bounds (:meth:`Box.project`), spreads
+  initial points over the initial box (:meth:`Box.sample_init`);
+* sends a projected batch to ``problem.evaluate``, turns NaN values into ``+inf`` and remembers
+  the best point of the batches it sent (the optimiser's own answer).
+
+Evaluating is the problem's: ``problem.evaluate`` (in a fit, the pipeline's evaluator) caches,
+replays, logs, enforces the evaluation budget and every other stop, and sets
+``problem.stopped``; a :class:`Box` sends nothing once the problem has stopped.
 
 Log records (``problem.log``) of all optimisers share the keys ``iteration`` (0-based counter of
 records), ``best`` (best distance so far, ``None`` while nothing finite was seen) and
@@ -48,8 +53,9 @@ def _as_vector(value, p: int, what: str) -> np.ndarray:
     return a
 
 
-class BoxEvaluator:
-    """The optimiser-side view of a :class:`Problem`.
+class Box:
+    """The optimiser-side view of a :class:`Problem`: its checked box, and batches sent to
+    ``problem.evaluate``.
 
     Parameters
     ----------
@@ -181,9 +187,8 @@ class BoxEvaluator:
     # ------------------------------------------------------------------ evaluation
     @property
     def stopped(self) -> bool:
-        """True once the problem has stopped or its evaluation budget is used up."""
-        pr = self.problem
-        return bool(pr.stopped) or pr.remaining() == 0
+        """True once the problem has stopped (it stops itself at its budget)."""
+        return bool(self.problem.stopped)
 
     def __call__(self, X) -> np.ndarray:
         """Evaluate a batch through ``problem.evaluate``; returns ``k`` values (``inf`` for points
@@ -211,8 +216,6 @@ class BoxEvaluator:
         pr = self.problem
         if pr.stopped:
             return pr.stop_reason or "stopped by the problem"
-        if pr.remaining() == 0:
-            return pr.stop_reason or f"evaluation budget ({pr.budget}) used"
         return own
 
 
@@ -236,7 +239,7 @@ class History:
         self.problem = problem
         self.records: list[dict] = []
 
-    def __call__(self, ev: BoxEvaluator, **fields) -> dict:
+    def __call__(self, ev: Box, **fields) -> dict:
         rec = {"iteration": len(self.records)}
         for k, v in fields.items():
             if isinstance(v, (np.floating, float)):
@@ -251,7 +254,7 @@ class History:
         return rec
 
 
-def make_result(ev: BoxEvaluator, history: History, own_reason: str, diagnostics: dict) -> OptimizeResult:
+def make_result(ev: Box, history: History, own_reason: str, diagnostics: dict) -> OptimizeResult:
     """The :class:`OptimizeResult` of a run: the best point the optimiser saw (else the problem's
     best, else the centre of the initial box with ``fun = inf``)."""
     pr = ev.problem
@@ -326,10 +329,10 @@ class NoiseStop:
         self.since = 0  # generations since then
         self.reason = ""
 
-    def _measure(self, ev: BoxEvaluator) -> float:
+    def _measure(self, ev: Box) -> float:
         return 0.0 if ev.best_x is None else seed_noise(self.problem, ev.best_x, self.k)
 
-    def __call__(self, ev: BoxEvaluator) -> bool:
+    def __call__(self, ev: Box) -> bool:
         """Call once per generation; True when the run should stop (``reason`` says why).
 
         Generations are judged in windows of ``patience``: at the end of a window the noise is

@@ -37,7 +37,7 @@ from pydantic import Field
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from .box import BoxEvaluator, History, NoiseStop, OptimizerSettings, finite_stats, make_result, noise_stop_fields
+from .box import Box, History, NoiseStop, OptimizerSettings, finite_stats, make_result, noise_stop_fields
 
 _NOISE = noise_stop_fields()
 
@@ -100,7 +100,7 @@ class CMAES(Optimizer):
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         s: CMASettings = self.settings
-        ev = BoxEvaluator(problem)
+        ev = Box(problem)
         log = History(problem)
         stop = NoiseStop(problem, s.patience, s.noise, s.noise_seeds)
         lo, hi = ev.relaxed_bounds("bounds")
@@ -189,7 +189,7 @@ class CMAES(Optimizer):
             opts["maxiter"] = s.max_generations
         return cma.CMAEvolutionStrategy(slot.x0, s.sigma0, opts)
 
-    def _generation(self, slot: _Start, grow, ev: BoxEvaluator, log: History, generation: int) -> None:
+    def _generation(self, slot: _Start, grow, ev: Box, log: History, generation: int) -> None:
         """One generation of one start: ask, grow (or let the surrogate rank), tell, log."""
         es, surrogate = slot.es, slot.surrogate
         U = np.asarray(es.ask())

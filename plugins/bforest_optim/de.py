@@ -16,7 +16,7 @@ from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
 from .box import (
     UNLIMITED,
-    BoxEvaluator,
+    Box,
     History,
     OptimizerSettings,
     SamplingName,
@@ -88,7 +88,7 @@ class DifferentialEvolution(Optimizer):
         from scipy.optimize import differential_evolution
 
         s: DESettings = self.settings
-        ev = BoxEvaluator(problem)
+        ev = Box(problem)
         log = History(problem)
         init_ss, de_ss = np.random.SeedSequence([int(problem.seed), 0xDE]).spawn(2)
         n_pop = max(5, s.popsize * ev.dim)

@@ -40,7 +40,7 @@ from pydantic import Field, model_validator
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
 from .box import (
-    BoxEvaluator,
+    Box,
     History,
     OptimizerSettings,
     SamplingName,
@@ -59,7 +59,12 @@ class EmceeSettings(OptimizerSettings):
     walkers: int | None = Field(
         None, ge=2, description="walkers (even, at least 2 * dimension; default max(2 * dimension + 2, 16))"
     )
-    steps: int = Field(200, ge=1, description="ensemble steps (each evaluates every walker once)")
+    steps: int = Field(
+        200,
+        ge=1,
+        description="length of the chain: ensemble steps, each evaluating every walker once (not the "
+        "evaluation budget, which is [stop] max_evaluations and may end the chain earlier)",
+    )
     burn_in: int = Field(50, ge=0, description="steps discarded before the posterior summaries")
     moves: Literal["stretch", "de", "de_snooker", "walk"] = Field(
         "stretch", description="emcee move: stretch (affine-invariant), de (differential evolution), de_snooker, walk"
@@ -144,7 +149,7 @@ class EmceeSampler(Optimizer):
         import emcee
 
         s: EmceeSettings = self.settings
-        ev = BoxEvaluator(problem)
+        ev = Box(problem)
         log = History(problem)
         p = ev.dim
         nw = s.walkers if s.walkers is not None else max(2 * p + 2, 16)
@@ -196,7 +201,7 @@ class EmceeSampler(Optimizer):
             )
         return make_result(ev, log, reason, diagnostics)
 
-    def _epsilon(self, problem: Problem, ev: BoxEvaluator, f0: np.ndarray) -> tuple[float, str]:
+    def _epsilon(self, problem: Problem, ev: Box, f0: np.ndarray) -> tuple[float, str]:
         """The temperature and the rule that gave it (see the module text)."""
         s: EmceeSettings = self.settings
         if not isinstance(s.epsilon, str):
@@ -244,7 +249,7 @@ class EmceeSampler(Optimizer):
         hi = np.where(w > 0, ihi, np.minimum(ihi + tiny, ev.upper))
         return lo + U * (hi - lo)
 
-    def _summaries(self, sampler, ev: BoxEvaluator, eps: float, nw: int) -> dict:
+    def _summaries(self, sampler, ev: Box, eps: float, nw: int) -> dict:
         n_done = int(sampler.iteration)
         out = {"epsilon": eps, "walkers": nw, "steps": n_done, "names": list(ev.names)}
         if n_done == 0:

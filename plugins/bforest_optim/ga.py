@@ -36,7 +36,7 @@ from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
 from .box import (
     UNLIMITED,
-    BoxEvaluator,
+    Box,
     History,
     NoiseStop,
     OptimizerSettings,
@@ -151,7 +151,7 @@ class GeneticAlgorithm(Optimizer):
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         s: GASettings = self.settings
-        ev = BoxEvaluator(problem)
+        ev = Box(problem)
         log = History(problem)
         init_ss, breed_ss = np.random.SeedSequence([int(problem.seed), 0x6A]).spawn(2)
         rng = np.random.default_rng(breed_ss)
@@ -236,7 +236,7 @@ class GeneticAlgorithm(Optimizer):
         idx = np.minimum(np.searchsorted(cum, pos, side="right"), n - 1)
         return rng.permutation(idx)
 
-    def _breed(self, pop, f, n_kids, sigma, ev: BoxEvaluator, rng) -> np.ndarray:
+    def _breed(self, pop, f, n_kids, sigma, ev: Box, rng) -> np.ndarray:
         s: GASettings = self.settings
         p = pop.shape[1]
         n_x = int(round(s.crossover_fraction * n_kids))

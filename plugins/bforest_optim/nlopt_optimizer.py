@@ -10,11 +10,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from .box import BoxEvaluator, History, OptimizerSettings, make_result
+from .box import Box, History, OptimizerSettings, make_result
 
 #: algorithms that need a local optimiser (``set_local_optimizer``)
 _NEEDS_LOCAL = {"GN_MLSL", "GN_MLSL_LDS", "G_MLSL", "G_MLSL_LDS"}
@@ -60,14 +60,6 @@ class NloptSettings(OptimizerSettings):
         "the GN_/LN_ prefix, any case: GN_CRS2_LM, GN_ISRES, GN_ESCH, GN_DIRECT_L, "
         "GN_MLSL_LDS, LN_SBPLX, LN_NELDERMEAD, LN_BOBYQA, LN_COBYLA, ...",
     )
-    maxeval: int | None = Field(
-        None,
-        ge=1,
-        description="NLopt calls of the main run (default: the "
-        "problem's remaining budget less local_maxeval, or 1000 without a budget; "
-        "repeats of a point the run has already evaluated count here but not in "
-        "the budget)",
-    )
     population: int | None = Field(
         None, ge=1, description="population of CRS2, ISRES, ESCH, MLSL (default: NLopt's own)"
     )
@@ -92,6 +84,13 @@ class NloptSettings(OptimizerSettings):
         le=1,
         description="first step of local algorithms as a fraction of each parameter's initial range (default: NLopt's)",
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_own_budget(cls, data):
+        if isinstance(data, dict) and "maxeval" in data:
+            raise ValueError("maxeval is gone: use [stop] max_evaluations, the evaluation budget")
+        return data
 
     @field_validator("algorithm")
     @classmethod
@@ -130,25 +129,20 @@ class NloptOptimizer(Optimizer):
     summary = "NLopt derivative-free algorithms (CRS2, ISRES, ESCH, DIRECT, SBPLX, BOBYQA, ...)"
     Settings = NloptSettings
 
-    @classmethod
-    def budget_settings(cls, settings, budget):
-        """The main run's ``maxeval`` is the budget."""
-        return {**settings, "maxeval": int(budget)}
-
     def minimize(self, problem: Problem) -> OptimizeResult:
         import nlopt
 
         s: NloptSettings = self.settings
-        ev = BoxEvaluator(problem)
+        ev = Box(problem)
         log = History(problem)
         p = ev.dim
         lo, hi = ev.relaxed_bounds("bounds")
         polish = s.local_algorithm is not None and s.algorithm not in _NEEDS_LOCAL
         local_maxeval = s.local_maxeval or 20 * (p + 1)
-        maxeval = s.maxeval
-        if maxeval is None:
-            rem = problem.remaining()
-            maxeval = 1000 if rem is None else max(1, rem - (local_maxeval if polish else 0))
+        # NLopt's own call limit of the main run: the budget left (less the polish), 1000 without
+        # one (repeats of an evaluated point count here but not in the budget)
+        rem = problem.remaining()
+        maxeval = 1000 if rem is None else max(1, rem - (local_maxeval if polish else 0))
 
         def objective(x, grad):
             if ev.stopped:

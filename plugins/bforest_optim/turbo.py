@@ -44,7 +44,7 @@ from pydantic import Field
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from .box import BoxEvaluator, History, NoiseStop, OptimizerSettings, finite_stats, make_result, noise_stop_fields
+from .box import Box, History, NoiseStop, OptimizerSettings, finite_stats, make_result, noise_stop_fields
 
 _NOISE = noise_stop_fields()
 
@@ -117,7 +117,7 @@ class Turbo(Optimizer):
 
     def minimize(self, problem: Problem) -> OptimizeResult:
         s: TurboSettings = self.settings
-        ev = BoxEvaluator(problem)
+        ev = Box(problem)
         log = History(problem)
         stop = NoiseStop(problem, s.patience, s.noise, s.noise_seeds)
         dim = ev.dim

@@ -1,0 +1,194 @@
+"""Same results before and after a refactoring: four jobs run with two checkouts, compared row by row.
+
+Runs, with one checkout's own ``.venv/bin/bforest``, into a folder:
+
+1. ``demo``: ``bforest demo --quick``;
+2. ``recipe``: a fit of a copy of ``examples/real/pine_lignum.toml`` made small (``[stop]
+   max_evaluations`` 64, no wall time, ``[select]`` of 3 candidates on 2 seed sets);
+3. ``resumed``: the same fit, killed once part of its evaluations are logged, then continued with
+   ``bforest fit --resume`` (it must also equal ``recipe``);
+4. ``compare``: ``bforest compare`` of that recipe over every bundled optimiser on 16 evaluations.
+
+and compares two such folders: every row of every ``evaluations.sqlite`` (tables ``evaluations``,
+``heldout`` and ``log``; the columns that time an evaluation, ``seconds``, ``worker`` and
+``finished``, and the log's row counter ``seq`` left out, its records compared in order) and the bytes of every ``best.json`` (its ``"seconds"`` line, the run's
+wall time, left out). Prints one line per file and a verdict; exits 1 on a difference.
+
+    python3 benchmarks/identical_runs.py run /path/to/checkout OUT_DIR
+    python3 benchmarks/identical_runs.py compare OUT_BEFORE OUT_AFTER
+    python3 benchmarks/identical_runs.py both /path/to/before /path/to/after OUT_DIR
+
+The jobs take a few minutes per checkout on two cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+OPTIMIZERS = "abc-smc,cma,de,emcee,ga,nlopt,turbo"
+KILL_AFTER = 20  # evaluations logged before the resumed job's first session is killed
+TIMING_COLUMNS = {"seconds", "worker", "finished"}
+ROW_IDS = {"seq"}  # the log's row counter: a resumed run's log is rewritten under new numbers, in order
+
+
+def small_recipe(checkout: Path, out: Path) -> Path:
+    """A copy of the checkout's pine_lignum recipe with a small, deterministic budget."""
+    src = checkout / "examples" / "real" / "pine_lignum.toml"
+    raw = tomllib.loads(src.read_text(encoding="utf-8"))
+    raw["target"]["qsm"] = str((src.parent / raw["target"]["qsm"]).resolve())
+    raw["stop"] = {"max_evaluations": 64}  # no wall time: a clock must not decide where a run stops
+    raw["select"] = {"top": 3, "sets": 2}
+    raw["optimizer"] = {**raw["optimizer"], "init_design": 16, "starts": 2, "population": 8}
+    path = out / "recipe.toml"
+    # written by the checkout's own TOML writer (this script needs nothing but python3)
+    dump = "import json, sys, tomli_w; sys.stdout.write(tomli_w.dumps(json.load(sys.stdin)))"
+    python = checkout / ".venv" / "bin" / "python"
+    text = subprocess.run([str(python), "-c", dump], input=json.dumps(raw), capture_output=True, text=True, check=True)
+    path.write_text(text.stdout, encoding="utf-8")
+    return path
+
+
+def _logged(run: Path) -> int:
+    db = run / "evaluations.sqlite"
+    if not db.exists():
+        return 0
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=1) as con:
+            return con.execute("SELECT COUNT(*) FROM evaluations").fetchone()[0]
+    except sqlite3.Error:
+        return 0
+
+
+def run_jobs(checkout: Path, out: Path) -> None:
+    checkout, out = checkout.resolve(), out.resolve()
+    bforest = checkout / ".venv" / "bin" / "bforest"
+    if not bforest.exists():
+        sys.exit(f"{bforest}: missing (python3 dev.py env in {checkout} makes it)")
+    out.mkdir(parents=True, exist_ok=True)
+    recipe = small_recipe(checkout, out)
+
+    def run(*args):
+        t0 = time.monotonic()
+        subprocess.run([str(bforest), *map(str, args)], check=True, cwd=out, stdout=subprocess.DEVNULL)
+        print(f"  {args[0]} {args[-1] if args[0] != 'fit' else ''} ({time.monotonic() - t0:.0f} s)", flush=True)
+
+    print(f"{checkout}: jobs into {out}", flush=True)
+    run("demo", "--quick", "-q", "--overwrite", "-o", out / "demo")
+    run("fit", recipe, "-q", "--no-report", "--overwrite", "-o", out / "recipe")
+    # the resumed job: its first session is killed (with its workers) once KILL_AFTER are logged
+    resumed = out / "resumed"
+    proc = subprocess.Popen(
+        [str(bforest), "fit", str(recipe), "-q", "--no-report", "--overwrite", "-o", str(resumed)],
+        cwd=out,
+        stdout=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    while proc.poll() is None and _logged(resumed) < KILL_AFTER:
+        time.sleep(0.05)
+    if proc.poll() is not None:
+        sys.exit(f"{resumed}: the first session finished before it could be killed")
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    print(f"  killed the first session of {resumed.name} after {_logged(resumed)} evaluations", flush=True)
+    run("fit", recipe, "-q", "--no-report", "--resume", "-o", resumed)
+    run(
+        "compare",
+        recipe,
+        "--optimizers",
+        OPTIMIZERS,
+        "--budget",
+        16,
+        "--repeats",
+        1,
+        "-q",
+        "--overwrite",
+        "-o",
+        out / "compare",
+    )
+
+
+def _rows(db: Path) -> dict[str, list[tuple]]:
+    with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as con:
+        out = {}
+        for table, order in (("evaluations", "idx"), ("heldout", "scoring, point, seeds"), ("log", "seq")):
+            cols = [r[1] for r in con.execute(f"PRAGMA table_info({table})") if r[1] not in TIMING_COLUMNS | ROW_IDS]
+            out[table] = con.execute(f"SELECT {', '.join(cols)} FROM {table} ORDER BY {order}").fetchall()
+        return out
+
+
+def _best_bytes(path: Path) -> bytes:
+    return re.sub(rb'\n  "seconds": [^\n]*\n', b"\n", path.read_bytes())
+
+
+def compare_folders(a: Path, b: Path) -> bool:
+    files = sorted({p.relative_to(a) for p in a.rglob("*") if p.name in ("evaluations.sqlite", "best.json")})
+    other = sorted({p.relative_to(b) for p in b.rglob("*") if p.name in ("evaluations.sqlite", "best.json")})
+    same = files == other
+    if not same:
+        print(
+            f"DIFFERENT sets of files: only in {a}: {sorted(set(files) - set(other))}; only in {b}: "
+            f"{sorted(set(other) - set(files))}"
+        )
+    for rel in files:
+        if not (b / rel).exists():
+            continue
+        if rel.name == "best.json":
+            ok = _best_bytes(a / rel) == _best_bytes(b / rel)
+            print(f"{'same' if ok else 'DIFFERENT'}  {rel} (bytes)")
+        else:
+            ra, rb = _rows(a / rel), _rows(b / rel)
+            ok = ra == rb
+            counts = ", ".join(f"{t} {len(r)}" for t, r in ra.items())
+            print(f"{'same' if ok else 'DIFFERENT'}  {rel} (rows: {counts})")
+            for t in ra:
+                if ra[t] != rb[t]:
+                    i = next((i for i, (x, y) in enumerate(zip(ra[t], rb[t])) if x != y), min(len(ra[t]), len(rb[t])))
+                    print(f"    {t}: first difference at row {i}")
+        same &= ok
+    # a resumed run ends where the uninterrupted one does
+    for folder in (a, b):
+        if (folder / "recipe").is_dir() and (folder / "resumed").is_dir():
+            ok = _rows(folder / "recipe" / "evaluations.sqlite") == _rows(folder / "resumed" / "evaluations.sqlite")
+            ok &= _best_bytes(folder / "recipe" / "best.json") == _best_bytes(folder / "resumed" / "best.json")
+            print(f"{'same' if ok else 'DIFFERENT'}  {folder}: resumed vs uninterrupted recipe fit")
+            same &= ok
+    print(f"verdict: {'IDENTICAL' if same else 'DIFFERENT'} ({len(files)} files)")
+    return same
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    s = sub.add_parser("run", help="run the four jobs with a checkout's .venv into OUT")
+    s.add_argument("checkout", type=Path)
+    s.add_argument("out", type=Path)
+    s = sub.add_parser("compare", help="compare two folders of the jobs")
+    s.add_argument("a", type=Path)
+    s.add_argument("b", type=Path)
+    s = sub.add_parser("both", help="run with both checkouts into OUT/before, OUT/after and compare")
+    s.add_argument("before", type=Path)
+    s.add_argument("after", type=Path)
+    s.add_argument("out", type=Path)
+    args = ap.parse_args()
+    if args.cmd == "run":
+        run_jobs(args.checkout, args.out)
+        return 0
+    if args.cmd == "compare":
+        return 0 if compare_folders(args.a, args.b) else 1
+    run_jobs(args.before, args.out / "before")
+    run_jobs(args.after, args.out / "after")
+    return 0 if compare_folders(args.out / "before", args.out / "after") else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

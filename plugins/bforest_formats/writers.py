@@ -15,7 +15,8 @@ from pydantic import Field
 
 from bforest_core.cylinders import resolve_options
 from bforest_core.interfaces import ComponentSettings, QSMWriter
-from bforest_core.provenance import jsonable, provenance, provenance_line
+from bforest_core.io import jsonable
+from bforest_core.provenance import provenance, provenance_line
 from bforest_core.tables import format_columns, format_rows
 
 from .csv_readers import NATIVE_COLUMNS
@@ -83,7 +84,7 @@ class CSVWriter(QSMWriter):
                 "params": md.get("params"),
                 "seed": md.get("seed"),
                 "provenance": provenance(tree),
-                "metadata": jsonable({k: v for k, v in md.items() if k not in ("topology",)}),
+                "metadata": jsonable({k: v for k, v in md.items() if k not in ("topology",)}, loose=True, strict=True),
             }
             path.with_suffix(".json").write_text(json.dumps(side, indent=2, allow_nan=False), encoding="utf-8")
         return path

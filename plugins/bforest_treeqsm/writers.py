@@ -17,7 +17,7 @@ from pydantic import Field
 from bforest_core.cylinders import resolve_options
 from bforest_core.errors import QSMFormatError
 from bforest_core.interfaces import ComponentSettings, QSMWriter
-from bforest_core.provenance import jsonable
+from bforest_core.io import jsonable
 from bforest_core.tables import format_columns, format_rows
 
 from ._text import TREEQSM17_NAMES
@@ -364,7 +364,7 @@ def treeqsm_struct(tree, provenance: Optional[dict] = None) -> dict:
         elif isinstance(v, (int, float, np.number)) and not isinstance(v, bool):
             bf[k] = float(v)
         else:
-            bf[k] = json.dumps(jsonable(v)) if isinstance(v, (dict, list, tuple)) else str(v)
+            bf[k] = json.dumps(jsonable(v, loose=True, strict=True)) if isinstance(v, (dict, list, tuple)) else str(v)
     name = Path(str(md.get("source") or prov.get("model") or "tree")).stem
     inputs = {k: np.array([[np.nan]]) for k in TREEQSM_INPUTS}
     inputs["filter"] = {k: np.array([[np.nan]]) for k in TREEQSM_FILTER_INPUTS}

@@ -30,11 +30,22 @@ class TreeError(BayesForestError, ValueError):
         super().__init__(problem)
 
     def __reduce__(self):
+        """Pickle as the same error, with its problem and rows."""
         return (type(self), (self.problem, self.rows))
 
 
 class QSMFormatError(BayesForestError, ValueError):
-    """A QSM file cannot be read: names the file and the problem."""
+    """A QSM file cannot be read: names the file and the problem.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The file.
+    problem : str
+        What is wrong, in words.
+    rows : iterable of int, optional
+        0-based rows of the offending cylinders (may be empty).
+    """
 
     def __init__(self, path, problem: str, rows=()):
         self.path = str(path)
@@ -43,6 +54,7 @@ class QSMFormatError(BayesForestError, ValueError):
         super().__init__(f"{self.path}: {problem}")
 
     def __reduce__(self):  # pickled back from a worker as itself
+        """Pickle as the same error, with its path, problem and rows."""
         return (type(self), (self.path, self.problem, self.rows))
 
 
@@ -73,13 +85,32 @@ class SimulationFailed(BayesForestError):
         super().__init__(f"simulation failed ({status})" + (f": {message}" if message else ""))
 
     def __reduce__(self):  # pickled back from a worker as itself (the partial tree stays behind)
+        """Pickle as the same error with its status and message (without the partial tree)."""
         return (type(self), (self.status, self.message))
 
 
 def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = None, hint=None, skip: tuple = ()) -> str:
-    """One readable clause per problem: ``key.path: message (got value)``. ``hint(loc)`` may add
-    a suggestion to an unknown key (e.g. "did you mean ..."); errors under a top-level key in
-    ``skip`` are left out (reported otherwise)."""
+    """Render a pydantic validation error as one readable clause per problem.
+
+    Each clause reads ``key.path: message (got value)``.
+
+    Parameters
+    ----------
+    exc : pydantic.ValidationError
+        The error.
+    tags : dict, optional
+        Section name to the union tag pydantic inserts after it (dropped from key paths).
+    hint : callable, optional
+        ``hint(loc)`` returns text appended to an unknown key's message (e.g. "did you
+        mean ...").
+    skip : tuple of str, optional
+        Top-level keys whose errors are left out (reported otherwise).
+
+    Returns
+    -------
+    str
+        The clauses joined by ``"; "``.
+    """
     parts = []
     for e in exc.errors():
         if e["loc"] and str(e["loc"][0]) in skip:

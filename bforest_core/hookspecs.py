@@ -18,5 +18,11 @@ hookimpl = pluggy.HookimplMarker(PROJECT)
 
 @hookspec
 def bforest_components():
-    """Return a list of component classes (subclasses of the interfaces in
-    :mod:`bforest_core.interfaces`) that this plugin provides."""
+    """Return the component classes this plugin provides.
+
+    Returns
+    -------
+    list of type
+        Subclasses of the interfaces in :mod:`bforest_core.interfaces`.
+    """
+

@@ -1,6 +1,9 @@
-"""Where a tree came from, for the file that holds it: the provenance block every writer records
-(a comment line in PLY, OBJ and XYZ files, the native CSV's sidecar, a LAS VLR, ``rundata`` of the
-TreeQSM ``.mat``), and metadata as plain JSON values (``io.jsonable``: unknown objects as text, NaN as null)."""
+"""Where a tree came from, for the file that holds it.
+
+The provenance block every writer records (a comment line in PLY, OBJ and XYZ files, the native
+CSV's sidecar, a LAS VLR, ``rundata`` of the TreeQSM ``.mat``), and metadata as plain JSON values
+(``io.jsonable``: unknown objects as text, NaN as null).
+"""
 
 from __future__ import annotations
 
@@ -17,9 +20,21 @@ except PackageNotFoundError:  # running from a source tree
 
 
 def provenance(tree, **extra) -> dict:
-    """Where a tree came from, for the file that holds it: the Bayes Forest version and, when the
-    tree's metadata has them, model, parameters, fixed parameters, seed, role, run folder and
-    source file (``extra`` adds e.g. scan settings). JSON-ready."""
+    """Return where a tree came from, for the file that holds it.
+
+    Parameters
+    ----------
+    tree : Tree
+        The tree; its ``metadata`` supplies model, parameters, fixed parameters, seed, role,
+        run folder and source file when it has them.
+    **extra
+        Further entries (e.g. scan settings).
+
+    Returns
+    -------
+    dict
+        The Bayes Forest version and the entries above, as plain JSON values.
+    """
     md = tree.metadata
     out = {"software": f"Bayes Forest {__version__}"}
     for k in ("model", "params", "fixed", "seed", "role", "run", "source"):
@@ -30,5 +45,18 @@ def provenance(tree, **extra) -> dict:
 
 
 def provenance_line(tree, **extra) -> str:
-    """:func:`provenance` as one line of compact JSON (for PLY, OBJ and XYZ comments)."""
+    """Return :func:`provenance` as one line of compact JSON (for PLY, OBJ and XYZ comments).
+
+    Parameters
+    ----------
+    tree : Tree
+        The tree.
+    **extra
+        Further entries, as for :func:`provenance`.
+
+    Returns
+    -------
+    str
+        ``"provenance "`` followed by the JSON object.
+    """
     return "provenance " + json.dumps(provenance(tree, **extra), separators=(",", ":"), allow_nan=False)

@@ -26,6 +26,24 @@ GROUP = "bforest"
 
 @dataclass
 class ComponentEntry:
+    """One component class a plugin registered.
+
+    Parameters
+    ----------
+    kind : str
+        Component kind, one of :data:`bforest_core.interfaces.KINDS`.
+    name : str
+        The name the component is selected by in a config.
+    cls : type
+        The component class (a subclass of the interface of ``kind``).
+    plugin : str
+        Name of the entry point that registered it.
+    distribution : str
+        Name of the distribution that provides the entry point.
+    version : str
+        Version of that distribution.
+    """
+
     kind: str
     name: str
     cls: type
@@ -36,6 +54,18 @@ class ComponentEntry:
 
 @dataclass
 class LoadError:
+    """A plugin that failed to load or register and was skipped.
+
+    Parameters
+    ----------
+    plugin : str
+        Name of the entry point.
+    distribution : str
+        Name of the distribution that provides it.
+    error : str
+        The failure as ``"ExceptionType: message"``.
+    """
+
     plugin: str
     distribution: str
     error: str
@@ -43,14 +73,58 @@ class LoadError:
 
 @dataclass
 class Registry:
+    """The components of the installed plugins, by ``(kind, name)``.
+
+    Parameters
+    ----------
+    components : dict of (str, str) to ComponentEntry
+        The unambiguous components.
+    conflicts : dict of (str, str) to list of ComponentEntry
+        Names registered by more than one plugin, with every entry; selecting one raises.
+    errors : list of LoadError
+        Plugins that failed to load and were skipped.
+    """
+
     components: dict[tuple[str, str], ComponentEntry] = field(default_factory=dict)
     conflicts: dict[tuple[str, str], list[ComponentEntry]] = field(default_factory=dict)
     errors: list[LoadError] = field(default_factory=list)
 
     def names(self, kind: str) -> list[str]:
+        """List the registered names of a kind, conflicting ones included.
+
+        Parameters
+        ----------
+        kind : str
+            Component kind.
+
+        Returns
+        -------
+        list of str
+            Sorted names.
+        """
         return sorted({n for (k, n) in list(self.components) + list(self.conflicts) if k == kind})
 
     def get(self, kind: str, name: str) -> type:
+        """Return the component class registered as ``name`` of ``kind``.
+
+        Parameters
+        ----------
+        kind : str
+            Component kind, one of :data:`bforest_core.interfaces.KINDS`.
+        name : str
+            Component name.
+
+        Returns
+        -------
+        type
+            The component class.
+
+        Raises
+        ------
+        PluginError
+            For an unknown kind, an unknown name (listing the known ones) or a name that more
+            than one plugin registers (naming their distributions).
+        """
         if kind not in KINDS:
             raise PluginError(f"unknown component kind {kind!r} (kinds: {', '.join(KINDS)})")
         if (kind, name) in self.conflicts:
@@ -63,6 +137,27 @@ class Registry:
             raise PluginError(f"unknown {kind} '{name}' (known: {known})") from None
 
     def add(self, cls: type, plugin: str, dist: str, version: str) -> None:
+        """Register a component class; a second class under the same name makes a conflict.
+
+        Registering the same class twice under one name is a no-op.
+
+        Parameters
+        ----------
+        cls : type
+            A subclass of an interface in :data:`bforest_core.interfaces.INTERFACES` with a
+            non-empty ``name``.
+        plugin : str
+            Name of the entry point that provides it.
+        dist : str
+            Name of the distribution.
+        version : str
+            Version of the distribution.
+
+        Raises
+        ------
+        PluginError
+            If ``cls`` is not a subclass of an interface or has no ``name``.
+        """
         kind = getattr(cls, "kind", None)
         name = getattr(cls, "name", None)
         if kind not in INTERFACES or not isinstance(cls, type) or not issubclass(cls, INTERFACES[kind]):
@@ -90,7 +185,29 @@ def _strict() -> bool:
 
 
 def discover(refresh: bool = False) -> Registry:
-    """Load every entry point of the group ``bforest`` (once per process unless ``refresh``)."""
+    """Load every entry point of the group ``bforest`` (once per process unless ``refresh``).
+
+    Parameters
+    ----------
+    refresh : bool, optional
+        Load the entry points again instead of returning the cached registry.
+
+    Returns
+    -------
+    Registry
+        The components, conflicts and load errors of the installed plugins.
+
+    Raises
+    ------
+    PluginError
+        With ``BFOREST_STRICT_PLUGINS`` set: if a plugin fails to load or two plugins register
+        the same name.
+
+    Warns
+    -----
+    RuntimeWarning
+        For each plugin that fails to load and is skipped.
+    """
     global _registry
     with _lock:
         if _registry is not None and not refresh:
@@ -134,14 +251,51 @@ def discover(refresh: bool = False) -> Registry:
 
 
 def component_class(kind: str, name: str) -> type:
+    """Return the class of the installed component ``name`` of ``kind``.
+
+    Parameters
+    ----------
+    kind : str
+        Component kind, one of :data:`bforest_core.interfaces.KINDS`.
+    name : str
+        Component name.
+
+    Returns
+    -------
+    type
+        The component class.
+
+    Raises
+    ------
+    PluginError
+        For an unknown or ambiguous name (see :meth:`Registry.get`).
+    """
     return discover().get(kind, name)
 
 
 def component(kind: str, name: str, **settings: Any) -> Component:
-    """A configured instance of the component ``name`` of ``kind``.
+    """Return a configured instance of the component ``name`` of ``kind``.
 
-    Raises ``PluginError`` for an unknown name (listing the known ones) and ``ConfigError`` for
-    invalid settings.
+    Parameters
+    ----------
+    kind : str
+        Component kind, one of :data:`bforest_core.interfaces.KINDS`.
+    name : str
+        Component name.
+    **settings
+        The component's settings.
+
+    Returns
+    -------
+    Component
+        The configured instance.
+
+    Raises
+    ------
+    PluginError
+        For an unknown name (listing the known ones) or an ambiguous one.
+    ConfigError
+        For invalid settings.
     """
     import pydantic
 

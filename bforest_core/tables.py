@@ -1,6 +1,7 @@
-"""Numeric text tables of cylinders, both ways: vectorised parsing with line-precise errors (the
-text and CSV readers), sniffing of binary content, and the assembly of a tree's columns into
-formatted rows (the text and CSV writers).
+"""Numeric text tables of cylinders, both ways.
+
+Vectorised parsing with line-precise errors (the text and CSV readers), sniffing of binary
+content, and the assembly of a tree's columns into formatted rows (the text and CSV writers).
 
 Parsing is vectorised: the field count of every line comes from byte masks (so a ragged line is
 reported by its number), the numbers from one ``np.loadtxt`` call. Writing is one ``%`` formatting
@@ -28,7 +29,18 @@ _SEP_TABLE = bytes.maketrans(b",\r\x0b\x0c", b"    ")
 
 
 def mat_kind(head: bytes) -> Optional[str]:
-    """``"v5"``, ``"hdf5"`` or ``None`` from the first bytes of a file."""
+    """Tell the MAT-file version from the first bytes of a file.
+
+    Parameters
+    ----------
+    head : bytes
+        The first bytes of the file (at least 520 to see an HDF5 user block).
+
+    Returns
+    -------
+    str or None
+        ``"v5"``, ``"hdf5"`` (MAT v7.3 or any HDF5 file) or ``None`` for neither.
+    """
     if head[:8] == HDF5_MAGIC or head[512:520] == HDF5_MAGIC:
         return "hdf5"
     if len(head) >= 128 and head[126:128] in (b"IM", b"MI"):
@@ -42,12 +54,41 @@ def mat_kind(head: bytes) -> Optional[str]:
 
 
 def read_bytes(path: Path) -> bytes:
+    """Return the whole content of a file.
+
+    Parameters
+    ----------
+    path : Path
+        The file.
+
+    Returns
+    -------
+    bytes
+        Its content.
+
+    Raises
+    ------
+    OSError
+        If the file cannot be opened or read.
+    """
     with open(path, "rb") as fh:
         return fh.read()
 
 
 def looks_binary(head: bytes) -> Optional[str]:
-    """A message when ``head`` is not text, else ``None``."""
+    """Tell whether the start of a file is binary rather than text.
+
+    Parameters
+    ----------
+    head : bytes
+        The first bytes of the file (up to 4096 are examined for NUL bytes).
+
+    Returns
+    -------
+    str or None
+        A message saying what the content looks like (a MAT-file, binary data), or ``None``
+        for text.
+    """
     if mat_kind(head) is not None:  # MAT v5, or any HDF5 file (MAT v7.3 is HDF5)
         return "content looks like a MAT-file, not text"
     if b"\x00" in head[:4096]:
@@ -61,7 +102,22 @@ def looks_binary(head: bytes) -> Optional[str]:
 
 
 def split_lines_head(data: bytes, k: int):
-    """First ``k`` lines (decoded, stripped of CR/LF) and the byte offset after them."""
+    """Split the first ``k`` lines off ``data``.
+
+    Parameters
+    ----------
+    data : bytes
+        The file content.
+    k : int
+        Number of lines.
+
+    Returns
+    -------
+    lines : list of str
+        Up to ``k`` lines, decoded as Latin-1, without CR/LF.
+    offset : int
+        Byte offset just after them.
+    """
     lines = []
     pos = 0
     for _ in range(k):
@@ -76,8 +132,22 @@ def split_lines_head(data: bytes, k: int):
 
 
 def field_counts(body: bytes):
-    """Number of fields on every line of ``body`` (separators: whitespace/control bytes and
-    commas). Returns ``(counts, line_index)`` for the non-blank lines (0-based line index)."""
+    """Count the fields on every non-blank line of ``body``.
+
+    Fields are separated by whitespace/control bytes and commas.
+
+    Parameters
+    ----------
+    body : bytes
+        The table's lines.
+
+    Returns
+    -------
+    counts : ndarray of int64
+        Number of fields of each non-blank line.
+    line_index : ndarray of int64
+        0-based index of each of those lines in ``body``.
+    """
     arr = np.frombuffer(body, dtype=np.uint8)
     if arr.size == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
@@ -92,7 +162,18 @@ def field_counts(body: bytes):
 
 
 def first_line_fields(body: bytes) -> int:
-    """Fields on the first non-blank line of ``body``."""
+    """Count the fields on the first non-blank line of ``body`` (0 if the first 64 KiB have none).
+
+    Parameters
+    ----------
+    body : bytes
+        The table's lines.
+
+    Returns
+    -------
+    int
+        Number of whitespace/comma separated fields.
+    """
     for line in body[: 1 << 16].split(b"\n"):
         k = len(line.translate(_SEP_TABLE).split())
         if k:
@@ -123,16 +204,27 @@ def parse_table(path, body: bytes, first_line: int, expected: Optional[int], wha
 
     Parameters
     ----------
+    path : str or path-like
+        The file (for messages).
     body : bytes
         The data part of the file.
     first_line : int
         1-based line number of the first line of ``body`` (for messages).
     expected : int or None
         Required fields per line; ``None`` takes the first line's count.
+    what : str, optional
+        What the fields are called in messages.
 
     Returns
     -------
     values : (m, k) float64
+        The numbers, one row per non-blank line.
+
+    Raises
+    ------
+    QSMFormatError
+        For a table with no cylinders, a ragged line or a field that is not a number (naming
+        its file line).
     """
     k = first_line_fields(body) if expected is None else int(expected)
     if k == 0:
@@ -174,7 +266,22 @@ def _locate_bad_token(path, text: str, first_line: int) -> None:
 
 
 def format_rows(values: np.ndarray, formats: list[str], sep: str = "\t") -> str:
-    """Rows of ``values`` (n, k) formatted with one printf format per column, LF line ends."""
+    """Format the rows of a numeric table.
+
+    Parameters
+    ----------
+    values : ndarray, shape (n, k)
+        The table.
+    formats : list of str
+        One printf format per column.
+    sep : str, optional
+        Field separator.
+
+    Returns
+    -------
+    str
+        One LF-terminated line per row (empty for no rows).
+    """
     n = values.shape[0]
     if n == 0:
         return ""
@@ -183,7 +290,7 @@ def format_rows(values: np.ndarray, formats: list[str], sep: str = "\t") -> str:
 
 
 def format_columns(columns, sep: str = "\t") -> str:
-    """The rows of a table assembled from per-cylinder columns (what every table writer writes).
+    """Assemble the rows of a table from per-cylinder columns (what every table writer writes).
 
     Parameters
     ----------

@@ -1,6 +1,9 @@
-"""Files in and out: ``read_qsm`` and ``write_tree`` dispatch to the registered readers and
-writers; ``jsonable``, ``json_text`` and ``write_json`` are the one way results become JSON (the
-run folder's files, the evaluation log's columns, ``--json`` output, a writer's metadata)."""
+"""Files in and out.
+
+``read_qsm`` and ``write_tree`` dispatch to the registered readers and writers; ``jsonable``,
+``json_text`` and ``write_json`` are the one way results become JSON (the run folder's files, the
+evaluation log's columns, ``--json`` output, a writer's metadata).
+"""
 
 from __future__ import annotations
 
@@ -18,8 +21,11 @@ def _readers():
 
 
 def _check_regular_file(path: Path) -> None:
-    """A QSM path must be a regular file: not missing, a folder, a FIFO (reading one waits for a
-    writer for ever), a device or a loop of symbolic links (each named as such)."""
+    """Check that a QSM path is a regular file.
+
+    Not missing, a folder, a FIFO (reading one waits for a writer for ever), a device or a loop
+    of symbolic links (each named as such).
+    """
     import errno
     import os
     import stat
@@ -47,6 +53,7 @@ def read_qsm(path, reader: str | None = None, **options):
     Parameters
     ----------
     path : str or Path
+        The QSM file.
     reader : str, optional
         A registered reader's name; by default the reader is picked from the file's content
         (the suffix only narrows the candidates).
@@ -55,10 +62,17 @@ def read_qsm(path, reader: str | None = None, **options):
         ``topology`` (``"source"``, ``"subtree"``, ``"thickest"``), ``fragments``
         (``"drop"``/``"error"``), ``drop_degenerate`` (bool), ...
 
+    Returns
+    -------
+    Tree
+        The tree the file holds.
+
     Raises
     ------
     QSMFormatError
         Naming the file and the problem.
+    PluginError
+        If no reader is installed or ``reader`` names none.
     """
     path = Path(path)
     _check_regular_file(path)
@@ -90,9 +104,30 @@ def read_qsm(path, reader: str | None = None, **options):
 
 
 def writer_for(path, format: str | None = None):
-    """The writer class for ``path`` (by suffix) or ``format`` (a registered writer's name);
-    raises ``QSMFormatError`` naming the known suffixes. Lets a caller check an output name before
-    it computes the tree."""
+    """Return the writer class for ``path`` (by suffix) or ``format``.
+
+    Lets a caller check an output name before it computes the tree.
+
+    Parameters
+    ----------
+    path : str or Path
+        The output file; its suffix picks the writer (the highest ``priority`` among those
+        that take it).
+    format : str, optional
+        A registered writer's name, which takes precedence over the suffix.
+
+    Returns
+    -------
+    type
+        The writer class.
+
+    Raises
+    ------
+    QSMFormatError
+        If no writer takes the suffix (naming the known suffixes).
+    PluginError
+        If ``format`` names no registered writer.
+    """
     path = Path(path)
     reg = discover()
     if format is not None:
@@ -108,8 +143,31 @@ def writer_for(path, format: str | None = None):
 
 
 def write_tree(tree, path, format: str | None = None, **options) -> Path:
-    """Write a tree: TreeQSM text (``.txt``), CSV (``.csv``), PLY/OBJ meshes, by suffix or
-    ``format`` (a registered writer's name)."""
+    """Write a tree: TreeQSM text (``.txt``), CSV (``.csv``), PLY/OBJ meshes, ...
+
+    The writer is chosen by :func:`writer_for`; missing parent folders are made.
+
+    Parameters
+    ----------
+    tree : Tree
+        The tree.
+    path : str or Path
+        The output file.
+    format : str, optional
+        A registered writer's name (by default the suffix picks it).
+    **options
+        Passed to the writer.
+
+    Returns
+    -------
+    Path
+        The file written.
+
+    Raises
+    ------
+    QSMFormatError
+        If no writer takes the suffix.
+    """
     path = Path(path)
     cls = writer_for(path, format)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -118,7 +176,7 @@ def write_tree(tree, path, format: str | None = None, **options) -> Path:
 
 # ------------------------------------------------------------------------------------ JSON
 def jsonable(obj, *, loose: bool = False, strict: bool = False):
-    """``obj`` as plain JSON values: dicts, lists, text, numbers, booleans and ``None``.
+    """Convert ``obj`` to plain JSON values: dicts, lists, text, numbers, booleans and ``None``.
 
     Numpy scalars become Python numbers, numpy arrays and tuples lists, paths text; dict keys that
     JSON takes (text, numbers, booleans, ``None``) stay, numpy scalar keys become numbers.
@@ -138,6 +196,11 @@ def jsonable(obj, *, loose: bool = False, strict: bool = False):
     -------
     object
         The plain value; ``json.dumps`` writes it with no ``default``.
+
+    Raises
+    ------
+    TypeError
+        Without ``loose``, for a value or dict key JSON has no form for.
     """
     if obj is None or isinstance(obj, (bool, str)):
         return obj
@@ -177,12 +240,27 @@ def _json_key(k, loose: bool):
 def json_text(
     obj, *, indent: int | None = 2, sort_keys: bool = False, loose: bool = False, strict: bool = False
 ) -> str:
-    """``obj`` as JSON text (:func:`jsonable` with ``loose`` and ``strict``).
+    """Return ``obj`` as JSON text (:func:`jsonable` with ``loose`` and ``strict``).
 
-    ``strict`` is for people and other programs (``--json`` output, a study's summary file):
-    NaN and infinities as ``null``. Without it non-finite numbers are written as Python's
-    ``json`` writes them and read back by it (the run folder's own files). ``indent=None``
-    gives one line (the evaluation log's columns, with ``sort_keys``).
+    Parameters
+    ----------
+    obj : object
+        The value.
+    indent : int or None, optional
+        Indentation; ``None`` gives one line (the evaluation log's columns, with ``sort_keys``).
+    sort_keys : bool, optional
+        Sort the keys of dicts.
+    loose : bool, optional
+        Write unknown objects as their text (see :func:`jsonable`).
+    strict : bool, optional
+        For people and other programs (``--json`` output, a study's summary file): NaN and
+        infinities as ``null``. Without it non-finite numbers are written as Python's ``json``
+        writes them and read back by it (the run folder's own files).
+
+    Returns
+    -------
+    str
+        The JSON text.
     """
     return json.dumps(
         jsonable(obj, loose=loose, strict=strict), indent=indent, sort_keys=sort_keys, allow_nan=not strict
@@ -190,8 +268,24 @@ def json_text(
 
 
 def write_json(path, obj, **options) -> Path:
-    """Write :func:`json_text` of ``obj`` (``options`` as there) to ``path``, all or nothing:
-    through a temporary file beside it, so a reader never sees half a file."""
+    """Write :func:`json_text` of ``obj`` to ``path``, all or nothing.
+
+    The text goes through a temporary file beside it, so a reader never sees half a file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The output file.
+    obj : object
+        The value.
+    **options
+        As for :func:`json_text`.
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
     path = Path(path)
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(json_text(obj, **options), encoding="utf-8")

@@ -1,6 +1,8 @@
-"""Tree metrics: the classical ones (height, DBH, base diameter, crown spread) with their relative
-errors, the tree-level summary statistics a forester checks (:func:`tree_summary`) and the
-per-order table of branches (:func:`order_summary`).
+"""Tree metrics.
+
+The classical ones (height, DBH, base diameter, crown spread) with their relative errors, the
+tree-level summary statistics a forester checks (:func:`tree_summary`) and the per-order table of
+branches (:func:`order_summary`).
 
 "Girth" in the papers (GS) is the *base diameter* (2 x radius of the root cylinder), not a
 circumference; :func:`classical_metrics` returns it as ``base_diameter`` and keeps ``girth`` as
@@ -55,6 +57,16 @@ def crown_spread(tree, spoke_step: float = 10.0, empty_sectors: Literal["zero", 
         ``zero`` counts an empty sector as a spoke of length 0 (GS "all spokes"); ``drop``
         averages the non-empty sectors only (toolbox).
 
+    Returns
+    -------
+    float
+        The crown spread in metres.
+
+    Raises
+    ------
+    ValueError
+        If ``spoke_step`` is not a positive divisor of 360 or ``empty_sectors`` is unknown.
+
     Notes
     -----
     Every start and end point with a horizontal distance rho > 1e-9 m from the base point gets
@@ -91,8 +103,26 @@ def dbh(tree, breast_height: float = BREAST_HEIGHT, warn: bool = True) -> float:
     """Diameter (m) of the first trunk cylinder (base to tip) spanning ``breast_height``.
 
     The trunk is branch 0 of the tree's own topology. A cylinder spans the height when
-    ``min(z_s, z_e) - z0 <= h <= max(z_s, z_e) - z0``. NaN (with a warning when ``warn``) when
-    no trunk cylinder does.
+    ``min(z_s, z_e) - z0 <= h <= max(z_s, z_e) - z0``.
+
+    Parameters
+    ----------
+    tree : Tree
+        The tree.
+    breast_height : float, optional
+        Height (m) above the start of the root cylinder.
+    warn : bool, optional
+        Warn when no trunk cylinder spans the height.
+
+    Returns
+    -------
+    float
+        The diameter in metres; NaN when no trunk cylinder spans the height.
+
+    Warns
+    -----
+    RuntimeWarning
+        With ``warn``, when the DBH is NaN.
     """
     bt = tree.branches
     trunk = bt.cylinders[bt.ptr[0] : bt.ptr[1]]
@@ -137,6 +167,11 @@ def classical_metrics(
         base diameter by default, *not* a circumference), ``base_diameter`` (2 x the root
         cylinder's radius), ``dbh`` (always the diameter at 1.3 m, NaN if none) and
         ``crown_spread``.
+
+    Raises
+    ------
+    ValueError
+        For an unknown ``girth`` or a bad ``spoke_step``/``empty_sectors``.
     """
     if girth not in ("base", "dbh"):
         raise ValueError(f"girth must be 'base' or 'dbh', got {girth!r}")
@@ -168,6 +203,11 @@ def relative_errors(data_metrics: Mapping[str, float], model_metrics: Mapping[st
     dict
         ``d_h``, ``d_g``, ``d_c`` (floats, or arrays for array input; NaN where the data value
         is 0 or missing).
+
+    Raises
+    ------
+    KeyError
+        If ``height``, ``girth`` or ``crown_spread`` is missing from either mapping.
     """
     out = {}
     for key, name in (("d_h", "height"), ("d_g", "girth"), ("d_c", "crown_spread")):
@@ -215,14 +255,40 @@ DETECTION_DIAMETER = 0.01
 
 
 def summary_unit(name: str) -> str:
-    """Unit of a summary statistic (``"length_o2"`` -> ``"m"``)."""
+    """Return the unit of a summary statistic (``"length_o2"`` -> ``"m"``).
+
+    Parameters
+    ----------
+    name : str
+        The statistic's name, as in :func:`tree_summary`.
+
+    Returns
+    -------
+    str
+        The unit of the longest entry of :data:`SUMMARY_UNITS` that ``name`` is or starts with
+        (followed by ``_``); ``""`` for none.
+    """
     best = max((k for k in SUMMARY_UNITS if name == k or name.startswith(k + "_")), key=len, default=None)
     return SUMMARY_UNITS[best] if best is not None else ""
 
 
 def summary_label(name: str, bands: int = 5) -> str:
-    """What a summary statistic is, in words (``"profile_n_b0"`` -> ``"order-1 branches based at
-    0-20 % of the height"``); the name itself for one this function does not know."""
+    """Say what a summary statistic is, in words.
+
+    ``"profile_n_b0"`` -> ``"order-1 branches based at 0-20 % of the height"``.
+
+    Parameters
+    ----------
+    name : str
+        The statistic's name, as in :func:`tree_summary`.
+    bands : int, optional
+        Number of height bands of the profile statistics.
+
+    Returns
+    -------
+    str
+        The description; the name itself for one this function does not know.
+    """
     fixed = {
         "height": "height",
         "dbh": "DBH (1.3 m)",
@@ -259,8 +325,10 @@ def summary_label(name: str, bands: int = 5) -> str:
 
 
 def _living(tree) -> np.ndarray:
-    """Per branch: does it hold a living cylinder? (Models mark dead remnants in
-    ``extras["is_dead"]``; a QSM has none, so all its branches count.)"""
+    """Per branch: does it hold a living cylinder?
+
+    Models mark dead remnants in ``extras["is_dead"]``; a QSM has none, so all its branches count.
+    """
     dead = tree.extras.get("is_dead") if tree.extras else None
     if dead is None:
         return np.ones(tree.n_branches, bool)
@@ -269,14 +337,27 @@ def _living(tree) -> np.ndarray:
 
 
 def crown_base_height(tree, share: float = CROWN_BASE_SHARE) -> float:
-    """Crown base height (m above the stem base): the branch-base height below which only
-    ``share`` of the living first-order branch length sits.
+    """Return the crown base height (m above the stem base).
 
-    The lowest living first-order branch itself is a fragile definition on real data: a QSM
+    That is the branch-base height below which only ``share`` of the living first-order branch
+    length sits. The lowest living first-order branch itself is a fragile definition on real data: a QSM
     carries stray stubs near the ground (on the Ruotsinkylä pines 0.2-0.6 m) that no forester
     would call the crown, and a model may keep one survivor far below the others. Weighting
     branch bases by branch length lets such stubs move the crown base only as much as their
-    length weighs. NaN for a tree without living first-order branches.
+    length weighs.
+
+    Parameters
+    ----------
+    tree : Tree
+        The tree (a model's dead remnants, ``extras["is_dead"]``, are left out).
+    share : float, optional
+        Share (0-1) of the living first-order branch length allowed below the crown base.
+
+    Returns
+    -------
+    float
+        Height in metres above the start of the root cylinder; NaN for a tree without living
+        first-order branches.
     """
     br = tree.branches
     z0 = tree.start[0, 2]
@@ -354,9 +435,21 @@ def tree_summary(
 
 
 def order_summary(tree) -> list[dict]:
-    """Per branch order (like rTwig's summarise): number of branches, total length (m), wood
-    volume (m^3), mean branching angle (deg, between a branch's first cylinder and its parent
-    cylinder; NaN for the stem) and mean base diameter (m)."""
+    """Summarise the branches per branch order (like rTwig's summarise).
+
+    Parameters
+    ----------
+    tree : Tree
+        The tree.
+
+    Returns
+    -------
+    list of dict
+        One row per order present, with ``order``, ``n_branches``, total ``length_m`` (m),
+        wood ``volume_m3`` (m^3), ``mean_angle_deg`` (mean branching angle in degrees, between a
+        branch's first cylinder and its parent cylinder; NaN for the stem) and
+        ``mean_base_diameter_m`` (m).
+    """
     br = tree.branches
     blen = np.bincount(tree.branch, weights=tree.length, minlength=len(br))
     bvol = np.bincount(tree.branch, weights=np.pi * tree.radius**2 * tree.length, minlength=len(br))
@@ -391,8 +484,25 @@ def order_summary(tree) -> list[dict]:
 
 
 def weighted_quantiles(x: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
-    """Quantiles (in %) of ``x`` under weights ``w`` (inverse of the weighted ECDF with the
-    midpoint rule, so equal weights give numpy's 'hazen' quantiles)."""
+    """Compute weighted quantiles.
+
+    The inverse of the weighted ECDF with the midpoint rule, so equal weights give numpy's
+    'hazen' quantiles. Points of zero weight are left out.
+
+    Parameters
+    ----------
+    x : ndarray
+        The values.
+    w : ndarray
+        Their weights (non-negative, not all zero).
+    qs : array_like
+        Quantile levels in percent (0-100).
+
+    Returns
+    -------
+    ndarray
+        The quantiles, one per level.
+    """
     x = np.asarray(x, float)
     w = np.asarray(w, float)
     keep = w > 0  # a point of zero weight is not in the distribution (it must not stretch a tail)
@@ -466,7 +576,17 @@ class TreeMeasures:
 
 
 def measure_tree(tree) -> TreeMeasures:
-    """The measures a recipe is scaled from (see :class:`TreeMeasures`).
+    """Measure what a recipe is scaled from (see :class:`TreeMeasures`).
+
+    Parameters
+    ----------
+    tree : Tree
+        A measured tree (a QSM).
+
+    Returns
+    -------
+    TreeMeasures
+        The measures.
 
     Raises
     ------

@@ -33,7 +33,20 @@ class ComponentSettings(BaseModel):
 
 
 class Component(abc.ABC):
-    """Base of every pluggable component."""
+    """Base of every pluggable component.
+
+    Parameters
+    ----------
+    settings : ComponentSettings or mapping, optional
+        The settings, as the class's ``Settings`` model or a mapping validated by it.
+    **kwargs
+        Settings that override those in ``settings``.
+
+    Raises
+    ------
+    pydantic.ValidationError
+        For unknown or invalid settings.
+    """
 
     kind: ClassVar[str]
     name: ClassVar[str]
@@ -50,6 +63,7 @@ class Component(abc.ABC):
         self.settings = settings
 
     def __repr__(self) -> str:
+        """Show the class name and every setting."""
         opts = ", ".join(f"{k}={v!r}" for k, v in self.settings.model_dump().items())
         return f"{type(self).__name__}({opts})"
 
@@ -72,12 +86,43 @@ class QSMReader(Component):
 
     @abc.abstractmethod
     def sniff(self, path: Path, head: bytes) -> bool:
-        """True when the file (whose first 4096 bytes are ``head``) is in this layout."""
+        """Tell whether the file is in this reader's layout.
+
+        Parameters
+        ----------
+        path : Path
+            The file.
+        head : bytes
+            Its first 4096 bytes.
+
+        Returns
+        -------
+        bool
+            True when this reader can read the file.
+        """
 
     @abc.abstractmethod
     def read(self, path: Path, **options) -> Tree | list[Tree]:
-        """Read the file; options of :func:`read_qsm` (``select``, ``topology``, ``fragments``,
-        ``drop_degenerate``) are passed through. Raises ``QSMFormatError``."""
+        """Read the file.
+
+        Parameters
+        ----------
+        path : Path
+            The file.
+        **options
+            Options of :func:`bforest_core.read_qsm` (``select``, ``topology``, ``fragments``,
+            ``drop_degenerate``), passed through.
+
+        Returns
+        -------
+        Tree or list of Tree
+            The tree, or the selected reconstructions.
+
+        Raises
+        ------
+        QSMFormatError
+            Naming the file and the problem.
+        """
 
 
 class QSMWriter(Component):
@@ -91,7 +136,22 @@ class QSMWriter(Component):
 
     @abc.abstractmethod
     def write(self, tree, path: Path, **options) -> Path:
-        """Write ``tree`` to ``path``; returns the path written."""
+        """Write ``tree`` to ``path``.
+
+        Parameters
+        ----------
+        tree : Tree
+            The tree.
+        path : Path
+            The output file.
+        **options
+            The writer's options.
+
+        Returns
+        -------
+        Path
+            The path written.
+        """
 
 
 # ------------------------------------------------------------------------------------ SSM
@@ -99,8 +159,22 @@ class QSMWriter(Component):
 class ParameterSpec:
     """One growth-model parameter.
 
-    ``lower``/``upper`` are the plausible range a fit may explore (and the default bounds of a
-    ``free`` entry); ``integer`` parameters take whole values.
+    Parameters
+    ----------
+    name : str
+        The parameter's name.
+    default : float
+        Value when none is given.
+    lower, upper : float
+        The plausible range a fit may explore (and the default bounds of a ``free`` entry).
+    integer : bool, optional
+        Whether the parameter takes whole values.
+    unit : str, optional
+        Unit of the value (e.g. ``"m"``, ``"deg"``).
+    description : str, optional
+        What the parameter is, in words.
+    group : str, optional
+        Group the parameter is listed under.
     """
 
     name: str
@@ -114,10 +188,12 @@ class ParameterSpec:
 
 
 def parameter_value(value, integer: bool) -> int | float:
-    """A parameter's value as a model takes it: for a whole-number parameter (``years``, say) an
-    ``int``, rounded half to even, else a ``float``. The one rounding of a parameter: the fit's
-    points, ``SSM.resolve_params``, profiles and posterior clones all round through it, so a
-    model receives whole numbers and never rounds again.
+    """Return a parameter's value as a model takes it.
+
+    For a whole-number parameter (``years``, say) an ``int``, rounded half to even, else a
+    ``float``. The one rounding of a parameter: the fit's points, ``SSM.resolve_params``,
+    profiles and posterior clones all round through it, so a model receives whole numbers and
+    never rounds again.
 
     Parameters
     ----------
@@ -126,6 +202,11 @@ def parameter_value(value, integer: bool) -> int | float:
     integer : bool
         Whether the parameter takes whole values (``ParameterSpec.integer``, or a ``free``
         entry's own ``integer``).
+
+    Returns
+    -------
+    int or float
+        The value.
     """
     return int(round(float(value))) if integer else float(value)
 
@@ -203,7 +284,7 @@ class SSM(Component):
         """
 
     def draft_recipe(self, measures: TreeMeasures) -> RecipeDraft | None:
-        """Optional (``bforest init``): this model's part of a recipe for a measured tree.
+        """Draft this model's part of a recipe for a measured tree (optional, ``bforest init``).
 
         Parameters
         ----------
@@ -221,19 +302,57 @@ class SSM(Component):
         return None
 
     def parameter_spec(self, name: str) -> ParameterSpec:
+        """Return the spec of one parameter.
+
+        Parameters
+        ----------
+        name : str
+            The parameter's name.
+
+        Returns
+        -------
+        ParameterSpec
+            Its spec.
+
+        Raises
+        ------
+        KeyError
+            For an unknown name (listing the known ones).
+        """
         for p in self.parameters:
             if p.name == name:
                 return p
         raise KeyError(f"{self.name} has no parameter {name!r} (known: {', '.join(p.name for p in self.parameters)})")
 
     def defaults(self) -> dict[str, float]:
+        """Return the default value of every parameter.
+
+        Returns
+        -------
+        dict of str to float
+            Default by parameter name.
+        """
         return {p.name: p.default for p in self.parameters}
 
     def resolve_params(self, params: Mapping[str, float]) -> dict[str, float]:
-        """Defaults overridden by ``params``.
+        """Return the defaults overridden by ``params``.
 
-        Integer parameters are rounded and returned as ``int``. Raises ``ValueError`` naming
-        the parameter for an unknown name or a value that is not a finite number."""
+        Parameters
+        ----------
+        params : mapping
+            Values by parameter name.
+
+        Returns
+        -------
+        dict
+            Every parameter's value; integer parameters rounded (:func:`parameter_value`) and
+            returned as ``int``.
+
+        Raises
+        ------
+        ValueError
+            Naming the parameter, for an unknown name or a value that is not a finite number.
+        """
         known = self.defaults()
         unknown = sorted(set(params) - set(known))
         if unknown:
@@ -267,28 +386,76 @@ class FeatureSet(Component):
         """Names of the data sets this feature set produces, in order."""
 
     def prepare(self, data_trees: Sequence[Tree]) -> None:
-        """Resolve data-dependent choices (e.g. ``"2+"`` orders) and check minimum sizes on the
-        data tree(s), once at set-up. Default: nothing to do."""
+        """Resolve data-dependent choices and check minimum sizes on the data tree(s).
+
+        Called once at set-up (e.g. resolves ``"2+"`` orders). Default: nothing to do.
+
+        Parameters
+        ----------
+        data_trees : sequence of Tree
+            The data tree(s) (repeated reconstructions of one tree).
+        """
 
     def resolved_settings(self) -> dict:
-        """Settings with the data-dependent choices of :meth:`prepare` resolved, so that a
-        model-side instance built from them extracts exactly the same tables (default: the
-        settings as given)."""
+        """Return the settings with the data-dependent choices of :meth:`prepare` resolved.
+
+        A model-side instance built from them extracts exactly the same tables.
+
+        Returns
+        -------
+        dict
+            The settings (default: as given).
+        """
         return self.settings.model_dump()
 
     @abc.abstractmethod
     def extract(self, tree) -> dict[str, np.ndarray]:
-        """Set name -> ``(n_i, d_i)`` float64 array (rows with NaN dropped per ``nan_policy``)."""
+        """Extract the data sets of one tree.
+
+        Parameters
+        ----------
+        tree : Tree
+            The tree.
+
+        Returns
+        -------
+        dict of str to ndarray
+            Set name -> ``(n_i, d_i)`` float64 array (rows with NaN dropped per ``nan_policy``).
+        """
 
     def extract_pooled(self, trees: Sequence[Tree]) -> dict[str, np.ndarray]:
-        """Rows of several trees pooled per set (repeated reconstructions)."""
+        """Extract the data sets of several trees, rows pooled per set (repeated reconstructions).
+
+        Parameters
+        ----------
+        trees : sequence of Tree
+            The trees.
+
+        Returns
+        -------
+        dict of str to ndarray
+            Set name -> the trees' rows stacked.
+        """
         parts = [self.extract(t) for t in trees]
         return {k: np.concatenate([p[k] for p in parts], axis=0) for k in self.set_names}
 
     @abc.abstractmethod
     def columns(self, set_name: str) -> list[str]:
-        """Column names of one set. Circular pairs are named ``"sin(x)"``, ``"cos(x)"`` so a
-        distance can scale each pair jointly."""
+        """Return the column names of one set.
+
+        Circular pairs are named ``"sin(x)"``, ``"cos(x)"`` so a distance can scale each pair
+        jointly.
+
+        Parameters
+        ----------
+        set_name : str
+            One of :attr:`set_names`.
+
+        Returns
+        -------
+        list of str
+            One name per column.
+        """
 
 
 # ------------------------------------------------------------------------------------ distance
@@ -298,28 +465,90 @@ class Distance(Component):
     kind = "distance"
 
     def prepare(self, U_data: Mapping[str, np.ndarray], columns: Mapping[str, list[str]] | None = None) -> None:
-        """Fit normalisation on the data side and cache data-side work once per run."""
+        """Fit normalisation on the data side and cache data-side work once per run.
+
+        Parameters
+        ----------
+        U_data : mapping of str to ndarray
+            The data tables by set name.
+        columns : mapping of str to list of str, optional
+            Column names by set name (see :meth:`FeatureSet.columns`).
+        """
 
     @abc.abstractmethod
     def compute(self, u_model: np.ndarray, u_data: np.ndarray) -> float:
-        """Distance of one pair of ``(n, d)`` tables (data side named second)."""
+        """Compute the distance of one pair of tables.
+
+        Parameters
+        ----------
+        u_model : ndarray, shape (n, d)
+            The model table.
+        u_data : ndarray, shape (m, d)
+            The data table.
+
+        Returns
+        -------
+        float
+            The distance.
+        """
 
     def compute_per_set(
         self, U_model: Mapping[str, np.ndarray], U_data: Mapping[str, np.ndarray]
     ) -> dict[str, float | None]:
-        """Per-set distances; ``None`` for a pair that is skipped (both sides empty)."""
+        """Compute the distance of every set.
+
+        Parameters
+        ----------
+        U_model, U_data : mapping of str to ndarray
+            Tables by set name (the same sets on both sides).
+
+        Returns
+        -------
+        dict of str to float or None
+            Distance by set name; ``None`` for a pair that is skipped (both sides empty).
+
+        Raises
+        ------
+        ValueError
+            If the two sides have different sets.
+        """
         if set(U_model) != set(U_data):
             raise ValueError(f"model sets {sorted(U_model)} differ from data sets {sorted(U_data)}")
         return {k: self.compute_pair(k, U_model[k], U_data[k]) for k in U_data}
 
     def compute_pair(self, set_name: str, u_model: np.ndarray, u_data: np.ndarray) -> float | None:
-        """One named pair (lets implementations use per-set prepared state)."""
+        """Compute the distance of one named pair (lets implementations use per-set prepared state).
+
+        Parameters
+        ----------
+        set_name : str
+            The set the pair belongs to.
+        u_model, u_data : ndarray
+            The model and data tables.
+
+        Returns
+        -------
+        float or None
+            The distance; ``None`` for a skipped pair.
+        """
         return self.compute(u_model, u_data)
 
     @staticmethod
     def combine(per_set: Mapping[str, float | None], weights: Mapping[str, float] | None = None) -> float:
-        """Weighted mean over the pairs that take part (skipped pairs leave the normalisation;
-        0.0 when every pair is skipped)."""
+        """Combine per-set distances into their weighted mean over the pairs that take part.
+
+        Parameters
+        ----------
+        per_set : mapping of str to float or None
+            Distance by set name; ``None`` marks a skipped pair, which leaves the normalisation.
+        weights : mapping of str to float, optional
+            Set weights (default 1 each).
+
+        Returns
+        -------
+        float
+            The weighted mean; 0.0 when every pair is skipped.
+        """
         num = den = 0.0
         for k, v in per_set.items():
             if v is None:
@@ -330,11 +559,40 @@ class Distance(Component):
         return num / den if den > 0 else 0.0
 
     def compute_sets(self, U_model, U_data, weights=None) -> float:
-        """Weighted mean distance over sets (docs/features-and-distance.md §4.5)."""
+        """Compute the weighted mean distance over sets (docs/features-and-distance.md §4.5).
+
+        Parameters
+        ----------
+        U_model, U_data : mapping of str to ndarray
+            Tables by set name.
+        weights : mapping of str to float, optional
+            Set weights.
+
+        Returns
+        -------
+        float
+            The distance.
+        """
         return self.combine(self.compute_per_set(U_model, U_data), weights)
 
     def directions(self, d: int) -> np.ndarray:
-        """The ``(lines, d)`` unit vectors a sliced distance projects on (if it has any)."""
+        """Return the unit vectors a sliced distance projects on (if it has any).
+
+        Parameters
+        ----------
+        d : int
+            Number of columns of the tables.
+
+        Returns
+        -------
+        ndarray, shape (lines, d)
+            The directions.
+
+        Raises
+        ------
+        NotImplementedError
+            By default: the distance does not project on directions.
+        """
         raise NotImplementedError(f"distance '{self.name}' does not project on directions")
 
     # Optional capabilities of a distance that projects on lines; the run folder and the report
@@ -374,7 +632,7 @@ class Distance(Component):
         raise NotImplementedError(f"distance '{self.name}' has no per-line values")
 
     def normalizations(self) -> dict[str, dict]:
-        """The frozen data-side transforms of the prepared sets (optional).
+        """Return the frozen data-side transforms of the prepared sets (optional).
 
         Returns
         -------
@@ -421,13 +679,34 @@ class Distance(Component):
 # ------------------------------------------------------------------------------------ optimiser
 @dataclass
 class Problem:
-    """What an optimiser sees: a bounded box, integer flags and a batch objective.
+    """Describe what an optimiser sees: a bounded box, integer flags and a batch objective.
 
     ``evaluate(X)`` takes a ``(k, p)`` array of points (in parameter order ``names``), evaluates
     them (in parallel through the run's executor, logging each to the run store) and returns
     ``k`` objective values. Once a stop criterion (budget, wall time, target) is met,
     ``evaluate`` evaluates what still fits in the budget, sets ``stopped`` and returns; the
     optimiser must then return its best point. Integer parameters are rounded by ``evaluate``.
+
+    Parameters
+    ----------
+    names : list of str
+        The free parameters, in order.
+    lower, upper : ndarray
+        Bounds of the box, one per parameter.
+    integer : ndarray of bool
+        Which parameters take whole values.
+    evaluate : callable
+        The batch objective, as above.
+    init_lower, init_upper : ndarray, optional
+        Box to draw initial points from (default: the bounds).
+    seed : int, optional
+        Seeds the optimiser.
+    budget : int, optional
+        The evaluation budget (see the attribute).
+    stopped, n_evaluations, best_x, best_f, stop_reason
+        Progress state, maintained by ``evaluate``.
+    log, seed_spread, summaries, target_summaries
+        Callbacks and data, see the attributes.
     """
 
     names: list[str]
@@ -466,21 +745,51 @@ class Problem:
 
     @property
     def dim(self) -> int:
+        """Number of free parameters."""
         return len(self.names)
 
     def init_box(self):
+        """Return the box initial points are drawn from.
+
+        Returns
+        -------
+        lower, upper : ndarray of float
+            ``init_lower``/``init_upper`` where given, else the bounds.
+        """
         lo = self.lower if self.init_lower is None else self.init_lower
         hi = self.upper if self.init_upper is None else self.init_upper
         return np.asarray(lo, float), np.asarray(hi, float)
 
     def remaining(self) -> int | None:
-        """Evaluations left in the budget (``None`` without one)."""
+        """Return the evaluations left in the budget.
+
+        Returns
+        -------
+        int or None
+            Evaluations left (at least 0); ``None`` without a budget.
+        """
         return None if self.budget is None else max(0, self.budget - self.n_evaluations)
 
 
 @dataclass
 class OptimizeResult:
-    """Outcome of one optimisation."""
+    """Outcome of one optimisation.
+
+    Parameters
+    ----------
+    x : ndarray
+        The best point found.
+    fun : float
+        Its objective value.
+    n_evaluations : int
+        Evaluations spent.
+    stop_reason : str, optional
+        Why the search ended.
+    history : list of dict, optional
+        Per generation/iteration records.
+    diagnostics : dict, optional
+        Optimiser-specific results (a sampler's posterior sample, ...).
+    """
 
     x: np.ndarray
     fun: float
@@ -527,11 +836,24 @@ class Optimizer(Component):
 
     @abc.abstractmethod
     def minimize(self, problem: Problem) -> OptimizeResult:
-        """Search the box for the minimum. Must be deterministic given ``problem.seed`` and the
-        values returned by ``problem.evaluate`` (the run store replays evaluations on resume)."""
+        """Search the box for the minimum.
+
+        Must be deterministic given ``problem.seed`` and the values returned by
+        ``problem.evaluate`` (the run store replays evaluations on resume).
+
+        Parameters
+        ----------
+        problem : Problem
+            The box and objective.
+
+        Returns
+        -------
+        OptimizeResult
+            The best point and how the search went.
+        """
 
     def expected_evaluations(self, dim: int) -> int | None:
-        """The evaluations a run plans when no stop comes first (optional).
+        """Return the evaluations a run plans when no stop comes first (optional).
 
         Parameters
         ----------
@@ -548,7 +870,7 @@ class Optimizer(Component):
 
     @classmethod
     def budget_settings(cls, settings: Mapping[str, Any], budget: int) -> dict[str, Any]:
-        """Settings under which ``Problem.budget``, not the optimiser's own length limits, ends a run.
+        """Return settings under which ``Problem.budget``, not the optimiser's limits, ends a run.
 
         ``bforest compare`` runs every optimiser on the same evaluation budget: each optimiser
         lifts (or sets to the budget) its own limits, such as a number of generations,
@@ -599,13 +921,48 @@ class Executor(Component):
 
     @abc.abstractmethod
     def start(self, initializer: Callable | None = None, initargs: tuple = ()) -> None:
-        """Start workers; ``initializer(*initargs)`` runs once in each (loads the target)."""
+        """Start workers.
+
+        Parameters
+        ----------
+        initializer : callable, optional
+            Runs once in each worker (loads the target).
+        initargs : tuple, optional
+            Its arguments.
+        """
 
     @abc.abstractmethod
     def map_unordered(self, fn: Callable, items: Sequence) -> Iterator[tuple[int, Any]]:
-        """Yield ``(index, fn(items[index]))`` as each finishes."""
+        """Run ``fn`` on every item, yielding results as each finishes.
+
+        Parameters
+        ----------
+        fn : callable
+            The task.
+        items : sequence
+            Its arguments, one per task.
+
+        Yields
+        ------
+        tuple of (int, object)
+            ``(index, fn(items[index]))``.
+        """
 
     def map(self, fn: Callable, items: Sequence) -> list:
+        """Run ``fn`` on every item and return the results in order.
+
+        Parameters
+        ----------
+        fn : callable
+            The task.
+        items : sequence
+            Its arguments, one per task.
+
+        Returns
+        -------
+        list
+            ``fn(item)`` for each item, in the order of ``items``.
+        """
         out = [None] * len(items)
         for i, r in self.map_unordered(fn, items):
             out[i] = r
@@ -616,7 +973,7 @@ class Executor(Component):
 
     @staticmethod
     def limit_worker_threads() -> None:
-        """One BLAS/OpenMP thread in this process.
+        """Limit this process to one BLAS/OpenMP thread.
 
         An executor whose workers together keep every core busy calls it in each worker before
         the initializer (the ``process`` and ``dask`` executors do): a worker's own thread pools
@@ -639,6 +996,21 @@ class Executor(Component):
             pass
 
     def started(self, initializer: Callable | None = None, initargs: tuple = ()):
+        """Return a context manager that starts the workers and shuts them down on exit.
+
+        Parameters
+        ----------
+        initializer : callable, optional
+            Runs once in each worker (see :meth:`start`).
+        initargs : tuple, optional
+            Its arguments.
+
+        Returns
+        -------
+        context manager
+            Entering it calls :meth:`start` and gives the executor; leaving it calls
+            :meth:`shutdown`.
+        """
         return _Started(self, initializer, initargs)
 
 

@@ -118,8 +118,11 @@ def _check_weights(weights):
 
 
 class ComponentPart(BaseModel):
-    """A component named inside an entry of the config: ``{ kind = NAME, settings... }``; the
-    settings are the component's own, validated when the config is checked (:func:`check_terms`)."""
+    """A component named inside an entry of the config: ``{ kind = NAME, settings... }``.
+
+    The settings are the component's own, validated when the config is checked
+    (:func:`check_terms`).
+    """
 
     model_config = ConfigDict(extra="allow")
 
@@ -211,6 +214,8 @@ class ObjectiveConfig(_Strict):
 
 
 class StopConfig(_Strict):
+    """When a fit stops: an evaluation budget, a wall time (seconds) or a target distance."""
+
     max_evaluations: Optional[int] = Field(None, ge=1, description="evaluation budget")
     wall_time: Optional[float] = Field(None, gt=0, description="seconds")
     target_distance: Optional[float] = Field(None, description="stop once the best distance is at or below this")
@@ -241,20 +246,23 @@ class SelectConfig(_Strict):
 
 
 class ClonesConfig(_Strict):
+    """The clones of the answer: model trees grown with its parameters on other seeds."""
+
     count: int = Field(100, ge=1)
     seed: Optional[int] = Field(None, ge=0, description="seed of the clone seeds (default: derived from the run seed)")
 
 
 class ReportConfig(_Strict):
+    """Whether a fit writes its report, and how many clones its figure draws."""
+
     enabled: bool = True
     clones_in_figure: int = Field(6, ge=1)
 
 
 class RunConfig(_Strict):
-    """A validated run configuration: the type of every ``cfg`` (:func:`load_config`,
-    :func:`parse_config`).
+    """A validated run configuration: the type of every ``cfg``.
 
-    The sections every run has are declared here; the component sections (``ssm``, ``features``,
+    Made by :func:`load_config` and :func:`parse_config`. The sections every run has are declared here; the component sections (``ssm``, ``features``,
     ``distance``, ``optimizer``, ``executor``) are the installed plugins' settings models, added
     by :func:`run_config_model`, whose model this is the base of. A config pickles (by reference
     to its models), so it travels to the executor's workers as the validated object.
@@ -274,8 +282,11 @@ _BUILT: dict[str, type[BaseModel]] = {}
 
 
 def _register_built(model: type[BaseModel], name: str) -> type[BaseModel]:
-    """Give a model built at run time a name in this module, so its instances pickle by
-    reference and a process that unpickles one (a worker) finds the class (:func:`__getattr__`)."""
+    """Give a model built at run time a name in this module.
+
+    Its instances then pickle by reference and a process that unpickles one (a worker) finds the
+    class (:func:`__getattr__`).
+    """
     model.__module__ = __name__
     model.__qualname__ = name
     _BUILT[name] = model
@@ -283,7 +294,25 @@ def _register_built(model: type[BaseModel], name: str) -> type[BaseModel]:
 
 
 def __getattr__(name: str):
-    """A model built from the installed plugins, built on first use (a worker unpickling a config)."""
+    """Return a model built from the installed plugins, built on first use.
+
+    A worker unpickling a config looks its models up here.
+
+    Parameters
+    ----------
+    name : str
+        The attribute's name (``_built_...`` for a built model).
+
+    Returns
+    -------
+    type
+        The model class.
+
+    Raises
+    ------
+    AttributeError
+        For any other name.
+    """
     if name.startswith("_built_"):
         run_config_model()
         if name in _BUILT:
@@ -292,7 +321,7 @@ def __getattr__(name: str):
 
 
 def _section_model(kind: str, name: str, cls: type) -> type[BaseModel]:
-    """The config model of one component: its Settings plus ``kind`` (and SSM extras)."""
+    """Build the config model of one component: its Settings plus ``kind`` (and SSM extras)."""
     fields: dict[str, Any] = {"kind": (Literal[name], Field(..., description=f"{kind} plugin name"))}
     if kind == "ssm":
         fields["fixed"] = (dict[str, float], Field(default_factory=dict, description="parameters held at these values"))
@@ -326,8 +355,14 @@ def _run_config_model(registry_id: int):
 
 
 def run_config_model() -> type[RunConfig]:
-    """The pydantic model of a run configuration, with the component unions of the installed
-    plugins."""
+    """Return the pydantic model of a run configuration, with the installed plugins' components.
+
+    Returns
+    -------
+    type of RunConfig
+        A subclass of :class:`RunConfig` whose component sections are discriminated unions of
+        the installed plugins' settings models.
+    """
     return _run_config_model(id(discover()))
 
 
@@ -345,14 +380,29 @@ def _fill_defaults(raw: dict) -> dict:
 
 
 def did_you_mean(word, options) -> str:
-    """`` (did you mean 'x'?)`` for the option closest to ``word``, or nothing."""
+    """Suggest the option closest to ``word``.
+
+    Parameters
+    ----------
+    word : object
+        What was given (compared as text).
+    options : iterable
+        The allowed values.
+
+    Returns
+    -------
+    str
+        `` (did you mean 'x'?)`` for a close option, else ``""``.
+    """
     close = difflib.get_close_matches(str(word), [str(o) for o in options], n=1, cutoff=0.6)
     return f" (did you mean '{close[0]}'?)" if close else ""
 
 
 def _model_in(ann, data):
-    """The pydantic model a value of annotation ``ann`` is validated by (the member of a
-    discriminated union that ``data``'s kind selects), or None."""
+    """Return the pydantic model a value of annotation ``ann`` is validated by, or None.
+
+    For a discriminated union, the member that ``data``'s kind selects.
+    """
     if isinstance(ann, type) and issubclass(ann, BaseModel):
         return ann
     origin, args = typing.get_origin(ann), typing.get_args(ann)
@@ -370,7 +420,7 @@ def _model_in(ann, data):
 
 
 def _allowed_keys(model, raw, loc) -> list[str]:
-    """The keys allowed beside the last part of ``loc`` (a validation error's location)."""
+    """Return the keys allowed beside the last part of ``loc`` (a validation error's location)."""
     cur, data, in_dict = model, raw, False
     for part in loc[:-1]:
         if in_dict:  # the key of a dict of models (ssm.free.NAME)
@@ -390,7 +440,20 @@ def _allowed_keys(model, raw, loc) -> list[str]:
 
 
 def check_ssm_parameters(cfg: RunConfig) -> None:
-    """``fixed`` and ``free`` entries must name parameters of the SSM, within its ranges."""
+    """Check that ``fixed`` and ``free`` entries name parameters of the SSM, within its ranges.
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The config.
+
+    Raises
+    ------
+    ConfigError
+        Listing every problem.
+    PluginError
+        If the SSM is not installed.
+    """
     from .registry import component
 
     ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
@@ -438,7 +501,18 @@ def _identifier(name) -> bool:
 
 
 def check_generated_target(cfg: RunConfig) -> None:
-    """``[target.generate]`` names an installed SSM, its parameters and settings."""
+    """Check that ``[target.generate]`` names an installed SSM, its parameters and settings.
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The config (nothing to check without a generated target).
+
+    Raises
+    ------
+    ConfigError
+        For an unknown SSM, parameter or setting, or a parameter outside its range.
+    """
     from .registry import component
 
     gen = cfg.target.generate
@@ -469,16 +543,61 @@ def check_generated_target(cfg: RunConfig) -> None:
 
 
 def ssm_settings(cfg: RunConfig) -> dict:
-    """The SSM plugin's own settings from the ``[ssm]`` section (without kind/fixed/free/topology)."""
+    """Return the SSM plugin's own settings from the ``[ssm]`` section.
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The config.
+
+    Returns
+    -------
+    dict
+        The section without ``kind``, ``fixed``, ``free`` and ``topology``.
+    """
     return cfg.ssm.model_dump(exclude={"kind", "fixed", "free", "topology"})
 
 
 def section_settings(cfg: RunConfig, section: str) -> dict:
+    """Return a component section's settings (without ``kind``).
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The config.
+    section : str
+        The section: ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
+
+    Returns
+    -------
+    dict
+        The component's settings.
+    """
     return getattr(cfg, section).model_dump(exclude={"kind"})
 
 
 def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"):
-    """Validate a config dict; relative target paths are resolved against ``base_dir``."""
+    """Validate a config dict.
+
+    Parameters
+    ----------
+    raw : dict
+        The config, as read from TOML; sections left out take their defaults.
+    base_dir : Path, optional
+        Folder relative target paths are resolved against.
+    source : str, optional
+        Name of the config in messages (its file).
+
+    Returns
+    -------
+    RunConfig
+        The validated config.
+
+    Raises
+    ------
+    ConfigError
+        Naming every problem with its key path.
+    """
     model = run_config_model()
     if "target" not in raw:
         raise ConfigError(
@@ -524,7 +643,18 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
 
 
 def check_terms(cfg: RunConfig) -> None:
-    """Every ``[[objective.terms]]`` entry names installed components with valid settings."""
+    """Check that every ``[[objective.terms]]`` entry names installed components with valid settings.
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The config.
+
+    Raises
+    ------
+    ConfigError
+        For an unknown component or invalid settings, naming the term.
+    """
     from .registry import component
 
     problems = []
@@ -550,6 +680,16 @@ def _resolve(path: str, base_dir: Path) -> str:
 def load_config(path) -> BaseModel:
     """Read and validate a run configuration (TOML).
 
+    Parameters
+    ----------
+    path : str or Path
+        The config file; relative paths in it are resolved against its folder.
+
+    Returns
+    -------
+    RunConfig
+        The validated config.
+
     Raises
     ------
     ConfigError
@@ -560,8 +700,23 @@ def load_config(path) -> BaseModel:
 
 
 def read_toml(path) -> dict:
-    """The TOML table of a config file; a missing, unreadable or malformed file is a
-    :class:`ConfigError` naming it."""
+    """Read the TOML table of a config file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+
+    Returns
+    -------
+    dict
+        The table.
+
+    Raises
+    ------
+    ConfigError
+        Naming the file, when it is missing, a folder, not text or not valid TOML.
+    """
     path = Path(path)
     try:
         return tomllib.loads(path.read_text(encoding="utf-8"))
@@ -576,7 +731,18 @@ def read_toml(path) -> dict:
 
 
 def config_to_dict(cfg: RunConfig) -> dict:
-    """The resolved config as plain data (``None`` values removed, so it writes as TOML)."""
+    """Return the resolved config as plain data (``None`` values removed, so it writes as TOML).
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The config.
+
+    Returns
+    -------
+    dict
+        JSON-mode values.
+    """
 
     def clean(x):
         if isinstance(x, dict):
@@ -589,11 +755,26 @@ def config_to_dict(cfg: RunConfig) -> dict:
 
 
 def dump_config(cfg: RunConfig, path) -> None:
+    """Write the resolved config as TOML (see :func:`config_to_dict`).
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The config.
+    path : str or Path
+        The output file.
+    """
     import tomli_w
 
     Path(path).write_text(tomli_w.dumps(config_to_dict(cfg)), encoding="utf-8")
 
 
 def config_schema() -> dict:
-    """JSON schema of the run configuration with the installed plugins."""
+    """Return the JSON schema of the run configuration with the installed plugins.
+
+    Returns
+    -------
+    dict
+        The schema.
+    """
     return run_config_model().model_json_schema()

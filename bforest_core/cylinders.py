@@ -1,7 +1,7 @@
-"""The raw cylinder table every QSM reader makes, and how it becomes a Tree: option handling, id
-conversion, validation, repairs, Tree building (kernel: readers of every plugin share it).
+"""The raw cylinder table every QSM reader makes, and how it becomes a Tree.
 
-Every reader turns its file into a :class:`RawCylinders` table (file row order, 0-based ids,
+Option handling, id conversion, validation, repairs, Tree building (kernel: readers of every
+plugin share it). Every reader turns its file into a :class:`RawCylinders` table (file row order, 0-based ids,
 -1 = none) and hands it to :func:`build_tree`, which applies the rules of
 docs/qsm-formats.md §0 in one place: always-errors (non-finite values, negative
 radii, zero axes, cycles, out-of-range ids, extensions that are not children: the checks of
@@ -44,20 +44,43 @@ class QSMReadWarning(UserWarning):
 
 
 class Repair(dict):
-    """One repair done while reading (a dict with ``repair``, counts, 1-based rows and
-    ``message``); ``str()`` gives the message, so it prints well in ``bforest info``."""
+    """One repair done while reading.
+
+    A dict with ``repair``, counts, 1-based rows and ``message``; ``str()`` gives the message, so
+    it prints well in ``bforest info``.
+    """
 
     def __str__(self) -> str:
+        """Return the repair's message."""
         return str(self.get("message", dict.__repr__(self)))
 
 
 def plural(k: int, word: str, many: str | None = None) -> str:
+    """Count a word: ``plural(2, "axis", "axes")`` -> ``"2 axes"``.
+
+    Parameters
+    ----------
+    k : int
+        The count.
+    word : str
+        The singular.
+    many : str, optional
+        The plural (default: ``word + "s"``).
+
+    Returns
+    -------
+    str
+        ``"{k} {word}"`` in the number ``k`` asks for.
+    """
     return f"{k} {word if k == 1 else (many or word + 's')}"
 
 
 def _caller_level() -> int:
-    """Stack level of the first frame outside the core and the bundled plugins (``bforest_*``:
-    the reader's own modules), i.e. the user's call."""
+    """Return the stack level of the user's call.
+
+    That is the first frame outside the core and the bundled plugins (``bforest_*``: the reader's
+    own modules).
+    """
     import sys
 
     level, f = 1, sys._getframe(1)
@@ -71,7 +94,20 @@ def _caller_level() -> int:
 
 
 def warn(path, message: str) -> None:
-    """One user-facing warning naming the file (attributed to the caller's line)."""
+    """Issue one user-facing warning naming the file (attributed to the caller's line).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+    message : str
+        What happened.
+
+    Warns
+    -----
+    QSMReadWarning
+        Always.
+    """
     warnings.warn(f"{path}: {message}", QSMReadWarning, stacklevel=_caller_level())
 
 
@@ -104,8 +140,26 @@ class ReaderSettings(ComponentSettings):
 
 
 def resolve_options(component: QSMReader | QSMWriter, options: dict) -> ComponentSettings:
-    """Merge per-call options into a reader's or writer's settings; unknown or invalid ones raise
-    :class:`ConfigError` naming them (``qsm_reader 'treeqsm-text': invalid option(s): ...``)."""
+    """Merge per-call options into a reader's or writer's settings.
+
+    Parameters
+    ----------
+    component : QSMReader or QSMWriter
+        The reader or writer.
+    options : dict
+        The per-call options.
+
+    Returns
+    -------
+    ComponentSettings
+        The component's settings updated by ``options``.
+
+    Raises
+    ------
+    ConfigError
+        For unknown or invalid options, naming them (``qsm_reader 'treeqsm-text': invalid
+        option(s): ...``).
+    """
     try:
         return component.Settings(**{**component.settings.model_dump(), **options})
     except ValidationError as exc:
@@ -119,8 +173,31 @@ def resolve_options(component: QSMReader | QSMWriter, options: dict) -> Componen
 def select_models(path, models: list, select, label: str):
     """Apply ``select`` to the list of reconstructions of one file.
 
-    Returns ``(indices, as_list, note)``: indices to read, whether the caller gets a list, and
-    a metadata note (or ``None``).
+    Parameters
+    ----------
+    path : str or Path
+        The file (for messages).
+    models : list
+        The reconstructions the file holds.
+    select : int, list of int, "all" or None
+        The ``select`` option (0-based; ``None`` takes the first, with a warning when there are
+        several).
+    label : str
+        What the reconstructions are called in messages.
+
+    Returns
+    -------
+    indices : list of int
+        Reconstructions to read.
+    as_list : bool
+        Whether the caller gets a list.
+    note : str or None
+        A metadata note.
+
+    Raises
+    ------
+    QSMFormatError
+        For a file with no reconstructions or a selection out of range.
     """
     k = len(models)
     if k == 0:
@@ -152,11 +229,36 @@ def select_models(path, models: list, select, label: str):
 
 
 def ids_to_rows(path, name: str, values, n: int, base: int = 1, *, what: str | None = None) -> np.ndarray:
-    """File ids (``base``-based, ``base - 1`` = none) to 0-based rows (-1 = none), int64.
+    """Convert file ids (``base``-based, ``base - 1`` = none) to 0-based rows (-1 = none).
 
     The values are cast to int64 **before** the subtraction (TreeQSM stores ids as uint8/uint16,
-    where ``0 - 1`` wraps around). Non-finite, non-integral and out-of-range values raise
-    :class:`QSMFormatError` naming the column, the 1-based rows and the values.
+    where ``0 - 1`` wraps around).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file (for messages).
+    name : str
+        The column's name (for messages).
+    values : array_like
+        The ids, one per cylinder.
+    n : int
+        Number of cylinders.
+    base : int, optional
+        The id of the first row (1 for MATLAB files).
+    what : str, optional
+        What the ids are called in messages (default: ``name``).
+
+    Returns
+    -------
+    ndarray of int64, shape (n,)
+        The rows.
+
+    Raises
+    ------
+    QSMFormatError
+        For non-finite, non-integral and out-of-range values, naming the column, the 1-based
+        rows and the values.
     """
     v = np.asarray(values).reshape(-1)
     what = what or name
@@ -197,7 +299,29 @@ def _range_msg(name, v, bad, n, base):
 
 
 def labels_to_int(path, name: str, values, n: int) -> np.ndarray:
-    """Integral labels (branch ids, orders) as int64; errors for non-finite/non-integer values."""
+    """Convert integral labels (branch ids, orders) to int64.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file (for messages).
+    name : str
+        The column's name.
+    values : array_like
+        The labels, one per cylinder.
+    n : int
+        Number of cylinders.
+
+    Returns
+    -------
+    ndarray of int64, shape (n,)
+        The labels.
+
+    Raises
+    ------
+    QSMFormatError
+        For a wrong count or non-finite/non-integer values.
+    """
     v = np.asarray(values).reshape(-1)
     if v.shape[0] != n:
         raise QSMFormatError(path, f"'{name}' has {v.shape[0]} values, expected {n} (one per cylinder)")
@@ -218,8 +342,33 @@ def labels_to_int(path, name: str, values, n: int) -> np.ndarray:
 
 
 def float_column(path, name: str, values, n: int | None = None, width: int | None = None) -> np.ndarray:
-    """A numeric column as float64, shape ``(n,)`` or ``(n, width)`` (MATLAB vectors of any
-    orientation; ``squeeze_me`` scalars for one-cylinder trees)."""
+    """Convert a numeric column to float64 of shape ``(n,)`` or ``(n, width)``.
+
+    Takes MATLAB vectors of any orientation and ``squeeze_me`` scalars for one-cylinder trees.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file (for messages).
+    name : str
+        The column's name.
+    values : array_like
+        The values.
+    n : int, optional
+        Number of cylinders (checked when given; inferred for a ``width``-wide column).
+    width : int, optional
+        Columns per cylinder (3 for points and axes); ``None`` for a vector.
+
+    Returns
+    -------
+    ndarray of float64
+        Shape ``(n,)`` or ``(n, width)``, C-contiguous.
+
+    Raises
+    ------
+    QSMFormatError
+        For non-numeric values or a wrong count.
+    """
     a = np.asarray(values)
     if a.dtype.kind not in "iufb":
         raise QSMFormatError(path, f"'{name}' is not numeric (dtype {a.dtype})")
@@ -247,8 +396,24 @@ def float_column(path, name: str, values, n: int | None = None, width: int | Non
 class RawCylinders:
     """Cylinder columns in file row order (0-based ids, -1 = none), before validation.
 
-    ``branch`` and ``order`` are the file's stored labels (any integer ids), used only to check
-    against the recomputed topology. ``extension=None`` means "no extension information".
+    Parameters
+    ----------
+    radius, length : ndarray, shape (n,)
+        Radii and lengths (m).
+    start, axis : ndarray, shape (n, 3)
+        Start points (m) and axis directions.
+    parent : ndarray of int, shape (n,)
+        Parent row, -1 for a root.
+    extension : ndarray of int, optional
+        Extension (the child continuing the branch) row, -1 for none; ``None`` means "no
+        extension information".
+    added : ndarray of bool, optional
+        TreeQSM's flag of cylinders added to fill gaps.
+    branch, order : ndarray of int, optional
+        The file's stored labels (any integer ids), used only to check against the recomputed
+        topology.
+    extras : dict, optional
+        Further per-cylinder columns, kept on the tree.
     """
 
     radius: np.ndarray
@@ -264,12 +429,15 @@ class RawCylinders:
 
     @property
     def n(self) -> int:
+        """Number of cylinders."""
         return int(np.asarray(self.length).shape[0])
 
 
 def _resolve_through(mask: np.ndarray, link: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Follow ``link`` from ``values`` while the target is in ``mask`` (pointer chasing over the
-    removed rows only; iterations = longest chain of removed rows)."""
+    """Follow ``link`` from ``values`` while the target is in ``mask``.
+
+    Pointer chasing over the removed rows only; iterations = longest chain of removed rows.
+    """
     out = values.copy()
     while True:
         hit = (out >= 0) & mask[np.maximum(out, 0)]
@@ -320,6 +488,11 @@ def build_tree(
     ------
     QSMFormatError
         For every always-error condition, and for repairs when the strict options are set.
+
+    Returns
+    -------
+    Tree
+        The validated tree, with ``metadata`` on format, source and repairs.
     """
     topology = getattr(opts, "topology", None) or default_topology
     n = raw.n
@@ -392,8 +565,10 @@ def build_tree(
 
 
 def _columns(path, raw: RawCylinders):
-    """The raw columns as float64/int64/bool arrays of one length (``added``: NaN is an error,
-    not True)."""
+    """Return the raw columns as float64/int64/bool arrays of one length.
+
+    For ``added``, NaN is an error, not True.
+    """
     n = raw.n
     radius = np.asarray(raw.radius, dtype=np.float64).reshape(-1)
     length = np.asarray(raw.length, dtype=np.float64).reshape(-1)
@@ -417,8 +592,10 @@ def _columns(path, raw: RawCylinders):
 
 
 def _check_values(path, start, axis, length, radius) -> None:
-    """Always-errors on values (non-finite, radius <= 0, length < 0, zero axis), all reported
-    together with the first rows of each; zero lengths are repaired later."""
+    """Raise the always-errors on values (non-finite, radius <= 0, length < 0, zero axis).
+
+    All are reported together with the first rows of each; zero lengths are repaired later.
+    """
     problems = value_problems(start, axis, length, radius, zero_length_ok=True, row_base=1)
     if problems:
         rows = np.concatenate([r[:MAX_ROWS_SHOWN] + 1 for _, r in problems])
@@ -435,9 +612,11 @@ def _check_ids(path, parent, extension) -> None:
 
 
 def _drop_fragments(path, parent, start, fragments: str, repairs: list) -> np.ndarray:
-    """Repair 1: rows to keep when several cylinders have no parent: the connected part with the
-    lowest start (the stem base; ties: the earlier row), with a warning (an error with
-    ``fragments="error"``)."""
+    """Repair 1: return the rows to keep when several cylinders have no parent.
+
+    The connected part with the lowest start (the stem base; ties: the earlier row), with a
+    warning (an error with ``fragments="error"``).
+    """
     n = parent.shape[0]
     roots = np.flatnonzero(parent < 0)
     if roots.size <= 1:
@@ -477,10 +656,12 @@ def _drop_fragments(path, parent, start, fragments: str, repairs: list) -> np.nd
 
 
 def _drop_zero_length(path, parent, extension, zero, keep, drop_degenerate: bool, hint: str, repairs: list):
-    """Repair 2: remove the kept cylinders of length exactly 0 as read (``zero``), their
-    children attached to the nearest kept ancestor and a removed extension replaced by its own;
-    a warning (an error with ``drop_degenerate=False`` or for the root). Returns the new
-    ``(parent, extension, keep)``."""
+    """Repair 2: remove the kept cylinders of length exactly 0 as read (``zero``).
+
+    Their children are attached to the nearest kept ancestor and a removed extension is replaced
+    by its own; a warning (an error with ``drop_degenerate=False`` or for the root). Returns the
+    new ``(parent, extension, keep)``.
+    """
     zl = np.flatnonzero(zero)
     if not zl.size:
         return parent, extension, keep
@@ -514,8 +695,10 @@ def _drop_zero_length(path, parent, extension, zero, keep, drop_degenerate: bool
 
 
 def _renormalised_axes(path, axis, norms, file_rows, repairs: list) -> np.ndarray:
-    """Repair 3: the axes divided by their norms (float64); norms off 1 by more than
-    :data:`AXIS_WARN_TOL` are reported."""
+    """Repair 3: return the axes divided by their norms (float64).
+
+    Norms off 1 by more than :data:`AXIS_WARN_TOL` are reported.
+    """
     off = np.flatnonzero(np.abs(norms - 1.0) > AXIS_WARN_TOL)
     if off.size:
         msg = (
@@ -552,8 +735,11 @@ def _check_sizes(path, start, axis, length, radius, file_rows) -> None:
 
 
 def _compare_stored_topology(path, tree: Tree, raw: RawCylinders, file_rows) -> None:
-    """The file's stored branch/order against the recomputed ones (under the file's own
-    extension links): a warning and ``metadata["stored_topology_mismatch"]`` where they differ."""
+    """Compare the file's stored branch/order with the recomputed ones.
+
+    Under the file's own extension links: a warning and ``metadata["stored_topology_mismatch"]``
+    where they differ.
+    """
     pos = np.full(raw.n, -1, dtype=np.int64)
     pos[file_rows] = np.arange(file_rows.size)
     at = pos[tree.source_row]  # tree row -> index into the compressed stored arrays
@@ -601,8 +787,11 @@ def _check_units(path, tree: Tree) -> None:
 
 
 class BaseReader(QSMReader):
-    """Common ``read`` wrapper: option handling and conversion of every low-level exception
-    into :class:`QSMFormatError` (readers never leak scipy/h5py/numpy exceptions)."""
+    """Base of the bundled readers: a common ``read`` wrapper around the reader's ``_read``.
+
+    It handles the options and converts every low-level exception into
+    :class:`QSMFormatError` (readers never leak scipy/h5py/numpy exceptions).
+    """
 
     Settings = ReaderSettings
     priority = 0
@@ -610,6 +799,27 @@ class BaseReader(QSMReader):
     container = "reader"
 
     def read(self, path, **options):
+        """Read the file with this reader's ``_read(path, opts)``.
+
+        Parameters
+        ----------
+        path : str or Path
+            The file.
+        **options
+            Per-call options (see :class:`ReaderSettings`).
+
+        Returns
+        -------
+        Tree or list of Tree
+            What ``_read`` returns.
+
+        Raises
+        ------
+        QSMFormatError
+            For a missing file, an invalid cylinder tree or any low-level failure, naming the file.
+        ConfigError
+            For invalid options.
+        """
         path = Path(path)
         opts = resolve_options(self, options)
         if not path.exists():
@@ -637,7 +847,18 @@ class BaseReader(QSMReader):
 
 
 def sniff_safely(fn):
-    """Decorator: a sniffer never raises (a broken file just does not match)."""
+    """Wrap a sniffer so that it never raises (a broken file just does not match).
+
+    Parameters
+    ----------
+    fn : callable
+        ``fn(self, path, head)``, a reader's ``sniff``.
+
+    Returns
+    -------
+    callable
+        The wrapper, returning a bool (False where ``fn`` raises).
+    """
 
     def wrapper(self, path, head):
         try:

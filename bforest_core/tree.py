@@ -25,8 +25,22 @@ MAX_ROWS_SHOWN = 10
 
 
 def rows_text(rows, limit: int = MAX_ROWS_SHOWN, count: bool = False) -> str:
-    """``"1, 3020, 3582"``: the first ``limit`` rows, then the total count (``", ... (12 rows)"``);
-    with ``count``, a count of 2...``limit`` rows too (``"12, 40 (2 rows)"``)."""
+    """List rows for a message: ``"1, 3020, 3582"``.
+
+    Parameters
+    ----------
+    rows : array_like of int
+        The rows (as they are to be shown: 0- or 1-based).
+    limit : int, optional
+        Rows shown; past it, the total count follows (``", ... (12 rows)"``).
+    count : bool, optional
+        Give the count of 2...``limit`` rows too (``"12, 40 (2 rows)"``).
+
+    Returns
+    -------
+    str
+        The text.
+    """
     rows = [int(r) for r in np.asarray(rows).ravel()]
     shown = ", ".join(str(r) for r in rows[:limit])
     if len(rows) > limit:
@@ -42,10 +56,23 @@ def rows_text(rows, limit: int = MAX_ROWS_SHOWN, count: bool = False) -> str:
 
 
 def jump_to_head(link: np.ndarray, is_head: np.ndarray):
-    """Pointer jumping: for each node, the head of its chain and the number of links to it.
+    """Find, by pointer jumping, the head of each node's chain and the number of links to it.
 
-    ``link[i]`` is the predecessor of i (ignored where ``is_head``). Returns ``(head, dist)``.
     O(n log L) for chains of length L.
+
+    Parameters
+    ----------
+    link : ndarray of int, shape (n,)
+        ``link[i]`` is the predecessor of i (ignored where ``is_head``).
+    is_head : ndarray of bool, shape (n,)
+        The chains' heads.
+
+    Returns
+    -------
+    head : ndarray of int
+        Head of each node's chain (a head is its own).
+    dist : ndarray of int64
+        Links from each node to its head.
     """
     n = link.shape[0]
     idx = np.arange(n)
@@ -62,14 +89,38 @@ def jump_to_head(link: np.ndarray, is_head: np.ndarray):
 
 
 def depth_of(parent: np.ndarray) -> np.ndarray:
-    """Number of links from each cylinder to the root (root 0)."""
+    """Count the links from each cylinder to the root.
+
+    Parameters
+    ----------
+    parent : ndarray of int, shape (n,)
+        Parent rows, -1 for the root.
+
+    Returns
+    -------
+    ndarray of int64, shape (n,)
+        The depth of each cylinder (root 0).
+    """
     _, d = jump_to_head(parent, parent < 0)
     return d
 
 
 def group_by_level(level: np.ndarray):
-    """Indices grouped by a non-negative integer level (e.g. depth): ``(order, bounds)``, with the
-    indices of level k at ``order[bounds[k]:bounds[k+1]]`` in increasing index order."""
+    """Group indices by a non-negative integer level (e.g. depth).
+
+    Parameters
+    ----------
+    level : ndarray of int, shape (n,)
+        Level of each index.
+
+    Returns
+    -------
+    order : ndarray of int
+        The indices sorted by level; those of level k are ``order[bounds[k]:bounds[k+1]]``, in
+        increasing index order.
+    bounds : ndarray of int64
+        Start of each level in ``order`` (one more entry than levels).
+    """
     level = np.asarray(level)
     order = np.argsort(level, kind="stable")
     bounds = np.zeros(int(level.max()) + 2 if level.size else 1, dtype=np.int64)
@@ -78,12 +129,36 @@ def group_by_level(level: np.ndarray):
 
 
 def levels(parent: np.ndarray):
-    """Rows grouped by depth: ``(order, bounds)`` with rows of depth k at ``order[bounds[k]:bounds[k+1]]``."""
+    """Group rows by depth.
+
+    Parameters
+    ----------
+    parent : ndarray of int, shape (n,)
+        Parent rows, -1 for the root.
+
+    Returns
+    -------
+    order, bounds : ndarray
+        Rows of depth k are ``order[bounds[k]:bounds[k+1]]`` (see :func:`group_by_level`).
+    """
     return group_by_level(depth_of(parent))
 
 
 def subtree_sum(parent: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Sum of ``values`` over each node and all its descendants (O(n), level by level)."""
+    """Sum ``values`` over each node and all its descendants (O(n), level by level).
+
+    Parameters
+    ----------
+    parent : ndarray of int, shape (n,)
+        Parent rows, -1 for the root.
+    values : array_like, shape (n,)
+        One value per node.
+
+    Returns
+    -------
+    ndarray of float64, shape (n,)
+        The subtree sums.
+    """
     out = np.array(values, dtype=np.float64, copy=True)
     order, bounds = levels(parent)
     for k in range(len(bounds) - 1, 1, -1):
@@ -93,8 +168,20 @@ def subtree_sum(parent: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 
 def children_csr(parent: np.ndarray):
-    """Children lists as CSR arrays ``(ptr, idx)``: children of i are ``idx[ptr[i]:ptr[i+1]]``
-    in increasing row order."""
+    """Return the children lists as CSR arrays.
+
+    Parameters
+    ----------
+    parent : ndarray of int, shape (n,)
+        Parent rows, -1 for the root.
+
+    Returns
+    -------
+    ptr : ndarray of int64, shape (n + 1,)
+        Offsets into ``idx``.
+    idx : ndarray of int
+        Children of i are ``idx[ptr[i]:ptr[i+1]]``, in increasing row order.
+    """
     n = parent.shape[0]
     nonroot = np.flatnonzero(parent >= 0)
     p = parent[nonroot]
@@ -159,9 +246,21 @@ def derive_branches(parent: np.ndarray, extension: np.ndarray):
 
 
 def parent_first_order(parent: np.ndarray):
-    """A topological order (parents before children) of a valid tree (one root, no cycle: see
-    :func:`id_problems`, :func:`cycle_problems`) that keeps an already sorted table as it is
-    (``None`` then)."""
+    """Return a topological order (parents before children) of a valid tree.
+
+    A valid tree has one root and no cycle (see :func:`id_problems`, :func:`cycle_problems`).
+
+    Parameters
+    ----------
+    parent : ndarray of int, shape (n,)
+        Parent rows, -1 for the root.
+
+    Returns
+    -------
+    ndarray of int or None
+        The rows in the new order; ``None`` when the table is already sorted (it is kept as
+        it is).
+    """
     n = parent.shape[0]
     roots = np.flatnonzero(parent < 0)
     if roots[0] == 0 and np.all(parent[1:] < np.arange(1, n)):
@@ -189,7 +288,7 @@ def parent_first_order(parent: np.ndarray):
 
 
 def value_problems(start, axis, length, radius, *, zero_length_ok: bool = False, row_base: int = 0):
-    """The errors of a cylinder table's values, each naming all its rows.
+    """Find the errors of a cylinder table's values, each naming all its rows.
 
     Non-finite values in any column are reported alone (nothing else is checked then); else
     radius <= 0, length < 0 (or <= 0 unless ``zero_length_ok``: readers remove zero-length
@@ -198,8 +297,11 @@ def value_problems(start, axis, length, radius, *, zero_length_ok: bool = False,
     Parameters
     ----------
     start, axis : (n, 3) float arrays
+        Start points (m) and axis directions.
     length, radius : (n,) float arrays
+        Lengths and radii (m).
     zero_length_ok : bool
+        Accept lengths of exactly 0 (readers remove such cylinders later).
     row_base : int
         Rows in messages are counted from it (1: a file's rows).
 
@@ -239,11 +341,21 @@ def value_problems(start, axis, length, radius, *, zero_length_ok: bool = False,
 
 
 def id_problems(parent, extension, *, row_base: int = 0):
-    """The first error of a cylinder table's ids: a parent or extension out of range, a cylinder
-    that is its own parent.
+    """Find the first error of a cylinder table's ids.
 
-    ``parent`` and ``extension`` are 0-based rows (-1 = none), int64; ``row_base`` as in
-    :func:`value_problems`. Returns ``[(message, rows)]`` (0-based rows) or ``[]``.
+    That is a parent or extension out of range, or a cylinder that is its own parent.
+
+    Parameters
+    ----------
+    parent, extension : ndarray of int64, shape (n,)
+        0-based rows, -1 = none.
+    row_base : int, optional
+        Rows in messages are counted from it, as in :func:`value_problems`.
+
+    Returns
+    -------
+    list of (str, ndarray)
+        ``[(message, rows)]`` (0-based rows) or ``[]``.
     """
     n = parent.shape[0]
     for name, ids in (("parent", parent), ("extension", extension)):
@@ -259,8 +371,20 @@ def id_problems(parent, extension, *, row_base: int = 0):
 
 
 def extension_problems(parent, extension, *, row_base: int = 0):
-    """Extensions that are not a child of their cylinder (ids in range, :func:`id_problems`):
-    ``[(message, rows)]`` or ``[]``."""
+    """Find extensions that are not a child of their cylinder.
+
+    Parameters
+    ----------
+    parent, extension : ndarray of int64, shape (n,)
+        0-based rows, -1 = none, in range (see :func:`id_problems`).
+    row_base : int, optional
+        Rows in messages are counted from it.
+
+    Returns
+    -------
+    list of (str, ndarray)
+        ``[(message, rows)]`` (0-based rows) or ``[]``.
+    """
     has_ext = np.flatnonzero(extension >= 0)
     bad = has_ext[parent[extension[has_ext]] != has_ext]
     if bad.size:
@@ -308,8 +432,22 @@ def _find_cycle(parent: np.ndarray, start: int) -> list[int]:
 
 
 def cycle_problems(parent, *, row_base: int = 0):
-    """Rows on or below a parent cycle (connected to no root), with one cycle walked for the
-    message: ``[(message, rows)]`` or ``[]``. Parents must be in range (:func:`id_problems`)."""
+    """Find the rows on or below a parent cycle (connected to no root).
+
+    One cycle is walked for the message.
+
+    Parameters
+    ----------
+    parent : ndarray of int64, shape (n,)
+        Parent rows, -1 for a root, in range (see :func:`id_problems`).
+    row_base : int, optional
+        Rows in messages are counted from it.
+
+    Returns
+    -------
+    list of (str, ndarray)
+        ``[(message, rows)]`` (0-based rows) or ``[]``.
+    """
     if np.all(parent < np.arange(parent.shape[0])):
         return []  # every parent comes first: no cycle
     _, reached = components(parent)
@@ -348,12 +486,15 @@ class BranchTable:
     cylinders: np.ndarray
 
     def __len__(self) -> int:
+        """Return the number of branches."""
         return int(self.first.shape[0])
 
 
 def _unit_axes(axis: np.ndarray) -> np.ndarray:
-    """The (non-zero) axes checked to be unit vectors (rows off by more than rounding are
-    renormalised)."""
+    """Return the (non-zero) axes checked to be unit vectors.
+
+    Rows off by no more than rounding are renormalised; larger deviations are errors.
+    """
     norm = np.linalg.norm(axis, axis=1)
     bad = np.flatnonzero(np.abs(norm - 1.0) > _AXIS_TOL)
     if bad.size:
@@ -372,7 +513,7 @@ def _unit_axes(axis: np.ndarray) -> np.ndarray:
 
 
 def _parent_first(start, axis, length, radius, parent, extension, added, source_row, extras):
-    """The rows reordered so that every parent precedes its children (unchanged if they do)."""
+    """Reorder the rows so that every parent precedes its children (unchanged if they do)."""
     perm = parent_first_order(parent)
     if perm is not None:
         n = parent.size
@@ -419,6 +560,8 @@ class Tree:
         Extra per-cylinder columns (never read by features).
     metadata : dict, optional
         Source path, format, version, model index, units, parameters, seed, ...
+    source_row : (n,) array_like of int, optional
+        Row of each cylinder in its source (default: the given row order).
 
     Raises
     ------
@@ -561,6 +704,7 @@ class Tree:
         return int(self.length.shape[0])
 
     def __len__(self) -> int:
+        """Return the number of cylinders."""
         return self.n
 
     @property
@@ -575,10 +719,12 @@ class Tree:
 
     @property
     def n_branches(self) -> int:
+        """Number of branches."""
         return int(self._cache["_branch_parts"][0].shape[0])
 
     @property
     def max_order(self) -> int:
+        """Highest branch order (0: the trunk alone)."""
         return int(self.order.max())
 
     @property
@@ -587,7 +733,13 @@ class Tree:
         return float(np.sum(np.pi * self.radius**2 * self.length))
 
     def children(self):
-        """Children as CSR arrays ``(ptr, idx)`` (children of i: ``idx[ptr[i]:ptr[i+1]]``)."""
+        """Return the children as CSR arrays (see :func:`children_csr`).
+
+        Returns
+        -------
+        ptr, idx : ndarray
+            Children of i are ``idx[ptr[i]:ptr[i+1]]``.
+        """
         c = self._cache.get("children")
         if c is None:
             c = children_csr(self.parent)
@@ -619,9 +771,19 @@ class Tree:
 
     # ------------------------------------------------------------------ derived trees
     def with_topology(self, rule: str) -> Tree:
-        """The same cylinders with branches chosen by another topology rule.
+        """Return the same cylinders with branches chosen by another topology rule.
 
         ``source`` restores the tree's own stored branching when this tree was built from it.
+
+        Parameters
+        ----------
+        rule : {"source", "subtree", "thickest"}
+            The topology rule.
+
+        Returns
+        -------
+        Tree
+            The tree (this one when ``rule`` is its own).
         """
         if rule == self.topology:
             return self
@@ -644,8 +806,24 @@ class Tree:
         )
 
     def subset(self, keep) -> Tree:
-        """The tree restricted to rows ``keep`` (a bool mask or indices) that must be closed under
-        ``parent`` (every kept row's parent is kept)."""
+        """Return the tree restricted to some rows.
+
+        Parameters
+        ----------
+        keep : array_like
+            A bool mask or indices of the rows to keep; closed under ``parent`` (every kept
+            row's parent is kept).
+
+        Returns
+        -------
+        Tree
+            The subtree.
+
+        Raises
+        ------
+        TreeError
+            If ``keep`` is not closed under parent links.
+        """
         keep = np.asarray(keep)
         mask = np.zeros(self.n, dtype=bool)
         mask[keep] = True
@@ -671,7 +849,18 @@ class Tree:
         )
 
     def translated(self, offset) -> Tree:
-        """A copy moved by ``offset`` (m)."""
+        """Return a copy moved by ``offset``.
+
+        Parameters
+        ----------
+        offset : array_like, shape (3,)
+            The shift (m).
+
+        Returns
+        -------
+        Tree
+            The moved tree.
+        """
         return Tree(
             self.start + np.asarray(offset, float),
             self.axis,
@@ -687,15 +876,18 @@ class Tree:
         )
 
     def __getstate__(self):
+        """Return the columns for pickling (without the cache)."""
         return {k: getattr(self, k) for k in self.__slots__ if k != "_cache"}
 
     def __setstate__(self, state):
+        """Restore the columns and recompute the branches."""
         for k, v in state.items():
             object.__setattr__(self, k, v)
         self._cache = {}
         self._set_branches()
 
     def __repr__(self) -> str:
+        """Show the size, topology rule and source of the tree."""
         src = self.metadata.get("source") or self.metadata.get("model") or ""
         return (
             f"Tree({self.n} cylinders, {self.n_branches} branches, max order {self.max_order}, "
@@ -703,7 +895,20 @@ class Tree:
         )
 
     def equals(self, other: Tree, atol: float = 0.0) -> bool:
-        """True when both trees have the same columns (geometry within ``atol``)."""
+        """Tell whether both trees have the same columns (geometry within ``atol``).
+
+        Parameters
+        ----------
+        other : Tree
+            The other tree.
+        atol : float, optional
+            Absolute tolerance (m) of the geometry columns.
+
+        Returns
+        -------
+        bool
+            True when they are the same.
+        """
         if self.n != other.n:
             return False
         same_int = all(

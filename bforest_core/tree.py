@@ -198,6 +198,20 @@ def choose_extension(parent, extension, radius, length, rule: str) -> np.ndarray
     ``source`` returns ``extension`` unchanged. ``thickest`` takes the child with the largest
     radius, ``subtree`` the child whose subtree holds the most wood (sum of pi r^2 L); ties go
     to the current extension, then to the earlier row.
+
+    Parameters
+    ----------
+    parent, extension : ndarray of int64, shape (n,)
+        Parent and extension rows, -1 for none.
+    radius, length : ndarray of float64, shape (n,)
+        Radii and lengths (m).
+    rule : {"source", "subtree", "thickest"}
+        The topology rule.
+
+    Returns
+    -------
+    ndarray of int64, shape (n,)
+        The extension (continuing child) of every cylinder, -1 for none.
     """
     if rule not in TOPOLOGY_RULES:
         raise TreeError(f"unknown topology rule {rule!r} (choose from {', '.join(TOPOLOGY_RULES)})")
@@ -227,6 +241,22 @@ def derive_branches(parent: np.ndarray, extension: np.ndarray):
     Branches are the maximal extension chains, numbered in increasing row order of their first
     cylinder; the trunk (the root's branch) is 0 and has order 0; a lateral branch has its parent
     branch's order + 1.
+
+    Parameters
+    ----------
+    parent, extension : ndarray of int64, shape (n,)
+        Parent and extension rows, -1 for none, parents before children.
+
+    Returns
+    -------
+    branch, order, position : ndarray of int64, shape (n,)
+        Per cylinder: branch id, branch order and 0-based position in its branch.
+    firsts : ndarray of int
+        Per branch: its first cylinder.
+    parent_cyl, parent_branch : ndarray of int
+        Per branch: parent cylinder and parent branch of its first cylinder (-1 for the trunk).
+    border : ndarray of int
+        Per branch: its order.
     """
     n = parent.shape[0]
     rows = np.arange(n)
@@ -398,10 +428,20 @@ def extension_problems(parent, extension, *, row_base: int = 0):
 
 
 def components(parent: np.ndarray):
-    """Root row of every row's connected part, by pointer doubling (O(n log depth)).
+    """Find the root row of every row's connected part, by pointer doubling (O(n log depth)).
 
-    Returns ``(label, reached)``: ``label[i]`` is the root above row i (-1 where no root is
-    reached, i.e. rows on or below a parent cycle). Parents must be in ``-1 .. n-1``.
+    Parameters
+    ----------
+    parent : ndarray of int, shape (n,)
+        Parent rows in ``-1 .. n-1``.
+
+    Returns
+    -------
+    label : ndarray of int
+        ``label[i]`` is the root above row i (-1 where no root is reached, i.e. rows on or
+        below a parent cycle).
+    reached : ndarray of bool
+        Whether a root is reached from each row.
     """
     n = parent.shape[0]
     is_root = parent < 0

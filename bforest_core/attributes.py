@@ -90,7 +90,12 @@ DISTRIBUTION_UNITS = {"vol": "m^3", "are": "m^2", "len": "m", "num": ""}
 
 
 def branch_table(tree) -> dict[str, np.ndarray]:
-    """One row per branch (branch 0 = the trunk), TreeQSM's ``qsm.branch`` in SI units.
+    """Tabulate the branches: one row per branch (branch 0 = the trunk), TreeQSM's ``qsm.branch``.
+
+    Parameters
+    ----------
+    tree : Tree
+        The tree.
 
     Returns
     -------
@@ -147,9 +152,22 @@ def _frames(axis: np.ndarray):
 
 
 def crown_points(tree) -> np.ndarray:
-    """(k, 3) points sampling the cylinder model (m): every start and end point, four points
-    around the middle of each branch cylinder and rings of twelve points at 1/4, 2/4, 3/4 and 4/4
-    of the length of each trunk cylinder (on the cylinder surface; duplicates removed)."""
+    """Sample the cylinder model with points (the crown points).
+
+    Every start and end point, four points around the middle of each branch cylinder and rings
+    of twelve points at 1/4, 2/4, 3/4 and 4/4 of the length of each trunk cylinder (on the
+    cylinder surface; duplicates removed).
+
+    Parameters
+    ----------
+    tree : Tree
+        The tree.
+
+    Returns
+    -------
+    ndarray of float64, shape (k, 3)
+        The points (m).
+    """
     u, w = _frames(tree.axis)
     trunk = tree.branch == 0
     parts = [tree.start, tree.end]
@@ -170,8 +188,10 @@ def crown_points(tree) -> np.ndarray:
 
 
 def _hull2d(xy: np.ndarray):
-    """(vertices in order, area, centroid) of the convex hull of 2-D points; None when the points
-    span no area."""
+    """Return (vertices in order, area, centroid) of the convex hull of 2-D points.
+
+    None when the points span no area.
+    """
     from scipy.spatial import ConvexHull, QhullError
 
     xy = np.unique(xy, axis=0)
@@ -193,8 +213,11 @@ def _hull2d(xy: np.ndarray):
 
 
 def _sector_diameters(xy: np.ndarray, centre: np.ndarray, n: int = 18) -> np.ndarray:
-    """Diameters through ``centre`` in ``n`` directions (each covers 180/n deg): the farthest
-    point in a sector plus the farthest in the opposite sector (0 for an empty sector)."""
+    """Return diameters through ``centre`` in ``n`` directions (each covers 180/n deg).
+
+    Each is the farthest point in a sector plus the farthest in the opposite sector (0 for an
+    empty sector).
+    """
     v = xy - centre
     ang = np.arctan2(v[:, 1], v[:, 0]) + np.pi  # 0 ... 2 pi
     sec = np.minimum((ang / (np.pi / n)).astype(np.int64), 2 * n - 1)
@@ -204,12 +227,24 @@ def _sector_diameters(xy: np.ndarray, centre: np.ndarray, n: int = 18) -> np.nda
 
 
 def crown_spreads(tree, points: np.ndarray | None = None) -> np.ndarray:
-    """(layers, 18) crown diameters (m) in horizontal layers (TreeQSM's ``spreads``).
+    """Measure crown diameters (m) in horizontal layers (TreeQSM's ``spreads``).
 
     The points' height range is cut into 20 layers (tree taller than 10 m), 10 (taller than 2 m)
     or 5; in each layer with more than five points the diameters in 18 directions pass through
     the centroid of the layer's convex hull (:func:`_sector_diameters`); a layer with fewer
     points, or points on one line, gets zeros. Its row means are TreeQSM's ``VerticalProfile``.
+
+    Parameters
+    ----------
+    tree : Tree
+        The tree.
+    points : ndarray, shape (k, 3), optional
+        The crown points (default: :func:`crown_points` of the tree).
+
+    Returns
+    -------
+    ndarray, shape (layers, 18)
+        Diameters (m) per layer (bottom first) and direction.
     """
     P = crown_points(tree) if points is None else points
     bot, top = P[:, 2].min(), P[:, 2].max()
@@ -228,8 +263,11 @@ def crown_spreads(tree, points: np.ndarray | None = None) -> np.ndarray:
 
 
 def _alpha_measure(pts: np.ndarray, alpha: float) -> float:
-    """Area (2-D) or volume (3-D) of the alpha shape of ``pts``: the Delaunay triangles
-    (tetrahedra) whose circumradius is at most ``alpha``."""
+    """Return the area (2-D) or volume (3-D) of the alpha shape of ``pts``.
+
+    The alpha shape is the Delaunay triangles (tetrahedra) whose circumradius is at most
+    ``alpha``.
+    """
     from scipy.spatial import Delaunay, QhullError
 
     d = pts.shape[1]
@@ -265,9 +303,20 @@ def _hull3d_volume(pts: np.ndarray) -> float:
 
 
 def stem_taper(tree) -> np.ndarray:
-    """(2, n_trunk + 1) TreeQSM's ``StemTaper``: distance along the trunk from its base (m) and
-    the trunk diameter there (m): the first cylinder's diameter at 0, then each cylinder's at its
-    start, the last one's again at the tip."""
+    """Return TreeQSM's ``StemTaper``: the trunk diameter along the trunk.
+
+    Parameters
+    ----------
+    tree : Tree
+        The tree.
+
+    Returns
+    -------
+    ndarray, shape (2, n_trunk + 1)
+        Row 0: distance along the trunk from its base (m); row 1: the trunk diameter there (m):
+        the first cylinder's diameter at 0, then each cylinder's at its start, the last one's
+        again at the tip.
+    """
     bt = tree.branches
     c = bt.cylinders[bt.ptr[0] : bt.ptr[1]]
     d = 2.0 * tree.radius[c]
@@ -284,7 +333,15 @@ def stem_taper(tree) -> np.ndarray:
 def tree_attributes(tree, points: np.ndarray | None = None, alpha: bool = True) -> dict[str, float]:
     """TreeQSM's tree attributes in SI units (:data:`ATTRIBUTE_UNITS`).
 
-    ``alpha=False`` leaves the alpha shapes out (NaN): they cost a Delaunay triangulation.
+    Parameters
+    ----------
+    tree : Tree
+        The tree.
+    points : ndarray, shape (k, 3), optional
+        The crown points (default: :func:`crown_points` of the tree).
+    alpha : bool, optional
+        Compute the alpha shapes; ``False`` leaves them out (NaN): they cost a Delaunay
+        triangulation.
 
     Returns
     -------
@@ -369,8 +426,19 @@ FIDELITY_ATTRIBUTES = (
 
 
 def fidelity_statistics(tree) -> dict[str, float]:
-    """The statistics the clones' fidelity table compares: :func:`~bforest_core.metrics.tree_summary`
-    and the :data:`FIDELITY_ATTRIBUTES` (units: :func:`~bforest_core.metrics.summary_unit`)."""
+    """Compute the statistics the clones' fidelity table compares.
+
+    Parameters
+    ----------
+    tree : Tree
+        The tree.
+
+    Returns
+    -------
+    dict of str to float
+        :func:`~bforest_core.metrics.tree_summary` and the :data:`FIDELITY_ATTRIBUTES`
+        (units: :func:`~bforest_core.metrics.summary_unit`).
+    """
     out = tree_summary(tree)
     a = tree_attributes(tree, alpha=False)
     out.update({k: a[k] for k in FIDELITY_ATTRIBUTES})
@@ -387,8 +455,10 @@ _EDGE_TOL = 1e-6
 
 
 def _classes(par: np.ndarray, width: float, n: int | None = None) -> tuple[np.ndarray, int]:
-    """0-based class ``floor(par / width)`` of half-open classes ``[k w, (k+1) w)`` and the
-    number of classes (enough for the largest value unless ``n`` is given)."""
+    """Return the 0-based class ``floor(par / width)`` of half-open classes ``[k w, (k+1) w)``.
+
+    Also the number of classes (enough for the largest value unless ``n`` is given).
+    """
     k = np.floor(par / width + _EDGE_TOL).astype(np.int64) if par.size else np.zeros(0, np.int64)
     if n is None:
         n = int(k.max()) + 1 if k.size else 0
@@ -404,8 +474,11 @@ def _sums(k: np.ndarray, n: int, weights: dict) -> dict[str, np.ndarray]:
 
 
 def _height_overlap(b: np.ndarray, t: np.ndarray, n: int) -> np.ndarray:
-    """(n_cyl, n) share of each cylinder (from height b to t, m above the bottom) in each 1 m
-    height class; a level cylinder lies wholly in the class of its height."""
+    """Return the (n_cyl, n) share of each cylinder in each 1 m height class.
+
+    A cylinder spans height b to t (m above the bottom); a level cylinder lies wholly in the
+    class of its height.
+    """
     lo, hi = np.minimum(b, t), np.maximum(b, t)
     edges = np.arange(n + 1, dtype=float)
     ov = np.clip(np.minimum(hi[:, None], edges[None, 1:]) - np.maximum(lo[:, None], edges[None, :-1]), 0, None)
@@ -420,7 +493,7 @@ def _height_overlap(b: np.ndarray, t: np.ndarray, n: int) -> np.ndarray:
 
 
 def distributions(tree) -> dict[str, np.ndarray]:
-    """TreeQSM's distributions, SI units (volumes m^3, areas m^2, lengths m, counts).
+    """Compute TreeQSM's distributions, SI units (volumes m^3, areas m^2, lengths m, counts).
 
     Cylinders (wood parts): ``VolCylDia``/``AreCylDia``/``LenCylDia`` per 1 cm cylinder-diameter
     class (class k holds diameters in [k, k+1) cm, k = 0, 1, ...); ``...CylHei`` per 1 m height
@@ -437,6 +510,16 @@ def distributions(tree) -> dict[str, np.ndarray]:
 
     The names are TreeQSM 2.4's ``treedata`` names; the values are in SI units (TreeQSM gives
     volumes in litres). Class k of every array is element k (0-based).
+
+    Parameters
+    ----------
+    tree : Tree
+        The tree.
+
+    Returns
+    -------
+    dict of str to ndarray
+        The distributions by name.
     """
     out: dict[str, np.ndarray] = {}
     r, l, ax = tree.radius, tree.length, tree.axis

@@ -325,7 +325,7 @@ def summary_label(name: str, bands: int = 5) -> str:
 
 
 def _living(tree) -> np.ndarray:
-    """Per branch: does it hold a living cylinder?
+    """Tell, per branch, whether it holds a living cylinder.
 
     Models mark dead remnants in ``extras["is_dead"]``; a QSM has none, so all its branches count.
     """

@@ -76,6 +76,8 @@ class SimulationFailed(BayesForestError):
         ``"negative_balance"``, ``"timeout"``.
     tree : Tree or None
         The partial tree when the model has one.
+    message : str
+        What happened, in words (may be empty).
     """
 
     def __init__(self, status: str, message: str = "", tree=None):

@@ -25,4 +25,3 @@ def bforest_components():
     list of type
         Subclasses of the interfaces in :mod:`bforest_core.interfaces`.
     """
-

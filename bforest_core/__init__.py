@@ -36,6 +36,25 @@ from .tree import TOPOLOGY_RULES, BranchTable, Tree
 
 
 def __getattr__(name):
+    """Return ``classical_metrics`` or ``relative_errors`` from :mod:`bforest_core.metrics`.
+
+    The metrics module is imported on first use.
+
+    Parameters
+    ----------
+    name : str
+        The attribute's name.
+
+    Returns
+    -------
+    callable
+        The metric function.
+
+    Raises
+    ------
+    AttributeError
+        For any other name.
+    """
     # metrics live in their own module, imported on first use
     if name in ("classical_metrics", "relative_errors"):
         from . import metrics

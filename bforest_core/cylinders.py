@@ -183,7 +183,7 @@ def select_models(path, models: list, select, label: str):
         The ``select`` option (0-based; ``None`` takes the first, with a warning when there are
         several).
     label : str
-        What the reconstructions are called in messages.
+        What holds the reconstructions, for messages (the MATLAB variable, or "file").
 
     Returns
     -------

@@ -205,7 +205,8 @@ def doc_section(results: dict, figures: dict | None = None) -> str:
         "chosen on held-out model seeds (`[select]`); its held-out distance must vary by at most 15 % "
         f"(max/min <= {SPREAD}) over the run seeds of one pine. Fit times are wall times on the 2-core "
         "machine, shared with other work when these runs were made (quiet-machine timings: "
-        "performance.md).",
+        "performance.md); a fit that ran into the recipe's wall time (a safety net of 840 s) is "
+        "marked, since where it stopped depends on the machine's load.",
         "",
         "```",
         ".venv/bin/python examples/real/run_fidelity.py --out runs/fidelity --seeds 1 2 3 4 5 --figures --doc",
@@ -221,8 +222,11 @@ def doc_section(results: dict, figures: dict | None = None) -> str:
         mates = ", ".join(f"{v:.3f}" for v in r["judge_stand_mates"].values())
         judge = "–" if r["judge_clones_median"] is None else f"{r['judge_clones_median']:.3f}"
         held = "–" if r.get("heldout_distance") is None else f"{r['heldout_distance']:.4f}"
+        fit = f"{r['fit_seconds']:.0f} s"
+        if "wall time" in (r.get("stop_reason") or ""):
+            fit += f", stopped on wall time at {r['evaluations']} evaluations"
         lines.append(
-            f"| {r['recipe']} | {r['pine']} | {r.get('seed', 1)} | {r['fit_seconds']:.0f} s | "
+            f"| {r['recipe']} | {r['pine']} | {r.get('seed', 1)} | {fit} | "
             f"{r['best_distance']:.4f} / {held} | {errs} | {judge} | {mates} | {verdict(r)} |"
         )
     n_ok = {}

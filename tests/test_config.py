@@ -138,7 +138,8 @@ def test_lignum_recipe_weights_statistics_by_their_fidelity_limits():
 
 def test_the_fidelity_table_marks_a_fit_stopped_by_its_wall_time():
     """Where a wall time stops a fit depends on the machine's load, so the fidelity table says so
-    (issue 29: what is reproducible); a fit that used its budget is shown with its time alone."""
+    (issue 29: what is reproducible); a fit that used its budget is shown with its time alone. The
+    table names the code its rows were made with."""
     import importlib.util
 
     real = Path(__file__).resolve().parents[1] / "examples" / "real"
@@ -158,7 +159,9 @@ def test_the_fidelity_table_marks_a_fit_stopped_by_its_wall_time():
     }
     stopped = {**row, "seed": 1, "stop_reason": "wall time (840 s) reached"}
     full = {**row, "seed": 2, "evaluations": 1200, "stop_reason": "evaluation budget (1200) reached"}
-    lines = [x for x in run_fidelity.doc_section({"a": stopped, "b": full}).splitlines() if "0.1587" in x]
+    text = run_fidelity.doc_section({"a": {**stopped, "code": "b0bf3b1"}, "b": full})
+    assert "(`git describe --dirty` when each fit was made): b0bf3b1, not recorded." in text
+    lines = [x for x in text.splitlines() if "0.1587" in x]
     (line_1,) = [x for x in lines if x.startswith("| pine_lignum | 1 | 1 |")]
     (line_2,) = [x for x in lines if x.startswith("| pine_lignum | 1 | 2 |")]
     assert "| 876 s, stopped on wall time at 1062 evaluations |" in line_1

@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import subprocess
 import time
 import warnings
 from pathlib import Path
@@ -92,6 +93,18 @@ def recipe_for(recipe: Path, pine: Path, out: Path, seed: int) -> Path:
     return p
 
 
+def code_version() -> str | None:
+    """The checkout's commit, ``-dirty`` when the working tree differs from it (None without git):
+    a fidelity row is only reproducible from the code that made it."""
+    try:
+        r = subprocess.run(
+            ["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True, text=True, timeout=30
+        )
+    except OSError:
+        return None
+    return (r.stdout.strip() or None) if r.returncode == 0 else None
+
+
 def fit_and_judge(cfg_path: Path, run: Path, target: Path, n_clones: int):
     """Fit the recipe into ``run``, grow ``n_clones`` clones and judge each against the tree:
     ``(fit result, fit seconds, best.json, clones summary, fidelity rows by statistic, judge
@@ -118,6 +131,7 @@ def run_one(recipe: Path, k: int, seed: int, out: Path, n_clones: int) -> dict:
         "pine": k,
         "seed": seed,
         "run": str(run),
+        "code": code_version(),
         "fit_seconds": fit_seconds,
         "evaluations": res.n_evaluations,
         "best_distance": res.distance,
@@ -136,12 +150,17 @@ def run_one(recipe: Path, k: int, seed: int, out: Path, n_clones: int) -> dict:
     return row
 
 
+def figure_name(row: dict, which: str) -> str:
+    """Path in docs/ of the figure of one fit: the best or the worst run seed of its recipe and pine."""
+    return f"img/validation/fidelity_{row['recipe']}_pine{row['pine']}_{which}.png"
+
+
 def figure(row: dict, which: str) -> str:
     """The pine beside 5 clones of one fit, at one scale; returns the image's path in docs/."""
     run, k = Path(row["run"]), row["pine"]
     summary = json.loads((run / "clones" / "summary.json").read_text())
     trees = [bf.read_qsm(run / "clones" / r["file"]) for r in summary["rows"] if r["status"] == "ok"][:5]
-    name = f"img/validation/fidelity_{row['recipe']}_pine{k}_{which}.png"
+    name = figure_name(row, which)
     clones_figure(
         bf.read_qsm(PINES[k]),
         [(f"clone {i}", t) for i, t in enumerate(trees)],
@@ -234,6 +253,8 @@ def doc_section(results: dict, figures: dict | None = None) -> str:
         n = n_ok.setdefault(r["recipe"], [0, 0])
         n[0] += verdict(r) == "meets the limits"
         n[1] += 1
+    codes = sorted({r.get("code") or "not recorded" for r in results.values()})
+    lines += ["", f"Code of these rows (`git describe --dirty` when each fit was made): {', '.join(codes)}."]
     lines += ["", "| recipe | fits meeting the limits |", "|---|---|"]
     lines += [f"| {k} | {v[0]} of {v[1]} |" for k, v in sorted(n_ok.items())]
     lines += [
@@ -318,17 +339,21 @@ def main(argv=None) -> int:
             f"{rec} pine {k}: held-out distance of the answer over {n} run seeds, max/min {ratio:.3f} "
             f"({'within' if ratio <= SPREAD else 'NOT within'} {SPREAD})"
         )
+    # the best and the worst run seed of each recipe on pine 3, by the judge: drawn with --figures,
+    # otherwise the page links the figures drawn before
     figures = {}
-    if args.figures:  # the best and the worst run seed of each recipe on pine 3, by the judge
-        groups: dict[tuple[str, int], list[dict]] = {}
-        for r in results.values():
-            if r["pine"] == 3 and r.get("judge_clones_median") is not None and Path(r.get("run", "")).is_dir():
-                groups.setdefault((r["recipe"], r["pine"]), []).append(r)
-        for (rec, k), rows in groups.items():
-            if len(rows) > 1:
-                rows.sort(key=lambda r: r["judge_clones_median"])
-                for which, r in (("best", rows[0]), ("worst", rows[-1])):
+    groups: dict[tuple[str, int], list[dict]] = {}
+    for r in results.values():
+        if r["pine"] == 3 and r.get("judge_clones_median") is not None:
+            groups.setdefault((r["recipe"], r["pine"]), []).append(r)
+    for (rec, k), rows in groups.items():
+        if len(rows) > 1:
+            rows.sort(key=lambda r: r["judge_clones_median"])
+            for which, r in (("best", rows[0]), ("worst", rows[-1])):
+                if args.figures and Path(r.get("run", "")).is_dir():
                     figures[(rec, k, which)] = figure(r, which)
+                elif (DOC.parent / figure_name(r, which)).is_file():
+                    figures[(rec, k, which)] = figure_name(r, which)
     if args.doc:
         write_doc(results, figures)
     return 0

@@ -33,6 +33,19 @@ STRUCT_FIELDS = (
 INTEGER_FIELDS = ("parent", "extension", "added", "branch", "BranchOrder", "PositionInBranch")
 #: per-cylinder values TreeQSM derives from the points: kept as extras on read, written back
 POINT_FIELDS = ("mad", "SurfCov", "UnmodRadius")
+#: TreeQSM <= 2.2's CylData matrix, in its column order
+CYLDATA14 = (
+    "radius",
+    "length",
+    "start",
+    "axis",
+    "parent",
+    "extension",
+    "branch",
+    "BranchOrder",
+    "PositionInBranch",
+    "added",
+)
 #: the text layouts, field by field (docs/qsm-formats.md §4, §5a, §5b)
 LAYOUTS = {
     "treeqsm17": (
@@ -63,31 +76,8 @@ LAYOUTS = {
         "BranchOrder",
         "PositionInBranch",
     ),
-    "treeqsm15-cyldata": (
-        "radius",
-        "length",
-        "start",
-        "axis",
-        "parent",
-        "extension",
-        "branch",
-        "BranchOrder",
-        "PositionInBranch",
-        "added",
-        "UnmodRadius",
-    ),
-    "cyldata14": (
-        "radius",
-        "length",
-        "start",
-        "axis",
-        "parent",
-        "extension",
-        "branch",
-        "BranchOrder",
-        "PositionInBranch",
-        "added",
-    ),
+    "treeqsm15-cyldata": CYLDATA14 + ("UnmodRadius",),
+    "cyldata14": CYLDATA14,
 }
 #: how messages name a field
 _SAID = {"BranchOrder": "branch order"}

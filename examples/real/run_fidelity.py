@@ -224,7 +224,7 @@ def doc_section(results: dict, figures: dict | None = None) -> str:
         "chosen on held-out model seeds (`[select]`); its held-out distance must vary by at most 15 % "
         f"(max/min <= {SPREAD}) over the run seeds of one pine. Fit times are wall times on the 2-core "
         "machine, shared with other work when these runs were made (quiet-machine timings: "
-        "performance.md); a fit that ran into the recipe's wall time (a safety net of 840 s) is "
+        "performance.md); a fit that ran into the recipe's wall time (`[stop] wall_time`, a safety net) is "
         "marked, since where it stopped depends on the machine's load.",
         "",
         "```",

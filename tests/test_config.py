@@ -117,16 +117,23 @@ def test_shipped_example_configs_validate(path):
     assert cfg.ssm.kind in {"sot", "lignum"}
 
 
+def _run_fidelity():
+    """examples/real/run_fidelity.py as a module (it is a script, not part of the package)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "real" / "run_fidelity.py"
+    spec = importlib.util.spec_from_file_location("run_fidelity", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_lignum_recipe_weights_statistics_by_their_fidelity_limits():
     """The LIGNUM recipe's summary weights are proportional to 1 / the fidelity limits (height 5 %,
     DBH 15 %, crown spread 20 %, crown base and first-order branches 25 %), and its structure and
     size terms weigh alike: the balance its validation (docs/validation.md section 4) rests on."""
-    import importlib.util
-
     real = Path(__file__).resolve().parents[1] / "examples" / "real"
-    spec = importlib.util.spec_from_file_location("run_fidelity", real / "run_fidelity.py")
-    run_fidelity = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(run_fidelity)
+    run_fidelity = _run_fidelity()
     limits = run_fidelity.LIMITS  # the limits the validation checks the clones against
     cfg = bf.load_config(real / "pine_lignum.toml")
     (size,) = [t for t in cfg.objective.terms if t.name == "size"]
@@ -140,12 +147,7 @@ def test_the_fidelity_table_marks_a_fit_stopped_by_its_wall_time():
     """Where a wall time stops a fit depends on the machine's load, so the fidelity table says so
     (issue 29: what is reproducible); a fit that used its budget is shown with its time alone. The
     table names the code its rows were made with."""
-    import importlib.util
-
-    real = Path(__file__).resolve().parents[1] / "examples" / "real"
-    spec = importlib.util.spec_from_file_location("run_fidelity", real / "run_fidelity.py")
-    run_fidelity = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(run_fidelity)
+    run_fidelity = _run_fidelity()
     row = {
         "recipe": "pine_lignum",
         "pine": 1,

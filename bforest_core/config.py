@@ -55,19 +55,46 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
+#: measures of the target tree that bounds may be scaled by (``bforest_core.metrics.TreeMeasures``)
+SCALE_MEASURES = (
+    "height",
+    "dbh",
+    "crown_spread",
+    "crown_base_height",
+    "crown_length",
+    "branch_spacing",
+    "longest_limb",
+    "thinnest_branch",
+)
+
+
 class FreeParameter(_Strict):
-    """A parameter the optimiser varies, within ``[lower, upper]``."""
+    """A parameter the optimiser varies, within ``[lower, upper]``.
+
+    With ``scaled_by`` the four bounds are multiples of that measure of the target tree, resolved
+    to absolute bounds when the fit starts (the run folder's config.toml holds the resolved ones):
+    one recipe then fits trees of another size.
+    """
 
     lower: float
     upper: float
     init_lower: Optional[float] = Field(None, description="initial population range (default: bounds)")
     init_upper: Optional[float] = None
     integer: Optional[bool] = Field(None, description="whole values only (default: from the SSM's spec)")
+    scaled_by: Optional[Literal[SCALE_MEASURES]] = Field(
+        None,
+        description=(
+            "a measure of the target tree (m): the bounds are multiples of it, e.g. node_length = "
+            "{ lower = 0.6, upper = 1.4, scaled_by = 'branch_spacing' }"
+        ),
+    )
 
     @model_validator(mode="after")
     def _order(self):
         if not self.lower < self.upper:
             raise ValueError(f"lower ({self.lower}) must be below upper ({self.upper})")
+        if self.scaled_by is not None and self.lower < 0:
+            raise ValueError(f"lower ({self.lower}) must be >= 0: the bounds are multiples of {self.scaled_by}")
         ilo = self.lower if self.init_lower is None else self.init_lower
         ihi = self.upper if self.init_upper is None else self.init_upper
         if not (self.lower <= ilo < ihi <= self.upper):
@@ -485,7 +512,7 @@ def check_ssm_parameters(cfg: RunConfig) -> None:
         s = specs[name]
         if name in cfg.ssm.fixed:
             problems.append(f"ssm.free.{name}: also listed in ssm.fixed")
-        if fp.lower < s.lower or fp.upper > s.upper:
+        if fp.scaled_by is None and (fp.lower < s.lower or fp.upper > s.upper):  # scaled: once resolved
             problems.append(
                 f"ssm.free.{name}: bounds [{fp.lower}, {fp.upper}] exceed the allowed range "
                 f"[{s.lower}, {s.upper}] {s.unit}".rstrip()

@@ -79,7 +79,7 @@ def main() -> str:
         if section == "ssm":
             out += [
                 "Besides the plugin's own settings, `[ssm]` takes `fixed = { name = value }`, "
-                "`free.NAME = { lower, upper, init_lower, init_upper, integer }` and an optional "
+                "`free.NAME = { lower, upper, init_lower, init_upper, integer, scaled_by }` and an optional "
                 "`topology` for the model side.",
                 "",
             ]

@@ -449,3 +449,45 @@ def test_held_out_scores_are_kept_in_the_runs_and_not_grown_twice(toy_plugin, tm
     assert len(grown) == 3
     with RunStore.open(tmp_path / "cmp" / "ga-0") as store:
         assert len(store._con.execute("SELECT DISTINCT scoring FROM heldout").fetchall()) == 2
+
+
+def test_bounds_scaled_by_a_measure_of_the_target(toy_plugin, tmp_path):
+    from bforest_core.metrics import measure_tree
+    from bforest_core.pipeline.target import load_target_trees
+
+    p = toy_config(tmp_path, budget=16)
+    scaled = 'free.angle = { lower = 1.0, upper = 5.0, init_upper = 4.0, scaled_by = "height" }'
+    p.write_text(p.read_text().replace("free.angle = { lower = 5.0, upper = 80.0 }", scaled))
+    cfg = bf.load_config(p)
+    h = measure_tree(load_target_trees(cfg)[0]).height
+    assert 2.0 < h < 16.0  # the toy tree of 12 segments: the resolved bounds stay inside angle's 0-90
+    bf.fit(cfg, tmp_path / "run", progress=False)
+    fp = bf.load_config(tmp_path / "run" / "config.toml").ssm.free["angle"]
+    assert fp.scaled_by is None
+    assert (fp.lower, fp.upper, fp.init_upper) == pytest.approx((h, 5 * h, 4 * h), rel=1e-5)
+    angles = [e.params["angle"] for e in RunStore.open(tmp_path / "run").evaluations()]
+    assert min(angles) >= fp.lower and max(angles) <= fp.upper
+    # resuming with the recipe itself resolves to the same bounds: the run is the same run
+    res = bf.fit(bf.load_config(p), tmp_path / "run", resume=True, progress=False)
+    assert res.already_finished
+    # resolved bounds outside the model's range name the parameter and the range
+    p.write_text(p.read_text().replace(scaled, scaled.replace("upper = 5.0", "upper = 50.0")))
+    with pytest.raises(bf.ConfigError, match=r"ssm\.free\.angle: bounds .* exceed the allowed range"):
+        bf.fit(bf.load_config(p), tmp_path / "run2", progress=False)
+    assert not (tmp_path / "run2" / "config.toml").exists()  # nothing written but the lock
+    # a study that draws from the bounds without a fit's target refuses them by name
+    from bforest_core.pipeline.calibrate import _study_spec
+
+    with pytest.raises(bf.ConfigError, match=r"ssm\.free\.angle: bounds scaled by the target's height"):
+        _study_spec(bf.load_config(p))
+
+
+def test_scaled_bounds_are_checked_when_the_config_is_read(toy_plugin, tmp_path):
+    p = toy_config(tmp_path)
+    text = p.read_text()
+    p.write_text(text.replace("upper = 80.0 }", 'upper = 80.0, scaled_by = "girth" }'))
+    with pytest.raises(bf.ConfigError, match=r"scaled_by"):
+        bf.load_config(p)
+    p.write_text(text.replace("lower = 5.0, upper = 80.0 }", 'lower = -1.0, upper = 2.0, scaled_by = "height" }'))
+    with pytest.raises(bf.ConfigError, match=r"must be >= 0: the bounds are multiples of height"):
+        bf.load_config(p)

@@ -37,7 +37,7 @@ from .rundir import holding_run_lock
 from .scoring import _simulate_with_timeout, _Timeout, set_summaries
 from .seeds import model_seeds, spread_seeds
 from .store import Evaluation, RunDirError, RunFiles, RunStore
-from .target import Target
+from .target import Target, bounds_from_target
 from .worker import evaluate_task, run_executor, started_workers, summary_task
 
 
@@ -280,6 +280,11 @@ def same_config(run_dir, cfg: RunConfig) -> bool:
 def _free_specs(cfg: RunConfig, ssm):
     names, lo, hi, ilo, ihi, integer = [], [], [], [], [], []
     for name, fp in cfg.ssm.free.items():
+        if fp.scaled_by is not None:
+            raise ConfigError(
+                f"ssm.free.{name}: bounds scaled by the target's {fp.scaled_by} are resolved by a fit "
+                "against its target; give absolute bounds here"
+            )
         spec = ssm.parameter_spec(name)
         names.append(name)
         lo.append(fp.lower)
@@ -317,9 +322,9 @@ def fit(
     if not isinstance(cfg, RunConfig):
         cfg = load_config(cfg)
     run_dir = Path(run_dir)
-    cfg_dict = config_to_dict(cfg)
-    text = tomli_w.dumps(cfg_dict)
     tgt = preflight(cfg, target)  # every check before the run directory is touched
+    cfg = bounds_from_target(cfg, tgt.trees)  # the run's config.toml holds the resolved bounds
+    text = tomli_w.dumps(config_to_dict(cfg))
     store = RunStore.open(run_dir) if resume else RunStore.create(run_dir, text, overwrite=overwrite)
     with store:
         if resume:

@@ -112,6 +112,40 @@ def load_target_trees(cfg: RunConfig) -> list:
     return list(trees) if isinstance(trees, (list, tuple)) else [trees]
 
 
+def bounds_from_target(cfg: RunConfig, trees: list) -> RunConfig:
+    """``cfg`` with every ``scaled_by`` bound of ``[ssm.free]`` resolved against the target.
+
+    A bound ``{ lower = a, upper = b, scaled_by = m }`` becomes ``[a * M, b * M]`` with ``M`` the
+    measure ``m`` of the first target tree (:func:`bforest_core.metrics.measure_tree`), so the
+    recipe of one tree suits another of another size; the resolved bounds are checked against the
+    model's range. ``cfg`` itself is returned when nothing is scaled.
+    """
+    from ..config import check_ssm_parameters
+    from ..errors import ConfigError
+    from ..metrics import measure_tree
+
+    scaled = {n: fp for n, fp in cfg.ssm.free.items() if fp.scaled_by is not None}
+    if not scaled:
+        return cfg
+    measures = measure_tree(trees[0])
+    free = dict(cfg.ssm.free)
+    source = cfg.target.qsm or "the generated target"
+    for name, fp in scaled.items():
+        m = float(getattr(measures, fp.scaled_by))
+        if not (np.isfinite(m) and m > 0):
+            raise ConfigError(
+                f"ssm.free.{name}: scaled_by = '{fp.scaled_by}', but {source} has {fp.scaled_by} = {m:g}; "
+                "give absolute bounds"
+            )
+        times = {k: getattr(fp, k) for k in ("lower", "upper", "init_lower", "init_upper")}
+        free[name] = fp.model_copy(
+            update={k: None if v is None else float(f"{v * m:.6g}") for k, v in times.items()} | {"scaled_by": None}
+        )
+    out = cfg.model_copy(update={"ssm": cfg.ssm.model_copy(update={"free": free})})
+    check_ssm_parameters(out)
+    return out
+
+
 @dataclass
 class Target:
     trees: list

@@ -124,13 +124,13 @@ PARAMETERS: list[ParameterSpec] = [
     P(
         "node_length",
         0.2,
-        0.1,
+        0.05,
         0.6,
         False,
         "m",
         "internode length (1 node unit of vigor; one lateral bud per "
-        "internode, so it sets how many branches a metre of stem can carry); GS: 0.2 m; up to 0.6 m for trees of "
-        "18-20 m",
+        "internode, so it sets how many branches a metre of stem can carry); GS: 0.2 m; down to 0.05 m for a "
+        "pine's dense branching, up to 0.6 m for trees of 18-20 m",
         "fixed",
     ),
     P(

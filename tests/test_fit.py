@@ -470,11 +470,16 @@ def test_bounds_scaled_by_a_measure_of_the_target(toy_plugin, tmp_path):
     # resuming with the recipe itself resolves to the same bounds: the run is the same run
     res = bf.fit(bf.load_config(p), tmp_path / "run", resume=True, progress=False)
     assert res.already_finished
-    # resolved bounds outside the model's range name the parameter and the range
+    # a resolved bound beyond the model's range (angle: 0-90 deg) is moved to it, with a warning
     p.write_text(p.read_text().replace(scaled, scaled.replace("upper = 5.0", "upper = 50.0")))
-    with pytest.raises(bf.ConfigError, match=r"ssm\.free\.angle: bounds .* exceed the allowed range"):
+    with pytest.warns(UserWarning, match=r"ssm\.free\.angle: 1-50 x the height .* the search keeps to \["):
         bf.fit(bf.load_config(p), tmp_path / "run2", progress=False)
-    assert not (tmp_path / "run2" / "config.toml").exists()  # nothing written but the lock
+    assert bf.load_config(tmp_path / "run2" / "config.toml").ssm.free["angle"].upper == 90.0
+    # nothing left of the range: an error naming the parameter, the measure and the range
+    p.write_text(p.read_text().replace("lower = 1.0, upper = 50.0, init_upper = 4.0", "lower = 40.0, upper = 50.0"))
+    with pytest.raises(bf.ConfigError, match=r"ssm\.free\.angle: 40-50 x the height .* outside the model's range"):
+        bf.fit(bf.load_config(p), tmp_path / "run3", progress=False)
+    assert not (tmp_path / "run3" / "config.toml").exists()  # nothing written but the lock
     # a study that draws from the bounds without a fit's target refuses them by name
     from bforest_core.pipeline.calibrate import _study_spec
 

@@ -117,33 +117,49 @@ def bounds_from_target(cfg: RunConfig, trees: list) -> RunConfig:
 
     A bound ``{ lower = a, upper = b, scaled_by = m }`` becomes ``[a * M, b * M]`` with ``M`` the
     measure ``m`` of the first target tree (:func:`bforest_core.metrics.measure_tree`), so the
-    recipe of one tree suits another of another size; the resolved bounds are checked against the
-    model's range. ``cfg`` itself is returned when nothing is scaled.
+    recipe of one tree suits another of another size. A resolved bound beyond the model's range
+    is moved to it, with a warning (the user could not know the tree's measure when writing the
+    recipe); nothing left of the range is a ConfigError. ``cfg`` itself is returned when nothing
+    is scaled.
     """
-    from ..config import check_ssm_parameters
+    import warnings
+
+    from ..config import ssm_settings
     from ..errors import ConfigError
     from ..metrics import measure_tree
 
     scaled = {n: fp for n, fp in cfg.ssm.free.items() if fp.scaled_by is not None}
     if not scaled:
         return cfg
+    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
     measures = measure_tree(trees[0])
     free = dict(cfg.ssm.free)
     source = cfg.target.qsm or "the generated target"
     for name, fp in scaled.items():
         m = float(getattr(measures, fp.scaled_by))
+        spec = ssm.parameter_spec(name)
+        what = f"ssm.free.{name}: {fp.lower:g}-{fp.upper:g} x the {fp.scaled_by} of {source} ({m:.4g} m)"
         if not (np.isfinite(m) and m > 0):
-            raise ConfigError(
-                f"ssm.free.{name}: scaled_by = '{fp.scaled_by}', but {source} has {fp.scaled_by} = {m:g}; "
-                "give absolute bounds"
-            )
+            raise ConfigError(f"{what}: the measure must be positive; give absolute bounds")
         times = {k: getattr(fp, k) for k in ("lower", "upper", "init_lower", "init_upper")}
-        free[name] = fp.model_copy(
-            update={k: None if v is None else float(f"{v * m:.6g}") for k, v in times.items()} | {"scaled_by": None}
-        )
-    out = cfg.model_copy(update={"ssm": cfg.ssm.model_copy(update={"free": free})})
-    check_ssm_parameters(out)
-    return out
+        raw = {k: None if v is None else float(f"{v * m:.6g}") for k, v in times.items()}
+        new = {k: None if v is None else min(max(v, spec.lower), spec.upper) for k, v in raw.items()}
+        if not new["lower"] < new["upper"]:
+            raise ConfigError(
+                f"{what} = [{raw['lower']:g}, {raw['upper']:g}] is outside the model's range "
+                f"[{spec.lower:g}, {spec.upper:g}] {spec.unit}".rstrip()
+            )
+        if new != raw:
+            warnings.warn(
+                f"{what} = [{raw['lower']:g}, {raw['upper']:g}] goes beyond the model's range "
+                f"[{spec.lower:g}, {spec.upper:g}] {spec.unit}: the search keeps to "
+                f"[{new['lower']:g}, {new['upper']:g}]".rstrip(),
+                stacklevel=2,
+            )
+        if new["init_lower"] is not None and new["init_upper"] is not None and new["init_lower"] >= new["init_upper"]:
+            new["init_lower"] = new["init_upper"] = None  # the initial range fell outside: the bounds
+        free[name] = fp.model_copy(update=new | {"scaled_by": None})
+    return cfg.model_copy(update={"ssm": cfg.ssm.model_copy(update={"free": free})})
 
 
 @dataclass

@@ -1,9 +1,9 @@
 """The SOT model's part of a recipe for a measured tree (``bforest init``).
 
 Bounds are scaled from the tree: the world cube and the light voxels from its height, the
-internode from its height, the branch angle from its first-order branches' angles, the
-terminal shoot's diameter from the QSM's thinnest branch, and the apical control and growth
-forms from its crown form (docs/growth-forms.md): an excurrent crown (a leader to the top, like
+internode from its branch spacing (excurrent) or its height (decurrent), the branch angle from
+its first-order branches' angles, the terminal shoot's diameter from the QSM's thinnest branch,
+and the apical control and growth forms from its crown form (docs/growth-forms.md): an excurrent crown (a leader to the top, like
 a pine's) gets strong apical control and one bud per node; a decurrent one (the stem divides
 into limbs, like a maple's) gets weak apical control, opposite buds and leaders that may die
 so the buds below them fork.
@@ -25,7 +25,13 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
     h = m.height
     span = min(30.0, max(12.0, 2.0 * math.ceil(0.9 * h)))
     voxel = min(0.5, max(0.2, _r(h / 50.0, 0.01)))
-    node_lo, node_hi = max(0.1, _r(h / 100.0, 0.01)), min(0.6, _r(h / 33.0, 0.01))
+    if m.decurrent:  # a few limbs: the internode from the height
+        node_lo, node_hi = max(0.1, _r(h / 100.0, 0.01)), min(0.6, _r(h / 33.0, 0.01))
+        node_why = "internode (m): 1/100-1/33 of the height"
+    else:  # many branches along a leader: from the crown length per branch, as the pine recipe
+        node_hi = min(0.6, max(0.06, _r(1.4 * m.branch_spacing, 0.01)))
+        node_lo = min(node_hi - 0.01, max(0.05, _r(0.6 * m.branch_spacing, 0.01)))
+        node_why = f"internode (m): 0.6-1.4 x the crown length per first-order branch ({m.branch_spacing:.2f} m)"
     ang_lo, ang_hi = max(20.0, _r(m.beta_q10 - 20.0, 5.0)), min(90.0, _r(m.beta_q90, 5.0))
     if ang_hi - ang_lo < 20.0:
         ang_lo, ang_hi = max(20.0, ang_hi - 20.0), min(90.0, ang_lo + 20.0)
@@ -98,8 +104,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
             "node_length",
             node_lo,
             node_hi,
-            "internode (m): 1/100-1/33 of the height (one lateral bud per "
-            "node: it sets how many branches a metre of stem can carry)",
+            f"{node_why} (one lateral bud per node: it sets how many branches a metre of stem can carry)",
         ),
         ("stand_shade", 0.0, 1.0, "shade of the neighbours (1/m below the top): 0 = open-grown"),
     ]

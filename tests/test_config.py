@@ -168,3 +168,9 @@ def test_the_fidelity_table_marks_a_fit_stopped_by_its_wall_time():
     (line_2,) = [x for x in lines if x.startswith("| pine_lignum | 1 | 2 |")]
     assert "| 876 s, stopped on wall time at 1062 evaluations |" in line_1
     assert "| 876 s | 0.1587 / 0.1647 |" in line_2 and "wall time" not in line_2
+    # the worst case of the recipe in units of the limit: a crown base 45 % off (limit 30 %) and
+    # a judge of 0.176 against the stand-mates' median 0.238
+    text = run_fidelity.doc_section(
+        {"b": full, "c": {**full, "errors": {**full["errors"], "crown_base_height": -0.45}}}
+    )
+    assert "| pine_lignum | 1 of 2 | 1.50 | 0.74 |" in text

@@ -171,6 +171,14 @@ def figure(row: dict, which: str) -> str:
     return name
 
 
+def worst(row: dict) -> tuple[float, float]:
+    """A fit's worst misses, 1 at the limit: its largest size error as a share of that statistic's
+    limit (a missing statistic counts inf), and its judge over the stand-mates' median."""
+    size = max(float("inf") if v is None else abs(v) / ACCEPT[k] for k, v in row["errors"].items())
+    j = row["judge_clones_median"]
+    return size, float("inf") if j is None else j / float(np.median(list(row["judge_stand_mates"].values())))
+
+
 def verdict(row: dict) -> str:
     bad = [f"{k} {100 * v:+.0f}%" for k, v in row["errors"].items() if v is None or abs(v) > ACCEPT[k]]
     mates = np.median(list(row["judge_stand_mates"].values()))
@@ -250,13 +258,21 @@ def doc_section(results: dict, figures: dict | None = None) -> str:
         )
     n_ok = {}
     for r in results.values():
-        n = n_ok.setdefault(r["recipe"], [0, 0])
+        n = n_ok.setdefault(r["recipe"], [0, 0, 0.0, 0.0])
         n[0] += verdict(r) == "meets the limits"
         n[1] += 1
+        n[2], n[3] = max(n[2], worst(r)[0]), max(n[3], worst(r)[1])
     codes = sorted({r.get("code") or "not recorded" for r in results.values()})
     lines += ["", f"Code of these rows (`git describe --dirty` when each fit was made): {', '.join(codes)}."]
-    lines += ["", "| recipe | fits meeting the limits |", "|---|---|"]
-    lines += [f"| {k} | {v[0]} of {v[1]} |" for k, v in sorted(n_ok.items())]
+    lines += [
+        "",
+        "The worst fit of each recipe, in units of the limit (1 = at the limit): the largest size error "
+        "over its limit, and the judge over the stand-mates' median.",
+        "",
+        "| recipe | fits meeting the limits | worst size error / limit | worst judge / stand-mates |",
+        "|---|---|---|---|",
+    ]
+    lines += [f"| {k} | {v[0]} of {v[1]} | {v[2]:.2f} | {v[3]:.2f} |" for k, v in sorted(n_ok.items())]
     lines += [
         "",
         "| recipe | pine | run seeds | held-out distance of the answer, max/min | within 15 % |",

@@ -128,8 +128,8 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     s = cfg["ssm"]
     assert s["free"]["init_lambda"] == {"lower": 0.6, "upper": 0.9}
     assert "buds_per_node" not in s and s["fixed"]["span"] == 18.0
-    # 16 branches on 8.67 m of crown: one per 0.54 m; 0.6-1.4 x that, within the model's 0.05-0.6 m
-    assert s["free"]["node_length"] == {"lower": 0.32, "upper": 0.6}
+    # 16 branches on 8.67 m of crown: one per 0.54 m; 0.8-1.45 x that, within the model's 0.05-0.6 m
+    assert s["free"]["node_length"] == {"lower": 0.43, "upper": 0.6}
     assert s["free"]["branch_angle"] == {"lower": 30.0, "upper": 80.0}
 
 

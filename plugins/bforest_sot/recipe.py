@@ -29,9 +29,9 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         node_lo, node_hi = max(0.1, _r(h / 100.0, 0.01)), min(0.6, _r(h / 33.0, 0.01))
         node_why = "internode (m): 1/100-1/33 of the height"
     else:  # many branches along a leader: from the crown length per branch, as the pine recipe
-        node_hi = min(0.6, max(0.06, _r(1.4 * m.branch_spacing, 0.01)))
-        node_lo = min(node_hi - 0.01, max(0.05, _r(0.6 * m.branch_spacing, 0.01)))
-        node_why = f"internode (m): 0.6-1.4 x the crown length per first-order branch ({m.branch_spacing:.2f} m)"
+        node_hi = min(0.6, max(0.06, _r(1.45 * m.branch_spacing, 0.01)))
+        node_lo = min(node_hi - 0.01, max(0.05, _r(0.8 * m.branch_spacing, 0.01)))
+        node_why = f"internode (m): 0.8-1.45 x the crown length per first-order branch ({m.branch_spacing:.2f} m)"
     ang_lo, ang_hi = max(20.0, _r(m.beta_q10 - 20.0, 5.0)), min(90.0, _r(m.beta_q90, 5.0))
     if ang_hi - ang_lo < 20.0:
         ang_lo, ang_hi = max(20.0, ang_hi - 20.0), min(90.0, ang_lo + 20.0)

@@ -85,7 +85,7 @@ class FreeParameter(_Strict):
         None,
         description=(
             "a measure of the target tree (m): the bounds are multiples of it, e.g. node_length = "
-            "{ lower = 0.6, upper = 1.4, scaled_by = 'branch_spacing' }"
+            "{ lower = 0.8, upper = 1.45, scaled_by = 'branch_spacing' }"
         ),
     )
 

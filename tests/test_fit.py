@@ -480,6 +480,10 @@ def test_bounds_scaled_by_a_measure_of_the_target(toy_plugin, tmp_path):
     with pytest.raises(bf.ConfigError, match=r"ssm\.free\.angle: 40-50 x the height .* outside the model's range"):
         bf.fit(bf.load_config(p), tmp_path / "run3", progress=False)
     assert not (tmp_path / "run3" / "config.toml").exists()  # nothing written but the lock
+    from bforest_core.pipeline.checks import preflight  # `bforest config check` says the same
+
+    with pytest.raises(bf.ConfigError, match=r"40-50 x the height .* outside the model's range"):
+        preflight(bf.load_config(p))
     # a study that draws from the bounds without a fit's target refuses them by name
     from bforest_core.pipeline.calibrate import _study_spec
 

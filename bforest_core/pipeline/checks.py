@@ -10,13 +10,14 @@ once, in one :class:`ConfigError`.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..config import did_you_mean, section_settings
 from ..errors import BayesForestError, ConfigError, PluginError
 from ..registry import component
-from .target import Target, build_target
+from .target import Target, bounds_from_target, build_target
 
 if TYPE_CHECKING:
     from ..config import RunConfig
@@ -58,6 +59,12 @@ def preflight(cfg: RunConfig, target: Target | None = None) -> Target:
             problems.append(f"target: {type(exc).__name__}: {exc}")
     if tgt is not None:
         problems += _weight_problems(tgt)
+        with warnings.catch_warnings():  # a bound moved into the model's range is the fit's to say
+            warnings.simplefilter("ignore")
+            try:
+                bounds_from_target(cfg, tgt.trees)
+            except ConfigError as exc:  # a scaled range that leaves nothing of the model's
+                problems.append(str(exc))
     if problems:
         raise ConfigError("; ".join(problems))
     return tgt

@@ -3,10 +3,10 @@
 Bounds are scaled from the tree: the world cube and the light voxels from its height, the
 internode from its branch spacing (excurrent) or its height (decurrent), the branch angle from
 its first-order branches' angles, the terminal shoot's diameter from the QSM's thinnest branch,
-and the apical control and growth forms from its crown form (docs/growth-forms.md): an excurrent crown (a leader to the top, like
-a pine's) gets strong apical control and one bud per node; a decurrent one (the stem divides
-into limbs, like a maple's) gets weak apical control, opposite buds and leaders that may die
-so the buds below them fork.
+and the apical control and growth forms from its crown form (docs/growth-forms.md): an
+excurrent crown (a leader to the top, like a pine's) gets strong apical control and one bud per
+node; a decurrent one (the stem divides into limbs, like a maple's) gets weak apical control,
+opposite buds and leaders that may die so the buds below them fork.
 """
 
 from __future__ import annotations

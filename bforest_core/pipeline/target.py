@@ -6,12 +6,14 @@ once (:mod:`.worker`).
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..registry import component
 
 if TYPE_CHECKING:
@@ -122,10 +124,7 @@ def bounds_from_target(cfg: RunConfig, trees: list) -> RunConfig:
     recipe); nothing left of the range is a ConfigError. ``cfg`` itself is returned when nothing
     is scaled.
     """
-    import warnings
-
     from ..config import ssm_settings
-    from ..errors import ConfigError
     from ..metrics import measure_tree
 
     scaled = {n: fp for n, fp in cfg.ssm.free.items() if fp.scaled_by is not None}

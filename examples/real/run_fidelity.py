@@ -171,17 +171,22 @@ def figure(row: dict, which: str) -> str:
     return name
 
 
+def mates_median(row: dict) -> float:
+    """The median of the judge distances from the pine to its stand-mates: the judge's limit."""
+    return float(np.median(list(row["judge_stand_mates"].values())))
+
+
 def worst(row: dict) -> tuple[float, float]:
     """A fit's worst misses, 1 at the limit: its largest size error as a share of that statistic's
     limit (a missing statistic counts inf), and its judge over the stand-mates' median."""
     size = max(float("inf") if v is None else abs(v) / ACCEPT[k] for k, v in row["errors"].items())
     j = row["judge_clones_median"]
-    return size, float("inf") if j is None else j / float(np.median(list(row["judge_stand_mates"].values())))
+    return size, float("inf") if j is None else j / mates_median(row)
 
 
 def verdict(row: dict) -> str:
     bad = [f"{k} {100 * v:+.0f}%" for k, v in row["errors"].items() if v is None or abs(v) > ACCEPT[k]]
-    mates = np.median(list(row["judge_stand_mates"].values()))
+    mates = mates_median(row)
     if row["judge_clones_median"] is not None and row["judge_clones_median"] > mates:
         bad.append(f"judge {row['judge_clones_median']:.3f} > stand-mates {mates:.3f}")
     return "meets the limits" if not bad else "misses: " + ", ".join(bad)
@@ -261,7 +266,8 @@ def doc_section(results: dict, figures: dict | None = None) -> str:
         n = n_ok.setdefault(r["recipe"], [0, 0, 0.0, 0.0])
         n[0] += verdict(r) == "meets the limits"
         n[1] += 1
-        n[2], n[3] = max(n[2], worst(r)[0]), max(n[3], worst(r)[1])
+        size, judge = worst(r)
+        n[2], n[3] = max(n[2], size), max(n[3], judge)
     codes = sorted({r.get("code") or "not recorded" for r in results.values()})
     lines += ["", f"Code of these rows (`git describe --dirty` when each fit was made): {', '.join(codes)}."]
     lines += [

@@ -226,6 +226,10 @@ class RecipeDraft:
         Component settings and fixed parameter values.
     free : list of (name, lower, upper, comment)
         Bounds of the fitted parameters.
+    scaled : dict
+        Free parameters whose bounds are multiples of a measure of the tree (name -> a measure
+        of ``[ssm] free.NAME.scaled_by``), written as such so that the recipe suits another tree
+        of the same kind; resolved, and kept within the model's range, when the fit starts.
     timeout : float
         Seconds one growth may take before it counts as a failure.
     wall_time : float
@@ -246,6 +250,7 @@ class RecipeDraft:
     wall_time: float = 840.0
     notes: list = field(default_factory=list)
     size_weights: dict = field(default_factory=dict)
+    scaled: dict = field(default_factory=dict)
 
 
 class SSM(Component):

@@ -18,6 +18,7 @@ import bforest_core as bf
 from bforest_core.cli.main import main
 from bforest_core.metrics import measure_tree
 from bforest_core.pipeline.recipe import write_recipe
+from bforest_core.pipeline.target import bounds_from_target
 from conftest import ROOT
 from conftest import qsm_path as sample
 
@@ -115,7 +116,9 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     r, cfg = _recipe(tmp_path, excurrent_tree(), "pine")
     assert r.model == "lignum" and cfg["ssm"]["kind"] == "lignum"
     free = cfg["ssm"]["free"]
-    assert free["years"] == {"lower": 15, "upper": 40}  # 1.5 years per m of a 10 m tree
+    assert free["years"] == {"lower": 1.0, "upper": 2.0, "scaled_by": "height"}  # 1-2 years per m of height
+    years = bounds_from_target(bf.load_config(tmp_path / "pine.toml"), [excurrent_tree()]).ssm.free["years"]
+    assert (years.lower, years.upper) == (pytest.approx(10.0), pytest.approx(20.0))  # the 10 m tree's
     # angles 50-80 deg: initial angle from 15 (50 - 35) to 85 (median 65 + 20), final from 35
     # (65 - 30) to 75 (80 - 5), each within the parameter's allowed range (17.5-90, 40-105 deg)
     assert free["beta_init"] == {"lower": 17.5, "upper": 85.0}

@@ -65,7 +65,10 @@ def draft_recipes(measures: TreeMeasures, model: str | None = None) -> list[tupl
                     "knows the models whose plugin drafts one)"
                 )
             continue
-        draft.free = [_within(ssm.parameter_spec(k), lo, hi, c) for k, lo, hi, c in draft.free]
+        draft.free = [
+            (k, lo, hi, c) if k in draft.scaled else _within(ssm.parameter_spec(k), lo, hi, c)
+            for k, lo, hi, c in draft.free
+        ]
         draft.fixed = [(k, _clip(ssm.parameter_spec(k), v), c) for k, v, c in draft.fixed]
         out.append((name, draft))
     return sorted(out, key=lambda nd: -nd[1].suits)
@@ -146,7 +149,8 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
     for k, v, c in d.fixed:
         L.append(_line(f"fixed.{k} = {_value(v)}", c))
     for k, lo, hi, c in d.free:
-        L.append(_line(f"free.{k} = {{ lower = {_value(lo)}, upper = {_value(hi)} }}", c))
+        by = f', scaled_by = "{d.scaled[k]}"' if k in d.scaled else ""
+        L.append(_line(f"free.{k} = {{ lower = {_value(lo)}, upper = {_value(hi)}{by} }}", c))
     L += [
         "",
         "# Two terms: the structural distance on branch and segment tables (how branches look) and a",

@@ -20,13 +20,13 @@ def _r5(x: float) -> float:
 
 
 def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
-    years_lo = max(7, round(1.5 * m.height))
-    if years_lo > MAX_YEARS - 5:
+    if m.height > MAX_YEARS - 5:
         return RecipeDraft(
             suits=0.0,
             why=f"a {m.height:.1f} m tree needs more than LIGNUM's {MAX_YEARS} years "
-            "at a conifer's growth (1.5 years per m of height at the least)",
+            "at a conifer's growth (1 year per m of height at the least)",
         )
+    years = f"{max(7, round(m.height))}-{min(MAX_YEARS, round(2 * m.height))}"
     b_lo, b_mid, b_hi = (
         max(10.0, _r5(m.beta_q10 - 35)),
         min(90.0, _r5(m.beta_q50 + 20)),
@@ -36,9 +36,9 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
     free = [
         (
             "years",
-            years_lo,
-            MAX_YEARS,
-            f"growth years: from 1.5 per m of height ({m.height:.1f} m) to the model's {MAX_YEARS}",
+            1.0,
+            2.0,
+            f"growth years: 1-2 per m of height ({years} for this {m.height:.1f} m tree)",
         ),
         ("photo_eff", 0.0003, 0.006, "wider than the papers': stand shade takes light"),
         ("lr_mean", 0.0045, 0.025, "branches' base radius 1-2.5 % of their length"),
@@ -82,5 +82,6 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         free=free,
         timeout=60.0,
         # the calibrated balance of the pine recipe (examples/real/pine_lignum.toml)
+        scaled={"years": "height"},
         size_weights={"height": 8.0, "dbh": 2.7, "crown_spread": 2.0, "crown_base_height": 1.6, "n_branches_o1": 1.6},
     )

@@ -32,6 +32,7 @@ __all__ = [
     "SUMMARY_UNITS",
     "summary_unit",
     "summary_label",
+    "branching_angles",
     "TreeMeasures",
     "measure_tree",
     "DECURRENT_LIMB_RATIO",
@@ -238,6 +239,8 @@ SUMMARY_UNITS = {
     "profile_n": "count",
     "profile_len": "m",
     "n_all_branches": "count",
+    "angle": "deg",
+    "angle_iqr": "deg",
     "trunk_volume": "m^3",
     "branch_volume": "m^3",
     "crown_diameter_mean": "m",
@@ -316,6 +319,8 @@ def summary_label(name: str, bands: int = 5) -> str:
             "n_all_branches": f"branches of order {k} (all)",
             "length": f"length of order-{k} branches (base >= {100 * DETECTION_DIAMETER:g} cm)",
             "volume": "stem wood volume" if k == 0 else f"wood volume of order {k}",
+            "angle": f"branching angle of order-{k} branches, median",
+            "angle_iqr": f"branching angle of order-{k} branches, interquartile range",
         }.get(head, name)
     if tail[0] == "b" and head in ("profile_n", "profile_len"):
         lo, hi = 100 * k / bands, 100 * (k + 1) / bands
@@ -397,7 +402,9 @@ def tree_summary(
         ``stem_length`` (m); per order w: ``n_branches_o{w}`` (living branches at least
         ``min_diameter`` thick at the base), ``n_all_branches_o{w}`` (every living branch),
         ``length_o{w}`` (the counted branches' total length, m), ``volume_o{w}`` (wood volume,
-        m^3, of every cylinder, dead remnants included, order 0 = the stem); the profile
+        m^3, of every cylinder, dead remnants included, order 0 = the stem), ``angle_o{w}`` and
+        ``angle_iqr_o{w}`` (median and interquartile range, deg, of the counted branches'
+        branching angles, :func:`branching_angles`; NaN without such branches); the profile
         ``profile_n_b{k}`` and ``profile_len_b{k}`` (counted first-order branches whose base lies
         in band k, and their length). Units: :func:`summary_unit`.
     """
@@ -408,6 +415,7 @@ def tree_summary(
     living = _living(tree)
     seen = living & (2.0 * tree.radius[br.first] >= min_diameter)
     vol = np.pi * tree.radius**2 * tree.length
+    angle = branching_angles(tree)
     out = {
         "height": m["height"],
         "dbh": m["dbh"],
@@ -421,6 +429,9 @@ def tree_summary(
         out[f"n_branches_o{w}"] = float(np.count_nonzero(sel))
         out[f"n_all_branches_o{w}"] = float(np.count_nonzero((br.order == w) & living))
         out[f"length_o{w}"] = float(blen[sel].sum())
+        a = angle[sel & np.isfinite(angle)]
+        q25, q50, q75 = np.percentile(a, [25, 50, 75]) if a.size else (np.nan,) * 3
+        out[f"angle_o{w}"], out[f"angle_iqr_o{w}"] = float(q50), float(q75 - q25)
     for w in range(0, max_order + 1):
         out[f"volume_o{w}"] = float(vol[order == w].sum())
     o1 = (br.order == 1) & seen
@@ -432,6 +443,26 @@ def tree_summary(
         out[f"profile_n_b{k}"] = float(counts[k])
         out[f"profile_len_b{k}"] = float(lengths[k])
     return out
+
+
+def branching_angles(tree) -> np.ndarray:
+    """The branching angle of every branch (deg): between its first cylinder and the cylinder it
+    grows from (B^w's beta, docs/features-and-distance.md); NaN for the stem.
+
+    Parameters
+    ----------
+    tree : Tree
+
+    Returns
+    -------
+    ndarray
+        One angle per branch of ``tree.branches``, 0-180 deg.
+    """
+    br = tree.branches
+    has_parent = br.parent_cyl >= 0
+    cosang = np.full(len(br), np.nan)
+    cosang[has_parent] = np.einsum("ij,ij->i", tree.axis[br.first[has_parent]], tree.axis[br.parent_cyl[has_parent]])
+    return np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
 
 
 def order_summary(tree) -> list[dict]:
@@ -453,10 +484,7 @@ def order_summary(tree) -> list[dict]:
     br = tree.branches
     blen = np.bincount(tree.branch, weights=tree.length, minlength=len(br))
     bvol = np.bincount(tree.branch, weights=np.pi * tree.radius**2 * tree.length, minlength=len(br))
-    has_parent = br.parent_cyl >= 0
-    cosang = np.full(len(br), np.nan)
-    cosang[has_parent] = np.einsum("ij,ij->i", tree.axis[br.first[has_parent]], tree.axis[br.parent_cyl[has_parent]])
-    angle = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
+    angle = branching_angles(tree)
     if not len(br):
         return []
     order = np.asarray(br.order, dtype=np.int64)  # one pass per sum: linear in branches, whatever the orders

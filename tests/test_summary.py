@@ -150,3 +150,15 @@ def test_summary_distance_missing_values_and_caps():
     assert d.compute_pair("summary", np.array([[7.0, 1.0]]), np.array([[np.nan, 1.0]])) == 0.0
     with pytest.raises(ValueError, match="does not have: hieght"):
         _dist(weights={"hieght": 2.0})
+
+
+def test_branching_angles_of_the_hand_built_tree():
+    # laterals A, B, C leave the trunk at 60, 90 and 90 deg (base diameters 0.10, 0.08, 0.06 m)
+    s = tree_summary(hand_tree(), max_order=2)
+    assert s["angle_o1"] == pytest.approx(90.0)
+    assert s["angle_iqr_o1"] == pytest.approx(90.0 - 75.0)  # quartiles of (60, 90, 90): 75 and 90
+    assert np.isnan(s["angle_o2"]) and np.isnan(s["angle_iqr_o2"])  # no second-order branches
+    thick = tree_summary(hand_tree(), max_order=2, min_diameter=0.07)  # A and B only
+    assert (thick["angle_o1"], thick["angle_iqr_o1"]) == (pytest.approx(75.0), pytest.approx(15.0))
+    assert summary_unit("angle_iqr_o1") == "deg" and summary_unit("angle_o1") == "deg"
+    assert [r["mean_angle_deg"] for r in order_summary(hand_tree()) if r["order"] == 1] == [pytest.approx(80.0)]

@@ -446,8 +446,10 @@ def tree_summary(
 
 
 def branching_angles(tree) -> np.ndarray:
-    """The branching angle of every branch (deg): between its first cylinder and the cylinder it
-    grows from (B^w's beta, docs/features-and-distance.md); NaN for the stem.
+    """Return the branching angle of every branch, in degrees.
+
+    The angle between a branch's first cylinder and the cylinder it grows from (B^w's beta,
+    docs/features-and-distance.md); NaN for the stem.
 
     Parameters
     ----------

@@ -81,7 +81,7 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         fixed=[("piece_length", 0.15, "drawn as a scan's QSM draws a tree: shoots as cylinders of at most 15 cm")],
         free=free,
         timeout=60.0,
-        # the calibrated balance of the pine recipe (examples/real/pine_lignum.toml)
         scaled={"years": "height"},
+        # the calibrated balance of the pine recipe (examples/real/pine_lignum.toml)
         size_weights={"height": 8.0, "dbh": 2.7, "crown_spread": 2.0, "crown_base_height": 1.6, "n_branches_o1": 1.6},
     )

@@ -84,7 +84,7 @@ PARAMETERS: list[ParameterSpec] = [
     P("branch_angle", 65.0, 20.0, 90.0, False, "deg", "lateral shoot turn about the parent's up vector", "V"),
     P("phyllotaxis", 137.52, 90.0, 180.0, False, "deg", "roll of the up vector about the heading per metamer", "V"),
     P("nonplanar_twist", 90.0, 0.0, 180.0, False, "deg", "roll of a lateral shoot's up vector about its heading", "V"),
-    P("branch_angle_sd", 5.0, 0.0, 15.0, False, "deg", "clone noise: sd of the branch angle, per lateral shoot", "V"),
+    P("branch_angle_sd", 5.0, 0.0, 25.0, False, "deg", "clone noise: sd of the branch angle, per lateral shoot", "V"),
     P("phyllotaxis_sd", 10.0, 0.0, 30.0, False, "deg", "clone noise: sd of the phyllotaxis angle, per metamer", "V"),
     P("tropism_sd", 0.0, 0.0, 0.05, False, "", "clone noise: sd of the tropism, per shoot", "V"),
     P(

@@ -27,6 +27,7 @@ from pydantic import Field, field_validator
 
 from bforest_core.errors import ConfigError
 from bforest_core.interfaces import ComponentSettings, FeatureSet
+from bforest_core.metrics import branching_angles
 
 __all__ = [
     "BranchSegmentFeatures",
@@ -248,7 +249,7 @@ def branch_table(tree, clip_la: bool = True, seg_L: np.ndarray | None = None):
     p = bt.parent_cyl[1:]
     af = tree.axis[f]
     ap = tree.axis[p]
-    beta = np.degrees(np.arccos(np.clip(_rowdot(af, ap), -1.0, 1.0)))
+    beta = branching_angles(tree)[1:]
     v, w = azimuth_frame(ap)
     alpha = np.degrees(np.arctan2(_rowdot(af, w), _rowdot(af, v)))
     alpha = np.where(alpha <= -180.0, 180.0, alpha)  # range (-180, 180]

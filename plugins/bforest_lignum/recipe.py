@@ -13,6 +13,8 @@ from bforest_core.metrics import TreeMeasures
 
 #: most years a recipe lets LIGNUM grow (the parameter's range)
 MAX_YEARS = 40
+#: growth years per m of the tree's height, the bounds of ``years`` (``scaled_by = "height"``)
+YEARS_PER_M = (1.0, 2.0)
 
 
 def _r5(x: float) -> float:
@@ -20,13 +22,14 @@ def _r5(x: float) -> float:
 
 
 def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
-    if m.height > MAX_YEARS - 5:
+    per_m_lo, per_m_hi = YEARS_PER_M
+    if per_m_lo * m.height > MAX_YEARS - 5:
         return RecipeDraft(
             suits=0.0,
             why=f"a {m.height:.1f} m tree needs more than LIGNUM's {MAX_YEARS} years "
-            "at a conifer's growth (1 year per m of height at the least)",
+            f"at a conifer's growth ({per_m_lo:g} years per m of height at the least)",
         )
-    years = f"{max(7, round(m.height))}-{min(MAX_YEARS, round(2 * m.height))}"
+    years = f"{max(7, round(per_m_lo * m.height))}-{min(MAX_YEARS, round(per_m_hi * m.height))}"
     b_lo, b_mid, b_hi = (
         max(10.0, _r5(m.beta_q10 - 35)),
         min(90.0, _r5(m.beta_q50 + 20)),
@@ -36,9 +39,9 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
     free = [
         (
             "years",
-            1.0,
-            2.0,
-            f"growth years: 1-2 per m of height ({years} for this {m.height:.1f} m tree)",
+            per_m_lo,
+            per_m_hi,
+            f"growth years: {per_m_lo:g}-{per_m_hi:g} per m of height ({years} for this {m.height:.1f} m tree)",
         ),
         ("photo_eff", 0.0003, 0.006, "wider than the papers': stand shade takes light"),
         ("lr_mean", 0.0045, 0.025, "branches' base radius 1-2.5 % of their length"),

@@ -239,6 +239,11 @@ class RecipeDraft:
     size_weights : dict
         Weights of the size term's statistics where the model has its own calibrated balance
         (empty: the recipe's default, the inverse of the errors a forester tolerates).
+    size_extra : dict
+        Statistics the size term adds to the summary's default set (name -> weight), each with
+        what in the tree asked for it in ``size_why``.
+    size_why : str
+        One comment line saying why the size term holds ``size_extra``.
     """
 
     suits: float
@@ -251,6 +256,8 @@ class RecipeDraft:
     notes: list = field(default_factory=list)
     size_weights: dict = field(default_factory=dict)
     scaled: dict = field(default_factory=dict)
+    size_extra: dict = field(default_factory=dict)
+    size_why: str = ""
 
 
 class SSM(Component):

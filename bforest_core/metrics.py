@@ -225,6 +225,25 @@ def relative_errors(data_metrics: Mapping[str, float], model_metrics: Mapping[st
 
 
 # ------------------------------------------------------------------------------ tree summary
+#: the statistics of the summary set by default (``tree-summary``): size, stem, crown, branch
+#: counts and the vertical profile
+SUMMARY_DEFAULT = (
+    "height",
+    "dbh",
+    "crown_spread",
+    "crown_base_height",
+    "n_branches_o1",
+    "n_branches_o2",
+    "length_o1",
+    "length_o2",
+    "volume_o0",
+    "profile_len_b0",
+    "profile_len_b1",
+    "profile_len_b2",
+    "profile_len_b3",
+    "profile_len_b4",
+)
+
 #: unit of each summary statistic, by name prefix (longest prefix wins)
 SUMMARY_UNITS = {
     "height": "m",

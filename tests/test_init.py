@@ -16,7 +16,7 @@ import pytest
 
 import bforest_core as bf
 from bforest_core.cli.main import main
-from bforest_core.metrics import measure_tree
+from bforest_core.metrics import SUMMARY_DEFAULT, measure_tree
 from bforest_core.pipeline.recipe import write_recipe
 from bforest_core.pipeline.target import bounds_from_target
 from conftest import ROOT
@@ -146,6 +146,12 @@ def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp
     h = 3.0 + 6 * math.cos(math.radians(30))
     assert s["fixed"]["span"] == 2 * math.ceil(0.9 * h) or s["fixed"]["span"] == 12.0
     assert s["free"]["init_width"]["lower"] == pytest.approx(0.03)  # its thinnest branch: 3 cm
+    # the angle varies from branch to branch, and the size term holds its median and spread on top
+    # of the summary's default statistics
+    assert s["free"]["branch_angle_sd"] == {"lower": 0.0, "upper": 25.0}
+    size = cfg["objective"]["terms"][0]
+    assert size["features"]["statistics"] == [*SUMMARY_DEFAULT, "angle_o1", "angle_iqr_o1"]
+    assert size["distance"]["weights"]["angle_o1"] == 6.7 and size["distance"]["weights"]["height"] == 13.3
     text = (tmp_path / "maple.toml").read_text()
     assert "decurrent" in text and "Not lignum" in text
     bf.load_config(tmp_path / "maple.toml")

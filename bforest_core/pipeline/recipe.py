@@ -11,13 +11,14 @@ answer chosen on held-out seeds.
 from __future__ import annotations
 
 import os
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import ConfigError
 from ..interfaces import RecipeDraft
 from ..io import read_qsm
-from ..metrics import TreeMeasures, measure_tree
+from ..metrics import SUMMARY_DEFAULT, TreeMeasures, measure_tree
 from ..registry import component, discover
 
 #: what the size term weighs: each headline statistic by the inverse of the error a forester
@@ -176,12 +177,19 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
             else "# The headline statistics weigh by the inverse of the error a forester tolerates (height 7.5 %,\n"
             "# DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %)."
         ),
+        *(f"# {s}" for s in textwrap.wrap(d.size_why if d.size_extra else "", 96)),
         "[[objective.terms]]",
         'name = "size"',
         "weight = 2.0",
-        'features = { kind = "tree-summary", min_branch_diameter = 0.0 }',
+        'features = { kind = "tree-summary", min_branch_diameter = 0.0'
+        + (
+            ", statistics = [" + ", ".join(f'"{k}"' for k in (*SUMMARY_DEFAULT, *d.size_extra)) + "]"
+            if d.size_extra
+            else ""
+        )
+        + " }",
         'distance = { kind = "summary", form = "logratio", weights = { '
-        + ", ".join(f"{k} = {v}" for k, v in (d.size_weights or SIZE_WEIGHTS).items())
+        + ", ".join(f"{k} = {v}" for k, v in {**(d.size_weights or SIZE_WEIGHTS), **d.size_extra}.items())
         + " } }",
         "",
         "# A search that does not hinge on one trajectory: 32 Sobol' points over the box, four lq-CMA-ES",

@@ -16,6 +16,10 @@ import math
 from bforest_core.interfaces import RecipeDraft
 from bforest_core.metrics import TreeMeasures
 
+#: the size term's hold on the first-order branching angle: the median within 15 % (weight 1/0.15)
+#: and its interquartile range within 30 % (the pine recipe's, docs/validation.md section 4)
+ANGLE_TERM = {"angle_o1": 6.7, "angle_iqr_o1": 3.3}
+
 
 def _r(x: float, step: float) -> float:
     return round(round(x / step) * step, 6)
@@ -87,6 +91,12 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
             ang_hi,
             f"first-order branches at {m.beta_q10:.0f}-{m.beta_q90:.0f} deg to the stem (10-90 %)",
         ),
+        (
+            "branch_angle_sd",
+            0.0,
+            25.0,
+            "the angle varies from branch to branch (with the model's default of 5 deg all leave at one angle)",
+        ),
         ("tropism", -0.1, 0.3, None),
         ("reorient", 0.0, 1.0, "how much shoots turn towards light"),
         ("heading_sd", 0.0, 20.0, "winding of the axes (deg per internode)"),
@@ -149,4 +159,9 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         timeout=60.0 if big else 20.0,
         wall_time=480.0 if big else 840.0,
         notes=notes,
+        size_extra=ANGLE_TERM,
+        size_why=(
+            "The first-order branches' branching angle (median and interquartile range, deg) is held by the "
+            "size term: the structural sets pool first- and second-order branches, which leaves it loose."
+        ),
     )

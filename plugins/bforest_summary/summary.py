@@ -15,26 +15,9 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from bforest_core.interfaces import ComponentSettings, Distance, FeatureSet
-from bforest_core.metrics import DETECTION_DIAMETER, summary_unit, tree_summary
+from bforest_core.metrics import DETECTION_DIAMETER, SUMMARY_DEFAULT, summary_unit, tree_summary
 
 SET = "summary"
-#: the statistics of the default set: size, stem, crown, branch counts and the vertical profile
-DEFAULT_STATISTICS = (
-    "height",
-    "dbh",
-    "crown_spread",
-    "crown_base_height",
-    "n_branches_o1",
-    "n_branches_o2",
-    "length_o1",
-    "length_o2",
-    "volume_o0",
-    "profile_len_b0",
-    "profile_len_b1",
-    "profile_len_b2",
-    "profile_len_b3",
-    "profile_len_b4",
-)
 #: offset c of the log ratio |log((m + c) / (d + c))| by unit: a count of 0 is fine, a length or
 #: volume near 0 does not blow up
 OFFSETS = {"": 1.0, "m": 0.05, "m^3": 1e-4}
@@ -42,7 +25,7 @@ OFFSETS = {"": 1.0, "m": 0.05, "m^3": 1e-4}
 
 class TreeSummarySettings(ComponentSettings):
     statistics: list[str] = Field(
-        list(DEFAULT_STATISTICS),
+        list(SUMMARY_DEFAULT),
         min_length=1,
         description=(
             "statistics of bforest_core.metrics.tree_summary (height, dbh, base_diameter, crown_spread, "

@@ -143,6 +143,7 @@ def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp
     assert s["buds_per_node"] == 2 and s["fixed"]["phyllotaxis"] == 90.0
     assert s["free"]["init_lambda"] == {"lower": 0.35, "upper": 0.8}
     assert s["free"]["leader_death"]["upper"] > 0
+    assert s["free"]["short_shoot"] == {"lower": 0.0, "upper": 0.9}
     h = 3.0 + 6 * math.cos(math.radians(30))
     assert s["fixed"]["span"] == 2 * math.ceil(0.9 * h) or s["fixed"]["span"] == 12.0
     assert s["free"]["init_width"]["lower"] == pytest.approx(0.03)  # its thinnest branch: 3 cm

@@ -104,7 +104,8 @@ def test_parameter_table_complete():
         "heading_sd",
         "leader_death",
         "death_delay",
-    }  # the last four are additions, off by default
+        "short_shoot",
+    }  # the last five are additions, off by default
     assert set(names) == expected and len(names) == len(expected)
     by = {p.name: p for p in PARAMETERS}
     # calibrated defaults of B.4 and clone noise of E
@@ -644,7 +645,8 @@ def _digest(t):
 @pytest.mark.parametrize("seed", [1, 2])
 def test_growth_forms_off_leave_the_papers_tree_as_it_was(seed):
     # the options at their defaults draw nothing and add no node: the tree recorded before them
-    for ssm_, params in [(SOT(), {}), (SOT(buds_per_node=1), {"leader_death": 0.0, "death_delay": 3.0})]:
+    off = {"leader_death": 0.0, "death_delay": 3.0, "short_shoot": 0.0}
+    for ssm_, params in [(SOT(), {}), (SOT(buds_per_node=1), off)]:
         assert _digest(ssm_.simulate({"max_iter": 14, **params}, seed)) == DEFAULT_TREES[seed]
 
 
@@ -721,6 +723,32 @@ def test_bud_nodes_keep_the_pipe_model_and_the_axis_share_of_lambda():
     # with lambda = 1 every lateral bud of a node gets nothing, as with one bud per node
     solo = SOT(buds_per_node=2).simulate({**p, "init_lambda": 1.0, "targ_lambda": 1.0}, 3)
     assert solo.n_branches == 1
+
+
+def test_short_shoots_grow_one_internode_and_never_grow_on():
+    p = {**HAND, "max_iter": 8}
+    node = SOT().parameter_spec("node_length").default
+
+    def first_order(t):  # cylinders per first-order branch, and the highest order
+        br = t.branches
+        n = np.bincount(t.branch, minlength=len(br))
+        return n[br.order == 1], int(br.order.max())
+
+    for bpn in (1, 2):
+        ssm = SOT(buds_per_node=bpn)
+        n, top = first_order(ssm.simulate(p, 1))
+        assert n.max() > 1 and top >= 2  # without: laterals grow on and branch
+        # every lateral shoot a short shoot: one internode of node_length on the stem, nothing more
+        t = ssm.simulate({**p, "short_shoot": 1.0}, 1)
+        n, top = first_order(t)
+        assert top == 1 and n.size > 0 and (n == 1).all()
+        lat = t.order == 1
+        assert np.allclose(t.length[lat], node), bpn
+    # a probability draws per lateral shoot: seeds differ, a seed repeats; some shoots grow on
+    a, b = (SOT().simulate({**p, "short_shoot": 0.5}, s) for s in (1, 2))
+    assert _same_tree(a, SOT().simulate({**p, "short_shoot": 0.5}, 1)) and not _same_tree(a, b)
+    n, _ = first_order(a)
+    assert (n == 1).any() and (n > 1).any()
 
 
 def test_leader_death_makes_every_shoot_fork_after_its_delay():

@@ -256,6 +256,7 @@ _FIELDS = {
     "api_stub_w": (np.float64, 0),
     "lat_stub_w": (np.float64, 0),
     "twin": (np.bool_, 0),
+    "short": (np.bool_, 0),
 }
 
 
@@ -300,6 +301,7 @@ class SegmentStore:
         self.lat_child[new] = -1
         self.api_stub_w[new] = 0.0
         self.lat_stub_w[new] = 0.0
+        self.short[new] = False
 
     @property
     def live(self) -> np.ndarray:
@@ -637,8 +639,8 @@ class SOTGrowth:
         p, s, rng = self.p, self.s, self.rng
         ids = bp.ids
         keep = ~dead
-        grow_a = keep & (bp.api_state0 == BUD) & (np.floor(vA) >= 1.0)
-        grow_l = keep & (bp.lat_state0 == BUD) & (vL > 1.0)
+        grow_a = keep & (bp.api_state0 == BUD) & (np.floor(vA) >= 1.0) & ~s.short[ids]
+        grow_l = keep & (bp.lat_state0 == BUD) & (vL > 1.0) & ~s.short[ids]
         if p["leader_death"] > 0.0 and c > p["death_delay"]:
             # draw 1b (an addition): a growing apical bud dies with probability leader_death; the
             # lateral buds at its node take over (with opposite buds: a fork). Drawn only when
@@ -661,6 +663,15 @@ class SOTGrowth:
         vig = np.concatenate([vA[ia], vL[il]])[srt]
         bearing = ids[sl]
         planned = np.floor(vig).astype(np.int64)
+        short = np.zeros(bearing.size, bool)
+        if p["short_shoot"] > 0.0:
+            # draw 1c (an addition): a lateral shoot is a short shoot with probability
+            # short_shoot: one internode that never grows on (its buds take light and vigor but
+            # do not grow). Drawn only when the probability is positive, so trees without it keep
+            # their draws.
+            li = np.flatnonzero(lateral)
+            short[li[rng.random(li.size) < p["short_shoot"]]] = True
+            planned[short] = 1
         n_live = int(ids.size - np.count_nonzero(dead))
         if self.buds_per_node > 1:  # bud nodes are not segments of the tree
             n_live -= int(np.count_nonzero(s.twin[ids] & ~dead))
@@ -670,9 +681,9 @@ class SOTGrowth:
                 f"cycle {c} would grow {int(planned.sum())} metamers on {n_live} "
                 f"live segments (max_live_segments = {self.max_live})",
             )
-        self._build_shoots(c, bearing, lateral, vig, planned)
+        self._build_shoots(c, bearing, lateral, vig, planned, short)
 
-    def _build_shoots(self, c, bearing, lateral, vig, planned) -> None:
+    def _build_shoots(self, c, bearing, lateral, vig, planned, short) -> None:
         p, s, rng = self.p, self.s, self.rng
         m = bearing.size
         # draws 2 and 3 (blocks consumed even when the sd is 0)
@@ -697,7 +708,7 @@ class SOTGrowth:
             h[li] = hl
             u[li] = ul
         pos = s.start[bearing] + s.length[bearing, None] * s.h[bearing]
-        seg_len = np.where(planned > 0, vig / np.maximum(planned, 1), 0.0) * p["node_length"]
+        seg_len = np.where(short, 1.0, np.where(planned > 0, vig / np.maximum(planned, 1), 0.0)) * p["node_length"]
         order = s.order[bearing] + lateral
         last = np.full(m, -1, dtype=np.int64)
         built = np.zeros(m, dtype=np.int64)
@@ -777,6 +788,12 @@ class SOTGrowth:
                 last[act] = self._add_bud_nodes(c, nid, pos[act], ha, ua, order[act])
         tips = last[last >= 0]
         s.api_state[tips] = BUD
+        if short.any():  # a short shoot's metamer and its bud nodes never grow on
+            node = first[short & (first >= 0)]
+            s.short[node] = True
+            for _ in range(self.buds_per_node - 1):
+                node = s.api_child[node]
+                s.short[node] = True
         self.created = s.n
         # 8. shadows of all new metamers, from their starts, in one batch
         if new_starts:

@@ -120,6 +120,17 @@ PARAMETERS: list[ParameterSpec] = [
         "an addition: apical buds die (leader_death) from cycle death_delay + 1 on, e.g. from the onset of flowering",
         "V",
     ),
+    P(
+        "short_shoot",
+        0.0,
+        0.0,
+        1.0,
+        False,
+        "",
+        "an addition: probability that a lateral shoot is a short shoot (one internode of node_length whose "
+        "buds never grow: the spurs and short shoots of broadleaved trees); 0 = the papers' model (no draws)",
+        "V",
+    ),
     # ---- fixed geometry (GS)
     P(
         "node_length",

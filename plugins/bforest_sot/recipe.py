@@ -6,7 +6,7 @@ its first-order branches' angles, the terminal shoot's diameter from the QSM's t
 and the apical control and growth forms from its crown form (docs/growth-forms.md): an
 excurrent crown (a leader to the top, like a pine's) gets strong apical control and one bud per
 node; a decurrent one (the stem divides into limbs, like a maple's) gets weak apical control,
-opposite buds and leaders that may die so the buds below them fork.
+opposite buds, leaders that may die so the buds below them fork, and short shoots.
 """
 
 from __future__ import annotations
@@ -132,6 +132,12 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         free += [
             ("leader_death", 0.0, 0.5, "leaders that die each cycle: the buds below them take over (forks)"),
             ("death_delay", 0.0, 30.0, "cycles before leaders may die"),
+            (
+                "short_shoot",
+                0.0,
+                0.9,
+                "laterals that stay short shoots (spurs): a broadleaf's many short branches among its long limbs",
+            ),
         ]
         why = (
             f"its crown is decurrent (the three largest limbs hold {m.limb_ratio:.1f} x the stem's wood "

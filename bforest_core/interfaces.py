@@ -240,10 +240,9 @@ class RecipeDraft:
         Weights of the size term's statistics where the model has its own calibrated balance
         (empty: the recipe's default, the inverse of the errors a forester tolerates).
     size_extra : dict
-        Statistics the size term adds to the summary's default set (name -> weight), each with
-        what in the tree asked for it in ``size_why``.
+        Statistics the size term adds to the summary's default set (name -> weight).
     size_why : str
-        One comment line saying why the size term holds ``size_extra``.
+        Why the size term holds ``size_extra`` (written as a comment above the term).
     """
 
     suits: float

@@ -29,6 +29,7 @@ __all__ = [
     "dbh",
     "tree_summary",
     "order_summary",
+    "SUMMARY_DEFAULT",
     "SUMMARY_UNITS",
     "summary_unit",
     "summary_label",

@@ -639,8 +639,9 @@ class SOTGrowth:
         p, s, rng = self.p, self.s, self.rng
         ids = bp.ids
         keep = ~dead
-        grow_a = keep & (bp.api_state0 == BUD) & (np.floor(vA) >= 1.0) & ~s.short[ids]
-        grow_l = keep & (bp.lat_state0 == BUD) & (vL > 1.0) & ~s.short[ids]
+        may_grow = keep & ~s.short[ids]  # a short shoot's buds never grow
+        grow_a = may_grow & (bp.api_state0 == BUD) & (np.floor(vA) >= 1.0)
+        grow_l = may_grow & (bp.lat_state0 == BUD) & (vL > 1.0)
         if p["leader_death"] > 0.0 and c > p["death_delay"]:
             # draw 1b (an addition): a growing apical bud dies with probability leader_death; the
             # lateral buds at its node take over (with opposite buds: a fork). Drawn only when

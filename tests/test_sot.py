@@ -771,3 +771,93 @@ def test_leader_death_makes_every_shoot_fork_after_its_delay():
     # a probability draws per growing apical bud: seeds differ, a seed repeats
     a, b = (ssm.simulate({**p, "leader_death": 0.3}, s) for s in (1, 2))
     assert _same_tree(a, ssm.simulate({**p, "leader_death": 0.3}, 1)) and not _same_tree(a, b)
+
+
+# ------------------------------------------------------------------------------ compiled loops
+# kernels.py replaces numpy loops of the growth cycle; each must give the numpy's bits, or the
+# fits' trajectories (and the recorded trees) would change with the speed-up.
+
+
+def test_frame_kernels_give_numpy_rotations_bit_for_bit():
+    from bforest_sot.kernels import advance_frames, turn_geometry
+    from bforest_sot.model import _norm, _unit, cross, rotate
+
+    rng = np.random.default_rng(5)
+    m = 301
+    h = _unit(rng.normal(size=(m, 3)))
+    u = _unit(cross(h, rng.normal(size=(m, 3))))
+    target = rng.normal(size=(m, 3))
+    target[8] = 2.0 * h[8]  # parallel: no turn
+    tau = rng.uniform(0.0, 0.5, m)
+    act = np.arange(0, m, 2)
+    phi = rng.normal(size=act.size)
+    for bend in (rng.normal(size=act.size) * 0.3, np.empty(0)):
+        # the numpy of model._build_shoots before kernels.py
+        ha, ua, ta = h[act], u[act], target[act]
+        ax = cross(ha, ta)
+        sn = _norm(ax)
+        cs = np.einsum("ij,ij->i", ha, ta)
+        ti = np.flatnonzero(sn > 1e-12)
+        assert ti.size == act.size - 1
+        th = tau[act][ti] * np.arctan2(sn[ti], cs[ti])
+        ha[ti] = rotate(ha[ti], ax[ti] / sn[ti, None], th)
+        ua[ti] = rotate(ua[ti], ax[ti] / sn[ti, None], th)
+        ha = _unit(ha)
+        if bend.size:
+            ha = _unit(rotate(ha, ua, bend))
+        ua = rotate(ua, ha, phi)
+        ua = _unit(ua - np.einsum("ij,ij->i", ua, ha)[:, None] * ha)
+        # the kernels
+        h2, u2 = h.copy(), u.copy()
+        kax, ksn, kcs = turn_geometry(h2, target, act)
+        assert np.array_equal(kax, ax) and np.array_equal(ksn, sn) and np.array_equal(kcs, cs)
+        kth = np.zeros(act.size)
+        kth[ti] = th
+        advance_frames(h2, u2, act, kax, ksn, kth, bend, phi)
+        assert np.array_equal(h2[act], ha) and np.array_equal(u2[act], ua)
+        rest = np.setdiff1d(np.arange(m), act)
+        assert np.array_equal(h2[rest], h[rest]) and np.array_equal(u2[rest], u[rest])
+
+
+def test_level_sums_and_shadow_sums_give_the_numpy_bits():
+    from bforest_core.tree import group_by_level
+    from bforest_sot.kernels import add_shadows, sum_levels
+
+    # a random tree of 400 nodes: parent before child, each slot holding at most one child
+    rng = np.random.default_rng(8)
+    m = 400
+    ac, lc = np.full(m, m), np.full(m, m)
+    depth = np.zeros(m, np.int64)
+    for c in range(1, m):
+        while True:
+            p = int(rng.integers(0, c))
+            slot = ac if rng.random() < 0.5 else lc
+            if slot[p] == m:
+                slot[p] = c
+                depth[c] = depth[p] + 1
+                break
+    base = rng.normal(size=(m + 1, 3))
+    base[m] = 0.0
+    base[::7, 2] = -1.0  # widths that fall back to d0n
+    order, bounds = group_by_level(depth)
+    V = np.zeros((m + 1, 3))
+    for j in range(bounds.shape[0] - 2, -1, -1):  # the numpy of model.accumulate before kernels.py
+        L = order[bounds[j] : bounds[j + 1]]
+        x = base[L] + V[ac[L]] + V[lc[L]]
+        x[x[:, 2] <= 0.0, 2] = 0.37
+        V[L] = x
+    assert np.array_equal(sum_levels(base, ac, lc, order, bounds, 0.37), V)
+
+    # shadows of overlapping voxels: the bincount of light.py before kernels.py
+    log = rng.normal(size=5000)
+    off = np.array([0, 1, -1, 50, -50, 49, 51, 100, 2])
+    wf = -rng.uniform(0.1, 2.0, off.size)
+    base_v, cnt = np.unique(rng.integers(200, 4700, 300), return_counts=True)
+    flat = (base_v[:, None] + off[None, :]).ravel()
+    w = (cnt[:, None] * wf[None, :]).ravel()
+    lo, hi = int(base_v[0] + off.min()), int(base_v[-1] + off.max()) + 1
+    want = log.copy()
+    want[lo:hi] += np.bincount(flat - lo, weights=w, minlength=hi - lo)
+    acc = np.zeros(log.size)
+    add_shadows(log, acc, base_v, cnt, off, wf)
+    assert np.array_equal(log, want) and not acc.any()

@@ -17,6 +17,8 @@ from collections import OrderedDict
 
 import numpy as np
 
+from .kernels import add_shadows
+
 _LOG_FLOOR = np.log(1e-12)  # factors and initial exposures are clamped to >= 1e-12
 
 #: initial fields (padded log E0 and roof mask, read-only) by ``initial_key`` and shape: a fit grows
@@ -136,6 +138,7 @@ class LightField:
                 while len(_INITIAL) > _INITIAL_KEEP:
                     _INITIAL.popitem(last=False)
         self._log = self._log0.copy()
+        self._acc = None  # add_shadows' scratch, made on the first shadow
 
     def _initial(self, n, ran, vert, uniforms):
         """The padded flat log E0 and roof mask (read-only)."""
@@ -170,11 +173,9 @@ class LightField:
         if len(points) == 0 or self.log_f.size == 0:
             return
         base, cnt = np.unique(self._flat(self.voxel_of(points)), return_counts=True)
-        flat = (base[:, None] + self._off[None, :]).ravel()
-        w = (cnt[:, None] * (sign * self.log_f)[None, :]).ravel()
-        lo = int(base[0] + self._off.min())
-        hi = int(base[-1] + self._off.max()) + 1
-        self._log[lo:hi] += np.bincount(flat - lo, weights=w, minlength=hi - lo)
+        if self._acc is None:
+            self._acc = np.zeros(self._log.shape)
+        add_shadows(self._log, self._acc, base, cnt, self._off, sign * self.log_f)
 
     def cast(self, points: np.ndarray) -> None:
         """Cast the shadows of segments starting at ``points`` ((m, 3), m) in one batch."""

@@ -33,6 +33,7 @@ import numpy as np
 
 from bforest_core.tree import Tree, group_by_level
 
+from .kernels import advance_frames, sum_levels, turn_geometry
 from .light import LightField
 
 MODEL_VERSION = "1.0"
@@ -156,14 +157,8 @@ def accumulate(
     ac = np.where(api_state == CHILD, api_child, sent)
     lc = np.where(lat_state == CHILD, lat_child, sent)
     d0n = float(init_width) ** pipe_exp
-    V = np.zeros((m + 1, 3))
     order, bounds = group_by_level(depth) if levels is None else levels
-    for j in range(bounds.shape[0] - 2, -1, -1):
-        L = order[bounds[j] : bounds[j + 1]]
-        x = base[L] + V[ac[L]] + V[lc[L]]
-        w = x[:, 2]
-        w[w <= 0.0] = d0n
-        V[L] = x
+    V = sum_levels(base, ac, lc, order, bounds, d0n)  # level by level, deepest first (kernels.py)
     N = V[:m, 0]
     Q = V[:m, 1]
     W = V[:m, 2]
@@ -738,19 +733,13 @@ class SOTGrowth:
             z_phy = rng.standard_normal(act.size)  # draw 4: one per active shoot
             if act.size == 0:
                 continue
-            ha, ua, ta, tu = h[act], u[act], that[act], tau[act]
-            # (ii) partial rotation of the frame towards the target
-            ax = cross(ha, ta)
-            sn = _norm(ax)
-            cs = np.einsum("ij,ij->i", ha, ta)
-            turn = sn > 1e-12  # h parallel or antiparallel to the target: no turn
-            if turn.any():
-                ti = np.flatnonzero(turn)
-                axu = ax[ti] / sn[ti, None]
-                th = tu[ti] * np.arctan2(sn[ti], cs[ti])
-                ha[ti] = rotate(ha[ti], axu, th)
-                ua[ti] = rotate(ua[ti], axu, th)
-            ha = _unit(ha)
+            # (ii) partial rotation of the frame towards the target, (iii) the clone noise's bend
+            # and the phyllotaxis roll: compiled loops (kernels.py), numpy's arctan2 between them
+            ax, sn, cs = turn_geometry(h, that, act)
+            th = np.zeros(act.size)
+            ti = np.flatnonzero(sn > 1e-12)
+            th[ti] = tau[act[ti]] * np.arctan2(sn[ti], cs[ti])
+            bend = np.empty(0)
             if p["heading_sd"] > 0.0:
                 # clone noise (an addition): each metamer of a branch bends by N(0, heading_sd)
                 # about its up vector, whose phyllotaxis roll turns the bending plane from metamer
@@ -758,13 +747,9 @@ class SOTGrowth:
                 # does. Drawn only when the sd is positive, so trees without it are unchanged.
                 z_head = rng.standard_normal(act.size)
                 bend = np.radians(p["heading_sd"] * z_head) * (order[act] > 0)
-                ha = _unit(rotate(ha, ua, bend))  # u is the axis: it stays perpendicular to h
-            # (iii) phyllotaxis roll of u about h
             phi = np.radians(p["phyllotaxis"] + p["phyllotaxis_sd"] * z_phy)
-            ua = rotate(ua, ha, phi)
-            ua = _unit(ua - np.einsum("ij,ij->i", ua, ha)[:, None] * ha)
-            h[act] = ha
-            u[act] = ua
+            advance_frames(h, u, act, ax, sn, th, bend, phi)
+            ha, ua = h[act], u[act]
             # (iv) append the metamers
             nid = s.n + np.arange(act.size)
             new = slice(s.n, s.n + act.size)  # the rows nid, as a slice (cheaper to write)

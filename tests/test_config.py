@@ -174,3 +174,42 @@ def test_the_fidelity_table_marks_a_fit_stopped_by_its_wall_time():
         {"b": full, "c": {**full, "errors": {**full["errors"], "crown_base_height": -0.45}}}
     )
     assert "| pine_lignum | 1 of 2 | 1.50 | 0.74 |" in text
+
+
+def test_the_fidelity_table_gives_the_spread_on_fresh_seed_sets_beside_the_chosen_one():
+    """``run_fidelity.py --fresh N``: each answer grown again on N further held-out seed sets; the
+    table gives its spread over run seeds beside the spread of the distances that chose it, and
+    a dash where a run seed lacks it."""
+    run_fidelity = _run_fidelity()
+    row = {
+        "recipe": "pine_sot",
+        "fit_seconds": 100.0,
+        "evaluations": 1800,
+        "best_distance": 0.12,
+        "errors": dict.fromkeys(run_fidelity.NAMES, 0.01),
+        "judge_clones_median": 0.15,
+        "judge_stand_mates": {"2": 0.276, "3": 0.200},
+    }
+    rows = {
+        "a": {
+            **row,
+            "pine": 1,
+            "seed": 1,
+            "heldout_distance": 0.1221,
+            "heldout_fresh": {"sets": 32, "distance": 0.1251},
+        },
+        "b": {
+            **row,
+            "pine": 1,
+            "seed": 2,
+            "heldout_distance": 0.1423,
+            "heldout_fresh": {"sets": 32, "distance": 0.1419},
+        },
+        "c": {**row, "pine": 2, "seed": 1, "heldout_distance": 0.13},
+        "d": {**row, "pine": 2, "seed": 2, "heldout_distance": 0.14, "heldout_fresh": {"sets": 32, "distance": 0.14}},
+    }
+    text = run_fidelity.doc_section(rows)
+    assert "| within 15 % | the same on 32 fresh seed sets (`--fresh`) |" in text
+    assert "| pine_sot | 1 | 2 | 1.165 | no | 1.134 |" in text  # 0.1423 / 0.1221 and 0.1419 / 0.1251
+    assert "| pine_sot | 2 | 2 | 1.077 | yes | – |" in text
+    assert "fresh seed sets" not in run_fidelity.doc_section({"c": rows["c"]})

@@ -128,6 +128,17 @@ def _run_fidelity():
     return module
 
 
+def _fidelity_row(run_fidelity, **fields) -> dict:
+    """A row of run_fidelity.py's fidelity.json: errors of 1 % and pine 1's stand-mates, plus ``fields``."""
+    row = {
+        "best_distance": 0.12,
+        "errors": dict.fromkeys(run_fidelity.NAMES, 0.01),
+        "judge_clones_median": 0.15,
+        "judge_stand_mates": {"2": 0.276, "3": 0.200},
+    }
+    return {**row, **fields}
+
+
 def test_lignum_recipe_weights_statistics_by_their_fidelity_limits():
     """The LIGNUM recipe's summary weights are proportional to 1 / the fidelity limits (height 5 %,
     DBH 15 %, crown spread 20 %, crown base and first-order branches 25 %), and its structure and
@@ -148,17 +159,8 @@ def test_the_fidelity_table_marks_a_fit_stopped_by_its_wall_time():
     (issue 29: what is reproducible); a fit that used its budget is shown with its time alone. The
     table names the code its rows were made with."""
     run_fidelity = _run_fidelity()
-    row = {
-        "recipe": "pine_lignum",
-        "pine": 1,
-        "fit_seconds": 875.8,
-        "evaluations": 1062,
-        "best_distance": 0.1587,
-        "heldout_distance": 0.1647,
-        "errors": dict.fromkeys(run_fidelity.NAMES, 0.01),
-        "judge_clones_median": 0.176,
-        "judge_stand_mates": {"2": 0.276, "3": 0.200},
-    }
+    row = _fidelity_row(run_fidelity, recipe="pine_lignum", pine=1, fit_seconds=875.8, evaluations=1062)
+    row.update(best_distance=0.1587, heldout_distance=0.1647, judge_clones_median=0.176)
     stopped = {**row, "seed": 1, "stop_reason": "wall time (840 s) reached"}
     full = {**row, "seed": 2, "evaluations": 1200, "stop_reason": "evaluation budget (1200) reached"}
     text = run_fidelity.doc_section({"a": {**stopped, "code": "b0bf3b1"}, "b": full})
@@ -181,15 +183,7 @@ def test_the_fidelity_table_gives_the_spread_on_fresh_seed_sets_beside_the_chose
     table gives its spread over run seeds beside the spread of the distances that chose it, and
     a dash where a run seed lacks it."""
     run_fidelity = _run_fidelity()
-    row = {
-        "recipe": "pine_sot",
-        "fit_seconds": 100.0,
-        "evaluations": 1800,
-        "best_distance": 0.12,
-        "errors": dict.fromkeys(run_fidelity.NAMES, 0.01),
-        "judge_clones_median": 0.15,
-        "judge_stand_mates": {"2": 0.276, "3": 0.200},
-    }
+    row = _fidelity_row(run_fidelity, recipe="pine_sot", fit_seconds=100.0, evaluations=1800)
     rows = {
         "a": {
             **row,

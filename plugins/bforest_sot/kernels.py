@@ -1,14 +1,15 @@
 """Compiled loops of SOT's growth cycle, each the same arithmetic as the numpy it replaced.
 
-The frames of the growing shoots (B.5 step 7, ii-iii). A growth cycle builds its shoots metamer by metamer; at each step every active shoot turns its
-frame (heading ``h``, up vector ``u``) partly towards its target, bends by its clone noise and
-rolls by the phyllotaxis angle. Written as numpy over the active shoots, each step cost some
-thirty array calls on a few dozen rows, most of the time of a pine-sized tree. These two loops
-do the same arithmetic, operation for operation and in the same order as
-:func:`bforest_sot.model.rotate` and its helpers, so the trees are the same to the bit (checked by
-the recorded-tree tests). The one function whose bits numpy and the C library do not share,
-``arctan2`` (numpy's is a SIMD one), stays in numpy between the two loops; ``cos``, ``sin`` and
-``sqrt`` are the C library's in both.
+The frames of the growing shoots (B.5 step 7, ii-iii). A growth cycle builds its shoots metamer
+by metamer; at each step every active shoot turns its frame (heading ``h``, up vector ``u``)
+partly towards its target, bends by its clone noise and rolls by the phyllotaxis angle. Written as
+numpy over the active shoots, each step cost some thirty array calls on a few dozen rows, most of
+the time of a pine-sized tree. These two loops do the same arithmetic, operation for operation and
+in the same order as :func:`bforest_sot.model.rotate` and its helpers, so the trees are the same
+to the bit (tests/test_sot.py compares each loop with that numpy, and the recorded trees stay).
+The one function whose bits numpy and the C library do not share here, ``arctan2`` (numpy's is a
+SIMD one), stays in numpy between the two loops; numpy's float64 ``cos`` and ``sin`` are the C
+library's, which the loops call, and ``sqrt`` is exact in both.
 
 The basipetal sums (B.5 step 3): the level-by-level pass of :func:`bforest_sot.model.accumulate`
 was a numpy loop over the tree's depth levels, a hundred and more of a few rows each.

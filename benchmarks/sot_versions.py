@@ -100,9 +100,10 @@ def main(argv=None) -> None:
         return
     if a.old is None or not (a.old / "plugins" / "bforest_sot").is_dir():
         raise SystemExit(f"--old {a.old}: not a checkout with plugins/bforest_sot (git worktree add PATH COMMIT)")
+    recipe = a.recipe.resolve()
     new_t, old_t = [], []
     for _ in range(a.repeats):  # alternately, so a drift of the machine's speed hits both
-        new, old = run(ROOT, a.points, a.recipe.resolve()), run(a.old, a.points, a.recipe.resolve())
+        new, old = run(ROOT, a.points, recipe), run(a.old, a.points, recipe)
         new_t.append(new["seconds"] / new["trees"])
         old_t.append(old["seconds"] / old["trees"])
     same = new["hashes"] == old["hashes"]

@@ -173,13 +173,14 @@ def fresh_heldout(row: dict, n_sets: int) -> float | None:
     sets = heldout_seeds(int(cfg.seed), first + n_sets, int(sel.get("model_seeds_per_set") or len(best["seeds"])))
     key = point_key(best["params"])
     tgt = build_target(cfg)
-    known = score_points(
-        {key: best["params"]},
-        sets[first:],
-        {key: [RunStore.open(run)]},  # kept in the run's log: a second call grows nothing
-        scoring_fingerprint(cfg),
-        lambda: started_workers(cfg, tgt),
-    )
+    with RunStore.open(run) as store:  # the scores are kept in the run's log: a second call grows nothing
+        known = score_points(
+            {key: best["params"]},
+            sets[first:],
+            {key: [store]},
+            scoring_fingerprint(cfg),
+            lambda: started_workers(cfg, tgt),
+        )
     return heldout_mean(known, key, sets[first:])[0]
 
 
@@ -242,8 +243,8 @@ def spread(results: dict, value=lambda r: r.get("heldout_distance")) -> dict[tup
     ``value`` reads another distance of a row (None: not known)."""
     by: dict[tuple[str, int], list[float]] = {}
     for r in results.values():
-        if value(r) is not None:
-            by.setdefault((r["recipe"], r["pine"]), []).append(value(r))
+        if (v := value(r)) is not None:
+            by.setdefault((r["recipe"], r["pine"]), []).append(v)
     return {k: (max(v) / min(v), len(v)) for k, v in by.items()}
 
 

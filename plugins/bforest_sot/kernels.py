@@ -32,6 +32,18 @@ def _dot(a0, a1, a2, b0, b1, b2):  # pragma: no cover - compiled
     return (a0 * b0 + a2 * b2) + a1 * b1
 
 
+@numba.njit(inline="always")
+def _cross(a0, a1, a2, b0, b1, b2):  # pragma: no cover - compiled
+    """:func:`bforest_sot.model.cross` of one row."""
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@numba.njit(inline="always")
+def _norm(v0, v1, v2):  # pragma: no cover - compiled
+    """:func:`bforest_sot.model._norm` of one row."""
+    return np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+
+
 @numba.njit(cache=True, nogil=True)
 def turn_geometry(h, target, act):  # pragma: no cover - compiled
     """For the shoots ``act``: the axis ``h x target`` (rows), its norm and ``h . target``."""
@@ -43,11 +55,9 @@ def turn_geometry(h, target, act):  # pragma: no cover - compiled
         g = act[i]
         a0, a1, a2 = h[g, 0], h[g, 1], h[g, 2]
         b0, b1, b2 = target[g, 0], target[g, 1], target[g, 2]
-        x0 = a1 * b2 - a2 * b1
-        x1 = a2 * b0 - a0 * b2
-        x2 = a0 * b1 - a1 * b0
+        x0, x1, x2 = _cross(a0, a1, a2, b0, b1, b2)
         ax[i, 0], ax[i, 1], ax[i, 2] = x0, x1, x2
-        sn[i] = np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+        sn[i] = _norm(x0, x1, x2)
         cs[i] = _dot(a0, a1, a2, b0, b1, b2)
     return ax, sn, cs
 
@@ -58,16 +68,13 @@ def _rotate(v0, v1, v2, k0, k1, k2, theta):  # pragma: no cover - compiled
     s = np.sin(theta)
     kdv = _dot(k0, k1, k2, v0, v1, v2)
     r = kdv * (1.0 - c)
-    return (
-        v0 * c + (k1 * v2 - k2 * v1) * s + k0 * r,
-        v1 * c + (k2 * v0 - k0 * v2) * s + k1 * r,
-        v2 * c + (k0 * v1 - k1 * v0) * s + k2 * r,
-    )
+    c0, c1, c2 = _cross(k0, k1, k2, v0, v1, v2)
+    return v0 * c + c0 * s + k0 * r, v1 * c + c1 * s + k1 * r, v2 * c + c2 * s + k2 * r
 
 
 @numba.njit(inline="always")
 def _unit(v0, v1, v2):  # pragma: no cover - compiled
-    n = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    n = _norm(v0, v1, v2)
     return v0 / n, v1 / n, v2 / n
 
 

@@ -138,7 +138,7 @@ class LightField:
                 while len(_INITIAL) > _INITIAL_KEEP:
                     _INITIAL.popitem(last=False)
         self._log = self._log0.copy()
-        self._acc = None  # add_shadows' scratch, made on the first shadow
+        self._acc = np.zeros(self._log.shape)  # add_shadows' scratch: all zeros between casts
 
     def _initial(self, n, ran, vert, uniforms):
         """The padded flat log E0 and roof mask (read-only)."""
@@ -173,8 +173,6 @@ class LightField:
         if len(points) == 0 or self.log_f.size == 0:
             return
         base, cnt = np.unique(self._flat(self.voxel_of(points)), return_counts=True)
-        if self._acc is None:
-            self._acc = np.zeros(self._log.shape)
         add_shadows(self._log, self._acc, base, cnt, self._off, sign * self.log_f)
 
     def cast(self, points: np.ndarray) -> None:

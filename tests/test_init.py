@@ -60,13 +60,13 @@ class Builder:
         )
 
 
-def excurrent_tree() -> bf.Tree:
+def excurrent_tree(angles=(50, 60, 70, 80)) -> bf.Tree:
     """A 10 m leader (20 cylinders of 0.5 m, 10 -> 2 cm radius) with 16 branches of 1 m, 1 cm
-    thick, from 3 m up, at 50, 60, 70 or 80 deg to the stem (four of each)."""
+    thick, from 3 m up, at 50, 60, 70 or 80 deg to the stem (four of each; or at ``angles``)."""
     b = Builder()
     stem = b.axis_of(-1, (0, 0, 0), (0, 0, 1), 20, 0.5, 0.10, 0.02)
     for j, c in enumerate(stem[6:-2]):
-        ang = (50, 60, 70, 80)[j % 4]
+        ang = angles[j % 4]
         b.axis_of(c, b.end(c), _axis(ang, 137.5 * j), 2, 0.5, 0.005, 0.004)
     return b.tree()
 
@@ -136,6 +136,16 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     assert s["free"]["branch_angle"] == {"lower": 30.0, "upper": 80.0}
 
 
+def test_init_lets_sot_buds_leave_below_the_horizontal_where_the_branches_do(tmp_path):
+    # branches at 80, 95, 105 and 115 deg to the stem (10-90 %: 80-115): the box reaches the
+    # branches' 90 % angle, beyond the horizontal, and stops at the model's 120 deg
+    r, cfg = _recipe(tmp_path, excurrent_tree((80, 95, 105, 115)), "droop", model="sot")
+    assert cfg["ssm"]["free"]["branch_angle"] == {"lower": 60.0, "upper": 115.0}
+    r, cfg = _recipe(tmp_path, excurrent_tree((100, 120, 130, 140)), "weep", model="sot")
+    assert cfg["ssm"]["free"]["branch_angle"] == {"lower": 80.0, "upper": 120.0}
+    bf.load_config(tmp_path / "weep.toml")  # within the model's range
+
+
 def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp_path):
     r, cfg = _recipe(tmp_path, decurrent_tree(), "maple")
     assert r.model == "sot"
@@ -149,7 +159,7 @@ def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp
     assert s["free"]["init_width"]["lower"] == pytest.approx(0.03)  # its thinnest branch: 3 cm
     # the angle varies from branch to branch, and the size term holds its median and spread on top
     # of the summary's default statistics
-    assert s["free"]["branch_angle_sd"] == {"lower": 0.0, "upper": 25.0}
+    assert s["free"]["branch_angle_sd"] == {"lower": 0.0, "upper": 35.0}
     size = cfg["objective"]["terms"][0]
     assert size["features"]["statistics"] == [*SUMMARY_DEFAULT, "angle_o1", "angle_iqr_o1"]
     assert size["distance"]["weights"]["angle_o1"] == 6.7 and size["distance"]["weights"]["height"] == 13.3

@@ -81,17 +81,17 @@ PARAMETERS: list[ParameterSpec] = [
     P("shadow_a", 0.5, 0.1, 0.9, False, "", "shadow strength a (< shadow_b): f = 1 - a * b^-d", "IV"),
     P("shadow_b", 2.0, 1.1, 10.0, False, "", "shadow dissipation base b (> 1)", "IV"),
     # ---- V: angles and branching
-    P("branch_angle", 65.0, 20.0, 90.0, False, "deg", "lateral shoot turn about the parent's up vector", "V"),
+    P("branch_angle", 65.0, 20.0, 120.0, False, "deg", "lateral shoot turn about the parent's up vector", "V"),
     P("phyllotaxis", 137.52, 90.0, 180.0, False, "deg", "roll of the up vector about the heading per metamer", "V"),
     P("nonplanar_twist", 90.0, 0.0, 180.0, False, "deg", "roll of a lateral shoot's up vector about its heading", "V"),
-    P("branch_angle_sd", 5.0, 0.0, 25.0, False, "deg", "clone noise: sd of the branch angle, per lateral shoot", "V"),
+    P("branch_angle_sd", 5.0, 0.0, 40.0, False, "deg", "clone noise: sd of the branch angle, per lateral shoot", "V"),
     P("phyllotaxis_sd", 10.0, 0.0, 30.0, False, "deg", "clone noise: sd of the phyllotaxis angle, per metamer", "V"),
     P("tropism_sd", 0.0, 0.0, 0.05, False, "", "clone noise: sd of the tropism, per shoot", "V"),
     P(
         "heading_sd",
         0.0,
         0.0,
-        20.0,
+        30.0,
         False,
         "deg",
         "clone noise (an addition): sd of a bend of each branch metamer "

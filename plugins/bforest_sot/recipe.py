@@ -16,6 +16,11 @@ import math
 from bforest_core.interfaces import RecipeDraft
 from bforest_core.metrics import TreeMeasures
 
+from .params import PARAMETERS
+
+#: the model's own range of the branch angle (deg): a box never leaves it
+_ANGLE = next((p.lower, p.upper) for p in PARAMETERS if p.name == "branch_angle")
+
 #: the size term's hold on the first-order branching angle: the median within 15 % (weight 1/0.15)
 #: and its interquartile range within 30 % (the pine recipe's, docs/validation.md section 4)
 ANGLE_TERM = {"angle_o1": 6.7, "angle_iqr_o1": 3.3}
@@ -36,9 +41,12 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         node_hi = min(0.6, max(0.06, _r(1.45 * m.branch_spacing, 0.01)))
         node_lo = min(node_hi - 0.01, max(0.05, _r(0.8 * m.branch_spacing, 0.01)))
         node_why = f"internode (m): 0.8-1.45 x the crown length per first-order branch ({m.branch_spacing:.2f} m)"
-    ang_lo, ang_hi = max(20.0, _r(m.beta_q10 - 20.0, 5.0)), min(90.0, _r(m.beta_q90, 5.0))
+    # from 20 deg below the branches' 10 % angle to their 90 % one: SOT's shoots turn towards
+    # their target direction from their first internode, so a bud leaves wider than its branch
+    lo_model, hi_model = _ANGLE
+    ang_lo, ang_hi = max(lo_model, _r(m.beta_q10 - 20.0, 5.0)), min(hi_model, _r(m.beta_q90, 5.0))
     if ang_hi - ang_lo < 20.0:
-        ang_lo, ang_hi = max(20.0, ang_hi - 20.0), min(90.0, ang_lo + 20.0)
+        ang_lo, ang_hi = max(lo_model, ang_hi - 20.0), min(hi_model, ang_lo + 20.0)
     width_lo = min(0.03, max(0.01, _r(m.thinnest_branch, 0.001)))
     big = span > 18.0
     settings = [
@@ -94,14 +102,14 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         (
             "branch_angle_sd",
             0.0,
-            25.0,
+            35.0,
             "the angle varies from branch to branch (with the model's default of 5 deg all leave at one angle)",
         ),
         ("tropism", -0.1, 0.3, None),
         ("reorient", 0.0, 1.0, "how much shoots turn towards light"),
-        ("heading_sd", 0.0, 20.0, "winding of the axes (deg per internode)"),
+        ("heading_sd", 0.0, 30.0, "winding of the axes (deg per internode)"),
         ("shadow_a", 0.1, 0.9, None),
-        ("shadow_b", 1.1, 4.0, None),
+        ("shadow_b", 1.1, 8.0, None),
         ("alpha0", 0.0, 3.0, None),
         (
             "init_width",

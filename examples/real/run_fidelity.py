@@ -437,7 +437,7 @@ def main(argv=None) -> int:
         if len(rows) > 1:
             rows.sort(key=lambda r: r["judge_clones_median"])
             for which, r in (("best", rows[0]), ("worst", rows[-1])):
-                if args.figures and Path(r.get("run", "")).is_dir():
+                if args.figures and r.get("run") and Path(r["run"]).is_dir():  # rows read back have no run
                     figures[(rec, k, which)] = figure(r, which)
                 elif (DOC.parent / figure_name(r, which)).is_file():
                     figures[(rec, k, which)] = figure_name(r, which)

@@ -601,6 +601,10 @@ class TreeMeasures:
         has a floor here.
     stem_rise : float
         Vertical component of the stem's first cylinder (1 = straight up).
+    crown_offset, crown_azimuth : float
+        How far (m) and towards which azimuth (deg, counterclockwise from +x) the centre of the
+        crown's branches (length-weighted, above the crown base) lies from the stem base: a
+        one-sided crown, grown towards a gap, lies a large part of its radius to one side.
     """
 
     height: float
@@ -618,6 +622,8 @@ class TreeMeasures:
     longest_limb: float
     thinnest_branch: float
     stem_rise: float
+    crown_offset: float
+    crown_azimuth: float
 
     @property
     def decurrent(self) -> bool:
@@ -673,6 +679,11 @@ def measure_tree(tree) -> TreeMeasures:
     a = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", tree.axis[br.first[o1]], tree.axis[pc]), -1, 1)))
     q10, q50, q90 = (float(v) for v in np.percentile(a, [10, 50, 90]))
     crown_length = max(h - cb, 1e-9)
+    crown = (tree.order > 0) & (zmid >= cb)
+    centre = np.zeros(2)
+    if tree.length[crown].sum() > 0:
+        mid = tree.start[crown, :2] + 0.5 * tree.length[crown, None] * tree.axis[crown, :2]
+        centre = (mid * tree.length[crown, None]).sum(0) / tree.length[crown].sum() - tree.start[0, :2]
     return TreeMeasures(
         height=h,
         dbh=s["dbh"],
@@ -689,4 +700,6 @@ def measure_tree(tree) -> TreeMeasures:
         longest_limb=float(blen[o1].max()),
         thinnest_branch=float(2.0 * tree.radius[br.first[1:]].min()),
         stem_rise=rise,
+        crown_offset=float(np.hypot(*centre)),
+        crown_azimuth=float(np.degrees(np.arctan2(centre[1], centre[0]))),
     )

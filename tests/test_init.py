@@ -60,14 +60,15 @@ class Builder:
         )
 
 
-def excurrent_tree(angles=(50, 60, 70, 80)) -> bf.Tree:
+def excurrent_tree(angles=(50, 60, 70, 80), side=None) -> bf.Tree:
     """A 10 m leader (20 cylinders of 0.5 m, 10 -> 2 cm radius) with 16 branches of 1 m, 1 cm
-    thick, from 3 m up, at 50, 60, 70 or 80 deg to the stem (four of each; or at ``angles``)."""
+    thick, from 3 m up, at 50, 60, 70 or 80 deg to the stem (four of each; or at ``angles``),
+    spiralling round the stem (137.5 deg apart) or all towards the azimuth ``side``."""
     b = Builder()
     stem = b.axis_of(-1, (0, 0, 0), (0, 0, 1), 20, 0.5, 0.10, 0.02)
     for j, c in enumerate(stem[6:-2]):
         ang = angles[j % 4]
-        b.axis_of(c, b.end(c), _axis(ang, 137.5 * j), 2, 0.5, 0.005, 0.004)
+        b.axis_of(c, b.end(c), _axis(ang, 137.5 * j if side is None else side), 2, 0.5, 0.005, 0.004)
     return b.tree()
 
 
@@ -134,6 +135,28 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     # 16 branches on 8.67 m of crown: one per 0.54 m; 0.8-1.45 x that, within the model's 0.05-0.6 m
     assert s["free"]["node_length"] == {"lower": 0.43, "upper": 0.6}
     assert s["free"]["branch_angle"] == {"lower": 30.0, "upper": 80.0}
+
+
+def test_init_gives_a_one_sided_crown_its_gap(tmp_path):
+    # every branch towards 120 deg: the crown's centre lies 0.5 m x the mean sine of 50-80 deg
+    # (each branch's two cylinders centred 0.25 and 0.75 m out) that way from the stem base
+    m = measure_tree(excurrent_tree(side=120.0))
+    assert m.crown_offset == pytest.approx(0.5 * np.mean(np.sin(np.radians([50, 60, 70, 80]))))
+    assert m.crown_azimuth == pytest.approx(120.0)
+    assert m.crown_offset > m.crown_spread / 6  # more than a third of the crown's radius
+    r, cfg = _recipe(tmp_path, excurrent_tree(side=120.0), "leaning", model="sot")
+    s = cfg["ssm"]
+    assert s["fixed"]["gap_azimuth"] == 120.0
+    assert s["free"]["gap_shade"] == {
+        "lower": 0.0,
+        "upper": pytest.approx(min(5.0, 3.0 / (m.crown_spread / 2)), abs=0.01),
+    }
+    bf.load_config(tmp_path / "leaning.toml")
+    # the spiral crown is round: its centre lies near the stem, and no gap is written
+    m = measure_tree(excurrent_tree())
+    assert m.crown_offset < m.crown_spread / 6
+    r, cfg = _recipe(tmp_path, excurrent_tree(), "round", model="sot")
+    assert "gap_shade" not in cfg["ssm"]["free"] and "gap_azimuth" not in cfg["ssm"].get("fixed", {})
 
 
 def test_init_lets_sot_buds_leave_below_the_horizontal_where_the_branches_do(tmp_path):

@@ -105,7 +105,9 @@ def test_parameter_table_complete():
         "leader_death",
         "death_delay",
         "short_shoot",
-    }  # the last five are additions, off by default
+        "gap_shade",
+        "gap_azimuth",
+    }  # stand_shade and the ones after it are additions, off by default
     assert set(names) == expected and len(names) == len(expected)
     by = {p.name: p for p in PARAMETERS}
     # calibrated defaults of B.4 and clone noise of E
@@ -573,6 +575,42 @@ def test_stand_shade_raises_the_crown_and_keeps_trees_without_it(ssm):
         mid = t.start + 0.5 * t.length[:, None] * t.axis
         lows.append(int(np.count_nonzero(mid[:, 2] < 0.5 * h)))  # segments in the lower half
     assert lows[0] > lows[1] > lows[2]
+
+
+def test_gap_shade_exposure_falls_behind_the_stem_away_from_the_gap():
+    f = LightField(12.0, 0.2, 6, 1.0, 0.5, 2.0, ran=0.0)
+    g = LightField(12.0, 0.2, 6, 1.0, 0.5, 2.0, ran=0.0, gap_shade=0.4, gap_azimuth=90.0)  # gap towards +y
+    pts = np.array([[0.3, 2.0, 3.0], [0.3, 0.0, 3.0], [0.3, -1.0, 3.0], [-2.0, -2.5, 3.0]])
+    for fld in (f, g):
+        fld.cast(np.array([[0.0, 0.0, 4.0]]))
+    e0, e1 = f.exposure(pts), g.exposure(pts)
+    assert e1[0] == e0[0] and e1[1] == e0[1]  # on the gap's side of the stem base: open
+    assert e1[2] == pytest.approx(e0[2] * math.exp(-0.4 * 1.0), rel=1e-14)
+    assert e1[3] == pytest.approx(e0[3] * math.exp(-0.4 * 2.5), rel=1e-14)
+    # the gradient points into the gap
+    gy = g.gradient(np.array([[0.3, 0.0, 2.0]]), 0.32)[0]
+    assert gy[1] > 0 and abs(gy[0]) < 1e-12
+
+
+def test_gap_shade_grows_the_crown_into_the_gap_and_keeps_trees_without_it(ssm):
+    base = {"max_iter": 16}
+    t0 = ssm.simulate(base, 1)
+    assert _same_tree(t0, ssm.simulate({**base, "gap_shade": 0.0, "gap_azimuth": 60.0}, 1))
+
+    def offset(t):  # length-weighted horizontal centre of the branches, from the stem base
+        b = t.order > 0
+        mid = t.start[b, :2] + 0.5 * t.length[b, None] * t.axis[b, :2]
+        return (mid * t.length[b, None]).sum(0) / t.length[b].sum() - t.start[0, :2]
+
+    c0 = offset(t0)
+    for az in (0.0, 90.0, -135.0):
+        d = np.array([math.cos(math.radians(az)), math.sin(math.radians(az))])
+        t = ssm.simulate({**base, "gap_shade": 1.0, "gap_azimuth": az}, 1)
+        c = offset(t)
+        assert c @ d > c0 @ d + 0.3, az  # the crown's centre moves at least 0.3 m into the gap
+        stem = t.order == 0
+        top = t.start[stem][-1, :2] + t.length[stem][-1] * t.axis[stem][-1, :2] - t.start[0, :2]
+        assert top @ d > 0.1, az  # and the stem leans towards it
 
 
 def _same_tree(a, b):

@@ -107,12 +107,19 @@ class LightField:
         uniforms=None,
         stand_shade=0.0,
         initial_key=None,
+        gap_shade=0.0,
+        gap_azimuth=0.0,
     ):
         self.span = float(span)
         #: extinction (1/m) of the surrounding stand's canopy below the tree's top ``z_top``
         #: (kept current by the model); 0 = an open-grown tree (the papers' model)
         self.stand_shade = float(stand_shade)
         self.z_top = 0.0
+        #: extinction (1/m) of the neighbours' shade behind the stem base (x = y = 0), away from
+        #: the gap's horizontal direction ``gap_dir``; 0 = light from every side alike
+        self.gap_shade = float(gap_shade)
+        a = np.radians(float(gap_azimuth))
+        self.gap_dir = np.array([np.cos(a), np.sin(a)])
         self.voxel = float(voxel_size)
         self.n_vox = n = int(round(self.span / self.voxel))
         self.di, self.dj, self.dk, self.log_f = shadow_kernel(depth, spread, shadow_a, shadow_b)
@@ -215,7 +222,8 @@ class LightField:
 
     def exposure(self, points: np.ndarray) -> np.ndarray:
         """Trilinear exposure at points over the 8 surrounding voxel centres, in [0, 1], times
-        the stand's transmission ``exp(-stand_shade * max(0, z_top - z))``."""
+        the stand's transmission ``exp(-stand_shade * max(0, z_top - z))`` and the gap's
+        ``exp(-gap_shade * max(0, -(x, y) . gap_dir))``."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         n = self.n_vox
         c = np.empty(p.shape)
@@ -235,6 +243,8 @@ class LightField:
         e = np.clip(np.sum(w * vals, axis=1), 0.0, 1.0)
         if self.stand_shade > 0.0:
             e *= np.exp(-self.stand_shade * np.maximum(0.0, self.z_top - p[:, 2]))
+        if self.gap_shade > 0.0:
+            e *= np.exp(-self.gap_shade * np.maximum(0.0, -(p[:, :2] @ self.gap_dir)))
         return e
 
     def clamp_to_cube(self, points: np.ndarray) -> np.ndarray:

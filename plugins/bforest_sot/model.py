@@ -411,6 +411,8 @@ class SOTGrowth:
             p["vert"],
             lambda: self.rng.random(n3),
             stand_shade=p["stand_shade"],
+            gap_shade=p["gap_shade"],
+            gap_azimuth=p["gap_azimuth"],
             initial_key=("sot", int(seed)) if isinstance(seed, (int, np.integer)) else None,
         )
         if self.field.from_cache:

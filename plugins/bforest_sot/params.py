@@ -69,6 +69,28 @@ PARAMETERS: list[ParameterSpec] = [
         "times exp(-stand_shade * depth below the tree's top); 0 = open-grown (the papers' model)",
         "II",
     ),
+    P(
+        "gap_shade",
+        0.0,
+        0.0,
+        5.0,
+        False,
+        "1/m",
+        "an addition: extinction of the neighbours' shade on one side of the tree: exposure times "
+        "exp(-gap_shade * distance behind the stem base, away from gap_azimuth), so the crown grows "
+        "into the gap and the stem leans towards it; 0 = no gap (the papers' model)",
+        "II",
+    ),
+    P(
+        "gap_azimuth",
+        0.0,
+        -180.0,
+        180.0,
+        False,
+        "deg",
+        "an addition: direction of the open side (gap_shade), counterclockwise from +x in the tree's frame",
+        "II",
+    ),
     # ---- III: apical dominance
     P("init_lambda", 0.65, 0.35, 0.9, False, "", "apical control lambda up to `delay` cycles", "III"),
     P("targ_lambda", 0.51, 0.35, 0.9, False, "", "apical control lambda after delay + transition", "III"),
@@ -183,6 +205,7 @@ def validate(p: Mapping[str, float]) -> None:
     need(p["shadow_b"] > 1, "shadow_b", "> 1")
     need(0 <= p["shadow_a"] < p["shadow_b"], "shadow_a", f"in [0, shadow_b = {p['shadow_b']!r})")
     need(p["spread"] >= 0, "spread", ">= 0")
+    need(p["gap_shade"] >= 0, "gap_shade", ">= 0")
     need(p["ran"] >= 0, "ran", ">= 0")
     need(p["vert"] >= 0, "vert", ">= 0")
     need(p["ran"] + p["vert"] <= 1, "ran", f"such that ran + vert <= 1 (vert = {p['vert']!r})")

@@ -25,6 +25,9 @@ _ANGLE = next((p.lower, p.upper) for p in PARAMETERS if p.name == "branch_angle"
 #: and its interquartile range within 30 % (the pine recipe's, docs/validation.md section 4)
 ANGLE_TERM = {"angle_o1": 6.7, "angle_iqr_o1": 3.3}
 
+#: a crown whose centre lies this share of its radius or more from the stem base is one-sided
+ONE_SIDED = 1.0 / 3.0
+
 
 def _r(x: float, step: float) -> float:
     return round(round(x / step) * step, 6)
@@ -126,6 +129,26 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         ),
         ("stand_shade", 0.0, 1.0, "shade of the neighbours (1/m below the top): 0 = open-grown"),
     ]
+    # a one-sided crown (its centre a third of its radius or more from the stem base; the three
+    # pines 0.1-0.2, the Wytham broadleaves 0.4-1.6): the neighbours' shade on the other side
+    radius = 0.5 * m.crown_spread
+    if radius > 0 and m.crown_offset >= ONE_SIDED * radius:
+        fixed.append(
+            (
+                "gap_azimuth",
+                float(round(m.crown_azimuth)),
+                f"the crown's centre lies {m.crown_offset:.1f} m ({m.crown_offset / radius:.1f} crown radii) "
+                "that way from the stem base: the open side",
+            )
+        )
+        free.append(
+            (
+                "gap_shade",
+                0.0,
+                min(5.0, _r(3.0 / radius, 0.01)),
+                "shade behind the stem, away from the open side (1/m; up to 5 % of the light left one crown radius behind)",
+            )
+        )
     notes = []
     if m.decurrent:
         settings.append(

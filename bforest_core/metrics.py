@@ -671,7 +671,8 @@ def measure_tree(tree) -> TreeMeasures:
         if br.parent_branch[b] >= 0 and br.order[b] > 1:
             sub[br.parent_branch[b]] += sub[b]
     cb = s["crown_base_height"]
-    zmid = tree.start[:, 2] + 0.5 * tree.length * tree.axis[:, 2] - tree.start[0, 2]
+    mid = tree.start + 0.5 * tree.length[:, None] * tree.axis  # cylinder midpoints
+    zmid = mid[:, 2] - tree.start[0, 2]
     stem_crown = float(vol[stem & (zmid >= cb)].sum())
     limbs = np.sort(sub[o1])[::-1][:3].sum()
     blen = np.bincount(tree.branch, weights=tree.length, minlength=len(br))
@@ -680,10 +681,10 @@ def measure_tree(tree) -> TreeMeasures:
     q10, q50, q90 = (float(v) for v in np.percentile(a, [10, 50, 90]))
     crown_length = max(h - cb, 1e-9)
     crown = (tree.order > 0) & (zmid >= cb)
+    w = tree.length[crown]
     centre = np.zeros(2)
-    if tree.length[crown].sum() > 0:
-        mid = tree.start[crown, :2] + 0.5 * tree.length[crown, None] * tree.axis[crown, :2]
-        centre = (mid * tree.length[crown, None]).sum(0) / tree.length[crown].sum() - tree.start[0, :2]
+    if w.sum() > 0:
+        centre = (mid[crown, :2] * w[:, None]).sum(0) / w.sum() - tree.start[0, :2]
     return TreeMeasures(
         height=h,
         dbh=s["dbh"],

@@ -145,7 +145,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
             (
                 "gap_shade",
                 0.0,
-                min(5.0, _r(3.0 / radius, 0.01)),
+                _r(3.0 / radius, 0.01),  # init clips it to the model's range (at most 5)
                 "shade behind the stem, away from the open side (1/m; up to 5 % of the light left one crown radius behind)",
             )
         )

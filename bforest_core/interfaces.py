@@ -243,6 +243,11 @@ class RecipeDraft:
         Statistics the size term adds to the summary's default set (name -> weight).
     size_why : str
         Why the size term holds ``size_extra`` (written as a comment above the term).
+    seeds, evaluations, starts : int
+        The search: model seeds per evaluation (``[objective] seeds``), the evaluation budget
+        (``[stop] max_evaluations``) and the raced CMA-ES starts (``[optimizer] starts``).
+    search_why : str
+        Why the model's search differs from the default (written as a comment above it).
     """
 
     suits: float
@@ -257,6 +262,10 @@ class RecipeDraft:
     scaled: dict = field(default_factory=dict)
     size_extra: dict = field(default_factory=dict)
     size_why: str = ""
+    seeds: int = 3
+    evaluations: int = 1200
+    starts: int = 4
+    search_why: str = ""
 
 
 class SSM(Component):

@@ -126,6 +126,7 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     assert free["beta_max"] == {"lower": 40.0, "upper": 75.0}
     assert cfg["target"]["qsm"] == "pine.txt"
     assert cfg["select"] == {"top": 8, "sets": 8} and cfg["optimizer"]["starts"] == 4
+    assert cfg["objective"]["seeds"] == 3 and cfg["stop"]["max_evaluations"] == 1200  # LIGNUM's search
     bf.load_config(tmp_path / "pine.toml")  # a valid run config as written
     # asked for SOT: excurrent apical control, one bud per node, the box scaled to 10 m
     r, cfg = _recipe(tmp_path, excurrent_tree(), "pine_sot", model="sot")
@@ -185,7 +186,13 @@ def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp
     assert s["free"]["branch_angle_sd"] == {"lower": 0.0, "upper": 35.0}
     size = cfg["objective"]["terms"][0]
     assert size["features"]["statistics"] == [*SUMMARY_DEFAULT, "angle_o1", "angle_iqr_o1"]
-    assert size["distance"]["weights"]["angle_o1"] == 6.7 and size["distance"]["weights"]["height"] == 13.3
+    w = size["distance"]["weights"]
+    assert w["angle_o1"] == 6.7 and w["height"] == 13.3
+    # the headlines fits trade away weigh double their tolerance (crown spread 25 %, branches 30 %)
+    assert w["crown_spread"] == 8.0 and w["n_branches_o1"] == 6.7 and w["dbh"] == 5.0
+    # SOT's search, as the pine recipe's: 1 800 evaluations of 2 model seeds, two raced starts
+    assert cfg["objective"]["seeds"] == 2 and cfg["stop"]["max_evaluations"] == 1800
+    assert cfg["optimizer"]["starts"] == 2
     text = (tmp_path / "maple.toml").read_text()
     assert "decurrent" in text and "Not lignum" in text
     bf.load_config(tmp_path / "maple.toml")

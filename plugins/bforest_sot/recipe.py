@@ -25,6 +25,12 @@ _ANGLE = next((p.lower, p.upper) for p in PARAMETERS if p.name == "branch_angle"
 #: and its interquartile range within 30 % (the pine recipe's, docs/validation.md section 4)
 ANGLE_TERM = {"angle_o1": 6.7, "angle_iqr_o1": 3.3}
 
+#: the size term: each headline statistic by the inverse of the error a forester tolerates
+#: (height 7.5 %, DBH 20 %, crown base 30 %), but the two that fits trade away for structure at
+#: twice that: the crown spread (on the pines, +27-30 % on 4 of 15 fits at 4) and the first-order
+#: branches (on the Wytham trees and the coffeetree, +33-48 % on 4 of 12 fits at 3.3)
+SIZE_WEIGHTS = {"height": 13.3, "dbh": 5.0, "crown_spread": 8.0, "crown_base_height": 3.3, "n_branches_o1": 6.7}
+
 #: a crown whose centre lies this share of its radius or more from the stem base is one-sided
 ONE_SIDED = 1.0 / 3.0
 
@@ -196,9 +202,20 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         timeout=60.0 if big else 20.0,
         wall_time=480.0 if big else 840.0,
         notes=notes,
+        size_weights=SIZE_WEIGHTS,
         size_extra=ANGLE_TERM,
         size_why=(
-            "The first-order branches' branching angle (median and interquartile range, deg) is held by the "
+            "Crown spread and first-order branches weigh twice the inverse of their tolerance: fits trade "
+            "them away for structure (the pines' crowns +27-30 %, the Wytham trees' branches +33-48 %, "
+            "docs/validation.md). The first-order branches' branching angle (median and interquartile range, deg) is held by the "
             "size term: the structural sets pool first- and second-order branches, which leaves it loose."
+        ),
+        seeds=2,
+        evaluations=1800,
+        starts=2,
+        search_why=(
+            "SOT's search, as the pine recipe's: 1 800 evaluations of 2 model seeds cost what 1 200 of 3 "
+            "do and give the search more generations; two starts, not four, so the winner has them "
+            "(docs/validation.md section 4)."
         ),
     )

@@ -30,6 +30,7 @@ __all__ = [
     "tree_summary",
     "order_summary",
     "SUMMARY_DEFAULT",
+    "SIZE_WEIGHTS",
     "SUMMARY_UNITS",
     "summary_unit",
     "summary_label",
@@ -226,6 +227,11 @@ def relative_errors(data_metrics: Mapping[str, float], model_metrics: Mapping[st
 
 
 # ------------------------------------------------------------------------------ tree summary
+#: what a size term weighs by default: each headline statistic by the inverse of the error a
+#: forester tolerates (height 7.5 %, DBH 20 %, crown spread 25 %, crown base and first-order
+#: branches 30 %); a model's recipe may weigh some of them otherwise (``RecipeDraft.size_weights``)
+SIZE_WEIGHTS = {"height": 13.3, "dbh": 5.0, "crown_spread": 4.0, "crown_base_height": 3.3, "n_branches_o1": 3.3}
+
 #: the statistics of the summary set by default (``tree-summary``): size, stem, crown, branch
 #: counts and the vertical profile
 SUMMARY_DEFAULT = (

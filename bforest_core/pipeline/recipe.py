@@ -18,12 +18,8 @@ from pathlib import Path
 from ..errors import ConfigError
 from ..interfaces import RecipeDraft
 from ..io import read_qsm
-from ..metrics import SUMMARY_DEFAULT, TreeMeasures, measure_tree
+from ..metrics import SIZE_WEIGHTS, SUMMARY_DEFAULT, TreeMeasures, measure_tree
 from ..registry import component, discover
-
-#: what the size term weighs: each headline statistic by the inverse of the error a forester
-#: tolerates (height 7.5 %, DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %)
-SIZE_WEIGHTS = {"height": 13.3, "dbh": 5.0, "crown_spread": 4.0, "crown_base_height": 3.3, "n_branches_o1": 3.3}
 
 
 @dataclass

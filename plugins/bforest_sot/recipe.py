@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 
 from bforest_core.interfaces import RecipeDraft
+from bforest_core.metrics import SIZE_WEIGHTS as TOLERANCE_WEIGHTS
 from bforest_core.metrics import TreeMeasures
 
 from .params import PARAMETERS
@@ -29,7 +30,7 @@ ANGLE_TERM = {"angle_o1": 6.7, "angle_iqr_o1": 3.3}
 #: (height 7.5 %, DBH 20 %, crown base 30 %), but the two that fits trade away for structure at
 #: twice that: the crown spread (on the pines, +27-30 % on 4 of 15 fits at 4) and the first-order
 #: branches (on the Wytham trees and the coffeetree, +33-48 % on 4 of 12 fits at 3.3)
-SIZE_WEIGHTS = {"height": 13.3, "dbh": 5.0, "crown_spread": 8.0, "crown_base_height": 3.3, "n_branches_o1": 6.7}
+SIZE_WEIGHTS = {**TOLERANCE_WEIGHTS, "crown_spread": 8.0, "n_branches_o1": 6.7}
 
 #: a crown whose centre lies this share of its radius or more from the stem base is one-sided
 ONE_SIDED = 1.0 / 3.0

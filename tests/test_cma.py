@@ -234,3 +234,19 @@ def test_there_are_as_many_starts_as_asked_even_where_few_points_lie_apart():
     for seed in range(1, 6):  # one parameter: at most 4 points of [0, 1] lie 0.25 apart
         pts = _start_points(None, None, 6, lo, hi, lo, hi, seed)
         assert len(pts) == 6 and all(0 <= p[0] <= 1 for p in pts)
+
+
+def test_a_race_with_two_finalists_halves_once_and_keeps_two_starts_to_the_end():
+    """4 starts, 2 finalists: the 600 evaluations after the design in two equal parts; the worse
+    two starts dropped after the first 300, the better two both ask until the budget ends."""
+    pr, _ = _problem(sphere, [-5] * 4, [5] * 4, budget=616)
+    res = bf.component("optimizer", "cma", init_design=16, starts=4, finalists=2, population=8).minimize(pr)
+    starts = res.diagnostics["starts"]
+    dropped = sorted(s["dropped_after"] for s in starts if s["dropped_after"] is not None)
+    assert len(dropped) == 2 and 316 <= dropped[0] == dropped[1] < 316 + 8
+    kept = [s for s in starts if s["dropped_after"] is None]
+    assert len(kept) == 2 and max(s["best"] for s in kept) <= min(s["best"] for s in starts if s not in kept)
+    recs = [r for r in res.history if r.get("run", -1) >= 0]
+    for s in kept:  # both finalists still searching in the last generations of the budget
+        assert max(r["n_evaluations"] for r in recs if r["start"] == s["start"]) > 616 - 3 * 8
+    assert res.n_evaluations == 616

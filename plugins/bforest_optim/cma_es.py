@@ -61,6 +61,15 @@ class CMASettings(OptimizerSettings):
         "take turns generation by generation, and successive halving drops the worse half at "
         "equal shares of the budget, so the answer does not hinge on one trajectory (1: one run)",
     )
+    finalists: int = Field(
+        1,
+        ge=1,
+        description="starts the race keeps to the end of the budget: successive halving stops "
+        "dropping when this many are left, and each runs on as a search of its own (the answer is "
+        "the best point of all, or of [select]'s re-scoring). 2 of 4 starts: two searches "
+        "as deep as one start's of two, so a start that converges into a poor basin is "
+        "outvoted rather than decisive",
+    )
     surrogate: Literal["none", "lq"] = Field(
         "none",
         description="'lq': lq-CMA-ES, a quadratic regression of "
@@ -128,7 +137,7 @@ class CMAES(Optimizer):
         slots = [
             _Start(j, u, _LQSurrogate(s.surrogate_batch) if s.surrogate == "lq" else None) for j, u in enumerate(starts)
         ]
-        race = _Race(slots, problem)
+        race = _Race(slots, problem, s.finalists)
         reason, generation = "cma stopped", 0
         while race.active and not ev.stopped:
             for slot in list(race.active):
@@ -242,15 +251,18 @@ class _Start:
 class _Race:
     """Successive halving over the starts (Jamieson & Talwalkar 2016; the racing of restarts in
     Hutter et al.'s configurators): the evaluation budget left after the design is cut into
-    ``R + 1`` equal parts, ``R = ceil(log2(starts))``; at the end of each of the first ``R`` the
-    worse half of the starts still racing (by their best distance) is dropped, so the best start
-    spends the last part alone. Without a budget every start runs until it converges."""
+    ``R + 1`` equal parts, ``R = ceil(log2(starts / finalists))``; at the end of each of the first
+    ``R`` the worse half of the starts still racing (by their best distance) is dropped, never
+    below ``finalists``, so the best ``finalists`` starts share the last part. Without a budget
+    every start runs until it converges."""
 
-    def __init__(self, slots: list[_Start], problem: Problem):
+    def __init__(self, slots: list[_Start], problem: Problem, finalists: int = 1):
         self.active = list(slots)
         self.problem = problem
+        self.finalists = max(1, int(finalists))
         n0 = int(problem.n_evaluations)
-        rungs = math.ceil(math.log2(len(slots))) if len(slots) > 1 else 0
+        ratio = len(slots) / self.finalists
+        rungs = math.ceil(math.log2(ratio)) if ratio > 1 else 0
         left = None if problem.budget is None else max(int(problem.budget) - n0, 0)
         self.marks = [] if left is None else [n0 + left * (r + 1) / (rungs + 1) for r in range(rungs)]
 
@@ -258,9 +270,9 @@ class _Race:
         n = int(self.problem.n_evaluations)
         while self.marks and n >= self.marks[0]:
             self.marks.pop(0)
-            if len(self.active) > 1:
+            if len(self.active) > self.finalists:
                 ranked = sorted(self.active, key=lambda sl: (sl.best_f, sl.j))
-                for sl in ranked[(len(ranked) + 1) // 2 :]:
+                for sl in ranked[max(self.finalists, (len(ranked) + 1) // 2) :]:
                     sl.dropped_after = n
                     self.active.remove(sl)
 

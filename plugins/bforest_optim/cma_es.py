@@ -66,9 +66,8 @@ class CMASettings(OptimizerSettings):
         ge=1,
         description="starts the race keeps to the end of the budget: successive halving stops "
         "dropping when this many are left, and each runs on as a search of its own (the answer is "
-        "the best point of all, or of [select]'s re-scoring). 2 of 4 starts: two searches "
-        "as deep as one start's of two, so a start that converges into a poor basin is "
-        "outvoted rather than decisive",
+        "the best point of all, or of [select]'s re-scoring). 2 of 4 starts: two searches, each "
+        "with the evaluations the one winner of 2 starts gets",
     )
     surrogate: Literal["none", "lq"] = Field(
         "none",

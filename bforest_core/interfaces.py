@@ -243,12 +243,9 @@ class RecipeDraft:
         Statistics the size term adds to the summary's default set (name -> weight).
     size_why : str
         Why the size term holds ``size_extra`` (written as a comment above the term).
-    seeds, evaluations, design, starts, finalists : int
+    seeds, evaluations, starts : int
         The search: model seeds per evaluation (``[objective] seeds``), the evaluation budget
-        (``[stop] max_evaluations``), the Sobol' design before it (``[optimizer] init_design``),
-        the raced CMA-ES starts and how many the race keeps to the end (``starts``, ``finalists``).
-    heldout_sets : int
-        Sets of held-out model seeds on which each candidate answer is grown again (``[select] sets``).
+        (``[stop] max_evaluations``) and the raced CMA-ES starts (``[optimizer] starts``).
     search_why : str
         Why the model's search differs from the default (written as a comment above it).
     """
@@ -267,10 +264,7 @@ class RecipeDraft:
     size_why: str = ""
     seeds: int = 3
     evaluations: int = 1200
-    design: int = 32
     starts: int = 4
-    finalists: int = 1
-    heldout_sets: int = 8
     search_why: str = ""
 
 

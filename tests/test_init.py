@@ -190,14 +190,10 @@ def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp
     assert w["angle_o1"] == 6.7 and w["height"] == 13.3
     # the headlines fits trade away weigh double their tolerance (crown spread 25 %, branches 30 %)
     assert w["crown_spread"] == 8.0 and w["n_branches_o1"] == 6.7 and w["dbh"] == 5.0
-    # SOT's search, as the pine recipe's: 3 600 evaluations of one model seed, 4 raced starts of a
-    # 64-point design with 2 finalists, the answer chosen on 16 held-out trees
-    assert cfg["objective"]["seeds"] == 1 and cfg["stop"]["max_evaluations"] == 3600
-    opt = cfg["optimizer"]
-    assert (opt["init_design"], opt["starts"], opt["finalists"]) == (64, 4, 2) and cfg["select"]["sets"] == 16
-    pine = bf.load_config(Path(__file__).resolve().parents[1] / "examples/real/pine_sot.toml")
-    assert (pine.objective.seeds, pine.stop.max_evaluations, pine.select.sets) == (1, 3600, 16)
-    assert (pine.optimizer.init_design, pine.optimizer.starts, pine.optimizer.finalists) == (64, 4, 2)
+    # SOT's search: 1 800 evaluations of 2 model seeds, two raced starts (not the pine recipe's, which
+    # grew too many first-order branches on the Wytham trees)
+    assert cfg["objective"]["seeds"] == 2 and cfg["stop"]["max_evaluations"] == 1800
+    assert cfg["optimizer"]["starts"] == 2
     text = (tmp_path / "maple.toml").read_text()
     assert "decurrent" in text and "Not lignum" in text
     bf.load_config(tmp_path / "maple.toml")

@@ -165,12 +165,7 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         "lines = 128",
         "",
         "[objective]",
-        _line(
-            f"seeds = {d.seeds}",
-            f"the mean over {d.seeds} model seeds: clones vary, the fit must not chase one"
-            if d.seeds > 1
-            else "one tree per evaluation: the seeds' luck is taken out where the answer is chosen ([select])",
-        ),
+        _line(f"seeds = {d.seeds}", f"the mean over {d.seeds} model seeds: clones vary, the fit must not chase one"),
         _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take"),
         _line("structure_weight = 2.0", "structure and size weigh alike"),
         "",
@@ -195,15 +190,8 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         + ", ".join(f"{k} = {v}" for k, v in {**(d.size_weights or SIZE_WEIGHTS), **d.size_extra}.items())
         + " } }",
         "",
-        f"# A search that does not hinge on one trajectory: {d.design} Sobol' points over the box, {d.starts} lq-CMA-ES",
-        *(
-            ["# runs from the best distinct ones raced by successive halving, each restarting with a doubled"]
-            if d.finalists == 1
-            else [
-                f"# runs from the best distinct ones raced by successive halving until {d.finalists} are left, which",
-                "# search on to the end of the budget, each restarting with a doubled",
-            ]
-        ),
+        f"# A search that does not hinge on one trajectory: 32 Sobol' points over the box, {d.starts} lq-CMA-ES",
+        "# runs from the best distinct ones raced by successive halving, each restarting with a doubled",
         "# population once it converges.",
         *(f"# {s}" for s in textwrap.wrap(d.search_why, 96)),
         "[optimizer]",
@@ -213,19 +201,18 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         "sigma0 = 0.15",
         'surrogate = "lq"',
         "surrogate_batch = 2",
-        f"init_design = {d.design}",
+        "init_design = 32",
         f"starts = {d.starts}",
-        *([f"finalists = {d.finalists}"] if d.finalists > 1 else []),
         "",
         "[stop]",
         f"max_evaluations = {d.evaluations}",
         _line(f"wall_time = {d.wall_time:.1f}", "seconds the search may take (the answer's re-scoring comes after)"),
         "",
         "# The answer is chosen on model seeds the search never used: the 8 best distinct points are each",
-        f"# grown again with {d.heldout_sets} sets of held-out seeds; the lowest held-out distance is the answer.",
+        "# grown again with 8 sets of held-out seeds; the lowest held-out distance is the answer.",
         "[select]",
         "top = 8",
-        f"sets = {d.heldout_sets}",
+        "sets = 8",
         "",
         "[executor]",
         'kind = "process"',

@@ -211,16 +211,13 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
             "docs/validation.md). The first-order branches' branching angle (median and interquartile range, deg) is held by the "
             "size term: the structural sets pool first- and second-order branches, which leaves it loose."
         ),
-        seeds=1,
-        evaluations=3600,
-        design=64,
-        starts=4,
-        finalists=2,
-        heldout_sets=16,
+        seeds=2,
+        evaluations=1800,
+        starts=2,
         search_why=(
-            "SOT's search, as the pine recipe's: one model seed per evaluation costs half of two, so the "
-            "search gets 3 600 evaluations for the time of 1 800 and runs two finalists to the end, each "
-            "with the generations one winner had before; the answer is chosen on 16 held-out trees. On "
-            "the pines it narrowed the spread of the answers over run seeds (docs/validation.md section 4)."
+            "1 800 evaluations of 2 model seeds cost what 1 200 of 3 do and give the search more "
+            "generations; two starts, not four, so the winner has them (docs/validation.md section 4). "
+            "The SOT pine recipe's search of one seed per evaluation with two finalists grew too many "
+            "first-order branches on the Wytham trees (docs/validation.md, Broadleaved trees)."
         ),
     )

@@ -258,7 +258,7 @@ class _Race:
     def __init__(self, slots: list[_Start], problem: Problem, finalists: int = 1):
         self.active = list(slots)
         self.problem = problem
-        self.finalists = max(1, int(finalists))
+        self.finalists = finalists  # >= 1: validated with the settings
         n0 = int(problem.n_evaluations)
         ratio = len(slots) / self.finalists
         rungs = math.ceil(math.log2(ratio)) if ratio > 1 else 0

@@ -207,3 +207,6 @@ def test_the_fidelity_table_gives_the_spread_on_fresh_seed_sets_beside_the_chose
     assert "| pine_sot | 1 | 2 | 1.165 | no | 1.134 |" in text  # 0.1423 / 0.1221 and 0.1419 / 0.1251
     assert "| pine_sot | 2 | 2 | 1.077 | yes | – |" in text
     assert "fresh seed sets" not in run_fidelity.doc_section({"c": rows["c"]})
+    # rows read back from the page have no run folder: nothing to grow again, no error
+    assert run_fidelity.fresh_heldout({**rows["c"], "run": None}, 32) is None
+    assert run_fidelity.fresh_heldout({k: v for k, v in rows["c"].items() if k != "run"}, 32) is None

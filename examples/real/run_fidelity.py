@@ -163,7 +163,9 @@ def fresh_heldout(row: dict, n_sets: int) -> float | None:
     """The answer's mean distance on ``n_sets`` further sets of held-out model seeds, the sets
     after those that chose it (``[select] sets``): its quality without the luck of having scored
     best of the candidates on the sets that chose it. None without the fit's run folder."""
-    run = Path(row.get("run", ""))
+    if not row.get("run"):  # rows read back from the page have no run folder
+        return None
+    run = Path(row["run"])
     if not (run / "best.json").is_file():
         return None
     cfg = bf.load_config(run / "config.toml")

@@ -7,6 +7,7 @@ three heavy limbs, like a maple), and a QSM without a trunk.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from pathlib import Path
@@ -19,6 +20,7 @@ from bforest_core.cli.main import main
 from bforest_core.metrics import SUMMARY_DEFAULT, measure_tree
 from bforest_core.pipeline.recipe import write_recipe
 from bforest_core.pipeline.target import bounds_from_target
+from bforest_sot.recipe import sot_recipe
 from conftest import ROOT
 from conftest import qsm_path as sample
 
@@ -181,6 +183,9 @@ def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp
     h = 3.0 + 6 * math.cos(math.radians(30))
     assert s["fixed"]["span"] == 2 * math.ceil(0.9 * h) or s["fixed"]["span"] == 12.0
     assert s["free"]["init_width"]["lower"] == pytest.approx(0.03)  # its thinnest branch: 3 cm
+    # the internode: 7 first-order branches on 5.2 m of crown and two buds a node, 0.8-1.45 x 2 x
+    # 0.74 m, reaches past the model's 0.6 m; from below 1/100 of the height (0.08 m) reaches further
+    assert s["free"]["node_length"] == {"lower": 0.08, "upper": 0.6}
     # the angle varies from branch to branch, and the size term holds its median and spread on top
     # of the summary's default statistics
     assert s["free"]["branch_angle_sd"] == {"lower": 0.0, "upper": 35.0}
@@ -197,6 +202,17 @@ def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp
     text = (tmp_path / "maple.toml").read_text()
     assert "decurrent" in text and "Not lignum" in text
     bf.load_config(tmp_path / "maple.toml")
+
+
+def test_a_small_decurrent_tree_gets_the_internodes_its_branch_count_needs():
+    """A 3.7 m sapling with one first-order branch per 0.17 m of crown (the coffeetree's measures):
+    with two buds a node its count needs internodes of 0.27-0.49 m (0.8-1.45 x 2 x 0.17 m); the
+    height alone (1/100-1/33) gave 0.04-0.11 m, and fits ended at that bound with 50 % too many
+    branches (docs/validation.md, Broadleaved trees)."""
+    m = dataclasses.replace(measure_tree(decurrent_tree()), height=3.72, branch_spacing=0.17)
+    assert m.decurrent
+    free = {name: (lo, hi) for name, lo, hi, _ in sot_recipe(m).free}
+    assert free["node_length"] == (0.05, 0.49)  # 1/100 of the height (0.04) is below the model's 0.05
 
 
 def test_a_tree_without_a_trunk_gets_one_clear_line(tmp_path, capsys):

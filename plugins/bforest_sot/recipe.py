@@ -1,7 +1,7 @@
 """The SOT model's part of a recipe for a measured tree (``bforest init``).
 
 Bounds are scaled from the tree: the world cube and the light voxels from its height, the
-internode from its branch spacing (excurrent) or its height (decurrent), the branch angle from
+internode from its branch spacing and buds per node (a decurrent one's from its height too), the branch angle from
 its first-order branches' angles, the terminal shoot's diameter from the QSM's thinnest branch,
 and the apical control and growth forms from its crown form (docs/growth-forms.md): an
 excurrent crown (a leader to the top, like a pine's) gets strong apical control and one bud per
@@ -21,6 +21,8 @@ from .params import PARAMETERS
 
 #: the model's own range of the branch angle (deg): a box never leaves it
 _ANGLE = next((p.lower, p.upper) for p in PARAMETERS if p.name == "branch_angle")
+#: ... and of the internode (m)
+_NODE = next((p.lower, p.upper) for p in PARAMETERS if p.name == "node_length")
 
 #: the size term's hold on the first-order branching angle: the median within 15 % (weight 1/0.15)
 #: and its interquartile range within 30 % (the pine recipe's, docs/validation.md section 4)
@@ -44,13 +46,24 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
     h = m.height
     span = min(30.0, max(12.0, 2.0 * math.ceil(0.9 * h)))
     voxel = min(0.5, max(0.2, _r(h / 50.0, 0.01)))
-    if m.decurrent:  # a few limbs: the internode from the height
-        node_lo, node_hi = max(0.1, _r(h / 100.0, 0.01)), min(0.6, _r(h / 33.0, 0.01))
-        node_why = "internode (m): 1/100-1/33 of the height"
-    else:  # many branches along a leader: from the crown length per branch, as the pine recipe
-        node_hi = min(0.6, max(0.06, _r(1.45 * m.branch_spacing, 0.01)))
-        node_lo = min(node_hi - 0.01, max(0.05, _r(0.8 * m.branch_spacing, 0.01)))
-        node_why = f"internode (m): 0.8-1.45 x the crown length per first-order branch ({m.branch_spacing:.2f} m)"
+    # the internode sets how many branches a metre of stem can carry: 0.8-1.45 x the crown length
+    # per first-order branch for each bud of a node (the pine recipe's range, one bud per node);
+    # a decurrent crown (opposite buds) also gets 1/100-1/33 of its height where that reaches
+    # further, within the model's range
+    buds = 2 if m.decurrent else 1
+    per_node = buds * m.branch_spacing
+    node_lo, node_hi = 0.8 * per_node, 1.45 * per_node
+    node_why = (
+        f"internode (m): 0.8-1.45 x {buds} bud{'s' if buds > 1 else ''} x the crown length per "
+        f"first-order branch ({m.branch_spacing:.2f} m)"
+    )
+    if m.decurrent:
+        node_lo, node_hi = min(node_lo, h / 100.0), max(node_hi, h / 33.0)
+        node_why += ", or 1/100-1/33 of the height where that reaches further"
+    if node_hi > _NODE[1]:
+        node_why += f" (the model stops at {_NODE[1]:g} m)"
+    node_hi = min(_NODE[1], max(_NODE[0] + 0.01, _r(node_hi, 0.01)))
+    node_lo = min(node_hi - 0.01, max(_NODE[0], _r(node_lo, 0.01)))
     # from 20 deg below the branches' 10 % angle to their 90 % one: SOT's shoots turn towards
     # their target direction from their first internode, so a bud leaves wider than its branch
     lo_model, hi_model = _ANGLE
@@ -132,7 +145,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
             "node_length",
             node_lo,
             node_hi,
-            f"{node_why} (one lateral bud per node: it sets how many branches a metre of stem can carry)",
+            f"{node_why}: it sets how many branches a metre of stem can carry",
         ),
         ("stand_shade", 0.0, 1.0, "shade of the neighbours (1/m below the top): 0 = open-grown"),
     ]
@@ -161,7 +174,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         settings.append(
             (
                 "buds_per_node",
-                2,
+                buds,
                 "opposite buds (maple, ash, sycamore): with dying leaders, forks; "
                 "set 1 for a tree with alternate buds (oak, beech, birch)",
             )

@@ -218,9 +218,8 @@ def main(argv=None) -> int:
     figures = {}
     if args.figures:
         for r in results.values():
-            if Path(r["run"]).is_dir() and r["seed"] == min(
-                x["seed"] for x in results.values() if x["tree"] == r["tree"]
-            ):
+            first = r["seed"] == min(x["seed"] for x in results.values() if x["tree"] == r["tree"])
+            if first and r.get("run") and Path(r["run"]).is_dir():  # rows read back from the page have none
                 figures[r["tree"]] = figure(r)
     if args.doc:
         write_doc(results, figures)

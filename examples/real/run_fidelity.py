@@ -221,7 +221,7 @@ def worst(row: dict) -> tuple[float, float]:
 
 
 def verdict(row: dict) -> str:
-    bad = [f"{k} {100 * v:+.0f}%" for k, v in row["errors"].items() if v is None or abs(v) > ACCEPT[k]]
+    bad = [f"{k} {100 * v:+.1f}%" for k, v in row["errors"].items() if v is None or abs(v) > ACCEPT[k]]
     mates = mates_median(row)
     if row["judge_clones_median"] is not None and row["judge_clones_median"] > mates:
         bad.append(f"judge {row['judge_clones_median']:.3f} > stand-mates {mates:.3f}")

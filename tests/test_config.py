@@ -210,3 +210,17 @@ def test_the_fidelity_table_gives_the_spread_on_fresh_seed_sets_beside_the_chose
     # rows read back from the page have no run folder: nothing to grow again, no error
     assert run_fidelity.fresh_heldout({**rows["c"], "run": None}, 32) is None
     assert run_fidelity.fresh_heldout({k: v for k, v in rows["c"].items() if k != "run"}, 32) is None
+
+
+def test_a_fit_just_over_a_limit_reads_as_over_it():
+    """The verdict gives the error to 0.1 %: DBH +20.4 % against the 20 % limit reads "+20.4%",
+    not "+20%" (which looks like a pass), and a statistic the clones lack is named, not a crash."""
+    run_fidelity = _run_fidelity()
+    row = {
+        "errors": {"height": 0.01, "dbh": 0.204, "crown_spread": None},
+        "judge_clones_median": 0.15,
+        "judge_stand_mates": {"a": 0.2, "b": 0.3},
+    }
+    assert run_fidelity.verdict(row) == "misses: dbh +20.4%, crown_spread not measured"
+    row["errors"] = {"height": -0.074, "dbh": 0.2}
+    assert run_fidelity.verdict(row) == "meets the limits"

@@ -99,8 +99,10 @@ def run_one(tree: str, seed: int, out: Path, n_clones: int) -> dict:
 
 def verdict(row: dict) -> str:
     lim = limits(row["tree"])
-    bad = [
-        f"{NAMES[k]} {100 * v:+.1f}%" for k, v in row["errors"].items() if k in lim and (v is None or abs(v) > lim[k])
+    bad = [  # one decimal, as run_fidelity.verdict
+        f"{NAMES[k]} not measured" if v is None else f"{NAMES[k]} {100 * v:+.1f}%"
+        for k, v in row["errors"].items()
+        if k in lim and (v is None or abs(v) > lim[k])
     ]
     near = float(np.median(list(row["judge_neighbours"].values())))
     if row["judge_clones_median"] is None or row["judge_clones_median"] > near:

@@ -221,7 +221,12 @@ def worst(row: dict) -> tuple[float, float]:
 
 
 def verdict(row: dict) -> str:
-    bad = [f"{k} {100 * v:+.1f}%" for k, v in row["errors"].items() if v is None or abs(v) > ACCEPT[k]]
+    # one decimal: a miss just over its limit (height +10.5 % against 10 %) must not read as at it
+    bad = [
+        f"{k} not measured" if v is None else f"{k} {100 * v:+.1f}%"
+        for k, v in row["errors"].items()
+        if v is None or abs(v) > ACCEPT[k]
+    ]
     mates = mates_median(row)
     if row["judge_clones_median"] is not None and row["judge_clones_median"] > mates:
         bad.append(f"judge {row['judge_clones_median']:.3f} > stand-mates {mates:.3f}")

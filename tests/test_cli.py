@@ -4,6 +4,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bforest_core.cli import main
@@ -75,6 +76,29 @@ def test_distance_of_a_tree_to_itself_and_the_permutation_test(capsys):
     assert "S1         0.0000  (rows A 362, B 362)" in out
     # identical trees are indistinguishable: every permuted D >= D0 = 0, so p = 1 after 100 draws
     assert "permutation test: p = 1.0000 (100 draws" in out and "not distinguishable" in out
+
+
+def test_distance_columns_name_the_column_that_differs(capsys):
+    import json
+
+    from scipy.stats import ks_2samp
+
+    from bforest_core.io import read_qsm
+    from bforest_core.registry import component
+
+    a, b = qsm_path("pine_ruotsinkyla_1.mat"), qsm_path("pine_ruotsinkyla_3.mat")
+    assert main(["distance", str(b), str(b), "--lines", "16", "--columns"]) == 0
+    out = capsys.readouterr().out
+    assert "    L_t          KS 0.000" in out and "    alpha        KS 0.000" in out
+    assert main(["distance", str(a), str(b), "--lines", "16", "--columns", "--json"]) == 0
+    got = {r["column"]: r for r in json.loads(capsys.readouterr().out)["columns"]["B1"]}
+    fs = component("features", "branch-segment", sets=["B1"])
+    ta, tb = read_qsm(a), read_qsm(b)
+    fs.prepare([tb])
+    ua, ub = fs.extract(ta)["B1"], fs.extract(tb)["B1"]
+    j = fs.columns("B1").index("L_t")
+    assert got["L_t"]["ks"] == pytest.approx(ks_2samp(ua[:, j], ub[:, j]).statistic, abs=1e-12)
+    assert got["L_t"]["median_data"] == pytest.approx(float(np.median(ub[:, j])))
 
 
 def test_distance_sets_keep_open_ranges(capsys):

@@ -282,6 +282,24 @@ def test_per_line_ks_equals_scipy_with_ties():
     assert np.allclose(got, want, atol=1e-12)
 
 
+def test_column_gaps_rank_columns_by_their_own_ks_with_angles_in_degrees():
+    from scipy.stats import ks_2samp
+
+    # data: L uniform on [0, 3], angles 0-90 deg; model: L on [0, 3] shifted by +1.5 (KS 0.5),
+    # angles the same (KS 0): L ranks first, then gamma, with its medians in degrees
+    x = np.linspace(0.0, 3.0, 101)
+    ang = np.linspace(0.0, 90.0, 101)
+    rad = np.radians(ang)
+    ud = np.c_[x, np.sin(rad), np.cos(rad)]
+    um = np.c_[x + 1.5, np.sin(rad), np.cos(rad)]
+    rows = datasets.column_gaps(um, ud, ["L", "sin(gamma)", "cos(gamma)"])
+    assert [r["column"] for r in rows] == ["L", "gamma"]
+    assert rows[0]["ks"] == pytest.approx(ks_2samp(um[:, 0], ud[:, 0]).statistic, abs=1e-12)
+    assert rows[0]["ks"] == pytest.approx(0.5, abs=0.01)
+    assert rows[0]["median_model"] == pytest.approx(3.0) and rows[0]["median_data"] == pytest.approx(1.5)
+    assert rows[1]["ks"] == 0.0 and rows[1]["median_data"] == pytest.approx(45.0)
+
+
 def test_data_set_and_worst_lines_figures(tmp_path):
     rng = np.random.default_rng(1)
     cols = ["R", "L", "sin(gamma)", "cos(gamma)"]

@@ -170,6 +170,11 @@ def cmd_distance(args):
     dist.prepare(Ub, {k: fs.columns(k) for k in fs.set_names})
     per = dist.compute_per_set(Ua, Ub)
     total = dist.combine(per)
+    gaps = {}
+    if args.columns:
+        from ..report.datasets import column_gaps
+
+        gaps = {k: column_gaps(Ua[k], Ub[k], fs.columns(k)) for k in per}
     if args.json:
         ma, mb = classical_metrics(a), classical_metrics(b)
         print(
@@ -189,6 +194,7 @@ def cmd_distance(args):
                     "metrics_model_m": ma,
                     "metrics_data_m": mb,
                     "relative_errors": relative_errors(mb, ma),
+                    **({"columns": gaps} if args.columns else {}),
                 },
                 strict=True,
             )
@@ -198,6 +204,10 @@ def cmd_distance(args):
     print(f"distance ({args.distance}, {args.statistic}, {args.lines} lines): {total:.4f}")
     for k, v in per.items():
         print(f"  {k:<10} {'skipped' if v is None else f'{v:.4f}'}  (rows A {Ua[k].shape[0]}, B {Ub[k].shape[0]})")
+        for g in gaps.get(k, []):
+            print(
+                f"    {g['column']:<12} KS {g['ks']:.3f}   median A {g['median_model']:.4g}, B {g['median_data']:.4g}"
+            )
     ma, mb = classical_metrics(a), classical_metrics(b)
     err = relative_errors(mb, ma)
     print(f"{'metric':<18}{'A':>10}{'B':>10}{'rel. error':>12}")
@@ -247,6 +257,11 @@ def add_commands(sub) -> None:
     s.add_argument("--features", default="branch-segment", help="feature set plugin (default branch-segment)")
     s.add_argument("--distance", default="sliced", help="distance plugin (default sliced)")
     s.add_argument("--test", action="store_true", help="permutation test p-value")
+    s.add_argument(
+        "--columns",
+        action="store_true",
+        help="each set's columns on their own: KS and both medians (angles in degrees), largest gap first",
+    )
     s.add_argument("--json", action="store_true", help="print the result as JSON")
     s.add_argument("--seed", type=int, default=1, help="seed of the permutation test")
     s.set_defaults(func=cmd_distance)

@@ -298,6 +298,9 @@ def test_column_gaps_rank_columns_by_their_own_ks_with_angles_in_degrees():
     assert rows[0]["ks"] == pytest.approx(0.5, abs=0.01)
     assert rows[0]["median_model"] == pytest.approx(3.0) and rows[0]["median_data"] == pytest.approx(1.5)
     assert rows[1]["ks"] == 0.0 and rows[1]["median_data"] == pytest.approx(45.0)
+    # a model without rows of the set: every column at KS 1, its medians None (valid JSON)
+    empty = datasets.column_gaps(np.empty((0, 3)), ud, ["L", "sin(gamma)", "cos(gamma)"])
+    assert [r["ks"] for r in empty] == [1.0, 1.0] and empty[0]["median_model"] is None
 
 
 def test_data_set_and_worst_lines_figures(tmp_path):

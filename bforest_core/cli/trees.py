@@ -205,9 +205,8 @@ def cmd_distance(args):
     for k, v in per.items():
         print(f"  {k:<10} {'skipped' if v is None else f'{v:.4f}'}  (rows A {Ua[k].shape[0]}, B {Ub[k].shape[0]})")
         for g in gaps.get(k, []):
-            print(
-                f"    {g['column']:<12} KS {g['ks']:.3f}   median A {g['median_model']:.4g}, B {g['median_data']:.4g}"
-            )
+            ma_, mb_ = ("–" if m is None else f"{m:.4g}" for m in (g["median_model"], g["median_data"]))
+            print(f"    {g['column']:<12} KS {g['ks']:.3f}   median A {ma_}, B {mb_}")
     ma, mb = classical_metrics(a), classical_metrics(b)
     err = relative_errors(mb, ma)
     print(f"{'metric':<18}{'A':>10}{'B':>10}{'rel. error':>12}")

@@ -156,8 +156,8 @@ def per_line_ks(u_model: np.ndarray, u_data: np.ndarray, directions: np.ndarray)
 
 
 def column_gaps(u_model: np.ndarray, u_data: np.ndarray, columns: Sequence[str]) -> list[dict]:
-    """Each feature column compared on its own: two-sample KS statistic and the medians of both
-    sides, largest gap first.
+    """Each feature column compared on its own: two-sample KS statistic (1 when a side has no
+    rows) and the medians of both sides (None for a side without rows), largest gap first.
 
     Circular pairs ``sin(x)``, ``cos(x)`` are compared as the angle x in degrees
     (:func:`display_columns`). The sliced distance looks at projections on many lines; this is its
@@ -167,7 +167,7 @@ def column_gaps(u_model: np.ndarray, u_data: np.ndarray, columns: Sequence[str])
     dm, names = display_columns(u_model, columns)
     dd, _ = display_columns(u_data, columns)
     ks = per_line_ks(dm, dd, np.eye(len(names)))
-    med = lambda t, i: float(np.median(t[:, i])) if t.shape[0] else float("nan")  # noqa: E731
+    med = lambda t, i: float(np.median(t[:, i])) if t.shape[0] else None  # noqa: E731  (None: no rows)
     rows = [
         {"column": n, "ks": float(ks[i]), "median_model": med(dm, i), "median_data": med(dd, i)}
         for i, n in enumerate(names)

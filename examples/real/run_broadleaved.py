@@ -34,7 +34,7 @@ from bforest_core.pipeline.recipe import write_recipe
 from bforest_core.report.trees import clones_figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_fidelity import ACCEPT, DATA, DOC, fit_and_judge, judge_distance  # noqa: E402  (the same judge and limits)
+from run_fidelity import ACCEPT, DATA, DOC, fit_and_judge, judge_distance, size_misses  # noqa: E402  (the same judge and limits)
 
 WYTHAM = [f"wytham_tf{k}" for k in range(1, 6)]
 PINES = [f"pine_ruotsinkyla_{k}" for k in (1, 2, 3)]
@@ -98,12 +98,7 @@ def run_one(tree: str, seed: int, out: Path, n_clones: int) -> dict:
 
 
 def verdict(row: dict) -> str:
-    lim = limits(row["tree"])
-    bad = [  # one decimal, as run_fidelity.verdict
-        f"{NAMES[k]} not measured" if v is None else f"{NAMES[k]} {100 * v:+.1f}%"
-        for k, v in row["errors"].items()
-        if k in lim and (v is None or abs(v) > lim[k])
-    ]
+    bad = size_misses(row["errors"], limits(row["tree"]), NAMES)
     near = float(np.median(list(row["judge_neighbours"].values())))
     if row["judge_clones_median"] is None or row["judge_clones_median"] > near:
         bad.append(f"judge {row['judge_clones_median']:.3f} > neighbours {near:.3f}")

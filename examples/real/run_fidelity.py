@@ -220,13 +220,21 @@ def worst(row: dict) -> tuple[float, float]:
     return size, float("inf") if j is None else j / mates_median(row)
 
 
-def verdict(row: dict) -> str:
-    # one decimal: a miss just over its limit (height +10.5 % against 10 %) must not read as at it
-    bad = [
-        f"{k} not measured" if v is None else f"{k} {100 * v:+.1f}%"
-        for k, v in row["errors"].items()
-        if v is None or abs(v) > ACCEPT[k]
+def size_misses(errors: dict, limits: dict, labels: dict | None = None) -> list[str]:
+    """The statistics of ``errors`` beyond their limit, as "label +20.4%" or "label not measured".
+
+    One decimal: a miss just over its limit (height +10.5 % against 10 %) must not read as at it.
+    """
+    name = (labels or {}).get
+    return [
+        f"{name(k, k)} not measured" if v is None else f"{name(k, k)} {100 * v:+.1f}%"
+        for k, v in errors.items()
+        if k in limits and (v is None or abs(v) > limits[k])
     ]
+
+
+def verdict(row: dict) -> str:
+    bad = size_misses(row["errors"], ACCEPT)
     mates = mates_median(row)
     if row["judge_clones_median"] is not None and row["judge_clones_median"] > mates:
         bad.append(f"judge {row['judge_clones_median']:.3f} > stand-mates {mates:.3f}")

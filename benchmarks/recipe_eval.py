@@ -49,6 +49,8 @@ def measure(recipe: str, points: int, seed: int, run: str | None = None) -> dict
 
     cfg = load_config(recipe)
     tgt = tg_mod.build_target(cfg)
+    if hasattr(tg_mod, "bounds_from_target"):  # bounds scaled by the target, resolved as a fit does
+        cfg = tg_mod.bounds_from_target(cfg, tgt.trees)
     if hasattr(ob, "_SCORING"):  # a worker takes the validated config and holds a Scoring (issue 34)
         ob.init_worker(cfg, tgt.U, tgt.columns, tgt.feature_settings, tgt.terms)
         ssm = ob.worker_context().ssm

@@ -250,3 +250,48 @@ def test_a_race_with_two_finalists_halves_once_and_keeps_two_starts_to_the_end()
     for s in kept:  # both finalists still searching in the last generations of the budget
         assert max(r["n_evaluations"] for r in recs if r["start"] == s["start"]) > 616 - 3 * 8
     assert res.n_evaluations == 616
+
+
+def test_starts_growing_together_send_one_batch_per_turn_and_repeat_for_a_seed():
+    """grow_together: each turn grows one generation of every start still racing as one batch
+    (4 x 8 points before the halving, 2 x 8 after), the halving still comes at half the budget
+    (within a turn), and the same seed asks for the same points."""
+    runs = []
+    for _ in range(2):
+        pr, asked = _problem(sphere, [-5] * 4, [5] * 4, budget=616)
+        sizes = []
+        inner = pr.evaluate
+        pr.evaluate = lambda X: (sizes.append(len(X)), inner(X))[1]
+        res = bf.component(
+            "optimizer", "cma", init_design=16, starts=4, finalists=2, population=8, grow_together=True
+        ).minimize(pr)
+        runs.append(asked)
+    assert sizes[0] == 16 and set(sizes[1:-1]) == {32, 16} and sizes[-1] <= 32
+    first16 = sizes.index(16, 1)
+    assert sizes[1:first16] == [32] * (first16 - 1) and set(sizes[first16:-1]) == {16}
+    dropped = sorted(s["dropped_after"] for s in res.diagnostics["starts"] if s["dropped_after"] is not None)
+    assert len(dropped) == 2 and 316 <= dropped[0] == dropped[1] < 316 + 32
+    assert res.n_evaluations == 616 and res.fun < 1e-2  # from distances of ~10 at the design
+    assert runs[0] == runs[1]
+    # one start at a time (the default) sends a batch per generation of one start
+    pr, _ = _problem(sphere, [-5] * 4, [5] * 4, budget=616)
+    sizes = []
+    inner = pr.evaluate
+    pr.evaluate = lambda X: (sizes.append(len(X)), inner(X))[1]
+    bf.component("optimizer", "cma", init_design=16, starts=4, finalists=2, population=8).minimize(pr)
+    assert set(sizes[1:-1]) == {8}
+
+
+def test_starts_growing_together_with_the_surrogate_tell_each_start_its_own_points():
+    """With lq-CMA-ES each start grows its generation in steps; the steps of the starts go out
+    together, and each start's log record counts only its own grown points."""
+    pr, asked = _problem(sphere, [-5] * 4, [5] * 4, budget=800)
+    res = bf.component(
+        "optimizer", "cma", init_design=16, starts=4, finalists=2, population=8, surrogate="lq", grow_together=True
+    ).minimize(pr)
+    recs = [r for r in res.history if r.get("run", -1) >= 0]
+    assert {r["start"] for r in recs} == {0, 1, 2, 3}
+    assert all(1 <= r["grown"] <= r["population"] for r in recs)
+    assert "converged" in res.stop_reason  # every generation ended, so every point grown is logged
+    assert sum(r["grown"] for r in recs) + 16 == len(asked)
+    assert res.fun < 1e-4

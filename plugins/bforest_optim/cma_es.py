@@ -69,6 +69,14 @@ class CMASettings(OptimizerSettings):
         "the best point of all, or of [select]'s re-scoring). 2 of 4 starts: two searches, each "
         "with the evaluations the one winner of 2 starts gets",
     )
+    grow_together: bool = Field(
+        False,
+        description="with starts > 1: the starts still racing take their turns together, "
+        "each one generation, and the points they grow at each step go to the workers as one "
+        "batch, so the workers are not left waiting on one start's slowest tree; the run is as "
+        "deterministic as with one start at a time, but the points differ (the race and the "
+        "budget meet the generations at other places). false: one start's generation at a time",
+    )
     surrogate: Literal["none", "lq"] = Field(
         "none",
         description="'lq': lq-CMA-ES, a quadratic regression of "
@@ -139,20 +147,27 @@ class CMAES(Optimizer):
         race = _Race(slots, problem, s.finalists)
         reason, generation = "cma stopped", 0
         while race.active and not ev.stopped:
-            for slot in list(race.active):
-                if slot not in race.active:  # dropped by the race earlier in this round
+            turn = list(race.active)
+            # one start's generation at a time, or one generation of every start still racing
+            for group in [turn] if s.grow_together else [[sl] for sl in turn]:
+                steps = []
+                for slot in group:
+                    if slot not in race.active:  # dropped by the race earlier in this round
+                        continue
+                    if slot.es is None or slot.es.stop():
+                        if slot.es is not None:
+                            slot.finish()
+                            if slot.run >= s.restarts:
+                                race.active.remove(slot)
+                                continue
+                            slot.run += 1
+                        slot.es = self._es(slot, pop0, int(problem.seed))
+                    generation += 1
+                    steps.append(self._generation(slot, ev, log, generation))
+                if not steps:
                     continue
-                if slot.es is None or slot.es.stop():
-                    if slot.es is not None:
-                        slot.finish()
-                        if slot.run >= s.restarts:
-                            race.active.remove(slot)
-                            continue
-                        slot.run += 1
-                    slot.es = self._es(slot, pop0, int(problem.seed))
-                generation += 1
-                self._generation(slot, grow, ev, log, generation)
-                if stop(ev):
+                _grow_steps(steps, grow)
+                if any(stop(ev) for _ in steps):
                     reason = stop.reason
                     break
                 if ev.stopped:
@@ -197,11 +212,16 @@ class CMAES(Optimizer):
             opts["maxiter"] = s.max_generations
         return cma.CMAEvolutionStrategy(slot.x0, s.sigma0, opts)
 
-    def _generation(self, slot: _Start, grow, ev: Box, log: History, generation: int) -> None:
-        """One generation of one start: ask, grow (or let the surrogate rank), tell, log."""
+    def _generation(self, slot: _Start, ev: Box, log: History, generation: int):
+        """One generation of one start: ask, grow (or let the surrogate rank), tell, log. A
+        generator: it yields the points (unit cube) it needs grown and is sent their distances
+        (:func:`_grow_steps` drives it)."""
         es, surrogate = slot.es, slot.surrogate
         U = np.asarray(es.ask())
-        f, extra = surrogate(U, grow) if surrogate else (grow(U), {})
+        if surrogate:
+            f, extra = yield from surrogate.rank(U)
+        else:
+            f, extra = (yield U), {}
         finite = f[np.isfinite(f)]
         worst = finite.max() + 1.0 if finite.size else 1e6
         es.tell(list(U), list(np.where(np.isfinite(f), f, worst)))
@@ -245,6 +265,26 @@ class _Start:
                 "stop": {k: (float(v) if isinstance(v, (int, float)) else str(v)) for k, v in dict(es.stop()).items()},
             }
         )
+
+
+def _grow_steps(steps: list, grow) -> None:
+    """Drive generation generators (:meth:`CMAES._generation`) to their ends together: the
+    points all of them ask for at a step are grown as one batch (in the steps' order), and each
+    is sent its own distances."""
+    want = [next(g) for g in steps]
+    live = list(range(len(steps)))
+    while live:
+        f = grow(np.concatenate([want[i] for i in live]))
+        at, still = 0, []
+        for i in live:
+            k = len(want[i])
+            try:
+                want[i] = steps[i].send(f[at : at + k])
+                still.append(i)
+            except StopIteration:
+                pass
+            at += k
+        live = still
 
 
 class _Race:
@@ -307,8 +347,9 @@ def _start_points(U: np.ndarray | None, f: np.ndarray | None, k: int, ilo, ihi, 
 class _LQSurrogate:
     """lq-CMA-ES's population evaluation (after cma's ``SurrogatePopulation.__call__``: its model,
     settings and growing schedule, with an out-of-sample rank check and batches; see the module):
-    ``surrogate(U, grow)`` returns the values CMA-ES is told and a log record (``grown``: points
-    grown, ``tau``: the rank agreement of the model's predictions with them)."""
+    ``surrogate.rank(U)``, a generator that yields the points it grows and is sent their
+    distances, returns the values CMA-ES is told and a log record (``grown``: points grown,
+    ``tau``: the rank agreement of the model's predictions with them)."""
 
     def __init__(self, batch: int, min_true: int = 6):
         from cma.fitness_models import LQModel, SurrogatePopulationSettings
@@ -316,7 +357,7 @@ class _LQSurrogate:
         self.model, self.batch, self.S = LQModel(), int(batch), SurrogatePopulationSettings
         self.min_true = int(min_true)
 
-    def __call__(self, U: np.ndarray, grow) -> tuple[np.ndarray, dict]:
+    def rank(self, U: np.ndarray):
         m, S, lam = self.model, self.S, len(U)
         if S.model_max_size_factor * lam > m.settings.max_absolute_size:
             if m.settings.max_absolute_size:  # a restart's larger population: start a new model
@@ -337,7 +378,7 @@ class _LQSurrogate:
             k = min(len(todo), -(-k // self.batch) * self.batch)  # whole batches: no worker waits
             idx = todo[:k]
             pred[idx] = F[idx]  # what the model said before it saw these points
-            f[idx] = grow(U[idx])
+            f[idx] = yield U[idx]
             done[idx] = True
             for i in idx:
                 if np.isfinite(f[i]):

@@ -5,15 +5,20 @@
 2. process executor with 2 workers vs the serial executor on the same GA run (same evaluations;
    target >= 1.7x throughput);
 3. (--full) the GA fit of examples/sot_pine3.toml: SOT to pine_ruotsinkyla_3 with S^{0,1} and
-   B^{2,3,4}, population 40 x 25 generations, 2 workers (target < 4 minutes).
+   B^{2,3,4}, population 40 x 25 generations, 2 workers (target < 4 minutes);
+4. (--together RECIPE) a raced CMA-ES recipe (e.g. examples/real/pine_sot.toml) cut to
+   --evaluations, with its starts taking turns one at a time and together
+   (``[optimizer] grow_together``): wall time and how busy the workers were (their time inside
+   evaluations over workers x the span of the evaluations).
 
-    .venv/bin/python benchmarks/fit.py [--full]
+    .venv/bin/python benchmarks/fit.py [--full] [--together examples/real/pine_sot.toml]
 """
 
 from __future__ import annotations
 
 import argparse
 import shutil
+import sqlite3
 import tempfile
 import time
 from pathlib import Path
@@ -50,11 +55,47 @@ def _noop(x):
     return x
 
 
+def _together(recipe: Path, evaluations: int) -> None:
+    """Part 4: the recipe with its starts one at a time, then together, in the same run."""
+    raw = config_to_dict(bf.load_config(recipe))
+    workers = int(raw.get("executor", {}).get("workers", 1))
+    tmp = Path(tempfile.mkdtemp(prefix="bforest-bench-"))
+    try:
+        rows = {}
+        for together in (False, True):
+            r = dict(raw)
+            r["optimizer"] = {**raw["optimizer"], "grow_together": together}
+            r["stop"] = {**raw.get("stop", {}), "max_evaluations": evaluations}
+            out = tmp / f"together_{together}"
+            t0 = time.perf_counter()
+            res = bf.fit(parse_config(r, source=str(recipe)), out, progress=False, overwrite=True)
+            wall = time.perf_counter() - t0
+            with sqlite3.connect(out / "evaluations.sqlite") as db:  # when each evaluation ended
+                n, inside, span = db.execute(
+                    "select count(*), sum(seconds), max(finished) - min(finished) from evaluations"
+                ).fetchone()
+            rows[together] = wall
+            print(
+                f"{recipe.name}, {n} evaluations, starts {'together' if together else 'one at a time'}: "
+                f"wall {wall:.1f} s, workers busy {inside / (workers * span):.0%}, "
+                f"{res.diagnostics.get('n_batches')} batches; best {res.distance:.4f}"
+            )
+        print(f"  together against one at a time: {rows[False] / rows[True]:.2f}x")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--full", action="store_true", help="also the full 40 x 25 GA fit")
     ap.add_argument("--generations", type=int, default=10, help="generations for parts 1 and 2")
+    ap.add_argument(
+        "--together", metavar="RECIPE", help="part 4 only: a raced CMA-ES recipe, starts one at a time and together"
+    )
+    ap.add_argument("--evaluations", type=int, default=1200, help="part 4: the recipe's budget (default 1200)")
     args = ap.parse_args()
+    if args.together:
+        return _together(Path(args.together), args.evaluations)
     if not CONFIG.exists():
         raise SystemExit(f"{CONFIG} missing")
     base = bf.load_config(CONFIG)

@@ -136,6 +136,13 @@ CASES = {
     "emcee": (EmceeSampler, {"epsilon": 0.5, "steps": 150}, None, 0.3, 0.1),
     "de": (DifferentialEvolution, {}, None, 0.05, 1e-3),
     "cma-lq": (CMAES, {"surrogate": "lq", "population": 8}, 600, 0.05, 1e-3),
+    "cma-raced-together": (
+        CMAES,
+        {"surrogate": "lq", "population": 8, "init_design": 16, "starts": 4, "finalists": 2, "grow_together": True},
+        600,
+        0.05,
+        1e-3,
+    ),
     "turbo": (Turbo, {"candidates": 256, "max_train": 100, "hyper_every": 10}, 200, 0.05, 1e-3),
 }
 
@@ -220,7 +227,7 @@ def test_stops_at_target_mid_run_and_returns_best_seen(case):
     assert res.fun <= 10.0 and res.fun == rec.values.min() and np.array_equal(res.x, pr.best_x)
 
 
-@pytest.mark.parametrize("case", ["ga", "nlopt-crs2", "emcee", "de", "cma-lq", "turbo"])
+@pytest.mark.parametrize("case", ["ga", "nlopt-crs2", "emcee", "de", "cma-lq", "cma-raced-together", "turbo"])
 def test_resume_replay_gives_the_same_batches(case):
     """Resume re-runs the optimiser from the start: the first batches' values come from the log
     (nothing is computed), the rest are computed; the run must ask for the same points."""

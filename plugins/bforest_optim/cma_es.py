@@ -9,7 +9,10 @@ repeats are answered by the fit's cache. Each generation is one batch through
 (IPOP-CMA-ES, Auger & Hansen 2005). ``starts`` > 1 races several independent runs from distinct
 points of the design with successive halving (:class:`_Race`): on a noisy distance one run can
 settle in a poor basin on one machine and a good one on another; racing several keeps the answer
-from hinging on one trajectory. Everything is seeded from ``problem.seed``: given the same
+from hinging on one trajectory. With ``grow_together`` the racing starts take their turns
+together: one generation of each, their points grown as one batch (each generation is a
+generator of the batches it needs, :func:`_grow_steps`), so the workers do not wait on one
+start's slowest tree. Everything is seeded from ``problem.seed``: given the same
 returned values the run asks for the same points, so a resumed fit replays.
 
 ``surrogate = "lq"`` is lq-CMA-ES (Hansen 2019, GECCO; cma's ``fitness_models.LQModel``): a

@@ -252,6 +252,13 @@ def test_a_race_with_two_finalists_halves_once_and_keeps_two_starts_to_the_end()
     assert res.n_evaluations == 616
 
 
+def _batch_sizes(pr) -> list[int]:
+    """The sizes of the batches ``pr.evaluate`` is called with, in order (filled as they come)."""
+    sizes, inner = [], pr.evaluate
+    pr.evaluate = lambda X: (sizes.append(len(X)), inner(X))[1]
+    return sizes
+
+
 def test_starts_growing_together_send_one_batch_per_turn_and_repeat_for_a_seed():
     """grow_together: each turn grows one generation of every start still racing as one batch
     (4 x 8 points before the halving, 2 x 8 after), the halving still comes at half the budget
@@ -259,9 +266,7 @@ def test_starts_growing_together_send_one_batch_per_turn_and_repeat_for_a_seed()
     runs = []
     for _ in range(2):
         pr, asked = _problem(sphere, [-5] * 4, [5] * 4, budget=616)
-        sizes = []
-        inner = pr.evaluate
-        pr.evaluate = lambda X: (sizes.append(len(X)), inner(X))[1]
+        sizes = _batch_sizes(pr)
         res = bf.component(
             "optimizer", "cma", init_design=16, starts=4, finalists=2, population=8, grow_together=True
         ).minimize(pr)
@@ -275,9 +280,7 @@ def test_starts_growing_together_send_one_batch_per_turn_and_repeat_for_a_seed()
     assert runs[0] == runs[1]
     # one start at a time (the default) sends a batch per generation of one start
     pr, _ = _problem(sphere, [-5] * 4, [5] * 4, budget=616)
-    sizes = []
-    inner = pr.evaluate
-    pr.evaluate = lambda X: (sizes.append(len(X)), inner(X))[1]
+    sizes = _batch_sizes(pr)
     bf.component("optimizer", "cma", init_design=16, starts=4, finalists=2, population=8).minimize(pr)
     assert set(sizes[1:-1]) == {8}
 

@@ -31,6 +31,8 @@ __all__ = [
     "order_summary",
     "SUMMARY_DEFAULT",
     "SIZE_WEIGHTS",
+    "SIZE_TOLERANCES",
+    "SIZE_LIMITS",
     "SUMMARY_UNITS",
     "summary_unit",
     "summary_label",
@@ -227,10 +229,16 @@ def relative_errors(data_metrics: Mapping[str, float], model_metrics: Mapping[st
 
 
 # ------------------------------------------------------------------------------ tree summary
-#: what a size term weighs by default: each headline statistic by the inverse of the error a
-#: forester tolerates (height 7.5 %, DBH 20 %, crown spread 25 %, crown base and first-order
-#: branches 30 %); a model's recipe may weigh some of them otherwise (``RecipeDraft.size_weights``)
-SIZE_WEIGHTS = {"height": 13.3, "dbh": 5.0, "crown_spread": 4.0, "crown_base_height": 3.3, "n_branches_o1": 3.3}
+#: the error a forester tolerates in the clones' mean of each headline statistic (a fraction of
+#: the tree's value; the limits of docs/validation.md section 4)
+SIZE_TOLERANCES = {"height": 0.075, "dbh": 0.20, "crown_spread": 0.25, "crown_base_height": 0.30, "n_branches_o1": 0.30}
+#: what a size term weighs by default: each headline statistic by the inverse of its tolerance
+#: (13.3, 5, 4, 3.3, 3.3); a model's recipe may weigh some of them otherwise
+#: (``RecipeDraft.size_weights``)
+SIZE_WEIGHTS = {k: round(1.0 / t, 1) for k, t in SIZE_TOLERANCES.items()}
+#: where a recipe's size term turns steep (the summary distance's ``limits``): two thirds of each
+#: tolerance, so that a fit judged on a few model seeds keeps its clones' mean inside the tolerance
+SIZE_LIMITS = {k: round(2.0 / 3.0 * t, 2) for k, t in SIZE_TOLERANCES.items()}
 
 #: the statistics of the summary set by default (``tree-summary``): size, stem, crown, branch
 #: counts and the vertical profile

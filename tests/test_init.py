@@ -17,7 +17,7 @@ import pytest
 
 import bforest_core as bf
 from bforest_core.cli.main import main
-from bforest_core.metrics import SUMMARY_DEFAULT, measure_tree
+from bforest_core.metrics import SIZE_LIMITS, SUMMARY_DEFAULT, measure_tree
 from bforest_core.pipeline.recipe import write_recipe
 from bforest_core.pipeline.target import bounds_from_target
 from bforest_sot.recipe import sot_recipe
@@ -238,9 +238,10 @@ def test_init_never_replaces_a_recipe_without_overwrite(tmp_path, capsys):
     assert "lignum" in capsys.readouterr().out and "years" in out.read_text()
 
 
-def test_init_on_pine_3_is_the_shipped_lignum_recipe(tmp_path):
+def test_init_on_pine_3_is_the_shipped_lignum_recipe_with_the_size_limits(tmp_path):
     # the shipped recipe is init's output for pine 3, value for value and in the same order (so
-    # the same search): its fits over run seeds (docs/validation.md section 4) are init's
+    # the same search), but for the size term's limits, which init writes and the shipped pine
+    # recipes do not have (docs/validation.md, Broadleaved trees)
     src = sample("pine_ruotsinkyla_3.mat")
     out = tmp_path / "pine3.toml"
     write_recipe(src, out)
@@ -250,7 +251,24 @@ def test_init_on_pine_3_is_the_shipped_lignum_recipe(tmp_path):
     a, b = bf.load_config(out).model_dump(), bf.load_config(shipped).model_dump()
     for c in (a, b):  # the same file, whatever symbolic links lead to it
         c["target"]["qsm"] = str(Path(c["target"]["qsm"]).resolve())
+    (size_a,), (size_b,) = a["objective"]["terms"], b["objective"]["terms"]
+    assert size_a["distance"].pop("limits") == SIZE_LIMITS and "limits" not in size_b["distance"]
     assert a == b and list(a["ssm"]["free"]) == list(b["ssm"]["free"])
+
+
+def test_init_writes_size_limits_at_two_thirds_of_the_tolerances(tmp_path):
+    # height 7.5 %, DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %
+    assert SIZE_LIMITS == {
+        "height": 0.05,
+        "dbh": 0.13,
+        "crown_spread": 0.17,
+        "crown_base_height": 0.2,
+        "n_branches_o1": 0.2,
+    }
+    for tree, model in ((excurrent_tree(), "lignum"), (decurrent_tree(), "sot")):
+        _, cfg = _recipe(tmp_path, tree, model, model=model)
+        (size,) = cfg["objective"]["terms"]
+        assert size["distance"]["limits"] == SIZE_LIMITS
 
 
 @pytest.mark.parametrize(

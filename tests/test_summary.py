@@ -152,6 +152,38 @@ def test_summary_distance_missing_values_and_caps():
         _dist(weights={"hieght": 2.0})
 
 
+def test_summary_distance_limits_make_a_miss_beyond_them_steep():
+    d = np.array([[10.0, 20.0]])
+    within = np.array([[11.0, 20.0]])  # 10 % taller: inside a 20 % limit, the plain log ratio
+    x = math.log(11.05 / 10.05)
+    lim = _dist(limits={"height": 0.2}, weights={"n_branches_o1": 1e-9})
+    assert lim.compute_pair("summary", within, d) == pytest.approx(x)
+    # 30 % taller: the log ratio beyond log(1.2) counts 1 + steep times
+    y = math.log(13.05 / 10.05)
+    over = y + 10 * (y - math.log(1.2))
+    assert lim.compute_pair("summary", np.array([[13.0, 20.0]]), d) == pytest.approx(over)
+    # 30 % shorter: the limit on that side is -log(0.8), not log(1.2)
+    z = abs(math.log(7.05 / 10.05))
+    under = z + 10 * (z + math.log(0.8))
+    assert lim.compute_pair("summary", np.array([[7.0, 20.0]]), d) == pytest.approx(under)
+    assert under > over > 2 * y  # a miss beyond the limit costs far more than the plain ratio
+    # 18 % shorter: beyond log(1.2) as a ratio (0.199) but within -log(0.8) (0.223): no extra
+    w = abs(math.log(8.25 / 10.05))
+    assert w > math.log(1.2) and lim.compute_pair("summary", np.array([[8.2, 20.0]]), d) == pytest.approx(w)
+    # the relative form: |m - d| / d beyond the limit, steep 4, and the cap still holds
+    rel = _dist(form="relative", limits={"n_branches_o1": 0.25}, steep=4.0, weights={"height": 1e-9})
+    assert rel.compute_pair("summary", np.array([[10.0, 27.0]]), d) == pytest.approx(0.35 + 4 * 0.10)
+    assert rel.compute_pair("summary", np.array([[10.0, 60.0]]), d) == pytest.approx(2.0)
+    # no limits: the same distance as before, to the bit
+    assert _dist(steep=50.0).compute_pair("summary", np.array([[13.0, 27.0]]), d) == _dist().compute_pair(
+        "summary", np.array([[13.0, 27.0]]), d
+    )
+    with pytest.raises(ValueError, match="does not have: dhb"):
+        _dist(limits={"dhb": 0.2})
+    with pytest.raises(ValueError, match="between 0 and 1"):
+        _dist(limits={"height": 1.5})
+
+
 def test_branching_angles_of_the_hand_built_tree():
     # laterals A, B, C leave the trunk at 60, 90 and 90 deg (base diameters 0.10, 0.08, 0.06 m)
     s = tree_summary(hand_tree(), max_order=2)

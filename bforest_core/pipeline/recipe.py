@@ -18,7 +18,7 @@ from pathlib import Path
 from ..errors import ConfigError
 from ..interfaces import RecipeDraft
 from ..io import read_qsm
-from ..metrics import SIZE_WEIGHTS, SUMMARY_DEFAULT, TreeMeasures, measure_tree
+from ..metrics import SIZE_LIMITS, SIZE_WEIGHTS, SUMMARY_DEFAULT, TreeMeasures, measure_tree
 from ..registry import component, discover
 
 
@@ -176,6 +176,8 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
             "# DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %)."
         ),
         *(f"# {s}" for s in textwrap.wrap(d.size_why if d.size_extra else "", 96)),
+        "# Beyond two thirds of what a forester tolerates (limits) a statistic's term grows ten times as",
+        "# fast: a fit trades sizes against structure only where a forester would still accept the sizes.",
         "[[objective.terms]]",
         'name = "size"',
         "weight = 2.0",
@@ -188,6 +190,8 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         + " }",
         'distance = { kind = "summary", form = "logratio", weights = { '
         + ", ".join(f"{k} = {v}" for k, v in {**(d.size_weights or SIZE_WEIGHTS), **d.size_extra}.items())
+        + " }, limits = { "
+        + ", ".join(f"{k} = {v}" for k, v in SIZE_LIMITS.items())
         + " } }",
         "",
         f"# A search that does not hinge on one trajectory: 32 Sobol' points over the box, {d.starts} lq-CMA-ES",

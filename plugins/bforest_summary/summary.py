@@ -92,7 +92,24 @@ class SummaryDistanceSettings(ComponentSettings):
         default_factory=dict,
         description=("scale per statistic: its term is divided by it (e.g. 0.05 for height: a 5 % miss counts 1)"),
     )
+    limits: dict[str, float] = Field(
+        default_factory=dict,
+        description=(
+            "a forester's limit per statistic as a relative error (0.2: the model's value within 20 % of the "
+            "tree's): beyond it the statistic's term grows steep times as fast, so a fit cannot buy structure "
+            "with a size that a forester would reject (default: no limit)"
+        ),
+    )
+    steep: float = Field(10.0, ge=0, description="how many times as fast a term grows beyond its statistic's limit")
     cap: float = Field(2.0, gt=0, description="largest term of one statistic (a missing value counts this)")
+
+    @field_validator("limits")
+    @classmethod
+    def _fractions(cls, v):
+        bad = {k: x for k, x in v.items() if not 0 < x < 1}
+        if bad:
+            raise ValueError(f"limits are relative errors between 0 and 1 (exclusive): {bad}")
+        return v
 
     @field_validator("weights", "scales")
     @classmethod
@@ -126,10 +143,11 @@ class SummaryDistance(Distance):
     def prepare(self, U_data, columns=None) -> None:
         self._columns = {k: list(v) for k, v in (columns or {}).items()}
         for k, cols in self._columns.items():
-            unknown = sorted((set(self.settings.weights) | set(self.settings.scales)) - set(cols))
+            named = set(self.settings.weights) | set(self.settings.scales) | set(self.settings.limits)
+            unknown = sorted(named - set(cols))
             if unknown:
                 raise ValueError(
-                    f"summary distance: weights/scales name statistics that set {k!r} does not have: "
+                    f"summary distance: weights/scales/limits name statistics that set {k!r} does not have: "
                     f"{', '.join(unknown)} (it has: {', '.join(cols)})"
                 )
 
@@ -151,9 +169,15 @@ class SummaryDistance(Distance):
                 continue
             if self.settings.form == "logratio":
                 c = OFFSETS.get(summary_unit(n), 1.0)
-                term = abs(np.log((max(m[i], 0.0) + c) / (max(d[i], 0.0) + c)))
+                signed = np.log((max(m[i], 0.0) + c) / (max(d[i], 0.0) + c))
+                term = abs(signed)
+                if n in self.settings.limits:  # the limit's relative error as a log ratio on its side
+                    lim = self.settings.limits[n]
+                    term += self.settings.steep * max(0.0, term - abs(np.log1p(lim if signed > 0 else -lim)))
             else:
                 term = abs(m[i] - d[i]) / abs(d[i]) if d[i] != 0 else (0.0 if m[i] == 0 else cap)
+                if n in self.settings.limits:
+                    term += self.settings.steep * max(0.0, term - self.settings.limits[n])
             out[n] = float(min(term / self.settings.scales.get(n, 1.0), cap))
         return out
 

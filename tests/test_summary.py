@@ -170,10 +170,18 @@ def test_summary_distance_limits_make_a_miss_beyond_them_steep():
     # 18 % shorter: beyond log(1.2) as a ratio (0.199) but within -log(0.8) (0.223): no extra
     w = abs(math.log(8.25 / 10.05))
     assert w > math.log(1.2) and lim.compute_pair("summary", np.array([[8.2, 20.0]]), d) == pytest.approx(w)
-    # the relative form: |m - d| / d beyond the limit, steep 4, and the cap still holds
+    # the relative form: |m - d| / d beyond the limit, steep 4; the cap (2) bounds the plain term
+    # and the extra grows with it: 3x the branches still costs more than 2.2x, 4x the same as 3x
     rel = _dist(form="relative", limits={"n_branches_o1": 0.25}, steep=4.0, weights={"height": 1e-9})
     assert rel.compute_pair("summary", np.array([[10.0, 27.0]]), d) == pytest.approx(0.35 + 4 * 0.10)
-    assert rel.compute_pair("summary", np.array([[10.0, 60.0]]), d) == pytest.approx(2.0)
+    assert rel.compute_pair("summary", np.array([[10.0, 44.0]]), d) == pytest.approx(1.2 + 4 * 0.95)
+    assert rel.compute_pair("summary", np.array([[10.0, 60.0]]), d) == pytest.approx(2.0 + 4 * 1.75)
+    assert rel.compute_pair("summary", np.array([[10.0, 80.0]]), d) == pytest.approx(2.0 + 4 * 1.75)
+    # a scale divides the limit as it divides the term
+    sc = _dist(limits={"height": 0.2}, scales={"height": 0.5}, weights={"n_branches_o1": 1e-9})
+    assert sc.compute_pair("summary", np.array([[13.0, 20.0]]), d) == pytest.approx(
+        y / 0.5 + 10 * (y - math.log(1.2)) / 0.5
+    )
     # no limits: the same distance as before, to the bit
     assert _dist(steep=50.0).compute_pair("summary", np.array([[13.0, 27.0]]), d) == _dist().compute_pair(
         "summary", np.array([[13.0, 27.0]]), d

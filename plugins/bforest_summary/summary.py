@@ -96,12 +96,15 @@ class SummaryDistanceSettings(ComponentSettings):
         default_factory=dict,
         description=(
             "a forester's limit per statistic as a relative error (0.2: the model's value within 20 % of the "
-            "tree's): beyond it the statistic's term grows steep times as fast, so a fit cannot buy structure "
-            "with a size that a forester would reject (default: no limit)"
+            "tree's): beyond it the statistic's term grows steep times as fast (the cap bounds the term before "
+            "this extra, which keeps growing up to the cap), so a fit cannot buy structure with a size that a "
+            "forester would reject (default: no limit)"
         ),
     )
     steep: float = Field(10.0, ge=0, description="how many times as fast a term grows beyond its statistic's limit")
-    cap: float = Field(2.0, gt=0, description="largest term of one statistic (a missing value counts this)")
+    cap: float = Field(
+        2.0, gt=0, description="largest term of one statistic before a limit's extra (a missing value counts this)"
+    )
 
     @field_validator("limits")
     @classmethod
@@ -171,14 +174,19 @@ class SummaryDistance(Distance):
                 c = OFFSETS.get(summary_unit(n), 1.0)
                 signed = np.log((max(m[i], 0.0) + c) / (max(d[i], 0.0) + c))
                 term = abs(signed)
-                if n in self.settings.limits:  # the limit's relative error as a log ratio on its side
-                    lim = self.settings.limits[n]
-                    term += self.settings.steep * max(0.0, term - abs(np.log1p(lim if signed > 0 else -lim)))
             else:
                 term = abs(m[i] - d[i]) / abs(d[i]) if d[i] != 0 else (0.0 if m[i] == 0 else cap)
-                if n in self.settings.limits:
-                    term += self.settings.steep * max(0.0, term - self.settings.limits[n])
-            out[n] = float(min(term / self.settings.scales.get(n, 1.0), cap))
+            scale = self.settings.scales.get(n, 1.0)
+            term = min(term / scale, cap)
+            if n in self.settings.limits:
+                # the limit's relative error on the miss's side (as a log ratio in that form); the
+                # extra comes after the cap, so that a miss far beyond the limit still costs more
+                # than one just beyond it
+                lim = self.settings.limits[n]
+                if self.settings.form == "logratio":
+                    lim = abs(np.log1p(lim if signed > 0 else -lim))
+                term += self.settings.steep * max(0.0, term - lim / scale)
+            out[n] = float(term)
         return out
 
     def _mean(self, terms: dict[str, float]) -> float:

@@ -240,8 +240,8 @@ def test_init_never_replaces_a_recipe_without_overwrite(tmp_path, capsys):
 
 def test_init_on_pine_3_is_the_shipped_lignum_recipe_with_the_size_limits(tmp_path):
     # the shipped recipe is init's output for pine 3, value for value and in the same order (so
-    # the same search), but for the size term's limits, which init writes and the shipped pine
-    # recipes do not have (docs/validation.md, Broadleaved trees)
+    # the same search), but for the size term's limits and the failure penalty above them, which
+    # init writes and the shipped pine recipes do not have (docs/validation.md, Broadleaved trees)
     src = sample("pine_ruotsinkyla_3.mat")
     out = tmp_path / "pine3.toml"
     write_recipe(src, out)
@@ -252,7 +252,9 @@ def test_init_on_pine_3_is_the_shipped_lignum_recipe_with_the_size_limits(tmp_pa
     for c in (a, b):  # the same file, whatever symbolic links lead to it
         c["target"]["qsm"] = str(Path(c["target"]["qsm"]).resolve())
     (size_a,), (size_b,) = a["objective"]["terms"], b["objective"]["terms"]
-    assert size_a["distance"].pop("limits") == SIZE_LIMITS and "limits" not in size_b["distance"]
+    assert [size_a["distance"].pop(k) for k in ("limits", "steep", "cap")] == [SIZE_LIMITS, 10.0, 2.0]
+    assert not {"limits", "steep", "cap"} & set(size_b["distance"])
+    assert (a["objective"].pop("penalty"), b["objective"].pop("penalty")) == (12.0, 1.0)
     assert a == b and list(a["ssm"]["free"]) == list(b["ssm"]["free"])
 
 
@@ -269,6 +271,13 @@ def test_init_writes_size_limits_at_two_thirds_of_the_tolerances(tmp_path):
         _, cfg = _recipe(tmp_path, tree, model, model=model)
         (size,) = cfg["objective"]["terms"]
         assert size["distance"]["limits"] == SIZE_LIMITS
+        # a failed growth scores above the most a grown tree can: KS at most 1, a size statistic at
+        # most cap (2) plus steep (10) times the cap beyond its limit, the two terms weighing alike
+        d, o = size["distance"], cfg["objective"]
+        most = (o["structure_weight"] * 1.0 + size["weight"] * d["cap"] * (1 + d["steep"])) / (
+            o["structure_weight"] + size["weight"]
+        )
+        assert o["penalty"] > most == 11.5
 
 
 @pytest.mark.parametrize(

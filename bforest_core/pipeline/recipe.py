@@ -10,6 +10,7 @@ answer chosen on held-out seeds.
 
 from __future__ import annotations
 
+import math
 import os
 import textwrap
 from dataclasses import dataclass
@@ -31,6 +32,14 @@ class Recipe:
     measures: TreeMeasures
     text: str
     choices: list  # (model, suits, why) of every model that drafted one
+
+
+#: the size term's summary distance: a statistic's log ratio counts at most CAP, and beyond its
+#: limit (SIZE_LIMITS) STEEP times more on top
+STEEP, CAP = 10.0, 2.0
+#: a failed growth's distance: above the most a grown tree can score, the structure (KS, at most 1)
+#: and the size term (at most CAP * (1 + STEEP)) weighing alike; a search must never prefer a failure
+PENALTY = float(math.ceil((1.0 + CAP * (1.0 + STEEP)) / 2.0))
 
 
 def _value(v) -> str:
@@ -168,6 +177,10 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         _line(f"seeds = {d.seeds}", f"the mean over {d.seeds} model seeds: clones vary, the fit must not chase one"),
         _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take"),
         _line("structure_weight = 2.0", "structure and size weigh alike"),
+        _line(
+            f"penalty = {PENALTY:.1f}",
+            "a failed growth scores above every distance a grown tree can reach (the size term's limits)",
+        ),
         "",
         (
             "# The headline statistics weigh as the model's recipes calibrated them."
@@ -192,7 +205,7 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         + ", ".join(f"{k} = {v}" for k, v in {**(d.size_weights or SIZE_WEIGHTS), **d.size_extra}.items())
         + " }, limits = { "
         + ", ".join(f"{k} = {v}" for k, v in SIZE_LIMITS.items())
-        + " } }",
+        + f" }}, steep = {STEEP:.1f}, cap = {CAP:.1f} }}",
         "",
         f"# A search that does not hinge on one trajectory: 32 Sobol' points over the box, {d.starts} lq-CMA-ES",
         "# runs from the best distinct ones raced by successive halving, each restarting with a doubled",

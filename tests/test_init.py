@@ -258,8 +258,8 @@ def test_init_on_pine_3_is_the_shipped_lignum_recipe_with_the_size_limits(tmp_pa
     assert a == b and list(a["ssm"]["free"]) == list(b["ssm"]["free"])
 
 
-def test_init_writes_size_limits_at_two_thirds_of_the_tolerances(tmp_path):
-    # height 7.5 %, DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %
+def test_init_writes_size_limits_where_the_model_asks_for_them(tmp_path):
+    # two thirds of height 7.5 %, DBH 20 %, crown spread 25 %, crown base and branches 30 %
     assert SIZE_LIMITS == {
         "height": 0.05,
         "dbh": 0.13,
@@ -267,17 +267,21 @@ def test_init_writes_size_limits_at_two_thirds_of_the_tolerances(tmp_path):
         "crown_base_height": 0.2,
         "n_branches_o1": 0.2,
     }
-    for tree, model in ((excurrent_tree(), "lignum"), (decurrent_tree(), "sot")):
-        _, cfg = _recipe(tmp_path, tree, model, model=model)
-        (size,) = cfg["objective"]["terms"]
-        assert size["distance"]["limits"] == SIZE_LIMITS
-        # a failed growth scores above the most a grown tree can: KS at most 1, a size statistic at
-        # most cap (2) plus steep (10) times the cap beyond its limit, the two terms weighing alike
-        d, o = size["distance"], cfg["objective"]
-        most = (o["structure_weight"] * 1.0 + size["weight"] * d["cap"] * (1 + d["steep"])) / (
-            o["structure_weight"] + size["weight"]
-        )
-        assert o["penalty"] > most == 11.5
+    # LIGNUM's recipe has them
+    _, cfg = _recipe(tmp_path, excurrent_tree(), "lignum", model="lignum")
+    (size,) = cfg["objective"]["terms"]
+    assert size["distance"]["limits"] == SIZE_LIMITS
+    # a failed growth scores above the most a grown tree can: KS at most 1, a size statistic at
+    # most cap (2) plus steep (10) times the cap beyond its limit, the two terms weighing alike
+    d, o = size["distance"], cfg["objective"]
+    most = (o["structure_weight"] * 1.0 + size["weight"] * d["cap"] * (1 + d["steep"])) / (
+        o["structure_weight"] + size["weight"]
+    )
+    assert o["penalty"] > most == 11.5
+    # SOT's has none (its broadleaved fits miss on structure, docs/validation.md), nor the penalty
+    _, cfg = _recipe(tmp_path, decurrent_tree(), "sot", model="sot")
+    (size,) = cfg["objective"]["terms"]
+    assert not {"limits", "steep", "cap"} & set(size["distance"]) and "penalty" not in cfg["objective"]
 
 
 @pytest.mark.parametrize(

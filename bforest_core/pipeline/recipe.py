@@ -177,9 +177,15 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         _line(f"seeds = {d.seeds}", f"the mean over {d.seeds} model seeds: clones vary, the fit must not chase one"),
         _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take"),
         _line("structure_weight = 2.0", "structure and size weigh alike"),
-        _line(
-            f"penalty = {PENALTY:.1f}",
-            "a failed growth scores above every distance a grown tree can reach (the size term's limits)",
+        *(
+            [
+                _line(
+                    f"penalty = {PENALTY:.1f}",
+                    "a failed growth scores above every distance a grown tree can reach (the size term's limits)",
+                )
+            ]
+            if d.size_limits
+            else []
         ),
         "",
         (
@@ -189,8 +195,14 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
             "# DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %)."
         ),
         *(f"# {s}" for s in textwrap.wrap(d.size_why if d.size_extra else "", 96)),
-        "# Beyond two thirds of what a forester tolerates (limits) a statistic's term grows ten times as",
-        "# fast: a fit trades sizes against structure only where a forester would still accept the sizes.",
+        *(
+            [
+                "# Beyond two thirds of what a forester tolerates (limits) a statistic's term grows ten times as",
+                "# fast: a fit trades sizes against structure only where a forester would still accept the sizes.",
+            ]
+            if d.size_limits
+            else []
+        ),
         "[[objective.terms]]",
         'name = "size"',
         "weight = 2.0",
@@ -203,9 +215,15 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         + " }",
         'distance = { kind = "summary", form = "logratio", weights = { '
         + ", ".join(f"{k} = {v}" for k, v in {**(d.size_weights or SIZE_WEIGHTS), **d.size_extra}.items())
-        + " }, limits = { "
-        + ", ".join(f"{k} = {v}" for k, v in SIZE_LIMITS.items())
-        + f" }}, steep = {STEEP:.1f}, cap = {CAP:.1f} }}",
+        + " }"
+        + (
+            ", limits = { "
+            + ", ".join(f"{k} = {v}" for k, v in SIZE_LIMITS.items())
+            + f" }}, steep = {STEEP:.1f}, cap = {CAP:.1f}"
+            if d.size_limits
+            else ""
+        )
+        + " }",
         "",
         f"# A search that does not hinge on one trajectory: 32 Sobol' points over the box, {d.starts} lq-CMA-ES",
         "# runs from the best distinct ones raced by successive halving, each restarting with a doubled",

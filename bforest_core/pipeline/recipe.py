@@ -159,6 +159,27 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
     for k, lo, hi, c in d.free:
         by = f', scaled_by = "{d.scaled[k]}"' if k in d.scaled else ""
         L.append(_line(f"free.{k} = {{ lower = {_value(lo)}, upper = {_value(hi)}{by} }}", c))
+    # the size term's limits, where the model asks for them: the failure penalty above them, why,
+    # and the distance's settings
+    limits = (
+        (
+            [
+                _line(
+                    f"penalty = {PENALTY:.1f}",
+                    "a failed growth scores above every distance a grown tree can reach (the size term's limits)",
+                )
+            ],
+            [
+                "# Beyond two thirds of what a forester tolerates (limits) a statistic's term grows ten times as",
+                "# fast: a fit trades sizes against structure only where a forester would still accept the sizes.",
+            ],
+            ", limits = { "
+            + ", ".join(f"{k} = {v}" for k, v in SIZE_LIMITS.items())
+            + f" }}, steep = {STEEP:.1f}, cap = {CAP:.1f}",
+        )
+        if d.size_limits
+        else ([], [], "")
+    )
     L += [
         "",
         "# Two terms: the structural distance on branch and segment tables (how branches look) and a",
@@ -177,16 +198,7 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         _line(f"seeds = {d.seeds}", f"the mean over {d.seeds} model seeds: clones vary, the fit must not chase one"),
         _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take"),
         _line("structure_weight = 2.0", "structure and size weigh alike"),
-        *(
-            [
-                _line(
-                    f"penalty = {PENALTY:.1f}",
-                    "a failed growth scores above every distance a grown tree can reach (the size term's limits)",
-                )
-            ]
-            if d.size_limits
-            else []
-        ),
+        *limits[0],
         "",
         (
             "# The headline statistics weigh as the model's recipes calibrated them."
@@ -195,14 +207,7 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
             "# DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %)."
         ),
         *(f"# {s}" for s in textwrap.wrap(d.size_why if d.size_extra else "", 96)),
-        *(
-            [
-                "# Beyond two thirds of what a forester tolerates (limits) a statistic's term grows ten times as",
-                "# fast: a fit trades sizes against structure only where a forester would still accept the sizes.",
-            ]
-            if d.size_limits
-            else []
-        ),
+        *limits[1],
         "[[objective.terms]]",
         'name = "size"',
         "weight = 2.0",
@@ -216,13 +221,7 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         'distance = { kind = "summary", form = "logratio", weights = { '
         + ", ".join(f"{k} = {v}" for k, v in {**(d.size_weights or SIZE_WEIGHTS), **d.size_extra}.items())
         + " }"
-        + (
-            ", limits = { "
-            + ", ".join(f"{k} = {v}" for k, v in SIZE_LIMITS.items())
-            + f" }}, steep = {STEEP:.1f}, cap = {CAP:.1f}"
-            if d.size_limits
-            else ""
-        )
+        + limits[2]
         + " }",
         "",
         f"# A search that does not hinge on one trajectory: 32 Sobol' points over the box, {d.starts} lq-CMA-ES",

@@ -243,11 +243,6 @@ class RecipeDraft:
         Statistics the size term adds to the summary's default set (name -> weight).
     size_why : str
         Why the size term holds ``size_extra`` (written as a comment above the term).
-    size_limits : bool
-        Whether the size term turns steep beyond two thirds of each tolerance
-        (:data:`bforest_core.metrics.SIZE_LIMITS`; the summary distance's ``limits``), with a
-        failure penalty above every distance that can then be reached: for a model whose fits
-        trade sizes away for structure, not one whose structure is what they miss.
     seeds, evaluations, starts : int
         The search: model seeds per evaluation (``[objective] seeds``), the evaluation budget
         (``[stop] max_evaluations``) and the raced CMA-ES starts (``[optimizer] starts``).
@@ -267,7 +262,6 @@ class RecipeDraft:
     scaled: dict = field(default_factory=dict)
     size_extra: dict = field(default_factory=dict)
     size_why: str = ""
-    size_limits: bool = False
     seeds: int = 3
     evaluations: int = 1200
     starts: int = 4

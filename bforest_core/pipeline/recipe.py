@@ -10,7 +10,6 @@ answer chosen on held-out seeds.
 
 from __future__ import annotations
 
-import math
 import os
 import textwrap
 from dataclasses import dataclass
@@ -19,7 +18,7 @@ from pathlib import Path
 from ..errors import ConfigError
 from ..interfaces import RecipeDraft
 from ..io import read_qsm
-from ..metrics import SIZE_LIMITS, SIZE_WEIGHTS, SUMMARY_DEFAULT, TreeMeasures, measure_tree
+from ..metrics import SIZE_WEIGHTS, SUMMARY_DEFAULT, TreeMeasures, measure_tree
 from ..registry import component, discover
 
 
@@ -32,14 +31,6 @@ class Recipe:
     measures: TreeMeasures
     text: str
     choices: list  # (model, suits, why) of every model that drafted one
-
-
-#: the size term's summary distance: a statistic's log ratio counts at most CAP, and beyond its
-#: limit (SIZE_LIMITS) STEEP times more on top
-STEEP, CAP = 10.0, 2.0
-#: a failed growth's distance: above the most a grown tree can score, the structure (KS, at most 1)
-#: and the size term (at most CAP * (1 + STEEP)) weighing alike; a search must never prefer a failure
-PENALTY = float(math.ceil((1.0 + CAP * (1.0 + STEEP)) / 2.0))
 
 
 def _value(v) -> str:
@@ -159,27 +150,6 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
     for k, lo, hi, c in d.free:
         by = f', scaled_by = "{d.scaled[k]}"' if k in d.scaled else ""
         L.append(_line(f"free.{k} = {{ lower = {_value(lo)}, upper = {_value(hi)}{by} }}", c))
-    # the size term's limits, where the model asks for them: the failure penalty above them, why,
-    # and the distance's settings
-    limits = (
-        (
-            [
-                _line(
-                    f"penalty = {PENALTY:.1f}",
-                    "a failed growth scores above every distance a grown tree can reach (the size term's limits)",
-                )
-            ],
-            [
-                "# Beyond two thirds of what a forester tolerates (limits) a statistic's term grows ten times as",
-                "# fast: a fit trades sizes against structure only where a forester would still accept the sizes.",
-            ],
-            ", limits = { "
-            + ", ".join(f"{k} = {v}" for k, v in SIZE_LIMITS.items())
-            + f" }}, steep = {STEEP:.1f}, cap = {CAP:.1f}",
-        )
-        if d.size_limits
-        else ([], [], "")
-    )
     L += [
         "",
         "# Two terms: the structural distance on branch and segment tables (how branches look) and a",
@@ -198,7 +168,6 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         _line(f"seeds = {d.seeds}", f"the mean over {d.seeds} model seeds: clones vary, the fit must not chase one"),
         _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take"),
         _line("structure_weight = 2.0", "structure and size weigh alike"),
-        *limits[0],
         "",
         (
             "# The headline statistics weigh as the model's recipes calibrated them."
@@ -207,7 +176,6 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
             "# DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %)."
         ),
         *(f"# {s}" for s in textwrap.wrap(d.size_why if d.size_extra else "", 96)),
-        *limits[1],
         "[[objective.terms]]",
         'name = "size"',
         "weight = 2.0",
@@ -220,9 +188,7 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         + " }",
         'distance = { kind = "summary", form = "logratio", weights = { '
         + ", ".join(f"{k} = {v}" for k, v in {**(d.size_weights or SIZE_WEIGHTS), **d.size_extra}.items())
-        + " }"
-        + limits[2]
-        + " }",
+        + " } }",
         "",
         f"# A search that does not hinge on one trajectory: 32 Sobol' points over the box, {d.starts} lq-CMA-ES",
         "# runs from the best distinct ones raced by successive halving, each restarting with a doubled",

@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 import bforest_core as bf
+from bforest_core.metrics import SIZE_TOLERANCES
 from bforest_core.pipeline.clones import clones
 from bforest_core.pipeline.heldout import heldout_mean, point_key, score_points, scoring_fingerprint
 from bforest_core.pipeline.seeds import heldout_seeds
@@ -64,7 +65,7 @@ PINES = {k: DATA / f"pine_ruotsinkyla_{k}.mat" for k in (1, 2, 3)}
 #: a forester's tolerances, which the LIGNUM recipe's summary weights are the inverse of
 LIMITS = {"height": 0.05, "dbh": 0.15, "crown_spread": 0.20, "crown_base_height": 0.25, "n_branches_o1": 0.25}
 #: what every fit of a recipe must meet, on every pine and run seed (docs/validation.md, section 4)
-ACCEPT = {"height": 0.075, "dbh": 0.20, "crown_spread": 0.25, "crown_base_height": 0.30, "n_branches_o1": 0.30}
+ACCEPT = dict(SIZE_TOLERANCES)
 #: the largest ratio of the answers' held-out distances over the run seeds of one pine
 SPREAD = 1.15
 

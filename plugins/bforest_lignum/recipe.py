@@ -87,7 +87,4 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         scaled={"years": "height"},
         # the calibrated balance of the pine recipe (examples/real/pine_lignum.toml)
         size_weights={"height": 8.0, "dbh": 2.7, "crown_spread": 2.0, "crown_base_height": 1.6, "n_branches_o1": 1.6},
-        # a fit of pine 1 traded its stem's thickness for structure (DBH +29 %, one run seed in
-        # five); with the limits it keeps every size (docs/validation.md, Broadleaved trees)
-        size_limits=True,
     )

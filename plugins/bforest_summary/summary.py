@@ -4,7 +4,9 @@ The structural distance compares the *distributions* of branch and segment rows;
 how tall a tree is, how many branches it carries or where its crown starts. ``tree-summary``
 turns a tree into one row of such statistics (:func:`bforest_core.metrics.tree_summary`, the same
 code for QSMs and model trees) and ``summary`` scores a model row against the data row,
-statistic by statistic, so that one objective can weigh both (``[[objective.terms]]``).
+statistic by statistic, so that one objective can weigh both (``[[objective.terms]]``). A weight
+sets the rate at which a fit trades a statistic for structure; ``limits`` make the trade steep
+beyond a forester's limit (docs/user-guide.md section 5b).
 """
 
 from __future__ import annotations
@@ -96,9 +98,10 @@ class SummaryDistanceSettings(ComponentSettings):
         default_factory=dict,
         description=(
             "a forester's limit per statistic as a relative error (0.2: the model's value within 20 % of the "
-            "tree's): beyond it the statistic's term grows steep times as fast (the cap bounds the term before "
-            "this extra, which keeps growing up to the cap), so a fit cannot buy structure with a size that a "
-            "forester would reject (default: no limit)"
+            "tree's): beyond it the statistic's term grows steep times as fast, so a fit cannot buy structure "
+            "with a size that a forester would reject; the cap bounds the plain term and the extra comes on top "
+            "(a term can reach cap * (1 + steep): set [objective] penalty above what the objective can then "
+            "reach; default: no limit)"
         ),
     )
     steep: float = Field(10.0, ge=0, description="how many times as fast a term grows beyond its statistic's limit")

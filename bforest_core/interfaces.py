@@ -243,6 +243,12 @@ class RecipeDraft:
         Statistics the size term adds to the summary's default set (name -> weight).
     size_why : str
         Why the size term holds ``size_extra`` (written as a comment above the term).
+    size_limits : dict
+        A relative error per headline statistic (a fraction of the tree's value) beyond which its
+        term grows ``size_steep`` times as fast (the summary distance's ``limits``), so that a fit
+        cannot trade that statistic for structure past what a forester accepts (empty: no limits).
+    size_steep : float
+        How many times as fast a term grows beyond its limit.
     seeds, evaluations, starts : int
         The search: model seeds per evaluation (``[objective] seeds``), the evaluation budget
         (``[stop] max_evaluations``) and the raced CMA-ES starts (``[optimizer] starts``).
@@ -262,6 +268,8 @@ class RecipeDraft:
     scaled: dict = field(default_factory=dict)
     size_extra: dict = field(default_factory=dict)
     size_why: str = ""
+    size_limits: dict = field(default_factory=dict)
+    size_steep: float = 3.0
     seeds: int = 3
     evaluations: int = 1200
     starts: int = 4

@@ -130,6 +130,26 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     assert cfg["select"] == {"top": 8, "sets": 8} and cfg["optimizer"]["starts"] == 4
     assert cfg["objective"]["seeds"] == 3 and cfg["stop"]["max_evaluations"] == 1200  # LIGNUM's search
     bf.load_config(tmp_path / "pine.toml")  # a valid run config as written
+    # the size term's limits: two thirds of what a forester tolerates (height 7.5 %, DBH 20 %, crown
+    # spread 25 %, crown base and first-order branches 30 %), steep 3
+    size = cfg["objective"]["terms"][0]["distance"]
+    assert size["limits"] == {
+        "height": 0.05,
+        "dbh": 0.13,
+        "crown_spread": 0.17,
+        "crown_base_height": 0.2,
+        "n_branches_o1": 0.2,
+    }
+    assert size["steep"] == 3.0
+    # a failed growth scores above the worst grown tree: every headline 1 000 times the tree's or
+    # nothing at all, under the KS's largest value (1); the default penalty (1.0) would lie below
+    names = list(size["limits"])
+    dist = bf.component("distance", "summary", **{k: v for k, v in size.items() if k != "kind"})
+    dist.prepare({"summary": np.zeros((1, len(names)))}, {"summary": names})
+    data = np.full((1, len(names)), 10.0)
+    worst = max(dist.compute_pair("summary", data * f, data) for f in (0.0, 1000.0))
+    objective = (2.0 * 1.0 + 2.0 * worst) / 4.0  # structure and size weigh 2 each
+    assert 1.0 < objective < cfg["objective"]["penalty"]
     # asked for SOT: excurrent apical control, one bud per node, the box scaled to 10 m
     r, cfg = _recipe(tmp_path, excurrent_tree(), "pine_sot", model="sot")
     s = cfg["ssm"]
@@ -198,6 +218,8 @@ def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp
     # SOT's search: 1 800 evaluations of 2 model seeds, two raced starts (not the pine recipe's, which
     # grew too many first-order branches on the Wytham trees)
     assert cfg["objective"]["seeds"] == 2 and cfg["stop"]["max_evaluations"] == 1800
+    # no size limits in SOT's recipes (they cost the broadleaved trees their judge), nor a penalty
+    assert "limits" not in size["distance"] and "penalty" not in cfg["objective"]
     assert cfg["optimizer"]["starts"] == 2
     text = (tmp_path / "maple.toml").read_text()
     assert "decurrent" in text and "Not lignum" in text
@@ -250,6 +272,11 @@ def test_init_on_pine_3_is_the_shipped_lignum_recipe(tmp_path):
     a, b = bf.load_config(out).model_dump(), bf.load_config(shipped).model_dump()
     for c in (a, b):  # the same file, whatever symbolic links lead to it
         c["target"]["qsm"] = str(Path(c["target"]["qsm"]).resolve())
+    # but for init's size limits and the penalty above them, measured on pines 1-3 over five run
+    # seeds with init's recipes (docs/validation.md, "Size limits in bforest init's size term")
+    for k in ("limits", "steep", "cap"):
+        b["objective"]["terms"][0]["distance"][k] = a["objective"]["terms"][0]["distance"][k]
+    b["objective"]["penalty"] = a["objective"]["penalty"]
     assert a == b and list(a["ssm"]["free"]) == list(b["ssm"]["free"])
 
 

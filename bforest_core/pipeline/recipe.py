@@ -10,6 +10,7 @@ answer chosen on held-out seeds.
 
 from __future__ import annotations
 
+import math
 import os
 import textwrap
 from dataclasses import dataclass
@@ -122,6 +123,15 @@ def measured_lines(m: TreeMeasures) -> list[str]:
     ]
 
 
+#: the summary distance's cap of one statistic's term, written with limits: the size term then
+#: reaches at most cap * (1 + steep), the structural distance (KS) 1
+SIZE_CAP = 2.0
+#: ``[objective] penalty`` of a recipe whose size term has limits (or twice what the objective can
+#: then reach, if more): the default 1.0 lies below what a grown tree can reach, and failed growths
+#: would win
+LIMITS_PENALTY = 12.0
+
+
 def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choices, picked: bool) -> str:
     """The recipe's TOML text, every choice commented."""
     L = [
@@ -142,6 +152,9 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
             L.append(f"# Not {n} (suits {suits:.1f} against {d.suits:.1f}): {why}.")
     for note in d.notes:
         L.append(f"# Note: {note}.")
+    # the most the objective can reach (structure and size weigh 2 each); a failed growth scores above
+    reach = (2.0 * 1.0 + 2.0 * SIZE_CAP * (1.0 + d.size_steep)) / 4.0
+    penalty = max(LIMITS_PENALTY, float(math.ceil(2.0 * reach)))
     L += ["seed = 1", "", "[target]", f'qsm = "{rel}"', "", "[ssm]", f'kind = "{name}"']
     for k, v, c in d.settings:
         L.append(_line(f"{k} = {_value(v)}", c))
@@ -168,6 +181,16 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         _line(f"seeds = {d.seeds}", f"the mean over {d.seeds} model seeds: clones vary, the fit must not chase one"),
         _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take"),
         _line("structure_weight = 2.0", "structure and size weigh alike"),
+        *(
+            [
+                _line(
+                    f"penalty = {penalty!r}",
+                    f"a failed growth scores above the {reach:g} a grown tree can reach (the size term's limits)",
+                )
+            ]
+            if d.size_limits
+            else []
+        ),
         "",
         (
             "# The headline statistics weigh as the model's recipes calibrated them."
@@ -176,6 +199,18 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
             "# DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %)."
         ),
         *(f"# {s}" for s in textwrap.wrap(d.size_why if d.size_extra else "", 96)),
+        *(
+            f"# {s}"
+            for s in textwrap.wrap(
+                (
+                    f"Beyond its limit (a relative error, limits) a statistic's term grows {d.size_steep:g} times "
+                    "as fast: a fit trades a size for structure only as far as a forester still accepts the size."
+                )
+                if d.size_limits
+                else "",
+                96,
+            )
+        ),
         "[[objective.terms]]",
         'name = "size"',
         "weight = 2.0",
@@ -188,7 +223,14 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         + " }",
         'distance = { kind = "summary", form = "logratio", weights = { '
         + ", ".join(f"{k} = {v}" for k, v in {**(d.size_weights or SIZE_WEIGHTS), **d.size_extra}.items())
-        + " } }",
+        + " }"
+        + (
+            ", limits = { " + ", ".join(f"{k} = {v:g}" for k, v in d.size_limits.items()) + " }"
+            f", steep = {float(d.size_steep)!r}, cap = {SIZE_CAP!r}"
+            if d.size_limits
+            else ""
+        )
+        + " }",
         "",
         f"# A search that does not hinge on one trajectory: 32 Sobol' points over the box, {d.starts} lq-CMA-ES",
         "# runs from the best distinct ones raced by successive halving, each restarting with a doubled",

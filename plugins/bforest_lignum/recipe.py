@@ -9,7 +9,7 @@ branch-angle ranges from its first-order branches' angles.
 from __future__ import annotations
 
 from bforest_core.interfaces import RecipeDraft
-from bforest_core.metrics import TreeMeasures
+from bforest_core.metrics import SIZE_TOLERANCES, TreeMeasures
 
 #: most years a recipe lets LIGNUM grow (the parameter's range)
 MAX_YEARS = 40
@@ -87,4 +87,8 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         scaled={"years": "height"},
         # the calibrated balance of the pine recipe (examples/real/pine_lignum.toml)
         size_weights={"height": 8.0, "dbh": 2.7, "crown_spread": 2.0, "crown_base_height": 1.6, "n_branches_o1": 1.6},
+        # at two thirds of each tolerance, steep 3: without them one fit in five on pine 1 sold its
+        # DBH (+29 %) for structure (docs/validation.md, "Size limits in bforest init's size term")
+        size_limits={k: round(2.0 * t / 3.0, 2) for k, t in SIZE_TOLERANCES.items()},
+        size_steep=3.0,
     )

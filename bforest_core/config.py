@@ -128,6 +128,15 @@ class TargetConfig(_Strict):
         description="QSM files of other trees of the stand (relative to the config file): "
         "the report shows the target's distance to each beside the clones' distances",
     )
+    prune_radius: float = Field(
+        0.0,
+        ge=0,
+        le=0.2,
+        allow_inf_nan=False,
+        description="radius (m) below which the QSM was simplified (twigs removed): every tree the model "
+        "grows loses its cylinders thinner than this and everything beyond them before it is scored, and "
+        "clones are written so, so that both sides show the same branches (0: nothing removed)",
+    )
 
     @model_validator(mode="after")
     def _one(self):

@@ -888,6 +888,30 @@ class Tree:
             metadata=self.metadata,
         )
 
+    def pruned(self, min_radius: float) -> Tree:
+        """Return the tree as a simplified QSM draws it, without its thin cylinders.
+
+        Every cylinder thinner than ``min_radius`` is removed with everything beyond it (the
+        root cylinder stays).
+
+        Parameters
+        ----------
+        min_radius : float
+            Radius (m) below which a cylinder and all it carries are removed; 0 keeps every
+            cylinder.
+
+        Returns
+        -------
+        Tree
+            The pruned tree (this tree itself when nothing is removed).
+        """
+        thin = (self.radius < min_radius) & (self.parent >= 0)
+        if not thin.any():
+            return self
+        # the nearest thin cylinder or root at or above each row: kept where that is a root
+        head, _ = jump_to_head(self.parent, thin | (self.parent < 0))
+        return self.subset(self.parent[head] < 0)
+
     def translated(self, offset) -> Tree:
         """Return a copy moved by ``offset``.
 

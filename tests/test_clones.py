@@ -172,3 +172,24 @@ def test_what_a_user_reads_says_base_diameter_and_percent(toy_fit, tmp_path, cap
     assert main(["distance", tgt, tgt, "--lines", "16"]) == 0
     out = capsys.readouterr().out
     assert "girth" not in out.lower() and "base diameter (m)" in out and "0.0 %" in out
+
+
+def test_a_simplified_target_prunes_every_grown_tree_alike(toy_plugin, tmp_path):
+    # the toy tree: a trunk tapering from 0.2 to 0.05 m with one 0.02 m lateral per segment; a
+    # QSM simplified below 0.03 m holds the trunk alone, and so does every tree the model grows
+    p = toy_config(tmp_path, budget=4)
+    p.write_text(p.read_text().replace("[target.generate]", "[target]\nprune_radius = 0.03\n[target.generate]"))
+    cfg = bf.load_config(p)
+    run = tmp_path / "run"
+    bf.fit(cfg, run, progress=False)
+    clones(run, n=2, progress=False)
+    target = bf.read_qsm(run / "target.txt")
+    assert target.n == 12 and target.radius.min() == pytest.approx(0.05)  # segments = 12, no laterals
+    best = json.loads((run / "best.json").read_text())
+    for f in ["best_tree.txt", *(f"clones/clone_00{i}.txt" for i in (0, 1))]:
+        t = bf.read_qsm(run / f)
+        assert t.n == best["params"]["segments"] and t.radius.min() >= 0.03 and t.n_branches == 1, f
+    # the same fit without it: every tree carries its laterals
+    p.write_text(p.read_text().replace("prune_radius = 0.03\n", ""))
+    bf.fit(bf.load_config(p), tmp_path / "full", progress=False)
+    assert bf.read_qsm(tmp_path / "full" / "best_tree.txt").radius.min() == pytest.approx(0.02)

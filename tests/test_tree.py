@@ -59,6 +59,22 @@ def test_subtree_rule_follows_volume_not_radius():
     assert t.with_topology("thickest").extension[0] == 2
 
 
+def test_pruned_removes_thin_cylinders_and_everything_beyond_them():
+    t = hand_tree()  # radii: trunk 0.20, 0.15, 0.10; lateral A 0.05, 0.04; B 0.04; C 0.03
+    p = t.pruned(0.045)  # lateral A's tip and laterals B and C go
+    assert p.n == 4 and p.radius.tolist() == [0.20, 0.15, 0.10, 0.05]
+    assert p.parent.tolist() == [-1, 0, 1, 0] and p.extension.tolist() == [1, 2, -1, -1]
+    assert p.source_row.tolist() == [0, 1, 2, 3]
+    assert t.pruned(0.12).n == 2  # the trunk's top cylinder goes, and lateral C beyond it
+    assert t.pruned(1.0).n == 1  # the root stays, however thin
+    assert t.pruned(0.0) is t and t.pruned(0.03) is t  # nothing thinner: the tree itself
+    # a thick cylinder beyond a thin one goes with it (the cut removes everything beyond)
+    r = t.radius.copy()
+    r[4] = 0.06
+    thick_tip = Tree(t.start, t.axis, t.length, r, t.parent, t.extension)
+    assert thick_tip.pruned(0.055).radius.tolist() == [0.20, 0.15, 0.10]
+
+
 def test_subtree_sum_and_children():
     parent = np.array([-1, 0, 0, 1, 1, 3])
     np.testing.assert_allclose(subtree_sum(parent, np.ones(6)), [6, 4, 1, 2, 1, 1])

@@ -62,7 +62,7 @@ def _clone_task(task):
     i, params, seed, out_dir = task
     c = worker_context()
     try:
-        tree = _simulate_with_timeout(c.ssm, params, seed, c.timeout)
+        tree = _simulate_with_timeout(c.ssm, params, seed, c.timeout, c.prune_radius)
     except SimulationFailed as exc:
         return dict(index=i, seed=seed, status=exc.status, message=str(exc), params=params)
     except _Timeout:

@@ -492,7 +492,7 @@ def finish_fit(
         store.write_json(store.BEST, best)
         return best
     try:
-        tree = _simulate_with_timeout(ssm, ev.params, ev.seeds[0], cfg.objective.timeout)
+        tree = _simulate_with_timeout(ssm, ev.params, ev.seeds[0], cfg.objective.timeout, cfg.target.prune_radius)
         m = classical_metrics(tree)
         best["model_metrics"] = m
         best["relative_errors"] = relative_errors(target_metrics, m)

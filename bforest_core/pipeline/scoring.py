@@ -61,6 +61,8 @@ class Scoring:
     penalty: float
     #: ``[objective] timeout``: seconds a simulation may take (None: no limit)
     timeout: float | None
+    #: ``[target] prune_radius``: the model's trees lose what is thinner, as the QSM did
+    prune_radius: float
     #: the process that scores, ``host:pid`` (logged with each evaluation)
     worker: str
 
@@ -112,6 +114,7 @@ def build_scoring(
         U_data=U_data,
         penalty=cfg.objective.penalty,
         timeout=cfg.objective.timeout,
+        prune_radius=cfg.target.prune_radius,
         worker=f"{socket.gethostname()}:{os.getpid()}",
     )
 
@@ -166,12 +169,14 @@ def _alarm(signum, frame):
     raise _Timeout()
 
 
-def _simulate_with_timeout(ssm, params, seed, timeout):
+def _simulate_with_timeout(ssm, params, seed, timeout, prune_radius: float = 0.0):
+    """The tree ``ssm`` grows from ``params`` and ``seed`` within ``timeout`` seconds, pruned
+    at ``prune_radius`` as the target's QSM was (``[target] prune_radius``)."""
     use_alarm = (
         timeout is not None and hasattr(signal, "setitimer") and threading.current_thread() is threading.main_thread()
     )
     if not use_alarm:
-        return _checked_tree(ssm, ssm.simulate(params, seed))
+        return _checked_tree(ssm, ssm.simulate(params, seed)).pruned(prune_radius)
     old = signal.signal(signal.SIGALRM, _alarm)
     signal.setitimer(signal.ITIMER_REAL, float(timeout))
     try:
@@ -179,7 +184,7 @@ def _simulate_with_timeout(ssm, params, seed, timeout):
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, old)
-    return _checked_tree(ssm, tree)
+    return _checked_tree(ssm, tree).pruned(prune_radius)
 
 
 def _checked_tree(ssm, tree):

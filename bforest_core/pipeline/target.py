@@ -106,7 +106,8 @@ def load_target_trees(cfg: RunConfig) -> list:
     t = cfg.target
     if t.generate is not None:
         ssm = component("ssm", t.generate.ssm, **t.generate.settings)
-        return [ssm.simulate(dict(t.generate.params), int(t.generate.seed))]
+        # a grown target stands for a QSM simplified as the config says
+        return [ssm.simulate(dict(t.generate.params), int(t.generate.seed)).pruned(t.prune_radius)]
     opts = {}
     if t.select is not None:
         opts["select"] = t.select

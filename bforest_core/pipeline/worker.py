@@ -62,7 +62,7 @@ def summary_task(task: tuple[dict, list[int]]) -> np.ndarray | None:
     rows = []
     for seed in seeds:
         try:
-            tree = _simulate_with_timeout(c.ssm, params, seed, c.timeout)
+            tree = _simulate_with_timeout(c.ssm, params, seed, c.timeout, c.prune_radius)
             U = {}
             for t in c.terms:
                 U.update({t.term.prefix + k: v for k, v in t.features.extract(tree).items()})
@@ -129,7 +129,7 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
     status, message = "ok", ""
     for seed in seeds:
         try:
-            tree = _simulate_with_timeout(c.ssm, params, seed, c.timeout)
+            tree = _simulate_with_timeout(c.ssm, params, seed, c.timeout, c.prune_radius)
             ps, rows = score_tree(tree, c)
             per_seed.append(ps)
             for k, v in rows.items():

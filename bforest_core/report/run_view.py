@@ -203,7 +203,7 @@ class RunView:
                 from ..registry import component
 
                 ssm = component("ssm", self.cfg.ssm.kind, **ssm_settings(self.cfg))
-                tree = ssm.simulate(self.best_params, int(self.best_seeds[0]))
+                tree = ssm.simulate(self.best_params, int(self.best_seeds[0])).pruned(self.cfg.target.prune_radius)
                 self.best_tree_source = "regrown"
                 return tree
             except Exception as exc:

@@ -249,9 +249,14 @@ class RecipeDraft:
         cannot trade that statistic for structure past what a forester accepts (empty: no limits).
     size_steep : float
         How many times as fast a term grows beyond its limit.
-    seeds, evaluations, starts : int
+    seeds, evaluations, starts, population, init_design, finalists : int
         The search: model seeds per evaluation (``[objective] seeds``), the evaluation budget
-        (``[stop] max_evaluations``) and the raced CMA-ES starts (``[optimizer] starts``).
+        (``[stop] max_evaluations``), and of ``[optimizer]`` the CMA-ES starts, the points of a
+        generation, the Sobol' points before the starts and the starts that run to the end.
+    grow_together : bool
+        Whether the finalists take their turns together (``[optimizer] grow_together``).
+    select_sets : int
+        Sets of held-out seeds each candidate answer is grown again with (``[select] sets``).
     search_why : str
         Why the model's search differs from the default (written as a comment above it).
     """
@@ -273,6 +278,11 @@ class RecipeDraft:
     seeds: int = 3
     evaluations: int = 1200
     starts: int = 4
+    population: int = 16
+    init_design: int = 32
+    finalists: int = 1
+    grow_together: bool = False
+    select_sets: int = 8
     search_why: str = ""
 
 

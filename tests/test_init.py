@@ -127,8 +127,11 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     assert free["beta_init"] == {"lower": 17.5, "upper": 85.0}
     assert free["beta_max"] == {"lower": 40.0, "upper": 75.0}
     assert cfg["target"]["qsm"] == "pine.txt"
-    assert cfg["select"] == {"top": 8, "sets": 8} and cfg["optimizer"]["starts"] == 4
-    assert cfg["objective"]["seeds"] == 3 and cfg["stop"]["max_evaluations"] == 1200  # LIGNUM's search
+    # LIGNUM's search: the SOT pine recipe's, one model seed an evaluation, two runs of 32 together
+    assert cfg["select"] == {"top": 8, "sets": 16} and cfg["objective"]["seeds"] == 1
+    assert cfg["stop"]["max_evaluations"] == 4000
+    o = cfg["optimizer"]
+    assert (o["population"], o["init_design"], o["starts"], o["finalists"], o["grow_together"]) == (32, 64, 2, 2, True)
     bf.load_config(tmp_path / "pine.toml")  # a valid run config as written
     # the size term's limits: two thirds of what a forester tolerates (height 7.5 %, DBH 20 %, crown
     # spread 25 %, crown base and first-order branches 30 %), steep 3
@@ -260,9 +263,10 @@ def test_init_never_replaces_a_recipe_without_overwrite(tmp_path, capsys):
     assert "lignum" in capsys.readouterr().out and "years" in out.read_text()
 
 
-def test_init_on_pine_3_is_the_shipped_lignum_recipe(tmp_path):
-    # the shipped recipe is init's output for pine 3, value for value and in the same order (so
-    # the same search): its fits over run seeds (docs/validation.md section 4) are init's
+def test_init_on_pine_3_writes_the_shipped_lignum_recipes_model(tmp_path):
+    # init's recipe for pine 3 grows the shipped recipe's model: its settings, fixed values and
+    # bounds value for value and in the same order, the same sets and size weights; its search
+    # and size limits are init's own (docs/validation.md, "Broadleaved trees")
     src = sample("pine_ruotsinkyla_3.mat")
     out = tmp_path / "pine3.toml"
     write_recipe(src, out)
@@ -272,12 +276,13 @@ def test_init_on_pine_3_is_the_shipped_lignum_recipe(tmp_path):
     a, b = bf.load_config(out).model_dump(), bf.load_config(shipped).model_dump()
     for c in (a, b):  # the same file, whatever symbolic links lead to it
         c["target"]["qsm"] = str(Path(c["target"]["qsm"]).resolve())
-    # but for init's size limits and the penalty above them, measured on pines 1-3 over five run
-    # seeds with init's recipes (docs/validation.md, "Size limits in bforest init's size term")
-    for k in ("limits", "steep", "cap"):
-        b["objective"]["terms"][0]["distance"][k] = a["objective"]["terms"][0]["distance"][k]
-    b["objective"]["penalty"] = a["objective"]["penalty"]
-    assert a == b and list(a["ssm"]["free"]) == list(b["ssm"]["free"])
+    for k in ("seed", "target", "ssm", "features", "distance", "executor", "clones"):
+        assert a[k] == b[k], k
+    assert list(a["ssm"]["free"]) == list(b["ssm"]["free"])
+    size_a, size_b = a["objective"]["terms"][0], b["objective"]["terms"][0]
+    assert size_a["features"] == size_b["features"]
+    assert size_a["distance"]["weights"] == size_b["distance"]["weights"]
+    assert "limits" in size_a["distance"] and "limits" not in size_b["distance"]
 
 
 @pytest.mark.parametrize(

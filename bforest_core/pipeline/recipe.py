@@ -132,6 +132,22 @@ SIZE_CAP = 2.0
 LIMITS_PENALTY = 12.0
 
 
+def _search_text(d: RecipeDraft) -> str:
+    """The comment above ``[optimizer]``: what the search does."""
+    if d.grow_together:
+        return (
+            f"A search that does not hinge on one trajectory: {d.init_design} Sobol' points over the box, then "
+            f"{d.starts} lq-CMA-ES runs of {d.population} points a generation from the best distinct ones, "
+            "each to the end of the budget, taking their turns together (their points go to the workers as "
+            "one batch); a run that converges restarts with a doubled population."
+        )
+    return (
+        f"A search that does not hinge on one trajectory: {d.init_design} Sobol' points over the box, "
+        f"{d.starts} lq-CMA-ES runs from the best distinct ones raced by successive halving, each "
+        "restarting with a doubled population once it converges."
+    )
+
+
 def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choices, picked: bool) -> str:
     """The recipe's TOML text, every choice commented."""
     L = [
@@ -178,7 +194,12 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         "lines = 128",
         "",
         "[objective]",
-        _line(f"seeds = {d.seeds}", f"the mean over {d.seeds} model seeds: clones vary, the fit must not chase one"),
+        _line(
+            f"seeds = {d.seeds}",
+            f"the mean over {d.seeds} model seeds: clones vary, the fit must not chase one"
+            if d.seeds > 1
+            else "one model seed an evaluation: the seeds' luck is taken out where the answer is chosen ([select])",
+        ),
         _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take"),
         _line("structure_weight = 2.0", "structure and size weigh alike"),
         *(
@@ -232,29 +253,29 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         )
         + " }",
         "",
-        f"# A search that does not hinge on one trajectory: 32 Sobol' points over the box, {d.starts} lq-CMA-ES",
-        "# runs from the best distinct ones raced by successive halving, each restarting with a doubled",
-        "# population once it converges.",
+        *(f"# {s}" for s in textwrap.wrap(_search_text(d), 96)),
         *(f"# {s}" for s in textwrap.wrap(d.search_why, 96)),
         "[optimizer]",
         'kind = "cma"',
-        "population = 16",
+        f"population = {d.population}",
         "restarts = 4",
         "sigma0 = 0.15",
         'surrogate = "lq"',
         "surrogate_batch = 2",
-        "init_design = 32",
+        f"init_design = {d.init_design}",
         f"starts = {d.starts}",
+        *([f"finalists = {d.finalists}"] if d.finalists != 1 else []),
+        *(["grow_together = true"] if d.grow_together else []),
         "",
         "[stop]",
         f"max_evaluations = {d.evaluations}",
         _line(f"wall_time = {d.wall_time:.1f}", "seconds the search may take (the answer's re-scoring comes after)"),
         "",
         "# The answer is chosen on model seeds the search never used: the 8 best distinct points are each",
-        "# grown again with 8 sets of held-out seeds; the lowest held-out distance is the answer.",
+        f"# grown again with {d.select_sets} sets of held-out seeds; the lowest held-out distance is the answer.",
         "[select]",
         "top = 8",
-        "sets = 8",
+        f"sets = {d.select_sets}",
         "",
         "[executor]",
         'kind = "process"',

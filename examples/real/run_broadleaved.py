@@ -155,6 +155,17 @@ def doc_section(results: dict, figures: dict) -> str:
             f"{near:.3f} | {verdict(r)} |"
         )
     L.append("")
+    spreads = []
+    for tree in TREES:
+        held = [r["heldout_distance"] for r in results.values() if r["tree"] == tree and r.get("heldout_distance")]
+        if len(held) > 1:
+            spreads.append(f"{tree} {max(held) / min(held):.3f} ({len(held)} run seeds)")
+    if spreads:
+        L += [
+            "Held-out distance of the answer over run seeds, max/min (the robust-fit limit for the pines: "
+            "1.15): " + "; ".join(spreads) + ".",
+            "",
+        ]
     for tree, img in sorted(figures.items(), key=lambda kv: TREES.index(kv[0])):
         L += [f"![{tree} beside 5 of its clones]({img})", ""]
     return "\n".join(L) + "\n" + END

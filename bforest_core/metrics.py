@@ -32,6 +32,7 @@ __all__ = [
     "SUMMARY_DEFAULT",
     "SIZE_WEIGHTS",
     "SIZE_TOLERANCES",
+    "SIZE_LIMITS",
     "SUMMARY_UNITS",
     "summary_unit",
     "summary_label",
@@ -235,6 +236,10 @@ SIZE_TOLERANCES = {"height": 0.075, "dbh": 0.20, "crown_spread": 0.25, "crown_ba
 #: (13.3, 5, 4, 3.3, 3.3); a model's recipe may weigh some of them otherwise
 #: (``RecipeDraft.size_weights``)
 SIZE_WEIGHTS = {k: round(1.0 / t, 1) for k, t in SIZE_TOLERANCES.items()}
+#: where a size term may turn steep (the summary distance's ``limits``, ``RecipeDraft.size_limits``):
+#: two thirds of each tolerance, so that a fit judged on a few model seeds keeps its clones' mean
+#: inside the tolerance
+SIZE_LIMITS = {k: round(2.0 / 3.0 * t, 2) for k, t in SIZE_TOLERANCES.items()}
 
 #: the statistics of the summary set by default (``tree-summary``): size, stem, crown, branch
 #: counts and the vertical profile

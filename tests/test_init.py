@@ -17,7 +17,7 @@ import pytest
 
 import bforest_core as bf
 from bforest_core.cli.main import main
-from bforest_core.metrics import SUMMARY_DEFAULT, measure_tree
+from bforest_core.metrics import SIZE_LIMITS, SUMMARY_DEFAULT, measure_tree
 from bforest_core.pipeline.recipe import write_recipe
 from bforest_core.pipeline.target import bounds_from_target
 from bforest_sot.recipe import sot_recipe
@@ -143,7 +143,7 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
         "crown_base_height": 0.2,
         "n_branches_o1": 0.2,
     }
-    assert size["steep"] == 3.0
+    assert size["limits"] == SIZE_LIMITS and size["steep"] == 3.0
     # a failed growth scores above the worst grown tree: every headline 1 000 times the tree's or
     # nothing at all, under the KS's largest value (1); the default penalty (1.0) would lie below
     names = list(size["limits"])

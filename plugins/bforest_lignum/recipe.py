@@ -9,7 +9,7 @@ branch-angle ranges from its first-order branches' angles.
 from __future__ import annotations
 
 from bforest_core.interfaces import RecipeDraft
-from bforest_core.metrics import SIZE_TOLERANCES, TreeMeasures
+from bforest_core.metrics import SIZE_LIMITS, TreeMeasures
 
 #: most years a recipe lets LIGNUM grow (the parameter's range)
 MAX_YEARS = 40
@@ -89,7 +89,7 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         size_weights={"height": 8.0, "dbh": 2.7, "crown_spread": 2.0, "crown_base_height": 1.6, "n_branches_o1": 1.6},
         # at two thirds of each tolerance, steep 3: without them one fit in five on pine 1 sold its
         # DBH (+29 %) for structure (docs/validation.md, "Size limits in bforest init's size term")
-        size_limits={k: round(2.0 * t / 3.0, 2) for k, t in SIZE_TOLERANCES.items()},
+        size_limits=SIZE_LIMITS,
         size_steep=3.0,
         # the SOT pine recipe's search (examples/real/pine_sot.toml): 4 000 growths, as 1 200
         # evaluations of 3 model seeds were

@@ -123,6 +123,8 @@ def measured_lines(m: TreeMeasures) -> list[str]:
     ]
 
 
+#: the weight of the structural term and of the size term: they weigh alike
+TERM_WEIGHT = 2.0
 #: the summary distance's cap of one statistic's term, written with limits: the size term then
 #: reaches at most cap * (1 + steep), the structural distance (KS) 1
 SIZE_CAP = 2.0
@@ -168,8 +170,9 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
             L.append(f"# Not {n} (suits {suits:.1f} against {d.suits:.1f}): {why}.")
     for note in d.notes:
         L.append(f"# Note: {note}.")
-    # the most the objective can reach (structure and size weigh 2 each); a failed growth scores above
-    reach = (2.0 * 1.0 + 2.0 * SIZE_CAP * (1.0 + d.size_steep)) / 4.0
+    # the most the objective can reach: the weighted mean of the structure (KS, at most 1) and the
+    # size term (at most cap * (1 + steep)); a failed growth scores above
+    reach = (TERM_WEIGHT * 1.0 + TERM_WEIGHT * SIZE_CAP * (1.0 + d.size_steep)) / (2.0 * TERM_WEIGHT)
     penalty = max(LIMITS_PENALTY, float(math.ceil(2.0 * reach)))
     L += ["seed = 1", "", "[target]", f'qsm = "{rel}"', "", "[ssm]", f'kind = "{name}"']
     for k, v, c in d.settings:
@@ -201,7 +204,7 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
             else "one model seed an evaluation: the seeds' luck is taken out where the answer is chosen ([select])",
         ),
         _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take"),
-        _line("structure_weight = 2.0", "structure and size weigh alike"),
+        _line(f"structure_weight = {TERM_WEIGHT!r}", "structure and size weigh alike"),
         *(
             [
                 _line(
@@ -234,7 +237,7 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         ),
         "[[objective.terms]]",
         'name = "size"',
-        "weight = 2.0",
+        f"weight = {TERM_WEIGHT!r}",
         'features = { kind = "tree-summary", min_branch_diameter = 0.0'
         + (
             ", statistics = [" + ", ".join(f'"{k}"' for k in (*SUMMARY_DEFAULT, *d.size_extra)) + "]"

@@ -34,7 +34,7 @@ from bforest_core.pipeline.recipe import write_recipe
 from bforest_core.report.trees import clones_figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from run_fidelity import ACCEPT, DATA, DOC, fit_and_judge, judge_distance, size_misses  # noqa: E402  (the same judge and limits)
+from run_fidelity import ACCEPT, DATA, DOC, fit_and_judge, judge_distance, size_misses, spread  # noqa: E402  (the same judge and limits)
 
 WYTHAM = [f"wytham_tf{k}" for k in range(1, 6)]
 PINES = [f"pine_ruotsinkyla_{k}" for k in (1, 2, 3)]
@@ -155,11 +155,12 @@ def doc_section(results: dict, figures: dict) -> str:
             f"{near:.3f} | {verdict(r)} |"
         )
     L.append("")
-    spreads = []
-    for tree in TREES:
-        held = [r["heldout_distance"] for r in results.values() if r["tree"] == tree and r.get("heldout_distance")]
-        if len(held) > 1:
-            spreads.append(f"{tree} {max(held) / min(held):.3f} ({len(held)} run seeds)")
+    by_tree = spread(results, key=lambda r: r["tree"])
+    spreads = [
+        f"{tree} {by_tree[tree][0]:.3f} ({by_tree[tree][1]} run seeds)"
+        for tree in TREES
+        if tree in by_tree and by_tree[tree][1] > 1
+    ]
     if spreads:
         L += [
             "Held-out distance of the answer over run seeds, max/min (the robust-fit limit for the pines: "

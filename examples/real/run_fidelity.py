@@ -254,13 +254,13 @@ NAMES = {
 }
 
 
-def spread(results: dict, value=lambda r: r.get("heldout_distance")) -> dict[tuple[str, int], tuple[float, int]]:
-    """(recipe, pine) -> (max/min of the answers' held-out distances over its run seeds, seeds);
-    ``value`` reads another distance of a row (None: not known)."""
-    by: dict[tuple[str, int], list[float]] = {}
+def spread(results: dict, value=lambda r: r.get("heldout_distance"), key=lambda r: (r["recipe"], r["pine"])) -> dict:
+    """(recipe, pine), or what ``key`` groups rows by -> (max/min of the answers' held-out distances
+    over its run seeds, seeds); ``value`` reads another distance of a row (None: not known)."""
+    by: dict = {}
     for r in results.values():
         if (v := value(r)) is not None:
-            by.setdefault((r["recipe"], r["pine"]), []).append(v)
+            by.setdefault(key(r), []).append(v)
     return {k: (max(v) / min(v), len(v)) for k, v in by.items()}
 
 

@@ -45,7 +45,10 @@ def run_recorded(ssm, params, seed, keep_trees=()):
             rec.setdefault("growth_lateral", {})[c] = store.is_lateral[view.live_ids].copy()
             rec.setdefault("stubs", {})[c] = {
                 k: getattr(store, k)[view.live_ids].copy()
-                for k in ("api_state", "lat_state", "api_stub_w", "lat_stub_w")
+                for k in ("api_state", "lat_state", "api_stub_w", "lat_stub_w", "api_child", "lat_child")
+            }
+            rec.setdefault("segments", {})[c] = {  # every segment ever made, shed ones too
+                k: getattr(store, k)[: store.n].copy() for k in ("start", "h", "length")
             }
         # the incrementally maintained field equals one rebuilt from the living segments
         f2 = copy.copy(view.field)
@@ -107,6 +110,7 @@ def test_parameter_table_complete():
         "short_shoot",
         "gap_shade",
         "gap_azimuth",
+        "shed_stub",
     }  # stand_shade and the ones after it are additions, off by default
     assert set(names) == expected and len(names) == len(expected)
     by = {p.name: p for p in PARAMETERS}
@@ -129,6 +133,7 @@ def test_parameter_table_complete():
         "node_length": 0.2,
         "stand_shade": 0,
         "heading_sd": 0,
+        "shed_stub": 0,
     }
     for k, v in calib.items():
         assert by[k].default == v, k
@@ -683,7 +688,7 @@ def _digest(t):
 @pytest.mark.parametrize("seed", [1, 2])
 def test_growth_forms_off_leave_the_papers_tree_as_it_was(seed):
     # the options at their defaults draw nothing and add no node: the tree recorded before them
-    off = {"leader_death": 0.0, "death_delay": 3.0, "short_shoot": 0.0}
+    off = {"leader_death": 0.0, "death_delay": 3.0, "short_shoot": 0.0, "shed_stub": 0.0}
     for ssm_, params in [(SOT(), {}), (SOT(buds_per_node=1), off)]:
         assert _digest(ssm_.simulate({"max_iter": 14, **params}, seed)) == DEFAULT_TREES[seed]
 
@@ -809,6 +814,48 @@ def test_leader_death_makes_every_shoot_fork_after_its_delay():
     # a probability draws per growing apical bud: seeds differ, a seed repeats
     a, b = (ssm.simulate({**p, "leader_death": 0.3}, s) for s in (1, 2))
     assert _same_tree(a, ssm.simulate({**p, "leader_death": 0.3}, 1)) and not _same_tree(a, b)
+
+
+def _rows(t):
+    return {tuple(np.round(np.r_[t.start[i], t.axis[i]], 9)): i for i in range(t.n)}
+
+
+@pytest.mark.parametrize("bpn", [1, 2])
+def test_shed_stubs_are_the_shed_branches_bases_with_their_width(bpn):
+    ssm = SOT(buds_per_node=bpn)
+    p = {"max_iter": 14}
+    plain, rec = run_recorded(ssm, p, 7, keep_trees=(14,))
+    st = rec["stubs"][14]
+    slot_w = np.r_[st["lat_stub_w"][st["lat_state"] == STUB], st["api_stub_w"][st["api_state"] == STUB]]
+    shed = np.r_[st["lat_child"][st["lat_state"] == STUB], st["api_child"][st["api_state"] == STUB]]
+    seg = rec["segments"][14]
+    real = seg["length"][shed] > 0  # a shed bud node (zero length) leaves no wood
+    slot_w, shed = slot_w[real], shed[real]
+    assert slot_w.size > 20  # the calibrated tree sheds branches
+    full = ssm.simulate({**p, "shed_stub": 1.0}, 7)
+    rows = _rows(plain)
+    extra = np.array([i for k, i in _rows(full).items() if k not in rows])
+    # the growth is untouched: every cylinder of the tree without stubs is there, as it was
+    assert full.n == plain.n + extra.size and extra.size == slot_w.size
+    assert np.array_equal(np.sort(full.radius[np.setdiff1d(np.arange(full.n), extra)]), np.sort(plain.radius))
+    # one stub per shed branch: a leaf on a living cylinder, starting at its end, 10-100 % of the shed first metamer long
+    assert not np.isin(extra, full.parent).any()
+    par = full.parent[extra]
+    assert (par >= 0).all() and not np.isin(par, extra).any()
+    assert np.allclose(full.start[extra], full.end[par], atol=1e-9)
+    base = {tuple(np.round(np.r_[seg["start"][j], seg["h"][j]], 9)): (j, w) for j, w in zip(shed, slot_w)}
+    frac = []
+    for i in extra:
+        j, w = base[tuple(np.round(np.r_[full.start[i], full.axis[i]], 9))]  # the shed metamer's base
+        assert full.radius[i] == 0.5 * w  # with the width the branch had when it was shed
+        frac.append(full.length[i] / seg["length"][j])
+    assert min(frac) >= 0.1 - 1e-9 and max(frac) <= 1 + 1e-9 and max(frac) - min(frac) > 0.5
+    # a probability: the stubs of 0.4 are some of those of 1 (the same draws), a seed repeats
+    some = ssm.simulate({**p, "shed_stub": 0.4}, 7)
+    assert _same_tree(some, ssm.simulate({**p, "shed_stub": 0.4}, 7))
+    kept = [k for k in _rows(some) if k not in rows]
+    assert 0.2 * extra.size < len(kept) < 0.6 * extra.size
+    assert set(kept) <= set(_rows(full))
 
 
 # ------------------------------------------------------------------------------ compiled loops

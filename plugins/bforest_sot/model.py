@@ -898,6 +898,42 @@ class StepView:
         return build_tree(self._run, status="ok")
 
 
+#: the stream of the stubs' draws: a generator of its own, so that stubs leave the growth's draws alone
+STUB_STREAM = 0x57B
+
+
+def _stubs(run: SOTGrowth):
+    """The dead stubs of shed branches on the living tree (``shed_stub``, an addition; output only).
+
+    A branch shed at a slot of a living segment (a STUB slot) leaves, with probability
+    ``shed_stub``, its base: its first metamer's start and heading, broken at a uniform fraction
+    in [0.1, 1] of that metamer's length, with the width the branch had when it was shed (the
+    width the pipe model keeps for the slot). The two uniforms of a shed branch are drawn from a
+    generator of the run's seed and its own stream, indexed by the branch's segment id, so a
+    branch keeps or loses its stub alike at every cycle's output and the growth draws nothing.
+
+    Returns ``(bearer, child, width, frac)``: the bearing segment (a metamer, bud nodes folded
+    away), the shed segment, its width and the kept fraction of its length.
+    """
+    s = run.s
+    ids = s.live
+    bearer, child, width = [], [], []
+    for state, kid, stub_w in ((s.lat_state, s.lat_child, s.lat_stub_w), (s.api_state, s.api_child, s.api_stub_w)):
+        on = ids[(state[ids] == STUB) & (kid[ids] >= 0)]
+        bearer.append(on)
+        child.append(kid[on])
+        width.append(stub_w[on])
+    b, c, w = np.concatenate(bearer), np.concatenate(child), np.concatenate(width)
+    real = (s.length[c] > 0.0) & ~s.twin[c]  # a shed bud node has no wood to leave
+    b, c, w = b[real], c[real], w[real]
+    u = np.random.default_rng(np.random.SeedSequence(int(run.seed), spawn_key=(STUB_STREAM,))).random((s.n, 2))
+    keep = u[c, 0] < run.p["shed_stub"]
+    b, c, w = b[keep], c[keep], w[keep]
+    for _ in range(run.buds_per_node - 1):  # a stub on a bud node sits on the node's metamer
+        b = np.where(s.twin[b], s.parent[b], b)
+    return b, c, w, 0.1 + 0.9 * u[c, 1]
+
+
 def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
     """The output :class:`Tree` of a run's current state, after a width-only basipetal update
     (applied to a copy of the widths). Raises ``GrowthFailure('no_root')`` if nothing lives."""
@@ -922,6 +958,16 @@ def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
     loc[ids] = np.arange(ids.size)
     parent = np.where(par >= 0, loc[np.maximum(par, 0)], -1)
     ext = np.where(ext_g >= 0, loc[np.maximum(ext_g, 0)], -1)
+    start, h, length, age = s.start[ids], s.h[ids], s.length[ids], run.cycle - s.born[ids]
+    if run.p.get("shed_stub", 0.0) > 0.0:
+        b, c, w, frac = _stubs(run)
+        start = np.concatenate([start, s.start[c]])
+        h = np.concatenate([h, s.h[c]])
+        length = np.concatenate([length, frac * s.length[c]])
+        width = np.concatenate([width, w])
+        parent = np.concatenate([parent, loc[b]])
+        ext = np.concatenate([ext, np.full(c.size, -1, dtype=np.int64)])
+        age = np.concatenate([age, run.cycle - s.born[c]])
     settings = getattr(run, "settings", None)
     order_mode = getattr(settings, "order_mode", "growth")
     meta = {
@@ -937,14 +983,14 @@ def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
         "segments_created": int(s.n),
     }
     tree = Tree(
-        s.start[ids],
-        s.h[ids],
-        s.length[ids],
+        start,
+        h,
+        length,
         0.5 * width,
         parent,
         ext,
         topology="thickest" if order_mode == "thickest" else "source",
-        extras={"age": (run.cycle - s.born[ids]).astype(np.int64)},
+        extras={"age": age.astype(np.int64)},
         metadata=meta,
     )
     # C: is_lateral = starts a new branch (in "growth" mode: the first metamer of a lateral shoot)

@@ -153,6 +153,18 @@ PARAMETERS: list[ParameterSpec] = [
         "buds never grow: the spurs and short shoots of broadleaved trees); 0 = the papers' model (no draws)",
         "V",
     ),
+    P(
+        "shed_stub",
+        0.0,
+        0.0,
+        1.0,
+        False,
+        "",
+        "an addition (output only): probability that a shed branch leaves a dead stub, its base broken "
+        "somewhere along its first internode, with the width it had when shed (natural pruning); "
+        "0 = the papers' model",
+        "V",
+    ),
     # ---- fixed geometry (GS)
     P(
         "node_length",
@@ -206,6 +218,7 @@ def validate(p: Mapping[str, float]) -> None:
     need(0 <= p["shadow_a"] < p["shadow_b"], "shadow_a", f"in [0, shadow_b = {p['shadow_b']!r})")
     need(p["spread"] >= 0, "spread", ">= 0")
     need(p["gap_shade"] >= 0, "gap_shade", ">= 0")
+    need(0 <= p["shed_stub"] <= 1, "shed_stub", "in [0, 1]")
     need(p["ran"] >= 0, "ran", ">= 0")
     need(p["vert"] >= 0, "vert", ">= 0")
     need(p["ran"] + p["vert"] <= 1, "ran", f"such that ran + vert <= 1 (vert = {p['vert']!r})")

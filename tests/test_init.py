@@ -126,6 +126,9 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     # (65 - 30) to 75 (80 - 5), each within the parameter's allowed range (17.5-90, 40-105 deg)
     assert free["beta_init"] == {"lower": 17.5, "upper": 85.0}
     assert free["beta_max"] == {"lower": 40.0, "upper": 75.0}
+    # apical dominance: buds of order w are dormant once Q w >= 1; the tree's branches are all of
+    # order 1, so Q >= 1/2 would keep order 2 out: capped at 0.3 (the box ends at 0.4)
+    assert free["q_mean"] == {"lower": 0.3, "upper": 0.4}
     assert cfg["target"]["qsm"] == "pine.txt"
     # LIGNUM's search: the SOT pine recipe's, one model seed an evaluation, two runs of 32 together
     assert cfg["select"] == {"top": 8, "sets": 16} and cfg["objective"]["seeds"] == 1
@@ -161,6 +164,22 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     # 16 branches on 8.67 m of crown: one per 0.54 m; 0.8-1.45 x that, within the model's 0.05-0.6 m
     assert s["free"]["node_length"] == {"lower": 0.43, "upper": 0.6}
     assert s["free"]["branch_angle"] == {"lower": 30.0, "upper": 80.0}
+
+
+def test_init_keeps_orders_the_excurrent_tree_lacks_dormant(tmp_path):
+    # branches of the hand-built pine carry twigs to order 3: Q >= 1/4 leaves a bud of order 3 only
+    # an apical shoot (1 - Q (3 + 1) = 0), so no order 4 grows; order 3 is reached (1 - 3 Q > 0)
+    b = Builder()
+    stem = b.axis_of(-1, (0, 0, 0), (0, 0, 1), 20, 0.5, 0.10, 0.02)
+    for j, c in enumerate(stem[6:-2]):
+        br = b.axis_of(c, b.end(c), _axis(60, 137.5 * j), 2, 0.5, 0.008, 0.006)
+        o2 = b.axis_of(br[0], b.end(br[0]), _axis(50, 137.5 * j + 40), 2, 0.2, 0.004, 0.003)
+        b.axis_of(o2[0], b.end(o2[0]), _axis(40, 137.5 * j + 80), 1, 0.1, 0.002, 0.002)
+    r, cfg = _recipe(tmp_path, b.tree(), "deep")
+    assert r.model == "lignum" and r.measures.max_order == 3
+    assert cfg["ssm"]["free"]["q_mean"] == {"lower": 0.25, "upper": 0.4}
+    lo = cfg["ssm"]["free"]["q_mean"]["lower"]
+    assert 1 - lo * 3 > 0 and 1 - lo * (3 + 1) <= 1e-5  # LIGNUM's bud-fate tests (docs/models.md A.5)
 
 
 def test_init_gives_a_one_sided_crown_its_gap(tmp_path):
@@ -265,7 +284,7 @@ def test_init_never_replaces_a_recipe_without_overwrite(tmp_path, capsys):
 
 def test_init_on_pine_3_writes_the_shipped_lignum_recipes_model(tmp_path):
     # init's recipe for pine 3 grows the shipped recipe's model: its settings, fixed values and
-    # bounds value for value and in the same order, the same sets and size weights; its search
+    # bounds value for value (one below) and in the same order, the same sets and size weights; its search
     # and size limits are init's own (docs/validation.md, "Broadleaved trees")
     src = sample("pine_ruotsinkyla_3.mat")
     out = tmp_path / "pine3.toml"
@@ -276,6 +295,11 @@ def test_init_on_pine_3_writes_the_shipped_lignum_recipes_model(tmp_path):
     a, b = bf.load_config(out).model_dump(), bf.load_config(shipped).model_dump()
     for c in (a, b):  # the same file, whatever symbolic links lead to it
         c["target"]["qsm"] = str(Path(c["target"]["qsm"]).resolve())
+    # but for Q's lower bound: init keeps the orders pine 3 lacks dormant (1/6: it branches to
+    # order 5), the shipped recipe keeps the box of its measured rows (0)
+    assert a["ssm"]["free"]["q_mean"]["lower"] == pytest.approx(1 / 6, abs=1e-3)
+    assert b["ssm"]["free"]["q_mean"]["lower"] == 0.0
+    a["ssm"]["free"]["q_mean"]["lower"] = 0.0
     for k in ("seed", "target", "ssm", "features", "distance", "executor", "clones"):
         assert a[k] == b[k], k
     assert list(a["ssm"]["free"]) == list(b["ssm"]["free"])

@@ -15,6 +15,10 @@ from bforest_core.metrics import SIZE_LIMITS, TreeMeasures
 MAX_YEARS = 40
 #: growth years per m of the tree's height, the bounds of ``years`` (``scaled_by = "height"``)
 YEARS_PER_M = (1.0, 2.0)
+#: the lower bound of apical dominance Q in the Silva Fennica real fit (docs/models.md A.4)
+Q_PAPER = 0.1
+#: the highest lower bound of Q a recipe writes (its upper bound is 0.4)
+Q_LO_CAP = 0.3
 
 
 def _r5(x: float) -> float:
@@ -36,6 +40,9 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         min(120.0, _r5(m.beta_q90 - 5)),
     )
     b_lo, b_max_lo = min(b_lo, b_mid - 20), max(20.0, _r5(m.beta_q50 - 30))
+    # orders the tree does not have stay dormant (bud fate, docs/models.md A.5 step 2): the
+    # fits free to go below grew clumps of 4th-7th-order twigs at limb tips (docs/validation.md)
+    q_lo = min(Q_LO_CAP, max(Q_PAPER, round(1.0 / (m.max_order + 1), 3)))
     free = [
         (
             "years",
@@ -45,7 +52,13 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         ),
         ("photo_eff", 0.0003, 0.006, "wider than the papers': stand shade takes light"),
         ("lr_mean", 0.0045, 0.025, "branches' base radius 1-2.5 % of their length"),
-        ("q_mean", 0.0, 0.4, None),
+        (
+            "q_mean",
+            q_lo,
+            0.4,
+            f"apical dominance: a bud of order w stays dormant once q w >= 1, so q >= 1/{m.max_order + 1} grows "
+            f"no order above the tree's {m.max_order} (the paper's real fit started at {Q_PAPER})",
+        ),
         ("shadow_len", 0.5, 1.5, None),
         ("shadow_max", 20.0, 80.0, None),
         ("r_env_mean", 0.3, 2.0, "buds die farther from the stem: the crown radius"),

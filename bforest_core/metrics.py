@@ -614,6 +614,8 @@ class TreeMeasures:
     thinnest_branch : float
         Smallest base diameter (m) of a branch: a QSM simplified for its use (twigs removed)
         has a floor here.
+    radius_length : float
+        Median over the first-order branches of their base radius over their length.
     stem_rise : float
         Vertical component of the stem's first cylinder (1 = straight up).
     crown_offset, crown_azimuth : float
@@ -636,6 +638,7 @@ class TreeMeasures:
     limb_ratio: float
     longest_limb: float
     thinnest_branch: float
+    radius_length: float
     stem_rise: float
     crown_offset: float
     crown_azimuth: float
@@ -715,6 +718,7 @@ def measure_tree(tree) -> TreeMeasures:
         limb_ratio=float(limbs / stem_crown) if stem_crown > 0 else float("inf"),
         longest_limb=float(blen[o1].max()),
         thinnest_branch=float(2.0 * tree.radius[br.first[1:]].min()),
+        radius_length=float(np.median(tree.radius[br.first[o1]] / np.maximum(blen[o1], 1e-9))),
         stem_rise=rise,
         crown_offset=float(np.hypot(*centre)),
         crown_azimuth=float(np.degrees(np.arctan2(centre[1], centre[0]))),

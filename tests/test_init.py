@@ -129,6 +129,8 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     # apical dominance: buds of order w are dormant once Q w >= 1; the tree's branches are all of
     # order 1, so Q >= 1/2 would keep order 2 out: capped at 0.3 (the box ends at 0.4)
     assert free["q_mean"] == {"lower": 0.3, "upper": 0.4}
+    # a new shoot's radius:length: the box's 0.45-2.5 % (the branches' 0.5 % at the base is below)
+    assert free["lr_mean"] == {"lower": 0.0045, "upper": 0.025}
     assert cfg["target"]["qsm"] == "pine.txt"
     # LIGNUM's search: the SOT pine recipe's, one model seed an evaluation, two runs of 32 together
     assert cfg["select"] == {"top": 8, "sets": 16} and cfg["objective"]["seeds"] == 1
@@ -180,6 +182,21 @@ def test_init_keeps_orders_the_excurrent_tree_lacks_dormant(tmp_path):
     assert cfg["ssm"]["free"]["q_mean"] == {"lower": 0.25, "upper": 0.4}
     lo = cfg["ssm"]["free"]["q_mean"]["lower"]
     assert 1 - lo * 3 > 0 and 1 - lo * (3 + 1) <= 1e-5  # LIGNUM's bud-fate tests (docs/models.md A.5)
+    # its first-order branches are 1 m long with a base radius of 8 mm: 0.8 %, below the box's 2.5 %
+    assert cfg["ssm"]["free"]["lr_mean"]["upper"] == 0.025
+
+
+def test_init_lets_a_new_shoot_be_as_stout_as_the_trees_branches(tmp_path):
+    # first-order branches of 1 m with a base radius of 2 cm (2 %): the box reaches 1.5 x that;
+    # of 4 cm (4 %), the model's allowed range stops it at 4 %
+    for r0, upper in ((0.02, 0.03), (0.04, 0.04)):
+        b = Builder()
+        stem = b.axis_of(-1, (0, 0, 0), (0, 0, 1), 20, 0.5, 0.10, 0.02)
+        for j, c in enumerate(stem[6:-2]):
+            b.axis_of(c, b.end(c), _axis(60, 137.5 * j), 2, 0.5, r0, 0.6 * r0)
+        r, cfg = _recipe(tmp_path, b.tree(), f"stout{r0}")
+        assert r.measures.radius_length == pytest.approx(r0)
+        assert r.model == "lignum" and cfg["ssm"]["free"]["lr_mean"] == {"lower": 0.0045, "upper": upper}
 
 
 def test_init_gives_a_one_sided_crown_its_gap(tmp_path):
@@ -284,7 +301,7 @@ def test_init_never_replaces_a_recipe_without_overwrite(tmp_path, capsys):
 
 def test_init_on_pine_3_writes_the_shipped_lignum_recipes_model(tmp_path):
     # init's recipe for pine 3 grows the shipped recipe's model: its settings, fixed values and
-    # bounds value for value (one below) and in the same order, the same sets and size weights; its search
+    # bounds value for value (two below) and in the same order, the same sets and size weights; its search
     # and size limits are init's own (docs/validation.md, "Broadleaved trees")
     src = sample("pine_ruotsinkyla_3.mat")
     out = tmp_path / "pine3.toml"
@@ -295,11 +312,13 @@ def test_init_on_pine_3_writes_the_shipped_lignum_recipes_model(tmp_path):
     a, b = bf.load_config(out).model_dump(), bf.load_config(shipped).model_dump()
     for c in (a, b):  # the same file, whatever symbolic links lead to it
         c["target"]["qsm"] = str(Path(c["target"]["qsm"]).resolve())
-    # but for Q's lower bound: init keeps the orders pine 3 lacks dormant (1/6: it branches to
-    # order 5), the shipped recipe keeps the box of its measured rows (0)
-    assert a["ssm"]["free"]["q_mean"]["lower"] == pytest.approx(1 / 6, abs=1e-3)
-    assert b["ssm"]["free"]["q_mean"]["lower"] == 0.0
-    a["ssm"]["free"]["q_mean"]["lower"] = 0.0
+    # but for two bounds, where the shipped recipe keeps the box of its measured rows: init keeps
+    # the orders pine 3 lacks dormant (Q >= 1/6: it branches to order 5), and lets a new shoot's
+    # radius:length reach 1.5 x its first-order branches' median (2.4 %)
+    fa, fb = a["ssm"]["free"], b["ssm"]["free"]
+    assert fa["q_mean"]["lower"] == pytest.approx(1 / 6, abs=1e-3) and fb["q_mean"]["lower"] == 0.0
+    assert fa["lr_mean"]["upper"] == 0.037 and fb["lr_mean"]["upper"] == 0.025
+    fa["q_mean"]["lower"], fa["lr_mean"]["upper"] = 0.0, 0.025
     for k in ("seed", "target", "ssm", "features", "distance", "executor", "clones"):
         assert a[k] == b[k], k
     assert list(a["ssm"]["free"]) == list(b["ssm"]["free"])

@@ -70,10 +70,10 @@ _TABLE = [
         "L_R mean",
         "",
         0.0045,
-        0.025,
+        0.04,
         False,
         "mean of TN L_R, radius:length of a new shoot (1 draw per shoot; the published range (docs/models.md A.3) stops at "
-        "0.0135, scanned pines' first-order branches have base radius:length 0.011-0.024)",
+        "0.0135, scanned pines' first-order branches have base radius:length 0.015-0.024, the medians)",
         "shoot",
     ),
     _Par("lr_sd", "L_R sd", "", 0.0, 0.003, False, "sd of TN L_R", "shoot"),

@@ -19,6 +19,8 @@ YEARS_PER_M = (1.0, 2.0)
 Q_PAPER = 0.1
 #: the highest lower bound of Q a recipe writes (its upper bound is 0.4)
 Q_LO_CAP = 0.3
+#: the upper bound of a new shoot's radius:length L_R in the box, at the least and at the most
+LR_HI, LR_MAX = 0.025, 0.04
 
 
 def _r5(x: float) -> float:
@@ -43,6 +45,9 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
     # orders the tree does not have stay dormant (bud fate, docs/models.md A.5 step 2): the
     # fits free to go below grew clumps of 4th-7th-order twigs at limb tips (docs/validation.md)
     q_lo = min(Q_LO_CAP, max(Q_PAPER, round(1.0 / (m.max_order + 1), 3)))
+    # the fits of pine 1 all ended at 2.5 %, its branches' median being 2.1 %: a box reaching half
+    # as far again as the tree's median (the model's allowed range ends at 4 %)
+    lr_hi = min(LR_MAX, max(LR_HI, round(1.5 * m.radius_length, 3)))
     free = [
         (
             "years",
@@ -51,7 +56,13 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
             f"growth years: {per_m_lo:g}-{per_m_hi:g} per m of height ({years} for this {m.height:.1f} m tree)",
         ),
         ("photo_eff", 0.0003, 0.006, "wider than the papers': stand shade takes light"),
-        ("lr_mean", 0.0045, 0.025, "branches' base radius 1-2.5 % of their length"),
+        (
+            "lr_mean",
+            0.0045,
+            lr_hi,
+            f"a new shoot's radius 0.45-{100 * lr_hi:.1f} % of its length (the tree's first-order branches: "
+            f"{100 * m.radius_length:.1f} % at the base, the median)",
+        ),
         (
             "q_mean",
             q_lo,

@@ -255,8 +255,9 @@ class RecipeDraft:
         generation, the Sobol' points before the starts and the starts that run to the end.
     grow_together : bool
         Whether the finalists take their turns together (``[optimizer] grow_together``).
-    select_sets : int
-        Sets of held-out seeds each candidate answer is grown again with (``[select] sets``).
+    select_top, select_sets : int
+        The best distinct points grown again as candidate answers (``[select] top``) and the sets
+        of held-out seeds each is grown with (``[select] sets``).
     search_why : str
         Why the model's search differs from the default (written as a comment above it).
     """
@@ -282,6 +283,7 @@ class RecipeDraft:
     init_design: int = 32
     finalists: int = 1
     grow_together: bool = False
+    select_top: int = 8
     select_sets: int = 8
     search_why: str = ""
 

@@ -133,7 +133,7 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     assert free["lr_mean"] == {"lower": 0.0045, "upper": 0.025}
     assert cfg["target"]["qsm"] == "pine.txt"
     # LIGNUM's search: the SOT pine recipe's, one model seed an evaluation, two runs of 32 together
-    assert cfg["select"] == {"top": 8, "sets": 16} and cfg["objective"]["seeds"] == 1
+    assert cfg["select"] == {"top": 16, "sets": 16} and cfg["objective"]["seeds"] == 1
     assert cfg["stop"]["max_evaluations"] == 4000
     o = cfg["optimizer"]
     assert (o["population"], o["init_design"], o["starts"], o["finalists"], o["grow_together"]) == (32, 64, 2, 2, True)

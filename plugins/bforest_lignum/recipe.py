@@ -11,6 +11,8 @@ from __future__ import annotations
 from bforest_core.interfaces import RecipeDraft
 from bforest_core.metrics import SIZE_LIMITS, TreeMeasures
 
+from .params import parameter_specs
+
 #: most years a recipe lets LIGNUM grow (the parameter's range)
 MAX_YEARS = 40
 #: growth years per m of the tree's height, the bounds of ``years`` (``scaled_by = "height"``)
@@ -19,8 +21,9 @@ YEARS_PER_M = (1.0, 2.0)
 Q_PAPER = 0.1
 #: the highest lower bound of Q a recipe writes (its upper bound is 0.4)
 Q_LO_CAP = 0.3
-#: the upper bound of a new shoot's radius:length L_R in the box, at the least and at the most
-LR_HI, LR_MAX = 0.025, 0.04
+#: the upper bound of a new shoot's radius:length L_R in the box, at the least and at the most (the
+#: parameter's allowed range, which the written bounds are clipped to)
+LR_HI, LR_MAX = 0.025, next(p.upper for p in parameter_specs("sf_real") if p.name == "lr_mean")
 
 
 def _r5(x: float) -> float:
@@ -46,7 +49,7 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
     # fits free to go below grew clumps of 4th-7th-order twigs at limb tips (docs/validation.md)
     q_lo = min(Q_LO_CAP, max(Q_PAPER, round(1.0 / (m.max_order + 1), 3)))
     # the fits of pine 1 all ended at 2.5 %, its branches' median being 2.1 %: a box reaching half
-    # as far again as the tree's median (the model's allowed range ends at 4 %)
+    # as far again as the tree's median, within the model's allowed range
     lr_hi = min(LR_MAX, max(LR_HI, round(1.5 * m.radius_length, 3)))
     free = [
         (

@@ -187,6 +187,18 @@ def fresh_heldout(row: dict, n_sets: int) -> float | None:
     return heldout_mean(known, key, sets[first:])[0]
 
 
+def add_fresh(results: dict, n_sets: int, result_path: Path) -> None:
+    """Score every row's answer on ``n_sets`` fresh seed sets (``fresh_heldout``) unless it has
+    been; each score is saved to ``result_path`` as it comes."""
+    for key, r in results.items():
+        if (r.get("heldout_fresh") or {}).get("sets") != n_sets:
+            d = fresh_heldout(r, n_sets)
+            if d is not None:
+                r["heldout_fresh"] = {"sets": n_sets, "distance": d}
+                result_path.write_text(json.dumps(results, indent=2))
+                print(f"{key}: answer on {n_sets} fresh seed sets {d:.4f} (held out {r['heldout_distance']:.4f})")
+
+
 def figure_name(row: dict, which: str) -> str:
     """Path in docs/ of the figure of one fit: the best or the worst run seed of its recipe and pine."""
     return f"img/validation/fidelity_{row['recipe']}_pine{row['pine']}_{which}.png"
@@ -426,15 +438,7 @@ def main(argv=None) -> int:
                     flush=True,
                 )
     if args.fresh:
-        for key, r in results.items():
-            if (r.get("heldout_fresh") or {}).get("sets") != args.fresh:
-                d = fresh_heldout(r, args.fresh)
-                if d is not None:
-                    r["heldout_fresh"] = {"sets": args.fresh, "distance": d}
-                    result_path.write_text(json.dumps(results, indent=2))
-                    print(
-                        f"{key}: answer on {args.fresh} fresh seed sets {d:.4f} (held out {r['heldout_distance']:.4f})"
-                    )
+        add_fresh(results, args.fresh, result_path)
         for (rec, k), (ratio, n) in sorted(spread(results, fresh_value).items()):
             print(f"{rec} pine {k}: on {args.fresh} fresh seed sets, max/min {ratio:.3f} over {n} run seeds")
     for (rec, k), (ratio, n) in sorted(spread(results).items()):

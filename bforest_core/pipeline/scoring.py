@@ -165,6 +165,15 @@ def set_summaries(U: dict[str, np.ndarray], names, trees: int = 1) -> np.ndarray
     return np.asarray(out, float)
 
 
+def grow_tree(cfg: RunConfig, params: dict, seed: int, timeout: float | None = None):
+    """The tree the run's model grows from ``params`` and ``seed``, pruned as the target's QSM was:
+    the tree a worker scores (a report regrowing a run's answer uses this, not the model itself)."""
+    from ..config import ssm_settings
+
+    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+    return _simulate_with_timeout(ssm, params, seed, timeout, cfg.target.prune_radius)
+
+
 def _alarm(signum, frame):
     raise _Timeout()
 

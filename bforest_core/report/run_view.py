@@ -199,11 +199,9 @@ class RunView:
         """
         if self.cfg is not None and self.best_params is not None:
             try:
-                from ..config import ssm_settings
-                from ..registry import component
+                from ..pipeline.scoring import grow_tree
 
-                ssm = component("ssm", self.cfg.ssm.kind, **ssm_settings(self.cfg))
-                tree = ssm.simulate(self.best_params, int(self.best_seeds[0])).pruned(self.cfg.target.prune_radius)
+                tree = grow_tree(self.cfg, self.best_params, int(self.best_seeds[0]))
                 self.best_tree_source = "regrown"
                 return tree
             except Exception as exc:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import bforest_core as bf
+from bforest_core.tree import parent_first_order
 from bforest_sot.light import LightField, shadow_kernel
 from bforest_sot.model import BUD, CHILD, STUB, accumulate, allocate, path_any
 from bforest_sot.params import PARAMETERS
@@ -111,6 +112,7 @@ def test_parameter_table_complete():
         "gap_shade",
         "gap_azimuth",
         "shed_stub",
+        "prune_tips",
     }  # stand_shade and the ones after it are additions, off by default
     assert set(names) == expected and len(names) == len(expected)
     by = {p.name: p for p in PARAMETERS}
@@ -134,6 +136,7 @@ def test_parameter_table_complete():
         "stand_shade": 0,
         "heading_sd": 0,
         "shed_stub": 0,
+        "prune_tips": 0,
     }
     for k, v in calib.items():
         assert by[k].default == v, k
@@ -688,7 +691,7 @@ def _digest(t):
 @pytest.mark.parametrize("seed", [1, 2])
 def test_growth_forms_off_leave_the_papers_tree_as_it_was(seed):
     # the options at their defaults draw nothing and add no node: the tree recorded before them
-    off = {"leader_death": 0.0, "death_delay": 3.0, "short_shoot": 0.0, "shed_stub": 0.0}
+    off = {"leader_death": 0.0, "death_delay": 3.0, "short_shoot": 0.0, "shed_stub": 0.0, "prune_tips": 0.0}
     for ssm_, params in [(SOT(), {}), (SOT(buds_per_node=1), off)]:
         assert _digest(ssm_.simulate({"max_iter": 14, **params}, seed)) == DEFAULT_TREES[seed]
 
@@ -856,6 +859,35 @@ def test_shed_stubs_are_the_shed_branches_bases_with_their_width(bpn):
     kept = [k for k in _rows(some) if k not in rows]
     assert 0.2 * extra.size < len(kept) < 0.6 * extra.size
     assert set(kept) <= set(_rows(full))
+
+
+@pytest.mark.parametrize("bpn", [1, 2])
+def test_prune_tips_leaves_out_the_shoots_that_carry_fewer_tips(bpn):
+    ssm = SOT(buds_per_node=bpn)
+    p = {"max_iter": 14, "init_width": 0.02, "pipe_exp": 2.5}
+    plain = ssm.simulate(p, 7)
+    tip = 0.5 * p["init_width"]  # a growing tip's radius: the pipe model's floor
+    leaves = ~np.isin(np.arange(plain.n), plain.parent)
+    assert np.isclose(plain.radius[leaves], tip).mean() > 0.8  # most leaves are growing tips
+    for k in (1.0, 0.5):  # at most one tip: the tree as it was, to the bit
+        assert _same_tree(ssm.simulate({**p, "prune_tips": k}, 7), plain)
+    pr = ssm.simulate({**p, "prune_tips": 2.0}, 7)
+    # what is left: the cylinders at least init_width * 2^(1/pipe_exp) thick, the thickness of a shoot
+    # that carries two tips (the pipe model's widths only grow towards the root, so none is cut off)
+    edge = tip * 2.0 ** (1.0 / p["pipe_exp"])
+    thick = {k for k, i in _rows(plain).items() if plain.radius[i] >= edge * (1 - 1e-9)}
+    assert set(_rows(pr)) == thick and pr.n == len(thick)
+    assert not np.isclose(pr.radius, tip).any() and plain.n - pr.n >= leaves.sum()
+    # a shoot that carries two growing tips stays (a shed branch would only add to its width)
+    n_tips = leaves.astype(int)
+    assert parent_first_order(plain.parent) is None  # rows come after their parents
+    for i in range(plain.n - 1, 0, -1):
+        if plain.parent[i] >= 0:
+            n_tips[plain.parent[i]] += n_tips[i]
+    two = np.flatnonzero(n_tips == 2)
+    assert two.size and all(tuple(np.round(np.r_[plain.start[i], plain.axis[i]], 9)) in thick for i in two)
+    # more tips to carry, fewer shoots: the view of a coarser QSM
+    assert ssm.simulate({**p, "prune_tips": 8.0}, 7).n < pr.n < plain.n
 
 
 # ------------------------------------------------------------------------------ compiled loops

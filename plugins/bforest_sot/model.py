@@ -995,4 +995,11 @@ def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
     )
     # C: is_lateral = starts a new branch (in "growth" mode: the first metamer of a lateral shoot)
     tree.extras["is_lateral"] = (tree.parent >= 0) & (tree.position_in_branch == 0)
+    if run.p.get("prune_tips", 0.0) > 1.0:
+        # a simplified QSM's view (an addition, output only): in the pipe model a shoot carrying
+        # n growing tips is init_width * n^(1/pipe_exp) thick, so the shoots that carry fewer than
+        # prune_tips go with all beyond them, whatever the tree's scale (the edge a hair below that
+        # width, so that a shoot of exactly prune_tips tips stays whatever the rounding)
+        edge = 0.5 * run.p["init_width"] * run.p["prune_tips"] ** (1.0 / run.p["pipe_exp"])
+        tree = tree.pruned(edge * (1.0 - 1e-9))
     return tree

@@ -165,6 +165,18 @@ PARAMETERS: list[ParameterSpec] = [
         "0 = the papers' model",
         "V",
     ),
+    P(
+        "prune_tips",
+        0.0,
+        0.0,
+        50.0,
+        False,
+        "tips",
+        "an addition (output only): the tree drawn as a simplified QSM draws it: a shoot thinner than "
+        "init_width * prune_tips^(1/pipe_exp) (in the pipe model, one carrying fewer than prune_tips growing "
+        "tips) is left out with all beyond it; at most 1 = the papers' model",
+        "V",
+    ),
     # ---- fixed geometry (GS)
     P(
         "node_length",
@@ -219,6 +231,7 @@ def validate(p: Mapping[str, float]) -> None:
     need(p["spread"] >= 0, "spread", ">= 0")
     need(p["gap_shade"] >= 0, "gap_shade", ">= 0")
     need(0 <= p["shed_stub"] <= 1, "shed_stub", "in [0, 1]")
+    need(p["prune_tips"] >= 0, "prune_tips", ">= 0")
     need(p["ran"] >= 0, "ran", ">= 0")
     need(p["vert"] >= 0, "vert", ">= 0")
     need(p["ran"] + p["vert"] <= 1, "ran", f"such that ran + vert <= 1 (vert = {p['vert']!r})")

@@ -257,8 +257,11 @@ def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp
     # SOT's search: 1 800 evaluations of 2 model seeds, two raced starts (not the pine recipe's, which
     # grew too many first-order branches on the Wytham trees)
     assert cfg["objective"]["seeds"] == 2 and cfg["stop"]["max_evaluations"] == 1800
-    # no size limits in SOT's recipes (they cost the broadleaved trees their judge), nor a penalty
-    assert "limits" not in size["distance"] and "penalty" not in cfg["objective"]
+    # the size limits of init's LIGNUM recipe (two thirds of each tolerance, steep 3), with a penalty
+    # above what they let the objective reach, and the answer among 16 candidates on 16 held-out sets
+    assert size["distance"]["limits"] == SIZE_LIMITS and size["distance"]["steep"] == 3.0
+    assert cfg["objective"]["penalty"] > 1.0
+    assert cfg["select"] == {"top": 16, "sets": 16}
     assert cfg["optimizer"]["starts"] == 2
     text = (tmp_path / "maple.toml").read_text()
     assert "decurrent" in text and "Not lignum" in text

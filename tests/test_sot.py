@@ -881,9 +881,8 @@ def test_prune_tips_leaves_out_the_shoots_that_carry_fewer_tips(bpn):
     # a shoot that carries two growing tips stays (a shed branch would only add to its width)
     n_tips = leaves.astype(int)
     assert parent_first_order(plain.parent) is None  # rows come after their parents
-    for i in range(plain.n - 1, 0, -1):
-        if plain.parent[i] >= 0:
-            n_tips[plain.parent[i]] += n_tips[i]
+    for i in range(plain.n - 1, 0, -1):  # every row but the root has a parent
+        n_tips[plain.parent[i]] += n_tips[i]
     two = np.flatnonzero(n_tips == 2)
     assert two.size and all(tuple(np.round(np.r_[plain.start[i], plain.axis[i]], 9)) in thick for i in two)
     # more tips to carry, fewer shoots: the view of a coarser QSM

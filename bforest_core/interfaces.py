@@ -19,6 +19,8 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
+from .metrics import SIZE_LIMITS
+
 if TYPE_CHECKING:
     from .metrics import TreeMeasures
     from .tree import Tree
@@ -246,7 +248,9 @@ class RecipeDraft:
     size_limits : dict
         A relative error per headline statistic (a fraction of the tree's value) beyond which its
         term grows ``size_steep`` times as fast (the summary distance's ``limits``), so that a fit
-        cannot trade that statistic for structure past what a forester accepts (empty: no limits).
+        cannot trade that statistic for structure past what a forester accepts (default: two thirds of
+        each tolerance, ``metrics.SIZE_LIMITS``, the rule of both bundled models' recipes; empty: no
+        limits).
     size_steep : float
         How many times as fast a term grows beyond its limit.
     seeds, evaluations, starts, population, init_design, finalists : int
@@ -274,7 +278,7 @@ class RecipeDraft:
     scaled: dict = field(default_factory=dict)
     size_extra: dict = field(default_factory=dict)
     size_why: str = ""
-    size_limits: dict = field(default_factory=dict)
+    size_limits: dict = field(default_factory=lambda: dict(SIZE_LIMITS))
     size_steep: float = 3.0
     seeds: int = 3
     evaluations: int = 1200
@@ -283,8 +287,8 @@ class RecipeDraft:
     init_design: int = 32
     finalists: int = 1
     grow_together: bool = False
-    select_top: int = 8
-    select_sets: int = 8
+    select_top: int = 16
+    select_sets: int = 16
     search_why: str = ""
 
 

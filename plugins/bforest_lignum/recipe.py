@@ -9,7 +9,7 @@ branch-angle ranges from its first-order branches' angles.
 from __future__ import annotations
 
 from bforest_core.interfaces import RecipeDraft
-from bforest_core.metrics import SIZE_LIMITS, TreeMeasures
+from bforest_core.metrics import TreeMeasures
 
 from .params import parameter_specs
 
@@ -114,10 +114,9 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         scaled={"years": "height"},
         # the calibrated balance of the pine recipe (examples/real/pine_lignum.toml)
         size_weights={"height": 8.0, "dbh": 2.7, "crown_spread": 2.0, "crown_base_height": 1.6, "n_branches_o1": 1.6},
-        # at two thirds of each tolerance, steep 3: without them one fit in five on pine 1 sold its
-        # DBH (+29 %) for structure (docs/validation.md, "Size limits in bforest init's size term")
-        size_limits=SIZE_LIMITS,
-        size_steep=3.0,
+        # the draft's size limits (two thirds of each tolerance, steep 3) and its answer among 16
+        # candidates on 16 held-out sets: without the limits one fit in five on pine 1 sold its DBH
+        # (+29 %) for structure (docs/validation.md, "Size limits in bforest init's size term")
         # the SOT pine recipe's search (examples/real/pine_sot.toml): 4 000 growths, as 1 200
         # evaluations of 3 model seeds were
         seeds=1,
@@ -127,8 +126,6 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         init_design=64,
         finalists=2,
         grow_together=True,
-        select_top=16,
-        select_sets=16,
         search_why=(
             "One model seed per evaluation, the seeds' luck taken out where the answer is chosen (16 "
             "held-out sets): runs of 32 keep their step wide to the end and move with the shape of the "

@@ -14,8 +14,8 @@ from __future__ import annotations
 import math
 
 from bforest_core.interfaces import RecipeDraft
-from bforest_core.metrics import SIZE_LIMITS, TreeMeasures
 from bforest_core.metrics import SIZE_WEIGHTS as TOLERANCE_WEIGHTS
+from bforest_core.metrics import TreeMeasures
 
 from .params import PARAMETERS
 
@@ -224,16 +224,12 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
             "docs/validation.md). The first-order branches' branching angle (median and interquartile range, deg) is held by the "
             "size term: the structural sets pool first- and second-order branches, which leaves it loose."
         ),
-        # as init's LIGNUM recipe: at two thirds of each tolerance, steep 3; with the 16 candidates
-        # below every size of the broadleaved trees' 18 fits held and 10 met every limit (9 without
-        # either; docs/validation.md, "Broadleaved trees")
-        size_limits=SIZE_LIMITS,
-        size_steep=3.0,
+        # the draft's size limits (two thirds of each tolerance, steep 3) and its answer among 16
+        # candidates on 16 held-out sets, as LIGNUM's: every size of the broadleaved trees' 18 fits
+        # held and 10 met every limit (9 without either; docs/validation.md, "Broadleaved trees")
         seeds=2,
         evaluations=1800,
         starts=2,
-        select_top=16,
-        select_sets=16,
         search_why=(
             "1 800 evaluations of 2 model seeds cost what 1 200 of 3 do and give the search more "
             "generations; two starts, not four, so the winner has them (docs/validation.md section 4). "

@@ -111,6 +111,7 @@ def test_parameter_table_complete():
         "short_shoot",
         "gap_shade",
         "gap_azimuth",
+        "gap_lean",
         "shed_stub",
         "prune_tips",
     }  # stand_shade and the ones after it are additions, off by default
@@ -621,6 +622,25 @@ def test_gap_shade_grows_the_crown_into_the_gap_and_keeps_trees_without_it(ssm):
         assert top @ d > 0.1, az  # and the stem leans towards it
 
 
+def test_gap_lean_tilts_the_tropism_towards_the_gap_and_keeps_trees_without_it(ssm):
+    # no light-seeking and no noise: a shoot's heading turns min(tropism, redir_strength) of its
+    # angle to the tropism's direction per metamer, so the stem converges to that direction
+    base = {"max_iter": 12, **NO_NOISE, "reorient": 0.0, "tropism": 0.3, "gap_azimuth": 60.0}
+    upright = ssm.simulate(base, 1)
+    assert _same_tree(upright, ssm.simulate({**base, "gap_lean": 0.0}, 1))
+    stem0 = upright.axis[upright.order == 0]
+    assert np.abs(stem0 - [0.0, 0.0, 1.0]).max() < 1e-9  # the papers' tropism: straight up
+    for lean, az in ((30.0, 60.0), (45.0, -135.0)):
+        t = ssm.simulate({**base, "gap_lean": lean, "gap_azimuth": az}, 1)
+        a = t.axis[t.order == 0]
+        assert np.abs(a[0] - [0.0, 0.0, 1.0]).max() < 1e-9  # the seed metamer grows up
+        top = a[-1]
+        assert math.degrees(math.acos(top[2])) == pytest.approx(lean, abs=1.0)  # leans by gap_lean
+        assert math.degrees(math.atan2(top[1], top[0])) == pytest.approx(az, abs=1e-6)  # into the gap
+        zen = np.degrees(np.arccos(np.clip(a[:, 2], -1, 1)))
+        assert np.all(np.diff(zen) >= -1e-9)  # bending over metamer by metamer, never back
+
+
 def _same_tree(a, b):
     return all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("start", "axis", "length", "radius", "parent"))
 
@@ -691,7 +711,7 @@ def _digest(t):
 @pytest.mark.parametrize("seed", [1, 2])
 def test_growth_forms_off_leave_the_papers_tree_as_it_was(seed):
     # the options at their defaults draw nothing and add no node: the tree recorded before them
-    off = {"leader_death": 0.0, "death_delay": 3.0, "short_shoot": 0.0, "shed_stub": 0.0, "prune_tips": 0.0}
+    off = {"leader_death": 0.0, "death_delay": 3.0, "short_shoot": 0.0, "shed_stub": 0.0, "prune_tips": 0.0, "gap_lean": 0.0}
     for ssm_, params in [(SOT(), {}), (SOT(buds_per_node=1), off)]:
         assert _digest(ssm_.simulate({"max_iter": 14, **params}, seed)) == DEFAULT_TREES[seed]
 

@@ -91,6 +91,17 @@ PARAMETERS: list[ParameterSpec] = [
         "an addition: direction of the open side (gap_shade), counterclockwise from +x in the tree's frame",
         "II",
     ),
+    P(
+        "gap_lean",
+        0.0,
+        0.0,
+        80.0,
+        False,
+        "deg",
+        "an addition: the tropism's direction tilted from the zenith by this angle towards gap_azimuth "
+        "(the brightest sky of a tree at a gap), so shoots and the stem lean into the gap; 0 = upright (the papers' model)",
+        "II",
+    ),
     # ---- III: apical dominance
     P("init_lambda", 0.65, 0.35, 0.9, False, "", "apical control lambda up to `delay` cycles", "III"),
     P("targ_lambda", 0.51, 0.35, 0.9, False, "", "apical control lambda after delay + transition", "III"),
@@ -230,6 +241,7 @@ def validate(p: Mapping[str, float]) -> None:
     need(0 <= p["shadow_a"] < p["shadow_b"], "shadow_a", f"in [0, shadow_b = {p['shadow_b']!r})")
     need(p["spread"] >= 0, "spread", ">= 0")
     need(p["gap_shade"] >= 0, "gap_shade", ">= 0")
+    need(0 <= p["gap_lean"] < 90, "gap_lean", "in [0, 90) degrees")
     need(0 <= p["shed_stub"] <= 1, "shed_stub", "in [0, 1]")
     need(p["prune_tips"] >= 0, "prune_tips", ">= 0")
     need(p["ran"] >= 0, "ran", ">= 0")

@@ -711,7 +711,14 @@ def _digest(t):
 @pytest.mark.parametrize("seed", [1, 2])
 def test_growth_forms_off_leave_the_papers_tree_as_it_was(seed):
     # the options at their defaults draw nothing and add no node: the tree recorded before them
-    off = {"leader_death": 0.0, "death_delay": 3.0, "short_shoot": 0.0, "shed_stub": 0.0, "prune_tips": 0.0, "gap_lean": 0.0}
+    off = {
+        "leader_death": 0.0,
+        "death_delay": 3.0,
+        "short_shoot": 0.0,
+        "shed_stub": 0.0,
+        "prune_tips": 0.0,
+        "gap_lean": 0.0,
+    }
     for ssm_, params in [(SOT(), {}), (SOT(buds_per_node=1), off)]:
         assert _digest(ssm_.simulate({"max_iter": 14, **params}, seed)) == DEFAULT_TREES[seed]
 

@@ -639,6 +639,9 @@ def test_gap_lean_tilts_the_tropism_towards_the_gap_and_keeps_trees_without_it(s
         assert math.degrees(math.atan2(top[1], top[0])) == pytest.approx(az, abs=1e-6)  # into the gap
         zen = np.degrees(np.arccos(np.clip(a[:, 2], -1, 1)))
         assert np.all(np.diff(zen) >= -1e-9)  # bending over metamer by metamer, never back
+    # a negative tropism (shoots that sag) pulls straight down, gap or not: the tree is the same
+    sag = {**base, "tropism": -0.05}
+    assert _same_tree(ssm.simulate(sag, 1), ssm.simulate({**sag, "gap_lean": 40.0}, 1))
 
 
 def _same_tree(a, b):

@@ -622,6 +622,9 @@ class TreeMeasures:
         How far (m) and towards which azimuth (deg, counterclockwise from +x) the centre of the
         crown's branches (length-weighted, above the crown base) lies from the stem base: a
         one-sided crown, grown towards a gap, lies a large part of its radius to one side.
+    stem_lean : float
+        Angle (deg) from the vertical of the chord of the stem's upper half, from the stem at
+        half the tree's height to its highest point: a stem that bends over into a gap.
     """
 
     height: float
@@ -642,6 +645,7 @@ class TreeMeasures:
     stem_rise: float
     crown_offset: float
     crown_azimuth: float
+    stem_lean: float
 
     @property
     def decurrent(self) -> bool:
@@ -700,6 +704,10 @@ def measure_tree(tree) -> TreeMeasures:
     crown_length = max(h - cb, 1e-9)
     crown = (tree.order > 0) & (zmid >= cb)
     w = tree.length[crown]
+    ends = tree.start[stem] + tree.length[stem, None] * tree.axis[stem]
+    top = ends[np.argmax(ends[:, 2])]
+    half = tree.start[stem][np.argmin(np.abs(tree.start[stem, 2] - tree.start[0, 2] - 0.5 * h))]
+    chord = top - half
     centre = np.zeros(2)
     if w.sum() > 0:
         centre = (mid[crown, :2] * w[:, None]).sum(0) / w.sum() - tree.start[0, :2]
@@ -722,4 +730,5 @@ def measure_tree(tree) -> TreeMeasures:
         stem_rise=rise,
         crown_offset=float(np.hypot(*centre)),
         crown_azimuth=float(np.degrees(np.arctan2(centre[1], centre[0]))),
+        stem_lean=float(np.degrees(np.arctan2(np.hypot(chord[0], chord[1]), chord[2]))),
     )

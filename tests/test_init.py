@@ -221,6 +221,24 @@ def test_init_gives_a_one_sided_crown_its_gap(tmp_path):
     assert "gap_shade" not in cfg["ssm"]["free"] and "gap_azimuth" not in cfg["ssm"].get("fixed", {})
 
 
+def test_init_measures_how_far_the_stem_leans(tmp_path):
+    # a 5 m upright bole, then 6 m of stem at 30 deg to the vertical towards 120 deg, and every
+    # branch towards 120 deg: the chord from the stem at half the height (5.1 m: the bend at 5 m)
+    # to its top leans exactly 30 deg; init prints it and writes it in the recipe's head
+    b = Builder()
+    bole = b.axis_of(-1, (0, 0, 0), (0, 0, 1), 10, 0.5, 0.10, 0.07)
+    top = b.axis_of(bole[-1], b.end(bole[-1]), _axis(30, 120), 12, 0.5, 0.06, 0.02)
+    for c in bole[6:] + top[:-2]:
+        b.axis_of(c, b.end(c), _axis(60, 120), 2, 0.5, 0.005, 0.004)
+    m = measure_tree(b.tree())
+    assert m.stem_lean == pytest.approx(30.0)
+    assert m.crown_azimuth == pytest.approx(120.0)
+    r, cfg = _recipe(tmp_path, b.tree(), "bent", model="sot")
+    assert "the stem's upper half leans 30 deg" in r.text
+    assert "gap_lean" not in cfg["ssm"]["free"]  # an option init does not write (docs/growth-forms.md)
+    assert measure_tree(excurrent_tree(side=120.0)).stem_lean == pytest.approx(0.0)
+
+
 def test_init_lets_sot_buds_leave_below_the_horizontal_where_the_branches_do(tmp_path):
     # branches at 80, 95, 105 and 115 deg to the stem (10-90 %: 80-115): the box reaches the
     # branches' 90 % angle, beyond the horizontal, and stops at the model's 120 deg

@@ -119,7 +119,8 @@ def measured_lines(m: TreeMeasures) -> list[str]:
         f"longest limb {m.longest_limb:.2f} m, thinnest branch {100 * m.thinnest_branch:.1f} cm",
         f"crown form: {form}; the three largest limbs hold {m.limb_ratio:.2f} x the stem's wood in the crown",
         f"crown centre {m.crown_offset:.2f} m from the stem base towards {m.crown_azimuth:.0f} deg "
-        f"({m.crown_offset / max(0.5 * m.crown_spread, 1e-9):.2f} crown radii)",
+        f"({m.crown_offset / max(0.5 * m.crown_spread, 1e-9):.2f} crown radii); "
+        f"the stem's upper half leans {m.stem_lean:.0f} deg",
     ]
 
 

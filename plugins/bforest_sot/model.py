@@ -690,13 +690,13 @@ class SOTGrowth:
         # 6. target directions from the field after the drops, before the new shadows
         grad = self.field.gradient(s.start[bearing], p["sample_rad"]) if m else np.zeros((0, 3))
         t = p["reorient"] * grad
+        eta = p["tropism"] + p["tropism_sd"] * z_trop
         if p["gap_lean"] > 0.0:  # an addition (B.10): shoots rise towards the sky of the gap, not the zenith
             lean, az = math.radians(p["gap_lean"]), math.radians(p["gap_azimuth"])
             sky = np.array([math.sin(lean) * math.cos(az), math.sin(lean) * math.sin(az), math.cos(lean)])
-            eta = p["tropism"] + p["tropism_sd"] * z_trop
             t += eta[:, None] * np.where(eta[:, None] > 0.0, sky, [0.0, 0.0, 1.0])  # a sag stays downwards
         else:
-            t[:, 2] += p["tropism"] + p["tropism_sd"] * z_trop
+            t[:, 2] += eta
         tn = _norm(t)
         tau = np.minimum(tn, p["redir_strength"])
         that = np.where(tn[:, None] > 0, t / np.where(tn > 0, tn, 1.0)[:, None], 0.0)

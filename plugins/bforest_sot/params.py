@@ -98,8 +98,9 @@ PARAMETERS: list[ParameterSpec] = [
         80.0,
         False,
         "deg",
-        "an addition: the tropism's direction tilted from the zenith by this angle towards gap_azimuth "
-        "(the brightest sky of a tree at a gap), so shoots and the stem lean into the gap; 0 = upright (the papers' model)",
+        "an addition: an upward tropism's direction tilted from the zenith by this angle towards gap_azimuth "
+        "(the brightest sky of a tree at a gap), so shoots and the stem lean into the gap; a sag (tropism < 0) "
+        "stays downwards; 0 = upright (the papers' model)",
         "II",
     ),
     # ---- III: apical dominance

@@ -112,6 +112,7 @@ def test_parameter_table_complete():
         "gap_shade",
         "gap_azimuth",
         "gap_lean",
+        "stem_death",
         "shed_stub",
         "prune_tips",
     }  # stand_shade and the ones after it are additions, off by default
@@ -176,7 +177,8 @@ def test_component_registered_and_settings_checked():
         ({"transition": 0.0}, "transition"),
         ({"init_lambda": 1.2}, "init_lambda"),
         ({"alpha1": float("nan")}, "alpha1"),
-        ({"gap_lean": 90.0}, "gap_lean"),  # a tropism along the ground would never lift a shoot
+        ({"gap_lean": 90.0}, "gap_lean"),
+        ({"stem_death": 1.5}, "stem_death"),  # a tropism along the ground would never lift a shoot
         ({"no_such_param": 1.0}, "no_such_param"),
     ],
 )
@@ -722,6 +724,7 @@ def test_growth_forms_off_leave_the_papers_tree_as_it_was(seed):
         "shed_stub": 0.0,
         "prune_tips": 0.0,
         "gap_lean": 0.0,
+        "stem_death": 1.0,
     }
     for ssm_, params in [(SOT(), {}), (SOT(buds_per_node=1), off)]:
         assert _digest(ssm_.simulate({"max_iter": 14, **params}, seed)) == DEFAULT_TREES[seed]
@@ -848,6 +851,16 @@ def test_leader_death_makes_every_shoot_fork_after_its_delay():
     # a probability draws per growing apical bud: seeds differ, a seed repeats
     a, b = (ssm.simulate({**p, "leader_death": 0.3}, s) for s in (1, 2))
     assert _same_tree(a, ssm.simulate({**p, "leader_death": 0.3}, 1)) and not _same_tree(a, b)
+    # stem_death 0: the trunk goes on every cycle (a monopodial stem, Scarrone's model), every
+    # branch forks; 1 is the tree without the setting, the same draws
+    mono = ssm.simulate({**p, "leader_death": 1.0, "stem_death": 0.0}, 1)
+    stem = mono.order == 0
+    assert continued(mono).size > 0 and set(mono.extras["age"][stem]) == set(range(8))  # one metamer a cycle at least
+    c = np.flatnonzero((mono.parent >= 0) & ~stem)
+    straight = np.einsum("ij,ij->i", mono.axis[c], mono.axis[mono.parent[c]]) > 0.99
+    assert not np.any(straight & (mono.extras["age"][c] < mono.extras["age"][mono.parent[c]]))  # branches fork
+    assert height(mono) > height(forked) + 1.0
+    assert _same_tree(a, ssm.simulate({**p, "leader_death": 0.3, "stem_death": 1.0}, 1))
 
 
 def _rows(t):

@@ -644,7 +644,9 @@ class SOTGrowth:
             # lateral buds at its node take over (with opposite buds: a fork). Drawn only when
             # the probability is positive, so trees without it keep their draws.
             ga = np.flatnonzero(grow_a)
-            died = ga[rng.random(ga.size) < p["leader_death"]]
+            # the stem's own buds die at stem_death x the rate (1: as every leader's, the same draws)
+            rate = np.where(s.order[ids[ga]] == 0, p["leader_death"] * p["stem_death"], p["leader_death"])
+            died = ga[rng.random(ga.size) < rate]
             s.api_state[ids[died]] = EMPTY
             grow_a[died] = False
         if self.sympodial:

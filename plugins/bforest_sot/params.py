@@ -145,6 +145,17 @@ PARAMETERS: list[ParameterSpec] = [
         "V",
     ),
     P(
+        "stem_death",
+        1.0,
+        0.0,
+        1.0,
+        False,
+        "",
+        "an addition: the stem's (order 0) apical buds die at stem_death x leader_death; 1 = as every "
+        "leader's, 0 = a monopodial trunk whose branches fork (Scarrone's architectural model)",
+        "V",
+    ),
+    P(
         "death_delay",
         0.0,
         0.0,
@@ -243,6 +254,7 @@ def validate(p: Mapping[str, float]) -> None:
     need(p["spread"] >= 0, "spread", ">= 0")
     need(p["gap_shade"] >= 0, "gap_shade", ">= 0")
     need(0 <= p["gap_lean"] < 90, "gap_lean", "in [0, 90) degrees")
+    need(0 <= p["stem_death"] <= 1, "stem_death", "in [0, 1]")
     need(0 <= p["shed_stub"] <= 1, "shed_stub", "in [0, 1]")
     need(p["prune_tips"] >= 0, "prune_tips", ">= 0")
     need(p["ran"] >= 0, "ran", ">= 0")

@@ -177,8 +177,8 @@ def test_component_registered_and_settings_checked():
         ({"transition": 0.0}, "transition"),
         ({"init_lambda": 1.2}, "init_lambda"),
         ({"alpha1": float("nan")}, "alpha1"),
-        ({"gap_lean": 90.0}, "gap_lean"),
-        ({"stem_death": 1.5}, "stem_death"),  # a tropism along the ground would never lift a shoot
+        ({"gap_lean": 90.0}, "gap_lean"),  # a tropism along the ground would never lift a shoot
+        ({"stem_death": 1.5}, "stem_death"),
         ({"no_such_param": 1.0}, "no_such_param"),
     ],
 )

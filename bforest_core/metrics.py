@@ -677,7 +677,8 @@ def measure_tree(tree) -> TreeMeasures:
     stem = tree.order == 0
     h = s["height"]
     rise = float(tree.axis[0, 2])
-    stem_top = float((tree.start[stem, 2] + tree.length[stem] * tree.axis[stem, 2]).max() - tree.start[0, 2])
+    stem_start, stem_end = tree.start[stem], tree.end[stem]
+    stem_top = float(stem_end[:, 2].max() - tree.start[0, 2])
     if rise < 0.5 or stem_top < 0.5 * h:
         raise ValueError(
             f"no trunk: the stem's first cylinder rises at {rise:.2f} (1 = vertical; "
@@ -704,9 +705,8 @@ def measure_tree(tree) -> TreeMeasures:
     crown_length = max(h - cb, 1e-9)
     crown = (tree.order > 0) & (zmid >= cb)
     w = tree.length[crown]
-    ends = tree.start[stem] + tree.length[stem, None] * tree.axis[stem]
-    top = ends[np.argmax(ends[:, 2])]
-    half = tree.start[stem][np.argmin(np.abs(tree.start[stem, 2] - tree.start[0, 2] - 0.5 * h))]
+    top = stem_end[np.argmax(stem_end[:, 2])]
+    half = stem_start[np.argmin(np.abs(stem_start[:, 2] - tree.start[0, 2] - 0.5 * h))]
     chord = top - half
     centre = np.zeros(2)
     if w.sum() > 0:

@@ -694,8 +694,8 @@ class SOTGrowth:
         t = p["reorient"] * grad
         eta = p["tropism"] + p["tropism_sd"] * z_trop
         if p["gap_lean"] > 0.0:  # an addition (B.10): shoots rise towards the sky of the gap, not the zenith
-            lean, az = math.radians(p["gap_lean"]), math.radians(p["gap_azimuth"])
-            sky = np.array([math.sin(lean) * math.cos(az), math.sin(lean) * math.sin(az), math.cos(lean)])
+            lean = math.radians(p["gap_lean"])
+            sky = np.r_[math.sin(lean) * self.field.gap_dir, math.cos(lean)]  # gap_dir: gap_azimuth's unit vector
             t += eta[:, None] * np.where(eta[:, None] > 0.0, sky, [0.0, 0.0, 1.0])  # a sag stays downwards
         else:
             t[:, 2] += eta

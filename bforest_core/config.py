@@ -279,6 +279,16 @@ class SelectConfig(_Strict):
         description="candidates differ by more than this fraction of a "
         "parameter's range in at least one parameter (distinct points, not near-copies)",
     )
+    features: Optional[dict[str, Any]] = Field(
+        None,
+        description="settings merged over [features] when the candidates are scored, e.g. "
+        '{ sets = ["S1", "B1"] }: the tables the answer is chosen by, when they are not the '
+        "search's own (the [[objective.terms]] stay as they are); a kind of its own replaces the section",
+    )
+    distance: Optional[dict[str, Any]] = Field(
+        None,
+        description="settings merged over [distance] when the candidates are scored, e.g. { lines = 256 }",
+    )
 
 
 class ClonesConfig(_Strict):

@@ -262,6 +262,9 @@ class RecipeDraft:
     select_top, select_sets : int
         The best distinct points grown again as candidate answers (``[select] top``) and the sets
         of held-out seeds each is grown with (``[select] sets``).
+    select_tables : bool
+        Whether the candidates are scored on the tables a clone is judged by (S1 and B1 as sets of
+        their own on 256 lines, ``[select] features``/``distance``) rather than the search's own.
     search_why : str
         Why the model's search differs from the default (written as a comment above it).
     """
@@ -289,6 +292,7 @@ class RecipeDraft:
     grow_together: bool = False
     select_top: int = 16
     select_sets: int = 16
+    select_tables: bool = True
     search_why: str = ""
 
 

@@ -139,3 +139,56 @@ def test_compare_reports_each_search_by_its_best_own_distance(toy_plugin, tmp_pa
     with RunStore.open(tmp_path / "cmp" / "toy-random-0") as store:
         assert best["evaluation"] == store.best().idx
     assert "selection" not in best and res["runs"][0]["best"] == best["distance"]
+
+
+#: the candidates scored on other tables than the search's: the toy model's trees as first-order
+#: branches under the sliced KS (the search keeps the toy distance)
+OWN_TABLES = '\nfeatures = { kind = "branch-segment", sets = ["B1"] }\ndistance = { kind = "sliced", lines = 64 }\n'
+
+
+def test_select_features_score_the_candidates_on_their_own_tables_and_leave_the_search_alone(toy_plugin, tmp_path):
+    from bforest_core.pipeline.heldout import selection_config
+
+    plain = noisy_config(tmp_path)
+    bf.fit(bf.load_config(plain), tmp_path / "plain", progress=False)
+    p = tmp_path / "own.toml"
+    p.write_text(plain.read_text() + OWN_TABLES)
+    cfg = bf.load_config(p)
+    bf.fit(cfg, tmp_path / "own", progress=False)
+    with RunStore.open(tmp_path / "plain") as a, RunStore.open(tmp_path / "own") as b:
+        assert [(e.params, e.distance) for e in a.evaluations()] == [(e.params, e.distance) for e in b.evaluations()]
+    sel = json.loads((tmp_path / "own" / "best.json").read_text())["selection"]
+    plain_sel = json.loads((tmp_path / "plain" / "best.json").read_text())["selection"]
+    assert [c["evaluation"] for c in sel["candidates"]] == [c["evaluation"] for c in plain_sel["candidates"]]
+    assert plain_sel["scored_by"] is None
+    assert sel["scored_by"] == {
+        "features": {"kind": "branch-segment", "sets": ["B1"]},
+        "distance": {"kind": "sliced", "lines": 64},
+    }
+    # the held-out scores are the sliced KS of B1 (not the toy distance), recomputed outside the fit
+    scfg = selection_config(cfg)
+    assert scfg.features.kind == "branch-segment" and cfg.features.kind == "toy-features"
+    sets = heldout_seeds(cfg.seed, 6, 1)
+    with started_workers(scfg, build_target(scfg)):
+        expect = {
+            c["evaluation"]: np.mean([evaluate_task((c["params"], s))["distance"] for s in sets])
+            for c in sel["candidates"]
+        }
+    assert {c["evaluation"]: c["heldout"] for c in sel["candidates"]} == pytest.approx(expect, rel=1e-12)
+    assert sel["chosen"] == min(expect, key=expect.get)
+    assert expect != pytest.approx({c["evaluation"]: c["heldout"] for c in plain_sel["candidates"]})
+    from bforest_core.report.build import write_report
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        write_report(tmp_path / "own", figures=False, html=False)
+    md = (tmp_path / "own" / "report.md").read_text()
+    assert "scored on the tables of [select] (features branch-segment, sets B1; distance sliced, lines 64)" in md
+
+
+def test_select_features_naming_no_table_are_refused_before_the_search(toy_plugin, tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text(noisy_config(tmp_path).read_text() + OWN_TABLES.replace('["B1"]', '["Q7"]'))
+    with pytest.raises(bf.ConfigError, match=r"^select: features\.sets: set 'Q7'"):
+        bf.fit(bf.load_config(p), tmp_path / "run", progress=False)
+    assert not (tmp_path / "run" / "evaluations.sqlite").exists()  # refused before the first evaluation

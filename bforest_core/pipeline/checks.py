@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 from ..config import did_you_mean, section_settings
 from ..errors import BayesForestError, ConfigError, PluginError
 from ..registry import component
+from .heldout import selection_config
 from .target import Target, bounds_from_target, build_target
 
 if TYPE_CHECKING:
@@ -65,6 +66,11 @@ def preflight(cfg: RunConfig, target: Target | None = None) -> Target:
                 bounds_from_target(cfg, tgt.trees)
             except ConfigError as exc:  # a scaled range that leaves nothing of the model's
                 problems.append(str(exc))
+    if not problems and (cfg.select.features or cfg.select.distance):
+        try:  # the tables the answer is chosen by, checked before the search, not after it
+            preflight(selection_config(cfg))
+        except ConfigError as exc:
+            problems.append(str(exc) if str(exc).startswith("select") else f"select: {exc}")
     if problems:
         raise ConfigError("; ".join(problems))
     return tgt

@@ -8,6 +8,7 @@ uninterrupted one.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
@@ -31,13 +32,13 @@ from ..interfaces import Problem, parameter_value
 from ..io import jsonable
 from ..registry import component
 from .checks import preflight
-from .heldout import select_answer
+from .heldout import select_answer, selection_config
 from .progress import progress_bar
 from .rundir import holding_run_lock
 from .scoring import _simulate_with_timeout, _Timeout, set_summaries
 from .seeds import model_seeds, spread_seeds
 from .store import Evaluation, RunDirError, RunFiles, RunStore
-from .target import Target, bounds_from_target
+from .target import Target, bounds_from_target, build_target
 from .worker import evaluate_task, run_executor, started_workers, summary_task
 
 
@@ -365,14 +366,19 @@ def fit(
         problem.summaries = evaluator.summaries
         problem.target_summaries = set_summaries(tgt.U, list(tgt.U), trees=len(tgt.trees))
         result = selection = None
+        scfg = selection_config(cfg)  # the candidates' scoring: the search's own unless [select] names tables
         try:
             with started_workers(cfg, tgt, executor):
                 try:
                     result = optimizer.minimize(problem)
                 finally:  # the search's bar ends before the re-scoring's starts
                     bar.close(problem.stop_reason or getattr(result, "stop_reason", "") or "")
-                if store.count():
-                    selection = select_answer(cfg, store, executor, progress)
+                if store.count() and scfg is cfg:
+                    selection = select_answer(cfg, store, lambda: contextlib.nullcontext(executor), progress)
+            if store.count() and scfg is not cfg:  # the workers start again on the selection's tables
+                selection = select_answer(
+                    cfg, store, lambda: started_workers(scfg, build_target(scfg), executor), progress
+                )
         finally:
             store.set_meta("elapsed", evaluator.elapsed())
         stop_reason = problem.stop_reason or result.stop_reason or "optimiser finished"

@@ -8,7 +8,9 @@ fit's objective; a set whose simulation fails scores the objective's penalty, as
 
 Two users: the end of a fit, which re-scores its best candidates and answers with the best of
 them on held-out seeds (:func:`select_answer`, ``[select]`` in the config), and ``bforest compare
---heldout``. Every score is written to the run's ``evaluations.sqlite`` (table ``heldout``) as
+--heldout``. The candidates may be scored on other tables than the search's
+(``[select] features``/``distance``, :func:`selection_config`): a search wants a smooth objective
+(pooled sets, fewer projection lines), the answer the tables its clones are judged by. Every score is written to the run's ``evaluations.sqlite`` (table ``heldout``) as
 soon as it is known, keyed by what it depends on (:func:`scoring_fingerprint`), so a killed
 scoring loses nothing and no tree is grown twice.
 """
@@ -23,7 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..config import config_to_dict
+from ..config import config_to_dict, parse_config
 from .progress import progress_bar
 from .seeds import heldout_seeds
 from .store import Evaluation, RunStore
@@ -32,7 +34,7 @@ from .worker import evaluate_task
 if TYPE_CHECKING:
     from ..config import RunConfig
 
-__all__ = ["scoring_fingerprint", "point_key", "score_points", "candidates", "select_answer"]
+__all__ = ["scoring_fingerprint", "point_key", "score_points", "candidates", "selection_config", "select_answer"]
 
 
 def scoring_fingerprint(cfg: RunConfig) -> str:
@@ -130,14 +132,34 @@ def candidates(evaluations: list[Evaluation], top: int, lower, upper, names, spa
     return kept
 
 
-def select_answer(cfg: RunConfig, store: RunStore, executor, progress: bool = False) -> dict | None:
+def selection_config(cfg: RunConfig) -> RunConfig:
+    """The config the candidate answers are scored with: ``cfg`` itself, or with ``[select]
+    features``/``distance`` merged over its ``[features]``/``[distance]`` (a ``kind`` of their own
+    replaces the section); a ConfigError's message starts ``select:`` when they do not validate."""
+    sel = cfg.select
+    if not sel.features and not sel.distance:
+        return cfg
+    raw = config_to_dict(cfg)
+    for part in ("features", "distance"):
+        extra = getattr(sel, part)
+        if extra:
+            same = extra.get("kind", raw[part]["kind"]) == raw[part]["kind"]
+            raw[part] = {**raw[part], **extra} if same else dict(extra)
+    raw["select"] = {k: v for k, v in raw["select"].items() if k not in ("features", "distance")}
+    return parse_config(raw, source="select")  # its messages: "select: features.sets: ..."
+
+
+def select_answer(cfg: RunConfig, store: RunStore, workers, progress: bool = False) -> dict | None:
     """The answer of a fit chosen on held-out seeds (``[select]``; None when ``top = 0``).
 
     The ``top`` best distinct points of the log are each scored on ``sets`` sets of held-out
-    model seeds; the answer is the one of lowest mean held-out distance (ties: the lower own
-    distance). Returns ``{"sets", "model_seeds_per_set", "spacing", "chosen": evaluation index,
+    model seeds with :func:`selection_config`'s objective; the answer is the one of lowest mean
+    held-out distance (ties: the lower own distance). ``workers`` returns a context manager giving
+    an executor started on that config's scoring, entered only when a tree must be grown. Returns
+    ``{"sets", "model_seeds_per_set", "spacing", "scored_by", "chosen": evaluation index,
     "candidates": [{"evaluation", "params", "own", "heldout", "failed"}, ...]}``, candidates in
-    the order of their own distance.
+    the order of their own distance; ``scored_by`` is None for the search's own objective, else
+    ``[select]``'s ``{"features", "distance"}`` settings.
     """
     sel = cfg.select
     if not sel.top:
@@ -151,14 +173,8 @@ def select_answer(cfg: RunConfig, store: RunStore, executor, progress: bool = Fa
     per = len(cands[0].seeds)
     seed_sets = heldout_seeds(int(cfg.seed), int(sel.sets), per)
     points = {point_key(e.params): e.params for e in cands}
-    known = score_points(
-        points,
-        seed_sets,
-        {k: [store] for k in points},
-        scoring_fingerprint(cfg),
-        lambda: contextlib.nullcontext(executor),
-        progress,
-    )
+    scfg = selection_config(cfg)
+    known = score_points(points, seed_sets, {k: [store] for k in points}, scoring_fingerprint(scfg), workers, progress)
     rows = []
     for e in cands:
         h, failed = heldout_mean(known, point_key(e.params), seed_sets)
@@ -168,6 +184,9 @@ def select_answer(cfg: RunConfig, store: RunStore, executor, progress: bool = Fa
         "sets": int(sel.sets),
         "model_seeds_per_set": per,
         "spacing": float(sel.spacing),
+        "scored_by": None
+        if scfg is cfg
+        else {"features": dict(sel.features or {}), "distance": dict(sel.distance or {})},
         "chosen": best["evaluation"],
         "candidates": rows,
     }

@@ -129,6 +129,12 @@ TERM_WEIGHT = 2.0
 #: the summary distance's cap of one statistic's term, written with limits: the size term then
 #: reaches at most cap * (1 + steep), the structural distance (KS) 1
 SIZE_CAP = 2.0
+#: the tables the candidate answers are scored on (``[select] features``/``distance``) when the
+#: draft's ``select_tables`` is set: the first-order segments and branches as sets of their own on
+#: 256 lines, the tables a clone is judged by (docs/validation.md), where the search pools S0,1 and
+#: B1,2 on 128 lines for a smoother objective
+SELECT_SETS = ("S1", "B1")
+SELECT_LINES = 256
 #: ``[objective] penalty`` of a recipe whose size term has limits (or twice what the objective can
 #: then reach, if more): the default 1.0 lies below what a grown tree can reach, and failed growths
 #: would win
@@ -148,6 +154,21 @@ def _search_text(d: RecipeDraft) -> str:
         f"A search that does not hinge on one trajectory: {d.init_design} Sobol' points over the box, "
         f"{d.starts} lq-CMA-ES runs from the best distinct ones raced by successive halving, each "
         "restarting with a doubled population once it converges."
+    )
+
+
+def _select_text(d: RecipeDraft) -> str:
+    """The comment above ``[select]``: how the answer is chosen."""
+    text = (
+        f"The answer is chosen on model seeds the search never used: the {d.select_top} best distinct points "
+        f"are each grown again with {d.select_sets} sets of held-out seeds"
+    )
+    if not d.select_tables:
+        return text + "; the lowest held-out distance is the answer."
+    return (
+        text + f", and scored on the tables a clone is judged by: {' and '.join(SELECT_SETS)} as sets of their "
+        f"own on {SELECT_LINES} lines, with the size term (the search pools its tables on fewer lines, a smoother "
+        "objective that ranks the candidates otherwise). The lowest is the answer."
     )
 
 
@@ -275,11 +296,18 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         f"max_evaluations = {d.evaluations}",
         _line(f"wall_time = {d.wall_time:.1f}", "seconds the search may take (the answer's re-scoring comes after)"),
         "",
-        f"# The answer is chosen on model seeds the search never used: the {d.select_top} best distinct points are each",
-        f"# grown again with {d.select_sets} sets of held-out seeds; the lowest held-out distance is the answer.",
+        *(f"# {s}" for s in textwrap.wrap(_select_text(d), 96)),
         "[select]",
         f"top = {d.select_top}",
         f"sets = {d.select_sets}",
+        *(
+            [
+                "features = { sets = [" + ", ".join(f'"{k}"' for k in SELECT_SETS) + "] }",
+                f"distance = {{ lines = {SELECT_LINES} }}",
+            ]
+            if d.select_tables
+            else []
+        ),
         "",
         "[executor]",
         'kind = "process"',

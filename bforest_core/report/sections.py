@@ -211,6 +211,12 @@ def section_fit(doc: Document, v: RunView, figs):
             doc.fig(rel_path, cap)
 
 
+def _settings_text(part: dict) -> str:
+    """A component section as one line: ``branch-segment, sets S1 B1``."""
+    text = [f"{k} {' '.join(map(str, v)) if isinstance(v, list) else v}" for k, v in part.items() if k != "kind"]
+    return ", ".join(([str(part["kind"])] if "kind" in part else []) + text) or "as the search's"
+
+
 def section_selection(doc: Document, b: dict) -> None:
     """The candidates re-scored on held-out model seeds (``[select]``): own and held-out distance
     of each, the answer marked, so the reader sees how much of a best distance was the seeds' luck."""
@@ -221,14 +227,20 @@ def section_selection(doc: Document, b: dict) -> None:
     own_best = min(sel["candidates"], key=lambda c: (c["own"], c["evaluation"]))["evaluation"]
     doc.p(
         f"The {len(sel['candidates'])} best distinct points of the search were grown again with "
-        f"{sel['sets']} sets of {sel['model_seeds_per_set']} model seeds that no evaluation used; the answer "
-        f"is the one of lowest held-out distance (evaluation {sel['chosen']}, held out "
+        f"{sel['sets']} sets of {sel['model_seeds_per_set']} model seeds that no evaluation used"
+        + (
+            ""
+            if not sel.get("scored_by")
+            else f", scored on the tables of [select] (features {_settings_text(sel['scored_by']['features'])}; "
+            f"distance {_settings_text(sel['scored_by']['distance'])}) with the objective's other terms"
+        )
+        + f"; the answer is the one of lowest held-out distance (evaluation {sel['chosen']}, held out "
         f"**{fmt(b.get('heldout_distance'))}**, own {fmt(b.get('distance'))})"
         + (
             "."
             if sel["chosen"] == own_best
-            else f", not the point of lowest own distance (evaluation {own_best}), whose best was partly its "
-            "seeds' luck."
+            else f", not the point of lowest own distance (evaluation {own_best})"
+            + ("." if sel.get("scored_by") else ", whose best was partly its seeds' luck.")
         )
     )
     rows = [

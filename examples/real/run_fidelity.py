@@ -51,7 +51,7 @@ import numpy as np
 import bforest_core as bf
 from bforest_core.metrics import SIZE_TOLERANCES
 from bforest_core.pipeline.clones import clones
-from bforest_core.pipeline.heldout import heldout_mean, point_key, score_points, scoring_fingerprint
+from bforest_core.pipeline.heldout import heldout_mean, point_key, score_points, scoring_fingerprint, selection_config
 from bforest_core.pipeline.seeds import heldout_seeds
 from bforest_core.pipeline.store import RunStore
 from bforest_core.pipeline.target import build_target
@@ -175,14 +175,15 @@ def fresh_heldout(row: dict, n_sets: int) -> float | None:
     first = int(sel.get("sets", 0))
     sets = heldout_seeds(int(cfg.seed), first + n_sets, int(sel.get("model_seeds_per_set") or len(best["seeds"])))
     key = point_key(best["params"])
-    tgt = build_target(cfg)
+    scfg = selection_config(cfg)  # scored as the candidates were ([select] features/distance)
+    tgt = build_target(scfg)
     with RunStore.open(run) as store:  # the scores are kept in the run's log: a second call grows nothing
         known = score_points(
             {key: best["params"]},
             sets[first:],
             {key: [store]},
-            scoring_fingerprint(cfg),
-            lambda: started_workers(cfg, tgt),
+            scoring_fingerprint(scfg),
+            lambda: started_workers(scfg, tgt),
         )
     return heldout_mean(known, key, sets[first:])[0]
 

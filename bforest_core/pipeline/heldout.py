@@ -11,8 +11,9 @@ them on held-out seeds (:func:`select_answer`, ``[select]`` in the config), and 
 --heldout``. The candidates may be scored on other tables than the search's (``[select]
 features``/``distance``, :func:`selection_config`): a search wants a smooth objective (pooled
 sets, fewer projection lines), the answer the tables its clones are judged by. Every score is
-written to the run's ``evaluations.sqlite`` (table ``heldout``) as soon as it is known, keyed by what it depends on (:func:`scoring_fingerprint`), so a killed
-scoring loses nothing and no tree is grown twice.
+written to the run's ``evaluations.sqlite`` (table ``heldout``) as soon as it is known, keyed
+by what it depends on (:func:`scoring_fingerprint`), so a killed scoring loses nothing and no
+tree is grown twice.
 """
 
 from __future__ import annotations

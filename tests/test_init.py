@@ -24,8 +24,8 @@ from bforest_sot.recipe import sot_recipe
 from conftest import ROOT
 from conftest import qsm_path as sample
 
-#: both models' recipes choose the answer among 16 candidates on 16 held-out seed sets, scored on
-#: S1 and B1 as sets of their own on 256 lines (the tables a clone is judged by)
+#: the SOT recipe chooses the answer among 16 candidates on 16 held-out seed sets scored on S1 and
+#: B1 as sets of their own on 256 lines (the tables a clone is judged by); LIGNUM's on its own objective
 JUDGED = {"top": 16, "sets": 16, "features": {"sets": ["S1", "B1"]}, "distance": {"lines": 256}}
 
 
@@ -137,7 +137,7 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     assert free["lr_mean"] == {"lower": 0.0045, "upper": 0.025}
     assert cfg["target"]["qsm"] == "pine.txt"
     # LIGNUM's search: the SOT pine recipe's, one model seed an evaluation, two runs of 32 together
-    assert cfg["select"] == JUDGED and cfg["objective"]["seeds"] == 1
+    assert cfg["select"] == {"top": 16, "sets": 16} and cfg["objective"]["seeds"] == 1
     assert cfg["stop"]["max_evaluations"] == 4000
     o = cfg["optimizer"]
     assert (o["population"], o["init_design"], o["starts"], o["finalists"], o["grow_together"]) == (32, 64, 2, 2, True)
@@ -281,9 +281,11 @@ def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp
     assert cfg["objective"]["seeds"] == 2 and cfg["stop"]["max_evaluations"] == 1800
     # the size limits of init's LIGNUM recipe (two thirds of each tolerance, steep 3), with a penalty
     # above what they let the objective reach, and the answer among 16 candidates on 16 held-out sets
+    # scored on the tables a clone is judged by
     assert size["distance"]["limits"] == SIZE_LIMITS and size["distance"]["steep"] == 3.0
     assert cfg["objective"]["penalty"] > 1.0
     assert cfg["select"] == JUDGED
+    assert "scored on the tables a clone is judged by" in (tmp_path / "maple.toml").read_text()
     assert cfg["optimizer"]["starts"] == 2
     text = (tmp_path / "maple.toml").read_text()
     assert "decurrent" in text and "Not lignum" in text

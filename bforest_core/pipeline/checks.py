@@ -29,8 +29,9 @@ def _named_files(cfg: RunConfig) -> list[tuple[str, str]]:
     return named + [(f"target.references[{i}]", r) for i, r in enumerate(cfg.target.references)]
 
 
-def preflight(cfg: RunConfig, target: Target | None = None) -> Target:
-    """Check ``cfg`` as a fit would, and return its target (``target`` when given).
+def preflight(cfg: RunConfig, target: Target | None = None, trees=None) -> Target:
+    """Check ``cfg`` as a fit would, and return its target (``target`` when given; built from
+    ``trees`` when they are given, the target's trees already read or grown).
 
     Raises
     ------
@@ -53,7 +54,7 @@ def preflight(cfg: RunConfig, target: Target | None = None) -> Target:
     tgt = target
     if tgt is None and not missing:
         try:
-            tgt = build_target(cfg)
+            tgt = build_target(cfg, trees)
         except BayesForestError as exc:  # names its own file or key
             problems.append(str(exc))
         except (ValueError, TypeError, KeyError, OSError) as exc:  # a plugin's own complaint
@@ -68,7 +69,7 @@ def preflight(cfg: RunConfig, target: Target | None = None) -> Target:
                 problems.append(str(exc))
     if not problems and (cfg.select.features or cfg.select.distance):
         try:  # the tables the answer is chosen by, checked before the search, not after it
-            preflight(selection_config(cfg))
+            preflight(selection_config(cfg), trees=tgt.trees)  # the same [target]: not read again
         except ConfigError as exc:
             problems.append(str(exc) if str(exc).startswith("select") else f"select: {exc}")
     if problems:

@@ -377,7 +377,7 @@ def fit(
                     selection = select_answer(cfg, store, lambda: contextlib.nullcontext(executor), progress)
             if store.count() and scfg is not cfg:  # the workers start again on the selection's tables
                 selection = select_answer(
-                    cfg, store, lambda: started_workers(scfg, build_target(scfg), executor), progress
+                    cfg, store, lambda: started_workers(scfg, build_target(scfg, tgt.trees), executor), progress
                 )
         finally:
             store.set_meta("elapsed", evaluator.elapsed())

@@ -115,6 +115,7 @@ def test_parameter_table_complete():
         "stem_death",
         "shed_stub",
         "prune_tips",
+        "vigor_sd",
     }  # stand_shade and the ones after it are additions, off by default
     assert set(names) == expected and len(names) == len(expected)
     by = {p.name: p for p in PARAMETERS}
@@ -139,6 +140,7 @@ def test_parameter_table_complete():
         "heading_sd": 0,
         "shed_stub": 0,
         "prune_tips": 0,
+        "vigor_sd": 0,
     }
     for k, v in calib.items():
         assert by[k].default == v, k
@@ -725,6 +727,7 @@ def test_growth_forms_off_leave_the_papers_tree_as_it_was(seed):
         "prune_tips": 0.0,
         "gap_lean": 0.0,
         "stem_death": 1.0,
+        "vigor_sd": 0.0,
     }
     for ssm_, params in [(SOT(), {}), (SOT(buds_per_node=1), off)]:
         assert _digest(ssm_.simulate({"max_iter": 14, **params}, seed)) == DEFAULT_TREES[seed]
@@ -829,6 +832,60 @@ def test_short_shoots_grow_one_internode_and_never_grow_on():
     assert _same_tree(a, SOT().simulate({**p, "short_shoot": 0.5}, 1)) and not _same_tree(a, b)
     n, _ = first_order(a)
     assert (n == 1).any() and (n > 1).any()
+
+
+def _shoot_caps(params, seed, bpn=1):
+    """Per cycle: each shoot's capped and raw vigor, its bud's cap factor, its order and whether lateral."""
+    out = []
+
+    def on_step(c, view):
+        if view.alloc is None:
+            return
+        a, sh, st = view.alloc, view.shoots, view.store
+        loc = {int(g): i for i, g in enumerate(a.ids)}
+        j = np.array([loc[int(b)] for b in sh.bearing], dtype=np.int64)
+        raw = np.where(sh.lateral, a.vL_raw[j], a.vA_raw[j])
+        factor = np.where(sh.lateral, st.lat_vcap[sh.bearing], st.vcap[sh.bearing])
+        out.append((c, sh.vigor.copy(), raw, factor, st.order[sh.bearing] + sh.lateral, sh.lateral.copy()))
+
+    tree = SOT(buds_per_node=bpn).simulate(params, seed, on_step=on_step)
+    return tree, out
+
+
+def test_vigor_sd_gives_each_axis_its_own_cap_and_keeps_the_stem():
+    # vigorous buds (alpha0 10 000) nearly all press on the cap max_grow = 3: without vigor_sd they
+    # grow 3 metamers a cycle, so branches of one age are alike
+    p = {**HAND, "max_iter": 6, "alpha0": 1e4, "max_grow": 3.0}
+    plain, rec0 = _shoot_caps(p, 1)
+    for _, vig, raw, factor, order, lat in rec0:
+        assert (factor == 1.0).all() and np.allclose(vig, np.minimum(raw, 3.0))
+    capped = np.concatenate([(raw >= 3.0) for _, _, raw, *_ in rec0])
+    assert capped.mean() > 0.9  # the case holds: nearly every shoot is at the cap
+    tree, rec = _shoot_caps({**p, "vigor_sd": 0.5}, 1)
+    factors, first_cycle = [], []
+    for c, vig, raw, factor, order, lat in rec:
+        # each shoot's vigor is capped at max_grow x its own factor; the stem's factor stays 1
+        assert np.allclose(vig, np.minimum(raw, 3.0 * factor))
+        assert (factor[order == 0] == 1.0).all()
+        factors.append(factor[lat])
+    # a lateral bud's factor is exp(0.5 z): the log's sd about 0.5 over the shoots grown
+    logs = np.log(np.concatenate(factors))
+    assert logs.size > 100 and 0.4 < logs.std() < 0.6 and abs(logs.mean()) < 0.15
+    # an apical shoot keeps its axis's factor: order-1 continuations carry the factors of laterals
+    # (not 1), and the stem grows 3 metamers every cycle as without it
+    cont = np.concatenate([factor[(order == 1) & ~lat] for _, _, _, factor, order, lat in rec])
+    assert cont.size > 0 and (cont != 1.0).mean() > 0.9
+    stem = lambda t: int(np.count_nonzero(t.order == 0))  # noqa: E731
+    assert stem(tree) == stem(plain)
+    # first-order branches of one age now differ in length; a seed repeats, seeds differ
+    br_len = lambda t: np.bincount(t.branch, weights=t.length, minlength=t.n_branches)[t.branches.order == 1]  # noqa: E731
+    assert np.ptp(br_len(tree)) > np.ptp(br_len(plain)) + 3 * HAND.get("node_length", 0.2)
+    assert _same_tree(tree, SOT().simulate({**p, "vigor_sd": 0.5}, 1))
+    assert not _same_tree(tree, SOT().simulate({**p, "vigor_sd": 0.5}, 2))
+    # with opposite buds the bud nodes keep the axis's factor too
+    _, rec2 = _shoot_caps({**p, "vigor_sd": 0.5}, 1, bpn=2)
+    for c, vig, raw, factor, order, lat in rec2:
+        assert np.allclose(vig, np.minimum(raw, 3.0 * factor)) and (factor[order == 0] == 1.0).all()
 
 
 def test_leader_death_makes_every_shoot_fork_after_its_delay():

@@ -252,6 +252,8 @@ _FIELDS = {
     "lat_stub_w": (np.float64, 0),
     "twin": (np.bool_, 0),
     "short": (np.bool_, 0),
+    "vcap": (np.float64, 0),  # vigor_sd: the shoot's cap factor (1 = max_grow)
+    "lat_vcap": (np.float64, 0),  # ... and the one its lateral bud's shoot will have
 }
 
 
@@ -297,6 +299,8 @@ class SegmentStore:
         self.api_stub_w[new] = 0.0
         self.lat_stub_w[new] = 0.0
         self.short[new] = False
+        self.vcap[new] = 1.0
+        self.lat_vcap[new] = 1.0
 
     @property
     def live(self) -> np.ndarray:
@@ -418,6 +422,13 @@ class SOTGrowth:
         if self.field.from_cache:
             self.rng.bit_generator.advance(n3)
         self.s = SegmentStore()
+        # vigor_sd (an addition, B.10): the shoots' cap factors come from a generator of the run's
+        # seed and a stream of their own, so the growth's other draws stay as they are
+        self.vig_rng = (
+            np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(VIGOR_STREAM,)))
+            if p["vigor_sd"] > 0.0
+            else None
+        )
         self.age = 0.0
         self.cycle = 0
         self.lam = float(p["init_lambda"])
@@ -440,6 +451,7 @@ class SOTGrowth:
         s.api_state[0] = BUD
         s.lat_state[0] = BUD
         s.api_child[0] = s.lat_child[0] = -1
+        s.vcap[0] = s.lat_vcap[0] = 1.0
         s.n = 1
         if self.buds_per_node > 1:
             s.reserve(self.buds_per_node)
@@ -448,7 +460,15 @@ class SOTGrowth:
             )
             s.api_state[last] = BUD
         self.created = s.n
+        self._draw_caps(0)
         self.field.cast(s.start[:1])  # falls below ground: no effect
+
+    def _draw_caps(self, lo: int) -> None:
+        """vigor_sd (an addition): the cap factor exp(vigor_sd * N(0, 1)) of the shoot that each
+        lateral bud of the rows ``lo ..`` will grow, one draw per row in creation order."""
+        if self.vig_rng is not None:
+            s = self.s
+            s.lat_vcap[lo : s.n] = np.exp(self.p["vigor_sd"] * self.vig_rng.standard_normal(s.n - lo))
 
     # -------------------------------------------------------------- passes on the living set
     def _compact(self):
@@ -626,6 +646,8 @@ class SOTGrowth:
                 vL_raw=vL_raw,
             )
         mg = float(p["max_grow"])
+        if self.vig_rng is not None:  # each shoot's own cap (vigor_sd); 1 x max_grow without it
+            return np.minimum(vA_raw, mg * s.vcap[ids]), np.minimum(vL_raw, mg * s.lat_vcap[ids])
         return np.minimum(vA_raw, mg), np.minimum(vL_raw, mg)
 
     def _grow_shoots(self, c: int, bp: _Basipetal, dead, vA, vL) -> None:
@@ -723,8 +745,12 @@ class SOTGrowth:
         half = 0.5 * p["span"]
         total = int(planned.sum())
         s.reserve(s.n + total * self.buds_per_node)
+        lo = s.n
+        # the cap factor of each shoot's axis: a lateral shoot's from its bud, an apical one its bearer's
+        axis_cap = np.where(lateral, s.lat_vcap[bearing], s.vcap[bearing])
         new_starts = []
-        for k in range(int(math.floor(p["max_grow"]))):
+        steps = max(int(math.floor(p["max_grow"])), int(planned.max()) if m else 0)  # vigor_sd: caps above max_grow
+        for k in range(steps):
             want = (planned > k) & ~stopped
             if not want.any():
                 break
@@ -765,6 +791,7 @@ class SOTGrowth:
             new = slice(s.n, s.n + act.size)  # the rows nid, as a slice (cheaper to write)
             par = bearing[act] if k == 0 else last[act]
             s.append(new, pos[act], ha, ua, seg_len[act], p["init_width"], par, lateral[act] & (k == 0), order[act], c)
+            s.vcap[new] = axis_cap[act]
             if k == 0:
                 la = lateral[act]
                 s.lat_state[par[la]] = CHILD
@@ -781,7 +808,8 @@ class SOTGrowth:
             built[act] += 1
             s.n += act.size
             if self.buds_per_node > 1:
-                last[act] = self._add_bud_nodes(c, nid, pos[act], ha, ua, order[act])
+                last[act] = self._add_bud_nodes(c, nid, pos[act], ha, ua, order[act], axis_cap[act])
+        self._draw_caps(lo)
         tips = last[last >= 0]
         s.api_state[tips] = BUD
         if short.any():  # a short shoot's metamer and its bud nodes never grow on
@@ -808,7 +836,7 @@ class SOTGrowth:
                 tau=tau,
             )
 
-    def _add_bud_nodes(self, c, nid, end, h, u, order) -> np.ndarray:
+    def _add_bud_nodes(self, c, nid, end, h, u, order, cap=1.0) -> np.ndarray:
         """Further lateral buds at the ends of the metamers ``nid`` (``buds_per_node`` > 1, an
         addition to the papers' model): a chain of ``buds_per_node - 1`` zero-length *bud nodes*
         on each metamer's apical slot, each holding one lateral bud whose up vector is the
@@ -836,6 +864,7 @@ class SOTGrowth:
                 c,
             )
             s.twin[new] = True
+            s.vcap[new] = cap
             s.api_state[prev] = CHILD
             s.api_child[prev] = tid
             s.n += m
@@ -905,6 +934,9 @@ class StepView:
     def _run_tree(self):
         return build_tree(self._run, status="ok")
 
+
+#: the stream of the shoots' cap factors (vigor_sd): a generator of its own, as the stubs'
+VIGOR_STREAM = 0x716
 
 #: the stream of the stubs' draws: a generator of its own, so that stubs leave the growth's draws alone
 STUB_STREAM = 0x57B

@@ -30,6 +30,18 @@ PARAMETERS: list[ParameterSpec] = [
         "I",
     ),
     P(
+        "vigor_sd",
+        0.0,
+        0.0,
+        1.0,
+        False,
+        "",
+        "an addition: sd of the log of a shoot's own vigor cap: each lateral shoot caps at max_grow x "
+        "exp(vigor_sd x N(0, 1)) and its axis keeps that cap (axes of one age differ in vigor: "
+        "long limbs and weak branches); the stem keeps max_grow; 0 = the papers' model (no draws)",
+        "I",
+    ),
+    P(
         "drop_thresh",
         0.2,
         0.05,
@@ -257,6 +269,7 @@ def validate(p: Mapping[str, float]) -> None:
     need(0 <= p["stem_death"] <= 1, "stem_death", "in [0, 1]")
     need(0 <= p["shed_stub"] <= 1, "shed_stub", "in [0, 1]")
     need(p["prune_tips"] >= 0, "prune_tips", ">= 0")
+    need(p["vigor_sd"] >= 0, "vigor_sd", ">= 0 (a standard deviation)")
     need(p["ran"] >= 0, "ran", ">= 0")
     need(p["vert"] >= 0, "vert", ">= 0")
     need(p["ran"] + p["vert"] <= 1, "ran", f"such that ran + vert <= 1 (vert = {p['vert']!r})")

@@ -424,11 +424,7 @@ class SOTGrowth:
         self.s = SegmentStore()
         # vigor_sd (an addition, B.10): the shoots' cap factors come from a generator of the run's
         # seed and a stream of their own, so the growth's other draws stay as they are
-        self.vig_rng = (
-            np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(VIGOR_STREAM,)))
-            if p["vigor_sd"] > 0.0
-            else None
-        )
+        self.vig_rng = _own_stream(seed, VIGOR_STREAM) if p["vigor_sd"] > 0.0 else None
         self.age = 0.0
         self.cycle = 0
         self.lam = float(p["init_lambda"])
@@ -645,10 +641,8 @@ class SOTGrowth:
                 vA_raw=vA_raw,
                 vL_raw=vL_raw,
             )
-        mg = float(p["max_grow"])
-        if self.vig_rng is not None:  # each shoot's own cap (vigor_sd); 1 x max_grow without it
-            return np.minimum(vA_raw, mg * s.vcap[ids]), np.minimum(vL_raw, mg * s.lat_vcap[ids])
-        return np.minimum(vA_raw, mg), np.minimum(vL_raw, mg)
+        mg = float(p["max_grow"])  # times each shoot's own factor (vigor_sd; 1 without it: max_grow exactly)
+        return np.minimum(vA_raw, mg * s.vcap[ids]), np.minimum(vL_raw, mg * s.lat_vcap[ids])
 
     def _grow_shoots(self, c: int, bp: _Basipetal, dead, vA, vL) -> None:
         """Step 6: the buds that grow (an apical bud with at least one metamer, a lateral bud
@@ -749,8 +743,7 @@ class SOTGrowth:
         # the cap factor of each shoot's axis: a lateral shoot's from its bud, an apical one its bearer's
         axis_cap = np.where(lateral, s.lat_vcap[bearing], s.vcap[bearing])
         new_starts = []
-        steps = max(int(math.floor(p["max_grow"])), int(planned.max()) if m else 0)  # vigor_sd: caps above max_grow
-        for k in range(steps):
+        for k in range(int(planned.max()) if m else 0):  # at most floor(max_grow) but for vigor_sd's caps
             want = (planned > k) & ~stopped
             if not want.any():
                 break
@@ -938,6 +931,12 @@ class StepView:
 #: the stream of the shoots' cap factors (vigor_sd): a generator of its own, as the stubs'
 VIGOR_STREAM = 0x716
 
+
+def _own_stream(seed, key: int) -> np.random.Generator:
+    """A generator of the run's seed and a stream of its own (``key``), apart from the growth's draws."""
+    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(key,)))
+
+
 #: the stream of the stubs' draws: a generator of its own, so that stubs leave the growth's draws alone
 STUB_STREAM = 0x57B
 
@@ -966,7 +965,7 @@ def _stubs(run: SOTGrowth):
     b, c, w = np.concatenate(bearer), np.concatenate(child), np.concatenate(width)
     real = (s.length[c] > 0.0) & ~s.twin[c]  # a shed bud node has no wood to leave
     b, c, w = b[real], c[real], w[real]
-    u = np.random.default_rng(np.random.SeedSequence(int(run.seed), spawn_key=(STUB_STREAM,))).random((s.n, 2))
+    u = _own_stream(run.seed, STUB_STREAM).random((s.n, 2))
     keep = u[c, 0] < run.p["shed_stub"]
     b, c, w = b[keep], c[keep], w[keep]
     for _ in range(run.buds_per_node - 1):  # a stub on a bud node sits on the node's metamer

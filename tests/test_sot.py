@@ -109,6 +109,7 @@ def test_parameter_table_complete():
         "leader_death",
         "death_delay",
         "short_shoot",
+        "short_length",
         "gap_shade",
         "gap_azimuth",
         "gap_lean",
@@ -723,6 +724,7 @@ def test_growth_forms_off_leave_the_papers_tree_as_it_was(seed):
         "leader_death": 0.0,
         "death_delay": 3.0,
         "short_shoot": 0.0,
+        "short_length": 1.0,
         "shed_stub": 0.0,
         "prune_tips": 0.0,
         "gap_lean": 0.0,
@@ -827,11 +829,20 @@ def test_short_shoots_grow_one_internode_and_never_grow_on():
         assert top == 1 and n.size > 0 and (n == 1).all()
         lat = t.order == 1
         assert np.allclose(t.length[lat], node), bpn
+        # compressed internodes: the same branching, each short shoot's one cylinder a quarter as long
+        # (the stem's lengths differ a little: the spurs' shadows fall elsewhere)
+        q = ssm.simulate({**p, "short_shoot": 1.0, "short_length": 0.25}, 1)
+        assert np.allclose(q.length[q.order == 1], 0.25 * node), bpn
+        assert np.array_equal(q.order, t.order) and np.array_equal(q.parent, t.parent)
     # a probability draws per lateral shoot: seeds differ, a seed repeats; some shoots grow on
     a, b = (SOT().simulate({**p, "short_shoot": 0.5}, s) for s in (1, 2))
     assert _same_tree(a, SOT().simulate({**p, "short_shoot": 0.5}, 1)) and not _same_tree(a, b)
     n, _ = first_order(a)
     assert (n == 1).any() and (n > 1).any()
+    # without short shoots their length changes nothing (no draw, no node)
+    assert _same_tree(SOT().simulate(p, 1), SOT().simulate({**p, "short_length": 0.3}, 1))
+    with pytest.raises(ValueError, match="short_length"):
+        SOT().simulate({**p, "short_length": 0.0}, 1)
 
 
 def _shoot_caps(params, seed, bpn=1):

@@ -730,7 +730,10 @@ class SOTGrowth:
             h[li] = hl
             u[li] = ul
         pos = s.start[bearing] + s.length[bearing, None] * s.h[bearing]
-        seg_len = np.where(short, 1.0, np.where(planned > 0, vig / np.maximum(planned, 1), 0.0)) * p["node_length"]
+        seg_len = (
+            np.where(short, p["short_length"], np.where(planned > 0, vig / np.maximum(planned, 1), 0.0))
+            * p["node_length"]
+        )
         order = s.order[bearing] + lateral
         last = np.full(m, -1, dtype=np.int64)
         built = np.zeros(m, dtype=np.int64)

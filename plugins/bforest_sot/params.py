@@ -189,6 +189,17 @@ PARAMETERS: list[ParameterSpec] = [
         "V",
     ),
     P(
+        "short_length",
+        1.0,
+        0.1,
+        1.0,
+        False,
+        "",
+        "an addition: a short shoot's internode as a share of node_length (short shoots have compressed "
+        "internodes); 1 = one internode of node_length",
+        "V",
+    ),
+    P(
         "shed_stub",
         0.0,
         0.0,
@@ -270,6 +281,7 @@ def validate(p: Mapping[str, float]) -> None:
     need(0 <= p["shed_stub"] <= 1, "shed_stub", "in [0, 1]")
     need(p["prune_tips"] >= 0, "prune_tips", ">= 0")
     need(p["vigor_sd"] >= 0, "vigor_sd", ">= 0 (a standard deviation)")
+    need(0 < p["short_length"] <= 1, "short_length", "in (0, 1] (a share of node_length)")
     need(p["ran"] >= 0, "ran", ">= 0")
     need(p["vert"] >= 0, "vert", ">= 0")
     need(p["ran"] + p["vert"] <= 1, "ran", f"such that ran + vert <= 1 (vert = {p['vert']!r})")

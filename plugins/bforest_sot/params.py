@@ -184,7 +184,7 @@ PARAMETERS: list[ParameterSpec] = [
         1.0,
         False,
         "",
-        "an addition: probability that a lateral shoot is a short shoot (one internode of node_length whose "
+        "an addition: probability that a lateral shoot is a short shoot (one internode, short_length x node_length, whose "
         "buds never grow: the spurs and short shoots of broadleaved trees); 0 = the papers' model (no draws)",
         "V",
     ),

@@ -192,3 +192,70 @@ def test_select_features_naming_no_table_are_refused_before_the_search(toy_plugi
     with pytest.raises(bf.ConfigError, match=r"^select: features\.sets: set 'Q7'"):
         bf.fit(bf.load_config(p), tmp_path / "run", progress=False)
     assert not (tmp_path / "run" / "evaluations.sqlite").exists()  # refused before the first evaluation
+
+
+#: a second term beside the toy structure term (as test_objective_terms), so held-out scores have terms
+TWO_TERMS = """
+[objective]
+structure_weight = 1.0
+
+[[objective.terms]]
+name = "extra"
+weight = 3.0
+features = { kind = "toy-features", sets = ["A", "B"] }
+distance = { kind = "toy-distance" }
+weights = { A = 3.0, B = 1.0 }
+"""
+
+
+def test_held_out_scores_keep_each_term_and_the_report_shows_them(toy_plugin, tmp_path):
+    """Each candidate's held-out value of each term is the mean over the held-out sets of that
+    term's value on those seeds (recomputed outside the fit); the weighted mean of the terms is
+    the held-out distance the answer was chosen on; the report gives one column per term."""
+    p = noisy_config(tmp_path)
+    p.write_text(p.read_text() + TWO_TERMS)
+    cfg = bf.load_config(p)
+    bf.fit(cfg, tmp_path / "run", progress=False)
+    sel = json.loads((tmp_path / "run" / "best.json").read_text())["selection"]
+    sets = heldout_seeds(cfg.seed, 6, 1)
+    with started_workers(cfg, build_target(cfg)):
+        for c in sel["candidates"]:
+            grown = [evaluate_task((c["params"], s)) for s in sets]
+            assert c["failed"] == 0
+            got = c["heldout_per_set"]
+            for term in ("term:structure", "term:extra", "extra/A", "L"):
+                assert got[term] == pytest.approx(np.mean([r["per_set"][term] for r in grown]), rel=1e-12), term
+            assert (got["term:structure"] + 3.0 * got["term:extra"]) / 4.0 == pytest.approx(c["heldout"], rel=1e-12)
+    with RunStore.open(tmp_path / "run") as store:  # kept in the run store, one row per point and set
+        kept = store.heldout_scores(heldout_mod.scoring_fingerprint(cfg))
+    assert len(kept) == 5 * 6 and all(set(r["per_set"]) >= {"term:structure", "term:extra"} for r in kept.values())
+    from bforest_core.report.build import write_report
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        write_report(tmp_path / "run", figures=False, html=False)
+    md = (tmp_path / "run" / "report.md").read_text()
+    assert "| held-out distance | held out - own | held-out extra | held-out structure | failed sets |" in md
+
+
+def test_a_run_written_before_scores_kept_their_terms_is_read_and_resumed(toy_plugin, tmp_path, monkeypatch):
+    """An older run store (its held-out table without the per_set column) gains the column when
+    opened; its kept scores are used as they are (nothing grown again), without per-term values."""
+    import sqlite3
+
+    p = noisy_config(tmp_path)
+    bf.fit(bf.load_config(p), tmp_path / "run", progress=False)
+    whole = json.loads((tmp_path / "run" / "best.json").read_text())
+    con = sqlite3.connect(tmp_path / "run" / "evaluations.sqlite")
+    con.execute("ALTER TABLE heldout DROP COLUMN per_set")
+    con.commit()
+    con.close()
+    (tmp_path / "run" / "best.json").unlink()
+    grown = []
+    monkeypatch.setattr(heldout_mod, "evaluate_task", lambda task: grown.append(task) or evaluate_task(task))
+    bf.fit(bf.load_config(p), tmp_path / "run", resume=True, progress=False)
+    again = json.loads((tmp_path / "run" / "best.json").read_text())
+    assert grown == []
+    assert again["selection"]["chosen"] == whole["selection"]["chosen"]
+    assert again["heldout_distance"] == whole["heldout_distance"]
+    assert all(c["heldout_per_set"] is None for c in again["selection"]["candidates"])

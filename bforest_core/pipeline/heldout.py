@@ -35,7 +35,16 @@ from .worker import evaluate_task
 if TYPE_CHECKING:
     from ..config import RunConfig
 
-__all__ = ["scoring_fingerprint", "point_key", "score_points", "candidates", "selection_config", "select_answer"]
+__all__ = [
+    "scoring_fingerprint",
+    "point_key",
+    "score_points",
+    "heldout_mean",
+    "heldout_parts",
+    "candidates",
+    "selection_config",
+    "select_answer",
+]
 
 
 def scoring_fingerprint(cfg: RunConfig) -> str:
@@ -82,7 +91,8 @@ def score_points(
     Returns
     -------
     dict
-        ``(point key, tuple of seeds)`` -> ``{"distance", "status"}``.
+        ``(point key, tuple of seeds)`` -> ``{"distance", "status", "per_set"}`` (the distance
+        per set and, with several terms, per ``term:<name>``; None for a score an older run kept).
     """
     kept = {id(s): s.heldout_scores(scoring) for ss in stores.values() for s in ss}
     known, tasks = {}, []
@@ -100,10 +110,11 @@ def score_points(
             with workers() as ex:
                 for i, r in ex.map_unordered(evaluate_task, [(points[k], s) for k, s in tasks]):
                     k, seeds = tasks[i]
-                    known[(k, tuple(seeds))] = hit = {"distance": float(r["distance"]), "status": r["status"]}
+                    hit = {"distance": float(r["distance"]), "status": r["status"], "per_set": r.get("per_set")}
+                    known[(k, tuple(seeds))] = hit
                     if hit["status"] != "timeout":
                         for s in stores[k]:
-                            s.add_heldout(scoring, k, _seeds_key(seeds), hit["distance"], hit["status"])
+                            s.add_heldout(scoring, k, _seeds_key(seeds), hit["distance"], hit["status"], hit["per_set"])
                     bar.update(1)
         finally:
             bar.close()
@@ -114,6 +125,21 @@ def heldout_mean(known: dict, key: str, seed_sets) -> tuple[float, int]:
     """Mean held-out distance of one point over the sets, and how many sets failed."""
     rows = [known[(key, tuple(s))] for s in seed_sets]
     return float(np.mean([r["distance"] for r in rows])), sum(r["status"] != "ok" for r in rows)
+
+
+def heldout_parts(known: dict, key: str, seed_sets) -> dict[str, float] | None:
+    """Mean held-out distance of one point per set and per ``term:<name>`` over the sets that grew
+    (a failed set has none: it counts in :func:`heldout_mean` at the penalty); None when no grown
+    set kept them (scores of an older run) — so a reader sees which term set a candidate apart."""
+    parts = [r["per_set"] for s in seed_sets if (r := known[(key, tuple(s))])["status"] == "ok" and r.get("per_set")]
+    if not parts:
+        return None
+    out = {}
+    for name in parts[0]:
+        vals = [p[name] for p in parts if p.get(name) is not None]
+        if vals:
+            out[name] = float(np.mean(vals))
+    return out
 
 
 def candidates(evaluations: list[Evaluation], top: int, lower, upper, names, spacing: float) -> list[Evaluation]:
@@ -158,8 +184,8 @@ def select_answer(cfg: RunConfig, store: RunStore, workers, progress: bool = Fal
     held-out distance (ties: the lower own distance). ``workers`` returns a context manager giving
     an executor started on that config's scoring, entered only when a tree must be grown. Returns
     ``{"sets", "model_seeds_per_set", "spacing", "scored_by", "chosen": evaluation index,
-    "candidates": [{"evaluation", "params", "own", "heldout", "failed"}, ...]}``, candidates in
-    the order of their own distance; ``scored_by`` is None for the search's own objective, else
+    "candidates": [{"evaluation", "params", "own", "heldout", "failed", "heldout_per_set"}, ...]}``,
+    candidates in the order of their own distance (``heldout_per_set``: :func:`heldout_parts`); ``scored_by`` is None for the search's own objective, else
     ``[select]``'s ``{"features", "distance"}`` settings.
     """
     sel = cfg.select
@@ -179,7 +205,16 @@ def select_answer(cfg: RunConfig, store: RunStore, workers, progress: bool = Fal
     rows = []
     for e in cands:
         h, failed = heldout_mean(known, point_key(e.params), seed_sets)
-        rows.append({"evaluation": e.idx, "params": e.params, "own": float(e.distance), "heldout": h, "failed": failed})
+        rows.append(
+            {
+                "evaluation": e.idx,
+                "params": e.params,
+                "own": float(e.distance),
+                "heldout": h,
+                "failed": failed,
+                "heldout_per_set": heldout_parts(known, point_key(e.params), seed_sets),
+            }
+        )
     best = min(rows, key=lambda r: (r["heldout"], r["own"], r["evaluation"]))
     return {
         "sets": int(sel.sets),

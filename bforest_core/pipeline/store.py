@@ -55,6 +55,7 @@ CREATE TABLE IF NOT EXISTS heldout (
     seeds     TEXT NOT NULL,        -- JSON list of held-out model seeds
     distance  REAL NOT NULL,
     status    TEXT NOT NULL,
+    per_set   TEXT,                 -- JSON {set or term:<name>: distance or null}; null in older runs
     PRIMARY KEY (scoring, point, seeds)
 );
 """
@@ -261,6 +262,9 @@ class RunStore(RunFiles):
         self._con.execute("PRAGMA journal_mode=WAL")
         self._con.execute("PRAGMA synchronous=NORMAL")
         self._con.executescript(SCHEMA)
+        held = {r[1] for r in self._con.execute("PRAGMA table_info(heldout)")}
+        if "per_set" not in held:  # a run written before held-out scores kept their sets and terms
+            self._con.execute("ALTER TABLE heldout ADD COLUMN per_set TEXT")
 
     # ------------------------------------------------------------------ creation
     @classmethod
@@ -395,16 +399,23 @@ class RunStore(RunFiles):
     # ------------------------------------------------------------------ held-out scores
     def heldout_scores(self, scoring: str) -> dict[tuple[str, str], dict]:
         """Every kept held-out score of this scoring: ``(point, seeds)`` (both JSON text) ->
-        ``{"distance", "status"}``."""
+        ``{"distance", "status", "per_set"}`` (``per_set`` None when an older run did not keep it)."""
         rows = self._con.execute(
-            "SELECT point, seeds, distance, status FROM heldout WHERE scoring = ?", (scoring,)
+            "SELECT point, seeds, distance, status, per_set FROM heldout WHERE scoring = ?", (scoring,)
         ).fetchall()
-        return {(r[0], r[1]): {"distance": r[2], "status": r[3]} for r in rows}
+        return {
+            (r[0], r[1]): {"distance": r[2], "status": r[3], "per_set": None if r[4] is None else json.loads(r[4])}
+            for r in rows
+        }
 
-    def add_heldout(self, scoring: str, point: str, seeds: str, distance: float, status: str) -> None:
-        """Keep one held-out score as soon as it is known (a killed scoring loses nothing)."""
+    def add_heldout(
+        self, scoring: str, point: str, seeds: str, distance: float, status: str, per_set: dict | None = None
+    ) -> None:
+        """Keep one held-out score as soon as it is known (a killed scoring loses nothing), with
+        its distance per set and per term."""
         self._con.execute(
-            "INSERT OR REPLACE INTO heldout VALUES (?,?,?,?,?)", (scoring, point, seeds, float(distance), status)
+            "INSERT OR REPLACE INTO heldout VALUES (?,?,?,?,?,?)",
+            (scoring, point, seeds, float(distance), status, None if per_set is None else _column(per_set)),
         )
 
     # ------------------------------------------------------------------ optimiser log

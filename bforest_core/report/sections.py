@@ -243,18 +243,37 @@ def section_selection(doc: Document, b: dict) -> None:
             + ("." if sel.get("scored_by") else ", whose best was partly its seeds' luck.")
         )
     )
+    # with several terms, each candidate's held-out value of each (runs before they were kept: none)
+    terms = sorted({k for c in sel["candidates"] for k in (c.get("heldout_per_set") or {}) if k.startswith("term:")})
+    if terms:
+        doc.p(
+            "Each term's held-out value (the mean over the sets that grew) shows which term set the "
+            "candidates apart: " + ", ".join(f"held-out {t[5:]}" for t in terms) + "."
+        )
     rows = [
         [
             c["evaluation"],
             c["own"],
             c["heldout"],
             c["heldout"] - c["own"],
+            *((c.get("heldout_per_set") or {}).get(t) for t in terms),
             c["failed"],
             "answer" if c["evaluation"] == sel["chosen"] else "",
         ]
         for c in sel["candidates"]
     ]
-    doc.table(["evaluation", "own distance", "held-out distance", "held out - own", "failed sets", ""], rows)
+    doc.table(
+        [
+            "evaluation",
+            "own distance",
+            "held-out distance",
+            "held out - own",
+            *(f"held-out {t[5:]}" for t in terms),
+            "failed sets",
+            "",
+        ],
+        rows,
+    )
 
 
 def section_optimizer(doc: Document, v: RunView, figs):

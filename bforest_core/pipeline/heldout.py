@@ -185,7 +185,8 @@ def select_answer(cfg: RunConfig, store: RunStore, workers, progress: bool = Fal
     an executor started on that config's scoring, entered only when a tree must be grown. Returns
     ``{"sets", "model_seeds_per_set", "spacing", "scored_by", "chosen": evaluation index,
     "candidates": [{"evaluation", "params", "own", "heldout", "failed", "heldout_per_set"}, ...]}``,
-    candidates in the order of their own distance (``heldout_per_set``: :func:`heldout_parts`); ``scored_by`` is None for the search's own objective, else
+    candidates in the order of their own distance (``heldout_per_set``: :func:`heldout_parts`);
+    ``scored_by`` is None for the search's own objective, else
     ``[select]``'s ``{"features", "distance"}`` settings.
     """
     sel = cfg.select

@@ -28,6 +28,7 @@ import numpy as np
 
 from ..config import config_to_dict, parse_config
 from .progress import progress_bar
+from .scoring import mean_per_set
 from .seeds import heldout_seeds
 from .store import Evaluation, RunStore
 from .worker import evaluate_task
@@ -110,7 +111,7 @@ def score_points(
             with workers() as ex:
                 for i, r in ex.map_unordered(evaluate_task, [(points[k], s) for k, s in tasks]):
                     k, seeds = tasks[i]
-                    hit = {"distance": float(r["distance"]), "status": r["status"], "per_set": r.get("per_set")}
+                    hit = {"distance": float(r["distance"]), "status": r["status"], "per_set": r["per_set"]}
                     known[(k, tuple(seeds))] = hit
                     if hit["status"] != "timeout":
                         for s in stores[k]:
@@ -129,17 +130,11 @@ def heldout_mean(known: dict, key: str, seed_sets) -> tuple[float, int]:
 
 def heldout_parts(known: dict, key: str, seed_sets) -> dict[str, float] | None:
     """Mean held-out distance of one point per set and per ``term:<name>`` over the sets that grew
-    (a failed set has none: it counts in :func:`heldout_mean` at the penalty); None when no grown
-    set kept them (scores of an older run) — so a reader sees which term set a candidate apart."""
-    parts = [r["per_set"] for s in seed_sets if (r := known[(key, tuple(s))])["status"] == "ok" and r.get("per_set")]
-    if not parts:
-        return None
-    out = {}
-    for name in parts[0]:
-        vals = [p[name] for p in parts if p.get(name) is not None]
-        if vals:
-            out[name] = float(np.mean(vals))
-    return out
+    (a failed set has none: it counts in :func:`heldout_mean` at the penalty), as
+    :func:`~.scoring.mean_per_set`; None when no grown set kept them (scores of an older run) — so
+    a reader sees which term set a candidate apart."""
+    parts = [r["per_set"] for s in seed_sets if (r := known[(key, tuple(s))])["status"] == "ok" and r["per_set"]]
+    return mean_per_set(parts) if parts else None
 
 
 def candidates(evaluations: list[Evaluation], top: int, lower, upper, names, spacing: float) -> list[Evaluation]:
@@ -205,7 +200,8 @@ def select_answer(cfg: RunConfig, store: RunStore, workers, progress: bool = Fal
     known = score_points(points, seed_sets, {k: [store] for k in points}, scoring_fingerprint(scfg), workers, progress)
     rows = []
     for e in cands:
-        h, failed = heldout_mean(known, point_key(e.params), seed_sets)
+        key = point_key(e.params)
+        h, failed = heldout_mean(known, key, seed_sets)
         rows.append(
             {
                 "evaluation": e.idx,
@@ -213,7 +209,7 @@ def select_answer(cfg: RunConfig, store: RunStore, workers, progress: bool = Fal
                 "own": float(e.distance),
                 "heldout": h,
                 "failed": failed,
-                "heldout_per_set": heldout_parts(known, point_key(e.params), seed_sets),
+                "heldout_per_set": heldout_parts(known, key, seed_sets),
             }
         )
     best = min(rows, key=lambda r: (r["heldout"], r["own"], r["evaluation"]))

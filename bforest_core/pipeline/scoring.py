@@ -150,6 +150,17 @@ def with_term_values(per_set: dict, values: dict[str, float]) -> dict:
     return {**per_set, **{f"term:{k}": v for k, v in values.items()}}
 
 
+def mean_per_set(per_set_list: list[dict]) -> dict[str, float | None]:
+    """The mean of each key (a set, or ``term:<name>``) over several trees' or seed sets' per-set
+    distances (keys of the first), skipping those that have none for it (an empty set); None
+    where none has a value."""
+    out = {}
+    for k in per_set_list[0]:
+        vals = [p[k] for p in per_set_list if p.get(k) is not None]
+        out[k] = float(np.mean(vals)) if vals else None
+    return out
+
+
 def set_summaries(U: dict[str, np.ndarray], names, trees: int = 1) -> np.ndarray:
     """Summary statistics of data sets ``U`` (keys as in ``Target.U``) pooled over ``trees`` trees,
     in the order of ``names``: per set the log of one plus its rows per tree, then its columns'

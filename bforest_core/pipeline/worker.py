@@ -24,6 +24,7 @@ from .scoring import (
     _Timeout,
     build_scoring,
     combine_terms,
+    mean_per_set,
     score_tree,
     set_summaries,
     with_term_values,
@@ -156,10 +157,7 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
             worker=c.worker,
             n_rows={},
         )
-    per_set = {}
-    for k in per_seed[0]:
-        vals = [p[k] for p in per_seed if p[k] is not None]
-        per_set[k] = float(np.mean(vals)) if vals else None
+    per_set = mean_per_set(per_seed)
     total, values = combine_terms(per_set, c)
     return dict(
         distance=float(total),

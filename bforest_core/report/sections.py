@@ -244,11 +244,13 @@ def section_selection(doc: Document, b: dict) -> None:
         )
     )
     # with several terms, each candidate's held-out value of each (runs before they were kept: none)
-    terms = sorted({k for c in sel["candidates"] for k in (c.get("heldout_per_set") or {}) if k.startswith("term:")})
+    parts = [c.get("heldout_per_set") or {} for c in sel["candidates"]]
+    terms = sorted({k for p in parts for k in p if k.startswith("term:")})
+    heads = [f"held-out {t.removeprefix('term:')}" for t in terms]
     if terms:
         doc.p(
             "Each term's held-out value (the mean over the sets that grew) shows which term set the "
-            "candidates apart: " + ", ".join(f"held-out {t[5:]}" for t in terms) + "."
+            "candidates apart: " + ", ".join(heads) + "."
         )
     rows = [
         [
@@ -256,11 +258,11 @@ def section_selection(doc: Document, b: dict) -> None:
             c["own"],
             c["heldout"],
             c["heldout"] - c["own"],
-            *((c.get("heldout_per_set") or {}).get(t) for t in terms),
+            *(p.get(t) for t in terms),
             c["failed"],
             "answer" if c["evaluation"] == sel["chosen"] else "",
         ]
-        for c in sel["candidates"]
+        for c, p in zip(sel["candidates"], parts)
     ]
     doc.table(
         [
@@ -268,7 +270,7 @@ def section_selection(doc: Document, b: dict) -> None:
             "own distance",
             "held-out distance",
             "held out - own",
-            *(f"held-out {t[5:]}" for t in terms),
+            *heads,
             "failed sets",
             "",
         ],

@@ -117,6 +117,7 @@ def test_parameter_table_complete():
         "shed_stub",
         "prune_tips",
         "vigor_sd",
+        "relay_angle",
     }  # stand_shade and the ones after it are additions, off by default
     assert set(names) == expected and len(names) == len(expected)
     by = {p.name: p for p in PARAMETERS}
@@ -730,6 +731,7 @@ def test_growth_forms_off_leave_the_papers_tree_as_it_was(seed):
         "gap_lean": 0.0,
         "stem_death": 1.0,
         "vigor_sd": 0.0,
+        "relay_angle": 1.0,
     }
     for ssm_, params in [(SOT(), {}), (SOT(buds_per_node=1), off)]:
         assert _digest(ssm_.simulate({"max_iter": 14, **params}, seed)) == DEFAULT_TREES[seed]
@@ -930,6 +932,34 @@ def test_leader_death_makes_every_shoot_fork_after_its_delay():
     assert not np.any(straight & (mono.extras["age"][c] < mono.extras["age"][mono.parent[c]]))  # branches fork
     assert height(mono) > height(forked) + 1.0
     assert _same_tree(a, ssm.simulate({**p, "leader_death": 0.3, "stem_death": 1.0}, 1))
+
+
+@pytest.mark.parametrize("bpn", [1, 2])
+def test_relay_shoots_take_over_a_lost_leader_at_a_share_of_the_branch_angle(bpn):
+    # every apical bud dies from cycle 3 on: the laterals at a shoot's last node take over; with
+    # relay_angle 0.3 they leave at 0.3 x 65 deg from their bearer, the laterals along a shoot
+    # (whose leader went on) at 65 deg, with no turning (no light-seeking, no tropism) to blur it
+    ssm = SOT(buds_per_node=bpn)
+    p = {**HAND, "max_iter": 7, "leader_death": 1.0, "death_delay": 2.0}
+
+    def lateral_angles(t):
+        c = np.flatnonzero(t.parent >= 0)
+        ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", t.axis[c], t.axis[t.parent[c]]), -1, 1)))
+        lat = ang > 1.0  # continuations go straight on
+        goes_on = np.zeros(t.n, bool)
+        goes_on[t.parent[c[~lat]]] = True
+        return ang[lat], goes_on[t.parent[c[lat]]]
+
+    ang, on = lateral_angles(ssm.simulate(p, 1))
+    assert np.allclose(ang, 65.0) and (~on).any()  # the papers' model: every lateral at 65 deg
+    ang, on = lateral_angles(ssm.simulate({**p, "relay_angle": 0.3}, 1))
+    assert np.allclose(ang[on], 65.0) and np.allclose(ang[~on], 19.5) and on.any() and (~on).sum() >= 4
+    # relay shoots rise as the lost leader did: the forked tree stands taller
+    assert height(ssm.simulate({**p, "relay_angle": 0.3}, 1)) > height(ssm.simulate(p, 1)) + 0.5
+    # 1 is the tree without the setting, the same draws; out of range names the parameter
+    assert _same_tree(ssm.simulate(p, 1), ssm.simulate({**p, "relay_angle": 1.0}, 1))
+    with pytest.raises(ValueError, match="relay_angle"):
+        ssm.simulate({**p, "relay_angle": 1.5}, 1)
 
 
 def _rows(t):

@@ -725,6 +725,10 @@ class SOTGrowth:
         if z_ang.size:
             li = np.flatnonzero(lateral)
             ang[li] = p["branch_angle"] + p["branch_angle_sd"] * z_ang
+            if p["relay_angle"] != 1.0:
+                # an addition (B.10): a lateral at a node whose leader died or was shed is a relay
+                # shoot and leaves at relay_angle x its angle; it draws nothing
+                ang[li] *= np.where(self._leader_lost(bearing[li]), p["relay_angle"], 1.0)
             hl = _unit(rotate(h[li], u[li], np.radians(ang[li])))
             ul = rotate(u[li], hl, np.full(li.size, math.radians(p["nonplanar_twist"])))
             h[li] = hl
@@ -831,6 +835,17 @@ class SOTGrowth:
                 target=that,
                 tau=tau,
             )
+
+    def _leader_lost(self, bearing: np.ndarray) -> np.ndarray:
+        """Whether the node of each bearing segment has lost its leader: the apical slot at the
+        end of the node (past its bud nodes) is empty (the bud died) or a stub (shed)."""
+        s = self.s
+        end = bearing.copy()
+        for _ in range(self.buds_per_node - 1):  # walk on through the node's bud nodes
+            kid = np.where(s.api_state[end] == CHILD, s.api_child[end], -1)
+            on = (kid >= 0) & s.twin[np.maximum(kid, 0)]
+            end = np.where(on, kid, end)
+        return np.isin(s.api_state[end], (EMPTY, STUB))
 
     def _add_bud_nodes(self, c, nid, end, h, u, order, cap=1.0) -> np.ndarray:
         """Further lateral buds at the ends of the metamers ``nid`` (``buds_per_node`` > 1, an

@@ -168,6 +168,18 @@ PARAMETERS: list[ParameterSpec] = [
         "V",
     ),
     P(
+        "relay_angle",
+        1.0,
+        0.0,
+        1.0,
+        False,
+        "",
+        "an addition: a lateral shoot at a node whose leader died or was shed (a relay shoot: sympodial "
+        "substitution growth) leaves at relay_angle x its branch angle, so the shoots that take over rise "
+        "as the lost leader did and a fork's arms diverge narrowly; 1 = as every lateral (the papers' model)",
+        "V",
+    ),
+    P(
         "death_delay",
         0.0,
         0.0,
@@ -282,6 +294,7 @@ def validate(p: Mapping[str, float]) -> None:
     need(p["prune_tips"] >= 0, "prune_tips", ">= 0")
     need(p["vigor_sd"] >= 0, "vigor_sd", ">= 0 (a standard deviation)")
     need(0 < p["short_length"] <= 1, "short_length", "in (0, 1] (a share of node_length)")
+    need(0 <= p["relay_angle"] <= 1, "relay_angle", "in [0, 1] (a share of the branch angle)")
     need(p["ran"] >= 0, "ran", ">= 0")
     need(p["vert"] >= 0, "vert", ">= 0")
     need(p["ran"] + p["vert"] <= 1, "ran", f"such that ran + vert <= 1 (vert = {p['vert']!r})")

@@ -224,3 +224,48 @@ def test_a_fit_just_over_a_limit_reads_as_over_it():
     assert run_fidelity.verdict(row) == "misses: dbh +20.4%, crown_spread not measured"
     row["errors"] = {"height": -0.074, "dbh": 0.2}
     assert run_fidelity.verdict(row) == "meets the limits"
+
+
+def test_the_broadleaved_table_keeps_the_rows_of_trees_not_fitted_again():
+    """``run_broadleaved.py --trees T --doc`` after a recipe change for T alone: T's rows are those
+    of the new fits, every other tree keeps its rows and held-out spread as the section had them,
+    and the section says which rows are kept."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "real" / "run_broadleaved.py"
+    spec = importlib.util.spec_from_file_location("run_broadleaved", path)
+    rb = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rb)
+
+    def row(tree, seed, judge, heldout):
+        return {
+            "tree": tree,
+            "seed": seed,
+            "model": "sot",
+            "fit_seconds": 100.0,
+            "errors": dict.fromkeys(rb.NAMES, 0.01),
+            "judge_clones_median": judge,
+            "judge_neighbours": {"a": 0.2, "b": 0.3},
+            "heldout_distance": heldout,
+        }
+
+    first = {
+        "p1": row("pine_ruotsinkyla_1", 1, 0.111, 0.10),
+        "p2": row("pine_ruotsinkyla_1", 2, 0.122, 0.12),
+        "t1": row("wytham_tf1", 1, 0.333, 0.20),
+        "t2": row("wytham_tf1", 2, 0.344, 0.30),
+    }
+    section = rb.doc_section(first, {})
+    assert "kept from an earlier run" not in section
+    again = {"t1": row("wytham_tf1", 1, 0.222, 0.20), "t2": row("wytham_tf1", 2, 0.233, 0.25)}
+    text = rb.doc_section(again, {}, rb.old_rows(section))
+    lines = text.splitlines()
+    assert [x for x in lines if x.startswith("| pine_ruotsinkyla_1 |")] == [
+        x for x in section.splitlines() if x.startswith("| pine_ruotsinkyla_1 |")
+    ]
+    tf1 = [x for x in lines if x.startswith("| wytham_tf1 |")]
+    assert len(tf1) == 2 and "0.222" in tf1[0] and "0.333" not in text
+    # the table's order: the trees as TREES has them (the Wytham trees before the pines)
+    assert lines.index(tf1[0]) < lines.index(next(x for x in lines if x.startswith("| pine_ruotsinkyla_1 |")))
+    assert "The rows of pine_ruotsinkyla_1 are kept from an earlier run" in text
+    assert "wytham_tf1 1.250 (2 run seeds); pine_ruotsinkyla_1 1.200 (2 run seeds)." in text

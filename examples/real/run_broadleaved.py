@@ -130,7 +130,10 @@ def figure(row: dict) -> str:
     return name
 
 
-def doc_section(results: dict, figures: dict) -> str:
+def doc_section(results: dict, figures: dict, kept: dict | None = None) -> str:
+    """The section from the rows of broadleaved.json; ``kept`` holds, for a tree not among them,
+    its table rows and held-out spread as the section had them (:func:`old_rows`)."""
+    kept = {t: v for t, v in (kept or {}).items() if all(r["tree"] != t for r in results.values())}
     head = (
         "| tree | model | run seed | fit | "
         + " | ".join(NAMES.values())
@@ -155,26 +158,33 @@ def doc_section(results: dict, figures: dict) -> str:
         head,
         "|" + "---|" * (head.count("|") - 1),
     ]
-    for key in sorted(results, key=lambda k: (TREES.index(results[k]["tree"]), results[k]["seed"])):
+    rows = {t: list(v["rows"]) for t, v in kept.items()}
+    for key in sorted(results, key=lambda k: results[k]["seed"]):
         r = results[key]
         errs = " | ".join("–" if r["errors"].get(n) is None else f"{100 * r['errors'][n]:+.1f} %" for n in NAMES)
         near = float(np.median(list(r["judge_neighbours"].values())))
         judge = "–" if r["judge_clones_median"] is None else f"{r['judge_clones_median']:.3f}"
-        L.append(
+        rows.setdefault(r["tree"], []).append(
             f"| {r['tree']} | {r['model']} | {r['seed']} | {r['fit_seconds']:.0f} s | {errs} | {judge} | "
             f"{near:.3f} | {verdict(r)} |"
         )
+    L += [line for tree in TREES for line in rows.get(tree, [])]
     L.append("")
+    if kept:
+        L += [
+            f"The rows of {', '.join(t for t in TREES if t in kept)} are kept from an earlier run of "
+            "this script: `init`'s recipe for them did not change since.",
+            "",
+        ]
     by_tree = spread(results, key=lambda r: r["tree"])
     spreads = [
-        f"{tree} {by_tree[tree][0]:.3f} ({by_tree[tree][1]} run seeds)"
+        f"{tree} {by_tree[tree][0]:.3f} ({by_tree[tree][1]} run seeds)" if tree in by_tree else kept[tree]["spread"]
         for tree in TREES
-        if tree in by_tree and by_tree[tree][1] > 1
+        if (tree in by_tree and by_tree[tree][1] > 1) or kept.get(tree, {}).get("spread")
     ]
     if spreads:
         L += [
-            "Held-out distance of the answer over run seeds, max/min (the robust-fit limit for the pines: "
-            "1.15): " + "; ".join(spreads) + ".",
+            SPREAD_HEAD + " (the robust-fit limit for the pines: 1.15): " + "; ".join(spreads) + ".",
             "",
         ]
     fresh = spread(results, fresh_value, key=lambda r: r["tree"])
@@ -192,9 +202,27 @@ def doc_section(results: dict, figures: dict) -> str:
     return "\n".join(L) + "\n" + END
 
 
+SPREAD_HEAD = "Held-out distance of the answer over run seeds, max/min"
+
+
+def old_rows(section: str) -> dict:
+    """Tree -> {"rows": its table rows, "spread": its held-out spread entry} as a section has them."""
+    kept: dict = {}
+    for line in section.splitlines():
+        cells = line.split(" | ")
+        if line.startswith("| ") and cells[0][2:] in TREES:
+            kept.setdefault(cells[0][2:], {"rows": [], "spread": None})["rows"].append(line)
+        if line.startswith(SPREAD_HEAD):
+            for entry in line.split("): ", 1)[1].rstrip(".").split("; "):
+                if entry.split(" ")[0] in kept:
+                    kept[entry.split(" ")[0]]["spread"] = entry
+    return kept
+
+
 def write_doc(results: dict, figures: dict) -> None:
+    """Rewrite the section; a tree that ``results`` does not hold keeps its rows and figure."""
     text = DOC.read_text(encoding="utf-8")
-    old = {}
+    old, kept = {}, {}
     if BEGIN in text:
         before, rest = text.split(BEGIN, 1)
         section, after = rest.split(END, 1) if END in rest else (rest, "")
@@ -203,9 +231,10 @@ def write_doc(results: dict, figures: dict) -> None:
             for line in section.splitlines()
             if line.startswith("![")
         }
+        kept = old_rows(section)
     else:
         before, after = text.rstrip() + "\n\n", "\n"
-    DOC.write_text(before + doc_section(results, {**old, **figures}) + after, encoding="utf-8")
+    DOC.write_text(before + doc_section(results, {**old, **figures}, kept) + after, encoding="utf-8")
     print(f"wrote {DOC}")
 
 

@@ -455,6 +455,22 @@ def test_permutation_null_level():
     assert max(draws) <= 500
 
 
+def test_permutation_floor_is_the_mean_two_sample_ks_of_those_row_counts():
+    # under the null every line's statistic is a two-sample KS of n and m rows, so the mean over
+    # lines has the expectation of scipy's ks_2samp statistic at those sizes, whatever the data
+    D = dist(lines=32)
+    floors = {}
+    for n, m in ((200, 200), (50, 30)):
+        rng = np.random.default_rng(11)
+        r = D.permutation_test(rng.normal(size=(m, 3)), rng.normal(size=(n, 3)), seed=2, max_draws=200, min_draws=200)
+        ks = [stats.ks_2samp(rng.normal(size=m), rng.normal(size=n)).statistic for _ in range(2000)]
+        assert r.floor == pytest.approx(np.mean(ks), rel=0.05)
+        assert r.floor == float(np.median(r.null)) and f"floor {r.floor:.4f}" in r.summary()
+        floors[n, m] = r.floor
+    # fewer rows, a higher floor: about as 1/sqrt(n m / (n + m))
+    assert floors[50, 30] / floors[200, 200] == pytest.approx(np.sqrt(100 / (50 * 30 / 80)), rel=0.1)
+
+
 def test_permutation_shift_is_detected():
     rng = np.random.default_rng(5)
     ud = rng.normal(size=(200, 3))

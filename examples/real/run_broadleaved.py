@@ -78,10 +78,10 @@ def limits(tree: str) -> dict:
     return ACCEPT if tree in PINES else BROADLEAF
 
 
-def run_one(tree: str, seed: int, out: Path, n_clones: int) -> dict:
+def run_one(tree: str, seed: int, out: Path, n_clones: int, model: str | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     rec = out / f"{tree}_seed{seed}.toml"
-    r = write_recipe(path_of(tree), rec)
+    r = write_recipe(path_of(tree), rec, model)
     if seed != 1:  # the run seed: the recipe's one top-level line
         rec.write_text(rec.read_text().replace("\nseed = 1\n", f"\nseed = {seed}\n", 1))
     run = out / f"{tree}_seed{seed}"
@@ -249,6 +249,11 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--seeds", nargs="+", type=int, default=[1], help="run seeds of each tree")
     ap.add_argument("--clones", type=int, default=30, help="clones per fit")
+    ap.add_argument(
+        "--model",
+        default=None,
+        help="the growth model init writes the recipe for (bforest init --model; default: the one init picks)",
+    )
     ap.add_argument("--again", action="store_true", help="refit fits already in OUT/broadleaved.json")
     ap.add_argument("--figures", action="store_true", help="each tree beside 5 clones (docs/img/validation/)")
     ap.add_argument("--doc", action="store_true", help="rewrite the Broadleaved trees section of docs/validation.md")
@@ -271,7 +276,7 @@ def main(argv=None) -> int:
             key = f"{tree}_seed{seed}"
             if key in results and not args.again:
                 continue
-            row = run_one(tree, seed, out, args.clones)
+            row = run_one(tree, seed, out, args.clones, args.model)
             results[key] = row
             result_path.write_text(json.dumps(results, indent=2))
             errs = ", ".join(f"{n} {100 * v:+.1f}%" for n, v in row["errors"].items() if v is not None)

@@ -222,11 +222,20 @@ class PermutationResult:
     per_set_d0: dict[str, float | None] = field(default_factory=dict)
     null: np.ndarray = field(default_factory=lambda: np.empty(0))
 
+    @property
+    def floor(self) -> float:
+        """The distance's floor at these row counts: the median of the permutation null, what a
+        model tree drawn from the same distribution as the data tree would score with the
+        model's and the data's numbers of rows (sampling noise alone; nan without draws). A
+        distance near its floor cannot be brought down by a better model, only by more rows."""
+        return float(np.median(self.null)) if self.null.size else math.nan
+
     def summary(self) -> str:
         verdict = "distinguishable" if self.distinguishable else "not distinguishable"
         return (
             f"p = {self.p_value:.4f} ({self.draws} draws, SE {self.se:.4f}, CV {self.cv:.3f}); "
-            f"D0 = {self.d0:.4f}; {verdict} at alpha = {self.alpha}"
+            f"D0 = {self.d0:.4f}; floor {self.floor:.4f} (the null's median: a tree of the data's own "
+            f"distribution with these row counts); {verdict} at alpha = {self.alpha}"
         )
 
 

@@ -269,3 +269,47 @@ def test_the_broadleaved_table_keeps_the_rows_of_trees_not_fitted_again():
     assert lines.index(tf1[0]) < lines.index(next(x for x in lines if x.startswith("| pine_ruotsinkyla_1 |")))
     assert "The rows of pine_ruotsinkyla_1 are kept from an earlier run" in text
     assert "wytham_tf1 1.250 (2 run seeds); pine_ruotsinkyla_1 1.200 (2 run seeds)." in text
+
+
+def test_the_broadleaved_floor_table_sets_each_judge_beside_its_floor_and_is_kept_apart():
+    """``--floor`` rows: the clones' judge, floor and p, the neighbours' judge (the limit) and
+    floor, and the room between the limit and the clones' floor; a tree not fitted again keeps
+    its floor rows in the floor table, not in the main one."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "real" / "run_broadleaved.py"
+    spec = importlib.util.spec_from_file_location("run_broadleaved", path)
+    rb = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rb)
+
+    def row(tree, judge, floor=None):
+        r = {
+            "tree": tree,
+            "seed": 1,
+            "model": "sot",
+            "fit_seconds": 100.0,
+            "errors": dict.fromkeys(rb.NAMES, 0.01),
+            "judge_clones_median": judge,
+            "judge_neighbours": {"a": 0.2, "b": 0.3},
+            "heldout_distance": 0.1,
+        }
+        if floor is not None:
+            near = {
+                n: {"d0": d, "floor": f, "p": 0.1} for n, d, f in (("a", 0.2, 0.14), ("b", 0.3, 0.16), ("c", 0.4, 0.2))
+            }
+            r["floor"] = {"clones": {"d0": judge, "floor": floor, "p": 0.02, "n": 30, "alike": 4}, "neighbours": near}
+        return r
+
+    section = rb.doc_section({"t5": row("wytham_tf5", 0.222, 0.161), "t2": row("wytham_tf2", 0.2)}, {})
+    lines = section.splitlines()
+    floor_rows = lines[next(i for i, x in enumerate(lines) if x.startswith(rb.FLOOR_HEAD)) :]
+    tf5 = [x for x in floor_rows if x.startswith("| wytham_tf5 |")]
+    # the limit is the neighbours' median judge 0.300, their floor 0.160, the room 0.300 - 0.161
+    assert tf5 == ["| wytham_tf5 | 1 | 0.222 / 0.161 / 0.020 | 4 of 30 | 0.300 / 0.160 | +0.139 |"]
+    assert not [x for x in floor_rows if x.startswith("| wytham_tf2 |")]  # a fit without --floor
+    kept = rb.old_rows(section)
+    assert kept["wytham_tf5"]["floor_rows"] == tf5 and len(kept["wytham_tf5"]["rows"]) == 1
+    text = rb.doc_section({"t2": row("wytham_tf2", 0.19)}, {}, kept).splitlines()
+    assert text.count(tf5[0]) == 1 and text.index(tf5[0]) > next(
+        i for i, x in enumerate(text) if x.startswith(rb.FLOOR_HEAD)
+    )

@@ -16,7 +16,10 @@ Usage (from the repository root; the trees are read from ../shared/data/qsm)::
 Finished fits are kept in ``OUT/broadleaved.json`` and not refitted (``--again`` refits them).
 ``--figures`` draws each tree beside 5 of its clones at one scale into
 ``docs/img/validation/broadleaved_<tree>.png``; ``--doc`` rewrites the "Broadleaved trees"
-section of ``docs/validation.md``.
+section of ``docs/validation.md``. ``--floor`` runs the judge's permutation test on every clone
+and neighbour of each kept fit: beside each judge distance its floor, the distance a tree of the
+data tree's own distribution would score with the same numbers of rows (sampling noise alone),
+so a miss shows whether a better model could close it.
 """
 
 from __future__ import annotations
@@ -38,10 +41,12 @@ from run_fidelity import (  # noqa: E402  (the same judge, limits and fresh seed
     ACCEPT,
     DATA,
     DOC,
+    FLOOR_DRAWS,
     add_fresh,
     fit_and_judge,
     fresh_value,
     judge_distance,
+    judge_test,
     size_misses,
     spread,
 )
@@ -107,6 +112,52 @@ def run_one(tree: str, seed: int, out: Path, n_clones: int, model: str | None = 
     }
 
 
+def add_floor(results: dict, result_path: Path) -> None:
+    """The judge's permutation test (``judge_test``) of every clone and every neighbour of each
+    fit with a run folder and no ``floor`` yet; each row's medians are saved as they come."""
+    near: dict = {}
+    for key, r in results.items():
+        summary = Path(r.get("run") or "") / "clones" / "summary.json"
+        if r.get("floor") or not r.get("run") or not summary.is_file():
+            continue
+        target = bf.read_qsm(path_of(r["tree"]))
+        if r["tree"] not in near:
+            near[r["tree"]] = {n: judge_test(bf.read_qsm(path_of(n)), target) for n in neighbours(r["tree"])}
+        rows = json.loads(summary.read_text())["rows"]
+        tests = [judge_test(bf.read_qsm(summary.parent / c["file"]), target) for c in rows if c["status"] == "ok"]
+        r["floor"] = {
+            "clones": {k: float(np.median([t[k] for t in tests])) for k in ("d0", "floor", "p")}
+            | {"n": len(tests), "alike": sum(t["p"] >= ALPHA for t in tests)},
+            "neighbours": near[r["tree"]],
+        }
+        result_path.write_text(json.dumps(results, indent=2))
+        c = r["floor"]["clones"]
+        print(
+            f"{key}: clones' judge {c['d0']:.3f}, floor {c['floor']:.3f}, p {c['p']:.3f} (medians of {c['n']}; "
+            f"{c['alike']} not distinguishable); neighbours' floor "
+            f"{np.median([v['floor'] for v in near[r['tree']].values()]):.3f}",
+            flush=True,
+        )
+
+
+#: a clone the judge's permutation test cannot tell from the tree: p at or above this
+ALPHA = 0.05
+
+
+def floor_row(r: dict) -> str:
+    """One fit's row of the floor table."""
+    c, near = r["floor"]["clones"], r["floor"]["neighbours"]
+    limit = float(np.median([v["d0"] for v in near.values()]))
+    nfloor = float(np.median([v["floor"] for v in near.values()]))
+    return (
+        f"| {r['tree']} | {r['seed']} | {c['d0']:.3f} / {c['floor']:.3f} / {c['p']:.3f} | {c['alike']} of {c['n']} | "
+        f"{limit:.3f} / {nfloor:.3f} | {limit - c['floor']:+.3f} |"
+    )
+
+
+FLOOR_HEAD = "The judge beside its floor"
+
+
 def verdict(row: dict) -> str:
     bad = size_misses(row["errors"], limits(row["tree"]), NAMES)
     near = float(np.median(list(row["judge_neighbours"].values())))
@@ -170,6 +221,25 @@ def doc_section(results: dict, figures: dict, kept: dict | None = None) -> str:
         )
     L += [line for tree in TREES for line in rows.get(tree, [])]
     L.append("")
+    floors = {t: list(v.get("floor_rows", [])) for t, v in kept.items()}
+    for key in sorted(results, key=lambda k: results[k]["seed"]):
+        if results[key].get("floor"):
+            floors.setdefault(results[key]["tree"], []).append(floor_row(results[key]))
+    if any(floors.values()):
+        L += [
+            f"{FLOOR_HEAD} (`--floor`: the judge's permutation test, {FLOOR_DRAWS} draws, on every clone and "
+            "neighbour; docs/features-and-distance.md §4.6). The floor is the median of the test's null, the "
+            "distance a tree drawn from the data tree's own distribution would score with the same numbers "
+            "of rows: sampling noise alone, which no model can go below. A judge near its floor cannot be "
+            "brought down by a better model; the last column is the room between the clones' floor and the "
+            "limit.",
+            "",
+            "| tree | run seed | clones: judge / floor / p (medians) | clones not distinguishable (p ≥ 0.05) | "
+            "neighbours: judge (the limit) / floor (medians) | limit − clones' floor |",
+            "|---|---|---|---|---|---|",
+        ]
+        L += [line for tree in TREES for line in floors.get(tree, [])]
+        L.append("")
     if kept:
         L += [
             f"The rows of {', '.join(t for t in TREES if t in kept)} are kept from an earlier run of "
@@ -206,12 +276,17 @@ SPREAD_HEAD = "Held-out distance of the answer over run seeds, max/min"
 
 
 def old_rows(section: str) -> dict:
-    """Tree -> {"rows": its table rows, "spread": its held-out spread entry} as a section has them."""
+    """Tree -> {"rows": its table rows, "floor_rows": its rows of the floor table, "spread": its
+    held-out spread entry} as a section has them."""
     kept: dict = {}
+    table = "rows"
     for line in section.splitlines():
         cells = line.split(" | ")
+        if line.startswith(FLOOR_HEAD):
+            table = "floor_rows"
         if line.startswith("| ") and cells[0][2:] in TREES:
-            kept.setdefault(cells[0][2:], {"rows": [], "spread": None})["rows"].append(line)
+            entry = kept.setdefault(cells[0][2:], {"rows": [], "floor_rows": [], "spread": None})
+            entry[table].append(line)
         if line.startswith(SPREAD_HEAD):
             for entry in line.split("): ", 1)[1].rstrip(".").split("; "):
                 if entry.split(" ")[0] in kept:
@@ -255,6 +330,11 @@ def main(argv=None) -> int:
         help="the growth model init writes the recipe for (bforest init --model; default: the one init picks)",
     )
     ap.add_argument("--again", action="store_true", help="refit fits already in OUT/broadleaved.json")
+    ap.add_argument(
+        "--floor",
+        action="store_true",
+        help="the judge's permutation test on every clone and neighbour of each kept fit: each judge beside its floor",
+    )
     ap.add_argument("--figures", action="store_true", help="each tree beside 5 clones (docs/img/validation/)")
     ap.add_argument("--doc", action="store_true", help="rewrite the Broadleaved trees section of docs/validation.md")
     ap.add_argument(
@@ -289,6 +369,8 @@ def main(argv=None) -> int:
         add_fresh(results, args.fresh, result_path)
         for tree, (ratio, n) in spread(results, fresh_value, key=lambda r: r["tree"]).items():
             print(f"{tree}: on {args.fresh} fresh seed sets, max/min {ratio:.3f} over {n} run seeds")
+    if args.floor:
+        add_floor(results, result_path)
     figures = {}
     if args.figures:
         for r in results.values():

@@ -77,12 +77,31 @@ def judge():
     return fs, dist
 
 
-def judge_distance(tree_model, tree_data) -> float:
+def _judged(tree_model, tree_data):
+    """The judge's distance and the two trees' tables, normalised on the data tree."""
     fs, dist = judge()
     fs.prepare([tree_data])
     Ud = fs.extract(tree_data)
     dist.prepare(Ud, {k: fs.columns(k) for k in fs.set_names})
-    return float(dist.compute_sets(fs.extract(tree_model), Ud))
+    return dist, fs.extract(tree_model), Ud
+
+
+def judge_distance(tree_model, tree_data) -> float:
+    dist, Um, Ud = _judged(tree_model, tree_data)
+    return float(dist.compute_sets(Um, Ud))
+
+
+#: permutation draws of :func:`judge_test` (fixed, so every floor has the same resolution)
+FLOOR_DRAWS = 200
+
+
+def judge_test(tree_model, tree_data, seed: int = 1) -> dict:
+    """The judge's permutation test of one tree against the data tree (docs/features-and-distance.md
+    §4.6): its distance ``d0``, the ``floor`` (the median of the null: what a tree of the data
+    tree's own distribution with the model tree's rows would score) and the p-value ``p``."""
+    dist, Um, Ud = _judged(tree_model, tree_data)
+    r = dist.permutation_test(Um, Ud, seed=seed, max_draws=FLOOR_DRAWS, min_draws=FLOOR_DRAWS)
+    return {"d0": float(r.d0), "floor": r.floor, "p": float(r.p_value)}
 
 
 def recipe_for(recipe: Path, pine: Path, out: Path, seed: int) -> Path:

@@ -11,7 +11,7 @@ limits apply (height 7.5 %, DBH 20 %, crown spread 25 %, crown base and first-or
 
 Usage (from the repository root; the trees are read from ../shared/data/qsm)::
 
-    .venv/bin/python examples/real/run_broadleaved.py --out runs/broadleaved [--trees wytham_tf3 ...] [--seeds 1] [--figures] [--doc]
+    .venv/bin/python examples/real/run_broadleaved.py --out runs/broadleaved [--trees wytham_tf3 ...] [--seeds 1] [--floor] [--figures] [--doc]
 
 Finished fits are kept in ``OUT/broadleaved.json`` and not refitted (``--again`` refits them).
 ``--figures`` draws each tree beside 5 of its clones at one scale into
@@ -203,7 +203,7 @@ def doc_section(results: dict, figures: dict, kept: dict | None = None) -> str:
         "wall times on the 2-core machine, shared with other work when these runs were made.",
         "",
         "```",
-        ".venv/bin/python examples/real/run_broadleaved.py --out runs/broadleaved --figures --doc",
+        ".venv/bin/python examples/real/run_broadleaved.py --out runs/broadleaved --floor --figures --doc",
         "```",
         "",
         head,

@@ -293,7 +293,8 @@ def test_the_broadleaved_floor_table_sets_each_judge_beside_its_floor_and_is_kep
             "judge_neighbours": {"a": 0.2, "b": 0.3},
             "heldout_distance": 0.1,
         }
-        if floor is not None:
+        if floor is not None:  # the judge's limit is the neighbours' median distance, as the test has it
+            r["judge_neighbours"] = {"a": 0.2, "b": 0.3, "c": 0.4}
             near = {
                 n: {"d0": d, "floor": f, "p": 0.1} for n, d, f in (("a", 0.2, 0.14), ("b", 0.3, 0.16), ("c", 0.4, 0.2))
             }

@@ -117,17 +117,15 @@ def add_floor(results: dict, result_path: Path) -> None:
     fit with a run folder and no ``floor`` yet; each row's medians are saved as they come."""
     near: dict = {}
     for key, r in results.items():
-        summary = Path(r.get("run") or "") / "clones" / "summary.json"
-        if r.get("floor") or not r.get("run") or not summary.is_file():
+        if r.get("floor") or not r.get("run") or not (Path(r["run"]) / "clones" / "summary.json").is_file():
             continue
         target = bf.read_qsm(path_of(r["tree"]))
         if r["tree"] not in near:
             near[r["tree"]] = {n: judge_test(bf.read_qsm(path_of(n)), target) for n in neighbours(r["tree"])}
-        rows = json.loads(summary.read_text())["rows"]
-        tests = [judge_test(bf.read_qsm(summary.parent / c["file"]), target) for c in rows if c["status"] == "ok"]
+        tests = [judge_test(t, target) for t in clone_trees(Path(r["run"]))]
         r["floor"] = {
             "clones": {k: float(np.median([t[k] for t in tests])) for k in ("d0", "floor", "p")}
-            | {"n": len(tests), "alike": sum(t["p"] >= ALPHA for t in tests)},
+            | {"n": len(tests), "alike": sum(not t["distinguishable"] for t in tests)},
             "neighbours": near[r["tree"]],
         }
         result_path.write_text(json.dumps(results, indent=2))
@@ -140,14 +138,10 @@ def add_floor(results: dict, result_path: Path) -> None:
         )
 
 
-#: a clone the judge's permutation test cannot tell from the tree: p at or above this
-ALPHA = 0.05
-
-
 def floor_row(r: dict) -> str:
     """One fit's row of the floor table."""
     c, near = r["floor"]["clones"], r["floor"]["neighbours"]
-    limit = float(np.median([v["d0"] for v in near.values()]))
+    limit = judge_limit(r)
     nfloor = float(np.median([v["floor"] for v in near.values()]))
     return (
         f"| {r['tree']} | {r['seed']} | {c['d0']:.3f} / {c['floor']:.3f} / {c['p']:.3f} | {c['alike']} of {c['n']} | "
@@ -158,18 +152,27 @@ def floor_row(r: dict) -> str:
 FLOOR_HEAD = "The judge beside its floor"
 
 
+def judge_limit(row: dict) -> float:
+    """The judge's limit for a fit: the median distance from its tree to the neighbours."""
+    return float(np.median(list(row["judge_neighbours"].values())))
+
+
 def verdict(row: dict) -> str:
     bad = size_misses(row["errors"], limits(row["tree"]), NAMES)
-    near = float(np.median(list(row["judge_neighbours"].values())))
+    near = judge_limit(row)
     if row["judge_clones_median"] is None or row["judge_clones_median"] > near:
         bad.append(f"judge {row['judge_clones_median']:.3f} > neighbours {near:.3f}")
     return "meets the limits" if not bad else "misses: " + ", ".join(bad)
 
 
-def figure(row: dict) -> str:
-    run = Path(row["run"])
+def clone_trees(run: Path) -> list:
+    """The clones of a run folder that grew (``bforest clones``' summary.json), in its order."""
     summary = json.loads((run / "clones" / "summary.json").read_text())
-    trees = [bf.read_qsm(run / "clones" / r["file"]) for r in summary["rows"] if r["status"] == "ok"][:5]
+    return [bf.read_qsm(run / "clones" / r["file"]) for r in summary["rows"] if r["status"] == "ok"]
+
+
+def figure(row: dict) -> str:
+    trees = clone_trees(Path(row["run"]))[:5]
     name = f"img/validation/broadleaved_{row['tree']}.png"
     clones_figure(
         bf.read_qsm(path_of(row["tree"])),
@@ -213,7 +216,7 @@ def doc_section(results: dict, figures: dict, kept: dict | None = None) -> str:
     for key in sorted(results, key=lambda k: results[k]["seed"]):
         r = results[key]
         errs = " | ".join("–" if r["errors"].get(n) is None else f"{100 * r['errors'][n]:+.1f} %" for n in NAMES)
-        near = float(np.median(list(r["judge_neighbours"].values())))
+        near = judge_limit(r)
         judge = "–" if r["judge_clones_median"] is None else f"{r['judge_clones_median']:.3f}"
         rows.setdefault(r["tree"], []).append(
             f"| {r['tree']} | {r['model']} | {r['seed']} | {r['fit_seconds']:.0f} s | {errs} | {judge} | "

@@ -98,10 +98,11 @@ FLOOR_DRAWS = 200
 def judge_test(tree_model, tree_data, seed: int = 1) -> dict:
     """The judge's permutation test of one tree against the data tree (docs/features-and-distance.md
     §4.6): its distance ``d0``, the ``floor`` (the median of the null: what a tree of the data
-    tree's own distribution with the model tree's rows would score) and the p-value ``p``."""
+    tree's own distribution with the model tree's rows would score), the p-value ``p`` and the
+    test's verdict ``distinguishable`` (p below its alpha, 0.05)."""
     dist, Um, Ud = _judged(tree_model, tree_data)
     r = dist.permutation_test(Um, Ud, seed=seed, max_draws=FLOOR_DRAWS, min_draws=FLOOR_DRAWS)
-    return {"d0": float(r.d0), "floor": r.floor, "p": float(r.p_value)}
+    return {"d0": float(r.d0), "floor": r.floor, "p": float(r.p_value), "distinguishable": bool(r.distinguishable)}
 
 
 def recipe_for(recipe: Path, pine: Path, out: Path, seed: int) -> Path:

@@ -118,6 +118,7 @@ def test_parameter_table_complete():
         "prune_tips",
         "vigor_sd",
         "relay_angle",
+        "stem_guide",
     }  # stand_shade and the ones after it are additions, off by default
     assert set(names) == expected and len(names) == len(expected)
     by = {p.name: p for p in PARAMETERS}
@@ -732,8 +733,9 @@ def test_growth_forms_off_leave_the_papers_tree_as_it_was(seed):
         "stem_death": 1.0,
         "vigor_sd": 0.0,
         "relay_angle": 1.0,
+        "stem_guide": 0.0,
     }
-    for ssm_, params in [(SOT(), {}), (SOT(buds_per_node=1), off)]:
+    for ssm_, params in [(SOT(), {}), (SOT(buds_per_node=1, stem_path=[[0, 0, 0], [5, 0, 5]]), off)]:
         assert _digest(ssm_.simulate({"max_iter": 14, **params}, seed)) == DEFAULT_TREES[seed]
 
 
@@ -960,6 +962,43 @@ def test_relay_shoots_take_over_a_lost_leader_at_a_share_of_the_branch_angle(bpn
     assert _same_tree(ssm.simulate(p, 1), ssm.simulate({**p, "relay_angle": 1.0}, 1))
     with pytest.raises(ValueError, match="relay_angle"):
         ssm.simulate({**p, "relay_angle": 1.5}, 1)
+
+
+@pytest.mark.parametrize("bpn", [1, 2])
+def test_stem_guide_grows_the_stem_along_the_measured_path(bpn):
+    # the path rises 1.5 m, leans 45 deg towards +x for 1 m and stands up again; with no
+    # light-seeking or tropism the stem (the growth topology's order 0) runs on it: each cycle's
+    # shoot heads for the path's point one shoot length beyond its arc length, so it cuts the
+    # bend's corner by less than a shoot's length and its end sits on the path at its own length
+    path = [[0, 0, 0], [0, 0, 1.5], [1, 0, 2.5], [1, 0, 30]]
+    arc = np.r_[0.0, 1.5, 1.5 + np.sqrt(2.0), 29.0 + np.sqrt(2.0)]
+    along = np.asarray(path, float)
+    dense = np.stack([np.interp(np.linspace(0, arc[-1], 5000), arc, along[:, k]) for k in range(3)], 1)
+    ssm = SOT(buds_per_node=bpn, stem_path=path)
+    p = {**HAND, "max_iter": 12}
+
+    def stem(t):
+        c = np.flatnonzero(t.order == 0)
+        ends, length = t.end[c], t.length[c].sum()
+        on_path = np.array([np.interp(length, arc, along[:, k]) for k in range(3)])
+        off = np.min(np.linalg.norm(ends[:, None, :] - dense[None], axis=2), axis=1).max()
+        return ends, length, np.linalg.norm(ends[-1] - on_path), off
+
+    ends, length, _, off = stem(ssm.simulate(p, 1))
+    assert np.allclose(ends[:, :2], 0.0) and off == pytest.approx(1.0, abs=1e-3)  # the papers' model: straight up
+    assert length > 3.5  # the stem goes past the bend
+    ends, length2, end_off, off = stem(ssm.simulate({**p, "stem_guide": 1.0}, 1))
+    assert length2 == pytest.approx(length, rel=0.05)  # the guide turns the stem; its growth stays
+    assert end_off < 0.1 and off < 0.12  # on the path, within 12 cm of it everywhere
+    assert ends[-1, 0] == pytest.approx(1.0, abs=0.01) and np.allclose(ends[:, 1], 0.0, atol=1e-9)
+    # a share blends the stem's own target with the path's: further from it than the full guide
+    assert off < stem(ssm.simulate({**p, "stem_guide": 0.5}, 1))[3] < 0.5
+    # 0 is the tree without the guide, draw for draw; the guide needs a path; out of range names it
+    assert _same_tree(ssm.simulate(p, 1), SOT(buds_per_node=bpn).simulate({**p, "stem_guide": 0.0}, 1))
+    with pytest.raises(ValueError, match="stem_path"):
+        SOT(buds_per_node=bpn).simulate({**p, "stem_guide": 1.0}, 1)
+    with pytest.raises(ValueError, match="stem_guide"):
+        ssm.simulate({**p, "stem_guide": 1.5}, 1)
 
 
 def _rows(t):

@@ -41,6 +41,8 @@ def _value(v) -> str:
         return f'"{v}"'
     if isinstance(v, float):
         return f"{v:g}" if v != int(v) or abs(v) >= 1e6 else f"{v:.1f}"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
     return str(v)
 
 

@@ -390,6 +390,7 @@ class SOTGrowth:
         max_live_segments: int = 200_000,
         sympodial: bool = False,
         buds_per_node: int = 1,
+        stem_path=(),
         on_step: Callable | None = None,
         record: bool = False,
     ):
@@ -425,6 +426,9 @@ class SOTGrowth:
         # vigor_sd (an addition, B.10): the shoots' cap factors come from a generator of the run's
         # seed and a stream of their own, so the growth's other draws stay as they are
         self.vig_rng = _own_stream(seed, VIGOR_STREAM) if p["vigor_sd"] > 0.0 else None
+        # stem_guide (an addition, B.10): the path the stem's shoots follow, by arc length
+        self.guide = _Guide(stem_path) if p["stem_guide"] > 0.0 else None
+        self.stem_arc = 0.0  # length of the stem (order 0) grown so far
         self.age = 0.0
         self.cycle = 0
         self.lam = float(p["init_lambda"])
@@ -449,6 +453,7 @@ class SOTGrowth:
         s.api_child[0] = s.lat_child[0] = -1
         s.vcap[0] = s.lat_vcap[0] = 1.0
         s.n = 1
+        self.stem_arc = float(p["node_length"])
         if self.buds_per_node > 1:
             s.reserve(self.buds_per_node)
             last = self._add_bud_nodes(
@@ -739,6 +744,15 @@ class SOTGrowth:
             * p["node_length"]
         )
         order = s.order[bearing] + lateral
+        stem = np.flatnonzero(order == 0) if self.guide is not None else np.empty(0, np.int64)
+        if stem.size:
+            # stem_guide (an addition, B.10): the stem's shoot heads for the point of the path one
+            # shoot length beyond the stem's arc length, blended with its own target by stem_guide
+            w = p["stem_guide"]
+            g = self.guide.at(self.stem_arc + planned[stem] * seg_len[stem]) - pos[stem]
+            g = (1.0 - w) * that[stem] + w * g / np.maximum(_norm(g), 1e-12)[:, None]
+            that[stem] = g / np.maximum(_norm(g), 1e-12)[:, None]
+            tau[stem] = (1.0 - w) * tau[stem] + w
         last = np.full(m, -1, dtype=np.int64)
         built = np.zeros(m, dtype=np.int64)
         first = np.full(m, -1, dtype=np.int64)
@@ -810,6 +824,8 @@ class SOTGrowth:
             if self.buds_per_node > 1:
                 last[act] = self._add_bud_nodes(c, nid, pos[act], ha, ua, order[act], axis_cap[act])
         self._draw_caps(lo)
+        if stem.size:
+            self.stem_arc += float((built[stem] * seg_len[stem]).sum())
         tips = last[last >= 0]
         s.api_state[tips] = BUD
         if short.any():  # a short shoot's metamer and its bud nodes never grow on
@@ -948,6 +964,28 @@ class StepView:
 
 #: the stream of the shoots' cap factors (vigor_sd): a generator of its own, as the stubs'
 VIGOR_STREAM = 0x716
+
+
+class _Guide:
+    """A polyline (points from the stem base, base first) read by arc length: :meth:`at` gives the
+    point at each arc length, on the line through the last two points beyond the end."""
+
+    def __init__(self, points):
+        pts = np.asarray(points, dtype=float).reshape(-1, 3)
+        step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        keep = np.r_[True, step > 1e-9]  # repeated points carry no direction
+        self.pts = pts[keep]
+        self.arc = np.r_[0.0, np.cumsum(step[step > 1e-9])]
+        if self.arc.size < 2:
+            raise ValueError("stem_path needs two distinct points")
+        d = self.pts[-1] - self.pts[-2]
+        self.end_dir = d / np.linalg.norm(d)
+
+    def at(self, a: np.ndarray) -> np.ndarray:
+        a = np.asarray(a, dtype=float)
+        out = np.stack([np.interp(a, self.arc, self.pts[:, k]) for k in range(3)], axis=-1)
+        beyond = np.maximum(a - self.arc[-1], 0.0)
+        return out + beyond[..., None] * self.end_dir
 
 
 def _own_stream(seed, key: int) -> np.random.Generator:

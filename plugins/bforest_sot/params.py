@@ -115,6 +115,19 @@ PARAMETERS: list[ParameterSpec] = [
         "stays downwards; 0 = upright (the papers' model)",
         "II",
     ),
+    P(
+        "stem_guide",
+        0.0,
+        0.0,
+        1.0,
+        False,
+        "",
+        "an addition: how far the stem's (order 0) shoots are steered along the setting stem_path, the "
+        "stem of the measured tree (a guide curve, as TreeSketch guides the self-organizing tree): each "
+        "cycle's stem shoot heads for the point of the path one shoot length beyond its own arc length; "
+        "1 = the stem follows the path, 0 = the papers' model (the path unused)",
+        "II",
+    ),
     # ---- III: apical dominance
     P("init_lambda", 0.65, 0.35, 0.9, False, "", "apical control lambda up to `delay` cycles", "III"),
     P("targ_lambda", 0.51, 0.35, 0.9, False, "", "apical control lambda after delay + transition", "III"),
@@ -290,6 +303,7 @@ def validate(p: Mapping[str, float]) -> None:
     need(p["gap_shade"] >= 0, "gap_shade", ">= 0")
     need(0 <= p["gap_lean"] < 90, "gap_lean", "in [0, 90) degrees")
     need(0 <= p["stem_death"] <= 1, "stem_death", "in [0, 1]")
+    need(0 <= p["stem_guide"] <= 1, "stem_guide", "in [0, 1]")
     need(0 <= p["shed_stub"] <= 1, "shed_stub", "in [0, 1]")
     need(p["prune_tips"] >= 0, "prune_tips", ">= 0")
     need(p["vigor_sd"] >= 0, "vigor_sd", ">= 0 (a standard deviation)")

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any, Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from bforest_core.errors import SimulationFailed
 from bforest_core.hookspecs import hookimpl
@@ -45,6 +45,21 @@ class SOTSettings(ComponentSettings):
             "3 or more = a whorl; see docs/growth-forms.md"
         ),
     )
+    stem_path: list[tuple[float, float, float]] = Field(
+        default_factory=list,
+        description=(
+            "an addition to the papers' model: the stem of the measured tree as points (x, y, z) in m from "
+            "its base, base first, which the stem's shoots follow as far as the parameter stem_guide says "
+            "(`bforest init` writes the QSM's main path here); empty = no guide; see docs/growth-forms.md"
+        ),
+    )
+
+    @field_validator("stem_path")
+    @classmethod
+    def _path(cls, v):
+        if v and len(v) < 2:
+            raise ValueError(f"stem_path needs at least 2 points (base first), got {len(v)}")
+        return v
 
 
 class SOT(SSM):
@@ -63,6 +78,7 @@ class SOT(SSM):
     max_live_segments : int (200 000)
     sympodial : bool (False)
     buds_per_node : int (1)
+    stem_path : list of (x, y, z) (empty)
     """
 
     name = "sot"
@@ -115,12 +131,18 @@ class SOT(SSM):
         validate(p)
         seed = int(seed)
         st = self.settings
+        if p["stem_guide"] > 0.0 and not st.stem_path:
+            raise ValueError(
+                f"invalid SOT parameter 'stem_guide' = {p['stem_guide']!r}: needs the setting stem_path "
+                "(the stem to follow; `bforest init` writes it), or 0"
+            )
         run = SOTGrowth(
             p,
             seed,
             max_live_segments=st.max_live_segments,
             sympodial=st.sympodial,
             buds_per_node=st.buds_per_node,
+            stem_path=st.stem_path,
             on_step=on_step,
         )
         run.settings = st

@@ -241,6 +241,22 @@ def test_init_measures_how_far_the_stem_leans(tmp_path):
     assert "the stem's upper half leans 30 deg" in r.text
     assert "gap_lean" not in cfg["ssm"]["free"]  # an option init does not write (docs/growth-forms.md)
     assert measure_tree(excurrent_tree(side=120.0)).stem_lean == pytest.approx(0.0)
+    # a stem leaning 10 deg or more: the clones' stem follows the tree's, 5 m up and 6 m along the
+    # bend (a point every 0.5 m); an excurrent crown has no dying leaders, so no stem_death
+    path = [(0.0, 0.0, 0.5 * k) for k in range(10)] + [
+        (
+            0.5 * k * math.sin(math.radians(30)) * math.cos(math.radians(120)),
+            0.5 * k * math.sin(math.radians(30)) * math.sin(math.radians(120)),
+            5.0 + 0.5 * k * math.cos(math.radians(30)),
+        )
+        for k in range(13)
+    ]
+    assert np.allclose(cfg["ssm"]["stem_path"], path, atol=0.005)
+    assert cfg["ssm"]["fixed"]["stem_guide"] == 1.0 and "stem_death" not in cfg["ssm"]["fixed"]
+    assert "leans 30 deg" in (tmp_path / "bent.toml").read_text()
+    # an upright stem gets no guide
+    r, cfg = _recipe(tmp_path, excurrent_tree(side=120.0), "upright", model="sot")
+    assert "stem_path" not in cfg["ssm"] and "stem_guide" not in cfg["ssm"].get("fixed", {})
 
 
 def test_init_lets_sot_buds_leave_below_the_horizontal_where_the_branches_do(tmp_path):
@@ -289,6 +305,17 @@ def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp
     assert cfg["optimizer"]["starts"] == 2
     text = (tmp_path / "maple.toml").read_text()
     assert "decurrent" in text and "Not lignum" in text
+    # its stem leans 30 deg (the thickest child at the fork is a limb): the clones' stem follows the
+    # tree's main path (the judge's subtree rule): the 3 m bole, then the first of the three equal
+    # limbs (a tie goes to the earlier row), 6 m at 30 deg towards +x, a point every 0.5 m; the
+    # stem's leader lives, the path holding the tree's fork
+    limb = [
+        (0.5 * k * math.sin(math.radians(30)), 0.0, 3.0 + 0.5 * k * math.cos(math.radians(30))) for k in range(1, 13)
+    ]
+    path = [(0.0, 0.0, 0.5 * k) for k in range(7)] + limb
+    assert np.allclose(s["stem_path"], path, atol=0.005)
+    assert s["fixed"]["stem_guide"] == 1.0 and s["fixed"]["stem_death"] == 0.0
+    assert "9.0 m along" in text
     bf.load_config(tmp_path / "maple.toml")
 
 

@@ -625,13 +625,11 @@ class TreeMeasures:
     stem_lean : float
         Angle (deg) from the vertical of the chord of the stem's upper half, from the stem at
         half the tree's height to its highest point: a stem that bends over into a gap.
-    main_path : tuple of (x, y, z)
-        The stem under the subtree rule (the judge's: docs/features-and-distance.md §1.1), from
-        its base, as points (m) relative to the base: the start of each cylinder on the path, kept
-        where it lies at least :data:`PATH_STEP` further along the path than the last one kept,
-        and the path's end. A child leaves its parent cylinder part way along it, so the path
-        runs from the parent's start to the child's start.
-    main_path_length : float
+    stem_path : tuple of (x, y, z)
+        The stem as the tree has it (its branch 0: a QSM's own stem), from its base, as points (m)
+        relative to the base: the start of each stem cylinder, kept where it lies at least
+        :data:`PATH_STEP` further along the stem than the last one kept, and the stem's end.
+    stem_length : float
         Length (m) of that polyline.
     """
 
@@ -654,8 +652,8 @@ class TreeMeasures:
     crown_offset: float
     crown_azimuth: float
     stem_lean: float
-    main_path: tuple = ()
-    main_path_length: float = 0.0
+    stem_path: tuple = ()
+    stem_length: float = 0.0
 
     @property
     def decurrent(self) -> bool:
@@ -721,7 +719,7 @@ def measure_tree(tree) -> TreeMeasures:
     centre = np.zeros(2)
     if w.sum() > 0:
         centre = (mid[crown, :2] * w[:, None]).sum(0) / w.sum() - tree.start[0, :2]
-    path = main_path(tree)
+    path = stem_points(tree)
     return TreeMeasures(
         height=h,
         dbh=s["dbh"],
@@ -742,20 +740,19 @@ def measure_tree(tree) -> TreeMeasures:
         crown_offset=float(np.hypot(*centre)),
         crown_azimuth=float(np.degrees(np.arctan2(centre[1], centre[0]))),
         stem_lean=float(np.degrees(np.arctan2(np.hypot(chord[0], chord[1]), chord[2]))),
-        main_path=tuple(tuple(round(float(c), 2) for c in q) for q in path),
-        main_path_length=float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum()),
+        stem_path=tuple(tuple(round(float(c), 2) for c in q) for q in path),
+        stem_length=float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum()),
     )
 
 
-#: spacing (m) of the points kept of a main path (:func:`main_path`)
+#: spacing (m) of the points kept of a stem (:func:`stem_points`)
 PATH_STEP = 0.5
 
 
-def main_path(tree) -> np.ndarray:
-    """Return the stem under the subtree rule as points from its base (``TreeMeasures.main_path``)."""
-    t = tree.with_topology("subtree")
-    cyl = np.flatnonzero(t.order == 0)  # in row order, so base first
-    pts = np.vstack([t.start[cyl], t.end[cyl[-1]]]) - t.start[0]
+def stem_points(tree) -> np.ndarray:
+    """Return the tree's stem as points from its base (see ``TreeMeasures.stem_path``)."""
+    cyl = np.flatnonzero(tree.order == 0)  # in row order, so base first
+    pts = np.vstack([tree.start[cyl], tree.end[cyl[-1]]]) - tree.start[0]
     arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))]
     keep = [0]
     for i in range(1, len(pts) - 1):

@@ -305,10 +305,10 @@ def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp
     assert cfg["optimizer"]["starts"] == 2
     text = (tmp_path / "maple.toml").read_text()
     assert "decurrent" in text and "Not lignum" in text
-    # its stem leans 30 deg (the thickest child at the fork is a limb): the clones' stem follows the
-    # tree's main path (the judge's subtree rule): the 3 m bole, then the first of the three equal
-    # limbs (a tie goes to the earlier row), 6 m at 30 deg towards +x, a point every 0.5 m; the
-    # stem's leader lives, the path holding the tree's fork
+    # its stem leans 30 deg (at the fork the thickest child is a limb): the clones' stem follows the
+    # tree's: the 3 m bole, then the first of the three equal limbs (a tie goes to the earlier row),
+    # 6 m at 30 deg towards +x, a point every 0.5 m; the stem's leader lives, the path holding the
+    # tree's fork
     limb = [
         (0.5 * k * math.sin(math.radians(30)), 0.0, 3.0 + 0.5 * k * math.cos(math.radians(30))) for k in range(1, 13)
     ]

@@ -50,7 +50,7 @@ class SOTSettings(ComponentSettings):
         description=(
             "an addition to the papers' model: the stem of the measured tree as points (x, y, z) in m from "
             "its base, base first, which the stem's shoots follow as far as the parameter stem_guide says "
-            "(`bforest init` writes the QSM's main path here); empty = no guide; see docs/growth-forms.md"
+            "(`bforest init` writes a leaning QSM stem here); empty = no guide; see docs/growth-forms.md"
         ),
     )
 

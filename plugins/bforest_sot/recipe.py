@@ -180,9 +180,9 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         settings.append(
             (
                 "stem_path",
-                [list(q) for q in m.main_path],
-                f"the tree's stem, which leans {m.stem_lean:.0f} deg, under the judge's subtree rule "
-                f"({m.main_path_length:.1f} m along; points from its base, m): the clones' stem follows it",
+                [list(q) for q in m.stem_path],
+                f"the tree's stem, which leans {m.stem_lean:.0f} deg ({m.stem_length:.1f} m along; "
+                "points from its base, m): the clones' stem follows it",
             )
         )
         fixed.append(("stem_guide", 1.0, "the stem grows along stem_path, as this tree's stem grew"))

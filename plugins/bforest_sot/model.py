@@ -975,9 +975,7 @@ class _Guide:
         step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
         keep = np.r_[True, step > 1e-9]  # repeated points carry no direction
         self.pts = pts[keep]
-        self.arc = np.r_[0.0, np.cumsum(step[step > 1e-9])]
-        if self.arc.size < 2:
-            raise ValueError("stem_path needs two distinct points")
+        self.arc = np.r_[0.0, np.cumsum(step[step > 1e-9])]  # two distinct points at least (the settings' check)
         d = self.pts[-1] - self.pts[-2]
         self.end_dir = d / np.linalg.norm(d)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any, Literal
 
+import numpy as np
 from pydantic import Field, field_validator
 
 from bforest_core.errors import SimulationFailed
@@ -57,8 +58,13 @@ class SOTSettings(ComponentSettings):
     @field_validator("stem_path")
     @classmethod
     def _path(cls, v):
-        if v and len(v) < 2:
-            raise ValueError(f"stem_path needs at least 2 points (base first), got {len(v)}")
+        if not v:
+            return v
+        pts = np.asarray(v, dtype=float)
+        if not np.isfinite(pts).all():
+            raise ValueError(f"stem_path point {int(np.flatnonzero(~np.isfinite(pts).all(1))[0])} is not finite")
+        if len(v) < 2 or not (np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1e-9).any():
+            raise ValueError(f"stem_path needs at least 2 distinct points (base first), got {len(v)}")
         return v
 
 

@@ -427,7 +427,7 @@ class SOTGrowth:
         # seed and a stream of their own, so the growth's other draws stay as they are
         self.vig_rng = _own_stream(seed, VIGOR_STREAM) if p["vigor_sd"] > 0.0 else None
         # stem_guide (an addition, B.10): the path the stem's shoots follow, by arc length
-        self.guide = _Guide(stem_path) if p["stem_guide"] > 0.0 else None
+        self.guide = _Guide(stem_path) if p["stem_guide"] > 0.0 and len(stem_path) else None
         self.stem_arc = 0.0  # length of the stem (order 0) grown so far
         self.age = 0.0
         self.cycle = 0

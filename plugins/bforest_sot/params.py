@@ -125,7 +125,7 @@ PARAMETERS: list[ParameterSpec] = [
         "an addition: how far the stem's (order 0) shoots are steered along the setting stem_path, the "
         "stem of the measured tree (a guide curve, as TreeSketch grows the self-organizing tree along strokes): each "
         "cycle's stem shoot heads for the point of the path one shoot length beyond its own arc length; "
-        "1 = the stem follows the path, 0 = the papers' model (the path unused)",
+        "1 = the stem follows the path, 0 (or no stem_path) = the papers' model",
         "II",
     ),
     # ---- III: apical dominance

@@ -137,11 +137,6 @@ class SOT(SSM):
         validate(p)
         seed = int(seed)
         st = self.settings
-        if p["stem_guide"] > 0.0 and not st.stem_path:
-            raise ValueError(
-                f"invalid SOT parameter 'stem_guide' = {p['stem_guide']!r}: needs the setting stem_path "
-                "(the stem to follow; `bforest init` writes it), or 0"
-            )
         run = SOTGrowth(
             p,
             seed,

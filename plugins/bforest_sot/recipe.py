@@ -39,8 +39,8 @@ ONE_SIDED = 1.0 / 3.0
 
 #: a stem whose upper half leans this much (deg) or more has bent over into a gap, a form the
 #: model's light and tropism do not grow (``gap_lean`` tried: docs/validation.md): the clones'
-#: stem follows the tree's (``stem_guide``); wytham_tf5 24, tf2 12, the other broadleaves 3-7,
-#: the pines 1-4
+#: stem follows the tree's (``stem_guide``); wytham_tf5 24, tf2 12, the other Wytham trees 3-7,
+#: the coffeetree 8, the pines 1-4
 LEANING = 10.0
 
 
@@ -175,8 +175,13 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
                 "shade behind the stem, away from the open side (1/m; up to 5 % of the light left one crown radius behind)",
             )
         )
+    notes = []
     if m.stem_lean >= LEANING:
         # a stem bent over into a gap: the clones' stem grows along the tree's (docs/growth-forms.md)
+        notes.append(
+            f"the stem's upper half leans {m.stem_lean:.0f} deg (into a gap?): the clones' stem grows along "
+            "the tree's (stem_path, stem_guide = 1; docs/growth-forms.md), the crown around it is the model's"
+        )
         settings.append(
             (
                 "stem_path",
@@ -188,7 +193,6 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         fixed.append(("stem_guide", 1.0, "the stem grows along stem_path, as this tree's stem grew"))
         if m.decurrent:
             fixed.append(("stem_death", 0.0, "the stem's leader lives: the path already holds the tree's forks"))
-    notes = []
     if m.decurrent:
         settings.append(
             (
@@ -221,11 +225,6 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
             "can grow it, LIGNUM's yearly whorls on a leader fit such a conifer more closely"
         )
         suits = 0.6
-    if m.stem_lean >= LEANING:
-        notes.append(
-            f"the stem's upper half leans {m.stem_lean:.0f} deg (into a gap?): the clones' stem grows along "
-            "the tree's (stem_path, stem_guide = 1; docs/growth-forms.md), the crown around it is the model's"
-        )
     if m.thinnest_branch > 0.012:
         notes.append(
             f"the QSM has no branch thinner than {100 * m.thinnest_branch:.1f} cm (a simplified "

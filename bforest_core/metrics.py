@@ -631,6 +631,9 @@ class TreeMeasures:
         :data:`PATH_STEP` further along the stem than the last one kept, and the stem's end.
     stem_length : float
         Length (m) of that polyline.
+    branch_turn : float
+        Median angle (deg) between the axes of consecutive cylinders of one branch (orders 1 and
+        up): how much the tree's branches wind from cylinder to cylinder.
     """
 
     height: float
@@ -654,6 +657,7 @@ class TreeMeasures:
     stem_lean: float
     stem_path: tuple = ()
     stem_length: float = 0.0
+    branch_turn: float = 0.0
 
     @property
     def decurrent(self) -> bool:
@@ -720,6 +724,10 @@ def measure_tree(tree) -> TreeMeasures:
     if w.sum() > 0:
         centre = (mid[crown, :2] * w[:, None]).sum(0) / w.sum() - tree.start[0, :2]
     path = stem_points(tree)
+    # consecutive cylinders of one branch: the turn between their axes
+    kid = np.flatnonzero((tree.parent >= 0) & (tree.order > 0))
+    kid = kid[tree.branch[tree.parent[kid]] == tree.branch[kid]]
+    turn = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", tree.axis[kid], tree.axis[tree.parent[kid]]), -1, 1)))
     return TreeMeasures(
         height=h,
         dbh=s["dbh"],
@@ -742,6 +750,7 @@ def measure_tree(tree) -> TreeMeasures:
         stem_lean=float(np.degrees(np.arctan2(np.hypot(chord[0], chord[1]), chord[2]))),
         stem_path=tuple(tuple(round(float(c), 2) for c in q) for q in path),
         stem_length=float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum()),
+        branch_turn=float(np.median(turn)) if turn.size else 0.0,
     )
 
 

@@ -269,6 +269,36 @@ def test_init_lets_sot_buds_leave_below_the_horizontal_where_the_branches_do(tmp
     bf.load_config(tmp_path / "weep.toml")  # within the model's range
 
 
+def winding_tree(turn: float) -> bf.Tree:
+    """The excurrent hand tree's 10 m leader with 12 branches of four 0.5 m cylinders whose
+    zenith angle alternates 60 - turn / 2 and 60 + turn / 2: every cylinder turns by ``turn`` deg
+    from the one before."""
+    b = Builder()
+    stem = b.axis_of(-1, (0, 0, 0), (0, 0, 1), 20, 0.5, 0.10, 0.02)
+    for j, c in enumerate(stem[6:-2]):
+        parent, at = c, b.end(c)
+        for k in range(4):
+            (i,) = b.axis_of(parent, at, _axis(60 + turn * (k % 2 - 0.5), 137.5 * j), 1, 0.5, 0.005, 0.005)
+            parent, at = i, b.end(i)
+    return b.tree()
+
+
+def test_init_lets_the_axes_wind_as_the_trees_branches_do(tmp_path):
+    # straight branches: no turn, the box keeps the former 30 deg per internode
+    assert measure_tree(excurrent_tree()).branch_turn == pytest.approx(0.0)
+    assert _recipe(tmp_path, excurrent_tree(), "straight", "sot")[1]["ssm"]["free"]["heading_sd"]["upper"] == 30.0
+    # branches turning 20 deg from cylinder to cylinder: a bend of sd 20 / 0.6745 = 29.7 deg turns
+    # by that median; the box reaches 1.5 x that, 44 deg; turning 40 deg: 89; turning 60: a right angle
+    for turn, upper in ((20.0, 44.0), (40.0, 89.0), (60.0, 90.0)):
+        assert measure_tree(winding_tree(turn)).branch_turn == pytest.approx(turn)
+        r, cfg = _recipe(tmp_path, winding_tree(turn), f"wind{turn:.0f}", "sot")
+        assert cfg["ssm"]["free"]["heading_sd"] == {"lower": 0.0, "upper": upper}
+        assert (
+            f"turn by a median {turn:.0f} deg from cylinder to cylinder"
+            in (tmp_path / f"wind{turn:.0f}.toml").read_text()
+        )
+
+
 def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp_path):
     r, cfg = _recipe(tmp_path, decurrent_tree(), "maple")
     assert r.model == "sot"

@@ -150,7 +150,7 @@ PARAMETERS: list[ParameterSpec] = [
         "heading_sd",
         0.0,
         0.0,
-        30.0,
+        90.0,
         False,
         "deg",
         "clone noise (an addition): sd of a bend of each branch metamer "

@@ -43,6 +43,13 @@ ONE_SIDED = 1.0 / 3.0
 #: the coffeetree 8, the pines 1-4
 LEANING = 10.0
 
+#: the winding of the axes (``heading_sd``, deg per internode) reaches this many times the bend
+#: that turns consecutive metamers by the tree's median turn from cylinder to cylinder (a bend of
+#: sd s turns by a median 0.674 s), within the recipes' former 30 and a right angle: wytham_tf1
+#: 44 deg (up to 90), tf5 29 (64), the coffeetree 11 (30), the pines 39-47
+WINDING = 1.5
+_HALF_NORMAL_MEDIAN = 0.6745
+
 
 def _r(x: float, step: float) -> float:
     return round(round(x / step) * step, 6)
@@ -57,6 +64,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
     # a decurrent crown (opposite buds) also gets 1/100-1/33 of its height where that reaches
     # further, within the model's range
     buds = 2 if m.decurrent else 1
+    wind_hi = float(min(90.0, max(30.0, round(WINDING * m.branch_turn / _HALF_NORMAL_MEDIAN))))
     per_node = buds * m.branch_spacing
     node_lo, node_hi = 0.8 * per_node, 1.45 * per_node
     node_why = (
@@ -136,7 +144,13 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         ),
         ("tropism", -0.1, 0.3, None),
         ("reorient", 0.0, 1.0, "how much shoots turn towards light"),
-        ("heading_sd", 0.0, 30.0, "winding of the axes (deg per internode)"),
+        (
+            "heading_sd",
+            0.0,
+            wind_hi,
+            f"winding of the axes (deg per internode): the tree's branches turn by a median "
+            f"{m.branch_turn:.0f} deg from cylinder to cylinder",
+        ),
         ("shadow_a", 0.1, 0.9, None),
         ("shadow_b", 1.1, 8.0, None),
         ("alpha0", 0.0, 3.0, None),

@@ -293,6 +293,7 @@ def test_init_lets_the_axes_wind_as_the_trees_branches_do(tmp_path):
         assert measure_tree(winding_tree(turn)).branch_turn == pytest.approx(turn)
         r, cfg = _recipe(tmp_path, winding_tree(turn), f"wind{turn:.0f}", "sot")
         assert cfg["ssm"]["free"]["heading_sd"] == {"lower": 0.0, "upper": upper}
+        assert f"branches turn {turn:.0f} deg from cylinder to cylinder (median)" in r.text  # printed
         assert (
             f"turn by a median {turn:.0f} deg from cylinder to cylinder"
             in (tmp_path / f"wind{turn:.0f}.toml").read_text()

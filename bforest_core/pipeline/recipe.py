@@ -118,7 +118,8 @@ def measured_lines(m: TreeMeasures) -> list[str]:
         f"crown base {m.crown_base_height:.2f} m, crown length {m.crown_length:.2f} m, "
         f"{m.n_branches_o1} first-order branches (one per {m.branch_spacing:.2f} m of crown), orders to {m.max_order}",
         f"first-order branch angles {m.beta_q10:.0f} / {m.beta_q50:.0f} / {m.beta_q90:.0f} deg (10 / 50 / 90 %), "
-        f"longest limb {m.longest_limb:.2f} m, thinnest branch {100 * m.thinnest_branch:.1f} cm",
+        f"longest limb {m.longest_limb:.2f} m, thinnest branch {100 * m.thinnest_branch:.1f} cm; "
+        f"branches turn {m.branch_turn:.0f} deg from cylinder to cylinder (median)",
         f"crown form: {form}; the three largest limbs hold {m.limb_ratio:.2f} x the stem's wood in the crown",
         f"crown centre {m.crown_offset:.2f} m from the stem base towards {m.crown_azimuth:.0f} deg "
         f"({m.crown_offset / max(0.5 * m.crown_spread, 1e-9):.2f} crown radii); "

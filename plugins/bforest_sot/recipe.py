@@ -48,6 +48,7 @@ LEANING = 10.0
 #: sd s turns by a median 0.674 s), within the recipes' former 30 and a right angle: wytham_tf1
 #: 44 deg (up to 90), tf5 29 (64), the coffeetree 11 (30), the pines 39-47
 WINDING = 1.5
+#: the median of |N(0, 1)|: a bend of sd s turns an axis by a median of this times s
 _HALF_NORMAL_MEDIAN = 0.6745
 
 
@@ -64,6 +65,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
     # a decurrent crown (opposite buds) also gets 1/100-1/33 of its height where that reaches
     # further, within the model's range
     buds = 2 if m.decurrent else 1
+    # the winding of the axes: room for the bend that turns metamers as the tree's cylinders turn
     wind_hi = float(min(90.0, max(30.0, round(WINDING * m.branch_turn / _HALF_NORMAL_MEDIAN))))
     per_node = buds * m.branch_spacing
     node_lo, node_hi = 0.8 * per_node, 1.45 * per_node

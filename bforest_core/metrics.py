@@ -630,7 +630,7 @@ class TreeMeasures:
         relative to the base: the start of each stem cylinder, kept where it lies at least
         :data:`PATH_STEP` further along the stem than the last one kept, and the stem's end.
     stem_length : float
-        Length (m) of that polyline.
+        Length (m) of the stem: its cylinders' lengths summed (:func:`tree_summary`'s ``stem_length``).
     branch_turn : float
         Median angle (deg) between the axes of consecutive cylinders of one branch (orders 1 and
         up): how much the tree's branches wind from cylinder to cylinder.
@@ -749,7 +749,7 @@ def measure_tree(tree) -> TreeMeasures:
         crown_azimuth=float(np.degrees(np.arctan2(centre[1], centre[0]))),
         stem_lean=float(np.degrees(np.arctan2(np.hypot(chord[0], chord[1]), chord[2]))),
         stem_path=tuple(tuple(round(float(c), 2) for c in q) for q in path),
-        stem_length=float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum()),
+        stem_length=float(s["stem_length"]),
         branch_turn=float(np.median(turn)) if turn.size else 0.0,
     )
 

@@ -119,6 +119,7 @@ def test_parameter_table_complete():
         "vigor_sd",
         "relay_angle",
         "stem_guide",
+        "bud_abort",
     }  # stand_shade and the ones after it are additions, off by default
     assert set(names) == expected and len(names) == len(expected)
     by = {p.name: p for p in PARAMETERS}
@@ -144,6 +145,7 @@ def test_parameter_table_complete():
         "shed_stub": 0,
         "prune_tips": 0,
         "vigor_sd": 0,
+        "bud_abort": 0,
     }
     for k, v in calib.items():
         assert by[k].default == v, k
@@ -734,6 +736,7 @@ def test_growth_forms_off_leave_the_papers_tree_as_it_was(seed):
         "vigor_sd": 0.0,
         "relay_angle": 1.0,
         "stem_guide": 0.0,
+        "bud_abort": 0.0,
     }
     for ssm_, params in [(SOT(), {}), (SOT(buds_per_node=1, stem_path=[[0, 0, 0], [5, 0, 5]]), off)]:
         assert _digest(ssm_.simulate({"max_iter": 14, **params}, seed)) == DEFAULT_TREES[seed]
@@ -812,6 +815,39 @@ def test_bud_nodes_keep_the_pipe_model_and_the_axis_share_of_lambda():
     # with lambda = 1 every lateral bud of a node gets nothing, as with one bud per node
     solo = SOT(buds_per_node=2).simulate({**p, "init_lambda": 1.0, "targ_lambda": 1.0}, 3)
     assert solo.n_branches == 1
+
+
+def _lateral_share(t):
+    """(nodes, share): the cylinders an axis grows on from (a child in their own branch), and the
+    share of them that bear a lateral (a child starting a branch)."""
+    kid = np.flatnonzero(t.parent >= 0)
+    own = t.branch[kid] == t.branch[t.parent[kid]]
+    goes_on = np.zeros(t.n, bool)
+    goes_on[t.parent[kid[own]]] = True
+    bears = np.zeros(t.n, bool)
+    bears[t.parent[kid[~own]]] = True
+    return int(goes_on.sum()), float((bears & goes_on).sum() / goes_on.sum())
+
+
+def test_aborted_buds_leave_nodes_without_a_branch():
+    # the hand tree: every lateral bud breaks, so every node an axis grows on from bears a branch
+    p = {**HAND, "max_iter": 8}
+    n, share = _lateral_share(SOT().simulate(p, 1))
+    assert n > 100 and share == 1.0
+    # each lateral bud aborts with probability bud_abort: about that share of nodes bear none
+    for q in (0.3, 0.5, 0.8):
+        counts = [_lateral_share(SOT().simulate({**p, "bud_abort": q}, s)) for s in (1, 2, 3)]
+        nodes = sum(c for c, _ in counts)
+        share = sum(c * f for c, f in counts) / nodes
+        assert abs(share - (1.0 - q)) < 3.0 * np.sqrt(q * (1.0 - q) / nodes), (q, share, nodes)
+    # the aborts come from a stream of their own: a probability too small to abort any bud leaves
+    # the tree as it was, draw for draw (the growth's other draws are untouched)
+    assert _same_tree(SOT().simulate(p, 1), SOT().simulate({**p, "bud_abort": 1e-12}, 1))
+    a = SOT(buds_per_node=2).simulate({**p, "bud_abort": 0.5}, 1)
+    assert _same_tree(a, SOT(buds_per_node=2).simulate({**p, "bud_abort": 0.5}, 1))
+    assert not _same_tree(a, SOT(buds_per_node=2).simulate({**p, "bud_abort": 0.5}, 2))
+    with pytest.raises(ValueError, match="bud_abort"):
+        SOT().simulate({**p, "bud_abort": 1.0}, 1)
 
 
 def test_short_shoots_grow_one_internode_and_never_grow_on():

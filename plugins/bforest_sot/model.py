@@ -426,6 +426,8 @@ class SOTGrowth:
         # vigor_sd (an addition, B.10): the shoots' cap factors come from a generator of the run's
         # seed and a stream of their own, so the growth's other draws stay as they are
         self.vig_rng = _own_stream(seed, VIGOR_STREAM) if p["vigor_sd"] > 0.0 else None
+        # bud_abort (an addition, B.10): which lateral buds abort, from a stream of their own too
+        self.abort_rng = _own_stream(seed, ABORT_STREAM) if p["bud_abort"] > 0.0 else None
         # stem_guide (an addition, B.10): the path the stem's shoots follow, by arc length
         self.guide = _Guide(stem_path) if p["stem_guide"] > 0.0 and len(stem_path) else None
         self.stem_arc = 0.0  # length of the stem (order 0) grown so far
@@ -466,10 +468,15 @@ class SOTGrowth:
 
     def _draw_caps(self, lo: int) -> None:
         """vigor_sd (an addition): the cap factor exp(vigor_sd * N(0, 1)) of the shoot that each
-        lateral bud of the rows ``lo ..`` will grow, one draw per row in creation order."""
+        lateral bud of the rows ``lo ..`` will grow, one draw per row in creation order; and
+        bud_abort (an addition): each of those lateral buds aborts (its slot left EMPTY: it takes
+        no light, no vigor and never grows) with probability bud_abort, one uniform per row."""
+        s = self.s
         if self.vig_rng is not None:
-            s = self.s
             s.lat_vcap[lo : s.n] = np.exp(self.p["vigor_sd"] * self.vig_rng.standard_normal(s.n - lo))
+        if self.abort_rng is not None:
+            rows = np.arange(lo, s.n)
+            s.lat_state[rows[self.abort_rng.random(rows.size) < self.p["bud_abort"]]] = EMPTY
 
     # -------------------------------------------------------------- passes on the living set
     def _compact(self):
@@ -964,6 +971,7 @@ class StepView:
 
 #: the stream of the shoots' cap factors (vigor_sd): a generator of its own, as the stubs'
 VIGOR_STREAM = 0x716
+ABORT_STREAM = 0xAB0
 
 
 class _Guide:

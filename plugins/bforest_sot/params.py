@@ -158,6 +158,18 @@ PARAMETERS: list[ParameterSpec] = [
         "V",
     ),
     P(
+        "bud_abort",
+        0.0,
+        0.0,
+        0.95,
+        False,
+        "",
+        "an addition: probability that a lateral bud aborts as its metamer forms (it takes no light or vigor and "
+        "never grows): internodes as short as a broadleaf's shoots with fewer branches than buds, as most axillary "
+        "buds of broadleaved trees never break; 0 = the papers' model (no draws)",
+        "V",
+    ),
+    P(
         "leader_death",
         0.0,
         0.0,
@@ -307,6 +319,7 @@ def validate(p: Mapping[str, float]) -> None:
     need(0 <= p["shed_stub"] <= 1, "shed_stub", "in [0, 1]")
     need(p["prune_tips"] >= 0, "prune_tips", ">= 0")
     need(p["vigor_sd"] >= 0, "vigor_sd", ">= 0 (a standard deviation)")
+    need(0 <= p["bud_abort"] < 1, "bud_abort", "in [0, 1) (a probability; 1 would leave no lateral bud)")
     need(0 < p["short_length"] <= 1, "short_length", "in (0, 1] (a share of node_length)")
     need(0 <= p["relay_angle"] <= 1, "relay_angle", "in [0, 1] (a share of the branch angle)")
     need(p["ran"] >= 0, "ran", ">= 0")

@@ -971,6 +971,7 @@ class StepView:
 
 #: the stream of the shoots' cap factors (vigor_sd): a generator of its own, as the stubs'
 VIGOR_STREAM = 0x716
+#: the stream of the lateral buds' aborts (bud_abort): a generator of its own too
 ABORT_STREAM = 0xAB0
 
 

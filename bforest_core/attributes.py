@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .metrics import classical_metrics, crown_base_height, tree_summary
+from .metrics import axis_angles, classical_metrics, crown_base_height, tree_summary
 
 __all__ = [
     "branch_table",
@@ -118,12 +118,9 @@ def branch_table(tree) -> dict[str, np.ndarray]:
     # the direction cylinder: the second one when the first fills a gap and there is a second
     second = bt.cylinders[np.minimum(bt.ptr[:-1] + 1, bt.ptr[1:] - 1)]
     fc = np.where(tree.added[f] & (bt.n_cyl > 1), second, f)
-    a = tree.axis[fc]
     a0 = tree.axis[f]
     pc = bt.parent_cyl
-    pa = tree.axis[np.maximum(pc, 0)]
-    ang = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", a, pa), -1.0, 1.0)))
-    ang = np.where(pc >= 0, ang, 0.0)
+    ang = np.where(pc >= 0, axis_angles(tree, fc, np.maximum(pc, 0)), 0.0)
     return {
         "order": bt.order.astype(np.int64),
         "parent": bt.parent_branch.astype(np.int64),

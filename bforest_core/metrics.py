@@ -480,6 +480,12 @@ def tree_summary(
     return out
 
 
+def axis_angles(tree, rows, other_rows) -> np.ndarray:
+    """Angles (deg, 0-180) between the axes of the cylinders ``rows`` and ``other_rows``, pairwise."""
+    cos = np.einsum("ij,ij->i", tree.axis[rows], tree.axis[other_rows])
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
 def branching_angles(tree) -> np.ndarray:
     """Return the branching angle of every branch, in degrees.
 
@@ -497,9 +503,9 @@ def branching_angles(tree) -> np.ndarray:
     """
     br = tree.branches
     has_parent = br.parent_cyl >= 0
-    cosang = np.full(len(br), np.nan)
-    cosang[has_parent] = np.einsum("ij,ij->i", tree.axis[br.first[has_parent]], tree.axis[br.parent_cyl[has_parent]])
-    return np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
+    ang = np.full(len(br), np.nan)
+    ang[has_parent] = axis_angles(tree, br.first[has_parent], br.parent_cyl[has_parent])
+    return ang
 
 
 def order_summary(tree) -> list[dict]:
@@ -712,7 +718,7 @@ def measure_tree(tree) -> TreeMeasures:
     limbs = np.sort(sub[o1])[::-1][:3].sum()
     blen = np.bincount(tree.branch, weights=tree.length, minlength=len(br))
     pc = br.parent_cyl[o1]
-    a = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", tree.axis[br.first[o1]], tree.axis[pc]), -1, 1)))
+    a = axis_angles(tree, br.first[o1], pc)
     q10, q50, q90 = (float(v) for v in np.percentile(a, [10, 50, 90]))
     crown_length = max(h - cb, 1e-9)
     crown = (tree.order > 0) & (zmid >= cb)
@@ -727,7 +733,7 @@ def measure_tree(tree) -> TreeMeasures:
     # consecutive cylinders of one branch: the turn between their axes
     kid = np.flatnonzero((tree.parent >= 0) & (tree.order > 0))
     kid = kid[tree.branch[tree.parent[kid]] == tree.branch[kid]]
-    turn = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", tree.axis[kid], tree.axis[tree.parent[kid]]), -1, 1)))
+    turn = axis_angles(tree, kid, tree.parent[kid])
     return TreeMeasures(
         height=h,
         dbh=s["dbh"],

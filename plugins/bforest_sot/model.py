@@ -463,20 +463,19 @@ class SOTGrowth:
             )
             s.api_state[last] = BUD
         self.created = s.n
-        self._draw_caps(0)
+        self._draw_lateral_buds(0)
         self.field.cast(s.start[:1])  # falls below ground: no effect
 
-    def _draw_caps(self, lo: int) -> None:
-        """vigor_sd (an addition): the cap factor exp(vigor_sd * N(0, 1)) of the shoot that each
-        lateral bud of the rows ``lo ..`` will grow, one draw per row in creation order; and
-        bud_abort (an addition): each of those lateral buds aborts (its slot left EMPTY: it takes
-        no light, no vigor and never grows) with probability bud_abort, one uniform per row."""
+    def _draw_lateral_buds(self, lo: int) -> None:
+        """The draws of the lateral buds of the rows ``lo ..``, one per row in creation order, each
+        from its own stream. vigor_sd (an addition): the cap factor exp(vigor_sd * N(0, 1)) of the
+        shoot each bud will grow; bud_abort (an addition): each bud aborts (its slot left EMPTY: it
+        takes no light, no vigor and never grows) with probability bud_abort."""
         s = self.s
         if self.vig_rng is not None:
             s.lat_vcap[lo : s.n] = np.exp(self.p["vigor_sd"] * self.vig_rng.standard_normal(s.n - lo))
         if self.abort_rng is not None:
-            rows = np.arange(lo, s.n)
-            s.lat_state[rows[self.abort_rng.random(rows.size) < self.p["bud_abort"]]] = EMPTY
+            s.lat_state[lo : s.n][self.abort_rng.random(s.n - lo) < self.p["bud_abort"]] = EMPTY
 
     # -------------------------------------------------------------- passes on the living set
     def _compact(self):
@@ -830,7 +829,7 @@ class SOTGrowth:
             s.n += act.size
             if self.buds_per_node > 1:
                 last[act] = self._add_bud_nodes(c, nid, pos[act], ha, ua, order[act], axis_cap[act])
-        self._draw_caps(lo)
+        self._draw_lateral_buds(lo)
         if stem.size:
             self.stem_arc += float((built[stem] * seg_len[stem]).sum())
         tips = last[last >= 0]

@@ -24,6 +24,12 @@ Q_LO_CAP = 0.3
 #: the upper bound of a new shoot's radius:length L_R in the box, at the least and at the most (the
 #: parameter's allowed range, which the written bounds are clipped to)
 LR_HI, LR_MAX = 0.025, next(p.upper for p in parameter_specs("sf_real") if p.name == "lr_mean")
+#: (seconds the search may take, minutes the fit ends within) for a tree up to ``SMALL_HEIGHT`` m
+#: and for a taller one: with its answer's re-scoring (256 growths, 8 s on pine 1) and start-up a
+#: fit ends within 4 minutes on 2 cores for a pine of the Ruotsinkylä stand (10-13 m; pine 1's
+#: search takes 1-3 minutes, depending on the machine, docs/performance.md), within 10 for an
+#: 18-20 m broadleaf (where SOT's recipe stops too)
+WALL_TIMES, SMALL_HEIGHT = ((200.0, 4), (480.0, 10)), 15.0
 
 
 def _r5(x: float) -> float:
@@ -104,6 +110,7 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
             "and meets the robust-fit limits on the Ruotsinkylä pines"
         )
         suits = 0.8
+    wall, minutes = WALL_TIMES[m.height > SMALL_HEIGHT]
     return RecipeDraft(
         suits=suits,
         why=why,
@@ -121,6 +128,7 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         # evaluations of 3 model seeds were
         seeds=1,
         evaluations=4000,
+        wall_time=wall,
         starts=2,
         population=32,
         init_design=64,
@@ -135,6 +143,8 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
             "whole landscape, so the answers agree across run seeds (pine 1: held-out spread 1.14 over "
             "five run seeds, 1.26 with four raced runs of 16 and 3 seeds an evaluation; docs/validation.md). "
             "The 16 best points are candidates, not 8: one seed an evaluation ranks them by luck (pine 1's "
-            "spread 1.20 with 8, 1.13 with 16)."
+            "spread 1.20 with 8, 1.13 with 16). The search stops after "
+            f"{wall:.0f} s at the latest, so that the fit ends within {minutes} minutes on 2 cores; a slower "
+            "machine does fewer of its evaluations."
         ),
     )

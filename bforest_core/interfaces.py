@@ -213,6 +213,12 @@ def parameter_value(value, integer: bool) -> int | float:
     return int(round(float(value))) if integer else float(value)
 
 
+#: seconds a recipe's search may take on a tall tree (18-20 m, the Wytham broadleaves): with the
+#: answer's re-scoring and start-up the fit ends within 10 minutes on 2 cores (issue 31); every
+#: model's recipe writes it for such a tree (``RecipeDraft.wall_time``)
+TALL_TREE_WALL_TIME = 480.0
+
+
 @dataclass
 class RecipeDraft:
     """A growth model's part of a recipe for one tree (:meth:`SSM.draft_recipe`).

@@ -8,7 +8,7 @@ branch-angle ranges from its first-order branches' angles.
 
 from __future__ import annotations
 
-from bforest_core.interfaces import RecipeDraft
+from bforest_core.interfaces import TALL_TREE_WALL_TIME, RecipeDraft
 from bforest_core.metrics import TreeMeasures
 
 from .params import parameter_specs
@@ -28,8 +28,8 @@ LR_HI, LR_MAX = 0.025, next(p.upper for p in parameter_specs("sf_real") if p.nam
 #: and for a taller one: with its answer's re-scoring (256 growths, 8 s on pine 1) and start-up a
 #: fit ends within 4 minutes on 2 cores for a pine of the Ruotsinkylä stand (10-13 m; pine 1's
 #: search takes 1-3 minutes, depending on the machine, docs/performance.md), within 10 for an
-#: 18-20 m broadleaf (where SOT's recipe stops too)
-WALL_TIMES, SMALL_HEIGHT = ((200.0, 4), (480.0, 10)), 15.0
+#: 18-20 m broadleaf (the time every recipe gives a tall tree)
+WALL_TIMES, SMALL_HEIGHT = ((200.0, 4), (TALL_TREE_WALL_TIME, 10)), 15.0
 
 
 def _r5(x: float) -> float:

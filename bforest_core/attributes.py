@@ -422,13 +422,16 @@ FIDELITY_ATTRIBUTES = (
 )
 
 
-def fidelity_statistics(tree) -> dict[str, float]:
+def fidelity_statistics(tree, topology: str | None = None) -> dict[str, float]:
     """Compute the statistics the clones' fidelity table compares.
 
     Parameters
     ----------
     tree : Tree
         The tree.
+    topology : {"source", "subtree", "thickest"} or None, optional
+        The branch rule to measure by (:meth:`Tree.with_topology`): the size term's, so that the
+        table counts branches as the fit held them; None keeps the tree's own branches.
 
     Returns
     -------
@@ -436,6 +439,8 @@ def fidelity_statistics(tree) -> dict[str, float]:
         :func:`~bforest_core.metrics.tree_summary` and the :data:`FIDELITY_ATTRIBUTES`
         (units: :func:`~bforest_core.metrics.summary_unit`).
     """
+    if topology is not None:
+        tree = tree.with_topology(topology)
     out = tree_summary(tree)
     a = tree_attributes(tree, alpha=False)
     out.update({k: a[k] for k in FIDELITY_ATTRIBUTES})

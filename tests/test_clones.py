@@ -193,3 +193,22 @@ def test_a_simplified_target_prunes_every_grown_tree_alike(toy_plugin, tmp_path)
     p.write_text(p.read_text().replace("prune_radius = 0.03\n", ""))
     bf.fit(bf.load_config(p), tmp_path / "full", progress=False)
     assert bf.read_qsm(tmp_path / "full" / "best_tree.txt").radius.min() == pytest.approx(0.02)
+
+
+def test_the_fidelity_table_counts_branches_by_the_size_terms_rule(toy_plugin, tmp_path):
+    from bforest_core.pipeline.target import size_topology
+
+    p = toy_config(tmp_path)
+    base = p.read_text()
+    assert size_topology(bf.load_config(p), "target") is None  # no size term: each tree's own branches
+    term = (
+        '\n[[objective.terms]]\nname = "size"\nfeatures = { kind = "tree-summary", topology = "subtree" }\n'
+        'distance = { kind = "summary" }\n'
+    )
+    p.write_text(base + term)
+    cfg = bf.load_config(p)
+    assert size_topology(cfg, "target") == size_topology(cfg, "model") == "subtree"
+    # a per-side rule overrides it on its side, as it does the branch tables'
+    p.write_text(base.replace("[ssm]\n", '[ssm]\ntopology = "thickest"\n', 1) + term)
+    cfg = bf.load_config(p)
+    assert (size_topology(cfg, "target"), size_topology(cfg, "model")) == ("subtree", "thickest")

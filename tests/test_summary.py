@@ -202,3 +202,38 @@ def test_branching_angles_of_the_hand_built_tree():
     assert (thick["angle_o1"], thick["angle_iqr_o1"]) == (pytest.approx(75.0), pytest.approx(15.0))
     assert summary_unit("angle_iqr_o1") == "deg" and summary_unit("angle_o1") == "deg"
     assert [r["mean_angle_deg"] for r in order_summary(hand_tree()) if r["order"] == 1] == [pytest.approx(80.0)]
+
+
+def _forked_tree():
+    """A 2 m trunk (r 0.2) whose stored continuation is a 1 m spire (r 0.1, no branches) while a
+    limb beside it (1 m at 45 deg, r 0.15, then 3 m up, r 0.12) carries two 0.5 m twigs (r 0.03):
+    the QSM's stem ends in the spire, the wood runs on into the limb."""
+    s = math.sqrt(0.5)
+    start = [[0, 0, 0], [0, 0, 2], [0, 0, 2], [s, 0, 2 + s], [s, 0, 3 + s], [s, 0, 4 + s]]
+    axis = [[0, 0, 1], [0, 0, 1], [s, 0, s], [0, 0, 1], [1, 0, 0], [0, 1, 0]]
+    return bf.Tree(
+        start,
+        axis,
+        [2, 1, 1, 3, 0.5, 0.5],
+        [0.2, 0.1, 0.15, 0.12, 0.03, 0.03],
+        [-1, 0, 0, 2, 3, 3],
+        [1, -1, 3, -1, -1, -1],
+    )
+
+
+def test_tree_summary_topology_counts_branches_by_one_rule_on_any_tree():
+    t = _forked_tree()
+    # the stored branching: the limb is the one first-order branch, its twigs second-order
+    own = tree_summary(t, min_diameter=0.0)
+    assert (own["n_branches_o1"], own["n_branches_o2"], own["stem_length"]) == (1, 2, 3.0)
+    # by wood volume the stem runs on into the limb (pi (0.0225 + 3 x 0.0144 + ...) against pi 0.01
+    # for the spire) and on into the first twig (a tie with the second goes to the earlier row):
+    # the spire and the other twig are first-order, the stem 2 + 1 + 3 + 0.5 m long
+    fs = bf.component("features", "tree-summary", statistics=["n_branches_o1", "n_branches_o2", "stem_length"])
+    assert fs.settings.topology is None and fs.extract(t)["summary"][0].tolist() == [1, 2, 3.0]
+    sub = bf.component("features", "tree-summary", topology="subtree", statistics=fs.settings.statistics)
+    assert sub.extract(t)["summary"][0].tolist() == pytest.approx([2, 0, 6.5])
+    # the fidelity table measures by the same rule
+    from bforest_core.attributes import fidelity_statistics
+
+    assert fidelity_statistics(t)["n_branches_o1"] == 1 and fidelity_statistics(t, "subtree")["n_branches_o1"] == 2

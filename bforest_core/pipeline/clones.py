@@ -29,7 +29,7 @@ from .rundir import holding_run_lock
 from .scoring import _MODEL_ERRORS, _simulate_with_timeout, _Timeout, combine_terms, score_tree, with_term_values
 from .seeds import clone_seeds
 from .store import RunFiles, RunStore
-from .target import build_target
+from .target import build_target, size_topology
 from .worker import started_workers, worker_context
 
 if TYPE_CHECKING:
@@ -82,7 +82,7 @@ def _clone_task(task):
         distance=total,
         per_set=with_term_values(per_set, values),
         n_cylinders=tree.n,
-        summary=fidelity_statistics(tree),
+        summary=fidelity_statistics(tree, c.size_topology),
         params=params,
         **classical_metrics(tree),
     )
@@ -109,7 +109,10 @@ def _reference_task(task):
     per_set, _ = score_tree(tree, c)
     total, values = combine_terms(per_set, c)
     return dict(
-        file=str(path), distance=total, per_set=with_term_values(per_set, values), summary=fidelity_statistics(tree)
+        file=str(path),
+        distance=total,
+        per_set=with_term_values(per_set, values),
+        summary=fidelity_statistics(tree, c.size_topology),
     )
 
 
@@ -252,7 +255,7 @@ def _fidelity(cfg: RunConfig, tgt, best, rows) -> dict:
     from ..attributes import fidelity_statistics
     from ..metrics import SUMMARY_UNITS
 
-    target = fidelity_statistics(tgt.trees[0])
+    target = fidelity_statistics(tgt.trees[0], size_topology(cfg, "target"))
     ok = [r["summary"] for r in rows if r.get("status") == "ok" and r.get("summary")]
     table = fidelity_table(target, ok, SUMMARY_UNITS)
     bounds = {k: (fp.lower, fp.upper) for k, fp in cfg.ssm.free.items()}

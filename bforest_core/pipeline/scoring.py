@@ -20,7 +20,7 @@ import numpy as np
 
 from ..interfaces import SSM, Distance, FeatureSet
 from ..registry import component
-from .target import Term, feature_set_for, term_specs
+from .target import Term, feature_set_for, size_topology, term_specs
 
 if TYPE_CHECKING:
     from ..config import RunConfig
@@ -63,6 +63,9 @@ class Scoring:
     timeout: float | None
     #: ``[target] prune_radius``: the model's trees lose what is thinner, as the QSM did
     prune_radius: float
+    #: the branch rule of the size term on the model side (:func:`.target.size_topology`): the
+    #: clones' fidelity statistics are measured by it
+    size_topology: str | None
     #: the process that scores, ``host:pid`` (logged with each evaluation)
     worker: str
 
@@ -115,6 +118,7 @@ def build_scoring(
         penalty=cfg.objective.penalty,
         timeout=cfg.objective.timeout,
         prune_radius=cfg.target.prune_radius,
+        size_topology=size_topology(cfg, "model"),
         worker=f"{socket.gethostname()}:{os.getpid()}",
     )
 

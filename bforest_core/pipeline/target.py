@@ -21,6 +21,8 @@ if TYPE_CHECKING:
 
 #: name of the [features]/[distance] term when the objective has more than one
 STRUCTURE = "structure"
+#: the feature set of tree-level statistics (the size term; plugins/bforest_summary)
+SUMMARY_KIND = "tree-summary"
 
 
 def feature_set_for(cfg: RunConfig, side: str, settings: dict | None = None, kind: str | None = None):
@@ -63,6 +65,21 @@ class Term:
         own set names."""
         pre = self.prefix
         return {k[len(pre) :]: v for k, v in by_set.items() if k.startswith(pre) and (pre or "/" not in k)}
+
+
+def size_topology(cfg: RunConfig, side: str) -> str | None:
+    """The branch rule under which the size term measures one side's trees (``"target"`` or
+    ``"model"``): the ``topology`` of the objective's first tree-summary set after the per-side
+    rules, or None (each tree's own branches: the QSM's stored ones, the model's order mode).
+
+    The clones' fidelity table measures by it, so that it counts first-order branches as the fit
+    held them.
+    """
+    for spec in term_specs(cfg):
+        if spec.features_kind == SUMMARY_KIND:
+            fs = feature_set_for(cfg, side, spec.features, spec.features_kind)
+            return getattr(fs.settings, "topology", None)
+    return None
 
 
 def term_specs(cfg: RunConfig) -> list[Term]:

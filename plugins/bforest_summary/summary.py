@@ -11,7 +11,7 @@ beyond a forester's limit (docs/user-guide.md section 5b).
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, Optional
 
 import numpy as np
 from pydantic import Field, field_validator
@@ -46,6 +46,14 @@ class TreeSummarySettings(ComponentSettings):
             "and profile, in the target and the model alike (a TLS QSM rarely resolves them); 0 counts all"
         ),
     )
+    topology: Optional[Literal["source", "subtree", "thickest"]] = Field(
+        None,
+        description=(
+            "branch rule of both trees' statistics (docs/features-and-distance.md section 1.1): None keeps each "
+            "tree's own (the QSM's stored branches, the model's order_mode); 'subtree' counts and measures "
+            "branches as the structural tables do"
+        ),
+    )
 
 
 class TreeSummary(FeatureSet):
@@ -64,6 +72,8 @@ class TreeSummary(FeatureSet):
 
     def _row(self, tree) -> np.ndarray:
         s = self.settings
+        if s.topology is not None:
+            tree = tree.with_topology(s.topology)
         stats = tree_summary(tree, max_order=s.max_order, bands=s.bands, min_diameter=s.min_branch_diameter)
         missing = [k for k in s.statistics if k not in stats]
         if missing:

@@ -259,9 +259,6 @@ class RecipeDraft:
         limits).
     size_steep : float
         How many times as fast a term grows beyond its limit.
-    size_topology : str or None
-        The branch rule the size term measures both trees by (tree-summary's ``topology``; the
-        clones' fidelity table follows it); None: each tree's own branches.
     seeds, evaluations, starts, population, init_design, finalists : int
         The search: model seeds per evaluation (``[objective] seeds``), the evaluation budget
         (``[stop] max_evaluations``), and of ``[optimizer]`` the CMA-ES starts, the points of a
@@ -292,7 +289,6 @@ class RecipeDraft:
     size_why: str = ""
     size_limits: dict = field(default_factory=lambda: dict(SIZE_LIMITS))
     size_steep: float = 3.0
-    size_topology: str | None = None
     seeds: int = 3
     evaluations: int = 1200
     starts: int = 4

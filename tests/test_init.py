@@ -149,7 +149,6 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     bf.load_config(tmp_path / "pine.toml")  # a valid run config as written
     # the size term's limits: two thirds of what a forester tolerates (height 7.5 %, DBH 20 %, crown
     # spread 25 %, crown base and first-order branches 30 %), steep 3
-    assert "topology" not in cfg["objective"]["terms"][0]["features"]
     size = cfg["objective"]["terms"][0]["distance"]
     assert size["limits"] == {
         "height": 0.05,
@@ -325,9 +324,6 @@ def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp
     assert s["free"]["branch_angle_sd"] == {"lower": 0.0, "upper": 35.0}
     size = cfg["objective"]["terms"][0]
     assert size["features"]["statistics"] == [*SUMMARY_DEFAULT, "angle_o1", "angle_iqr_o1"]
-    # both trees' first-order branches counted by the judge's subtree rule (LIGNUM's recipe: each
-    # tree's own branches, below)
-    assert size["features"]["topology"] == "subtree"
     w = size["distance"]["weights"]
     assert w["angle_o1"] == 6.7 and w["height"] == 13.3
     # the headlines fits trade away weigh double their tolerance (crown spread 25 %, branches 30 %)

@@ -260,23 +260,10 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
                 96,
             )
         ),
-        *(
-            f"# {s}"
-            for s in textwrap.wrap(
-                f'topology = "{d.size_topology}": both trees\' branches are counted and measured by this rule '
-                "(docs/features-and-distance.md section 1.1), as the judge's tables are; a QSM's stored "
-                "branches and the model's own orders end the stem at different places where it forks."
-                if d.size_topology
-                else "",
-                96,
-                break_on_hyphens=False,
-            )
-        ),
         "[[objective.terms]]",
         'name = "size"',
         f"weight = {TERM_WEIGHT!r}",
         'features = { kind = "tree-summary", min_branch_diameter = 0.0'
-        + (f', topology = "{d.size_topology}"' if d.size_topology else "")
         + (
             ", statistics = [" + ", ".join(f'"{k}"' for k in (*SUMMARY_DEFAULT, *d.size_extra)) + "]"
             if d.size_extra

@@ -200,9 +200,7 @@ def doc_section(results: dict, figures: dict, kept: dict | None = None) -> str:
         "",
         "Each tree's recipe is written by `bforest init` and used without an edit: fit, 30 clones. Errors "
         "are those of the clones' mean against the QSM. Limits for the broadleaved trees: height 10 %, DBH "
-        "20 %, crown spread 25 %, first-order branches 30 % (both trees' counted by the rule of the recipe's size "
-        "term: the subtree rule of the judge's tables in `init`'s SOT recipes, each tree's own branches in its "
-        "LIGNUM recipes), and the judge (S¹ and B¹, sliced KS, z-score, "
+        "20 %, crown spread 25 %, first-order branches 30 %, and the judge (S¹ and B¹, sliced KS, z-score, "
         "256 gp2 lines, subtree topology; the median over clones) no larger than the median distance from "
         "the tree to the other Wytham trees; for the pines the robust-fit limits of section 4. Fit times are "
         "wall times on the 2-core machine, shared with other work when these runs were made.",

@@ -257,11 +257,6 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         notes=notes,
         size_weights=SIZE_WEIGHTS,
         size_extra=ANGLE_TERM,
-        # the size term counts both trees' first-order branches by the judge's subtree rule: the
-        # model's orders (order_mode thickest) and TreeQSM's stored stem, which runs to the top,
-        # disagree where a stem forks (wytham_tf1 38 stored, 58 by the rule; tf5 20 and 33), and
-        # a fit held to the stored count gave B1 two thirds of the tree's rows (docs/validation.md)
-        size_topology="subtree",
         size_why=(
             "Crown spread and first-order branches weigh twice the inverse of their tolerance: fits trade "
             "them away for structure (the pines' crowns +27-30 %, the Wytham trees' branches +33-48 %, "

@@ -422,7 +422,7 @@ FIDELITY_ATTRIBUTES = (
 )
 
 
-def fidelity_statistics(tree, topology: str | None = None) -> dict[str, float]:
+def fidelity_statistics(tree, topology: str | None = None, statistics=None) -> dict[str, float]:
     """Compute the statistics the clones' fidelity table compares.
 
     Parameters
@@ -432,6 +432,8 @@ def fidelity_statistics(tree, topology: str | None = None) -> dict[str, float]:
     topology : {"source", "subtree", "thickest"} or None, optional
         The branch rule to measure by (:meth:`Tree.with_topology`): the size term's, so that the
         table counts branches as the fit held them; None keeps the tree's own branches.
+    statistics : sequence of str, optional
+        The statistics measured by ``topology`` (default: all); the others by the tree's own branches.
 
     Returns
     -------
@@ -439,10 +441,12 @@ def fidelity_statistics(tree, topology: str | None = None) -> dict[str, float]:
         :func:`~bforest_core.metrics.tree_summary` and the :data:`FIDELITY_ATTRIBUTES`
         (units: :func:`~bforest_core.metrics.summary_unit`).
     """
-    if topology is not None:
-        tree = tree.with_topology(topology)
-    out = tree_summary(tree)
-    a = tree_attributes(tree, alpha=False)
+    ruled = tree if topology is None else tree.with_topology(topology)
+    out = tree_summary(ruled)
+    if topology is not None and statistics is not None:
+        out = {**tree_summary(tree), **{k: out[k] for k in statistics if k in out}}
+        ruled = tree
+    a = tree_attributes(ruled, alpha=False)
     out.update({k: a[k] for k in FIDELITY_ATTRIBUTES})
     return out
 

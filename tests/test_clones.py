@@ -200,15 +200,20 @@ def test_the_fidelity_table_counts_branches_by_the_size_terms_rule(toy_plugin, t
 
     p = toy_config(tmp_path)
     base = p.read_text()
-    assert size_topology(bf.load_config(p), "target") is None  # no size term: each tree's own branches
+    assert size_topology(bf.load_config(p), "target") == (None, None)  # no size term: each tree's own branches
     term = (
         '\n[[objective.terms]]\nname = "size"\nfeatures = { kind = "tree-summary", topology = "subtree" }\n'
         'distance = { kind = "summary" }\n'
     )
     p.write_text(base + term)
     cfg = bf.load_config(p)
-    assert size_topology(cfg, "target") == size_topology(cfg, "model") == "subtree"
+    assert size_topology(cfg, "target") == size_topology(cfg, "model") == ("subtree", None)
     # a per-side rule overrides it on its side, as it does the branch tables'
     p.write_text(base.replace("[ssm]\n", '[ssm]\ntopology = "thickest"\n', 1) + term)
     cfg = bf.load_config(p)
-    assert (size_topology(cfg, "target"), size_topology(cfg, "model")) == ("subtree", "thickest")
+    assert (size_topology(cfg, "target")[0], size_topology(cfg, "model")[0]) == ("subtree", "thickest")
+    # ... and the statistics it measures by it
+    p.write_text(
+        base + term.replace('topology = "subtree"', 'topology = "subtree", topology_statistics = ["n_branches_o1"]')
+    )
+    assert size_topology(bf.load_config(p), "model") == ("subtree", ["n_branches_o1"])

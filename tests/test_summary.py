@@ -233,7 +233,20 @@ def test_tree_summary_topology_counts_branches_by_one_rule_on_any_tree():
     assert fs.settings.topology is None and fs.extract(t)["summary"][0].tolist() == [1, 2, 3.0]
     sub = bf.component("features", "tree-summary", topology="subtree", statistics=fs.settings.statistics)
     assert sub.extract(t)["summary"][0].tolist() == pytest.approx([2, 0, 6.5])
+    # the rule for the count alone: the stem's length by the tree's own branches
+    one = bf.component(
+        "features",
+        "tree-summary",
+        topology="subtree",
+        topology_statistics=["n_branches_o1"],
+        statistics=fs.settings.statistics,
+    )
+    assert one.extract(t)["summary"][0].tolist() == pytest.approx([2, 2, 3.0])
+    with pytest.raises(ValueError, match="unknown statistic.*n_branch_o1"):
+        bf.component("features", "tree-summary", topology="subtree", topology_statistics=["n_branch_o1"]).prepare([t])
     # the fidelity table measures by the same rule
     from bforest_core.attributes import fidelity_statistics
 
     assert fidelity_statistics(t)["n_branches_o1"] == 1 and fidelity_statistics(t, "subtree")["n_branches_o1"] == 2
+    alone = fidelity_statistics(t, "subtree", ["n_branches_o1"])
+    assert (alone["n_branches_o1"], alone["n_branches_o2"], alone["stem_length"]) == (2, 2, 3.0)

@@ -82,7 +82,7 @@ def _clone_task(task):
         distance=total,
         per_set=with_term_values(per_set, values),
         n_cylinders=tree.n,
-        summary=fidelity_statistics(tree, c.size_topology),
+        summary=fidelity_statistics(tree, *c.size_topology),
         params=params,
         **classical_metrics(tree),
     )
@@ -112,7 +112,7 @@ def _reference_task(task):
         file=str(path),
         distance=total,
         per_set=with_term_values(per_set, values),
-        summary=fidelity_statistics(tree, c.size_topology),
+        summary=fidelity_statistics(tree, *c.size_topology),
     )
 
 
@@ -255,7 +255,7 @@ def _fidelity(cfg: RunConfig, tgt, best, rows) -> dict:
     from ..attributes import fidelity_statistics
     from ..metrics import SUMMARY_UNITS
 
-    target = fidelity_statistics(tgt.trees[0], size_topology(cfg, "target"))
+    target = fidelity_statistics(tgt.trees[0], *size_topology(cfg, "target"))
     ok = [r["summary"] for r in rows if r.get("status") == "ok" and r.get("summary")]
     table = fidelity_table(target, ok, SUMMARY_UNITS)
     bounds = {k: (fp.lower, fp.upper) for k, fp in cfg.ssm.free.items()}

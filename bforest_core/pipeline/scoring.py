@@ -63,9 +63,9 @@ class Scoring:
     timeout: float | None
     #: ``[target] prune_radius``: the model's trees lose what is thinner, as the QSM did
     prune_radius: float
-    #: the branch rule of the size term on the model side (:func:`.target.size_topology`): the
-    #: clones' fidelity statistics are measured by it
-    size_topology: str | None
+    #: the branch rule of the size term on the model side and the statistics it measures by it
+    #: (:func:`.target.size_topology`): the clones' fidelity statistics are measured so
+    size_topology: tuple[str | None, list[str] | None]
     #: the process that scores, ``host:pid`` (logged with each evaluation)
     worker: str
 

@@ -67,10 +67,11 @@ class Term:
         return {k[len(pre) :]: v for k, v in by_set.items() if k.startswith(pre) and (pre or "/" not in k)}
 
 
-def size_topology(cfg: RunConfig, side: str) -> str | None:
+def size_topology(cfg: RunConfig, side: str) -> tuple[str | None, list[str] | None]:
     """The branch rule under which the size term measures one side's trees (``"target"`` or
-    ``"model"``): the ``topology`` of the objective's first tree-summary set after the per-side
-    rules, or None (each tree's own branches: the QSM's stored ones, the model's order mode).
+    ``"model"``), and the statistics it measures by it: the ``topology`` and ``topology_statistics``
+    of the objective's first tree-summary set after the per-side rules; (None, None) for each
+    tree's own branches (the QSM's stored ones, the model's order mode).
 
     The clones' fidelity table measures by it, so that it counts first-order branches as the fit
     held them.
@@ -78,8 +79,8 @@ def size_topology(cfg: RunConfig, side: str) -> str | None:
     for spec in term_specs(cfg):
         if spec.features_kind == SUMMARY_KIND:
             fs = feature_set_for(cfg, side, spec.features, spec.features_kind)
-            return getattr(fs.settings, "topology", None)
-    return None
+            return getattr(fs.settings, "topology", None), getattr(fs.settings, "topology_statistics", None)
+    return None, None
 
 
 def term_specs(cfg: RunConfig) -> list[Term]:

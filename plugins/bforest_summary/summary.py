@@ -54,6 +54,10 @@ class TreeSummarySettings(ComponentSettings):
             "branches as the structural tables do"
         ),
     )
+    topology_statistics: Optional[list[str]] = Field(
+        None,
+        description="the statistics measured by topology (default: all); the others by each tree's own branches",
+    )
 
 
 class TreeSummary(FeatureSet):
@@ -72,10 +76,11 @@ class TreeSummary(FeatureSet):
 
     def _row(self, tree) -> np.ndarray:
         s = self.settings
-        if s.topology is not None:
-            tree = tree.with_topology(s.topology)
-        stats = tree_summary(tree, max_order=s.max_order, bands=s.bands, min_diameter=s.min_branch_diameter)
-        missing = [k for k in s.statistics if k not in stats]
+        opts = dict(max_order=s.max_order, bands=s.bands, min_diameter=s.min_branch_diameter)
+        stats = tree_summary(tree if s.topology is None else tree.with_topology(s.topology), **opts)
+        if s.topology is not None and s.topology_statistics is not None:
+            stats = {**tree_summary(tree, **opts), **{k: stats[k] for k in s.topology_statistics if k in stats}}
+        missing = [k for k in (*s.statistics, *(s.topology_statistics or ())) if k not in stats]
         if missing:
             raise ValueError(
                 f"tree-summary: unknown statistic(s) {', '.join(missing)} (known with max_order = "

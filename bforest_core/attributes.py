@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .metrics import axis_angles, classical_metrics, crown_base_height, tree_summary
+from .metrics import axis_angles, classical_metrics, crown_base_height, ruled_summary
 
 __all__ = [
     "branch_table",
@@ -441,12 +441,10 @@ def fidelity_statistics(tree, topology: str | None = None, statistics=None) -> d
         :func:`~bforest_core.metrics.tree_summary` and the :data:`FIDELITY_ATTRIBUTES`
         (units: :func:`~bforest_core.metrics.summary_unit`).
     """
-    ruled = tree if topology is None else tree.with_topology(topology)
-    out = tree_summary(ruled)
-    if topology is not None and statistics is not None:
-        out = {**tree_summary(tree), **{k: out[k] for k in statistics if k in out}}
-        ruled = tree
-    a = tree_attributes(ruled, alpha=False)
+    out = ruled_summary(tree, topology, statistics)
+    a = tree_attributes(
+        tree if topology is None or statistics is not None else tree.with_topology(topology), alpha=False
+    )
     out.update({k: a[k] for k in FIDELITY_ATTRIBUTES})
     return out
 

@@ -28,6 +28,7 @@ __all__ = [
     "crown_spread",
     "dbh",
     "tree_summary",
+    "ruled_summary",
     "order_summary",
     "SUMMARY_DEFAULT",
     "SIZE_WEIGHTS",
@@ -411,6 +412,34 @@ def crown_base_height(tree, share: float = CROWN_BASE_SHARE) -> float:
     cum = np.cumsum(w[order])
     k = int(np.searchsorted(cum, share * cum[-1], side="right"))
     return float(z[order][min(k, z.size - 1)])
+
+
+def ruled_summary(tree, topology: str | None = None, statistics=None, **options) -> dict[str, float]:
+    """:func:`tree_summary` with branches chosen by another topology rule.
+
+    Parameters
+    ----------
+    tree : Tree
+        The tree.
+    topology : {"source", "subtree", "thickest"} or None, optional
+        The branch rule (:meth:`Tree.with_topology`); None keeps the tree's own branches.
+    statistics : sequence of str, optional
+        The statistics measured by ``topology`` (default: all); the others by the tree's own
+        branches.
+    **options
+        Passed to :func:`tree_summary`.
+
+    Returns
+    -------
+    dict of str to float
+        The statistics of :func:`tree_summary`.
+    """
+    if topology is None:
+        return tree_summary(tree, **options)
+    ruled = tree_summary(tree.with_topology(topology), **options)
+    if statistics is None:
+        return ruled
+    return {**tree_summary(tree, **options), **{k: ruled[k] for k in statistics if k in ruled}}
 
 
 def tree_summary(

@@ -17,7 +17,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from bforest_core.interfaces import ComponentSettings, Distance, FeatureSet
-from bforest_core.metrics import DETECTION_DIAMETER, SUMMARY_DEFAULT, summary_unit, tree_summary
+from bforest_core.metrics import DETECTION_DIAMETER, SUMMARY_DEFAULT, ruled_summary, summary_unit
 
 SET = "summary"
 #: offset c of the log ratio |log((m + c) / (d + c))| by unit: a count of 0 is fine, a length or
@@ -76,10 +76,14 @@ class TreeSummary(FeatureSet):
 
     def _row(self, tree) -> np.ndarray:
         s = self.settings
-        opts = dict(max_order=s.max_order, bands=s.bands, min_diameter=s.min_branch_diameter)
-        stats = tree_summary(tree if s.topology is None else tree.with_topology(s.topology), **opts)
-        if s.topology is not None and s.topology_statistics is not None:
-            stats = {**tree_summary(tree, **opts), **{k: stats[k] for k in s.topology_statistics if k in stats}}
+        stats = ruled_summary(
+            tree,
+            s.topology,
+            s.topology_statistics,
+            max_order=s.max_order,
+            bands=s.bands,
+            min_diameter=s.min_branch_diameter,
+        )
         missing = [k for k in (*s.statistics, *(s.topology_statistics or ())) if k not in stats]
         if missing:
             raise ValueError(

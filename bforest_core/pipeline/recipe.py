@@ -21,6 +21,7 @@ from ..interfaces import RecipeDraft
 from ..io import read_qsm
 from ..metrics import SIZE_WEIGHTS, SUMMARY_DEFAULT, TreeMeasures, measure_tree
 from ..registry import component, discover
+from .target import SUMMARY_KIND
 
 
 @dataclass
@@ -263,7 +264,7 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         "[[objective.terms]]",
         'name = "size"',
         f"weight = {TERM_WEIGHT!r}",
-        'features = { kind = "tree-summary", min_branch_diameter = 0.0'
+        f'features = {{ kind = "{SUMMARY_KIND}", min_branch_diameter = 0.0'
         + (
             ", statistics = [" + ", ".join(f'"{k}"' for k in (*SUMMARY_DEFAULT, *d.size_extra)) + "]"
             if d.size_extra

@@ -244,6 +244,9 @@ def test_tree_summary_topology_counts_branches_by_one_rule_on_any_tree():
     assert one.extract(t)["summary"][0].tolist() == pytest.approx([2, 2, 3.0])
     with pytest.raises(ValueError, match="unknown statistic.*n_branch_o1"):
         bf.component("features", "tree-summary", topology="subtree", topology_statistics=["n_branch_o1"]).prepare([t])
+    # a list of statistics without a rule to measure them by would do nothing: refused
+    with pytest.raises(ValueError, match="topology_statistics.*needs a topology"):
+        bf.component("features", "tree-summary", topology_statistics=["n_branches_o1"])
     # the fidelity table measures by the same rule
     from bforest_core.attributes import fidelity_statistics
 

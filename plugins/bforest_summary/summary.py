@@ -14,7 +14,7 @@ from __future__ import annotations
 from typing import Literal, Optional
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from bforest_core.interfaces import ComponentSettings, Distance, FeatureSet
 from bforest_core.metrics import DETECTION_DIAMETER, SUMMARY_DEFAULT, ruled_summary, summary_unit
@@ -58,6 +58,15 @@ class TreeSummarySettings(ComponentSettings):
         None,
         description="the statistics measured by topology (default: all); the others by each tree's own branches",
     )
+
+    @model_validator(mode="after")
+    def _rule_named(self):
+        if self.topology_statistics is not None and self.topology is None:
+            raise ValueError(
+                f"topology_statistics = {self.topology_statistics} needs a topology to measure them by "
+                '(for example topology = "subtree")'
+            )
+        return self
 
 
 class TreeSummary(FeatureSet):

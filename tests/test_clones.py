@@ -39,6 +39,15 @@ def test_warning_limit_is_twenty_percent_of_height_dbh_and_crown():
     assert len(warns) == 1 and "[crown_spread]" in warns[0]  # height -19 % passes; length has no limit
 
 
+def test_a_stem_much_longer_than_the_trees_is_warned_of():
+    # a 20 m stem grown 26.6 m long along its axis on a tree of the same height winds or bends
+    # over: +33 % beyond the 30 % limit; 25 m (+25 %) within it
+    rows = fidelity_table({"height": 18.0, "stem_length": 20.0}, [{"height": 17.5, "stem_length": 26.6}])
+    warns = fidelity_warnings(rows)
+    assert warns == ["clones miss the target's stem length [stem_length]: mean 26.6 m vs 20 m (+33.0 %, limit ±30 %)"]
+    assert not fidelity_warnings(fidelity_table({"stem_length": 20.0}, [{"stem_length": 25.0}]))
+
+
 def test_crown_base_and_branch_counts_have_limits_and_every_row_a_unit():
     from bforest_core.metrics import SUMMARY_UNITS
 

@@ -43,6 +43,16 @@ class QSMReadWarning(UserWarning):
     """A QSM file was read with a repair or an inconsistency worth knowing about."""
 
 
+def quiet_read_repairs() -> None:
+    """Keep :class:`QSMReadWarning` quiet in this process.
+
+    For a command's helper processes (the executors' workers, the report's second process): the
+    command reads the same files first and reports their repairs once; a helper's copy would
+    print them again, once per process, in Python's raw format.
+    """
+    warnings.filterwarnings("ignore", category=QSMReadWarning)
+
+
 class Repair(dict):
     """One repair done while reading.
 

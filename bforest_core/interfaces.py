@@ -1026,12 +1026,26 @@ class Executor(Component):
         """Stop workers."""
 
     @staticmethod
+    def worker_setup() -> None:
+        """Prepare a worker process.
+
+        An executor calls it in each worker before the initializer (the ``process`` and ``dask``
+        executors do).
+
+        It limits the worker to one BLAS/OpenMP thread (:meth:`limit_worker_threads`) and keeps
+        a QSM's read repairs quiet there (:func:`~bforest_core.cylinders.quiet_read_repairs`).
+        """
+        from .cylinders import quiet_read_repairs
+
+        Executor.limit_worker_threads()
+        quiet_read_repairs()
+
+    @staticmethod
     def limit_worker_threads() -> None:
         """Limit this process to one BLAS/OpenMP thread.
 
-        An executor whose workers together keep every core busy calls it in each worker before
-        the initializer (the ``process`` and ``dask`` executors do): a worker's own thread pools
-        would only compete with the other workers.
+        Workers that together keep every core busy would only have their own thread pools
+        compete with the other workers (:meth:`worker_setup` calls it).
         """
         for v in (
             "OMP_NUM_THREADS",

@@ -319,3 +319,11 @@ def test_output_cut_short_by_the_reader_is_no_error():
     err = p.stderr.read()
     assert p.wait(60) == 0, err
     assert "Broken pipe" not in err and "Traceback" not in err and "error" not in err
+
+
+def test_a_repair_read_twice_is_reported_once():
+    # `distance` reads the file as tree A and as tree B: its 278 renormalised axes are one warning
+    p = qsm_path("wytham_tf1.mat")
+    r = run_cli("distance", str(p), str(p), "--sets", "S1", "--lines", "16")
+    warned = [ln for ln in r.stderr.splitlines() if "axes not unit vectors" in ln]
+    assert r.returncode == 0 and len(warned) == 1 and warned[0].startswith("warning: ")

@@ -39,6 +39,26 @@ def test_process_pool_initializer_once_per_worker_and_one_thread():
     assert {g[2] for g in got.values()} == {"1"}
 
 
+def _warned(_):
+    import warnings
+
+    from bforest_core.cylinders import QSMReadWarning
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.warn("renormalised axes", QSMReadWarning, stacklevel=1)
+        warnings.warn("something else", UserWarning, stacklevel=1)
+    return [type(w.message).__name__ for w in caught]
+
+
+def test_workers_keep_a_qsms_read_repairs_quiet_and_show_other_warnings():
+    # the command reports a QSM's repairs once when it reads the file; a worker reading it again
+    # would print them once more per worker, in Python's raw format
+    ex = bf.component("executor", "process", workers=2)
+    with ex.started():
+        got = [w for _, w in ex.map_unordered(_warned, [0, 1])]
+    assert got == [["UserWarning"], ["UserWarning"]]
+
+
 def test_model_seeds_depend_only_on_run_seed_and_index():
     assert model_seeds(1, 3) == model_seeds(1, 3)
     assert model_seeds(1, 3) != model_seeds(2, 3)

@@ -17,9 +17,15 @@ from concurrent.futures import BrokenExecutor
 from . import export, init, plugins_config, runs, trees
 from .common import EXIT_USAGE, Parser, UsageError
 
+#: the warnings this command has printed: a file read twice (the clones, then the report) warns once
+_SHOWN: set[str] = set()
+
 
 def _warning_line(message, category, filename, lineno, file=None, line=None):
-    print(f"warning: {_printable(message)}", file=sys.stderr)
+    text = f"warning: {_printable(message)}"
+    if text not in _SHOWN:
+        _SHOWN.add(text)
+        print(text, file=sys.stderr)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -46,6 +52,7 @@ def main(argv=None) -> int:
         parser.print_help()
         return EXIT_USAGE
     old_show = warnings.showwarning
+    _SHOWN.clear()
     if not args.debug:
         warnings.showwarning = _warning_line
     try:

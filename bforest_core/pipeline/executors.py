@@ -94,7 +94,7 @@ def _release_forkserver() -> None:
 
 
 def _worker_init(initializer, initargs, owner=None):
-    Executor.limit_worker_threads()
+    Executor.worker_setup()
     if owner is not None and os.name == "posix":
         _exit_with(owner)
     if initializer is not None:

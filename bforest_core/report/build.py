@@ -29,6 +29,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from ..cylinders import quiet_read_repairs
 from .attributes import fig_distributions
 from .canvas import FORMATS, current_output, figure_output
 from .convergence import fig_convergence
@@ -94,6 +95,7 @@ def _side_figures(run_dir, strict: bool, output: tuple = ("png", None)):
     """Draw the ``_SIDE`` figures from a fresh view of ``run_dir`` (in the second process, which
     never touches the first one's database connection) in the ``(format, dpi)`` of ``output``.
     Returns (figures made, notes)."""
+    quiet_read_repairs()  # the command has reported the target's repairs
     v = RunView(run_dir)
     figs = _Figures(v, strict)
     with figure_output(*output):

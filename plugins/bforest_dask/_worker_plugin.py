@@ -23,6 +23,6 @@ class RunInitializer(WorkerPlugin):
         self.name = name
 
     def setup(self, worker) -> None:
-        Executor.limit_worker_threads()
+        Executor.worker_setup()
         if self.initializer is not None:
             self.initializer(*self.initargs)

@@ -441,10 +441,10 @@ def fidelity_statistics(tree, topology: str | None = None, statistics=None) -> d
         :func:`~bforest_core.metrics.tree_summary` and the :data:`FIDELITY_ATTRIBUTES`
         (units: :func:`~bforest_core.metrics.summary_unit`).
     """
-    out = ruled_summary(tree, topology, statistics)
-    a = tree_attributes(
-        tree if topology is None or statistics is not None else tree.with_topology(topology), alpha=False
-    )
+    # measured wholly by the rule: the tree converted once (ruled_summary finds it in that rule)
+    whole = tree.with_topology(topology) if topology is not None and statistics is None else tree
+    out = ruled_summary(whole, topology, statistics)
+    a = tree_attributes(whole, alpha=False)
     out.update({k: a[k] for k in FIDELITY_ATTRIBUTES})
     return out
 

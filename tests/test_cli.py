@@ -1,5 +1,6 @@
 """The `bforest` command: help, version, readable one-line errors with exit code 2."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 
 from bforest_core.cli import main
-from conftest import qsm_path
+from conftest import TOY_DIR, qsm_path
 
 
 def run_cli(*args):
@@ -235,7 +236,36 @@ def test_fit_says_when_the_wall_time_and_not_the_budget_decided_where_it_stopped
     )
     assert r.returncode == 0, r.stderr
     assert "(wall time (1e-06 s) reached)" in r.stdout
-    assert "note: the search stopped on its wall time after" in r.stdout and "of its 30 evaluations" in r.stdout
+    assert "WARNING: the search stopped on its wall time ([stop] wall_time) after" in r.stdout
+    best = json.loads((tmp_path / "run" / "best.json").read_text())
+    assert best["stop_kind"] == "wall_time" and best["stop"] == {"search": "wall_time", "timeouts": 0}
+    assert best["n_evaluations"] < 30
+
+
+def test_a_fit_on_its_budget_is_marked_so_and_a_timed_out_growth_warns(toy_plugin, tmp_path):
+    """best.json's stop kind: "budget" for a fit that ran its evaluations; "timeout", with the
+    count, when growths ran past [objective] timeout (its answer then depends on the machine's
+    speed), warned of by the fit and in the report."""
+    from bforest_core.pipeline.fit import fit
+    from bforest_core.pipeline.store import clock_warning
+    from conftest import toy_config
+
+    run = tmp_path / "run"
+    fit(toy_config(tmp_path, budget=12), run, progress=False)
+    best = json.loads((run / "best.json").read_text())
+    assert best["stop_kind"] == "budget" and best["stop"] == {"search": "budget", "timeouts": 0}
+    assert clock_warning(best) is None
+    # every growth sleeps 0.2 s against a timeout of 0.05 s: each one times out
+    p = toy_config(tmp_path, budget=3)
+    text = p.read_text().replace('kind = "toy"\n', 'kind = "toy"\nsleep = 0.2\n')
+    p.write_text(text.replace("[stop]", "[objective]\ntimeout = 0.05\n[stop]"))
+    exe = str(Path(sys.executable).with_name("bforest"))
+    env = {**__import__("os").environ, "PYTHONPATH": __import__("os").pathsep.join([str(toy_plugin), str(TOY_DIR)])}
+    r = subprocess.run([exe, "fit", str(p), "-o", str(tmp_path / "slow")], capture_output=True, text=True, env=env)
+    best = json.loads((tmp_path / "slow" / "best.json").read_text())
+    assert best["stop_kind"] == "timeout" and best["stop"] == {"search": "budget", "timeouts": 3}
+    assert "WARNING: 3 growth(s) ran past [objective] timeout" in r.stdout
+    assert "3 growth(s) ran past [objective] timeout" in (tmp_path / "slow" / "report.md").read_text()
 
 
 def test_compare_and_clones_show_bars_with_totals(toy_plugin, tmp_path):

@@ -140,10 +140,10 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     # LIGNUM's search: the SOT pine recipe's, one model seed an evaluation, two runs of 32 together
     assert cfg["select"] == {"top": 16, "sets": 16} and cfg["objective"]["seeds"] == 1
     assert cfg["stop"]["max_evaluations"] == 4000
-    # the search stops at 200 s on the 10 m tree, so that the fit with its re-scoring ends within
-    # the 4 minutes for a pine on a slower machine; at 480 s on a 20 m tree (10 minutes)
-    assert cfg["stop"]["wall_time"] == 200.0
-    assert lignum_recipe(dataclasses.replace(r.measures, height=20.0)).wall_time == 480.0
+    # the search stops on its budget, never on the clock: the wall time is a safety net an hour
+    # long, for a small tree and a tall one alike (the answer is the same on a slow or busy machine)
+    assert cfg["stop"]["wall_time"] == 3600.0
+    assert lignum_recipe(dataclasses.replace(r.measures, height=20.0)).wall_time == 3600.0
     o = cfg["optimizer"]
     assert (o["population"], o["init_design"], o["starts"], o["finalists"], o["grow_together"]) == (32, 64, 2, 2, True)
     bf.load_config(tmp_path / "pine.toml")  # a valid run config as written

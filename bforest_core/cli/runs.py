@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..pipeline.rundir import run_lock
-from ..pipeline.store import RunFiles
+from ..pipeline.store import RunFiles, clock_warning
 from .common import UsageError, report
 
 if TYPE_CHECKING:
@@ -39,14 +39,9 @@ def _fit_and_report(args, cfg: RunConfig, out, fit):
     short = (res.diagnostics or {}).get("stopped_short")
     if short:
         print(f"WARNING: the sampler stopped short of its target: {short}")
-    budget = cfg.stop.max_evaluations
-    if res.stop_reason.startswith("wall time") and budget and res.n_evaluations < budget:
-        print(
-            f"note: the search stopped on its wall time after {res.n_evaluations} of its {budget} "
-            "evaluations, so where it stopped depends on this machine's speed and load: the same "
-            "recipe and seed may answer otherwise elsewhere (raise [stop] wall_time for an answer "
-            "that only the evaluation budget decides)"
-        )
+    clock = clock_warning(RunFiles(out).read_best())
+    if clock:
+        print(f"WARNING: {clock}")
     for title, names in (("fitted", list(cfg.ssm.free)), ("fixed", [k for k in res.params if k not in cfg.ssm.free])):
         if names:
             print(f"{title}:")

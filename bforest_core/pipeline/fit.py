@@ -37,7 +37,7 @@ from .progress import progress_bar
 from .rundir import holding_run_lock
 from .scoring import _simulate_with_timeout, _Timeout, set_summaries
 from .seeds import model_seeds, spread_seeds
-from .store import Evaluation, RunDirError, RunFiles, RunStore
+from .store import Evaluation, RunDirError, RunFiles, RunStore, stop_fields
 from .target import Target, bounds_from_target, build_target
 from .worker import evaluate_task, run_executor, started_workers, summary_task
 
@@ -90,6 +90,9 @@ class Evaluator:
         self.k = cfg.objective.seeds
         self.explicit_seeds = list(cfg.objective.model_seeds) if cfg.objective.model_seeds else None
         self.mode = cfg.objective.seed_mode
+        #: why the search stopped, when this layer stopped it (``store.STOP_KINDS``): None while
+        #: it runs, and when the optimiser ends on its own rules (``"convergence"``)
+        self.stop_kind: str | None = None
 
     def _params(self, x) -> dict:
         p = dict(self.fixed)
@@ -117,6 +120,7 @@ class Evaluator:
         left = pr.remaining()
         if left is not None and pending >= left:
             pr.stopped, pr.stop_reason = True, f"evaluation budget ({pr.budget}) reached"
+            self.stop_kind = self.stop_kind or "budget"
         return pr.stopped
 
     def _check_stop(self):
@@ -125,8 +129,10 @@ class Evaluator:
             return
         if st.wall_time is not None and self.elapsed() >= st.wall_time:
             pr.stopped, pr.stop_reason = True, f"wall time ({st.wall_time:g} s) reached"
+            self.stop_kind = "wall_time"
         elif st.target_distance is not None and pr.best_f <= st.target_distance:
             pr.stopped, pr.stop_reason = True, f"target distance {st.target_distance:g} reached"
+            self.stop_kind = "target"
 
     def seed_spread(self, x, k: int) -> np.ndarray:
         """``Problem.seed_spread``: the objective at ``x`` under ``k`` sets of fresh model seeds,
@@ -382,6 +388,7 @@ def fit(
         finally:
             store.set_meta("elapsed", evaluator.elapsed())
         stop_reason = problem.stop_reason or result.stop_reason or "optimiser finished"
+        stop_kind = evaluator.stop_kind or "convergence"
         if store.count() == 0:
             raise BayesForestError(f"{run_dir}: the optimiser evaluated nothing ({stop_reason})")
         out = finish_fit(
@@ -394,6 +401,7 @@ def fit(
             ssm,
             selection,
             posterior_kind=getattr(optimizer, "posterior_kind", None),
+            stop_kind=stop_kind,
         )
         return FitResult(
             params=out["params"],
@@ -445,6 +453,7 @@ def finish_fit(
     ssm,
     selection: dict | None = None,
     posterior_kind: str | None = None,
+    stop_kind: str = "convergence",
 ) -> dict:
     """Write ``best.json`` (the answer: the best logged evaluation, or the candidate chosen on
     held-out seeds when there is a ``selection``; classical metrics of target and answer tree)
@@ -463,6 +472,7 @@ def finish_fit(
         "evaluation": ev.idx,
         "seeds": ev.seeds,
         "stop_reason": stop_reason,
+        **stop_fields(stop_kind, store, selection),
         "n_evaluations": store.count(),
         "seconds": seconds,
         "target_metrics": target_metrics,

@@ -179,7 +179,7 @@ def select_answer(cfg: RunConfig, store: RunStore, workers, progress: bool = Fal
     held-out distance (ties: the lower own distance). ``workers`` returns a context manager giving
     an executor started on that config's scoring, entered only when a tree must be grown. Returns
     ``{"sets", "model_seeds_per_set", "spacing", "scored_by", "chosen": evaluation index,
-    "candidates": [{"evaluation", "params", "own", "heldout", "failed", "heldout_per_set"}, ...]}``,
+    "candidates": [{"evaluation", "params", "own", "heldout", "failed", "timeouts", "heldout_per_set"}, ...]}``,
     candidates in the order of their own distance (``heldout_per_set``: :func:`heldout_parts`);
     ``scored_by`` is None for the search's own objective, else
     ``[select]``'s ``{"features", "distance"}`` settings.
@@ -209,6 +209,7 @@ def select_answer(cfg: RunConfig, store: RunStore, workers, progress: bool = Fal
                 "own": float(e.distance),
                 "heldout": h,
                 "failed": failed,
+                "timeouts": sum(known[(key, tuple(s))]["status"] == "timeout" for s in seed_sets),
                 "heldout_per_set": heldout_parts(known, key, seed_sets),
             }
         )

@@ -229,7 +229,7 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
             if d.seeds > 1
             else "one model seed an evaluation: the seeds' luck is taken out where the answer is chosen ([select])",
         ),
-        _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take"),
+        _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take: a safety net far above a normal growth"),
         _line(f"structure_weight = {TERM_WEIGHT!r}", "structure and size weigh alike"),
         *(
             [
@@ -298,7 +298,10 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
         "",
         "[stop]",
         f"max_evaluations = {d.evaluations}",
-        _line(f"wall_time = {d.wall_time:.1f}", "seconds the search may take (the answer's re-scoring comes after)"),
+        _line(
+            f"wall_time = {d.wall_time:.1f}",
+            "seconds: a safety net only; the search stops on its budget, so the answer is the same on any machine",
+        ),
         "",
         *(f"# {s}" for s in textwrap.wrap(_select_text(d), 96)),
         "[select]",

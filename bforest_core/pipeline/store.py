@@ -61,6 +61,41 @@ CREATE TABLE IF NOT EXISTS heldout (
 """
 
 
+#: why a fit's search stopped (``best.json``'s ``stop_kind``): on its evaluation budget, on the
+#: optimiser's own convergence rules, at ``[stop] target_distance``, on the clock (``[stop]
+#: wall_time``), or after it ended otherwise with growths stopped by ``[objective] timeout``; the last
+#: two make the answer depend on the machine's speed and load (:func:`clock_warning`)
+STOP_KINDS = ("budget", "convergence", "target", "wall_time", "timeout")
+
+
+def stop_fields(search: str, store: RunStore, selection: dict | None = None) -> dict:
+    """``best.json``'s ``stop_kind`` and ``stop`` (``{"search": why the search ended, "timeouts":
+    growths stopped by the timeout, in the search and among the held-out candidates}``)."""
+    timeouts = store.count("timeout") + sum(int(c.get("timeouts", 0)) for c in (selection or {}).get("candidates", []))
+    kind = search if search == "wall_time" or not timeouts else "timeout"
+    return {"stop_kind": kind, "stop": {"search": search, "timeouts": timeouts}}
+
+
+def clock_warning(best: dict) -> str | None:
+    """One line when a fit's answer depends on the clock (``stop_kind`` ``wall_time`` or
+    ``timeout``), saying what happened and what to raise; None for an answer that only the
+    evaluation budget and the optimiser decided."""
+    kind, stop = best.get("stop_kind"), best.get("stop") or {}
+    timeouts = int(stop.get("timeouts", 0))
+    if kind == "wall_time":
+        return (
+            f"the search stopped on its wall time ([stop] wall_time) after {best.get('n_evaluations', '?')} "
+            "evaluations, so where it stopped depends on this machine's speed and load: raise wall_time (a safety "
+            "net) for an answer that only the evaluation budget decides"
+        )
+    if kind == "timeout":
+        return (
+            f"{timeouts} growth(s) ran past [objective] timeout and scored the penalty; which ones depends on this "
+            "machine's speed and load: raise timeout (a safety net) for an answer that does not"
+        )
+    return None
+
+
 def slug(text: str) -> str:
     """A file-name-safe version of a set or parameter name (``"S0,1"`` -> ``"S0-1"``)."""
     s = re.sub(r"[^A-Za-z0-9_.-]+", "-", str(text)).strip("-")
@@ -347,8 +382,11 @@ class RunStore(RunFiles):
             ),
         )
 
-    def count(self) -> int:
-        return self._con.execute("SELECT COUNT(*) FROM evaluations").fetchone()[0]
+    def count(self, status: str | None = None) -> int:
+        """Logged evaluations (of ``status`` only, when given)."""
+        if status is None:
+            return self._con.execute("SELECT COUNT(*) FROM evaluations").fetchone()[0]
+        return self._con.execute("SELECT COUNT(*) FROM evaluations WHERE status = ?", (status,)).fetchone()[0]
 
     def _select(self, tail: str, args: tuple = ()) -> list[Evaluation]:
         """The logged evaluations that the SQL ``tail`` (WHERE / ORDER BY / LIMIT) selects."""

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..pipeline.store import RunFiles
+from ..pipeline.store import RunFiles, clock_warning
 from .document import METRIC_ROWS, Document, cfg_kind, fmt, seconds_text
 from .run_view import RunView
 
@@ -42,6 +42,9 @@ def section_summary(doc: Document, v: RunView):
         short = stopped_short(v)
         if short:
             doc.p(f"**WARNING: the sampler stopped short of its target: {short}.**")
+        clock = clock_warning(b)
+        if clock:
+            doc.p(f"**WARNING: {clock}.**")
     else:
         best = v.store.best()
         doc.p(

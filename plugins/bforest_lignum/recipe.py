@@ -8,7 +8,7 @@ branch-angle ranges from its first-order branches' angles.
 
 from __future__ import annotations
 
-from bforest_core.interfaces import TALL_TREE_WALL_TIME, RecipeDraft
+from bforest_core.interfaces import RecipeDraft
 from bforest_core.metrics import TreeMeasures
 
 from .params import parameter_specs
@@ -24,12 +24,6 @@ Q_LO_CAP = 0.3
 #: the upper bound of a new shoot's radius:length L_R in the box, at the least and at the most (the
 #: parameter's allowed range, which the written bounds are clipped to)
 LR_HI, LR_MAX = 0.025, next(p.upper for p in parameter_specs("sf_real") if p.name == "lr_mean")
-#: (seconds the search may take, minutes the fit ends within) for a tree up to ``SMALL_HEIGHT`` m
-#: and for a taller one: with its answer's re-scoring (256 growths, 8 s on pine 1) and start-up a
-#: fit ends within 4 minutes on 2 cores for a pine of the Ruotsinkylä stand (10-13 m; pine 1's
-#: search takes 1-3 minutes, depending on the machine, docs/performance.md), within 10 for an
-#: 18-20 m broadleaf (the time every recipe gives a tall tree)
-WALL_TIMES, SMALL_HEIGHT = ((200.0, 4), (TALL_TREE_WALL_TIME, 10)), 15.0
 
 
 def _r5(x: float) -> float:
@@ -110,7 +104,6 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
             "and meets the robust-fit limits on the Ruotsinkylä pines"
         )
         suits = 0.8
-    wall, minutes = WALL_TIMES[m.height > SMALL_HEIGHT]
     return RecipeDraft(
         suits=suits,
         why=why,
@@ -128,7 +121,6 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         # evaluations of 3 model seeds were
         seeds=1,
         evaluations=4000,
-        wall_time=wall,
         starts=2,
         population=32,
         init_design=64,
@@ -143,8 +135,7 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
             "whole landscape, so the answers agree across run seeds (pine 1: held-out spread 1.14 over "
             "five run seeds, 1.26 with four raced runs of 16 and 3 seeds an evaluation; docs/validation.md). "
             "The 16 best points are candidates, not 8: one seed an evaluation ranks them by luck (pine 1's "
-            "spread 1.20 with 8, 1.13 with 16). The search stops after "
-            f"{wall:.0f} s at the latest, so that the fit ends within {minutes} minutes on 2 cores; a slower "
-            "machine does fewer of its evaluations."
+            "spread 1.20 with 8, 1.13 with 16). The search stops on its evaluation budget, never on the "
+            "clock: the answer is the same on a slow or busy machine."
         ),
     )

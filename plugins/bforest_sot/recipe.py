@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 
-from bforest_core.interfaces import TALL_TREE_WALL_TIME, RecipeDraft
+from bforest_core.interfaces import RecipeDraft
 from bforest_core.metrics import SIZE_WEIGHTS as TOLERANCE_WEIGHTS
 from bforest_core.metrics import TreeMeasures
 
@@ -253,7 +253,6 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         fixed=fixed,
         free=free,
         timeout=60.0 if big else 20.0,
-        wall_time=TALL_TREE_WALL_TIME if big else 840.0,
         notes=notes,
         size_weights=SIZE_WEIGHTS,
         size_extra=ANGLE_TERM,

@@ -29,11 +29,19 @@ def _absolute(p):
 
 
 def cmd_stand(args):
-    from ..pipeline.stand import StandError, load_stand_config, read_settings, run_stand, settings_from
+    from ..pipeline.stand import (
+        StandError,
+        check_stand_dir,
+        load_stand_config,
+        read_settings,
+        run_stand,
+        settings_from,
+    )
 
     if args.output is None:
         raise UsageError("give the stand folder with -o STAND")
     out = Path(args.output)
+    check_stand_dir(out, args.resume, args.overwrite)  # before the trees are read
     executor = _executor(args)
     options = dict(recipe=_absolute(args.recipe), model=args.model, seed=args.seed, clones=args.count)
     options.update(realisations=args.realisations)

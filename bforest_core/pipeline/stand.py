@@ -550,6 +550,25 @@ def _executor(settings: StandSettings):
         raise ConfigError(f"stand executor: {exc}") from None
 
 
+def check_stand_dir(stand_dir, resume: bool, overwrite: bool) -> bool:
+    """Whether ``stand_dir`` holds a stand; StandError when the command cannot use it (a stand
+    without --resume or --overwrite, no stand to resume, a folder of other files)."""
+    stand_dir = Path(stand_dir)
+    holds = StandFiles(stand_dir).settings_path.exists()
+    if resume and not holds:
+        raise StandError(f"{stand_dir}: holds no stand to resume (no {StandFiles.SETTINGS})")
+    if holds and not resume and not overwrite:
+        raise StandError(
+            f"{stand_dir}: holds a stand already; continue it with --resume, or start anew with --overwrite "
+            "(deletes its fits)"
+        )
+    if not resume and not holds and stand_dir.is_dir() and any(stand_dir.iterdir()):
+        raise StandError(f"{stand_dir}: a folder holding other files; choose an empty or new -o")
+    if stand_dir.exists() and not stand_dir.is_dir():
+        raise StandError(f"{stand_dir}: exists and is not a folder; choose another -o")
+    return holds
+
+
 def run_stand(
     settings: StandSettings,
     stand_dir,
@@ -581,16 +600,7 @@ def run_stand(
     """
     stand_dir = Path(stand_dir)
     files = StandFiles(stand_dir)
-    holds = files.settings_path.exists()
-    if resume and not holds:
-        raise StandError(f"{stand_dir}: holds no stand to resume (no {StandFiles.SETTINGS})")
-    if holds and not resume and not overwrite:
-        raise StandError(
-            f"{stand_dir}: holds a stand already; continue it with --resume, or start anew with --overwrite "
-            "(deletes its fits)"
-        )
-    if not resume and not holds and stand_dir.is_dir() and any(stand_dir.iterdir()):
-        raise StandError(f"{stand_dir}: a folder holding other files; choose an empty or new -o")
+    holds = check_stand_dir(stand_dir, resume, overwrite)
     if not settings.trees:
         raise StandError("the stand has no trees")
     check_models(settings)

@@ -184,7 +184,9 @@ class QSMWriter(Component):
         """
         from .errors import QSMFormatError
 
-        raise QSMFormatError(path, f"the {self.name} format holds one tree, not a plot (write a plot as .ply, .obj, .las)")
+        raise QSMFormatError(
+            path, f"the {self.name} format holds one tree, not a plot (write a plot as .ply, .obj, .las)"
+        )
 
 
 # ------------------------------------------------------------------------------------ SSM

@@ -252,3 +252,24 @@ def test_a_dashboard_address_without_a_host_binds_to_loopback():
 
     assert dashboard_address(":8787") == "127.0.0.1:8787" and dashboard_address("8787") == "127.0.0.1:8787"
     assert dashboard_address("0.0.0.0:8787") == "0.0.0.0:8787"  # an address that says otherwise
+
+
+def kill_my_worker(x):
+    os._exit(3)
+
+
+def test_a_task_whose_workers_die_becomes_the_on_lost_result():
+    """As with the process executor: a task that kills every worker it runs on ends, once the
+    scheduler gives up on it, as the executor's on_lost makes it; the other tasks' results come
+    back (a stand's tree whose worker dies is a failed row, the other trees go on)."""
+    import dask
+
+    from bforest_dask.executor import DaskExecutor
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        ex = DaskExecutor(workers=2)
+        ex.on_lost = lambda fn, item, status, message: ("lost", item, status, "died" in message)
+        with ex.started(None):
+            out = dict(ex.map_unordered(kill_my_worker, [7]))
+            assert out == {0: ("lost", 7, "crashed", True)}
+            assert ex.map(abs, [-1, -5]) == [1, 5]

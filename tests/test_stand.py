@@ -250,3 +250,50 @@ def test_a_stand_config_names_its_bad_key(tmp_path, capsys):
     assert main(["stand", str(cfg), "-o", str(tmp_path / "s")]) == 2
     err = _lines(capsys)
     assert len(err) == 1 and "stand.clone: unknown key" in err[0] and "did you mean 'clones'" in err[0]
+
+
+def _block(doc: str, marker: str, lang: str) -> str:
+    """The fenced ``lang`` block that follows ``marker`` in ``doc``."""
+    after = doc[doc.index(marker) :]
+    start = after.index(f"```{lang}\n") + len(lang) + 4
+    return after[start : after.index("```", start)]
+
+
+def test_the_slurm_set_up_of_dask_md_builds_and_its_stand_config_validates(plot, tmp_path, monkeypatch):
+    """docs/dask.md's stand config validates (with credentials made as the page says) and its
+    launcher's SLURM cluster builds: TLS with those credentials, no HTTP, the workers' job script
+    presenting them (no job is submitted)."""
+    pytest.importorskip("dask_jobqueue", reason="dask-jobqueue is not installed (pip install 'bayesforest[slurm]')")
+    from bforest_core.pipeline.stand import load_stand_config
+    from bforest_dask.credentials import write_credentials
+    from conftest import ROOT
+
+    doc = (ROOT / "docs" / "dask.md").read_text()
+    monkeypatch.setenv("HOME", str(tmp_path))
+    creds = write_credentials(tmp_path / ".bforest-cluster")
+    folder = tmp_path / "site"
+    folder.mkdir()
+    rows = (plot / "map.csv").read_text().splitlines()
+    (folder / "plot.csv").write_text("\n".join([rows[0]] + [r.replace(",", f",{plot}/", 1) for r in rows[1:]]) + "\n")
+    (folder / "stand.toml").write_text(_block(doc, "<!-- stand config:", "toml"))
+    s = load_stand_config(folder / "stand.toml")
+    assert [t.name for t in s.trees] == ["p3", "cof", "bad"] and s.clones == 30 and s.realisations == 3
+    assert s.executor["kind"] == "dask" and s.executor["workers"] == 16
+    from bforest_core.registry import component
+
+    ex = component("executor", "dask", **{k: v for k, v in s.executor.items() if k != "kind"})
+    assert ex.settings.security().require_encryption
+    ns = {"__name__": "launch_stand"}
+    monkeypatch.chdir(tmp_path)
+    exec(compile(_block(doc, "<!-- launcher:", "python"), "launch_stand.py", "exec"), ns)
+    cluster = ns["slurm_cluster"](creds["ca"].parent)
+    try:
+        script = cluster.job_script()
+        assert cluster.scheduler_address.startswith("tls://")
+        for part in (f"--tls-ca-file {creds['ca']}", f"--tls-cert {creds['cert']}", "--preload bforest_dask.nohttp"):
+            assert part in script, script
+        assert cluster.scheduler.http_server is None or not any(
+            sock.fileno() != -1 for sock in cluster.scheduler.http_server._sockets.values()
+        )
+    finally:
+        cluster.close()

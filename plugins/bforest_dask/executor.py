@@ -132,6 +132,7 @@ class DaskExecutor(Executor):
         self._client: Client | None = None
         self._cluster: LocalCluster | None = None
         self._security = None
+        self.on_lost = None  # (fn, item, status, message) -> stand-in result of a task whose workers died
         self._plugin_name: str | None = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -236,8 +237,9 @@ class DaskExecutor(Executor):
     def map_unordered(self, fn: Callable, items: Sequence) -> Iterator[tuple[int, Any]]:
         """Submit every item as one task; yield ``(index, result)`` as tasks complete.
 
-        A task's exception is re-raised here; leaving the loop early cancels the tasks still
-        pending.
+        A task's exception is re-raised here, but for a task whose workers died, which becomes
+        ``on_lost(fn, item, "crashed", message)`` when that hook is set; leaving the loop early
+        cancels the tasks still pending.
         """
         from distributed import as_completed
 
@@ -249,11 +251,24 @@ class DaskExecutor(Executor):
         index = {f.key: i for i, f in enumerate(futures)}
         try:
             for fut in as_completed(futures, loop=client.loop):
-                yield index[fut.key], fut.result()
+                i = index[fut.key]
+                lost = self._lost_result(fut, fn, items[i])
+                yield i, (fut.result() if lost is NotImplemented else lost)
         finally:
             pending = [f for f in futures if not f.done()]
             if pending:
                 client.cancel(pending)
+
+    def _lost_result(self, fut, fn, item):
+        """What a task becomes whose workers died (the scheduler gave up on it after
+        ``distributed.scheduler.allowed-failures`` deaths): the executor's ``on_lost`` result, as
+        with the process executor; :data:`NotImplemented` for any other outcome."""
+        if self.on_lost is None or fut.status != "error":
+            return NotImplemented
+        exc = fut.exception()
+        if type(exc).__name__ != "KilledWorker":
+            return NotImplemented
+        return self.on_lost(fn, item, "crashed", f"its workers died: {exc}")
 
     def shutdown(self) -> None:
         client, cluster = self._client, self._cluster

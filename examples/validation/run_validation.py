@@ -333,9 +333,9 @@ driver), made by
 
 which fits (or resumes) each run into `runs/validation/<name>/` and rewrites this page (about 1 h
 on 2 cores). `run_validation.py --check DIR` refits the synthetic recoveries into DIR and compares
-them with this page instead. A single run: `bforest fit examples/validation/<name>.toml -o
-runs/validation/<name>`. Distances: sliced KS, 256 gp2 lines, z-scored on the data side, circular
-angles, `subtree` topology on both sides.
+them with this page instead. A single run:
+`bforest fit examples/validation/<name>.toml -o runs/validation/<name>`. Distances: sliced KS, 256
+gp2 lines, z-scored on the data side, circular angles, `subtree` topology on both sides.
 
 ## 1. Synthetic recovery, simplified LIGNUM (Silva Fennica Table 2 protocol)
 

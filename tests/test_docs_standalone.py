@@ -6,7 +6,8 @@
   one sibling folder a file may name is the sample data, ``../shared/data/qsm``, which tests and
   examples read and skip without.
 * Every ``docs/<name>.md`` a file names and every relative link of a Markdown page resolves to a
-  file of the repository.
+  file of the repository, and a link's ``#anchor`` to a heading of the page it points to (as
+  GitHub makes anchors: lower case, punctuation dropped, spaces as hyphens).
 """
 
 from __future__ import annotations
@@ -77,9 +78,28 @@ def external_citations(paths: list[Path], root: Path = ROOT) -> list[str]:
     return found
 
 
+def heading_anchors(text: str) -> set[str]:
+    """The anchors GitHub gives a Markdown page's headings (code blocks left out): lower case,
+    every character but letters, digits, ``_``, ``-`` and spaces dropped, spaces as hyphens; a
+    repeated heading gets ``-1``, ``-2``, ..."""
+    out, seen, fence = set(), {}, False
+    for line in text.splitlines():
+        if line.lstrip().startswith("```"):
+            fence = not fence
+            continue
+        m = None if fence else re.match(r"#{1,6}\s+(.*?)\s*#*\s*$", line)
+        if m:
+            slug = re.sub(r"[^\w\- ]", "", m.group(1).strip().lower()).replace(" ", "-")
+            n = seen.get(slug, 0)
+            seen[slug] = n + 1
+            out.add(slug if n == 0 else f"{slug}-{n}")
+    return out
+
+
 def broken_doc_links(paths: list[Path], root: Path = ROOT) -> list[str]:
     """``file: target`` of every ``docs/....md`` mention and relative Markdown link that does not
-    resolve (mentions from the repository root, links from the page's folder)."""
+    resolve (mentions from the repository root, links from the page's folder), and of every link
+    whose ``#anchor`` names no heading of the Markdown page it points to."""
     bad = []
     for p in paths:
         if p.resolve() == THIS or p.suffix not in (".md", ".py", ".toml", ".txt"):
@@ -92,11 +112,14 @@ def broken_doc_links(paths: list[Path], root: Path = ROOT) -> list[str]:
                 bad.append(f"{p.relative_to(root)}: {m.group(0)}")
         if p.suffix == ".md":
             for m in MD_LINK.finditer(text):
-                target = m.group(1).split("#")[0]
-                if not target or re.match(r"[a-zA-Z][\w+.-]*:", target):  # anchor only, URL
+                target, _, anchor = m.group(1).partition("#")
+                if re.match(r"[a-zA-Z][\w+.-]*:", target):  # a URL
                     continue
-                if not (p.parent / target).exists():
+                page = p.parent / target if target else p
+                if not page.exists():
                     bad.append(f"{p.relative_to(root)}: link ({m.group(1)})")
+                elif anchor and page.suffix == ".md" and anchor.lower() not in heading_anchors(text_of(page) or ""):
+                    bad.append(f"{p.relative_to(root)}: anchor ({m.group(1)})")
     return bad
 
 
@@ -145,3 +168,16 @@ def test_the_checks_can_fail(tmp_path, line, cites):
     page = tmp_path / "page.md"
     page.write_text("[a](missing.md) and docs/nowhere.md and [b](page.md) [c](https://x.org/y.md)\n", encoding="utf-8")
     assert broken_doc_links([page], tmp_path) == ["page.md: docs/nowhere.md", "page.md: link (missing.md)"]
+
+
+def test_an_anchor_must_name_a_heading(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text(
+        "# Title\n\n## 4. Real trees: the pine's clones\n\n```\n# not a heading\n```\n## Title\n\n"
+        "[a](#4-real-trees-the-pines-clones) [b](page.md#title-1) [c](#not-a-heading) [d](other.md#x)\n",
+        encoding="utf-8",
+    )
+    (tmp_path / "other.md").write_text("# X\n", encoding="utf-8")
+    assert broken_doc_links([page], tmp_path) == ["page.md: anchor (#not-a-heading)"]
+    (tmp_path / "other.md").write_text("# Y\n", encoding="utf-8")
+    assert broken_doc_links([page], tmp_path) == ["page.md: anchor (#not-a-heading)", "page.md: anchor (other.md#x)"]

@@ -359,7 +359,7 @@ def test_a_small_decurrent_tree_gets_the_internodes_its_branch_count_needs():
     """A 3.7 m sapling with one first-order branch per 0.17 m of crown (the coffeetree's measures):
     with two buds a node its count needs internodes of 0.27-0.49 m (0.8-1.45 x 2 x 0.17 m); the
     height alone (1/100-1/33) gave 0.04-0.11 m, and fits ended at that bound with 50 % too many
-    branches (docs/validation.md, Broadleaved trees)."""
+    branches (docs/notes/2026-11-29-broadleaved-internode-and-buds-per-node.md)."""
     m = dataclasses.replace(measure_tree(decurrent_tree()), height=3.72, branch_spacing=0.17)
     assert m.decurrent
     free = {name: (lo, hi) for name, lo, hi, _ in sot_recipe(m).free}

@@ -25,7 +25,8 @@ WARN_ABOVE = 0.20
 #: (the papers' traditional metrics), 30 % for the crown base height and for the branch count of
 #: every order (the limits the SOT real-tree recipe must meet for crown base and first-order
 #: branches), and 30 % for the stem's length along its axis: a stem that much longer than the
-#: tree's winds or bends over, where the height alone does not show it (docs/validation.md: the
+#: tree's winds or bends over, where the height alone does not show it
+#: (docs/notes/2026-12-06-broadleaved-stem-length-warning.md: the
 #: fits whose stems zigzag, lean or bend over are +31 to +79 %, every fit accepted by eye -13 to +21 %)
 LIMITS = {
     "height": WARN_ABOVE,

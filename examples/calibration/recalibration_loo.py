@@ -9,7 +9,7 @@ quantiles of u over the other runs. The script prints, per parameter and level, 
 those leave-one-out intervals and their width relative to the sampler's own intervals (median over
 runs): a width factor below 1 says by how much the sampler's intervals are too wide. The coverage
 is close to nominal by construction (the runs are exchangeable), so it is a check of the script,
-not of the sampler. An analysis of docs/validation.md, not part of the product.
+not of the sampler. An analysis of docs/calibration.md, not part of the product.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""Calibration of the samplers (issue 14): the studies of this folder and their section of
-docs/validation.md.
+"""Calibration of the samplers (issue 14): the studies of this folder and their page,
+docs/calibration.md.
 
     nice -n 19 .venv/bin/python examples/calibration/run_calibration.py             # all studies, N = 40
     nice -n 19 .venv/bin/python examples/calibration/run_calibration.py --only sot_abc_smc_noise
@@ -10,9 +10,8 @@ runs are read back, so this script can be stopped and started again. The noise-f
 starts each run from the evaluation log of the 7-generation study (see :func:`seed_logs`): the two
 samplers propose the same particles until the noise stop changes a generation, so the shared part
 is replayed, not simulated again. ``--doc`` writes the section
-"Calibrated intervals" of docs/validation.md between its own markers (placed before the real-tree
-fidelity section, which examples/real/run_fidelity.py owns) and copies the figures to
-docs/img/validation/.
+"Calibrated intervals" of docs/calibration.md between its own markers (docs/validation.md
+summarises it; update its rows by hand) and copies the figures to docs/img/validation/.
 """
 
 from __future__ import annotations
@@ -26,7 +25,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 RUNS = ROOT / "runs" / "calibration"
-DOC = ROOT / "docs" / "validation.md"
+DOC = ROOT / "docs" / "calibration.md"
 IMG = ROOT / "docs" / "img" / "validation"
 STUDIES = (
     "sot_abc_smc",
@@ -40,7 +39,6 @@ STUDIES = (
 )
 BEGIN = "<!-- calibration: written by examples/calibration/run_calibration.py --doc -->"
 END = "<!-- /calibration -->"
-FIDELITY = "<!-- real-tree fidelity: written by examples/real/run_fidelity.py --doc -->"
 LABEL = {
     "sot_abc_smc": "abc-smc, 7 generations",
     "sot_abc_smc_noise": 'abc-smc, epsilon_target = "noise"',
@@ -530,9 +528,6 @@ def write_doc(results: dict) -> None:
     if BEGIN in text and END in text:
         head, rest = text.split(BEGIN, 1)
         text = head + block + rest.split(END, 1)[1].lstrip("\n")
-    elif FIDELITY in text:
-        head, tail = text.split(FIDELITY, 1)
-        text = head.rstrip() + "\n\n" + block + "\n" + FIDELITY + tail
     else:
         text = text.rstrip() + "\n\n" + block
     DOC.write_text(text, encoding="utf-8")

@@ -1,4 +1,4 @@
-"""Validation against the papers: runs the fits of this folder and writes docs/validation.md.
+"""Parameter recovery (docs/recovery.md): runs the fits of this folder and writes that page.
 
     .venv/bin/python examples/validation/run_validation.py            # everything (about 1 h on 2 cores)
     .venv/bin/python examples/validation/run_validation.py --only sot_synthetic
@@ -7,7 +7,8 @@
         # refit the synthetic recoveries into a fresh folder and compare with the page (no rewrite)
 
 Fits already finished in runs/validation/<name> (best.json present) are reused; an interrupted
-fit is resumed. Every number in docs/validation.md comes from these runs.
+fit is resumed. Every number in docs/recovery.md comes from these runs; docs/validation.md
+summarises them (update its rows by hand when this page changes).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from bforest_core.pipeline.clones import clones
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 RUNS = ROOT / "runs" / "validation"
-DOC = ROOT / "docs" / "validation.md"
+DOC = ROOT / "docs" / "recovery.md"
 IMG = ROOT / "docs" / "img" / "validation"
 QSM = ROOT.parent / "shared" / "data" / "qsm"
 
@@ -316,26 +317,12 @@ def write_doc():
         p = shown.get((run, fig))
         return f"![{caption}]({p})\n\n*{caption}*\n" if p else ""
 
-    text = f"""# Validation against the papers
+    text = f"""# Parameter recovery: synthetic targets and the Silva Fennica pine
 
-## What holds today
-
-One line per result of this page, with the command that reproduces it (a full re-run also
-rewrites the line's section below; `run_validation.py --check DIR` refits the synthetic
-recoveries and compares them with this page instead). The sections below give the protocol, the
-tables and how each result came about; update a line here when its section changes.
-
-| result | today | reproduce |
-|---|---|---|
-| synthetic recovery, simplified LIGNUM, the paper's protocol (section 1) | median error 10.7 % over all parameters and target seeds (maximum 31.4 %) | `.venv/bin/python examples/validation/run_validation.py` (runs `lignum_synthetic_seed1`-`3`) |
-| the same with three model seeds per evaluation (1b) | median 7.2 % (maximum 23.1 %) | same (`lignum_synthetic_k3_seed1`-`3`) |
-| the same with the trunk and branch tables (1c) | median 6.8 % (maximum 20.5 %); every parameter within 15 % on one target of three | same (`lignum_synthetic_rich_seed1`-`3`) |
-| synthetic recovery, SOT, 5 parameters (section 2) | median 5.2 % (maximum 45.3 %) | same (`sot_synthetic_seed1`-`3`) |
-| the same with three model seeds per evaluation (2b) | median 2.5 % (maximum 14.2 %); every parameter within 15 % on all three targets | same (`sot_synthetic_k3_seed1`-`3`) |
-| LIGNUM fitted to pine_ruotsinkyla_3, the paper's sets (section 3) | 100 clones at median distance 0.175 [0.165, 0.186] to the pine | same (`lignum_pine3`; variants `lignum_pine3_rich`, `lignum_pine3_trunk`) |
-| calibrated intervals (simulation-based calibration) | abc-smc with the recycled posterior and the linear adjustment: 50 % and 90 % coverage inside the issue's bands for all three parameters (76 and 78 runs); emcee and the unadjusted abc-smc studies are not | `nice -n 19 .venv/bin/python examples/calibration/run_calibration.py` (one study: `--only sot_abc_smc_adjusted`) |
-| real trees over run seeds: clones that look like the scanned pine (section 4) | `pine_lignum`: 15 of 15 fits (3 pines x 5 run seeds) meet every limit; held-out distance over run seeds 1.09-1.11x on pines 2 and 3, 1.19x on pine 1 (the issue asks <= 1.15); `pine_sot`: 9 of 15, 1.28-1.67x | `.venv/bin/python examples/real/run_fidelity.py --out runs/fidelity --seeds 1 2 3 4 5 --figures --doc` |
-| any tree through `bforest init`, fit and 30 clones (section "Broadleaved trees") | pines 1-3 (LIGNUM, init's recipe): every limit met (run seed 1; on pine 3 init writes the shipped LIGNUM recipe, 5 of 5 run seeds in section 4); broadleaved trees (SOT with opposite buds and dying leaders): size within the limits on 4 of 6, the judge on 2 of 6, every limit on 1 of 6 (`wytham_tf2`, run seed 1) | `.venv/bin/python examples/real/run_broadleaved.py --out runs/broadleaved --figures --doc` |
+Can a fit find the parameters a tree was grown with? Sections 1 and 2 grow a target tree with
+known parameters and fit them back (the Silva Fennica 2016 protocol, its Table 2); section 3 fits
+LIGNUM to the Silva Fennica pine with the paper's data sets. The summary of these and the other
+results: [validation](validation.md).
 
 Every number on this page comes from the runs of `examples/validation/` (configs beside the
 driver), made by
@@ -344,34 +331,11 @@ driver), made by
 .venv/bin/python examples/validation/run_validation.py
 ```
 
-which fits (or resumes) each run into `runs/validation/<name>/` and rewrites this page. A single
-run: `bforest fit examples/validation/<name>.toml -o runs/validation/<name>`. Distances: sliced KS,
-256 gp2 lines, z-scored on the data side, circular angles, `subtree` topology on both sides.
-
-## What the distance resolves
-
-The sliced distance compares trees through their tables after z-scoring each column on the data
-tree. Before projecting, every z-scored value is snapped to a grid of 2⁻²⁰ (about 10⁻⁶) of its
-column's spread and every direction component to a grid of 2⁻²⁰
-(`plugins/bforest_sliced/grid.py`): for the pines' S¹ tables that is 2·10⁻⁸ m of radius, 2 µm of
-position along a branch and 3·10⁻⁵ degrees of angle, far below what a scan or a QSM measures. A
-projection of such values is a sum of exact multiples of 2⁻⁴⁰; while it stays below 2¹³ in size
-(a row whose z-scores add up to less than 8 192) float64 holds every partial sum exactly, so the
-result does not depend on the order a BLAS kernel adds in. Equal rows therefore give equal
-projections on every CPU, ties stay ties, and the exact KS statistic (which turns any difference
-between otherwise equal values into a step of about 1/n) sees no round-off. Positions along a
-branch (L, L_t) are summed per branch from its base, so a renumbered tree has the same values to
-the bit. A tree against itself, against a copy with its cylinders renumbered and against a copy
-moved by 100 m gives 0 on every set (tests on pine 3 and the hand-built tree;
-`tests/test_sliced.py`), and the permutation test's D0 is the printed distance. Before, pine 3
-against a renumbered copy gave D(S¹) = 0.0028 and D(B²) = 0.008, a copy moved by 100 m D(B¹) =
-0.015, and the test printed D0 = 0.0012 for pine 3 against itself. Recorded distances did not
-move: the distance atlas regenerated with the grid is identical to three decimals, and the known
-answers of the hand-built tree of docs/features-and-distance.md §7 are unchanged. What the grid does not remove: a
-`.mat` and its TreeQSM text export, rounded to 0.1 mm by TreeQSM's exporter, still differ
-(`itsme_qsm_tree_v240.mat` against `itsme_tree_v240_cylinder.txt`: D(S¹) = 0.0035, D(B¹) = 0.051,
-one step of 1/20 with 20 branches), since a rounding of 10⁻⁴ m is far above the grid: that is a
-real difference in the data, not round-off.
+which fits (or resumes) each run into `runs/validation/<name>/` and rewrites this page (about 1 h
+on 2 cores). `run_validation.py --check DIR` refits the synthetic recoveries into DIR and compares
+them with this page instead. A single run:
+`bforest fit examples/validation/<name>.toml -o runs/validation/<name>`. Distances: sliced KS, 256
+gp2 lines, z-scored on the data side, circular angles, `subtree` topology on both sides.
 
 ## 1. Synthetic recovery, simplified LIGNUM (Silva Fennica Table 2 protocol)
 
@@ -473,16 +437,6 @@ girth and breast-height diameter errors of the clones fall well below those of t
 higher-order branches remain unfitted. S⁰ itself stays the hardest table to match (its per-set
 distance is the largest), so the simplified LIGNUM cannot reproduce this pine's trunk exactly.
 """
-    marker = "<!-- real-tree fidelity: written by examples/real/run_fidelity.py --doc -->"
-    old = DOC.read_text(encoding="utf-8") if DOC.exists() else ""
-    cal, cal_end = (
-        "<!-- calibration: written by examples/calibration/run_calibration.py --doc -->",
-        "<!-- /calibration -->",
-    )
-    if cal in old and cal_end in old:  # the calibration section is examples/calibration/run_calibration.py's
-        text = text.rstrip() + "\n\n" + cal + old.split(cal, 1)[1].split(cal_end, 1)[0] + cal_end + "\n"
-    if marker in old:  # the real-tree fidelity section is examples/real/run_fidelity.py's: keep it
-        text = text.rstrip() + "\n\n" + marker + old.split(marker, 1)[1]
     DOC.write_text(text, encoding="utf-8")
     (RUNS / "summary.json").write_text(
         json.dumps(
@@ -535,13 +489,13 @@ def check_recoveries(runs: Path) -> bool:
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--only", default=None, help="run only configs whose name starts with this")
-    ap.add_argument("--report", action="store_true", help="only rewrite docs/validation.md")
+    ap.add_argument("--report", action="store_true", help="only rewrite docs/recovery.md")
     ap.add_argument(
         "--check",
         type=Path,
         metavar="DIR",
         help="refit the synthetic recoveries into DIR and "
-        "compare them with docs/validation.md (the page is not rewritten)",
+        "compare them with docs/recovery.md (the page is not rewritten)",
     )
     args = ap.parse_args()
     if args.check:

@@ -46,7 +46,8 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
     )
     b_lo, b_max_lo = min(b_lo, b_mid - 20), max(20.0, _r5(m.beta_q50 - 30))
     # orders the tree does not have stay dormant (bud fate, docs/models.md A.5 step 2): the
-    # fits free to go below grew clumps of 4th-7th-order twigs at limb tips (docs/validation.md)
+    # fits free to go below grew clumps of 4th-7th-order twigs at limb tips
+    # (docs/notes/2026-11-29-pines-init-lignum-orders-and-shoots.md)
     q_lo = min(Q_LO_CAP, max(Q_PAPER, round(1.0 / (m.max_order + 1), 3)))
     # the fits of pine 1 all ended at 2.5 %, its branches' median being 2.1 %: a box reaching half
     # as far again as the tree's median, within the model's allowed range
@@ -116,7 +117,7 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         size_weights={"height": 8.0, "dbh": 2.7, "crown_spread": 2.0, "crown_base_height": 1.6, "n_branches_o1": 1.6},
         # the draft's size limits (two thirds of each tolerance, steep 3) and its answer among 16
         # candidates on 16 held-out sets: without the limits one fit in five on pine 1 sold its DBH
-        # (+29 %) for structure (docs/validation.md, "Size limits in bforest init's size term")
+        # (+29 %) for structure (docs/notes/2026-11-29-size-limits.md)
         # the SOT pine recipe's search (examples/real/pine_sot.toml): 4 000 growths, as 1 200
         # evaluations of 3 model seeds were
         seeds=1,
@@ -127,7 +128,8 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         finalists=2,
         grow_together=True,
         # the answer on the search's own objective: scoring the candidates on S1 and B1 (the SOT
-        # recipe's rule, docs/validation.md "Broadleaved trees") is not yet measured on the pines
+        # recipe's rule, docs/notes/2026-12-01-broadleaved-answer-on-judge-tables.md) is not yet
+        # measured on the pines
         select_tables=False,
         search_why=(
             "One model seed per evaluation, the seeds' luck taken out where the answer is chosen (16 "

@@ -24,7 +24,7 @@ trees within a tolerance epsilon of the data, tightened generation by generation
   particle or at the population's weighted mean, whichever is lower, measured before every
   generation: what a perfect model still shows against the data. Above it the truth passes the
   tolerance almost surely and the posterior is wider than the data warrant (the calibration study
-  in docs/validation.md found the 50 % intervals covering about two thirds of the truths when the
+  in docs/calibration.md found the 50 % intervals covering about two thirds of the truths when the
   run stopped at 1.4 times the floor); at it a perfect model passes half the time; below it the
   acceptance rate, and so the cost, falls fast for little gain.
 * **Posterior** (``posterior``): ``"population"``, the last complete generation's particles;
@@ -49,7 +49,7 @@ trees within a tolerance epsilon of the data, tightened generation by generation
   the data's statistics plus its residual, inflated by sqrt(n / (n - df)) so that the spread is
   not the fit's underestimate. The adjusted particles are the posterior (``posterior`` then
   chooses the unadjusted one kept in ``diagnostics.unadjusted``). On the calibration study of
-  docs/validation.md it turned intervals that were too wide into calibrated ones. It assumes the
+  docs/calibration.md it turned intervals that were too wide into calibrated ones. It assumes the
   parameters depend on the statistics about linearly within the tolerance; ``adjustment.r2`` per
   parameter says how much of their spread the statistics explain.
 * **Failed simulations** (a tree that collapses, grows too large or times out) match nothing:

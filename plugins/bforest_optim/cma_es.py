@@ -27,7 +27,7 @@ points fits the seed noise and then passes) and evaluates one point at a time, t
 out-of-sample and the true evaluations go out in batches of ``surrogate_batch`` (the workers), so
 no worker waits. On a smooth distance (2) saves most evaluations; on a real tree's distance the
 seed noise keeps tau at 0.2-0.5, nearly every point is grown, and the gain is (1) (see
-``docs/performance.md``).
+``docs/notes/2026-11-25-lq-cma-es.md``).
 """
 
 from __future__ import annotations

@@ -30,7 +30,7 @@ at each end) and points are rounded when they are grown; the model is fitted on 
 points. Failed simulations count as the worst distance so far. Everything is seeded from
 ``problem.seed`` and the GP fit is deterministic, so the same returned values give the same
 points: a resumed fit replays. Settings compared on the LIGNUM pine recipe, and the cost of the
-model per batch: ``docs/performance.md``.
+model per batch: ``docs/notes/2026-11-25-turbo.md``.
 """
 
 from __future__ import annotations

@@ -38,7 +38,8 @@ SIZE_WEIGHTS = {**TOLERANCE_WEIGHTS, "crown_spread": 8.0, "n_branches_o1": 6.7}
 ONE_SIDED = 1.0 / 3.0
 
 #: a stem whose upper half leans this much (deg) or more has bent over into a gap, a form the
-#: model's light and tropism do not grow (``gap_lean`` tried: docs/validation.md): the clones'
+#: model's light and tropism do not grow (``gap_lean`` tried:
+#: docs/notes/2026-11-30-broadleaved-gap-lean.md): the clones'
 #: stem follows the tree's (``stem_guide``); wytham_tf5 24, tf2 12, the other Wytham trees 3-7,
 #: the coffeetree 8, the pines 1-4
 LEANING = 10.0
@@ -264,7 +265,8 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         ),
         # the draft's size limits (two thirds of each tolerance, steep 3) and its answer among 16
         # candidates on 16 held-out sets, as LIGNUM's: every size of the broadleaved trees' 18 fits
-        # held and 10 met every limit (9 without either; docs/validation.md, "Broadleaved trees")
+        # held and 10 met every limit (9 without either;
+        # docs/notes/2026-11-29-broadleaved-size-limits-and-top-16.md)
         seeds=2,
         evaluations=1800,
         starts=2,

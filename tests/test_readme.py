@@ -49,6 +49,7 @@ def test_the_readme_has_bforest_lines():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # a dozen commands, each a process of its own: over the suite's 300 s on a busy machine
 def test_every_readme_line_runs(tmp_path):
     if not QSM_DIR.is_dir():
         pytest.skip(f"the README's lines read the sample pines from {QSM_DIR} (needs ../shared/data/qsm)")

@@ -151,12 +151,12 @@ def read_stem_map(path) -> list[StandTree]:
                 pos[c] = math.nan
             if not math.isfinite(pos[c]):
                 raise StandError(f"{where}: {c} = {v!r} is not a number (m)")
-        name = slug(r.get("tree") or f.stem)
-        if name in seen_name:
-            raise StandError(f"{path} rows {seen_name[name]} and {i}: the tree '{name}' twice")
         key = str(f.resolve())
         if key in seen_file:
             raise StandError(f"{path} rows {seen_file[key]} and {i}: the file '{r['file']}' twice")
+        name = slug(r.get("tree") or f.stem)
+        if name in seen_name:
+            raise StandError(f"{path} rows {seen_name[name]} and {i}: the tree '{name}' twice")
         seen_name[name], seen_file[key] = i, i
         rec = r.get("recipe") or None
         if rec:

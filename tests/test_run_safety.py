@@ -36,6 +36,18 @@ def _slow(p: Path, sleep: float) -> Path:
     return p
 
 
+def _gated(p: Path, gate: Path, after: int) -> Path:
+    """The toy config with a model that, in each process, runs ``after`` simulations and then
+    waits until the file ``gate`` exists (the target grows at once): a test holds a command at a
+    known point, however fast or loaded the machine, and lets it go on by creating the file."""
+    p.write_text(
+        p.read_text()
+        .replace('kind = "toy"\n', f'kind = "toy"\ngate = "{gate}"\ngate_after = {after}\n', 1)
+        .replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = {}')
+    )
+    return p
+
+
 # ------------------------------------------------------------------------------ one owner
 @pytest.mark.skipif(os.name != "posix", reason="flock")
 def test_two_fits_into_one_folder_exactly_one_runs(toy_plugin, tmp_path):
@@ -43,7 +55,8 @@ def test_two_fits_into_one_folder_exactly_one_runs(toy_plugin, tmp_path):
     with one line naming the holder, and the folder holds the winner's run only."""
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
-    a = _slow(toy_config(tmp_path / "a", budget=16), 0.25)
+    gate = tmp_path / "gate"  # the first fit holds the folder until the test creates this file
+    a = _gated(toy_config(tmp_path / "a", budget=16), gate, after=2)
     b = toy_config(tmp_path / "b", budget=8)
     b.write_text(b.read_text().replace("seed = 3", "seed = 4", 1))
     run, env = tmp_path / "run", _env(toy_plugin)
@@ -58,17 +71,16 @@ def test_two_fits_into_one_folder_exactly_one_runs(toy_plugin, tmp_path):
     while time.monotonic() < deadline and not (run / "evaluations.sqlite").exists():
         time.sleep(0.05)
     others = [
-        subprocess.Popen(
-            EXE + args + ["-q", "--no-report"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-        )
+        subprocess.run(EXE + args + ["-q", "--no-report"], env=env, capture_output=True, text=True, timeout=120)
         for args in (["fit", str(b), "-o", str(run)], ["fit", str(run / "config.toml"), "-o", str(run), "--resume"])
     ]
+    assert first.poll() is None  # still held at the gate: both others met it at work
+    gate.touch()
     out, err = first.communicate(timeout=120)
     assert first.returncode == 0, err
     for r in others:
-        _, stderr = r.communicate(timeout=60)
-        assert r.returncode == 2, stderr
-        lines = [ln for ln in stderr.strip().splitlines() if not ln.startswith("warning: bforest plugin 'broken'")]
+        assert r.returncode == 2, r.stderr
+        lines = [ln for ln in r.stderr.strip().splitlines() if not ln.startswith("warning: bforest plugin 'broken'")]
         assert len(lines) == 1 and "in use by another bforest command" in lines[0], r.stderr
         assert f"pid {first.pid}" in lines[0] and "bforest fit" in lines[0]
     assert bf.load_config(run / "config.toml").seed == 3  # the winner's config beside the winner's evaluations
@@ -188,9 +200,11 @@ def test_a_killed_clones_call_is_continued_without_regrowing_its_clones(toy_plug
 
     from bforest_core.pipeline.clones import clones
 
-    run = tmp_path / "run"
-    p = _slow(toy_config(tmp_path, budget=4), 0.3)
+    run, gate = tmp_path / "run", tmp_path / "gate"
+    p = _gated(toy_config(tmp_path, budget=4), gate, after=2)
+    gate.touch()  # the fit passes; the clones' process grows two clones and waits
     bf.fit(bf.load_config(p), run, progress=False)
+    gate.unlink()
     proc = subprocess.Popen(
         EXE + ["clones", str(run), "-n", "8", "-q", "--no-report"],
         env=_env(toy_plugin),
@@ -207,8 +221,9 @@ def test_a_killed_clones_call_is_continued_without_regrowing_its_clones(toy_plug
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     kept = json.loads(summary.read_text())
-    assert kept["complete"] is False and 2 <= kept["count"] < 8  # every finished clone listed as it was grown
+    assert kept["complete"] is False and kept["count"] == 2  # every finished clone listed as it was grown
     stamps = {r["file"]: (run / "clones" / r["file"]).stat().st_mtime_ns for r in kept["rows"]}
+    gate.touch()
     s = clones(run, n=8, progress=False)
     assert s["complete"] and s["count"] == 8 and s["grown"] == 8 - kept["count"]
     assert {f: (run / "clones" / f).stat().st_mtime_ns for f in stamps} == stamps  # not regrown

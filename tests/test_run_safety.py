@@ -247,3 +247,52 @@ def test_a_missing_reference_file_loses_no_clone(toy_plugin, tmp_path, capsys):
     assert "warning: reference" in err and "gone.txt" in err
     s = json.loads((run / "clones" / "summary.json").read_text())
     assert s["count"] == 3 and s["references"] == [] and "gone.txt" in s["reference_errors"][0]["file"]
+
+
+@pytest.mark.skipif(os.name != "posix", reason="SIGINT")
+def test_ctrl_c_during_clones_says_so_on_its_own_line_and_resume_continues(toy_plugin, tmp_path):
+    """Issue 78, item 1: Ctrl-C during `bforest clones` ended its progress bar's line with the
+    message (and named fit's --resume, which clones did not take). The message now starts a line
+    of its own and names the command that continues: `bforest clones RUN --resume` grows the
+    clones the stopped call asked for."""
+    import signal
+
+    run, gate = tmp_path / "run", tmp_path / "gate"
+    p = _gated(toy_config(tmp_path, budget=4), gate, after=2)
+    gate.touch()
+    bf.fit(bf.load_config(p), run, progress=False)
+    gate.unlink()  # the clones' process grows two clones and waits
+    proc = subprocess.Popen(
+        EXE + ["clones", str(run), "-n", "6", "--no-report"],  # with its progress bar
+        env=_env(toy_plugin),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    summary, deadline, rows = run / "clones" / "summary.json", time.monotonic() + 60, []
+    while time.monotonic() < deadline and len(rows) < 2:
+        try:
+            rows = json.loads(summary.read_text())["rows"] if summary.exists() else []
+        except ValueError:
+            rows = []
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    last = err.rstrip("\n").split("\n")[-1]  # a bar redraws its line with "\r"
+    assert last == f"interrupted (finished clones are saved; continue with 'bforest clones {run} --resume')", err
+    assert "clones:" in err  # the bar was drawn, and ended before the message
+    gate.touch()
+    r = subprocess.run(
+        EXE + ["clones", str(run), "--resume", "-q", "--no-report"],
+        env=_env(toy_plugin),
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith(f"4 clones grown, 2 kept: 6 of 6 clones ok in {run / 'clones'}\n"), r.stdout
+    r = subprocess.run(
+        EXE + ["clones", str(run), "--resume", "-n", "8", "-q"], env=_env(toy_plugin), capture_output=True, text=True
+    )
+    lines = [ln for ln in r.stderr.splitlines() if not ln.startswith("warning: bforest plugin 'broken'")]
+    assert r.returncode == 2 and lines[-1] == "error: argument -n: not allowed with argument --resume", r.stderr

@@ -86,7 +86,14 @@ def cmd_clones(args):
 def _clones_and_report(args):
     from ..pipeline.clones import clones
 
-    s = clones(args.run_dir, n=args.n, progress=not args.quiet, replace=args.replace, posterior=args.posterior)
+    s = clones(
+        args.run_dir,
+        n=args.n,
+        progress=not args.quiet,
+        replace=args.replace,
+        posterior=args.posterior,
+        resume=args.resume,
+    )
     where = RunFiles(args.run_dir).clones_dir(args.posterior)
     kept = s["count"] - s["grown"]
     print(
@@ -121,6 +128,11 @@ def _clones_and_report(args):
     if not args.no_report:
         report(args.run_dir)
     return 0
+
+
+def _clones_interrupted(args) -> str:
+    again = f"bforest clones {args.run_dir} --resume" + (" --posterior" if args.posterior else "")
+    return f"finished clones are saved; continue with '{again}'"
 
 
 def cmd_report(args):
@@ -215,11 +227,12 @@ def add_commands(sub) -> None:
     s.add_argument("--max-evaluations", type=int, help="override [stop] max_evaluations")
     s.add_argument("--no-report", action="store_true", help="do not write the report afterwards")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    s.set_defaults(func=cmd_fit)
+    s.set_defaults(func=cmd_fit, on_interrupt="finished evaluations are saved; continue with --resume")
 
     s = sub.add_parser("clones", help="clones of a finished fit, with their distances and metrics")
     s.add_argument("run_dir", metavar="DIR", help="a run directory (bforest fit output)")
-    s.add_argument(
+    how_many = s.add_mutually_exclusive_group()
+    how_many.add_argument(
         "-n",
         type=int,
         default=None,
@@ -227,6 +240,11 @@ def add_commands(sub) -> None:
         "existing clones are kept, only missing ones are grown",
     )
     s.add_argument("--replace", action="store_true", help="delete the existing clones and grow the set anew")
+    how_many.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue a stopped clones call: grow the clones it asked for that are missing",
+    )
     s.add_argument(
         "--posterior",
         action="store_true",
@@ -235,7 +253,7 @@ def add_commands(sub) -> None:
     )
     s.add_argument("--no-report", action="store_true", help="do not update the report afterwards")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    s.set_defaults(func=cmd_clones)
+    s.set_defaults(func=cmd_clones, on_interrupt=_clones_interrupted)
 
     s = sub.add_parser("report", help="figures (PNG, SVG or PDF) and a summary (Markdown/HTML) of a run")
     s.add_argument("run_dir", metavar="DIR", help="a run directory (bforest fit output)")
@@ -291,7 +309,7 @@ def add_commands(sub) -> None:
     )
     s.add_argument("--overwrite", action="store_true", help="replace the runs of an earlier comparison in -o")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    s.set_defaults(func=cmd_compare)
+    s.set_defaults(func=cmd_compare, on_interrupt="finished runs are saved; continue with --resume")
 
     s = sub.add_parser("profile", help="distance along one parameter for several seeds")
     s.add_argument("run_dir", metavar="DIR", help="a run directory (bforest fit output)")
@@ -320,4 +338,4 @@ def add_commands(sub) -> None:
     )
     s.add_argument("--overwrite", action="store_true", help="refit every run of an earlier study in -o")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    s.set_defaults(func=cmd_calibrate)
+    s.set_defaults(func=cmd_calibrate, on_interrupt="finished runs are saved; continue with --resume")

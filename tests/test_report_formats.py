@@ -92,6 +92,34 @@ def test_every_figure_is_written_in_the_chosen_format(sampler_run, tmp_path, fmt
         assert sorted(p.stem for p in (run / "figures").glob("*.png")) == stems
 
 
+def test_the_runs_report_keeps_its_format_and_leaves_no_other_figures(sampler_run, tmp_path):
+    """Issue 78, item 5: after `bforest report --format svg`, `bforest clones` rewrote the report
+    with PNGs and left the SVGs beside them. The run keeps the format and dpi it was last asked for,
+    and figures/ holds just the files the report links."""
+    import json
+
+    from bforest_core.cli import main
+
+    sampler_run, _ = sampler_run
+    run = tmp_path / "run"
+    shutil.copytree(sampler_run, run)
+    stems = sorted(Path(f).stem for f in _figures((run / "report.md").read_text()))
+    assert main(["report", str(run), "--format", "svg", "--dpi", "60"]) == 0
+    assert main(["clones", str(run), "-n", "5", "-q"]) == 0  # writes the report again
+    assert json.loads((run / "report_options.json").read_text()) == {"format": "svg", "dpi": 60}
+    assert sorted(p.name for p in (run / "figures").iterdir()) == sorted(f"{s}.svg" for s in stems)
+    assert all(f.endswith(".svg") for f in _figures((run / "report.md").read_text()))
+    assert main(["report", str(run), "--format", "png"]) == 0  # the dpi asked for before stays
+    assert json.loads((run / "report_options.json").read_text()) == {"format": "png", "dpi": 60}
+    assert sorted(p.name for p in (run / "figures").iterdir()) == sorted(f"{s}.png" for s in stems)
+    w60, _ = png_size(run / "figures" / "trees.png")
+    w130, _ = png_size(sampler_run / "figures" / "trees.png")
+    assert w60 / w130 == pytest.approx(60 / 130, rel=0.05)
+    shutil.rmtree(run / "clones")  # figures of clones that are gone leave with them
+    assert main(["report", str(run)]) == 0
+    assert not list((run / "figures").glob("clone*")) and (run / "figures" / "trees.png").exists()
+
+
 def test_dpi_sets_the_resolution_and_a_bad_value_is_one_line(tmp_path, capsys, monkeypatch):
     from bforest_core.cli import main
     from bforest_core.report.canvas import figure_output

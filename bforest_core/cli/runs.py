@@ -259,15 +259,17 @@ def add_commands(sub) -> None:
     s.add_argument("run_dir", metavar="DIR", help="a run directory (bforest fit output)")
     s.add_argument(
         "--format",
-        default="png",
+        default=None,
         choices=("png", "svg", "pdf"),
-        help=f"format of every figure (default: png; pdf also writes PNG previews for {RunFiles.REPORT_HTML})",
+        help="format of every figure, kept for the run's later reports (default: the last report's, "
+        f"else png; pdf also writes PNG previews for {RunFiles.REPORT_HTML})",
     )
     s.add_argument(
         "--dpi",
         type=int,
         default=None,
-        help="resolution of raster figures and of the raster parts of vector ones (default: 120-130)",
+        help="resolution of raster figures and of the raster parts of vector ones, kept like --format "
+        "(default: the last report's, else 120-130)",
     )
     s.set_defaults(func=cmd_report)
 

@@ -78,6 +78,14 @@ class Document:
     def fig(self, rel: str, caption: str):
         self.blocks.append(("fig", rel, caption))
 
+    def figure_files(self) -> set[str]:
+        """Every file the figures link (relative to the run folder): a PDF and its PNG preview."""
+        out = set()
+        for b in self.blocks:
+            if b[0] == "fig":
+                out.update({b[1], _shown(b[1])[0]})
+        return out
+
     def code(self, text: str):
         self.blocks.append(("code", text))
 

@@ -35,7 +35,7 @@ def _fit_and_report(args, cfg: RunConfig, out, fit):
             f"{out}: this run had already finished; nothing was simulated (grow clones with "
             f"'bforest clones {out}', or start anew with --overwrite)"
         )
-    print(f"best distance {res.distance:.4f} after {res.n_evaluations} evaluations ({res.stop_reason})")
+    print(result_line(res))
     short = (res.diagnostics or {}).get("stopped_short")
     if short:
         print(f"WARNING: the sampler stopped short of its target: {short}")
@@ -57,6 +57,18 @@ def _fit_and_report(args, cfg: RunConfig, out, fit):
     if cfg.report.enabled and not args.no_report:
         report(out)
     return _all_failed(out)
+
+
+def result_line(res) -> str:
+    """The fit's result in one line. With ``[select]`` the search's best (on its own model seeds,
+    where its progress bar ends) and the answer (chosen on held-out seeds) differ: both are named."""
+    head = f"after {res.n_evaluations} evaluations ({res.stop_reason})"
+    if res.heldout_distance is None:
+        return f"best distance {res.distance:.4f} {head}"
+    return (
+        f"best own {res.best_own:.4f} {head}; answer {res.heldout_distance:.4f} on held-out model seeds "
+        f"(evaluation {res.evaluation}, own {res.distance:.4f}; chosen among the search's best on seeds it never used)"
+    )
 
 
 def _all_failed(out) -> int:

@@ -133,7 +133,7 @@ def test_clones_of_other_parameters_are_not_mixed(toy_fit, tmp_path):
     best = json.loads((run / "best.json").read_text())
     best["params"]["angle"] = best["params"]["angle"] + 1.0
     (run / "best.json").write_text(json.dumps(best))
-    with pytest.raises(ClonesError, match="other parameters.*--replace"):
+    with pytest.raises(ClonesError, match="other parameters.*--overwrite"):
         clones(run, n=2, progress=False)
     assert len(_files(run)) == 1
 

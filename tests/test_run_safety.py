@@ -190,7 +190,7 @@ def test_demo_writes_nothing_beside_its_run_folder(tmp_path, monkeypatch):
     with pytest.raises(Stop):
         demo.run_demo(Path("demo-run"), quick=True, progress=False)
     assert seen["cfg"].optimizer.kind == "ga" and seen["cfg"].target.generate is not None
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["demo-run"]
+    assert not [p.name for p in tmp_path.iterdir() if p.name != "demo-run"]  # (an empty one is removed)
 
 
 # ------------------------------------------------------------------------------ clones can be continued
@@ -295,4 +295,4 @@ def test_ctrl_c_during_clones_says_so_on_its_own_line_and_resume_continues(toy_p
         EXE + ["clones", str(run), "--resume", "-n", "8", "-q"], env=_env(toy_plugin), capture_output=True, text=True
     )
     lines = [ln for ln in r.stderr.splitlines() if not ln.startswith("warning: bforest plugin 'broken'")]
-    assert r.returncode == 2 and lines[-1] == "error: argument -n: not allowed with argument --resume", r.stderr
+    assert r.returncode == 2 and lines[-1] == "error: argument -n/--count: not allowed with argument --resume", r.stderr

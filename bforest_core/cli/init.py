@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import UsageError
+from .common import CONFIG, UsageError, command, overwrite_arg
 
 
 def cmd_init(args):
@@ -31,11 +31,13 @@ def cmd_init(args):
 
 
 def add_commands(sub):
-    s = sub.add_parser("init", help="measure a tree and write a commented recipe to fit it (RUN.toml)")
+    s = command(sub, "init", f"measure a tree and write a commented recipe to fit it (a run configuration, {CONFIG})")
     s.add_argument(
         "qsm", metavar="QSM", help="the tree: a QSM file (TreeQSM .mat/.txt, SimpleForest or aRchi CSV, ...)"
     )
     s.add_argument("--model", help="growth model (default: the one that suits the tree, and why)")
-    s.add_argument("-o", "--output", help="recipe file to write (default: QSM's name with .toml, here)")
-    s.add_argument("--overwrite", action="store_true", help="replace an existing recipe file")
+    s.add_argument(
+        "-o", "--output", metavar=CONFIG, help="recipe file to write (default: the QSM's name with .toml, here)"
+    )
+    overwrite_arg(s, "replace an existing recipe file")
     s.set_defaults(func=cmd_init)

@@ -141,7 +141,7 @@ def _existing(out_dir: Path, store: RunStore, params: dict) -> list[dict]:
     if not (out_dir / RunFiles.CLONE_SUMMARY).exists():
         if any(out_dir.glob("clone_*.txt")):
             raise ClonesError(
-                f"{out_dir}: holds clone files but no {RunFiles.CLONE_SUMMARY}; regrow them with --replace, "
+                f"{out_dir}: holds clone files but no {RunFiles.CLONE_SUMMARY}; regrow them with --overwrite, "
                 "or move the folder to keep them"
             )
         return []
@@ -149,7 +149,7 @@ def _existing(out_dir: Path, store: RunStore, params: dict) -> list[dict]:
     if old.get("best_params") != params:
         raise ClonesError(
             f"{out_dir}: holds clones of other parameters ({old.get('best_params')}); "
-            "regrow them with --replace, or move the folder to keep them"
+            "regrow them with --overwrite, or move the folder to keep them"
         )
     return [r for r in old.get("rows", []) if (out_dir / r.get("file", "-")).exists() or r.get("status") != "ok"]
 

@@ -1,7 +1,7 @@
-"""``bforest report DIR``: figures and a summary of a run directory.
+"""``bforest report RUN``: figures and a summary of a run folder.
 
-Writes ``DIR/figures/*.png`` (or ``.svg``, ``.pdf``: ``format``), ``DIR/report.md`` and a
-self-contained ``DIR/report.html`` (the figures inline as base64, PDFs as their PNG previews). Everything is read from the run directory (``config.toml``,
+Writes ``RUN/figures/*.png`` (or ``.svg``, ``.pdf``: ``format``), ``RUN/report.md`` and a
+self-contained ``RUN/report.html`` (the figures inline as base64, PDFs as their PNG previews). Everything is read from the run directory (``config.toml``,
 ``evaluations.sqlite``, ``best.json``, ``target_sets.npz``, ``best_tree.txt``, ``clones/``); what
 is missing (an interrupted fit, no clones yet, a distance without projection lines) is skipped
 and the report says so. A figure that fails never stops the report (unless ``strict``).

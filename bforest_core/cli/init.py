@@ -8,7 +8,7 @@ from .common import CONFIG, UsageError, command, overwrite_arg
 
 
 def cmd_init(args):
-    from ..pipeline.recipe import measured_lines, write_recipe
+    from ..pipeline.recipe import measured_lines, not_chosen, write_recipe
 
     qsm = Path(args.qsm)
     out = Path(args.output) if args.output else Path(f"{qsm.stem}.toml")
@@ -22,7 +22,7 @@ def cmd_init(args):
     print(f"model: {r.model} ({how}): {r.draft.why}")
     for name, suits, why in r.choices:
         if name != r.model:
-            print(f"  not {name} (suits {suits:.1f} against {r.draft.suits:.1f}): {why}")
+            print(f"  {not_chosen(name, suits, r.model, r.draft.suits, why)}")
     for note in r.draft.notes:
         print(f"note: {note}")
     print(f"wrote {out}: {len(r.draft.free)} free parameters, bounds scaled to the tree (each line says why)")

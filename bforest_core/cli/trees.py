@@ -22,7 +22,8 @@ def cmd_info(args):
         print(head)
         fmt = md.get("format", "?") + (f" (version {md['version']})" if md.get("version") else "")
         print(f"  format        {fmt}")
-        print(f"  cylinders     {t.n}" + (f" ({int(t.added.sum())} added)" if t.added.any() else ""))
+        added = f" ({int(t.added.sum())} added by the reconstruction to bridge gaps)" if t.added.any() else ""
+        print(f"  cylinders     {t.n}{added}")
         print(f"  branches      {t.n_branches} (topology {t.topology})")
         print(f"  max order     {t.max_order}")
         print(f"  height        {m['height']:.2f} m")

@@ -9,9 +9,10 @@ from .common import CONFIG, UsageError, command, overwrite_arg
 
 def cmd_init(args):
     from ..pipeline.recipe import measured_lines, not_chosen, write_recipe
+    from ..samples import stem
 
-    qsm = Path(args.qsm)
-    out = Path(args.output) if args.output else Path(f"{qsm.stem}.toml")
+    qsm, tree = args.qsm, stem(args.qsm)
+    out = Path(args.output) if args.output else Path(f"{tree}.toml")
     if out.exists() and not args.overwrite:
         raise UsageError(f"{out}: exists; choose another -o, or replace it with --overwrite")
     r = write_recipe(qsm, out, args.model)
@@ -26,14 +27,16 @@ def cmd_init(args):
     for note in r.draft.notes:
         print(f"note: {note}")
     print(f"wrote {out}: {len(r.draft.free)} free parameters, bounds scaled to the tree (each line says why)")
-    print(f"next: bforest fit {out} -o runs/{qsm.stem}")
+    print(f"next: bforest fit {out} -o runs/{tree}")
     return 0
 
 
 def add_commands(sub):
     s = command(sub, "init", f"measure a tree and write a commented recipe to fit it (a run configuration, {CONFIG})")
     s.add_argument(
-        "qsm", metavar="QSM", help="the tree: a QSM file (TreeQSM .mat/.txt, SimpleForest or aRchi CSV, ...)"
+        "qsm",
+        metavar="QSM",
+        help="the tree: a QSM file (TreeQSM .mat/.txt, SimpleForest or aRchi CSV, ...) or sample:NAME (bforest data list)",
     )
     s.add_argument("--model", help="growth model (default: the one that suits the tree, and why)")
     s.add_argument(

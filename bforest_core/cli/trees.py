@@ -233,8 +233,8 @@ def cmd_distance(args):
 def add_commands(sub) -> None:
     """Register this group's subcommands."""
     s = command(sub, "distance", "structural distance between two QSM files (B is the data side)")
-    s.add_argument("tree_a", metavar="TREE_A", help="QSM file of the model side (A)")
-    s.add_argument("tree_b", metavar="TREE_B", help="QSM file of the data side (B)")
+    s.add_argument("tree_a", metavar="TREE_A", help="QSM file of the model side (A), or sample:NAME")
+    s.add_argument("tree_b", metavar="TREE_B", help="QSM file of the data side (B), or sample:NAME")
     s.add_argument("--sets", default="S1 B1", help="data sets, e.g. 'S0,1 B2,3,4' (default: 'S1 B1')")
     s.add_argument(
         "--statistic", default="ks", help="two-sample statistic per line: ks, cvm, ad, w1, energy (default ks)"
@@ -284,7 +284,11 @@ def add_commands(sub) -> None:
     s.set_defaults(func=cmd_simulate)
 
     s = command(sub, "info", "what a QSM file holds")
-    s.add_argument("tree", metavar="TREE", help="a QSM file (TreeQSM .mat/.txt, SimpleForest or aRchi CSV, ...)")
+    s.add_argument(
+        "tree",
+        metavar="TREE",
+        help="a QSM file (TreeQSM .mat/.txt, SimpleForest or aRchi CSV, ...), or sample:NAME (bforest data list)",
+    )
     s.add_argument("--reader", default=None, help="force a reader by name (default: detect)")
     s.add_argument("--select", default=None, type=select_arg, help="reconstruction index, list or 'all'")
     s.add_argument(

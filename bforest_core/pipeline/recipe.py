@@ -21,6 +21,7 @@ from ..interfaces import RecipeDraft
 from ..io import read_qsm
 from ..metrics import SIZE_WEIGHTS, SUMMARY_DEFAULT, TreeMeasures, measure_tree
 from ..registry import component, discover
+from ..samples import is_sample
 from .target import SUMMARY_KIND
 
 
@@ -92,9 +93,12 @@ def _within(spec, lo, hi, comment):
 def write_recipe(qsm: str | Path, out: str | Path, model: str | None = None) -> Recipe:
     """Measure the tree in ``qsm`` and write its recipe to ``out`` (an existing file is never
     replaced: the caller checks). Raises ``ConfigError`` naming the file for a tree that cannot
-    be fitted."""
-    qsm, out = Path(qsm), Path(out)
+    be fitted. ``qsm`` may be ``sample:NAME``, which the recipe keeps as it is."""
+    out = Path(out)
     tree = read_qsm(qsm)
+    # the recipe names the tree relative to itself (a sample by its name: it is where the user fetched it)
+    rel = str(qsm) if is_sample(qsm) else os.path.relpath(Path(qsm).resolve(), out.resolve().parent)
+    qsm = Path(qsm)
     try:
         m = measure_tree(tree)
     except ValueError as e:
@@ -105,7 +109,6 @@ def write_recipe(qsm: str | Path, out: str | Path, model: str | None = None) -> 
     name, draft = drafts[0]
     if draft.suits <= 0.0:
         raise ConfigError(f"{qsm}: {name} cannot grow this tree: {draft.why}")
-    rel = os.path.relpath(qsm.resolve(), out.resolve().parent)
     text = render(qsm, rel, name, draft, m, [(n, d.suits, d.why) for n, d in drafts], model is None)
     out.write_text(text, encoding="utf-8")
     return Recipe(name, draft, m, text, [(n, d.suits, d.why) for n, d in drafts])

@@ -287,33 +287,35 @@ def resolve(path) -> Path:
 
 
 def stem(path) -> str:
-    """Name what a QSM path holds: a sample's name, else the file's stem.
+    """Name what a QSM path holds (``bforest init`` names its recipe and run by it).
+
+    ``"wytham_tf3"`` for both ``sample:wytham_tf3`` and ``data/wytham_tf3.mat``.
 
     Parameters
     ----------
     path : str or Path
-        A file, or ``sample:NAME``.
+        As :func:`resolve` takes it.
 
     Returns
     -------
     str
-        E.g. ``"wytham_tf3"`` for both ``sample:wytham_tf3`` and ``data/wytham_tf3.mat``.
+        The sample's name, else the file's name without its suffix.
     """
     return str(path).removeprefix(PREFIX) if is_sample(path) else Path(path).stem
 
 
 def sha256_of(path) -> str:
-    """Return the SHA-256 of a file.
+    """Return the hex SHA-256 digest of the file at ``path``, read in blocks of 1 MiB.
 
     Parameters
     ----------
     path : str or Path
-        The file.
+        Any readable file: a fetched sample, or one to compare with the catalogue.
 
     Returns
     -------
     str
-        The hex digest.
+        64 hex digits, as :attr:`Sample.sha256` holds them.
     """
     h = hashlib.sha256()
     with open(path, "rb") as fh:

@@ -194,22 +194,14 @@ def test_demo_writes_nothing_beside_its_run_folder(tmp_path, monkeypatch):
 
 
 # ------------------------------------------------------------------------------ clones can be continued
-@pytest.mark.skipif(os.name != "posix", reason="kill -9")
-def test_a_killed_clones_call_is_continued_without_regrowing_its_clones(toy_plugin, tmp_path):
-    import signal
-
-    from bforest_core.pipeline.clones import clones
-
-    run, gate = tmp_path / "run", tmp_path / "gate"
-    p = _gated(toy_config(tmp_path, budget=4), gate, after=2)
+def _clones_held_at_two(toy_site, config: Path, run: Path, gate: Path, args: list[str]) -> subprocess.Popen:
+    """Fit ``config`` (gated) into ``run``, then start `bforest clones RUN *args` and return it once
+    it has grown two clones and waits at the gate (stdout and stderr piped)."""
     gate.touch()  # the fit passes; the clones' process grows two clones and waits
-    bf.fit(bf.load_config(p), run, progress=False)
+    bf.fit(bf.load_config(config), run, progress=False)
     gate.unlink()
     proc = subprocess.Popen(
-        EXE + ["clones", str(run), "-n", "8", "-q", "--no-report"],
-        env=_env(toy_plugin),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+        EXE + ["clones", str(run), *args], env=_env(toy_site), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
     summary, deadline, rows = run / "clones" / "summary.json", time.monotonic() + 60, []
     while time.monotonic() < deadline and len(rows) < 2:
@@ -218,9 +210,21 @@ def test_a_killed_clones_call_is_continued_without_regrowing_its_clones(toy_plug
         except ValueError:
             rows = []
         time.sleep(0.05)
+    return proc
+
+
+@pytest.mark.skipif(os.name != "posix", reason="kill -9")
+def test_a_killed_clones_call_is_continued_without_regrowing_its_clones(toy_plugin, tmp_path):
+    import signal
+
+    from bforest_core.pipeline.clones import clones
+
+    run, gate = tmp_path / "run", tmp_path / "gate"
+    p = _gated(toy_config(tmp_path, budget=4), gate, after=2)
+    proc = _clones_held_at_two(toy_plugin, p, run, gate, ["-n", "8", "-q", "--no-report"])
     proc.send_signal(signal.SIGKILL)
-    proc.wait()
-    kept = json.loads(summary.read_text())
+    proc.communicate()
+    kept = json.loads((run / "clones" / "summary.json").read_text())
     assert kept["complete"] is False and kept["count"] == 2  # every finished clone listed as it was grown
     stamps = {r["file"]: (run / "clones" / r["file"]).stat().st_mtime_ns for r in kept["rows"]}
     gate.touch()
@@ -259,23 +263,7 @@ def test_ctrl_c_during_clones_says_so_on_its_own_line_and_resume_continues(toy_p
 
     run, gate = tmp_path / "run", tmp_path / "gate"
     p = _gated(toy_config(tmp_path, budget=4), gate, after=2)
-    gate.touch()
-    bf.fit(bf.load_config(p), run, progress=False)
-    gate.unlink()  # the clones' process grows two clones and waits
-    proc = subprocess.Popen(
-        EXE + ["clones", str(run), "-n", "6", "--no-report"],  # with its progress bar
-        env=_env(toy_plugin),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    summary, deadline, rows = run / "clones" / "summary.json", time.monotonic() + 60, []
-    while time.monotonic() < deadline and len(rows) < 2:
-        try:
-            rows = json.loads(summary.read_text())["rows"] if summary.exists() else []
-        except ValueError:
-            rows = []
-        time.sleep(0.05)
+    proc = _clones_held_at_two(toy_plugin, p, run, gate, ["-n", "6", "--no-report"])  # with its progress bar
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err

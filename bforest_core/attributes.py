@@ -411,8 +411,7 @@ def tree_attributes(tree, points: np.ndarray | None = None, alpha: bool = True) 
 #: TreeQSM attributes in the clones' fidelity table: volumes and crown measures (branch length and
 #: area are left out: a model tree holds twigs no scan resolves, and the table's branch lengths
 #: already apply the detection limit; the alpha shapes cost a triangulation per clone)
-FIDELITY_ATTRIBUTES = (
-    "trunk_volume",
+FIDELITY_ATTRIBUTES = (  # (TreeQSM's trunk volume is the summary's stem wood volume, volume_o0: not twice)
     "branch_volume",
     "crown_diameter_mean",
     "crown_area_conv",

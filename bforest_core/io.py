@@ -13,6 +13,7 @@ from pathlib import Path
 
 from .errors import PluginError, QSMFormatError
 from .registry import component_class, discover
+from .samples import resolve as resolve_sample
 
 
 def _readers():
@@ -64,7 +65,7 @@ def read_qsm(path, reader: str | None = None, **options):
     Parameters
     ----------
     path : str or Path
-        The QSM file.
+        The QSM file, or ``sample:NAME`` for a fetched sample tree (:mod:`bforest_core.samples`).
     reader : str, optional
         A registered reader's name; by default the reader is picked from the file's content
         (the suffix only narrows the candidates).
@@ -85,7 +86,7 @@ def read_qsm(path, reader: str | None = None, **options):
     PluginError
         If no reader is installed or ``reader`` names none.
     """
-    path = Path(path)
+    path = resolve_sample(path)
     _check_regular_file(path)
     if reader is not None:
         cls = component_class("qsm_reader", reader)

@@ -311,6 +311,33 @@ def summary_unit(name: str) -> str:
     return SUMMARY_UNITS[best] if best is not None else ""
 
 
+#: what the measures a forester might take for one another mean, one line each (``bforest info``,
+#: the fidelity table): the papers' crown spread and TreeQSM's crown diameter differ by design
+DEFINITIONS = {
+    "crown_spread": "crown spread: twice the mean, over 36 sectors of 10 deg around the stem base, of the "
+    "longest horizontal reach of the tree in the sector (the papers' measure; an empty sector counts 0)",
+    "crown_diameter_mean": "crown diameter, mean: TreeQSM's, the mean of 18 diameters through the centre of "
+    "the crown's outline seen from above (each the farthest branch tip in a 10 deg sector plus the "
+    "farthest in the opposite one)",
+}
+
+
+def summary_definition(name: str) -> str | None:
+    """Say what a statistic means, when its name alone leaves a forester guessing.
+
+    Parameters
+    ----------
+    name : str
+        The statistic's name, as in :func:`tree_summary` or a TreeQSM attribute.
+
+    Returns
+    -------
+    str or None
+        One line (``"crown spread: ..."``), or None for a statistic its label explains.
+    """
+    return DEFINITIONS.get(name)
+
+
 def summary_label(name: str, bands: int = 5) -> str:
     """Say what a summary statistic is, in words.
 
@@ -354,7 +381,7 @@ def summary_label(name: str, bands: int = 5) -> str:
             "n_branches": f"branches of order {k} (base >= {100 * DETECTION_DIAMETER:g} cm)",
             "n_all_branches": f"branches of order {k} (all)",
             "length": f"length of order-{k} branches (base >= {100 * DETECTION_DIAMETER:g} cm)",
-            "volume": "stem wood volume" if k == 0 else f"wood volume of order {k}",
+            "volume": "stem (trunk) wood volume" if k == 0 else f"wood volume of order {k}",
             "angle": f"branching angle of order-{k} branches, median",
             "angle_iqr": f"branching angle of order-{k} branches, interquartile range",
         }.get(head, name)

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import http.server
 import os
+import socket
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +15,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 QSM_DIR = Path(os.environ.get("BFOREST_QSM_DIR", ROOT.parent / "shared" / "data" / "qsm"))
+if QSM_DIR.is_dir():  # sample:NAME (the examples' recipes) reads the samples here, as from a fetch
+    os.environ.setdefault("BFOREST_DATA_DIR", str(QSM_DIR))
 
 
 def qsm_path(name: str) -> Path:
@@ -74,6 +81,36 @@ def gone_within(pids, seconds: float) -> bool:
     while time.monotonic() < deadline and any(pid_alive(p) for p in pids):
         time.sleep(0.1)
     return not any(pid_alive(p) for p in pids)
+
+
+@contextlib.contextmanager
+def served(folder: Path):
+    """An HTTP server on 127.0.0.1 serving ``folder``; yields (its URL, the paths asked for)."""
+    asked = []
+
+    class Handler(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):  # quiet
+            pass
+
+        def do_GET(self):
+            asked.append(self.path)
+            super().do_GET()
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Handler, directory=str(folder)))
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}", asked
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def closed_port() -> int:
+    """A port of 127.0.0.1 nothing listens on."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 TOY_DIR = Path(__file__).resolve().parent / "toy_plugin"

@@ -187,6 +187,87 @@ def test_every_option_has_a_help_line():
     assert not missing, "options without a help line: " + ", ".join(missing)
 
 
+def _subcommands(parser, path=("bforest",)):
+    """``(path, parser)`` of every subcommand, nested ones (``config check``) included."""
+    import argparse
+
+    for a in parser._actions:
+        if isinstance(a, argparse._SubParsersAction):
+            for name, sp in a.choices.items():
+                yield path + (name,), sp
+                yield from _subcommands(sp, path + (name,))
+
+
+def test_every_subcommand_speaks_one_vocabulary():
+    """Issue 78, item 8: the run folder was DIR in clones/report/profile and RUN in export, the
+    config RUN.toml in fit and CONFIG in calibrate, clones -n beside profile --n, --replace beside
+    --overwrite, and several subcommands had no description. This walks whatever subcommands
+    exist (a new one is checked with no edit here): each opens its --help with a description; a
+    run folder is RUN, a run configuration CONFIG.toml, a count -n/--count, the replacing flag
+    --overwrite, -q is --quiet; a command that can be resumed or writes a report takes -q."""
+    import argparse
+
+    from bforest_core.cli.main import build_parser
+
+    RUN, CONFIG, bad = "RUN", "CONFIG.toml", []
+    subs = list(_subcommands(build_parser()))
+    assert len(subs) >= 16
+    for path, sp in subs:
+        name = " ".join(path)
+        text = sp.format_help()
+        if not sp.description or sp.description not in " ".join(text.split()):
+            bad.append(f"{name}: no description line")
+        visible = [a for a in sp._actions if a.help != argparse.SUPPRESS and not isinstance(a, argparse._HelpAction)]
+        flags = {o for a in visible for o in a.option_strings}
+        for a in visible:
+            what = f"{name} {'/'.join(a.option_strings) or a.dest}"
+            helptext = a.help or ""
+            if a.metavar in ("DIR", "RUN.toml", "CONFIG") and "run" in helptext.split():
+                bad.append(f"{what}: metavar {a.metavar}")
+            if ("run folder" in helptext) != (a.metavar == RUN) or "run director" in helptext:
+                bad.append(f"{what}: a run folder is '{RUN}', said 'run folder' (metavar {a.metavar})")
+            if not a.option_strings and "configuration" in helptext and a.metavar != CONFIG:
+                bad.append(f"{what}: a run configuration is '{CONFIG}' (metavar {a.metavar})")
+            if a.dest == "n" and a.option_strings != ["-n", "--count"]:
+                bad.append(f"{what}: a count is -n/--count")
+            if a.dest in ("overwrite", "replace") and a.option_strings != ["--overwrite"]:
+                bad.append(f"{what}: the replacing flag is --overwrite")
+            if "-q" in a.option_strings and (a.option_strings != ["-q", "--quiet"] or a.help != "no progress bars"):
+                bad.append(f"{what}: -q is -q/--quiet, 'no progress bars'")
+        if flags & {"--resume", "--no-report"} and "-q" not in flags:
+            bad.append(f"{name}: can be resumed or reports, but has no -q")
+    assert not bad, "\n".join(bad)
+    (simulate,) = [sp for path, sp in subs if path[-1] == "simulate"]
+    (out,) = [a for a in simulate._actions if "-o" in a.option_strings]
+    assert all(f" {x}" in out.help for x in ("txt", "mat", "csv", "ply", "obj", "las", "laz", "xyz"))
+
+
+def test_old_spellings_still_work(toy_plugin, tmp_path, monkeypatch):
+    """``clones --replace`` and ``profile --n`` (the names before the one vocabulary) are still
+    taken, hidden from --help."""
+    from bforest_core.cli.main import build_parser
+
+    p = build_parser()
+    assert p.parse_args(["clones", "r", "--replace"]).overwrite is True
+    assert p.parse_args(["profile", "r", "--param", "x", "--n", "5"]).n == 5
+    assert p.parse_args(["profile", "r", "--param", "x"]).n == 11
+    assert p.parse_args(["clones", "r"]).overwrite is False
+
+
+def test_a_fit_that_fails_before_it_starts_leaves_no_folder(tmp_path, capsys):
+    """Issue 78, item 8: a fit stopped by a missing QSM left a folder holding only .bforest.lock."""
+    cfg = tmp_path / "run.toml"
+    cfg.write_text(
+        '[target]\nqsm = "missing.mat"\n[ssm]\nkind = "sot"\nfree.branch_angle = { lower = 30.0, upper = 80.0 }\n'
+    )
+    assert main(["fit", str(cfg), "-o", str(tmp_path / "runs" / "new"), "-q"]) == 2
+    assert "missing.mat" in capsys.readouterr().err
+    assert not (tmp_path / "runs" / "new").exists()
+    (tmp_path / "mine").mkdir()  # a folder the user made stays, without a lock file in it
+    assert main(["fit", str(cfg), "-o", str(tmp_path / "mine"), "-q"]) == 2
+    assert (tmp_path / "mine").is_dir() and not list((tmp_path / "mine").iterdir())
+
+
 def test_dev_py_lists_its_commands():
     import pathlib
 

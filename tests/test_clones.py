@@ -133,7 +133,7 @@ def test_clones_of_other_parameters_are_not_mixed(toy_fit, tmp_path):
     best = json.loads((run / "best.json").read_text())
     best["params"]["angle"] = best["params"]["angle"] + 1.0
     (run / "best.json").write_text(json.dumps(best))
-    with pytest.raises(ClonesError, match="other parameters.*--replace"):
+    with pytest.raises(ClonesError, match="other parameters.*--overwrite"):
         clones(run, n=2, progress=False)
     assert len(_files(run)) == 1
 
@@ -151,7 +151,8 @@ def test_fidelity_and_references_of_a_run(toy_fit, tmp_path):
     stats = {r["statistic"]: r for r in fid["table"]}
     assert {"height", "dbh", "crown_spread", "crown_base_height", "n_branches_o1"} <= set(stats)
     # TreeQSM's volumes and crown measures too, each with its unit
-    assert {"trunk_volume", "branch_volume", "crown_length", "crown_ratio", "crown_volume_conv"} <= set(stats)
+    assert {"volume_o0", "branch_volume", "crown_length", "crown_ratio", "crown_volume_conv"} <= set(stats)
+    assert "trunk_volume" not in stats  # the stem wood volume once, not twice (issue 78, item 7)
     assert (stats["crown_volume_conv"]["unit"], stats["crown_ratio"]["unit"]) == ("m^3", "fraction")
     assert stats["height"]["n"] == 3
     assert json.loads((run / "clones" / "fidelity.json").read_text())["table"] == fid["table"]

@@ -140,13 +140,16 @@ def _cli_env(toy_site):
 
 
 def test_kill_9_then_resume_equals_uninterrupted(toy_plugin, tmp_path):
-    """A real `bforest fit` process killed with SIGKILL mid-run, then `--resume`."""
-    p = toy_config(tmp_path, budget=48)
+    """A real `bforest fit` process killed with SIGKILL mid-run, then `--resume`. The killed
+    process waits at a gate after 12 simulations (12 evaluations), so it is killed there however
+    fast or loaded the machine is."""
+    p, gate = toy_config(tmp_path, budget=48), tmp_path / "gate"
     p.write_text(
         p.read_text()
-        .replace('kind = "toy"\n', 'kind = "toy"\nsleep = 0.05\n', 1)
-        .replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = { sleep = 0.0 }')
+        .replace('kind = "toy"\n', f'kind = "toy"\ngate = "{gate}"\ngate_after = 12\n', 1)
+        .replace('[target.generate]\nssm = "toy"', '[target.generate]\nssm = "toy"\nsettings = {}')
     )
+    gate.touch()  # the uninterrupted fit passes the gate
     exe = [sys.executable, "-m", "bforest_core.cli"]
     env = _cli_env(toy_plugin)
     subprocess.run(
@@ -155,6 +158,7 @@ def test_kill_9_then_resume_equals_uninterrupted(toy_plugin, tmp_path):
         check=True,
         capture_output=True,
     )
+    gate.unlink()
     proc = subprocess.Popen(
         exe + ["fit", str(p), "-o", str(tmp_path / "killed"), "-q", "--no-report"],
         env=env,
@@ -175,7 +179,8 @@ def test_kill_9_then_resume_equals_uninterrupted(toy_plugin, tmp_path):
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    assert 12 <= RunStore.open(tmp_path / "killed").count() < 48
+    assert RunStore.open(tmp_path / "killed").count() == 12
+    gate.touch()
     r = subprocess.run(
         exe
         + [

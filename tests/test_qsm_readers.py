@@ -7,6 +7,7 @@ Branch counts are under the file's own (``source``) topology after fragment remo
 
 from __future__ import annotations
 
+import re
 import shutil
 import warnings
 
@@ -535,6 +536,32 @@ def test_csv_duplicate_ids_and_unknown_parent(tmp_path):
     unk.write_text("a,b,c\n1,2,3\n")
     with pytest.raises(QSMFormatError, match="native CSV header lacks column"):
         bf.read_qsm(unk)
+
+
+@pytest.mark.parametrize(
+    "fmt, drop, looks",
+    [
+        ("archi-csv", "parent_ID", "an aRchi CSV (reader 'archi-csv': 10 of its 11 required columns)"),
+        ("simpleforest-csv", "parentID", "a SimpleForest CSV (reader 'simpleforest-csv': 9 of its 10 required"),
+    ],
+)
+def test_a_foreign_csv_without_its_parent_column_is_named_by_its_layout(tmp_path, fmt, drop, looks):
+    """Issue 78, item 4: an aRchi CSV without parent_ID was named a native CSV lacking ten
+    columns; only --reader archi-csv named parent_ID. The error now says which layout the header
+    looks like and the one column it lacks, read with the reader detected or forced alike."""
+    from bforest_core.cli import main
+
+    src = tmp_path / f"t.{fmt}.csv"
+    bf.write_tree(hand_tree(), src, format=fmt)
+    lines = src.read_text().splitlines()
+    k = [c.strip() for c in lines[0].split(",")].index(drop)
+    cut = tmp_path / "cut.csv"
+    cut.write_text("\n".join(",".join(c for i, c in enumerate(ln.split(",")) if i != k) for ln in lines) + "\n")
+    with pytest.raises(QSMFormatError, match=rf"looks like {re.escape(looks)}.* but lacks column\(s\) {drop} \(found"):
+        bf.read_qsm(cut)
+    with pytest.raises(QSMFormatError, match=rf"header lacks column\(s\) {drop} \("):
+        bf.read_qsm(cut, reader=fmt)
+    assert main(["info", str(cut)]) == 2
 
 
 def test_fifteen_column_layouts(tmp_path):

@@ -1,9 +1,14 @@
-"""Every `bforest` line of the README runs as written (with small overrides where a line is long).
+"""Every `bforest` line of the README runs as written on a fresh clone (with small overrides where a
+line is long).
 
-The lines run in order with the real console script from the repository root, so a line may use
-what an earlier one wrote (the clones of the fit, say); outputs go to a temporary folder.
+The README's walk-through must work for a user who cloned the repository and has nothing beside
+it (issue 78, item 3): the lines run in order with the real console script in a copy of the
+repository's tracked files in a temporary folder, with an empty sample cache; its first line
+fetches the sample trees, served from a local HTTP server on 127.0.0.1 (``BFOREST_DATA_MIRROR``,
+as from a mirror) since the tests never reach the internet.
 """
 
+import os
 import re
 import shlex
 import shutil
@@ -13,20 +18,17 @@ from pathlib import Path
 
 import pytest
 
-from conftest import QSM_DIR
+from conftest import QSM_DIR, served
+from test_docs_standalone import tracked_files
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: (pattern, replacement) applied to a README line before it runs: smaller budgets and outputs in
-#: the temporary folder; the command itself is unchanged
+#: (pattern, replacement) applied to a README line before it runs: smaller budgets (the README's
+#: fit takes minutes: 32 evaluations test that it runs); the command itself is unchanged
 OVERRIDES = [
-    (r"\bruns/", "{tmp}/runs/"),  # run directories
-    (r"-o pine\.txt --png pine\.png", "-o {tmp}/pine.txt --png {tmp}/pine.png"),
-    (r"-o tf3\.toml$", "-o {tmp}/tf3.toml"),  # the recipe of bforest init (it left tf3.toml in the repository)
-    (r"(bforest fit \S+ -o \S+)", r"\1 --max-evaluations 32 --no-report"),  # ~3 min -> seconds
+    (r"(bforest fit \S+ -o \S+)", r"\1 --max-evaluations 32 --no-report"),
     (r"(bforest clones \S+) -n 30", r"\1 -n 2 --no-report"),
-    (r"--budget 400 --repeats 3", "--budget 24 --repeats 1 -o {tmp}/compare -q"),
-    (r"-o stands/", "-o {tmp}/stands/"),
+    (r"--budget 400 --repeats 3", "--budget 24 --repeats 1 -q"),
     (r"(bforest stand \S+ -o \S+)", r"\1 --max-evaluations 16 -n 2 -q"),  # ~10 min -> a minute
 ]
 
@@ -46,26 +48,39 @@ def readme_lines() -> list[str]:
 def test_the_readme_has_bforest_lines():
     lines = readme_lines()
     assert len(lines) >= 6 and any(" fit " in x for x in lines) and any(" clones " in x for x in lines)
+    assert lines[0].startswith(".venv/bin/bforest data fetch ")  # the walk-through fetches its trees first
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(900)  # a dozen commands, each a process of its own: over the suite's 300 s on a busy machine
-def test_every_readme_line_runs(tmp_path):
+def test_every_readme_line_runs_on_a_fresh_clone(tmp_path):
     if not QSM_DIR.is_dir():
-        pytest.skip(f"the README's lines read the sample pines from {QSM_DIR} (needs ../shared/data/qsm)")
+        pytest.skip(f"the sample files to serve are not in {QSM_DIR} (needs ../shared/data/qsm)")
+    clone = tmp_path / "clone"
+    for f in tracked_files():
+        rel = f.relative_to(ROOT)
+        (clone / rel).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(f, clone / rel)
+    assert not (clone.parent / "shared").exists()  # nothing beside the clone
     exe = shutil.which("bforest") or str(Path(sys.executable).with_name("bforest"))
-    for line in readme_lines():
-        cmd = line
-        for pat, rep in OVERRIDES:
-            cmd = re.sub(pat, rep.replace("{tmp}", str(tmp_path)), cmd)
-        args = shlex.split(cmd)
-        args[0] = exe
-        r = subprocess.run(args, capture_output=True, text=True, cwd=ROOT, timeout=600)
-        assert r.returncode == 0, f"README line failed: {line}\n(ran: {cmd})\n{r.stderr[-2000:]}"
-    assert (tmp_path / "runs" / "pine3" / "clones" / "clone_000.txt").exists()
-    assert (tmp_path / "pine.png").exists() and (tmp_path / "compare" / "compare.png").exists()
-    assert (tmp_path / "tf3.toml").exists() and not (ROOT / "tf3.toml").exists()
-    assert (tmp_path / "stands" / "pines" / "stand.csv").read_text().count("\n") == 4  # a header, 3 pines
+    env = {k: v for k, v in os.environ.items() if k not in ("BFOREST_DATA_DIR", "BFOREST_QSM_DIR")}
+    env["BFOREST_DATA_DIR"] = str(tmp_path / "cache")
+    with served(QSM_DIR) as (url, asked):
+        env["BFOREST_DATA_MIRROR"] = url
+        for line in readme_lines():
+            cmd = line
+            for pat, rep in OVERRIDES:
+                cmd = re.sub(pat, rep, cmd)
+            args = shlex.split(cmd)
+            args[0] = exe
+            r = subprocess.run(args, capture_output=True, text=True, cwd=clone, env=env, timeout=600)
+            assert r.returncode == 0, f"README line failed: {line}\n(ran: {cmd})\n{r.stderr[-2000:]}"
+    assert {"/pine_ruotsinkyla_3.mat", "/wytham_tf3.mat", "/pine_ruotsinkyla_1.mat"} <= set(asked)
+    assert {"pine_ruotsinkyla_3.mat", "wytham_tf3.mat"} <= {p.name for p in (tmp_path / "cache").iterdir()}
+    assert (clone / "stands" / "pines" / "stand.csv").read_text().count("\n") == 4  # a header, 3 pines
+    assert (clone / "runs" / "pine3" / "clones" / "clone_000.txt").exists()
+    assert (clone / "pine.png").exists() and (clone / "runs" / "compare-pine_lignum" / "compare.png").exists()
+    assert 'qsm = "sample:wytham_tf3"' in (clone / "tf3.toml").read_text()
 
 
 def test_the_user_guides_fits_write_to_different_run_folders():

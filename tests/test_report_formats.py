@@ -92,6 +92,34 @@ def test_every_figure_is_written_in_the_chosen_format(sampler_run, tmp_path, fmt
         assert sorted(p.stem for p in (run / "figures").glob("*.png")) == stems
 
 
+def test_the_runs_report_keeps_its_format_and_leaves_no_other_figures(sampler_run, tmp_path):
+    """Issue 78, item 5: after `bforest report --format svg`, `bforest clones` rewrote the report
+    with PNGs and left the SVGs beside them. The run keeps the format and dpi it was last asked for,
+    and figures/ holds just the files the report links."""
+    import json
+
+    from bforest_core.cli import main
+
+    sampler_run, _ = sampler_run
+    run = tmp_path / "run"
+    shutil.copytree(sampler_run, run)
+    stems = sorted(Path(f).stem for f in _figures((run / "report.md").read_text()))
+    assert main(["report", str(run), "--format", "svg", "--dpi", "60"]) == 0
+    assert main(["clones", str(run), "-n", "5", "-q"]) == 0  # writes the report again
+    assert json.loads((run / "report_options.json").read_text()) == {"format": "svg", "dpi": 60}
+    assert sorted(p.name for p in (run / "figures").iterdir()) == sorted(f"{s}.svg" for s in stems)
+    assert all(f.endswith(".svg") for f in _figures((run / "report.md").read_text()))
+    assert main(["report", str(run), "--format", "png"]) == 0  # the dpi asked for before stays
+    assert json.loads((run / "report_options.json").read_text()) == {"format": "png", "dpi": 60}
+    assert sorted(p.name for p in (run / "figures").iterdir()) == sorted(f"{s}.png" for s in stems)
+    w60, _ = png_size(run / "figures" / "trees.png")
+    w130, _ = png_size(sampler_run / "figures" / "trees.png")
+    assert w60 / w130 == pytest.approx(60 / 130, rel=0.05)
+    shutil.rmtree(run / "clones")  # figures of clones that are gone leave with them
+    assert main(["report", str(run)]) == 0
+    assert not list((run / "figures").glob("clone*")) and (run / "figures" / "trees.png").exists()
+
+
 def test_dpi_sets_the_resolution_and_a_bad_value_is_one_line(tmp_path, capsys, monkeypatch):
     from bforest_core.cli import main
     from bforest_core.report.canvas import figure_output
@@ -201,3 +229,53 @@ def test_parameter_plot_reads_at_18_parameters(tmp_path, monkeypatch):
     assert bb.height < 0.05 and bb.width > 0.3  # horizontal, thin
     assert bb.y0 > max(ax.get_position().y1 for ax in panels)  # above the panels
     assert png_size(p)[0] <= 1700
+
+
+def _slender_tree():
+    """A 20 m stem of 0.3 m laterals, each with a 0.2 m shoot (orders 0-2): a slender tree's
+    figure is narrower than its captions."""
+    n = 20
+    start = [[0, 0, float(i)] for i in range(n)]
+    axis, length, radius = [[0, 0, 1]] * n, [1.0] * n, list(np.linspace(0.2, 0.02, n))
+    parent, extension = [-1] + list(range(n - 1)), list(range(1, n)) + [-1]
+    for i in range(n):  # a lateral on every stem cylinder, and a shoot on it
+        a = 2 * np.pi * i / 5
+        d = [np.cos(a), np.sin(a), 0.0]
+        k = len(start)
+        start += [[0, 0, i + 1.0], [0.3 * d[0], 0.3 * d[1], i + 1.0]]
+        axis += [d, [0, 0, 1]]
+        length += [0.3, 0.2]
+        radius += [0.01, 0.005]
+        parent += [i, k]
+        extension += [-1, -1]
+    return bf.Tree(start, axis, length, radius, parent, extension, topology="source")
+
+
+@pytest.mark.parametrize("rows", [["target (QSM)", "best fit"], [""]])
+def test_the_legend_covers_no_title_of_a_slender_trees_figure(tmp_path, monkeypatch, rows):
+    """Issue 78, item 9: in trees.png the order legend, beside the rows, covered the end of the
+    first row's caption for a slender tree (the figure is narrower than its captions). No title,
+    caption or axis label overlaps the legend, with two rows (the report's) and one (bforest simulate --png)."""
+    from bforest_core.report import trees
+
+    figs, real = [], trees.save_figure
+    monkeypatch.setattr(trees, "save_figure", lambda fig, path, dpi=130: figs.append(fig) or real(fig, path, dpi))
+    tree = _slender_tree()
+    trees.tree_comparison_figure(
+        dict.fromkeys(rows, tree),
+        tmp_path / "t.png",
+        title="Target and best-fit tree (line width ∝ radius, colour = branch order)",
+    )
+    (fig,) = figs
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    r = canvas.get_renderer()
+    (legend,) = fig.legends
+    box = legend.get_window_extent(r)
+    from matplotlib.text import Text
+
+    skip = set(legend.findobj(Text)) | {t for ax in fig.get_axes() for t in ax.get_xticklabels() + ax.get_yticklabels()}
+    texts = [t for t in fig.findobj(Text) if t.get_visible() and t.get_text().strip() and t not in skip]
+    assert sum(t.get_text().startswith("side view") for t in texts) == 2 * len(rows)
+    over = [t.get_text()[:40] for t in texts if t.get_window_extent(r).overlaps(box)]
+    assert not over, f"the legend covers {over}"

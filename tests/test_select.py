@@ -259,3 +259,22 @@ def test_a_run_written_before_scores_kept_their_terms_is_read_and_resumed(toy_pl
     assert again["selection"]["chosen"] == whole["selection"]["chosen"]
     assert again["heldout_distance"] == whole["heldout_distance"]
     assert all(c["heldout_per_set"] is None for c in again["selection"]["candidates"])
+
+
+def test_the_fit_names_its_best_own_and_its_held_out_answer_in_one_line(toy_plugin, tmp_path, capsys):
+    """Issue 78, item 6: the progress bar ended at best=<the search's best own distance> and the
+    result line showed another number (the answer chosen on held-out seeds) with nothing to say
+    which is which. The line names both."""
+    from bforest_core.cli import main
+
+    assert main(["fit", str(noisy_config(tmp_path)), "-o", str(tmp_path / "run"), "-q", "--no-report"]) == 0
+    best = json.loads((tmp_path / "run" / "best.json").read_text())
+    with RunStore.open(tmp_path / "run") as store:
+        own = store.best()
+    assert own.idx != best["evaluation"]  # the luckiest point is not the answer (test above)
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("best"))
+    assert line.startswith(
+        f"best own {own.distance:.4f} after 40 evaluations (evaluation budget (40) reached); "
+        f"answer {best['heldout_distance']:.4f} on held-out model seeds (evaluation {best['evaluation']}, "
+        f"own {best['distance']:.4f};"
+    ), line

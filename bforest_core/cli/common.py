@@ -66,3 +66,58 @@ def report(run_dir):
         return
     p = write_report(run_dir)
     print(f"report: {p}")
+
+
+# ------------------------------------------------------------------ one vocabulary in --help
+# Every subcommand names the same things the same way: a new subcommand takes its arguments from
+# here (tests/test_cli.py walks every subcommand's --help and checks them).
+
+#: the placeholder of a run folder (``bforest fit`` output) and of a run configuration
+RUN = "RUN"
+CONFIG = "CONFIG.toml"
+#: a tree file's formats, chosen by its suffix (``simulate -o``, ``export --format``)
+TREE_FORMATS = (
+    "txt (TreeQSM text), mat (TreeQSM .mat), csv (native), simpleforest-csv, archi-csv, ply, obj, "
+    "las, laz, xyz (synthetic laser scans), or any installed writer (bforest plugins)"
+)
+
+
+def command(sub, name: str, summary: str, **kw) -> argparse.ArgumentParser:
+    """A subcommand whose ``--help`` opens with its summary as a sentence (the summary is also its
+    line in ``bforest --help``)."""
+    return sub.add_parser(name, help=summary, description=summary[0].upper() + summary[1:] + ".", **kw)
+
+
+def run_arg(s, help: str = "a run folder (bforest fit output)") -> None:
+    """The positional run folder a command reads."""
+    s.add_argument("run_dir", metavar=RUN, help=help)
+
+
+def run_output(s, default: str) -> None:
+    """``-o RUN``: the run folder a command writes."""
+    s.add_argument("-o", "--output", metavar=RUN, default=None, help=f"the run folder to write (default: {default})")
+
+
+def config_arg(s, help: str = "the run configuration (TOML)") -> None:
+    """The positional run configuration."""
+    s.add_argument("config", metavar=CONFIG, help=help)
+
+
+def count_arg(s, help: str, **kw) -> None:
+    """``-n/--count N``: how many (clones, runs, values)."""
+    s.add_argument("-n", "--count", dest="n", type=int, metavar="N", help=help, **kw)
+
+
+def overwrite_arg(s, help: str, dest: str = "overwrite") -> None:
+    """``--overwrite``: the one flag that replaces results a user would otherwise keep."""
+    s.add_argument("--overwrite", dest=dest, action="store_true", help=help)
+
+
+def quiet_arg(s) -> None:
+    """``-q/--quiet``: every command that draws progress bars can be asked not to."""
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+
+
+def old_spelling(s, flag: str, dest: str, **kw) -> None:
+    """An option's former name, still taken but not shown in ``--help`` (scripts keep working)."""
+    s.add_argument(flag, dest=dest, help=argparse.SUPPRESS, **kw)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from ..pipeline.store import RunFiles
-from .common import UsageError, parse_set
+from .common import RUN, TREE_FORMATS, UsageError, command, overwrite_arg, parse_set, run_arg
 
 
 def cmd_export(args):
@@ -34,15 +34,13 @@ def cmd_export(args):
 
 def add_commands(sub) -> None:
     """Register ``export``."""
-    s = sub.add_parser("export", help="the best fit and the clones in other formats; evaluations as CSV")
-    s.add_argument("run_dir", metavar="RUN", help="a run directory (bforest fit output)")
+    s = command(sub, "export", "the best fit and the clones in other formats; evaluations as CSV")
+    run_arg(s)
     s.add_argument(
         "--format",
         action="append",
         metavar="FMT",
-        help="writer name or suffix, repeatable or comma separated: txt (TreeQSM text), mat (TreeQSM "
-        ".mat), csv (native), simpleforest-csv, archi-csv, ply, obj, las, laz, xyz (synthetic "
-        "laser scans), or any installed writer (bforest plugins)",
+        help=f"writer name or suffix, repeatable or comma separated: {TREE_FORMATS}",
     )
     s.add_argument(
         "--what",
@@ -50,7 +48,9 @@ def add_commands(sub) -> None:
         help="trees to export, comma separated: best, clones, posterior (the posterior clones of "
         "bforest clones --posterior, written as posterior_clone_*) (default best,clones)",
     )
-    s.add_argument("-o", "--output", default=None, help="folder of the tree files (default: RUN/export)")
+    s.add_argument(
+        "-o", "--output", default=None, metavar="DIR", help=f"folder of the tree files (default: {RUN}/export)"
+    )
     s.add_argument("--evaluations", metavar="FILE.csv", help=f"also flatten {RunFiles.EVALUATIONS} into this CSV")
     s.add_argument(
         "--scan",
@@ -59,5 +59,5 @@ def add_commands(sub) -> None:
         help="synthetic-scan setting for las/laz/xyz, repeatable: density=POINTS_PER_M2 (2000), "
         "mode=uniform|scanner, scanner=X,Y,Z (m), reference_range=M (10), noise=SD_M (0), seed=N (0)",
     )
-    s.add_argument("--overwrite", action="store_true", help="replace files that exist")
+    overwrite_arg(s, "replace files that exist")
     s.set_defaults(func=cmd_export)

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import UsageError
+from .common import CONFIG, UsageError, command, overwrite_arg
 
 
 def cmd_init(args):
-    from ..pipeline.recipe import measured_lines, write_recipe
+    from ..pipeline.recipe import measured_lines, not_chosen, write_recipe
+    from ..samples import stem
 
-    qsm = Path(args.qsm)
-    out = Path(args.output) if args.output else Path(f"{qsm.stem}.toml")
+    qsm, tree = args.qsm, stem(args.qsm)
+    out = Path(args.output) if args.output else Path(f"{tree}.toml")
     if out.exists() and not args.overwrite:
         raise UsageError(f"{out}: exists; choose another -o, or replace it with --overwrite")
     r = write_recipe(qsm, out, args.model)
@@ -22,20 +23,24 @@ def cmd_init(args):
     print(f"model: {r.model} ({how}): {r.draft.why}")
     for name, suits, why in r.choices:
         if name != r.model:
-            print(f"  not {name} (suits {suits:.1f} against {r.draft.suits:.1f}): {why}")
+            print(f"  {not_chosen(name, suits, r.model, r.draft.suits, why)}")
     for note in r.draft.notes:
         print(f"note: {note}")
     print(f"wrote {out}: {len(r.draft.free)} free parameters, bounds scaled to the tree (each line says why)")
-    print(f"next: bforest fit {out} -o runs/{qsm.stem}")
+    print(f"next: bforest fit {out} -o runs/{tree}")
     return 0
 
 
 def add_commands(sub):
-    s = sub.add_parser("init", help="measure a tree and write a commented recipe to fit it (RUN.toml)")
+    s = command(sub, "init", f"measure a tree and write a commented recipe to fit it (a run configuration, {CONFIG})")
     s.add_argument(
-        "qsm", metavar="QSM", help="the tree: a QSM file (TreeQSM .mat/.txt, SimpleForest or aRchi CSV, ...)"
+        "qsm",
+        metavar="QSM",
+        help="the tree: a QSM file (TreeQSM .mat/.txt, SimpleForest or aRchi CSV, ...) or sample:NAME (bforest data list)",
     )
     s.add_argument("--model", help="growth model (default: the one that suits the tree, and why)")
-    s.add_argument("-o", "--output", help="recipe file to write (default: QSM's name with .toml, here)")
-    s.add_argument("--overwrite", action="store_true", help="replace an existing recipe file")
+    s.add_argument(
+        "-o", "--output", metavar=CONFIG, help="recipe file to write (default: the QSM's name with .toml, here)"
+    )
+    overwrite_arg(s, "replace an existing recipe file")
     s.set_defaults(func=cmd_init)

@@ -3,7 +3,7 @@
 Every error a user can cause prints one line ``error: ...`` and exits with code 2; ``--debug``
 shows the traceback instead. The subcommands live in one module per group: ``runs`` (demo, fit,
 clones, report, compare, profile, calibrate), ``trees`` (info, simulate, distance), ``export``,
-``plugins_config`` (plugins, config).
+``data`` (the sample trees), ``plugins_config`` (plugins, config).
 """
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ import sys
 import warnings
 from concurrent.futures import BrokenExecutor
 
-from . import export, init, plugins_config, runs, stand, trees
+from ..pipeline.progress import end_open_bars
+from . import data, export, init, plugins_config, runs, stand, trees
 from .common import EXIT_USAGE, Parser, UsageError
 
 #: the warnings this command has printed: a file read twice (the clones, then the report) warns once
@@ -37,8 +38,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--version", action="version", version=f"bforest {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
+    p.set_defaults(on_interrupt=None)
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
-    for group in (runs, init, stand, trees, export, plugins_config):
+    for group in (runs, init, stand, trees, export, data, plugins_config):
         group.add_commands(sub)
     return p
 
@@ -58,7 +60,8 @@ def main(argv=None) -> int:
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
-        print("interrupted (finished evaluations are saved; continue with --resume)", file=sys.stderr)
+        hint = args.on_interrupt(args) if callable(args.on_interrupt) else args.on_interrupt
+        _say("interrupted" + (f" ({hint})" if hint else ""))
         return 130
     except BrokenPipeError:  # the reader of the output has gone (`bforest info ... | head`): not an error
         _quiet_stdout()
@@ -66,30 +69,36 @@ def main(argv=None) -> int:
     except (BayesForestError, UsageError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
         if args.debug:
             raise
-        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        _say(f"error: {_one_line(exc)}")
         return EXIT_USAGE
     except BrokenExecutor as exc:  # a worker process died: its start-up failed, or it was killed
         if args.debug:
             raise
-        print(
+        _say(
             f"error: the worker processes stopped ({_one_line(exc)}); a worker's start-up failed "
             "(its message is above) or it was killed, e.g. out of memory; finished evaluations are "
-            "saved: continue with --resume",
-            file=sys.stderr,
+            "saved: continue with --resume"
         )
         return EXIT_USAGE
     except (ValueError, OSError) as exc:  # an SSM rejecting a value; a path that cannot be written
         if args.debug:
             raise
-        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        _say(f"error: {_one_line(exc)}")
         return EXIT_USAGE
     except MemoryError:
         if args.debug:
             raise
-        print("error: out of memory (ask for less: fewer lines, clones or workers)", file=sys.stderr)
+        _say("error: out of memory (ask for less: fewer lines, clones or workers)")
         return EXIT_USAGE
     finally:
         warnings.showwarning = old_show
+
+
+def _say(line: str) -> None:
+    """Print the command's last line to stderr on a line of its own: a progress bar that an
+    interrupt or an error left open is ended first."""
+    end_open_bars()
+    print(line, file=sys.stderr)
 
 
 def _quiet_stdout() -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from .common import Parser
+from .common import CONFIG, Parser, command
 
 
 def cmd_plugins(args):
@@ -50,12 +50,12 @@ def cmd_config(args):
 
 def add_commands(sub) -> None:
     """Register this group's subcommands."""
-    s = sub.add_parser("plugins", help="every discovered plugin, its kind, version, and load errors")
+    s = command(sub, "plugins", "every discovered plugin, its kind, version, and load errors")
     s.set_defaults(func=cmd_plugins)
 
-    s = sub.add_parser("config", help="config schema | check RUN.toml")
+    s = command(sub, "config", f"the schema of run configurations, or check one ({CONFIG})")
     cs = s.add_subparsers(dest="action", metavar="ACTION", parser_class=Parser, required=True)
-    cs.add_parser("schema", help="print the JSON schema of run configs")
-    c2 = cs.add_parser("check", help="validate a run config")
-    c2.add_argument("file", metavar="RUN.toml", help="the run configuration to check")
+    command(cs, "schema", "print the JSON schema of run configurations")
+    c2 = command(cs, "check", "check a run configuration as a fit would before its first evaluation")
+    c2.add_argument("file", metavar=CONFIG, help="the run configuration (TOML)")
     s.set_defaults(func=cmd_config)

@@ -8,7 +8,19 @@ from typing import TYPE_CHECKING
 
 from ..pipeline.rundir import run_lock
 from ..pipeline.store import RunFiles, clock_warning
-from .common import UsageError, report
+from .common import (
+    RUN,
+    UsageError,
+    command,
+    config_arg,
+    count_arg,
+    old_spelling,
+    overwrite_arg,
+    quiet_arg,
+    report,
+    run_arg,
+    run_output,
+)
 
 if TYPE_CHECKING:
     from ..config import RunConfig
@@ -35,7 +47,7 @@ def _fit_and_report(args, cfg: RunConfig, out, fit):
             f"{out}: this run had already finished; nothing was simulated (grow clones with "
             f"'bforest clones {out}', or start anew with --overwrite)"
         )
-    print(f"best distance {res.distance:.4f} after {res.n_evaluations} evaluations ({res.stop_reason})")
+    print(result_line(res))
     short = (res.diagnostics or {}).get("stopped_short")
     if short:
         print(f"WARNING: the sampler stopped short of its target: {short}")
@@ -52,6 +64,18 @@ def _fit_and_report(args, cfg: RunConfig, out, fit):
     if cfg.report.enabled and not args.no_report:
         report(out)
     return _all_failed(out)
+
+
+def result_line(res) -> str:
+    """The fit's result in one line. With ``[select]`` the search's best (on its own model seeds,
+    where its progress bar ends) and the answer (chosen on held-out seeds) differ: both are named."""
+    head = f"after {res.n_evaluations} evaluations ({res.stop_reason})"
+    if res.heldout_distance is None:
+        return f"best distance {res.distance:.4f} {head}"
+    return (
+        f"best own {res.best_own:.4f} {head}; answer {res.heldout_distance:.4f} on held-out model seeds "
+        f"(evaluation {res.evaluation}, own {res.distance:.4f}; chosen among the search's best on seeds it never used)"
+    )
 
 
 def _all_failed(out) -> int:
@@ -81,7 +105,14 @@ def cmd_clones(args):
 def _clones_and_report(args):
     from ..pipeline.clones import clones
 
-    s = clones(args.run_dir, n=args.n, progress=not args.quiet, replace=args.replace, posterior=args.posterior)
+    s = clones(
+        args.run_dir,
+        n=args.n,
+        progress=not args.quiet,
+        replace=args.overwrite,
+        posterior=args.posterior,
+        resume=args.resume,
+    )
     where = RunFiles(args.run_dir).clones_dir(args.posterior)
     kept = s["count"] - s["grown"]
     print(
@@ -89,7 +120,7 @@ def _clones_and_report(args):
         + (
             ""
             if s["requested"] >= s["count"]
-            else f" (asked for {s['requested']}; nothing is deleted without --replace)"
+            else f" (asked for {s['requested']}; nothing is deleted without --overwrite)"
         )
     )
     for key, label, scale in (
@@ -116,6 +147,11 @@ def _clones_and_report(args):
     if not args.no_report:
         report(args.run_dir)
     return 0
+
+
+def _clones_interrupted(args) -> str:
+    again = f"bforest clones {args.run_dir} --resume" + (" --posterior" if args.posterior else "")
+    return f"finished clones are saved; continue with '{again}'"
 
 
 def cmd_report(args):
@@ -190,71 +226,79 @@ def cmd_demo(args):
 
 def add_commands(sub) -> None:
     """Register this group's subcommands."""
-    s = sub.add_parser("demo", help="the main job on the embedded default target, end to end")
-    s.add_argument("-o", "--output", default="demo-run", help="run directory (default: demo-run)")
-    s.add_argument("--quick", action="store_true", help="a smaller fit (for tests)")
+    s = command(sub, "demo", "the main job on the embedded default target, end to end")
     s.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace a run in -o, and the file -o.toml beside it, "
-        "that an earlier demo did not write (a demo's own are replaced without it)",
+        "-o", "--output", metavar=RUN, default="demo-run", help="the run folder to write (default: demo-run)"
     )
-    s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    s.add_argument("--quick", action="store_true", help="a smaller fit (for tests)")
+    overwrite_arg(
+        s,
+        "replace a run in -o that an earlier demo did not write (an earlier demo's is replaced without it)",
+    )
+    quiet_arg(s)
     s.set_defaults(func=cmd_demo)
 
-    s = sub.add_parser("fit", help="fit a growth model as configured in RUN.toml")
-    s.add_argument("config", metavar="RUN.toml", help="the run configuration (TOML)")
-    s.add_argument("-o", "--output", help="run directory (default: runs/<config name>)")
+    s = command(sub, "fit", "fit a growth model as a run configuration says")
+    config_arg(s)
+    run_output(s, "runs/<config name>")
     s.add_argument("--resume", action="store_true", help="continue a stopped or killed run in -o")
-    s.add_argument("--overwrite", action="store_true", help="replace an existing run in -o")
-    s.add_argument("--max-evaluations", type=int, help="override [stop] max_evaluations")
+    overwrite_arg(s, "replace an existing run in -o")
+    s.add_argument("--max-evaluations", type=int, metavar="N", help="override [stop] max_evaluations")
     s.add_argument("--no-report", action="store_true", help="do not write the report afterwards")
-    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    s.set_defaults(func=cmd_fit)
+    quiet_arg(s)
+    s.set_defaults(func=cmd_fit, on_interrupt="finished evaluations are saved; continue with --resume")
 
-    s = sub.add_parser("clones", help="clones of a finished fit, with their distances and metrics")
-    s.add_argument("run_dir", metavar="DIR", help="a run directory (bforest fit output)")
-    s.add_argument(
-        "-n",
-        type=int,
-        default=None,
-        help="clones the set should hold (default: [clones] count); "
-        "existing clones are kept, only missing ones are grown",
+    s = command(sub, "clones", "clones of a finished fit, with their distances and fidelity table")
+    run_arg(s)
+    how_many = s.add_mutually_exclusive_group()
+    count_arg(
+        how_many,
+        "clones the set should hold (default: [clones] count); existing clones are kept, only missing ones are grown",
     )
-    s.add_argument("--replace", action="store_true", help="delete the existing clones and grow the set anew")
+    how_many.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue a stopped clones call: grow the clones it asked for that are missing",
+    )
+    overwrite_arg(s, "delete the existing clones and grow the set anew")
+    old_spelling(s, "--replace", "overwrite", action="store_true")
     s.add_argument(
         "--posterior",
         action="store_true",
         help="posterior-predictive clones (abc-smc or emcee runs): each clone's parameters are one "
-        f"draw from {RunFiles.POSTERIOR_CSV}; written to RUN/{RunFiles.CLONES_POSTERIOR}",
+        f"draw from {RunFiles.POSTERIOR_CSV}; written to {RUN}/{RunFiles.CLONES_POSTERIOR}",
     )
     s.add_argument("--no-report", action="store_true", help="do not update the report afterwards")
-    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    s.set_defaults(func=cmd_clones)
+    quiet_arg(s)
+    s.set_defaults(func=cmd_clones, on_interrupt=_clones_interrupted)
 
-    s = sub.add_parser("report", help="figures (PNG, SVG or PDF) and a summary (Markdown/HTML) of a run")
-    s.add_argument("run_dir", metavar="DIR", help="a run directory (bforest fit output)")
+    s = command(sub, "report", "figures (PNG, SVG or PDF) and a summary (Markdown and HTML) of a run")
+    run_arg(s)
     s.add_argument(
         "--format",
-        default="png",
+        default=None,
         choices=("png", "svg", "pdf"),
-        help=f"format of every figure (default: png; pdf also writes PNG previews for {RunFiles.REPORT_HTML})",
+        help="format of every figure, kept for the run's later reports (default: the last report's, "
+        f"else png; pdf also writes PNG previews for {RunFiles.REPORT_HTML})",
     )
     s.add_argument(
         "--dpi",
         type=int,
         default=None,
-        help="resolution of raster figures and of the raster parts of vector ones (default: 120-130)",
+        help="resolution of raster figures and of the raster parts of vector ones, kept like --format "
+        "(default: the last report's, else 120-130)",
     )
     s.set_defaults(func=cmd_report)
 
-    s = sub.add_parser("compare", help="compare optimisers on equal evaluation budgets")
-    s.add_argument("config", metavar="RUN.toml", help="the run configuration (TOML)")
+    s = command(sub, "compare", "compare optimisers on equal evaluation budgets")
+    config_arg(s)
     s.add_argument(
         "--optimizers", default="ga,nlopt,emcee,de", help="comma-separated optimiser names (default: ga,nlopt,emcee,de)"
     )
-    s.add_argument("--budget", type=int, required=True, help="evaluations per optimiser run")
-    s.add_argument("--repeats", type=int, default=3, help="runs per optimiser with different run seeds (default 3)")
+    s.add_argument("--budget", type=int, required=True, metavar="N", help="evaluations per optimiser run")
+    s.add_argument(
+        "--repeats", type=int, default=3, metavar="N", help="runs per optimiser with different run seeds (default 3)"
+    )
     s.add_argument(
         "--threshold",
         default=None,
@@ -277,42 +321,44 @@ def add_commands(sub) -> None:
         metavar="N",
         help="with --heldout: also score each run's best after N evaluations",
     )
-    s.add_argument("-o", "--output", default=None, help="output directory (default: runs/compare-<config>)")
+    s.add_argument("-o", "--output", default=None, metavar="DIR", help="study folder (default: runs/compare-<config>)")
     s.add_argument(
         "--resume",
         action="store_true",
         help="continue the runs of an earlier comparison in -o; "
         "finished runs are read back (so another optimiser can be added to it)",
     )
-    s.add_argument("--overwrite", action="store_true", help="replace the runs of an earlier comparison in -o")
-    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    s.set_defaults(func=cmd_compare)
+    overwrite_arg(s, "replace the runs of an earlier comparison in -o")
+    quiet_arg(s)
+    s.set_defaults(func=cmd_compare, on_interrupt="finished runs are saved; continue with --resume")
 
-    s = sub.add_parser("profile", help="distance along one parameter for several seeds")
-    s.add_argument("run_dir", metavar="DIR", help="a run directory (bforest fit output)")
+    s = command(sub, "profile", "distance along one parameter of a fit for several model seeds")
+    run_arg(s)
     s.add_argument("--param", required=True, help="the SSM parameter to profile")
     s.add_argument("--values", type=float, nargs="+", default=None, help="values (default: 11 across the bounds)")
-    s.add_argument("--n", type=int, default=11, help="number of values across the bounds (default 11)")
-    s.add_argument("--seeds", type=int, default=5, help="model seeds per value (default 5)")
-    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    count_arg(s, "number of values across the bounds (default 11)", default=11)
+    old_spelling(s, "--n", "n", type=int)
+    s.add_argument("--seeds", type=int, default=5, metavar="N", help="model seeds per value (default 5)")
+    quiet_arg(s)
     s.set_defaults(func=cmd_profile)
 
-    s = sub.add_parser(
+    s = command(
+        sub,
         "calibrate",
-        help="simulation-based calibration: coverage of the sampler's intervals on targets grown from prior draws",
+        "simulation-based calibration: coverage of the sampler's intervals on targets grown from prior draws",
     )
+    config_arg(
+        s, "a run configuration with a sampler (abc-smc, emcee); its [target] is optional and replaced in every run"
+    )
+    count_arg(s, "calibration runs (prior draws, one fit each)", required=True)
     s.add_argument(
-        "config",
-        metavar="CONFIG",
-        help="a run configuration with a sampler (abc-smc, emcee); its [target] is optional and replaced in every run",
+        "-o", "--output", default=None, metavar="DIR", help="study folder (default: runs/calibrate-<config>)"
     )
-    s.add_argument("-n", type=int, required=True, help="calibration runs (prior draws, one fit each)")
-    s.add_argument("-o", "--output", default=None, help="study folder (default: runs/calibrate-<config>)")
     s.add_argument(
         "--resume",
         action="store_true",
         help="continue a study in -o: finished runs are read back, stopped ones resumed",
     )
-    s.add_argument("--overwrite", action="store_true", help="refit every run of an earlier study in -o")
-    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    s.set_defaults(func=cmd_calibrate)
+    overwrite_arg(s, "refit every run of an earlier study in -o")
+    quiet_arg(s)
+    s.set_defaults(func=cmd_calibrate, on_interrupt="finished runs are saved; continue with --resume")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .common import UsageError
+from .common import CONFIG, UsageError, command, count_arg, overwrite_arg, quiet_arg
 
 
 def _executor(args) -> dict | None:
@@ -43,7 +43,7 @@ def cmd_stand(args):
     out = Path(args.output)
     check_stand_dir(out, args.resume, args.overwrite)  # before the trees are read
     executor = _executor(args)
-    options = dict(recipe=_absolute(args.recipe), model=args.model, seed=args.seed, clones=args.count)
+    options = dict(recipe=_absolute(args.recipe), model=args.model, seed=args.seed, clones=args.n)
     options.update(realisations=args.realisations, max_evaluations=args.max_evaluations)
     if args.resume:
         if args.source or args.stem_map or any(v is not None for v in options.values()):
@@ -89,14 +89,12 @@ def cmd_stand(args):
 
 
 def add_commands(sub):
-    s = sub.add_parser(
+    s = command(
+        sub,
         "stand",
-        help="fit every tree of a plot (a folder of QSMs or a stem map), grow clones and synthetic stands",
-        description=(
-            "Fit every tree of a scanned plot and grow its clones: one recipe per tree (bforest init's, or --recipe "
-            "for all), the trees as tasks on the executor (process or dask), one table STAND/stand.csv, a report "
-            "and synthetic stands (a clone of each tree at its place: mesh, LAS scan, trees.csv)."
-        ),
+        "fit every tree of a plot (a folder of QSMs or a stem map), grow their clones and synthetic stands: "
+        "one recipe per tree (bforest init's, or --recipe for all), the trees as tasks on the executor, one "
+        "table STAND/stand.csv and a report",
     )
     s.add_argument(
         "source",
@@ -110,10 +108,14 @@ def add_commands(sub):
         metavar="CSV",
         help="the trees as a stem map: columns file, x, y (m), optionally tree, z, model, recipe",
     )
-    s.add_argument("--recipe", metavar="RUN.toml", help="one recipe for every tree (default: bforest init's for each)")
+    s.add_argument(
+        "--recipe",
+        metavar=CONFIG,
+        help="one run configuration for every tree (default: bforest init's recipe for each)",
+    )
     s.add_argument("--model", help="growth model of init's recipes (default: the one that suits each tree)")
     s.add_argument("--seed", type=int, help="run seed of every tree's fit (default: the recipe's)")
-    s.add_argument("-n", "--count", type=int, help="clones per tree (default 30)")
+    count_arg(s, "clones per tree (default 30)")
     s.add_argument(
         "--max-evaluations", type=int, help="every tree's evaluation budget (default: its recipe's; less: a quick look)"
     )
@@ -123,7 +125,10 @@ def add_commands(sub):
     s.add_argument("--address", help="a running Dask scheduler (tls://host:8786), with --executor dask")
     s.add_argument("--scheduler-file", help="a Dask scheduler file, with --executor dask")
     s.add_argument("--resume", action="store_true", help="continue the stand in -o: unfinished trees only")
-    s.add_argument("--overwrite", action="store_true", help="delete the stand in -o (its fits too) and start anew")
+    overwrite_arg(s, "delete the stand in -o (its fits too) and start anew")
     s.add_argument("--no-report", action="store_true", help="do not write the stand report")
-    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    s.set_defaults(func=cmd_stand)
+    quiet_arg(s)
+    s.set_defaults(
+        func=cmd_stand,
+        on_interrupt="finished trees and every logged evaluation are saved; continue with bforest stand --resume -o STAND",
+    )

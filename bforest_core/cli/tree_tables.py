@@ -4,6 +4,8 @@ and CSV rows."""
 
 from __future__ import annotations
 
+import textwrap
+
 from ..attributes import (
     ATTRIBUTE_UNITS,
     BRANCH_COLUMNS,
@@ -12,6 +14,7 @@ from ..attributes import (
     distributions,
     tree_attributes,
 )
+from ..metrics import summary_definition
 
 #: what the attributes are called where a user reads them
 ATTRIBUTE_LABELS = {
@@ -82,6 +85,9 @@ def info_text(tree) -> list[str]:
         else:
             txt = f"{v:.4g}" + (f" {u}" if u else "")
         lines.append(f"    {label:<28}{txt}")
+    lines.append("  the two crown widths, defined otherwise:")
+    for key in ("crown_spread", "crown_diameter_mean"):
+        lines += textwrap.wrap(summary_definition(key), 100, initial_indent="    ", subsequent_indent="      ")
     for title, _, width, unit, names in DISTRIBUTION_TABLES:
         n = max(d[x].size for x in names)
         nz = [k for k in range(n) if any(d[x][k] != 0 for x in names)]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..io import json_text
-from .common import UsageError, parse_set, read, select_arg, split_sets
+from .common import TREE_FORMATS, UsageError, command, parse_set, read, select_arg, split_sets
 
 
 def cmd_info(args):
@@ -22,7 +22,8 @@ def cmd_info(args):
         print(head)
         fmt = md.get("format", "?") + (f" (version {md['version']})" if md.get("version") else "")
         print(f"  format        {fmt}")
-        print(f"  cylinders     {t.n}" + (f" ({int(t.added.sum())} added)" if t.added.any() else ""))
+        added = f" ({int(t.added.sum())} added by the reconstruction to bridge gaps)" if t.added.any() else ""
+        print(f"  cylinders     {t.n}{added}")
         print(f"  branches      {t.n_branches} (topology {t.topology})")
         print(f"  max order     {t.max_order}")
         print(f"  height        {m['height']:.2f} m")
@@ -231,9 +232,9 @@ def cmd_distance(args):
 
 def add_commands(sub) -> None:
     """Register this group's subcommands."""
-    s = sub.add_parser("distance", help="structural distance between two QSM files (B is the data side)")
-    s.add_argument("tree_a", metavar="TREE_A", help="QSM file of the model side (A)")
-    s.add_argument("tree_b", metavar="TREE_B", help="QSM file of the data side (B)")
+    s = command(sub, "distance", "structural distance between two QSM files (B is the data side)")
+    s.add_argument("tree_a", metavar="TREE_A", help="QSM file of the model side (A), or sample:NAME")
+    s.add_argument("tree_b", metavar="TREE_B", help="QSM file of the data side (B), or sample:NAME")
     s.add_argument("--sets", default="S1 B1", help="data sets, e.g. 'S0,1 B2,3,4' (default: 'S1 B1')")
     s.add_argument(
         "--statistic", default="ks", help="two-sample statistic per line: ks, cvm, ad, w1, energy (default ks)"
@@ -265,13 +266,13 @@ def add_commands(sub) -> None:
     s.add_argument("--seed", type=int, default=1, help="seed of the permutation test")
     s.set_defaults(func=cmd_distance)
 
-    s = sub.add_parser("simulate", help="grow one tree with a growth model")
+    s = command(sub, "simulate", "grow one tree with a growth model")
     s.add_argument("--ssm", required=True, help="growth model plugin, e.g. sot or lignum")
     s.add_argument("--seed", type=int, default=1, help="model seed (default 1)")
     s.add_argument("--set", action="append", metavar="NAME=VALUE", help="model parameter (repeatable)")
     s.add_argument("--setting", action="append", metavar="NAME=VALUE", help="component setting (repeatable)")
     s.add_argument("--preset", default=None, help="parameter preset (LIGNUM)")
-    s.add_argument("-o", "--output", help="tree file (.txt TreeQSM text, .csv, .ply, .obj)")
+    s.add_argument("-o", "--output", metavar="FILE", help=f"tree file, its format by its suffix: {TREE_FORMATS}")
     s.add_argument(
         "--scan",
         action="append",
@@ -282,8 +283,12 @@ def add_commands(sub) -> None:
     s.add_argument("--png", help="figure of the tree")
     s.set_defaults(func=cmd_simulate)
 
-    s = sub.add_parser("info", help="what a QSM file holds")
-    s.add_argument("tree", metavar="TREE", help="a QSM file (TreeQSM .mat/.txt, SimpleForest or aRchi CSV, ...)")
+    s = command(sub, "info", "what a QSM file holds")
+    s.add_argument(
+        "tree",
+        metavar="TREE",
+        help="a QSM file (TreeQSM .mat/.txt, SimpleForest or aRchi CSV, ...), or sample:NAME (bforest data list)",
+    )
     s.add_argument("--reader", default=None, help="force a reader by name (default: detect)")
     s.add_argument("--select", default=None, type=select_arg, help="reconstruction index, list or 'all'")
     s.add_argument(

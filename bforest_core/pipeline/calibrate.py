@@ -1,4 +1,4 @@
-"""``bforest calibrate CONFIG -n N``: simulation-based calibration (SBC) of a sampler's intervals.
+"""``bforest calibrate CONFIG.toml -n N``: simulation-based calibration (SBC) of a sampler's intervals.
 
 Does the sampler's "90 % interval" contain the truth in 90 % of cases? For run ``i = 0..N-1``:
 

@@ -11,12 +11,13 @@ once, in one :class:`ConfigError`.
 from __future__ import annotations
 
 import warnings
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..config import did_you_mean, section_settings
 from ..errors import BayesForestError, ConfigError, PluginError
 from ..registry import component
+from ..samples import SampleError
+from ..samples import resolve as resolve_sample
 from .heldout import selection_config
 from .target import Target, bounds_from_target, build_target
 
@@ -48,8 +49,14 @@ def preflight(cfg: RunConfig, target: Target | None = None, trees=None) -> Targe
             problems.append(f"{section}: {exc}")
     missing = False
     for key, path in _named_files(cfg):
-        if not Path(path).is_file():
-            problems.append(f"{key}: {'not a file' if Path(path).exists() else 'file not found'}: {path}")
+        try:
+            file = resolve_sample(path)
+        except SampleError as exc:  # unknown, or not fetched: the message says how to fetch it
+            problems.append(f"{key}: {exc}")
+            missing = missing or key == "target.qsm"
+            continue
+        if not file.is_file():
+            problems.append(f"{key}: {'not a file' if file.exists() else 'file not found'}: {path}")
             missing = missing or key == "target.qsm"
     tgt = target
     if tgt is None and not missing:

@@ -141,7 +141,7 @@ def _existing(out_dir: Path, store: RunStore, params: dict) -> list[dict]:
     if not (out_dir / RunFiles.CLONE_SUMMARY).exists():
         if any(out_dir.glob("clone_*.txt")):
             raise ClonesError(
-                f"{out_dir}: holds clone files but no {RunFiles.CLONE_SUMMARY}; regrow them with --replace, "
+                f"{out_dir}: holds clone files but no {RunFiles.CLONE_SUMMARY}; regrow them with --overwrite, "
                 "or move the folder to keep them"
             )
         return []
@@ -149,14 +149,20 @@ def _existing(out_dir: Path, store: RunStore, params: dict) -> list[dict]:
     if old.get("best_params") != params:
         raise ClonesError(
             f"{out_dir}: holds clones of other parameters ({old.get('best_params')}); "
-            "regrow them with --replace, or move the folder to keep them"
+            "regrow them with --overwrite, or move the folder to keep them"
         )
     return [r for r in old.get("rows", []) if (out_dir / r.get("file", "-")).exists() or r.get("status") != "ok"]
 
 
 @holding_run_lock
 def clones(
-    run_dir, n: int | None = None, executor=None, progress: bool = True, replace: bool = False, posterior: bool = False
+    run_dir,
+    n: int | None = None,
+    executor=None,
+    progress: bool = True,
+    replace: bool = False,
+    posterior: bool = False,
+    resume: bool = False,
 ) -> dict:
     """Grow clones of a finished fit until the set holds ``n``; writes ``clones/clone_NNN.txt``,
     ``clones/clones.csv``, ``clones/summary.json`` and ``clones/fidelity.json``.
@@ -170,6 +176,9 @@ def clones(
         the missing ones are grown.
     replace : bool
         Delete the existing clones first and grow ``n`` anew.
+    resume : bool
+        Continue the last call on this set (one that was stopped): ``n`` is the count that call
+        asked for (giving ``n`` too is an error).
     posterior : bool
         Posterior-predictive clones in ``clones_posterior/``: each clone's parameters are one
         draw from the run's posterior (see the module text).
@@ -185,10 +194,12 @@ def clones(
     with RunStore.open(run_dir) as store:
         cfg = load_config(store.config_path)
         best = store.read_best()
+        out_dir = store.clones_dir(posterior)
+        if resume:
+            n = _stopped_request(store, out_dir, n, replace)
         n = cfg.clones.count if n is None else int(n)
         if n < 0:
             raise ClonesError(f"clones: n must be at least 0 (got {n})")
-        out_dir = store.clones_dir(posterior)
         if replace and out_dir.exists():
             shutil.rmtree(out_dir)
         out_dir.mkdir(exist_ok=True)
@@ -212,7 +223,7 @@ def clones(
         if tasks or refs:
             # written before the first clone and after each one: a killed call is continued by the
             # next, which keeps every clone listed here and grows only the others
-            _write_progress(store, out_dir, rows, tgt, best, tm)
+            _write_progress(store, out_dir, rows, tgt, best, tm, n)
             bar = progress_bar(len(tasks), "clones", "clone", progress and bool(tasks))
             with started_workers(cfg, tgt, executor) as ex:
                 for _, res in ex.map_unordered(_clone_task, tasks):
@@ -221,7 +232,7 @@ def clones(
 
                         res.update(relative_errors(tm, {k: res[k] for k in METRIC_KEYS}))
                     new_rows.append(res)
-                    _write_progress(store, out_dir, rows + new_rows, tgt, best, tm)
+                    _write_progress(store, out_dir, rows + new_rows, tgt, best, tm, n)
                     bar.update(1)
                 bar.close()
                 for r in refs:
@@ -244,10 +255,22 @@ def clones(
         return summary
 
 
-def _write_progress(store: RunStore, out_dir: Path, rows, tgt, best, tm) -> None:
-    """``summary.json`` of the clones grown so far (``complete`` false until the call ends)."""
+def _stopped_request(store: RunStore, out_dir: Path, n, replace: bool) -> int:
+    """The count the last call on ``out_dir`` asked for (what ``resume`` continues)."""
+    if n is not None or replace:
+        raise ClonesError("clones: resume continues the count the last call asked for: give it without n or replace")
+    if not (out_dir / RunFiles.CLONE_SUMMARY).exists():
+        raise ClonesError(f"{out_dir}: no clones call to resume; grow clones with 'bforest clones {store.path} -n N'")
+    last = store.read_json(f"{out_dir.name}/{RunFiles.CLONE_SUMMARY}")
+    return int(last.get("requested", last.get("count", 0)))
+
+
+def _write_progress(store: RunStore, out_dir: Path, rows, tgt, best, tm, requested: int) -> None:
+    """``summary.json`` of the clones grown so far (``complete`` false until the call ends) and
+    the count the call asked for (what ``resume`` continues)."""
     summary = _summarise(sorted(rows, key=lambda r: r["index"]), tgt, best, tm)
     summary["complete"] = False
+    summary["requested"] = requested
     store.write_json(f"{out_dir.name}/{RunFiles.CLONE_SUMMARY}", summary)
 
 

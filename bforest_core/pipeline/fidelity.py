@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..metrics import summary_label, summary_unit
+from ..metrics import summary_definition, summary_label, summary_unit
 
 #: the statistics a forester checks first, and the relative error above which clones are not
 #: taken as clones of the tree
@@ -110,22 +110,33 @@ def fidelity_table(
     return rows
 
 
-def bound_flags(
+def at_bounds(
     params: Mapping[str, float], bounds: Mapping[str, tuple[float, float]], fraction: float = BOUND_FRACTION
-) -> list[str]:
-    """Fitted parameters within ``fraction`` of their box width from a bound (the optimum may
-    lie outside the box: widen it or reconsider the model)."""
-    out = []
+) -> dict[str, str]:
+    """The fitted parameters within ``fraction`` of their box width from a bound: name -> "lower"
+    or "upper" (the one rule the fidelity table and the report flag by)."""
+    out = {}
     for name, (lo, hi) in bounds.items():
         v = params.get(name)
         if v is None or not hi > lo:
             continue
         tol = fraction * (hi - lo)
         if v - lo <= tol:
-            out.append(f"{name} = {v:.6g} is at its lower bound {lo:g}")
+            out[name] = "lower"
         elif hi - v <= tol:
-            out.append(f"{name} = {v:.6g} is at its upper bound {hi:g}")
+            out[name] = "upper"
     return out
+
+
+def bound_flags(
+    params: Mapping[str, float], bounds: Mapping[str, tuple[float, float]], fraction: float = BOUND_FRACTION
+) -> list[str]:
+    """Fitted parameters within ``fraction`` of their box width from a bound (the optimum may
+    lie outside the box: widen it or reconsider the model)."""
+    return [
+        f"{name} = {params[name]:.6g} is at its {side} bound {bounds[name][0 if side == 'lower' else 1]:g}"
+        for name, side in at_bounds(params, bounds, fraction).items()
+    ]
 
 
 def fidelity_warnings(rows: Sequence[Mapping], limits: Mapping[str, float] | None = None) -> list[str]:
@@ -144,23 +155,34 @@ def fidelity_warnings(rows: Sequence[Mapping], limits: Mapping[str, float] | Non
     return out
 
 
+#: widest line of the fidelity table in a terminal, and of its label column
+TEXT_WIDTH = 100
+_LABEL = 34
+
+
 def fidelity_text(rows: Sequence[Mapping], flags: Sequence[str] = (), warnings: Sequence[str] = ()) -> str:
-    """The table as fixed-width text (for the terminal), then the flags and warnings; ``!`` marks
-    a row beyond its limit."""
-    w = max([22] + [len(r.get("label") or r["statistic"]) + 1 for r in rows])
+    """The table as fixed-width text for a terminal of 100 columns (a long label wraps onto the
+    next line; the clones' sd is in the JSON and the report), then what its words mean, the flags
+    and the warnings; ``!`` marks a row beyond its limit."""
+    import textwrap
+
     lines = [
-        f"{'statistic':<{w}}{'unit':>6}{'target':>11}{'clones mean':>13}{'sd':>10}{'5-95 % band':>21}"
-        f"{'error':>10}{'limit':>8}"
+        f"{'statistic':<{_LABEL}}{'unit':>6}{'target':>10}{'clones':>10}{'5-95 % band':>18}{'error':>9}{'limit':>8}"
     ]
     for r in rows:
         lim = r.get("limit", limit_of(r["statistic"]))
         mark = " !" if r.get("warn") else ""
+        label = textwrap.wrap(r.get("label") or r["statistic"], _LABEL - 1) or [r["statistic"]]
         lines.append(
-            f"{r.get('label') or r['statistic']:<{w}}{r['unit']:>6}{_num(r['target']):>11}{_num(r['mean']):>13}"
-            f"{_num(r['sd']):>10}{_band(r):>21}{percent(r['error']):>10}{'' if lim is None else f'±{100 * lim:g} %':>8}{mark}"
+            f"{label[0]:<{_LABEL}}{r['unit']:>6}{_num(r['target']):>10}{_num(r['mean']):>10}{_band(r):>18}"
+            f"{percent(r['error']):>9}{'' if lim is None else f'±{100 * lim:g} %':>8}{mark}"
         )
-    lines += [f"note: {f} of the search box" for f in flags]
-    lines += [f"WARNING: {w}" for w in warnings]
+        lines += [f"  {more}" for more in label[1:]]
+    said = [summary_definition(r["statistic"]) for r in rows]
+    notes = [d for d in dict.fromkeys(said) if d] + [f"note: {f} of the search box" for f in flags]
+    notes += [f"WARNING: {w}" for w in warnings]
+    for text in notes:
+        lines += textwrap.wrap(text, TEXT_WIDTH, subsequent_indent="  ")
     return "\n".join(lines)
 
 

@@ -55,6 +55,12 @@ class FitResult:
     history: list[dict] = field(default_factory=list)
     diagnostics: dict[str, Any] = field(default_factory=dict)
     already_finished: bool = False  # a --resume of a run that had finished: nothing was simulated
+    #: the search's lowest distance on its own model seeds (what its progress bar ends at)
+    best_own: float | None = None
+    #: the answer's distance on held-out model seeds, when ``[select]`` chose it (else None)
+    heldout_distance: float | None = None
+    #: the answer's evaluation index
+    evaluation: int | None = None
 
 
 class Evaluator:
@@ -413,6 +419,9 @@ def fit(
             history=store.log_records(),
             diagnostics=result.diagnostics,
             already_finished=finished,
+            best_own=store.best().distance,
+            heldout_distance=out.get("heldout_distance"),
+            evaluation=out["evaluation"],
         )
 
 

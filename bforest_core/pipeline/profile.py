@@ -1,4 +1,4 @@
-"""``bforest profile DIR --param NAME``: the distance along one parameter (GigaScience Fig. 4).
+"""``bforest profile RUN --param NAME``: the distance along one parameter (GigaScience Fig. 4).
 
 Every other parameter stays at the best fit; for each value the model is grown with several
 seeds (the same seeds at every value: common random numbers, so each seed traces one

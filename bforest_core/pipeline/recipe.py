@@ -21,6 +21,7 @@ from ..interfaces import RecipeDraft
 from ..io import read_qsm
 from ..metrics import SIZE_WEIGHTS, SUMMARY_DEFAULT, TreeMeasures, measure_tree
 from ..registry import component, discover
+from ..samples import is_sample
 from .target import SUMMARY_KIND
 
 
@@ -92,9 +93,12 @@ def _within(spec, lo, hi, comment):
 def write_recipe(qsm: str | Path, out: str | Path, model: str | None = None) -> Recipe:
     """Measure the tree in ``qsm`` and write its recipe to ``out`` (an existing file is never
     replaced: the caller checks). Raises ``ConfigError`` naming the file for a tree that cannot
-    be fitted."""
-    qsm, out = Path(qsm), Path(out)
+    be fitted. ``qsm`` may be ``sample:NAME``, which the recipe keeps as it is."""
+    out = Path(out)
     tree = read_qsm(qsm)
+    # the recipe names the tree relative to itself (a sample by its name: it is where the user fetched it)
+    rel = str(qsm) if is_sample(qsm) else os.path.relpath(Path(qsm).resolve(), out.resolve().parent)
+    qsm = Path(qsm)
     try:
         m = measure_tree(tree)
     except ValueError as e:
@@ -105,10 +109,14 @@ def write_recipe(qsm: str | Path, out: str | Path, model: str | None = None) -> 
     name, draft = drafts[0]
     if draft.suits <= 0.0:
         raise ConfigError(f"{qsm}: {name} cannot grow this tree: {draft.why}")
-    rel = os.path.relpath(qsm.resolve(), out.resolve().parent)
     text = render(qsm, rel, name, draft, m, [(n, d.suits, d.why) for n, d in drafts], model is None)
     out.write_text(text, encoding="utf-8")
     return Recipe(name, draft, m, text, [(n, d.suits, d.why) for n, d in drafts])
+
+
+def not_chosen(name: str, suits: float, chosen: str, chosen_suits: float, why: str) -> str:
+    """Why a model was not taken, with how well each suits the tree (0-1)."""
+    return f"not {name} (how well it suits the tree, 0-1: {suits:.1f}; {chosen} {chosen_suits:.1f}): {why}"
 
 
 def measured_lines(m: TreeMeasures) -> list[str]:
@@ -122,7 +130,8 @@ def measured_lines(m: TreeMeasures) -> list[str]:
         f"longest limb {m.longest_limb:.2f} m, thinnest branch {100 * m.thinnest_branch:.1f} cm; "
         f"branches turn {m.branch_turn:.0f} deg from cylinder to cylinder (median)",
         f"crown form: {form}; the three largest limbs hold {m.limb_ratio:.2f} x the stem's wood in the crown",
-        f"crown centre {m.crown_offset:.2f} m from the stem base towards {m.crown_azimuth:.0f} deg "
+        f"crown centre {m.crown_offset:.2f} m from the stem base towards azimuth {m.crown_azimuth:.0f} deg, "
+        "counter-clockwise from the file's +x axis "
         f"({m.crown_offset / max(0.5 * m.crown_spread, 1e-9):.2f} crown radii); "
         f"the stem's upper half leans {m.stem_lean:.0f} deg",
     ]
@@ -193,7 +202,8 @@ def render(qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choi
     ]
     for n, suits, why in choices:
         if n != name:
-            L.append(f"# Not {n} (suits {suits:.1f} against {d.suits:.1f}): {why}.")
+            line = not_chosen(n, suits, name, d.suits, why)
+            L.append(f"# {line[0].upper()}{line[1:]}.")
     for note in d.notes:
         L.append(f"# Note: {note}.")
     # the most the objective can reach: the weighted mean of the structure (KS, at most 1) and the

@@ -63,22 +63,30 @@ def run_lock(run_dir, create: bool = True):
     ------
     RunDirError
         Another process holds the lock (names its pid and command).
+
+    Notes
+    -----
+    A command that ends leaving nothing in the folder but the lock file it created (a fit that
+    stopped on a missing QSM) takes the lock file with it, and the folder too when it made it.
     """
     run_dir = Path(run_dir)
-    if not run_dir.is_dir():
+    made = not run_dir.is_dir()
+    if made:
         if not create:
             raise RunDirError(f"{run_dir}: not a run directory (no {RunFiles.CONFIG})")
         if run_dir.exists():
             raise RunDirError(f"{run_dir}: exists and is not a folder; choose another -o")
         run_dir.mkdir(parents=True, exist_ok=True)
     key = str(run_dir.resolve())
+    lock = RunFiles(run_dir).lock_path
     with _guard:
         if key in _held:
             _held[key][1] += 1
             fd = None
         else:
-            fd = _acquire(RunFiles(run_dir).lock_path, run_dir)
-            _held[key] = [fd, 1]
+            new_lock = not lock.exists()
+            fd = _acquire(lock, run_dir)
+            _held[key] = [fd, 1, new_lock, made]
     try:
         yield run_dir
     finally:
@@ -87,7 +95,24 @@ def run_lock(run_dir, create: bool = True):
             entry[1] -= 1
             if entry[1] == 0:
                 del _held[key]
-                _release(entry[0])
+                try:
+                    if entry[2]:  # still holding the lock: nobody else can have started here
+                        _leave_no_trace(run_dir, lock, entry[3])
+                finally:
+                    _release(entry[0])
+
+
+def _leave_no_trace(run_dir: Path, lock: Path, made: bool) -> None:
+    """Remove the lock file this command created when the folder holds nothing else, and the
+    folder when the command made it."""
+    try:
+        if [p.name for p in run_dir.iterdir()] != [lock.name]:
+            return
+        lock.unlink()
+        if made:
+            run_dir.rmdir()
+    except OSError:  # another process wrote there meanwhile, or the folder cannot be changed
+        pass
 
 
 def _acquire(path: Path, run_dir: Path):

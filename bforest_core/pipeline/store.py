@@ -151,6 +151,8 @@ class RunFiles:
     POSTERIOR_NC = "posterior.nc"
     REPORT_MD = "report.md"
     REPORT_HTML = "report.html"
+    #: the report's figure format and resolution, kept for the next report of the run
+    REPORT_OPTIONS = "report_options.json"
     CLONES = "clones"
     CLONES_POSTERIOR = "clones_posterior"
     #: in a clones folder: its summary and its table
@@ -183,6 +185,7 @@ class RunFiles:
         "profile_*.csv",
         REPORT_MD,
         REPORT_HTML,
+        REPORT_OPTIONS,
         CLONES,
         CLONES_POSTERIOR,
         FIGURES,
@@ -254,6 +257,11 @@ class RunFiles:
     @property
     def report_html_path(self) -> Path:
         return self.path / self.REPORT_HTML
+
+    @property
+    def report_options_path(self) -> Path:
+        """The format and dpi ``bforest report`` was last asked for (later reports keep them)."""
+        return self.path / self.REPORT_OPTIONS
 
     @property
     def figures_dir(self) -> Path:

@@ -1,7 +1,7 @@
-"""``bforest report DIR``: figures and a summary of a run directory.
+"""``bforest report RUN``: figures and a summary of a run folder.
 
-Writes ``DIR/figures/*.png`` (or ``.svg``, ``.pdf``: ``format``), ``DIR/report.md`` and a
-self-contained ``DIR/report.html`` (the figures inline as base64, PDFs as their PNG previews). Everything is read from the run directory (``config.toml``,
+Writes ``RUN/figures/*.png`` (or ``.svg``, ``.pdf``: ``format``), ``RUN/report.md`` and a
+self-contained ``RUN/report.html`` (the figures inline as base64, PDFs as their PNG previews). Everything is read from the run directory (``config.toml``,
 ``evaluations.sqlite``, ``best.json``, ``target_sets.npz``, ``best_tree.txt``, ``clones/``); what
 is missing (an interrupted fit, no clones yet, a distance without projection lines) is skipped
 and the report says so. A figure that fails never stops the report (unless ``strict``).
@@ -23,6 +23,7 @@ Figures:
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import multiprocessing as mp
 import os
 import time
@@ -30,6 +31,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from ..cylinders import quiet_read_repairs
+from ..io import write_json
 from .attributes import fig_distributions
 from .canvas import FORMATS, current_output, figure_output
 from .convergence import fig_convergence
@@ -146,7 +148,12 @@ def _draw_figures(v: RunView, figs: _Figures, strict: bool) -> None:
 
 # ---------------------------------------------------------------------------------- entry point
 def write_report(
-    run_dir, figures: bool = True, html: bool = True, strict: bool = False, format: str = "png", dpi: int | None = None
+    run_dir,
+    figures: bool = True,
+    html: bool = True,
+    strict: bool = False,
+    format: str | None = None,
+    dpi: int | None = None,
 ) -> Path:
     """Write the figures, ``report.md`` and ``report.html`` of a run directory.
 
@@ -160,11 +167,12 @@ def write_report(
         Also write ``report.html`` with the figures inline.
     strict : bool
         Raise when a figure fails instead of noting it in the report.
-    format : {"png", "svg", "pdf"}
-        Format of every figure (a PDF gets a PNG preview beside it for ``report.html``).
+    format : {"png", "svg", "pdf"}, optional
+        Format of every figure (a PDF gets a PNG preview beside it for ``report.html``); None:
+        the format of the run's last report (``report_options.json``), else PNG.
     dpi : int, optional
-        Resolution of raster figures (and of the raster parts of vector ones); None: each
-        figure's own (120-130).
+        Resolution of raster figures (and of the raster parts of vector ones); None: the run's
+        last report's, else each figure's own (120-130).
 
     Notes
     -----
@@ -174,6 +182,10 @@ def write_report(
     guard its entry point with ``if __name__ == "__main__":``; without it the second process
     cannot start, and its figures are drawn in this one (with a note in the report).
 
+    The format and dpi are kept in ``report_options.json``, so the report that ``bforest clones``
+    or a resumed fit writes again keeps them; a figure file of ``figures/`` that the new report
+    does not link (another format's, a figure of clones that are gone) is removed.
+
     Returns
     -------
     Path
@@ -181,14 +193,11 @@ def write_report(
     """
     t0 = time.monotonic()
     v = RunView(run_dir)
+    output = _output_options(v.store.report_options_path, format, dpi)
     figs = _Figures(v, strict)
     if figures:
-        with figure_output(format, dpi):
+        with figure_output(*output):
             _draw_figures(v, figs, strict)
-        if not v.clone_rows:  # figures drawn from clones that are gone would contradict the folder
-            for stale in ("clones", "clone_metrics"):
-                for suffix in FORMATS:
-                    (v.store.figures_dir / f"{stale}.{suffix}").unlink(missing_ok=True)
     doc = Document()
     title = f"Bayes Forest run report: {v.path.name}"
     doc.h(1, title)
@@ -218,5 +227,32 @@ def write_report(
     md.write_text(doc.markdown(), encoding="utf-8")
     if html:
         v.store.report_html_path.write_text(doc.html(v.path, title), encoding="utf-8")
+    if figures:
+        _remove_unlinked(v, doc.figure_files())
+        write_json(v.store.report_options_path, {"format": output[0], "dpi": output[1]})
     v.store.close()
     return md
+
+
+def _output_options(path: Path, format: str | None, dpi: int | None) -> tuple[str, int | None]:
+    """The report's ``(format, dpi)``: those asked for, else the run's last report's, else PNG at
+    each figure's own resolution."""
+    last = {}
+    if path.exists():
+        try:
+            last = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):  # a damaged file: the defaults
+            last = {}
+    fmt = format or last.get("format") or "png"
+    if fmt not in FORMATS:
+        fmt = "png"
+    return fmt, dpi if dpi is not None else last.get("dpi")
+
+
+def _remove_unlinked(v: RunView, linked: set[str]) -> None:
+    """Remove the figure files the report does not link (another format's, a figure of clones
+    that are gone): figures/ shows what the report shows."""
+    for p in v.store.figures_dir.glob("*"):
+        rel = p.relative_to(v.path).as_posix()
+        if p.is_file() and p.suffix[1:] in FORMATS and rel not in linked:
+            p.unlink()

@@ -78,8 +78,20 @@ class Document:
     def fig(self, rel: str, caption: str):
         self.blocks.append(("fig", rel, caption))
 
+    def figure_files(self) -> set[str]:
+        """Every file the figures link (relative to the run folder): a PDF and its PNG preview."""
+        out = set()
+        for b in self.blocks:
+            if b[0] == "fig":
+                out.update({b[1], _shown(b[1])[0]})
+        return out
+
     def code(self, text: str):
         self.blocks.append(("code", text))
+
+    def details(self, summary: str, text: str):
+        """A block of preformatted ``text`` shown closed under ``summary`` (opened by a click)."""
+        self.blocks.append(("details", summary, text))
 
     def raw_html(self, html: str, markdown: str = ""):
         """A block of HTML for report.html (trusted: written by the report itself) and its
@@ -115,6 +127,11 @@ class Document:
                 out.append(f"![{md(b[2])}]({shown})\n\n*{md(b[2])}*" + (f" ([PDF]({b[1]}))" if pdf else ""))
             elif kind == "code":
                 out.append("```\n" + b[1] + "\n```")
+            elif kind == "details":  # the fence outlasts any run of backticks in the text
+                fence = "`" * max(3, 1 + max((len(r) for r in re.findall(r"`+", b[2])), default=0))
+                out.append(
+                    f"<details><summary>{_html.escape(b[1])}</summary>\n\n{fence}\n{b[2].rstrip()}\n{fence}\n\n</details>"
+                )
             elif kind == "raw" and b[2]:
                 out.append(md(b[2]))
         return "\n\n".join(out) + "\n"
@@ -157,6 +174,10 @@ class Document:
                 parts.append(b[1])
             elif kind == "code":
                 parts.append(f"<pre>{_html.escape(b[1])}</pre>")
+            elif kind == "details":
+                parts.append(
+                    f"<details><summary>{self._inline(b[1])}</summary><pre>{_html.escape(b[2])}</pre></details>"
+                )
         style = (
             "body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1200px;"
             "margin:2em auto;padding:0 1em;color:#222;line-height:1.45}"

@@ -9,18 +9,35 @@ from pathlib import Path
 
 import numpy as np
 
+from ..pipeline.fidelity import BOUND_FRACTION, at_bounds
 from ..pipeline.store import RunFiles, clock_warning
 from .document import METRIC_ROWS, Document, cfg_kind, fmt, seconds_text
 from .run_view import RunView
 
-
 # ---------------------------------------------------------------------------------- sections
-def settings_text(d: dict) -> str:
-    items = []
-    for k, val in d.items():
-        if k in ("kind", "fixed", "free"):
-            continue
-        items.append(f"{k}={json.dumps(val, default=str)}")
+#: longest a setting's value is shown in the report's tables (the whole config is in its own block)
+SHOWN = 60
+
+
+def readable(value) -> str:
+    """A setting's value as a reader takes it in: numbers as numbers, a long list as its length and
+    range, a table as ``key value`` pairs, anything longer than :data:`SHOWN` characters cut short."""
+    if isinstance(value, float):
+        text = fmt(value)
+    elif isinstance(value, list) and len(value) > 6 and all(isinstance(x, (int, float)) for x in value):
+        text = f"{len(value)} values, {fmt(min(value))} to {fmt(max(value))}"
+    elif isinstance(value, list):  # names such as sets "S0,1" "B1,2" apart by spaces
+        text = (" " if all(isinstance(x, str) for x in value) else ", ").join(readable(x) for x in value)
+    elif isinstance(value, dict):
+        text = "; ".join(f"{k} {readable(x)}" for k, x in value.items())
+    else:
+        text = str(value)
+    return text if len(text) <= SHOWN else text[: SHOWN - 1] + "…"
+
+
+def settings_text(d: dict, skip=("kind", "fixed", "free")) -> str:
+    """A config section's settings in one readable line: ``lines 128, statistic ks``."""
+    items = [f"{k} {readable(val)}" for k, val in d.items() if k not in skip]
     return ", ".join(items) if items else "defaults"
 
 
@@ -97,16 +114,37 @@ def section_target(doc: Document, v: RunView):
 
 
 def section_model(doc: Document, v: RunView):
+    """The components and their settings in a short table (long values cut short), the objective's
+    terms one row each, and the whole ``config.toml`` in a block a reader opens when needed."""
     doc.h(2, "Model and method")
     raw = v.raw_config
     rows = []
     for section in ("ssm", "features", "distance", "optimizer", "executor"):
         sec = raw.get(section) or {}
         rows.append([section, f"`{sec.get('kind', '?')}`", settings_text(sec)])
+    obj = dict(raw.get("objective", {}))
+    for t in obj.pop("terms", None) or []:
+        parts = {k: t[k] for k in ("features", "distance") if isinstance(t.get(k), dict)}
+        rows.append(
+            [
+                f"objective term {t.get('name', '?')}",
+                f"weight {readable(t.get('weight', 1.0))}",
+                "; ".join(f"{k} {p.get('kind', 'as [' + k + ']')} ({settings_text(p)})" for k, p in parts.items()),
+            ]
+        )
     doc.table(["component", "kind", "settings"], rows)
-    obj = raw.get("objective", {})
-    stop = raw.get("stop", {})
-    doc.items([f"objective: {settings_text(obj)}", f"stop: {settings_text(stop)}", f"run seed: {raw.get('seed', 1)}"])
+    doc.items(
+        [
+            f"objective: {settings_text(obj)}",
+            f"stop: {settings_text(raw.get('stop', {}))}",
+            f"run seed: {raw.get('seed', 1)}",
+        ]
+    )
+    try:
+        text = v.store.config_path.read_text(encoding="utf-8")
+    except OSError:
+        return
+    doc.details(f"The whole configuration ({RunFiles.CONFIG})", text)
 
 
 def section_parameters(doc: Document, v: RunView):
@@ -116,17 +154,18 @@ def section_parameters(doc: Document, v: RunView):
     fixed, free = ssm_raw.get("fixed", {}) or {}, ssm_raw.get("free", {}) or {}
     best = v.best_params or {}
     true = v.true_params
-    rows, warn = [], []
+    rows = []
+    boxes = {
+        n: (fp["lower"], fp["upper"])
+        for n, fp in free.items()
+        if fp.get("lower") is not None and fp.get("upper") is not None
+    }
+    warn = at_bounds(best, boxes)
     for name, fp in free.items():
         lo, hi = fp.get("lower"), fp.get("upper")
         b = best.get(name)
         s = specs.get(name)
-        flag = ""
-        if b is not None and lo is not None and hi is not None and hi > lo:
-            rel = (b - lo) / (hi - lo)
-            if rel < 0.01 or rel > 0.99:
-                flag = " (at a bound)"
-                warn.append(name)
+        flag = f" (at its {warn[name]} bound)" if name in warn else ""
         rows.append(
             [name, "free", lo, hi, (fmt(b) + flag) if b is not None else "–"]
             + ([true.get(name)] if true else [])
@@ -154,8 +193,8 @@ def section_parameters(doc: Document, v: RunView):
         )
     if warn:
         doc.p(
-            f"Note: the best value of {', '.join(warn)} lies within 1 % of a bound; the optimum may be "
-            "outside the search box (consider widening it)."
+            f"Note: the best value of {', '.join(warn)} lies within {100 * BOUND_FRACTION:g} % of its search "
+            "range from a bound; the optimum may be outside the search box (consider widening it)."
         )
 
 
@@ -214,10 +253,10 @@ def section_fit(doc: Document, v: RunView, figs):
             doc.fig(rel_path, cap)
 
 
-def _settings_text(part: dict) -> str:
+def _part_text(part: dict) -> str:
     """A component section as one line: ``branch-segment, sets S1 B1``."""
-    text = [f"{k} {' '.join(map(str, v)) if isinstance(v, list) else v}" for k, v in part.items() if k != "kind"]
-    return ", ".join(([str(part["kind"])] if "kind" in part else []) + text) or "as the search's"
+    text = settings_text(part) if set(part) - {"kind"} else ""
+    return ", ".join(x for x in (str(part.get("kind", "")), text) if x) or "as the search's"
 
 
 def section_selection(doc: Document, b: dict) -> None:
@@ -234,8 +273,8 @@ def section_selection(doc: Document, b: dict) -> None:
         + (
             ""
             if not sel.get("scored_by")
-            else f", scored on the tables of [select] (features {_settings_text(sel['scored_by']['features'])}; "
-            f"distance {_settings_text(sel['scored_by']['distance'])}) with the objective's other terms"
+            else f", scored on the tables of [select] (features {_part_text(sel['scored_by']['features'])}; "
+            f"distance {_part_text(sel['scored_by']['distance'])}) with the objective's other terms"
         )
         + f"; the answer is the one of lowest held-out distance (evaluation {sel['chosen']}, held out "
         f"**{fmt(b.get('heldout_distance'))}**, own {fmt(b.get('distance'))})"

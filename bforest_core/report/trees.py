@@ -217,9 +217,9 @@ def _tree_caption(tree) -> str:
         from ..metrics import classical_metrics
 
         m = classical_metrics(tree)
-        return (
-            f"{tree.n} cylinders, {tree.n_branches} branches, height {m['height']:.2f} m, "
-            f"base diameter {m['base_diameter']:.3f} m, crown spread {m['crown_spread']:.2f} m"
+        return (  # a value and its unit stay on one line (no-break spaces)
+            f"{tree.n} cylinders, {tree.n_branches} branches, height {m['height']:.2f}\u00a0m, "
+            f"base diameter {m['base_diameter']:.3f}\u00a0m, crown spread {m['crown_spread']:.2f}\u00a0m"
         )
     except Exception:
         return f"{tree.n} cylinders, {tree.n_branches} branches, max order {tree.max_order}"
@@ -277,7 +277,7 @@ def tree_comparison_figure(
     ratios = _view_ratios(tlist, views)
     row_h = 4.2
     fig = new_figure(max(6.0, row_h * sum(ratios) + 1.4), (row_h + 0.3) * len(items) + (0.4 if title else 0.0))
-    rows = fig.subfigures(len(items), 1, squeeze=False)[:, 0] if len(items) > 1 else [fig]
+    rows = fig.subfigures(len(items), 1, squeeze=False)[:, 0]  # each row's caption on top of it
     r_max = max(float(np.max(t.radius)) for t in tlist)
     exts = {vw: _fit_ratio(_extent(tlist, vw), r) for vw, r in zip(views, ratios)}
     orders = set(int(o) for t in tlist for o in np.unique(t.order))
@@ -293,15 +293,26 @@ def tree_comparison_figure(
         if captions or label:
             head = f"{label}: " if label else ""
             cap = _tree_caption(tree) if captions else ""
-            if len(items) > 1:
-                sub.suptitle(head + cap, fontsize="medium", fontweight="bold" if label else "normal")
-            elif cap:
-                sub.supxlabel(head + cap, fontsize="medium")
-    if color_by == "order":  # one legend for all rows, beside them
-        order_legend(fig, orders, loc="outside right upper")
+            if head + cap:
+                sub.suptitle(
+                    _wrapped(head + cap, fig.get_figwidth()),
+                    fontsize="medium",
+                    fontweight="bold" if label else "normal",
+                )
+    if color_by == "order":  # one legend for all rows, under them: beside them it covered the titles' ends
+        n = len(order_handles(orders))
+        order_legend(fig, orders, loc="outside lower center", ncols=n if n <= 5 else (n + 1) // 2)
     if title:
-        fig.suptitle(title, fontsize="large")
+        fig.suptitle(_wrapped(title, fig.get_figwidth()), fontsize="large")
     return save_figure(fig, path, dpi)
+
+
+def _wrapped(text: str, width_in: float, points: float = 11.0) -> str:
+    """``text`` broken into lines that fit ``width_in`` inches in a font of ``points`` (a
+    slender tree's figure is narrower than its captions)."""
+    import textwrap
+
+    return "\n".join(textwrap.wrap(text, max(20, int(width_in * 72 / (0.62 * points))))) or text
 
 
 def _slots(trees, min_width: float = 0.0, gap_frac: float = 0.1):

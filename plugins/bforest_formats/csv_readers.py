@@ -107,6 +107,24 @@ def detect_csv(head: bytes) -> Optional[str]:
     return None
 
 
+#: the required columns of each CSV layout, by reader name, and what a user calls the layout
+LAYOUTS = {
+    "simpleforest-csv": ("a SimpleForest CSV", SIMPLEFOREST_REQUIRED),
+    "archi-csv": ("an aRchi CSV", ARCHI_REQUIRED),
+    "bforest-csv": ("a native CSV", NATIVE_REQUIRED),
+}
+
+
+def closest_layout(names) -> Optional[str]:
+    """The layout whose required columns the header holds the largest share of (at least half),
+    for a header that names none in full: an aRchi CSV without ``parent_ID`` is named as an aRchi
+    CSV that lacks it, not as a native CSV that lacks ten columns."""
+    have = set(names)
+    share = {k: len(have.intersection(req)) / len(req) for k, (_, req) in LAYOUTS.items()}
+    best = max(share, key=share.get)
+    return best if share[best] >= 0.5 else None
+
+
 class _CSVReader(BaseReader):
     suffixes = (".csv",)
     container = "CSV reader"
@@ -131,6 +149,15 @@ class _CSVReader(BaseReader):
         missing = [c for c in self.required if c not in names]
         if missing:
             det = detect_csv(data[:4096])
+            near = closest_layout(names) if det is None else None
+            if near is not None and near != self.name:  # claimed as the fallback, but it is another layout
+                label, req = LAYOUTS[near]
+                lack = [c for c in req if c not in names]
+                raise QSMFormatError(
+                    path,
+                    f"line 1: the header looks like {label} (reader '{near}': {len(req) - len(lack)} of its "
+                    f"{len(req)} required columns) but lacks column(s) {', '.join(lack)} (found: {', '.join(names[:20])})",
+                )
             hint = f"; it looks like reader '{det}'" if det and det != self.name else ""
             raise QSMFormatError(
                 path,

@@ -23,6 +23,8 @@ from .params import PARAMETERS
 _ANGLE = next((p.lower, p.upper) for p in PARAMETERS if p.name == "branch_angle")
 #: ... and of the internode (m)
 _NODE = next((p.lower, p.upper) for p in PARAMETERS if p.name == "node_length")
+#: ... and of a new shoot's diameter (m)
+_WIDTH = next((p.lower, p.upper) for p in PARAMETERS if p.name == "init_width")
 
 #: the size term's hold on the first-order branching angle: the median within 15 % (weight 1/0.15)
 #: and its interquartile range within 30 % (the pine recipe's, docs/validation.md section 4)
@@ -87,7 +89,13 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
     ang_lo, ang_hi = max(lo_model, _r(m.beta_q10 - 20.0, 5.0)), min(hi_model, _r(m.beta_q90, 5.0))
     if ang_hi - ang_lo < 20.0:
         ang_lo, ang_hi = max(lo_model, ang_hi - 20.0), min(hi_model, ang_lo + 20.0)
-    width_lo = min(0.03, max(0.01, _r(m.thinnest_branch, 0.001)))
+    width_lo = min(0.03, max(_WIDTH[0], _r(m.thinnest_branch, 0.001)))
+    width_why = f"diameter of a new shoot (m): the QSM's thinnest branch is {100 * m.thinnest_branch:.1f} cm"
+    if m.thinnest_branch < _WIDTH[0]:
+        width_why += (
+            f", but SOT grows no shoot thinner than {100 * _WIDTH[0]:g} cm (its range {100 * _WIDTH[0]:g}-"
+            f"{100 * _WIDTH[1]:g} cm): the clones' thinnest shoots are {100 * _WIDTH[0]:g} cm thick"
+        )
     big = span > 18.0
     settings = [
         ("order_mode", "thickest", "branch orders as a QSM has them (the thickest child continues)"),
@@ -157,12 +165,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         ("shadow_a", 0.1, 0.9, None),
         ("shadow_b", 1.1, 8.0, None),
         ("alpha0", 0.0, 3.0, None),
-        (
-            "init_width",
-            width_lo,
-            0.04,
-            f"diameter of a new shoot (m): the QSM's thinnest branch is {100 * m.thinnest_branch:.1f} cm",
-        ),
+        ("init_width", width_lo, _WIDTH[1], width_why),
         ("pipe_exp", 2.0, 3.0, None),
         (
             "node_length",

@@ -31,6 +31,23 @@ from bforest_core.hookspecs import hookimpl
 class ToySSMSettings(ComponentSettings):
     sleep: float = Field(0.0, ge=0, description="seconds to sleep per simulation (tests timeouts)")
     fail_above: float = Field(1e9, description="raise SimulationFailed when angle exceeds this")
+    gate: str = Field("", description="a file: simulations after the first gate_after of this process wait for it")
+    gate_after: int = Field(0, ge=0, description="simulations this process runs before it waits for the gate")
+
+
+#: simulations this process has run with a gate (tests hold a command at a known point)
+_GATED = {"n": 0}
+
+
+def wait_at_gate(gate: str, after: int) -> None:
+    """Block while ``gate`` does not exist once ``after`` simulations of this process have passed
+    it: a test holds a command at a known point, whatever the machine's speed, and lets it go on
+    by creating the file."""
+    import os
+
+    _GATED["n"] += 1
+    while _GATED["n"] > after and not os.path.exists(gate):
+        time.sleep(0.02)
 
 
 class ToySSM(SSM):
@@ -51,6 +68,8 @@ class ToySSM(SSM):
         p = self.resolve_params(params)
         if self.settings.sleep:
             time.sleep(self.settings.sleep)
+        if self.settings.gate:
+            wait_at_gate(self.settings.gate, self.settings.gate_after)
         if p["angle"] > self.settings.fail_above:
             raise SimulationFailed("collapsed", "angle too large")
         rng = np.random.default_rng(seed)

@@ -8,7 +8,8 @@
     python3 dev.py env      only create or refresh .venv (then use .venv/bin/bforest, .venv/bin/python)
 
 Each creates (or reuses) the virtual environment ``.venv`` beside this file and installs the
-project into it (editable, with the test, Dask and SLURM extras and the example third-party plugin).
+project into it (editable, with the test, Dask, SLURM and amortised extras and the example third-party
+plugin).
 The install is redone only when a packaging file changed.
 """
 
@@ -48,7 +49,7 @@ def ensure_env() -> Path:
     if not STAMP.exists() or STAMP.read_text() != fp:
         print("installing Bayes Forest and its dependencies into .venv ...", flush=True)
         pip = [str(py), "-m", "pip", "install", "--disable-pip-version-check", "-q"]
-        subprocess.check_call(pip + ["-e", f"{ROOT}[dev,dask,slurm]"])
+        subprocess.check_call(pip + ["-e", f"{ROOT}[dev,dask,slurm,amortised]"])
         if (EXAMPLE / "pyproject.toml").exists():
             subprocess.check_call(pip + ["-e", str(EXAMPLE)])
         STAMP.write_text(fp)

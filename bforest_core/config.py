@@ -679,8 +679,8 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
         raise ConfigError(f"{source}: " + "; ".join(problems))
     if base_dir is not None:
         if cfg.target.qsm is not None:
-            cfg.target.qsm = _resolve(cfg.target.qsm, base_dir)
-        cfg.target.references = [_resolve(r, base_dir) for r in cfg.target.references]
+            cfg.target.qsm = resolve_path(cfg.target.qsm, base_dir)
+        cfg.target.references = [resolve_path(r, base_dir) for r in cfg.target.references]
     for check in (check_ssm_parameters, check_terms, check_generated_target):
         try:
             check(cfg)
@@ -721,7 +721,22 @@ def check_terms(cfg: RunConfig) -> None:
         raise ConfigError("; ".join(problems))
 
 
-def _resolve(path: str, base_dir: Path) -> str:
+def resolve_path(path: str, base_dir: Path) -> str:
+    """Return a file named in a config as an absolute path.
+
+    Parameters
+    ----------
+    path : str
+        As the config gives it: relative to its folder, absolute, ``~/...`` or ``sample:NAME``
+        (kept as it is: it names a fetched sample wherever the config is).
+    base_dir : Path
+        The config's folder.
+
+    Returns
+    -------
+    str
+        The absolute path, or the ``sample:NAME``.
+    """
     if is_sample(path):  # sample:NAME names a fetched sample wherever the config is
         return path
     p = Path(path).expanduser()

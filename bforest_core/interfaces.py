@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from .metrics import TreeMeasures
     from .tree import Tree
 
-KINDS = ("qsm_reader", "qsm_writer", "ssm", "features", "distance", "optimizer", "executor")
+KINDS = ("qsm_reader", "qsm_writer", "ssm", "features", "distance", "optimizer", "executor", "amortised")
 
 
 class ComponentSettings(BaseModel):
@@ -341,6 +341,10 @@ class SSM(Component):
     """A stochastic structure (growth) model."""
 
     kind = "ssm"
+    #: Version of the model's growth rules (optional, default ``"1"``): raise it when the same
+    #: parameters and seed grow another tree than before. An amortised estimator records the
+    #: version it was trained on and is refused by another (``bforest posterior``).
+    model_version: ClassVar[str] = "1"
 
     @property
     @abc.abstractmethod
@@ -794,7 +798,7 @@ class Problem:
         The evaluation budget (see the attribute).
     stopped, n_evaluations, best_x, best_f, stop_reason
         Progress state, maintained by ``evaluate``.
-    log, seed_spread, summaries, target_summaries
+    log, seed_spread, summaries, target_summaries, start
         Callbacks and data, see the attributes.
     """
 
@@ -831,6 +835,10 @@ class Problem:
     #: counted in ``n_evaluations``. ``None`` where the caller cannot provide them.
     summaries: Callable[[np.ndarray], np.ndarray] | None = None
     target_summaries: np.ndarray | None = None
+    #: ``(k, p)`` points to start from, inside the bounds, best guesses first: draws of an
+    #: amortised estimator's posterior for the target (``[start] estimator``). An optimiser with
+    #: an initial design (``cma``'s ``init_design``) evaluates these in its place; ``None``: none.
+    start: np.ndarray | None = None
 
     @property
     def dim(self) -> int:
@@ -1130,6 +1138,125 @@ class _Started:
         return False
 
 
+# ------------------------------------------------------------------------------------ amortised
+class AmortisedEstimator(Component):
+    """A conditional density estimator of a growth model's parameters given a tree's summaries.
+
+    Trained once on simulations from a prior (``bforest train``), it then gives a posterior for
+    any tree in one pass (amortised simulation-based inference; ``bforest posterior``). The
+    pipeline draws the prior, grows and summarises the trees and writes the estimator's file; the
+    component only learns the density and draws from it. Parameters arrive in their own units
+    within ``[lower, upper]``; what the component does inside (transforms, standardisation) is its
+    own and travels in its state.
+    """
+
+    kind = "amortised"
+
+    def missing(self) -> str | None:
+        """Say what to install when the estimator's libraries are missing (optional).
+
+        Returns
+        -------
+        str or None
+            One line naming what to install (``pip install 'bayesforest[amortised]'``), or None
+            (the default) when the estimator can run.
+        """
+        return None
+
+    def library_versions(self) -> dict[str, str]:
+        """Return the versions of the libraries the estimator runs on (optional, default none).
+
+        Returns
+        -------
+        dict of str to str
+            Library name -> version, recorded in a trained estimator's file.
+        """
+        return {}
+
+    @abc.abstractmethod
+    def train(self, theta: np.ndarray, x: np.ndarray, lower, upper, integer, seed: int) -> dict:
+        """Learn the density of ``theta`` given ``x``.
+
+        Parameters
+        ----------
+        theta : ndarray, shape (n, p)
+            Parameter vectors drawn from the prior, within ``[lower, upper]``.
+        x : ndarray, shape (n, m)
+            The summaries of the tree each grew (finite).
+        lower, upper : ndarray, shape (p,)
+            Bounds of the prior's support.
+        integer : ndarray of bool, shape (p,)
+            Parameters that take whole values.
+        seed : int
+            Seeds every random choice of the training.
+
+        Returns
+        -------
+        dict
+            What the training did (JSON values: epochs, losses, seconds), kept in the file.
+        """
+
+    @abc.abstractmethod
+    def sample(self, x: np.ndarray, n: int, seed: int) -> np.ndarray:
+        """Draw from the posterior of each row of ``x``.
+
+        Parameters
+        ----------
+        x : ndarray, shape (k, m)
+            Summaries of ``k`` trees.
+        n : int
+            Draws per tree.
+        seed : int
+            Seeds the draws: the same ``x``, ``n`` and seed give the same draws.
+
+        Returns
+        -------
+        ndarray, shape (k, n, p)
+            Draws within ``[lower, upper]``, whole numbers for integer parameters.
+
+        Raises
+        ------
+        RuntimeError
+            Before the estimator is trained or loaded.
+        """
+
+    @abc.abstractmethod
+    def state(self) -> tuple[dict, bytes]:
+        """Return the trained estimator as data.
+
+        Returns
+        -------
+        meta : dict
+            JSON values (dimensions, bounds, transforms) that :meth:`load_state` needs.
+        blob : bytes
+            The learned weights.
+        """
+
+    @abc.abstractmethod
+    def load_state(self, meta: dict, blob: bytes) -> None:
+        """Restore a trained estimator from :meth:`state`'s output (with the same settings).
+
+        Parameters
+        ----------
+        meta : dict
+            As :meth:`state` returned it.
+        blob : bytes
+            As :meth:`state` returned it.
+        """
+
+    @classmethod
+    def shipped(cls) -> dict[str, Path]:
+        """Return the trained estimator files shipped with the plugin (optional, default none).
+
+        Returns
+        -------
+        dict of str to Path
+            A growth model's name -> its file; ``bforest posterior --model NAME`` takes it when no
+            ``--estimator`` is given.
+        """
+        return {}
+
+
 INTERFACES = {
     "qsm_reader": QSMReader,
     "qsm_writer": QSMWriter,
@@ -1138,4 +1265,5 @@ INTERFACES = {
     "distance": Distance,
     "optimizer": Optimizer,
     "executor": Executor,
+    "amortised": AmortisedEstimator,
 }

@@ -206,13 +206,25 @@ def data_dir() -> Path:
     """
     if os.environ.get(DATA_DIR_ENV):
         return Path(os.environ[DATA_DIR_ENV]).expanduser()
+    return cache_dir() / "samples"
+
+
+def cache_dir() -> Path:
+    """Return Bayes Forest's folder in the user's cache folder.
+
+    Returns
+    -------
+    Path
+        ``$XDG_CACHE_HOME/bayesforest`` (``~/.cache/bayesforest``; on Windows under
+        ``%LOCALAPPDATA%``): the fetched samples, the amortised estimator's compiled code.
+    """
     if os.environ.get("XDG_CACHE_HOME"):
         base = Path(os.environ["XDG_CACHE_HOME"])
     elif os.name == "nt" and os.environ.get("LOCALAPPDATA"):
         base = Path(os.environ["LOCALAPPDATA"])
     else:
         base = Path.home() / ".cache"
-    return base / "bayesforest" / "samples"
+    return base / "bayesforest"
 
 
 def sample(name: str) -> Sample:

@@ -121,3 +121,27 @@ def quiet_arg(s) -> None:
 def old_spelling(s, flag: str, dest: str, **kw) -> None:
     """An option's former name, still taken but not shown in ``--help`` (scripts keep working)."""
     s.add_argument(flag, dest=dest, help=argparse.SUPPRESS, **kw)
+
+
+def executor_args(s, what: str) -> None:
+    """``--executor``, ``--workers``, ``--address``, ``--scheduler-file``: where a command's tasks run."""
+    s.add_argument("--executor", choices=["serial", "process", "dask"], help=f"where {what} run (default: process)")
+    s.add_argument("--workers", type=int, help="worker processes (process, local dask) or workers to wait for (dask)")
+    s.add_argument("--address", help="a running Dask scheduler (tls://host:8786), with --executor dask")
+    s.add_argument("--scheduler-file", help="a Dask scheduler file, with --executor dask")
+
+
+def executor_spec(args) -> dict | None:
+    """The executor :func:`executor_args` ask for (None: none asked for)."""
+    if args.executor is None and args.workers is None and args.address is None and args.scheduler_file is None:
+        return None
+    kind = args.executor or ("dask" if (args.address or args.scheduler_file) else "process")
+    spec = {"kind": kind}
+    if args.workers is not None:
+        spec["workers"] = args.workers
+    for key in ("address", "scheduler_file"):
+        if getattr(args, key) is not None:
+            if kind != "dask":
+                raise UsageError(f"--{key.replace('_', '-')} is for --executor dask")
+            spec[key] = getattr(args, key)
+    return spec

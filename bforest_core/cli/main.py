@@ -2,7 +2,8 @@
 
 Every error a user can cause prints one line ``error: ...`` and exits with code 2; ``--debug``
 shows the traceback instead. The subcommands live in one module per group: ``runs`` (demo, fit,
-clones, report, compare, profile, calibrate), ``trees`` (info, simulate, distance), ``export``,
+clones, report, compare, profile, calibrate), ``amortised`` (train, posterior), ``trees`` (info,
+simulate, distance), ``export``,
 ``data`` (the sample trees), ``plugins_config`` (plugins, config).
 """
 
@@ -15,7 +16,7 @@ import warnings
 from concurrent.futures import BrokenExecutor
 
 from ..pipeline.progress import end_open_bars
-from . import data, export, init, plugins_config, runs, stand, trees
+from . import amortised, data, export, init, plugins_config, runs, stand, trees
 from .common import EXIT_USAGE, Parser, UsageError
 
 #: the warnings this command has printed: a file read twice (the clones, then the report) warns once
@@ -40,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     p.set_defaults(on_interrupt=None)
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
-    for group in (runs, init, stand, trees, export, data, plugins_config):
+    for group in (runs, init, stand, amortised, trees, export, data, plugins_config):
         group.add_commands(sub)
     return p
 

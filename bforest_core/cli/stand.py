@@ -5,23 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .common import CONFIG, UsageError, command, count_arg, overwrite_arg, quiet_arg
-
-
-def _executor(args) -> dict | None:
-    """The executor the command line asks for (None: the config's, or the stand's own)."""
-    if args.executor is None and args.workers is None and args.address is None and args.scheduler_file is None:
-        return None
-    kind = args.executor or ("dask" if (args.address or args.scheduler_file) else "process")
-    spec = {"kind": kind}
-    if args.workers is not None:
-        spec["workers"] = args.workers
-    for key in ("address", "scheduler_file"):
-        if getattr(args, key) is not None:
-            if kind != "dask":
-                raise UsageError(f"--{key.replace('_', '-')} is for --executor dask")
-            spec[key] = getattr(args, key)
-    return spec
+from .common import CONFIG, UsageError, command, count_arg, executor_args, executor_spec, overwrite_arg, quiet_arg
 
 
 def _absolute(p):
@@ -42,7 +26,7 @@ def cmd_stand(args):
         raise UsageError("give the stand folder with -o STAND")
     out = Path(args.output)
     check_stand_dir(out, args.resume, args.overwrite)  # before the trees are read
-    executor = _executor(args)
+    executor = executor_spec(args)
     options = dict(recipe=_absolute(args.recipe), model=args.model, seed=args.seed, clones=args.n)
     options.update(realisations=args.realisations, max_evaluations=args.max_evaluations)
     if args.resume:
@@ -120,10 +104,7 @@ def add_commands(sub):
         "--max-evaluations", type=int, help="every tree's evaluation budget (default: its recipe's; less: a quick look)"
     )
     s.add_argument("--realisations", type=int, help="synthetic stands to grow from the clones (default 1)")
-    s.add_argument("--executor", choices=["serial", "process", "dask"], help="where the trees run (default: process)")
-    s.add_argument("--workers", type=int, help="worker processes (process, local dask) or workers to wait for (dask)")
-    s.add_argument("--address", help="a running Dask scheduler (tls://host:8786), with --executor dask")
-    s.add_argument("--scheduler-file", help="a Dask scheduler file, with --executor dask")
+    executor_args(s, "the trees")
     s.add_argument("--resume", action="store_true", help="continue the stand in -o: unfinished trees only")
     overwrite_arg(s, "delete the stand in -o (its fits too) and start anew")
     s.add_argument("--no-report", action="store_true", help="do not write the stand report")

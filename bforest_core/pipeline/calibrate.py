@@ -58,6 +58,7 @@ __all__ = [
     "central_interval",
     "sbc_rank",
     "prior_draw",
+    "uniform_draw",
     "coverage_table",
     "rank_counts",
     "uniform_band",
@@ -136,15 +137,20 @@ def coverage_range(n_runs: int, level: float, prob: float = 0.95) -> tuple[float
 def prior_draw(seed: int, i: int, lower, upper, integer) -> tuple[np.ndarray, int]:
     """Run ``i``'s truth (uniform in ``[lower, upper]``; integer parameters uniform over the
     whole numbers in the bounds) and its target seed, from ``SeedSequence([seed, 0xCA1B, i])``."""
-    lo, hi = np.asarray(lower, float), np.asarray(upper, float)
-    integer = np.asarray(integer, bool)
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), _STREAM, int(i)]))
+    theta = uniform_draw(rng, lower, upper, integer)
+    target_seed = int(rng.integers(1, 2**31 - 1))
+    return theta, target_seed
+
+
+def uniform_draw(rng: np.random.Generator, lower, upper, integer) -> np.ndarray:
+    """One draw uniform in ``[lower, upper]`` (integer parameters uniform over the whole numbers in
+    their bounds), from one uniform number per parameter of ``rng``."""
+    lo, hi = np.asarray(lower, float), np.asarray(upper, float)
     u = rng.random(lo.size)
     ilo, ihi = np.ceil(lo), np.floor(hi)
     whole = np.minimum(ilo + np.floor(u * (ihi - ilo + 1)), ihi)
-    theta = np.where(integer, whole, lo + u * (hi - lo))
-    target_seed = int(rng.integers(1, 2**31 - 1))
-    return theta, target_seed
+    return np.where(np.asarray(integer, bool), whole, lo + u * (hi - lo))
 
 
 def coverage_table(rows: list[dict], names: list[str], lower, upper) -> list[dict]:

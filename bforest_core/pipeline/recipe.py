@@ -16,6 +16,8 @@ import textwrap
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import ConfigError
 from ..interfaces import RecipeDraft
 from ..io import read_qsm
@@ -74,6 +76,46 @@ def draft_recipes(measures: TreeMeasures, model: str | None = None) -> list[tupl
         draft.fixed = [(k, _clip(ssm.parameter_spec(k), v), c) for k, v, c in draft.fixed]
         out.append((name, draft))
     return sorted(out, key=lambda nd: -nd[1].suits)
+
+
+@dataclass
+class RecipeBox:
+    """The search box ``bforest init`` writes for a tree, resolved to absolute bounds."""
+
+    names: list
+    lower: np.ndarray
+    upper: np.ndarray
+    integer: np.ndarray
+    fixed: dict  # parameter -> value
+    settings: dict  # the model's settings
+
+
+def recipe_box(model: str, measures: TreeMeasures) -> RecipeBox:
+    """The box of ``model``'s recipe for a tree of these measures, as a fit resolves it: bounds
+    scaled by a measure (``scaled_by``) multiplied by it and kept within the model's range
+    (:func:`~.target.scale_bounds`), with the recipe's fixed values and settings."""
+    from .target import scale_bounds
+
+    (_, d), *_ = draft_recipes(measures, model)
+    ssm = component("ssm", model)
+    names, lo, hi, integer = [], [], [], []
+    for k, a, b, _ in d.free:
+        spec = ssm.parameter_spec(k)
+        if k in d.scaled:
+            _, new = scale_bounds({"lower": a, "upper": b}, float(getattr(measures, d.scaled[k])), spec)
+            a, b = new["lower"], new["upper"]
+        names.append(k)
+        lo.append(float(a))
+        hi.append(float(b))
+        integer.append(bool(spec.integer))
+    return RecipeBox(
+        names,
+        np.array(lo),
+        np.array(hi),
+        np.array(integer, bool),
+        {k: v for k, v, _ in d.fixed},
+        {k: v for k, v, _ in d.settings},
+    )
 
 
 def _clip(spec, v):

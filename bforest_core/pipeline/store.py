@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..errors import BayesForestError
 from ..io import json_text, write_json
 
@@ -397,6 +399,206 @@ class StandFiles:
                 shutil.rmtree(p)
             else:
                 p.unlink(missing_ok=True)
+
+
+class TrainFiles:
+    """The files of a training folder (``bforest train``) and of an estimator's calibration
+    (``bforest calibrate --estimator``): the one place their names are spelled."""
+
+    CONFIG = "train.toml"
+    SIMULATIONS = "simulations.sqlite"
+    ESTIMATOR = "estimator.npz"
+    RECORD = "training.json"
+    CALIBRATION_JSON = "calibration.json"
+    CALIBRATION_CSV = "calibration.csv"
+    CALIBRATION_FIGURE = "calibration.png"
+    LOCK = RunFiles.LOCK
+    #: what a training or calibration writes (``--overwrite`` removes exactly these)
+    DERIVED = (
+        CONFIG,
+        SIMULATIONS,
+        f"{SIMULATIONS}-wal",
+        f"{SIMULATIONS}-shm",
+        f"{SIMULATIONS}-journal",
+        ESTIMATOR,
+        f"{ESTIMATOR}.tmp.npz",
+        RECORD,
+        f"{RECORD}.tmp",
+        CALIBRATION_JSON,
+        CALIBRATION_CSV,
+        CALIBRATION_FIGURE,
+    )
+
+    def __init__(self, path):
+        self.path = Path(path)
+
+    @property
+    def config_path(self) -> Path:
+        """The resolved training configuration."""
+        return self.path / self.CONFIG
+
+    @property
+    def simulations_path(self) -> Path:
+        """Every simulation of the folder, written as it finishes."""
+        return self.path / self.SIMULATIONS
+
+    @property
+    def estimator_path(self) -> Path:
+        """The trained estimator's file."""
+        return self.path / self.ESTIMATOR
+
+    @property
+    def record_path(self) -> Path:
+        """What the training did (counts, times, losses)."""
+        return self.path / self.RECORD
+
+    def calibration_path(self, what: str) -> Path:
+        """``json``, ``csv`` or ``png`` of a calibration study."""
+        return (
+            self.path
+            / {"json": self.CALIBRATION_JSON, "csv": self.CALIBRATION_CSV, "png": self.CALIBRATION_FIGURE}[what]
+        )
+
+    def clear(self) -> None:
+        """Remove everything an earlier training or calibration wrote here; other files stay."""
+        for name in self.DERIVED:
+            (self.path / name).unlink(missing_ok=True)
+
+
+class PosteriorFiles:
+    """The files of a tree's amortised posterior (``bforest posterior -o DIR``): the one place
+    their names are spelled (the table and the ArviZ file as a sampler's run names them)."""
+
+    POSTERIOR_CSV = RunFiles.POSTERIOR_CSV
+    POSTERIOR_NC = RunFiles.POSTERIOR_NC
+    SUMMARY = "posterior.json"
+    FIGURES = RunFiles.FIGURES
+    CORNER = "posterior_corner.png"
+    CLONES = RunFiles.CLONES
+    CLONE_TABLE = RunFiles.CLONE_TABLE
+    LOCK = RunFiles.LOCK
+    #: what ``bforest posterior`` writes (``--overwrite`` removes exactly these)
+    DERIVED = (POSTERIOR_CSV, POSTERIOR_NC, SUMMARY, f"{SUMMARY}.tmp", FIGURES, CLONES)
+
+    def __init__(self, path):
+        self.path = Path(path)
+
+    @property
+    def summary_path(self) -> Path:
+        """What the posterior is: the tree, the estimator, per parameter its quantiles."""
+        return self.path / self.SUMMARY
+
+    @property
+    def corner_path(self) -> Path:
+        return self.path / self.FIGURES / self.CORNER
+
+    @property
+    def clones_dir(self) -> Path:
+        return self.path / self.CLONES
+
+    def clear(self) -> None:
+        """Remove everything an earlier posterior wrote here; other files stay."""
+        import shutil
+
+        for name in self.DERIVED:
+            q = self.path / name
+            if q.is_dir() and not q.is_symlink():
+                shutil.rmtree(q)
+            else:
+                q.unlink(missing_ok=True)
+
+
+SIMULATIONS_SCHEMA = """
+CREATE TABLE IF NOT EXISTS simulations (
+    idx        INTEGER PRIMARY KEY,  -- draw index of the prior's stream
+    reference  INTEGER,              -- the reference tree the draw was scaled from
+    height     REAL,                 -- the height (m) it was scaled to
+    params     TEXT NOT NULL,        -- JSON {name: value}, the fixed ones included
+    seed       INTEGER NOT NULL,     -- model seed
+    status     TEXT NOT NULL,        -- ok | <SimulationFailed status> | timeout | error | crashed
+    message    TEXT,
+    summaries  BLOB,                 -- float64 values of the summaries (NULL for a failure)
+    seconds    REAL,
+    worker     TEXT,
+    finished   REAL                  -- unix time
+);
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT);
+"""
+
+
+class SimulationStore:
+    """The simulations of a training folder (SQLite; each row committed as it arrives, so a
+    killed training loses nothing that finished and ``--resume`` grows no tree twice)."""
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self._con = sqlite3.connect(self.path, isolation_level=None, timeout=30)
+        self._con.execute("PRAGMA journal_mode=WAL")
+        self._con.execute("PRAGMA synchronous=NORMAL")
+        self._con.executescript(SIMULATIONS_SCHEMA)
+
+    def add(self, idx: int, reference: int, height: float, params: dict, seed: int, result: dict) -> None:
+        s = result.get("summaries")
+        blob = None if s is None else np.asarray(s, "<f8").tobytes()
+        self._con.execute(
+            "INSERT OR REPLACE INTO simulations VALUES (?,?,?,?,?,?,?,?,?,?,?)",
+            (
+                int(idx),
+                int(reference),
+                float(height),
+                _column(params),
+                int(seed),
+                result["status"],
+                result.get("message", ""),
+                blob,
+                float(result.get("seconds", 0.0)),
+                result.get("worker", ""),
+                time.time(),
+            ),
+        )
+
+    def done(self) -> set[int]:
+        """Indices already simulated."""
+        return {r[0] for r in self._con.execute("SELECT idx FROM simulations")}
+
+    def count(self, status: str | None = None) -> int:
+        if status is None:
+            return int(self._con.execute("SELECT COUNT(*) FROM simulations").fetchone()[0])
+        return int(self._con.execute("SELECT COUNT(*) FROM simulations WHERE status=?", (status,)).fetchone()[0])
+
+    def statuses(self) -> dict[str, int]:
+        return dict(self._con.execute("SELECT status, COUNT(*) FROM simulations GROUP BY status").fetchall())
+
+    def seconds(self) -> float:
+        """Summed seconds of the simulations (worker time, not wall time)."""
+        return float(self._con.execute("SELECT COALESCE(SUM(seconds), 0) FROM simulations").fetchone()[0])
+
+    def grown(self, limit: int | None = None) -> list[tuple[int, float, dict, np.ndarray]]:
+        """``(idx, height, params, summaries)`` of the grown trees, by index (the first ``limit``
+        indices only, when given)."""
+        q = "SELECT idx, height, params, summaries FROM simulations WHERE status='ok'"
+        args: tuple = ()
+        if limit is not None:
+            q += " AND idx < ?"
+            args = (int(limit),)
+        rows = self._con.execute(q + " ORDER BY idx", args).fetchall()
+        return [(int(i), float(h), json.loads(p), np.frombuffer(b, "<f8")) for i, h, p, b in rows]
+
+    def set_meta(self, key: str, value: Any) -> None:
+        self._con.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, json_text(value)))
+
+    def get_meta(self, key: str, default=None):
+        row = self._con.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone()
+        return default if row is None else json.loads(row[0])
+
+    def close(self) -> None:
+        self._con.close()
+
+    def __enter__(self) -> SimulationStore:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 class RunStore(RunFiles):

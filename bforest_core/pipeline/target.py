@@ -133,6 +133,14 @@ def load_target_trees(cfg: RunConfig) -> list:
     return list(trees) if isinstance(trees, (list, tuple)) else [trees]
 
 
+def scale_bounds(times: dict, m: float, spec) -> tuple[dict, dict]:
+    """Bounds given as multiples of a tree's measure ``m`` (``{"lower": a, ...}``, None kept), in
+    absolute terms: as they come out (6 significant digits) and kept within the range of the
+    parameter's ``spec``."""
+    raw = {k: None if v is None else float(f"{v * m:.6g}") for k, v in times.items()}
+    return raw, {k: None if v is None else min(max(v, spec.lower), spec.upper) for k, v in raw.items()}
+
+
 def bounds_from_target(cfg: RunConfig, trees: list) -> RunConfig:
     """``cfg`` with every ``scaled_by`` bound of ``[ssm.free]`` resolved against the target.
 
@@ -159,9 +167,7 @@ def bounds_from_target(cfg: RunConfig, trees: list) -> RunConfig:
         what = f"ssm.free.{name}: {fp.lower:g}-{fp.upper:g} x the {fp.scaled_by} of {source} ({m:.4g} m)"
         if not (np.isfinite(m) and m > 0):
             raise ConfigError(f"{what}: the measure must be positive; give absolute bounds")
-        times = {k: getattr(fp, k) for k in ("lower", "upper", "init_lower", "init_upper")}
-        raw = {k: None if v is None else float(f"{v * m:.6g}") for k, v in times.items()}
-        new = {k: None if v is None else min(max(v, spec.lower), spec.upper) for k, v in raw.items()}
+        raw, new = scale_bounds({k: getattr(fp, k) for k in ("lower", "upper", "init_lower", "init_upper")}, m, spec)
         if not new["lower"] < new["upper"]:
             raise ConfigError(
                 f"{what} = [{raw['lower']:g}, {raw['upper']:g}] is outside the model's range "

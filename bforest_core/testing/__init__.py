@@ -45,12 +45,13 @@ distance
     ``identical`` (zero for identical inputs), ``finite`` (finite, non-negative), ``separates``
     (positive for shifted tables), ``determinism``, ``empty`` (an empty model table gives a
     finite value or ``None``).
-qsm_reader / qsm_writer / optimizer / executor
+qsm_reader / qsm_writer / optimizer / executor / amortised
     see :func:`reader_checks`, :func:`writer_checks`, :func:`optimizer_checks`,
-    :func:`executor_checks`.
+    :func:`executor_checks`, :func:`amortised_checks`.
 """
 
 from ._base import Check, CheckResult, ConformanceError, Report, check_tree
+from .amortised import amortised_checks, check_amortised
 from .distance import check_distance, distance_checks
 from .executor import check_executor, executor_checks
 from .features import check_feature_set, feature_set_checks
@@ -85,5 +86,7 @@ __all__ = [
     "check_optimizer",
     "executor_checks",
     "check_executor",
+    "amortised_checks",
+    "check_amortised",
     "run_all",
 ]

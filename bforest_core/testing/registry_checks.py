@@ -9,6 +9,7 @@ from typing import Any
 
 from ..interfaces import KINDS
 from ._base import Check, ConformanceError, Report, _run
+from .amortised import amortised_checks
 from .distance import distance_checks
 from .executor import executor_checks
 from .features import feature_set_checks
@@ -25,6 +26,7 @@ _CHECKS = {
     "qsm_writer": writer_checks,
     "optimizer": optimizer_checks,
     "executor": executor_checks,
+    "amortised": amortised_checks,
 }
 
 

@@ -18,7 +18,7 @@ from bforest_core.hookspecs import hookimpl
 from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
 from bforest_core.tree import Tree
 
-from .model import GrowthFailure, SOTGrowth, build_tree
+from .model import MODEL_VERSION, GrowthFailure, SOTGrowth, build_tree
 from .params import PARAMETERS, validate
 from .recipe import sot_recipe
 
@@ -90,6 +90,7 @@ class SOT(SSM):
     name = "sot"
     summary = "self-organizing tree growth model with shadow propagation (Palubicki 2009, GS 2017)"
     Settings = SOTSettings
+    model_version = MODEL_VERSION
 
     @property
     def parameters(self) -> list[ParameterSpec]:

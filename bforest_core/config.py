@@ -294,6 +294,18 @@ class SelectConfig(_Strict):
     )
 
 
+class StartConfig(_Strict):
+    """Where the search starts: draws of an amortised estimator's posterior for the target."""
+
+    estimator: Optional[str] = Field(
+        None,
+        description="an amortised estimator (bforest train's estimator.npz, relative to this file; 'shipped': the "
+        "one shipped for the [ssm] model): the search's first points are draws of its posterior for the target "
+        "(cma's init_design); none: the optimiser's own start",
+    )
+    draws: int = Field(256, ge=1, description="posterior draws handed to the optimiser (it takes what it needs)")
+
+
 class ClonesConfig(_Strict):
     """The clones of the answer: model trees grown with its parameters on other seeds."""
 
@@ -322,6 +334,7 @@ class RunConfig(_Strict):
     objective: ObjectiveConfig = Field(default_factory=ObjectiveConfig)
     stop: StopConfig = Field(default_factory=StopConfig)
     select: SelectConfig = Field(default_factory=SelectConfig)
+    start: StartConfig = Field(default_factory=StartConfig)
     clones: ClonesConfig = Field(default_factory=ClonesConfig)
     report: ReportConfig = Field(default_factory=ReportConfig)
 
@@ -681,6 +694,8 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
         if cfg.target.qsm is not None:
             cfg.target.qsm = resolve_path(cfg.target.qsm, base_dir)
         cfg.target.references = [resolve_path(r, base_dir) for r in cfg.target.references]
+        if cfg.start.estimator not in (None, "shipped"):
+            cfg.start.estimator = resolve_path(cfg.start.estimator, base_dir)
     for check in (check_ssm_parameters, check_terms, check_generated_target):
         try:
             check(cfg)

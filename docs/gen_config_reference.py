@@ -16,6 +16,7 @@ from bforest_core.config import (
     ObjectiveConfig,
     ReportConfig,
     SelectConfig,
+    StartConfig,
     StopConfig,
     TargetConfig,
 )
@@ -69,6 +70,7 @@ def main() -> str:
         ("[objective]", ObjectiveConfig),
         ("[stop]", StopConfig),
         ("[select]", SelectConfig),
+        ("[start]", StartConfig),
         ("[clones]", ClonesConfig),
         ("[report]", ReportConfig),
         ("[ssm] free.NAME", FreeParameter),
@@ -110,9 +112,43 @@ def main() -> str:
                         f"{p.description.replace('|', '/')} |"
                     )
                 out.append("")
+    out += _training_reference(reg)
     text = "\n".join(out) + "\n"
     Path(__file__).with_name("config-reference.md").write_text(text, encoding="utf-8")
     return text
+
+
+def _training_reference(reg) -> list[str]:
+    """The training configuration of `bforest train` and the amortised estimators' settings."""
+    from bforest_core.pipeline.train import TrainConfig, TrainSection
+
+    out = [
+        "# Training configuration (`bforest train`)",
+        "",
+        "A TOML file of its own (examples/amortised/). Top level:",
+        "",
+        *_fields_table(TrainConfig)[:2],
+        *(r for r in _fields_table(TrainConfig)[2:] if r.startswith("| `seed`")),
+        "",
+        "`[executor]` takes an executor plugin's `kind` and settings, as in a run config.",
+        "",
+        "## `[train]`",
+        "",
+        (TrainSection.__doc__ or "").strip().split("\n")[0],
+        "",
+        *_fields_table(TrainSection),
+        "",
+        "## `[estimator]` — amortised plugins",
+        "",
+    ]
+    for name in reg.names("amortised"):
+        if ("amortised", name) not in reg.components:
+            continue
+        e = reg.components[("amortised", name)]
+        doc = (e.cls.__doc__ or "").strip().split("\n")[0]
+        out += [f'### `kind = "{name}"` ({e.distribution} {e.version})', "", doc, ""]
+        out += _fields_table(e.cls.Settings) + [""]
+    return out
 
 
 if __name__ == "__main__":

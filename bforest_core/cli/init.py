@@ -15,11 +15,11 @@ def cmd_init(args):
     out = Path(args.output) if args.output else Path(f"{tree}.toml")
     if out.exists() and not args.overwrite:
         raise UsageError(f"{out}: exists; choose another -o, or replace it with --overwrite")
-    r = write_recipe(qsm, out, args.model)
+    r = write_recipe(qsm, out, args.model, amortised=args.amortised)
     print(f"{qsm}:")
     for line in measured_lines(r.measures):
         print(f"  {line}")
-    how = "asked for" if args.model else "suits it best"
+    how = "asked for" if args.model else "the estimator's" if args.amortised else "suits it best"
     print(f"model: {r.model} ({how}): {r.draft.why}")
     for name, suits, why in r.choices:
         if name != r.model:
@@ -27,6 +27,10 @@ def cmd_init(args):
     for note in r.draft.notes:
         print(f"note: {note}")
     print(f"wrote {out}: {len(r.draft.free)} free parameters, bounds scaled to the tree (each line says why)")
+    if args.amortised:
+        print(
+            f"the search starts from the posterior of {args.amortised} and refines it in {r.draft.evaluations} evaluations"
+        )
     print(f"next: bforest fit {out} -o runs/{tree}")
     return 0
 
@@ -39,6 +43,12 @@ def add_commands(sub):
         help="the tree: a QSM file (TreeQSM .mat/.txt, SimpleForest or aRchi CSV, ...) or sample:NAME (bforest data list)",
     )
     s.add_argument("--model", help="growth model (default: the one that suits the tree, and why)")
+    s.add_argument(
+        "--amortised",
+        metavar="FILE",
+        help="start the search from this amortised estimator's posterior for the tree (bforest train's "
+        "estimator.npz, or 'shipped' for the model's shipped one) with a short refinement; the model is the estimator's",
+    )
     s.add_argument(
         "-o", "--output", metavar=CONFIG, help="recipe file to write (default: the QSM's name with .toml, here)"
     )

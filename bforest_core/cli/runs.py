@@ -9,11 +9,14 @@ from typing import TYPE_CHECKING
 from ..pipeline.rundir import run_lock
 from ..pipeline.store import RunFiles, clock_warning
 from .common import (
+    CONFIG,
     RUN,
     UsageError,
     command,
     config_arg,
     count_arg,
+    executor_args,
+    executor_spec,
     old_spelling,
     overwrite_arg,
     quiet_arg,
@@ -199,19 +202,46 @@ def cmd_profile(args):
 
 
 def cmd_calibrate(args):
-    from ..pipeline.calibrate import calibrate
-
-    res = calibrate(
-        args.config, args.n, out_dir=args.output, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet
-    )
     from ..report.calibration import write_calibration_figure
 
-    c = res["counts"]
-    print(
-        f"runs: {c['fitted']} fitted, {c['resumed']} resumed, {c['read back']} read back"
-        + (f", {c['failed']} failed" if c["failed"] else "")
-        + f" in {res['out_dir']}"
-    )
+    if (args.config is None) == (args.estimator is None):
+        raise UsageError("give a sampler's run configuration or --estimator FILE (an amortised estimator), not both")
+    if args.estimator is not None:
+        from ..pipeline.train import calibrate_estimator
+
+        if args.output is None:
+            raise UsageError("give the study folder with -o DIR")
+        res = calibrate_estimator(
+            args.estimator,
+            args.n,
+            args.output,
+            executor=executor_spec(args),
+            seed=1 if args.seed is None else args.seed,
+            resume=args.resume,
+            overwrite=args.overwrite,
+            progress=not args.quiet,
+        )
+        c = res["counts"]
+        print(f"targets: {c['targets']} grown of {c['draws']} prior draws in {res['out_dir']}")
+    else:
+        if args.seed is not None or executor_spec(args) is not None:
+            raise UsageError("--seed and the executor options are for --estimator (a sampler's config has its own)")
+        from ..pipeline.calibrate import calibrate
+
+        res = calibrate(
+            args.config,
+            args.n,
+            out_dir=args.output,
+            resume=args.resume,
+            overwrite=args.overwrite,
+            progress=not args.quiet,
+        )
+        c = res["counts"]
+        print(
+            f"runs: {c['fitted']} fitted, {c['resumed']} resumed, {c['read back']} read back"
+            + (f", {c['failed']} failed" if c["failed"] else "")
+            + f" in {res['out_dir']}"
+        )
     print(res["table_text"])
     print(f"table: {res['csv']}, {res['json']}")
     print(f"figure: {write_calibration_figure(res)}")
@@ -347,13 +377,23 @@ def add_commands(sub) -> None:
         "calibrate",
         "simulation-based calibration: coverage of the sampler's intervals on targets grown from prior draws",
     )
-    config_arg(
-        s, "a run configuration with a sampler (abc-smc, emcee); its [target] is optional and replaced in every run"
+    s.add_argument(
+        "config",
+        metavar=CONFIG,
+        nargs="?",
+        help="a run configuration with a sampler (abc-smc, emcee); its [target] is optional and replaced in every run",
     )
-    count_arg(s, "calibration runs (prior draws, one fit each)", required=True)
+    s.add_argument(
+        "--estimator",
+        metavar="FILE",
+        help="calibrate an amortised estimator (bforest train's estimator.npz) instead: targets drawn from its prior",
+    )
+    count_arg(s, "calibration runs (prior draws, one fit or posterior each)", required=True)
     s.add_argument(
         "-o", "--output", default=None, metavar="DIR", help="study folder (default: runs/calibrate-<config>)"
     )
+    s.add_argument("--seed", type=int, help="with --estimator: seeds the targets and the draws (default 1)")
+    executor_args(s, "the targets grow (with --estimator)")
     s.add_argument(
         "--resume",
         action="store_true",

@@ -405,6 +405,19 @@ def read_estimator(path) -> TrainedEstimator:
         install).
     """
     path = Path(path)
+    header, blob = checked_header(path)
+    spec = header["estimator"]
+    est = estimator_component(spec["kind"], spec["settings"])
+    est.load_state(spec["state"], blob)
+    return TrainedEstimator(
+        header, est, TrainingPrior.from_dict(header["prior"]), Summaries.from_definition(header["summary"]), path
+    )
+
+
+def checked_header(path) -> tuple[dict, bytes]:
+    """The header and weights of an estimator's file, checked as :func:`read_estimator` checks
+    them (its layout, model, model version and summaries; not the estimator's libraries)."""
+    path = Path(path)
     header, blob = _header(path)
     if header.get("format_version") != FORMAT_VERSION:
         raise ConfigError(
@@ -432,10 +445,7 @@ def read_estimator(path) -> TrainedEstimator:
             f"from this version's (definition {SUMMARY_VERSION}, {len(now['labels'])} values): retrain it "
             "(bforest train)"
         )
-    spec = header["estimator"]
-    est = estimator_component(spec["kind"], spec["settings"])
-    est.load_state(spec["state"], blob)
-    return TrainedEstimator(header, est, TrainingPrior.from_dict(header["prior"]), summaries, path)
+    return header, blob
 
 
 def shipped_estimators() -> dict[str, Path]:
@@ -622,3 +632,47 @@ def grow_clones(
         w.writeheader()
         w.writerows(rows)
     return rows
+
+
+# ------------------------------------------------------------------------------ a fit's start
+#: ``[start] estimator`` naming the estimator the installed plugins ship for the fit's model
+SHIPPED = "shipped"
+
+
+def start_estimator_path(cfg) -> Path:
+    """The file ``[start] estimator`` names (``"shipped"``: the one shipped for ``[ssm] kind``)."""
+    name = cfg.start.estimator
+    return estimator_for(cfg.ssm.kind) if name == SHIPPED else Path(name)
+
+
+def start_problems(cfg) -> list[str]:
+    """What keeps ``[start] estimator`` from starting this fit (``bforest config check`` and the
+    fit's preflight): a file that cannot be read, another model, a free parameter it lacks, an
+    estimator whose libraries are missing."""
+    if cfg.start.estimator is None:
+        return []
+    try:
+        path = start_estimator_path(cfg)
+        header, _ = checked_header(path)
+        if header["model"] != cfg.ssm.kind:
+            return [f"start.estimator: {path} is an estimator of {header['model']}, the fit's model is {cfg.ssm.kind}"]
+        lacks = [k for k in cfg.ssm.free if k not in header["prior"]["names"]]
+        if lacks:
+            return [
+                f"start.estimator: {path} has no posterior of the free parameter(s) {', '.join(lacks)} "
+                f"(it has {', '.join(header['prior']['names'])})"
+            ]
+        estimator_component(header["estimator"]["kind"], header["estimator"]["settings"])
+    except (ConfigError, PluginError) as exc:
+        return [f"start.estimator: {exc}"]
+    return []
+
+
+def start_points(cfg, tree, names, lower, upper) -> np.ndarray:
+    """``[start] draws`` points of the estimator's posterior for ``tree`` (seeded by the run seed),
+    in the order of ``names``, moved into the fit's box ``[lower, upper]``."""
+    te = read_estimator(start_estimator_path(cfg))
+    res = tree_posterior(te, tree, int(cfg.start.draws), int(cfg.seed), source=str(cfg.target.qsm or "the target"))
+    warn_lines(res["warnings"])
+    cols = [te.names.index(k) for k in names]
+    return np.clip(res["samples"][:, cols], np.asarray(lower, float), np.asarray(upper, float))

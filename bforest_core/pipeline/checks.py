@@ -74,6 +74,10 @@ def preflight(cfg: RunConfig, target: Target | None = None, trees=None) -> Targe
                 bounds_from_target(cfg, tgt.trees)
             except ConfigError as exc:  # a scaled range that leaves nothing of the model's
                 problems.append(str(exc))
+    if cfg.start.estimator is not None:
+        from .amortised import start_problems
+
+        problems += start_problems(cfg)
     if not problems and (cfg.select.features or cfg.select.distance):
         try:  # the tables the answer is chosen by, checked before the search, not after it
             preflight(selection_config(cfg), trees=tgt.trees)  # the same [target]: not read again

@@ -377,6 +377,7 @@ def fit(
         problem.seed_spread = evaluator.seed_spread
         problem.summaries = evaluator.summaries
         problem.target_summaries = set_summaries(tgt.U, list(tgt.U), trees=len(tgt.trees))
+        problem.start = _start(cfg, store, tgt, names, lo, hi)
         result = selection = None
         scfg = selection_config(cfg)  # the candidates' scoring: the search's own unless [select] names tables
         try:
@@ -423,6 +424,21 @@ def fit(
             heldout_distance=out.get("heldout_distance"),
             evaluation=out["evaluation"],
         )
+
+
+def _start(cfg: RunConfig, store: RunStore, tgt: Target, names, lo, hi) -> np.ndarray | None:
+    """``Problem.start``: the ``[start] estimator``'s posterior draws for the target, drawn once and
+    kept in the run's store, so a resumed fit starts from the same points on any machine."""
+    if cfg.start.estimator is None:
+        return None
+    kept = store.get_meta("start_points")
+    if kept is not None:
+        return np.asarray(kept, float).reshape(-1, len(names))
+    from .amortised import start_points
+
+    X = start_points(cfg, tgt.trees[0], names, lo, hi)
+    store.set_meta("start_points", X.tolist())
+    return X
 
 
 def _save_target(store: RunStore, tgt: Target, cfg: RunConfig | None = None) -> None:

@@ -374,12 +374,12 @@ def calibrate_estimator(
         ex = _executor(executor or {"kind": "process"})
         bar = progress_bar(int(n), "calibrate", "target", progress)
         try:
-            upto = int(n)
+            upto, shown = int(n), 0
             while True:  # draws that grow no tree are no targets: draw on until n have grown
                 simulate(prior, te.summaries, store, range(upto), seed, CALIBRATION_STREAM, timeout, ex)
                 got = store.grown(upto)
-                bar.n = min(len(got), int(n))
-                bar.refresh()
+                bar.update(min(len(got), int(n)) - shown)
+                shown = min(len(got), int(n))
                 if len(got) >= int(n) or upto >= 20 * int(n):
                     break
                 rate = max(len(got), 1) / upto

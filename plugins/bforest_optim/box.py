@@ -184,6 +184,16 @@ class Box:
         rlo, rhi = self.relaxed_bounds("init")
         return self.project(rlo + U * (rhi - rlo))
 
+    def initial_design(self, n: int, rng: np.random.Generator, method: str = "halton") -> np.ndarray:
+        """``n`` points to start from: the problem's own start points first (``Problem.start``:
+        an amortised estimator's posterior draws for the target), projected into the bounds, and
+        where it has fewer (or none), points of :meth:`sample_init`."""
+        start = self.problem.start
+        X = np.zeros((0, self.dim)) if start is None else self.project(np.asarray(start, float)[:n])
+        if len(X) < n:
+            X = np.vstack([X, self.sample_init(n - len(X), rng, method)])
+        return X
+
     # ------------------------------------------------------------------ evaluation
     @property
     def stopped(self) -> bool:

@@ -53,8 +53,8 @@ class CMASettings(OptimizerSettings):
         0,
         ge=0,
         description="points of a scrambled Sobol' design over the initial box "
-        "evaluated first; CMA-ES then starts at the best of them instead of the box's "
-        "centre (0: no design)",
+        "evaluated first (with [start] estimator: draws of its posterior for the target instead); "
+        "CMA-ES then starts at the best of them instead of the box's centre (0: no design)",
     )
     starts: int = Field(
         1,
@@ -134,7 +134,7 @@ class CMAES(Optimizer):
         if s.init_design:
             # generation 0: a space-filling look at the initial box, so the search starts in its
             # best region rather than at a centre that may be poor (the points count in the budget)
-            X = ev.sample_init(s.init_design, np.random.default_rng([int(problem.seed), 0xC3A]), "sobol")
+            X = ev.initial_design(s.init_design, np.random.default_rng([int(problem.seed), 0xC3A]), "sobol")
             f = ev(X)
             log(ev, generation=0, run=-1, population=len(X), sigma=None, **finite_stats(f, "mean", "median"))
             if np.isfinite(f).any():

@@ -3,7 +3,7 @@ and crown form, then a posterior for any tree in seconds)."""
 
 from __future__ import annotations
 
-from .common import CONFIG, UsageError, command, config_arg, count_arg, overwrite_arg, quiet_arg
+from .common import CONFIG, UsageError, command, config_arg, count_arg, overwrite_arg, quiet_arg, resume_arg
 
 
 def cmd_train(args):
@@ -87,10 +87,8 @@ def add_commands(sub):
     s = command(sub, "train", "train an amortised estimator of a model's parameters on trees grown from its prior")
     config_arg(s, f"a training configuration ({CONFIG}: [train] model, references, heights, simulations)")
     s.add_argument("-o", "--output", metavar="DIR", help="the training folder to write")
-    s.add_argument(
-        "--resume",
-        action="store_true",
-        help="continue the training in -o: stored simulations are kept, the missing ones grown (also to a larger count)",
+    resume_arg(
+        s, "continue the training in -o: stored simulations are kept, the missing ones grown (also to a larger count)"
     )
     overwrite_arg(s, "delete the training in -o (its simulations too) and start anew")
     quiet_arg(s)

@@ -113,6 +113,11 @@ def overwrite_arg(s, help: str, dest: str = "overwrite") -> None:
     s.add_argument("--overwrite", dest=dest, action="store_true", help=help)
 
 
+def resume_arg(s, help: str) -> None:
+    """``--resume``: continue what an earlier call of the command stored in its folder."""
+    s.add_argument("--resume", action="store_true", help=help)
+
+
 def quiet_arg(s) -> None:
     """``-q/--quiet``: every command that draws progress bars can be asked not to."""
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bars")

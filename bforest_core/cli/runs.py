@@ -21,6 +21,7 @@ from .common import (
     overwrite_arg,
     quiet_arg,
     report,
+    resume_arg,
     run_arg,
     run_output,
 )
@@ -271,7 +272,7 @@ def add_commands(sub) -> None:
     s = command(sub, "fit", "fit a growth model as a run configuration says")
     config_arg(s)
     run_output(s, "runs/<config name>")
-    s.add_argument("--resume", action="store_true", help="continue a stopped or killed run in -o")
+    resume_arg(s, "continue a stopped or killed run in -o")
     overwrite_arg(s, "replace an existing run in -o")
     s.add_argument("--max-evaluations", type=int, metavar="N", help="override [stop] max_evaluations")
     s.add_argument("--no-report", action="store_true", help="do not write the report afterwards")
@@ -352,10 +353,9 @@ def add_commands(sub) -> None:
         help="with --heldout: also score each run's best after N evaluations",
     )
     s.add_argument("-o", "--output", default=None, metavar="DIR", help="study folder (default: runs/compare-<config>)")
-    s.add_argument(
-        "--resume",
-        action="store_true",
-        help="continue the runs of an earlier comparison in -o; "
+    resume_arg(
+        s,
+        "continue the runs of an earlier comparison in -o; "
         "finished runs are read back (so another optimiser can be added to it)",
     )
     overwrite_arg(s, "replace the runs of an earlier comparison in -o")
@@ -394,11 +394,7 @@ def add_commands(sub) -> None:
     )
     s.add_argument("--seed", type=int, help="with --estimator: seeds the targets and the draws (default 1)")
     executor_args(s, "the targets grow (with --estimator)")
-    s.add_argument(
-        "--resume",
-        action="store_true",
-        help="continue a study in -o: finished runs are read back, stopped ones resumed",
-    )
+    resume_arg(s, "continue a study in -o: finished runs are read back, stopped ones resumed")
     overwrite_arg(s, "refit every run of an earlier study in -o")
     quiet_arg(s)
     s.set_defaults(func=cmd_calibrate, on_interrupt="finished runs are saved; continue with --resume")

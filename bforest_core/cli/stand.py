@@ -5,7 +5,17 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .common import CONFIG, UsageError, command, count_arg, executor_args, executor_spec, overwrite_arg, quiet_arg
+from .common import (
+    CONFIG,
+    UsageError,
+    command,
+    count_arg,
+    executor_args,
+    executor_spec,
+    overwrite_arg,
+    quiet_arg,
+    resume_arg,
+)
 
 
 def _absolute(p):
@@ -105,7 +115,7 @@ def add_commands(sub):
     )
     s.add_argument("--realisations", type=int, help="synthetic stands to grow from the clones (default 1)")
     executor_args(s, "the trees")
-    s.add_argument("--resume", action="store_true", help="continue the stand in -o: unfinished trees only")
+    resume_arg(s, "continue the stand in -o: unfinished trees only")
     overwrite_arg(s, "delete the stand in -o (its fits too) and start anew")
     s.add_argument("--no-report", action="store_true", help="do not write the stand report")
     quiet_arg(s)

@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import SCALE_MEASURES
 from ..errors import ConfigError, PluginError
 from ..metrics import TreeMeasures, measure_tree, summary_unit, tree_summary
 from ..registry import component, component_class, discover
@@ -67,18 +68,10 @@ TABLE_SETS = ("S0,1", "B1,2")
 QUANTILES = (10, 25, 50, 75, 90)
 #: offset of the logarithm of a statistic by unit: a count of 0 or a length near 0 stays finite
 LOG_OFFSET = {"count": 1.0, "m": 0.05, "m^3": 1e-4}
-#: lengths of :class:`~bforest_core.metrics.TreeMeasures` scaled with the height
-SCALED_MEASURES = (
-    "height",
-    "dbh",
-    "crown_spread",
-    "crown_base_height",
-    "crown_length",
-    "branch_spacing",
-    "longest_limb",
-    "crown_offset",
-    "stem_length",
-)
+#: lengths of :class:`~bforest_core.metrics.TreeMeasures` scaled with the height: those a recipe's
+#: bounds may be scaled by (but the thinnest branch, a floor of the scan), and where the crown's
+#: centre lies and how long the stem is
+SCALED_MEASURES = (*(m for m in SCALE_MEASURES if m != "thinnest_branch"), "crown_offset", "stem_length")
 #: heights of the reference trees the prior's overall bounds are taken over
 _BOUND_STEPS = 9
 

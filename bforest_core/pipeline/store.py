@@ -131,7 +131,28 @@ def _column(x) -> str:
     return json_text(x, indent=None, sort_keys=True)
 
 
-class RunFiles:
+class FolderFiles:
+    """A folder a command writes, its files named by the subclass (the one place their names are
+    spelled); :data:`DERIVED` is what ``--overwrite`` removes (:meth:`clear`)."""
+
+    DERIVED: tuple = ()
+
+    def __init__(self, path):
+        self.path = Path(path)
+
+    def clear(self) -> None:
+        """Remove everything of :data:`DERIVED` (folders with their content); other files stay."""
+        import shutil
+
+        for name in self.DERIVED:
+            p = self.path / name
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            else:
+                p.unlink(missing_ok=True)
+
+
+class RunFiles(FolderFiles):
     """The files and folders of a run directory, each by what it holds.
 
     The one place their names are spelled: every stage reads and writes a run's files through
@@ -193,9 +214,6 @@ class RunFiles:
         FIGURES,
         EXPORT,
     )
-
-    def __init__(self, path):
-        self.path = Path(path)
 
     @property
     def config_path(self) -> Path:
@@ -313,7 +331,7 @@ def logged_count(path) -> int:
         return 0
 
 
-class StandFiles:
+class StandFiles(FolderFiles):
     """The files and folders of a stand folder (``bforest stand``; the one place their names are
     spelled). Each tree's run folder is a run directory of its own (:class:`RunFiles`)."""
 
@@ -339,9 +357,6 @@ class StandFiles:
         REPORT_MD,
         REPORT_HTML,
     )
-
-    def __init__(self, path):
-        self.path = Path(path)
 
     @property
     def settings_path(self) -> Path:
@@ -389,19 +404,8 @@ class StandFiles:
         """The folder of synthetic stand number ``r`` (0-based)."""
         return self.synthetic_dir / f"stand_{r:03d}"
 
-    def clear(self) -> None:
-        """Remove everything an earlier stand wrote here (its runs included); other files stay."""
-        import shutil
 
-        for name in self.DERIVED:
-            p = self.path / name
-            if p.is_dir() and not p.is_symlink():
-                shutil.rmtree(p)
-            else:
-                p.unlink(missing_ok=True)
-
-
-class TrainFiles:
+class TrainFiles(FolderFiles):
     """The files of a training folder (``bforest train``) and of an estimator's calibration
     (``bforest calibrate --estimator``): the one place their names are spelled."""
 
@@ -428,9 +432,6 @@ class TrainFiles:
         CALIBRATION_CSV,
         CALIBRATION_FIGURE,
     )
-
-    def __init__(self, path):
-        self.path = Path(path)
 
     @property
     def config_path(self) -> Path:
@@ -459,13 +460,8 @@ class TrainFiles:
             / {"json": self.CALIBRATION_JSON, "csv": self.CALIBRATION_CSV, "png": self.CALIBRATION_FIGURE}[what]
         )
 
-    def clear(self) -> None:
-        """Remove everything an earlier training or calibration wrote here; other files stay."""
-        for name in self.DERIVED:
-            (self.path / name).unlink(missing_ok=True)
 
-
-class PosteriorFiles:
+class PosteriorFiles(FolderFiles):
     """The files of a tree's amortised posterior (``bforest posterior -o DIR``): the one place
     their names are spelled (the table and the ArviZ file as a sampler's run names them)."""
 
@@ -480,9 +476,6 @@ class PosteriorFiles:
     #: what ``bforest posterior`` writes (``--overwrite`` removes exactly these)
     DERIVED = (POSTERIOR_CSV, POSTERIOR_NC, SUMMARY, f"{SUMMARY}.tmp", FIGURES, CLONES)
 
-    def __init__(self, path):
-        self.path = Path(path)
-
     @property
     def summary_path(self) -> Path:
         """What the posterior is: the tree, the estimator, per parameter its quantiles."""
@@ -496,16 +489,35 @@ class PosteriorFiles:
     def clones_dir(self) -> Path:
         return self.path / self.CLONES
 
-    def clear(self) -> None:
-        """Remove everything an earlier posterior wrote here; other files stay."""
-        import shutil
 
-        for name in self.DERIVED:
-            q = self.path / name
-            if q.is_dir() and not q.is_symlink():
-                shutil.rmtree(q)
-            else:
-                q.unlink(missing_ok=True)
+class _Database:
+    """An SQLite file written by one process, each statement committed on its own (write-ahead
+    log), with a ``meta`` table of JSON values."""
+
+    def _connect(self, path: Path, schema: str) -> None:
+        self._con = sqlite3.connect(path, isolation_level=None, timeout=30)
+        self._con.execute("PRAGMA journal_mode=WAL")
+        self._con.execute("PRAGMA synchronous=NORMAL")
+        self._con.executescript(schema)
+
+    def set_meta(self, key: str, value: Any) -> None:
+        self._con.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, _column(value)))
+
+    def get_meta(self, key: str, default=None):
+        r = self._con.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone()
+        return default if r is None else json.loads(r[0])
+
+    def close(self) -> None:
+        """Close the connection. Close it when done rather than leave it to the garbage collector:
+        the last connection's close checkpoints SQLite's write-ahead log into the file, which must
+        not happen at a random later moment (under a later command reading it)."""
+        self._con.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 SIMULATIONS_SCHEMA = """
@@ -526,16 +538,13 @@ CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT);
 """
 
 
-class SimulationStore:
+class SimulationStore(_Database):
     """The simulations of a training folder (SQLite; each row committed as it arrives, so a
     killed training loses nothing that finished and ``--resume`` grows no tree twice)."""
 
     def __init__(self, path):
         self.path = Path(path)
-        self._con = sqlite3.connect(self.path, isolation_level=None, timeout=30)
-        self._con.execute("PRAGMA journal_mode=WAL")
-        self._con.execute("PRAGMA synchronous=NORMAL")
-        self._con.executescript(SIMULATIONS_SCHEMA)
+        self._connect(self.path, SIMULATIONS_SCHEMA)
 
     def add(self, idx: int, reference: int, height: float, params: dict, seed: int, result: dict) -> None:
         s = result.get("summaries")
@@ -584,33 +593,14 @@ class SimulationStore:
         rows = self._con.execute(q + " ORDER BY idx", args).fetchall()
         return [(int(i), float(h), json.loads(p), np.frombuffer(b, "<f8")) for i, h, p, b in rows]
 
-    def set_meta(self, key: str, value: Any) -> None:
-        self._con.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, json_text(value)))
 
-    def get_meta(self, key: str, default=None):
-        row = self._con.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone()
-        return default if row is None else json.loads(row[0])
-
-    def close(self) -> None:
-        self._con.close()
-
-    def __enter__(self) -> SimulationStore:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-class RunStore(RunFiles):
+class RunStore(RunFiles, _Database):
     """A run directory with its evaluation log."""
 
     def __init__(self, path: Path):
         super().__init__(path)
         self.db_path = self.evaluations_path
-        self._con = sqlite3.connect(self.db_path, isolation_level=None, timeout=30)
-        self._con.execute("PRAGMA journal_mode=WAL")
-        self._con.execute("PRAGMA synchronous=NORMAL")
-        self._con.executescript(SCHEMA)
+        self._connect(self.db_path, SCHEMA)
         held = {r[1] for r in self._con.execute("PRAGMA table_info(heldout)")}
         if "per_set" not in held:  # a run written before held-out scores kept their sets and terms
             self._con.execute("ALTER TABLE heldout ADD COLUMN per_set TEXT")
@@ -696,6 +686,11 @@ class RunStore(RunFiles):
             ),
         )
 
+    def growths(self) -> int:
+        """Every tree the run grew: each evaluation's model seeds and each held-out score's."""
+        q = "SELECT COALESCE(SUM(json_array_length(seeds)), 0) FROM {}"
+        return sum(int(self._con.execute(q.format(t)).fetchone()[0]) for t in ("evaluations", "heldout"))
+
     def count(self, status: str | None = None) -> int:
         """Logged evaluations (of ``status`` only, when given)."""
         if status is None:
@@ -780,14 +775,6 @@ class RunStore(RunFiles):
     def clear_log(self) -> None:
         self._con.execute("DELETE FROM log")
 
-    # ------------------------------------------------------------------ meta
-    def set_meta(self, key: str, value: Any) -> None:
-        self._con.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, _column(value)))
-
-    def get_meta(self, key: str, default=None):
-        r = self._con.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone()
-        return default if r is None else json.loads(r[0])
-
     # ------------------------------------------------------------------ json files
     def write_json(self, name: str, data) -> Path:
         return write_json(self.path / name, data)
@@ -838,16 +825,3 @@ class RunStore(RunFiles):
             with np.load(npz) as z:
                 diag.update({k: z[k] for k in z.files})
         return diag
-
-    def close(self) -> None:
-        """Close the log's connection. Close it when done rather than leave it to the garbage
-        collector: the last connection's close checkpoints SQLite's write-ahead log into
-        ``evaluations.sqlite``, which must not happen at a random later moment (under a later
-        command reading the run)."""
-        self._con.close()
-
-    def __enter__(self) -> RunStore:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

@@ -949,6 +949,17 @@ class Optimizer(Component):
             The best point and how the search went.
         """
 
+    def takes_start(self) -> bool:
+        """Whether the search evaluates ``Problem.start``'s points first (optional).
+
+        Returns
+        -------
+        bool
+            Default False: the optimiser starts on its own (a fit with ``[start] estimator`` is
+            then refused, naming the optimiser).
+        """
+        return False
+
     def expected_evaluations(self, dim: int) -> int | None:
         """Return the evaluations a run plans when no stop comes first (optional).
 

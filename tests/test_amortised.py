@@ -151,6 +151,21 @@ def test_without_the_extra_the_commands_say_what_to_install(tmp_path, monkeypatc
 
 
 # ------------------------------------------------------------------------------ the search's start
+def test_a_start_the_fit_cannot_use_is_named_by_config_check(tmp_path):
+    _fake_file(tmp_path / "e.npz")
+    base = f'seed = 1\n[target]\nqsm = {json.dumps(_pines(3)[0])}\n[ssm]\nkind = "lignum"\n'
+    cases = (
+        ("q_mean = { lower = 0.2, upper = 0.4 }", 'kind = "cma"\ninit_design = 8', None),
+        ("q_mean = { lower = 0.2, upper = 0.4 }", 'kind = "ga"', "the optimizer 'ga' with these settings takes no"),
+        ("radiation = { lower = 20, upper = 40 }", 'kind = "cma"\ninit_design = 8', "free parameter(s) radiation"),
+    )
+    for free, optimizer, message in cases:
+        cfg = tmp_path / "r.toml"
+        cfg.write_text(base + f"free.{free}\n[start]\nestimator = 'e.npz'\n[optimizer]\n{optimizer}\n")
+        problems = am.start_problems(bf.load_config(cfg))
+        assert (problems == []) if message is None else (len(problems) == 1 and message in problems[0]), problems
+
+
 def test_cma_starts_from_the_problems_start_points():
     from bforest_core.interfaces import Problem
 

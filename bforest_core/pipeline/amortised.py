@@ -644,7 +644,14 @@ def start_problems(cfg) -> list[str]:
     estimator whose libraries are missing."""
     if cfg.start.estimator is None:
         return []
+    from ..config import section_settings
+
     try:
+        if not component("optimizer", cfg.optimizer.kind, **section_settings(cfg, "optimizer")).takes_start():
+            return [
+                f"start.estimator: the optimizer '{cfg.optimizer.kind}' with these settings takes no start points "
+                "(cma does, as its init_design)"
+            ]
         path = start_estimator_path(cfg)
         header, _ = checked_header(path)
         if header["model"] != cfg.ssm.kind:

@@ -120,6 +120,7 @@ def optimizer_checks(
 
     def c_budget():
         opt = _need(inst, err)
+        _require(isinstance(opt.takes_start(), bool), f"takes_start() is {opt.takes_start()!r}, expected a bool")
         plan = opt.expected_evaluations(3)
         _require(
             plan is None or (isinstance(plan, int) and plan >= 1),

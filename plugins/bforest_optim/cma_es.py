@@ -110,6 +110,9 @@ class CMAES(Optimizer):
     summary = "CMA-ES (cma package): bounds, integer rounding, IPOP restarts, noise-aware stop"
     Settings = CMASettings
 
+    def takes_start(self) -> bool:
+        return self.settings.init_design > 0
+
     def expected_evaluations(self, dim: int) -> int | None:
         s = self.settings
         if s.max_generations is None or s.surrogate != "none":

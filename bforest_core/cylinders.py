@@ -31,6 +31,7 @@ from .tree import (
     cycle_problems,
     extension_problems,
     id_problems,
+    remap_ids,
     rows_text,
     value_problems,
 )
@@ -529,7 +530,6 @@ def build_tree(
     if file_rows.size < n:
         new = np.full(n, -1, dtype=np.int64)
         new[file_rows] = np.arange(file_rows.size)
-        remap = lambda a: np.where(a >= 0, new[np.maximum(a, 0)], -1)
         radius, length, start, axis, added, norms = (
             radius[file_rows],
             length[file_rows],
@@ -538,8 +538,8 @@ def build_tree(
             added[file_rows],
             norms[file_rows],
         )
-        parent = remap(parent[file_rows])
-        extension = remap(extension[file_rows])
+        parent = remap_ids(parent[file_rows], new)
+        extension = remap_ids(extension[file_rows], new)
     axis = _renormalised_axes(path, axis, norms, file_rows, repairs)
     extras = {}
     for k, v in (raw.extras or {}).items():

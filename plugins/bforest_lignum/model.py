@@ -48,7 +48,7 @@ from scipy.optimize import brentq
 from scipy.special import ndtr, ndtri
 
 from bforest_core.errors import SimulationFailed
-from bforest_core.tree import Tree, group_by_level
+from bforest_core.tree import Tree, group_by_level, remap_ids
 
 from .shadow import q_max_of, shadow_fast, voxel_coords
 
@@ -221,7 +221,7 @@ def render_pieces(
     pstart = start[keep] + before
     ppar = np.where(j > 0, np.arange(keep.size) - 1, -1)
     root = j == 0
-    ppar[root] = np.where(parent[keep[root]] >= 0, last[np.maximum(parent[keep[root]], 0)], -1)
+    ppar[root] = remap_ids(parent[keep[root]], last)
     pext = np.where(j < kk - 1, np.arange(keep.size) + 1, -1)
     at_last = np.flatnonzero(j == kk - 1)
     has_ext = ext[keep[at_last]] >= 0
@@ -406,7 +406,7 @@ class _Simulation:
         remap = np.full(st.n, -1, dtype=np.int64)
         remap[idx] = np.arange(idx.size)
         par = st.parent[idx]
-        parent_out = np.where(par >= 0, remap[np.maximum(par, 0)], -1)
+        parent_out = remap_ids(par, remap)
         ext = np.full(idx.size, -1, dtype=np.int64)
         ap = (par >= 0) & ~st.is_lat[idx]
         ext[parent_out[ap]] = np.flatnonzero(ap)

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bforest_core.tree import Tree, group_by_level
+from bforest_core.tree import Tree, group_by_level, remap_ids
 
 from .kernels import advance_frames, sum_levels, turn_geometry
 from .light import LightField
@@ -484,7 +484,7 @@ class SOTGrowth:
         loc = np.full(s.n, -1, dtype=np.int64)
         loc[ids] = np.arange(ids.size)
         par = s.parent[ids]
-        lpar = np.where(par >= 0, loc[np.maximum(par, 0)], -1)
+        lpar = remap_ids(par, loc)
         ac = np.where(s.api_state[ids] == CHILD, loc[np.maximum(s.api_child[ids], 0)], -1)
         lc = np.where(s.lat_state[ids] == CHILD, loc[np.maximum(s.lat_child[ids], 0)], -1)
         return ids, loc, lpar, ac, lc
@@ -1057,8 +1057,8 @@ def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
         ids, width, par, ext_g = ids[keep], width[keep], par[keep], ext_g[keep]
     loc = np.full(s.n, -1, dtype=np.int64)
     loc[ids] = np.arange(ids.size)
-    parent = np.where(par >= 0, loc[np.maximum(par, 0)], -1)
-    ext = np.where(ext_g >= 0, loc[np.maximum(ext_g, 0)], -1)
+    parent = remap_ids(par, loc)
+    ext = remap_ids(ext_g, loc)
     start, h, length, age = s.start[ids], s.h[ids], s.length[ids], run.cycle - s.born[ids]
     if run.p.get("shed_stub", 0.0) > 0.0:
         b, c, w, frac = _stubs(run)

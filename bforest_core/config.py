@@ -485,6 +485,47 @@ def _allowed_keys(model, raw, loc) -> list[str]:
     return list(cur.model_fields) if cur is not None else []
 
 
+def parameter_problems(where: str, model: str, specs: dict, values: dict) -> list[str]:
+    """Check parameter entries of a config against a model's ``ParameterSpec``s.
+
+    The one check of a parameter's name and range (``ssm.fixed``, ``ssm.free``,
+    ``target.generate.params``).
+
+    Parameters
+    ----------
+    where : str
+        The entries' key path in the config (``"ssm.fixed"``).
+    model : str
+        The SSM's name, for messages.
+    specs : dict
+        ``ParameterSpec`` by name.
+    values : dict
+        Name -> a value, a ``(lower, upper)`` pair of bounds, or None (the name alone is checked).
+
+    Returns
+    -------
+    list of str
+        One message per unknown name or value (bound) outside its parameter's range.
+    """
+    problems = []
+    for name, val in values.items():
+        s = specs.get(name)
+        if s is None:
+            problems.append(
+                f"{where}.{name}: unknown parameter of '{model}' (known: {', '.join(specs)}){did_you_mean(name, specs)}"
+            )
+        elif isinstance(val, tuple) and (val[0] < s.lower or val[1] > s.upper):
+            problems.append(
+                f"{where}.{name}: bounds [{val[0]}, {val[1]}] exceed the allowed range "
+                f"[{s.lower}, {s.upper}] {s.unit}".rstrip()
+            )
+        elif val is not None and not isinstance(val, tuple) and not s.lower <= val <= s.upper:
+            problems.append(
+                f"{where}.{name}: {val} is outside the allowed range [{s.lower}, {s.upper}] {s.unit}".rstrip()
+            )
+    return problems
+
+
 def check_ssm_parameters(cfg: RunConfig) -> None:
     """Check that ``fixed`` and ``free`` entries name parameters of the SSM, within its ranges.
 
@@ -510,32 +551,12 @@ def check_ssm_parameters(cfg: RunConfig) -> None:
         for n in specs
         if not _identifier(n)
     ]
-    for name, val in cfg.ssm.fixed.items():
-        if name not in specs:
-            problems.append(
-                f"ssm.fixed.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
-                f"{did_you_mean(name, specs)}"
-            )
-        elif not specs[name].lower <= val <= specs[name].upper:
-            s = specs[name]
-            problems.append(
-                f"ssm.fixed.{name}: {val} is outside the allowed range [{s.lower}, {s.upper}] {s.unit}".rstrip()
-            )
-    for name, fp in cfg.ssm.free.items():
-        if name not in specs:
-            problems.append(
-                f"ssm.free.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
-                f"{did_you_mean(name, specs)}"
-            )
-            continue
-        s = specs[name]
-        if name in cfg.ssm.fixed:
-            problems.append(f"ssm.free.{name}: also listed in ssm.fixed")
-        if fp.scaled_by is None and (fp.lower < s.lower or fp.upper > s.upper):  # scaled: once resolved
-            problems.append(
-                f"ssm.free.{name}: bounds [{fp.lower}, {fp.upper}] exceed the allowed range "
-                f"[{s.lower}, {s.upper}] {s.unit}".rstrip()
-            )
+    kind = cfg.ssm.kind
+    problems += parameter_problems("ssm.fixed", kind, specs, cfg.ssm.fixed)
+    # a bound scaled to the tree is checked once resolved (pipeline.target)
+    bounds = {n: None if fp.scaled_by is not None else (fp.lower, fp.upper) for n, fp in cfg.ssm.free.items()}
+    problems += parameter_problems("ssm.free", kind, specs, bounds)
+    problems += [f"ssm.free.{n}: also listed in ssm.fixed" for n in cfg.ssm.free if n in specs and n in cfg.ssm.fixed]
     if problems:
         raise ConfigError("; ".join(problems))
 
@@ -571,19 +592,7 @@ def check_generated_target(cfg: RunConfig) -> None:
     except ConfigError as exc:
         raise ConfigError(f"target.generate.settings: {exc}") from None
     specs = {p.name: p for p in ssm.parameters}
-    problems = []
-    for name, val in gen.params.items():
-        s = specs.get(name)
-        if s is None:
-            problems.append(
-                f"target.generate.params.{name}: unknown parameter of '{gen.ssm}' "
-                f"(known: {', '.join(specs)}){did_you_mean(name, specs)}"
-            )
-        elif not s.lower <= val <= s.upper:
-            problems.append(
-                f"target.generate.params.{name}: {val} is outside the allowed range "
-                f"[{s.lower}, {s.upper}] {s.unit}".rstrip()
-            )
+    problems = parameter_problems("target.generate.params", gen.ssm, specs, gen.params)
     if problems:
         raise ConfigError("; ".join(problems))
 

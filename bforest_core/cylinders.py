@@ -22,7 +22,7 @@ from typing import Literal, Optional, Union
 import numpy as np
 from pydantic import ValidationError
 
-from .errors import ConfigError, QSMFormatError, TreeError
+from .errors import ConfigError, QSMFormatError, QSMReadWarning, TreeError
 from .interfaces import ComponentSettings, QSMReader, QSMWriter
 from .tree import (
     MAX_ROWS_SHOWN,
@@ -38,20 +38,6 @@ from .tree import (
 
 #: a deviation of the axis norm from 1 above this is reported (docs/qsm-formats.md §0)
 AXIS_WARN_TOL = 1e-3
-
-
-class QSMReadWarning(UserWarning):
-    """A QSM file was read with a repair or an inconsistency worth knowing about."""
-
-
-def quiet_read_repairs() -> None:
-    """Keep :class:`QSMReadWarning` quiet in this process.
-
-    For a command's helper processes (the executors' workers, the report's second process): the
-    command reads the same files first and reports their repairs once; a helper's copy would
-    print them again, once per process, in Python's raw format.
-    """
-    warnings.filterwarnings("ignore", category=QSMReadWarning)
 
 
 class Repair(dict):

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
+from .errors import quiet_read_repairs
 from .metrics import SIZE_LIMITS
 
 if TYPE_CHECKING:
@@ -1035,10 +1036,8 @@ class Executor(Component):
         executors do).
 
         It limits the worker to one BLAS/OpenMP thread (:meth:`limit_worker_threads`) and keeps
-        a QSM's read repairs quiet there (:func:`~bforest_core.cylinders.quiet_read_repairs`).
+        a QSM's read repairs quiet there (:func:`~bforest_core.errors.quiet_read_repairs`).
         """
-        from .cylinders import quiet_read_repairs
-
         Executor.limit_worker_threads()
         quiet_read_repairs()
 

@@ -8,7 +8,9 @@ its kernel modules and the conformance kit), never another plugin nor the core's
 or cli. Every import counts, also those inside functions; so do dynamic loads
 (``importlib.import_module``, ``__import__``) of the project's modules, which only the registry
 makes (through entry points). A private name (``_x``) is imported only within its layer (or
-package): another layer uses the public names.
+package): another layer uses the public names. No module imports itself round a circle of imports
+(in the core or a plugin), also not through an import inside a function; only imports under ``if
+TYPE_CHECKING:``, which never run, are left out of that.
 """
 
 from __future__ import annotations
@@ -35,6 +37,13 @@ SUBPACKAGES = ("pipeline", "report", "cli", "testing")
 PLUGIN_ALLOWED = {"facade", "kernel", "testing"}
 #: the one module that loads plugins (through entry points)
 REGISTRY = "registry"
+#: the pipeline modules the report reads a run through: its files (store) and the definitions of
+#: what it shows (the posterior, the fidelity table's limits) ...
+REPORT_READS = {"store", "posterior", "fidelity"}
+#: ... and, in the one module that rebuilds what the run computed (``report/run_view.py``: the
+#: target, the answer's model seeds and tree, the clones' table), the stages that computed it
+RUN_VIEW = "report.run_view"
+RUN_VIEW_REBUILDS = REPORT_READS | {"seeds", "target", "scoring", "clones"}
 
 
 def module_name(path: Path, top: Path) -> str:
@@ -63,13 +72,37 @@ def _dynamic_target(node: ast.AST) -> str | None:
     return arg.value if isinstance(arg, ast.Constant) and isinstance(arg.value, str) else "?"
 
 
-def imports(path: Path, name: str) -> list[tuple[int, str, list[str], bool]]:
+def _type_checking(node: ast.AST) -> bool:
+    """An ``if TYPE_CHECKING:`` block (its imports never run)."""
+    t = node.test if isinstance(node, ast.If) else None
+    return (
+        isinstance(t, ast.Name)
+        and t.id == "TYPE_CHECKING"
+        or isinstance(t, ast.Attribute)
+        and t.attr == "TYPE_CHECKING"
+    )
+
+
+def _nodes(tree: ast.AST, runtime: bool):
+    """Every node of ``tree`` (``runtime``: leaving out the bodies of ``if TYPE_CHECKING:``)."""
+    todo = [tree]
+    while todo:
+        node = todo.pop()
+        yield node
+        if runtime and _type_checking(node):
+            todo += node.orelse
+        else:
+            todo += ast.iter_child_nodes(node)
+
+
+def imports(path: Path, name: str, runtime: bool = False) -> list[tuple[int, str, list[str], bool]]:
     """``(line, absolute module, names imported from it, dynamic)`` of every import in a file
-    (relative imports resolved; ``dynamic``: a call of ``import_module``/``__import__``)."""
+    (relative imports resolved; ``dynamic``: a call of ``import_module``/``__import__``;
+    ``runtime``: imports under ``if TYPE_CHECKING:`` left out)."""
     is_pkg = path.name == "__init__.py"
     package = name if is_pkg else name.rpartition(".")[0]
     out = []
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+    for node in _nodes(ast.parse(path.read_text(encoding="utf-8")), runtime):
         if isinstance(node, ast.Import):
             out += [(node.lineno, a.name, [], False) for a in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -126,6 +159,18 @@ def _dynamic_problem(where: str, mod: str, dynamic: bool) -> str | None:
     return None
 
 
+def _report_reads(name: str, mod: str, core: str) -> str | None:
+    """A report module importing a pipeline module it does not read runs through (None: allowed)."""
+    stage = mod.removeprefix(f"{core}.pipeline").lstrip(".")
+    own = RUN_VIEW_REBUILDS if name == f"{core}.{RUN_VIEW}" else REPORT_READS
+    if stage in own:
+        return None
+    return (
+        f"the report imports {mod}: it reads a run through pipeline.{', pipeline.'.join(sorted(REPORT_READS))}, "
+        f"and rebuilds what the run computed in {RUN_VIEW} only"
+    )
+
+
 def violations(core_dir: Path, plugin_dirs: list[Path]) -> list[str]:
     """Every import that breaks the layering, as ``file:line: problem``."""
     out = []
@@ -149,6 +194,8 @@ def violations(core_dir: Path, plugin_dirs: list[Path]) -> list[str]:
             theirs = core_layer(mod, core)
             if theirs is not None and theirs not in ALLOWED[mine]:
                 out.append(f"{where}: {mine} imports {theirs} ({mod})")
+            elif mine == "report" and theirs == "pipeline" and _report_reads(name, mod, core) is not None:
+                out.append(f"{where}: {_report_reads(name, mod, core)}")
             elif theirs is not None and theirs != mine and any(map(_private, names)):
                 out.append(
                     f"{where}: {mine} imports the private name(s) {', '.join(filter(_private, names))} "
@@ -182,6 +229,84 @@ def violations(core_dir: Path, plugin_dirs: list[Path]) -> list[str]:
     return out
 
 
+def import_graph(dirs: list[Path]) -> dict[str, dict[str, str]]:
+    """Module -> {imported module of the project: where (``file:line``)}, over the packages
+    ``dirs`` (the core and the plugins), every import that runs counted, also inside functions.
+    ``from package import name`` imports the package, and the module ``name`` when it is one."""
+    graph: dict[str, dict[str, str]] = {}
+    for top in dirs:
+        for f in sorted(top.rglob("*.py")):
+            name = module_name(f, top.parent)
+            edges = graph.setdefault(name, {})
+            for line, mod, names, dynamic in imports(f, name, runtime=True):
+                if dynamic or not mod.split(".")[0].startswith("bforest"):
+                    continue
+                where = f"{f.relative_to(top.parent)}:{line}"
+                base = top.parent if mod.split(".")[0] == top.name else None
+                for target in [mod] + [f"{mod}.{n}" for n in names]:
+                    if base is None or _is_module(target, base):
+                        edges.setdefault(target, where)
+    return graph
+
+
+def _is_module(mod: str, base: Path) -> bool:
+    path = base.joinpath(*mod.split("."))
+    return path.with_suffix(".py").exists() or (path / "__init__.py").exists()
+
+
+def import_circles(dirs: list[Path]) -> list[str]:
+    """Every circle of imports among the modules of ``dirs``: ``a -> b (where) -> a (where)``.
+
+    One circle per strongly connected set of modules (Tarjan's algorithm), shown along a
+    shortest way back to its first module."""
+    graph = import_graph(dirs)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    groups: list[list[str]] = []
+
+    def visit(v: str) -> None:  # recursion depth: the longest import chain (a few dozen)
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph.get(v, {}):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while not group or group[-1] != v:
+                group.append(stack.pop())
+            if len(group) > 1 or v in graph.get(v, {}):
+                groups.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    out = []
+    for group in groups:
+        first = group[0]
+        came: dict[str, str | None] = {first: None}  # breadth first from `first` to a module importing it
+        todo, end = [first], None
+        while end is None:
+            v = todo.pop(0)
+            if first in graph.get(v, {}):
+                end = v
+            for w in graph.get(v, {}):
+                if w in group and w not in came:
+                    came[w] = v
+                    todo.append(w)
+        chain = []
+        while end is not None:
+            chain.append(end)
+            end = came[end]
+        path = chain[::-1] + [first]
+        steps = " -> ".join(f"{b} ({graph[a][b]})" for a, b in zip(path, path[1:]))
+        out.append(f"import circle: {path[0]} -> {steps}")
+    return out
+
+
 def plugin_packages() -> list[Path]:
     dirs = sorted(p for p in (ROOT / "plugins").iterdir() if (p / "__init__.py").exists())
     example = ROOT / "docs" / "examples" / "bforest-example-ssm" / "bforest_example_ssm"
@@ -191,6 +316,11 @@ def plugin_packages() -> list[Path]:
 def test_the_project_keeps_its_layers():
     found = violations(ROOT / CORE, plugin_packages())
     assert not found, "imports against the layering:\n" + "\n".join(found)
+
+
+def test_no_module_imports_itself_round_a_circle():
+    found = import_circles([ROOT / CORE, *plugin_packages()])
+    assert not found, "\n".join(found)
 
 
 # ------------------------------------------------------------------ the check itself can fail
@@ -258,6 +388,12 @@ def test_the_check_finds_every_upward_import(tmp_path, mine, theirs):
             "from importlib import import_module\nm = import_module('bforest_' + 'a')\n",
             "dynamic import of a computed module name outside the registry",
         ),
+        # the report reads runs through the store (and rebuilds trees in run_view only)
+        (
+            "bforest_core/report/__init__.py",
+            "def f():\n    from ..pipeline.fit import fit\n",
+            "the report imports bforest_core.pipeline.fit: it reads a run through pipeline.fidelity",
+        ),
         # plugins use the core's public face only
         (
             "plugins/bforest_a/m.py",
@@ -294,3 +430,56 @@ def test_the_check_finds_each_kind_of_violation(tmp_path, rel, text, expected):
     _write(tmp_path, {rel: text})
     found = violations(tmp_path / "bforest_core", [tmp_path / "plugins" / "bforest_a"])
     assert len(found) == 1 and expected in found[0], found
+
+
+@pytest.mark.parametrize(
+    "files, circle",
+    [
+        # at module level, within the kernel
+        (
+            {"bforest_core/tree.py": "from .io import y\n", "bforest_core/io.py": "from .tree import Tree\n"},
+            "bforest_core.io -> bforest_core.tree (bforest_core/io.py:1) -> bforest_core.io (bforest_core/tree.py:1)",
+        ),
+        # closed inside a function, within a layer (the layering allows both imports)
+        (
+            {
+                "bforest_core/pipeline/fit.py": "from .store import x\n",
+                "bforest_core/pipeline/store.py": "def f():\n    from .fit import g\n",
+            },
+            "bforest_core.pipeline.fit -> bforest_core.pipeline.store (bforest_core/pipeline/fit.py:1) -> "
+            "bforest_core.pipeline.fit (bforest_core/pipeline/store.py:2)",
+        ),
+        # three modules of a plugin, one through `from . import name`
+        (
+            {
+                "plugins/bforest_a/m.py": "from . import n\nz = 1\n",
+                "plugins/bforest_a/n.py": "from .o import w\n",
+                "plugins/bforest_a/o.py": "def f():\n    from bforest_a.m import z\n",
+            },
+            "bforest_a.m -> bforest_a.n (bforest_a/m.py:1) -> bforest_a.o (bforest_a/n.py:1) -> "
+            "bforest_a.m (bforest_a/o.py:2)",
+        ),
+    ],
+    ids=["module-level", "inside-a-function", "plugin"],
+)
+def test_the_check_finds_an_import_circle(tmp_path, files, circle):
+    _write(tmp_path, GOOD)
+    dirs = [tmp_path / "bforest_core", tmp_path / "plugins" / "bforest_a"]
+    assert import_circles(dirs) == []
+    _write(tmp_path, files)
+    found = import_circles(dirs)
+    assert found == [f"import circle: {circle}"], found
+
+
+def test_an_import_for_type_checking_only_closes_no_circle(tmp_path):
+    _write(tmp_path, GOOD)
+    _write(
+        tmp_path,
+        {
+            "bforest_core/tree.py": "from .io import y\n",
+            "bforest_core/io.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .tree import Tree\ny = 1\n",
+        },
+    )
+    assert import_circles([tmp_path / "bforest_core"]) == []
+    (tmp_path / "bforest_core" / "io.py").write_text("from .tree import Tree\ny = 1\n")
+    assert len(import_circles([tmp_path / "bforest_core"])) == 1

@@ -29,7 +29,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from ..cylinders import quiet_read_repairs
+from ..errors import quiet_read_repairs
 from .attributes import fig_distributions
 from .canvas import FORMATS, current_output, figure_output
 from .convergence import fig_convergence

@@ -13,7 +13,7 @@ from ..io import write_json
 from ..registry import component_class
 from .heldout import heldout_mean, point_key, score_points, scoring_fingerprint
 from .progress import progress_bar
-from .seeds import heldout_seeds
+from .seeds import heldout_seeds, repeat_seeds
 from .store import RunDirError, RunFiles, RunStore
 from .target import build_target
 from .worker import started_workers
@@ -185,12 +185,13 @@ def compare(
     target = build_target(base)
     raw = config_to_dict(base)
     curves, rows = {}, []
+    run_seeds = repeat_seeds(int(base.seed), repeats)
     bar = progress_bar(len(optimizers) * repeats * int(budget), "compare", "eval", progress)
     for name in optimizers:
         curves[name] = []
         for r in range(repeats):
             cfg_raw = dict(raw)
-            cfg_raw["seed"] = int(base.seed) + r
+            cfg_raw["seed"] = run_seeds[r]
             cfg_raw["optimizer"] = {"kind": name, **_settings_for_budget(raw, name, int(budget))}
             cfg_raw["stop"] = {**raw.get("stop", {}), "max_evaluations": int(budget)}
             # the comparison is of the searches: each run's answer is its best own distance (the
@@ -226,7 +227,7 @@ def compare(
             bar.update(int(budget))  # a run that stopped early still takes its share of the total
             curve = best_so_far(run)
             curves[name].append(curve)
-            rows.append({"optimizer": name, "repeat": r, **row})
+            rows.append({"optimizer": name, "repeat": r, "seed": run_seeds[r], **row})
     bar.close()
     finals = np.array([row["best"] for row in rows])
     threshold_name = None

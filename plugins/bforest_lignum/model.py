@@ -372,22 +372,12 @@ class _Failed(Exception):
 
 
 class _Simulation:
-    def __init__(
-        self,
-        p: dict,
-        seed: int,
-        *,
-        preset: str,
-        order_mode: str,
-        max_live: int,
-        on_step: Callable | None = None,
-        trace: list | None = None,
-    ):
+    def __init__(self, p: dict, seed: int, settings, *, on_step: Callable | None = None, trace: list | None = None):
         self.p = p
         self.seed = seed
-        self.preset = preset
-        self.order_mode = order_mode
-        self.max_live = max_live
+        #: the model's validated settings (``LignumSSM.Settings``): preset, order_mode,
+        #: max_live_segments, piece_length
+        self.settings = settings
         self.on_step = on_step
         self.trace = trace
         self.rng = np.random.Generator(np.random.PCG64(seed))
@@ -414,13 +404,13 @@ class _Simulation:
         axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
         meta = {
             "model": "lignum",
-            "preset": self.preset,
+            "preset": self.settings.preset,
             "params": dict(self.p),
             "seed": int(self.seed),
             "status": status,
             "years": int(self.p["years"]),
             "year_reached": int(t),
-            "order_mode": self.order_mode,
+            "order_mode": self.settings.order_mode,
             "units": {"length": "m", "angle": "deg"},
             "frame": "right-handed, z up, stem base at the origin",
             "root_mass": float(self.Wr),
@@ -437,7 +427,8 @@ class _Simulation:
             "birth_year": st.born[idx].copy(),
         }
         start, length, radius = st.start[idx], st.length[idx], st.radius[idx]
-        if self.p["piece_length"] > 0:
+        piece = self.settings.piece_length
+        if piece > 0:
             start, axis, length, parent_out, ext, keep = render_pieces(
                 start,
                 axis,
@@ -445,13 +436,13 @@ class _Simulation:
                 parent_out,
                 ext,
                 st.order[idx],
-                self.p["piece_length"],
+                piece,
                 self.p["wind_sd"],
                 render_rng(self.seed),
             )
             radius = radius[keep]
             extras = {k: v[keep] for k, v in extras.items()}
-            meta["pieces"] = {"piece_length": float(self.p["piece_length"]), "wind_sd": float(self.p["wind_sd"])}
+            meta["pieces"] = {"piece_length": float(piece), "wind_sd": float(self.p["wind_sd"])}
         return Tree(
             start,
             axis,
@@ -459,7 +450,7 @@ class _Simulation:
             radius,
             parent_out,
             ext,
-            topology="thickest" if self.order_mode == "thickest" else "source",
+            topology="thickest" if self.settings.order_mode == "thickest" else "source",
             extras=extras,
             metadata=meta,
         )
@@ -534,8 +525,11 @@ class _Simulation:
                 self.trace.append(tr)
             # k. size cap
             n_live = int(np.count_nonzero(~st.deleted))
-            if n_live > self.max_live:
-                raise _Failed("too_many_segments", f"{n_live} live segments > max_live_segments = {self.max_live}")
+            if n_live > self.settings.max_live_segments:
+                raise _Failed(
+                    "too_many_segments",
+                    f"{n_live} live segments > max_live_segments = {self.settings.max_live_segments}",
+                )
         return T
 
     def _light(self, live):

@@ -107,8 +107,10 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
     return RecipeDraft(
         suits=suits,
         why=why,
-        settings=[("preset", "sf_real", "the papers' real-tree values for what is not fitted")],
-        fixed=[("piece_length", 0.15, "drawn as a scan's QSM draws a tree: shoots as cylinders of at most 15 cm")],
+        settings=[
+            ("preset", "sf_real", "the papers' real-tree values for what is not fitted"),
+            ("piece_length", 0.15, "drawn as a scan's QSM draws a tree: shoots as cylinders of at most 15 cm"),
+        ],
         free=free,
         timeout=60.0,
         scaled={"years": "height"},

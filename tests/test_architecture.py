@@ -37,6 +37,9 @@ SUBPACKAGES = ("pipeline", "report", "cli", "testing")
 PLUGIN_ALLOWED = {"facade", "kernel", "testing"}
 #: the one module that loads plugins (through entry points)
 REGISTRY = "registry"
+#: a package that extends a plugin through that plugin's own extension interface (a growth form of
+#: SOT: ``bforest_sot.forms``) may import it; the bundled plugins never import each other
+EXTENDS = {"bforest_example_sot_form": {"bforest_sot"}}
 #: the pipeline modules the report reads a run through: its files (store) and the definitions of
 #: what it shows (the posterior, the fidelity table's limits) ...
 REPORT_READS = {"store", "posterior", "fidelity"}
@@ -212,7 +215,7 @@ def violations(core_dir: Path, plugin_dirs: list[Path]) -> list[str]:
                     out += [problem] if problem else []
                     continue
                 top = mod.split(".")[0]
-                if top.startswith("bforest_") and top not in (own, core):
+                if top.startswith("bforest_") and top not in (own, core, *EXTENDS.get(own, ())):
                     out.append(f"{where}: plugin {own} imports plugin {mod}")
                 elif top == core:
                     layer = core_layer(_module_or_package(mod, core_dir.parent), core)
@@ -309,8 +312,11 @@ def import_circles(dirs: list[Path]) -> list[str]:
 
 def plugin_packages() -> list[Path]:
     dirs = sorted(p for p in (ROOT / "plugins").iterdir() if (p / "__init__.py").exists())
-    example = ROOT / "docs" / "examples" / "bforest-example-ssm" / "bforest_example_ssm"
-    return dirs + ([example] if example.exists() else [])
+    examples = [
+        ROOT / "docs" / "examples" / "bforest-example-ssm" / "bforest_example_ssm",
+        ROOT / "docs" / "examples" / "bforest-example-sot-form" / "bforest_example_sot_form",
+    ]
+    return dirs + [e for e in examples if e.exists()]
 
 
 def test_the_project_keeps_its_layers():

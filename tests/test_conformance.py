@@ -36,6 +36,7 @@ from conftest import qsm_path
 #: (a reader without samples reads the sample tree as the writer of its name writes it).
 OPTIONS = {
     ("ssm", "sot"): {"params": {"max_iter": 8}},
+    ("ssm", "sot-bud-abort"): {"params": {"max_iter": 8}},  # the example growth form (docs/examples)
     ("ssm", "lignum"): {"params": {"years": 6}},
     ("features", "branch-segment"): {"settings": {"sets": ["S0,1", "B1", "B2"]}},
     ("optimizer", "ga"): {"settings": {"population": 8}},

@@ -9,8 +9,8 @@ Grows the trees a fit of each recipe grows (``--recipe``, any number; default th
 a LIGNUM recipe works too): ``--points`` points of a scrambled Sobol' design over the recipe's
 search box (a bound scaled to the tree, ``scaled_by``, by the measure of the recipe's target), each with
 every model seed of ``--seeds``, with the recipe's model settings and fixed parameters. A fixed
-value that one checkout's model takes as a setting, not a parameter (LIGNUM's ``piece_length``
-since issue 76), is given to it as a setting. Each checkout runs in its own process with its own
+value that one checkout's model takes as a setting and the other's as a parameter (LIGNUM's
+``piece_length`` since issue 76) is given to each as it takes it. Each checkout runs in its own process with its own
 ``.venv`` (imports and numba's compiled-code cache load are left out of the time: the first
 point is grown once before the clock starts), alternately, ``--repeats`` times; the figure is
 the median. Prints per recipe the milliseconds per tree of both, their ratio, and whether the
@@ -67,10 +67,13 @@ def child(checkout: str, n: int, recipe: Path, seeds: list[int]) -> None:
     section = tomllib.loads(recipe.read_text())["ssm"]
     settings = {k: v for k, v in section.items() if k not in ("kind", "free", "fixed", "topology")}
     cls = bf.discover().get("ssm", section["kind"])
+    # a value one checkout's model takes as a setting and the other's as a fixed parameter
+    as_param = {k: v for k, v in settings.items() if k not in cls.Settings.model_fields}
+    settings = {k: v for k, v in settings.items() if k not in as_param}
     known = {p.name for p in cls(**settings).parameters}
     moved = {k: v for k, v in section.get("fixed", {}).items() if k not in known and k in cls.Settings.model_fields}
     ssm = cls(**settings, **moved)
-    pts = [{k: v for k, v in p.items() if k not in moved} for p in points(recipe, n)]
+    pts = [{**as_param, **{k: v for k, v in p.items() if k not in moved}} for p in points(recipe, n)]
 
     def grow(p, seed):
         status = "ok"

@@ -541,10 +541,7 @@ def check_ssm_parameters(cfg: RunConfig) -> None:
     PluginError
         If the SSM is not installed.
     """
-    from .registry import component
-
-    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
-    specs = {p.name: p for p in ssm.parameters}
+    specs = {p.name: p for p in build_component(cfg, "ssm").parameters}
     problems = [
         f"ssm '{cfg.ssm.kind}': the plugin's parameter name {n!r} is not a Python identifier (it is a "
         "TOML key, a column name and a report label)"
@@ -597,38 +594,54 @@ def check_generated_target(cfg: RunConfig) -> None:
         raise ConfigError("; ".join(problems))
 
 
-def ssm_settings(cfg: RunConfig) -> dict:
-    """Return the SSM plugin's own settings from the ``[ssm]`` section.
-
-    Parameters
-    ----------
-    cfg : RunConfig
-        The config.
-
-    Returns
-    -------
-    dict
-        The section without ``kind``, ``fixed``, ``free`` and ``topology``.
-    """
-    return cfg.ssm.model_dump(exclude={"kind", "fixed", "free", "topology"})
-
-
-def section_settings(cfg: RunConfig, section: str) -> dict:
-    """Return a component section's settings (without ``kind``).
+def build_component(cfg: RunConfig, section: str):
+    """Build the component a section of the config selects: the one place a run's components are made.
 
     Parameters
     ----------
     cfg : RunConfig
         The config.
     section : str
-        The section: ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
+        ``"ssm"``, ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
+
+    Returns
+    -------
+    Component
+        The plugin's component, with the section's settings (an SSM's without ``fixed``, ``free``
+        and ``topology``, which are the run's, not the plugin's).
+
+    Raises
+    ------
+    PluginError
+        If the plugin is not installed.
+    """
+    from .registry import component
+
+    return component(SECTIONS[section], getattr(cfg, section).kind, **section_settings(cfg, section))
+
+
+def section_settings(cfg: RunConfig, section: str) -> dict:
+    """Return a component section's settings: the plugin's own.
+
+    Without ``kind`` (an SSM's also without the run's ``fixed``, ``free`` and ``topology``).
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The config.
+    section : str
+        The section: ``"ssm"``, ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
 
     Returns
     -------
     dict
         The component's settings.
     """
-    return getattr(cfg, section).model_dump(exclude={"kind"})
+    return getattr(cfg, section).model_dump(exclude=_RUN_KEYS if section == "ssm" else {"kind"})
+
+
+#: keys of the ``[ssm]`` section that are the run's, not the plugin's settings
+_RUN_KEYS = {"kind", "fixed", "free", "topology"}
 
 
 def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"):

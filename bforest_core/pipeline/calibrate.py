@@ -229,10 +229,9 @@ def run_config(base: dict, i: int, truth: dict, target_seed: int):
 
 
 def _study_spec(cfg: RunConfig):
-    from ..config import ssm_settings
-    from ..registry import component
+    from ..config import build_component
 
-    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+    ssm = build_component(cfg, "ssm")
     names, lo, hi, _, _, integer = _free_specs(cfg, ssm)
     units = [ssm.parameter_spec(n).unit or "" for n in names]
     return names, lo, hi, integer, units

@@ -143,13 +143,13 @@ def bounds_from_target(cfg: RunConfig, trees: list) -> RunConfig:
     recipe); nothing left of the range is a ConfigError. ``cfg`` itself is returned when nothing
     is scaled.
     """
-    from ..config import ssm_settings
+    from ..config import build_component
     from ..metrics import measure_tree
 
     scaled = {n: fp for n, fp in cfg.ssm.free.items() if fp.scaled_by is not None}
     if not scaled:
         return cfg
-    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+    ssm = build_component(cfg, "ssm")
     measures = measure_tree(trees[0])
     free = dict(cfg.ssm.free)
     source = cfg.target.qsm or "the generated target"

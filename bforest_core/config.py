@@ -620,10 +620,60 @@ def build_component(cfg: RunConfig, section: str):
     return component(SECTIONS[section], getattr(cfg, section).kind, **section_settings(cfg, section))
 
 
-def section_settings(cfg: RunConfig, section: str) -> dict:
+@functools.cache
+def _section_holder(section: str, name: str) -> type[BaseModel] | None:
+    """Return a model with the one field ``section`` of plugin ``name``'s section (None: not installed)."""
+    run_config_model()  # builds the section models of the installed plugins
+    model = _BUILT.get(f"_built_{SECTIONS[section]}_{name}")
+    return None if model is None else create_model(f"_{section}_{name}", __base__=_Strict, **{section: (model, ...)})
+
+
+def with_section(cfg: RunConfig, section: str, data: dict, source: str = "config") -> RunConfig:
+    """Return ``cfg`` with one component section replaced.
+
+    A derived config, the new section validated alone and the rest shared (``model_copy``),
+    never a dict round trip of the whole config.
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The config.
+    section : str
+        ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
+    data : dict
+        The new section: ``{"kind": NAME, settings...}``.
+    source : str, optional
+        Name of the derived config in messages (``"select"`` gives ``select: features.sets: ...``).
+
+    Returns
+    -------
+    RunConfig
+        A new config sharing every other section with ``cfg``.
+
+    Raises
+    ------
+    ConfigError
+        For an unknown kind or invalid settings, naming the key path.
+    """
+    model = _section_holder(section, str(data.get("kind")))
+    if model is None:
+        names = discover().names(SECTIONS[section])
+        raise ConfigError(
+            f"{source}: {section}.kind: unknown {SECTIONS[section]} {data.get('kind')!r} (known: {', '.join(names)})"
+            f"{did_you_mean(data.get('kind'), names)}"
+        )
+    try:  # held by a model of the one section, so that messages name it: "features.sets: ..."
+        value = getattr(model.model_validate({section: data}), section)
+    except pydantic.ValidationError as exc:
+        raise ConfigError(f"{source}: {validation_error_text(exc)}") from None
+    return cfg.model_copy(update={section: value})
+
+
+def section_settings(cfg: RunConfig, section: str, written: bool = False) -> dict:
     """Return a component section's settings: the plugin's own.
 
-    Without ``kind`` (an SSM's also without the run's ``fixed``, ``free`` and ``topology``).
+    Without ``kind`` (an SSM's also without the run's ``fixed``, ``free`` and ``topology``);
+    ``written``: as a config file holds them (JSON values, unset ones left out).
 
     Parameters
     ----------
@@ -631,13 +681,18 @@ def section_settings(cfg: RunConfig, section: str) -> dict:
         The config.
     section : str
         The section: ``"ssm"``, ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
+    written : bool, optional
+        The settings as a config file writes them.
 
     Returns
     -------
     dict
         The component's settings.
     """
-    return getattr(cfg, section).model_dump(exclude=_RUN_KEYS if section == "ssm" else {"kind"})
+    exclude = _RUN_KEYS if section == "ssm" else {"kind"}
+    if written:
+        return getattr(cfg, section).model_dump(mode="json", exclude_none=True, exclude=exclude)
+    return getattr(cfg, section).model_dump(exclude=exclude)
 
 
 #: keys of the ``[ssm]`` section that are the run's, not the plugin's settings

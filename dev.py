@@ -8,7 +8,7 @@
     python3 dev.py env      only create or refresh .venv (then use .venv/bin/bforest, .venv/bin/python)
 
 Each creates (or reuses) the virtual environment ``.venv`` beside this file and installs the
-project into it (editable, with the test and Dask extras and the example third-party plugins).
+project into it (editable, with the test, Dask and SLURM extras and the example third-party plugins).
 The install is redone only when a packaging file changed.
 """
 
@@ -49,7 +49,7 @@ def ensure_env() -> Path:
     if not STAMP.exists() or STAMP.read_text() != fp:
         print("installing Bayes Forest and its dependencies into .venv ...", flush=True)
         pip = [str(py), "-m", "pip", "install", "--disable-pip-version-check", "-q"]
-        subprocess.check_call(pip + ["-e", f"{ROOT}[dev,dask]"])
+        subprocess.check_call(pip + ["-e", f"{ROOT}[dev,dask,slurm]"])
         for example in EXAMPLES:
             if (example / "pyproject.toml").exists():
                 subprocess.check_call(pip + ["-e", str(example)])

@@ -156,6 +156,39 @@ class QSMWriter(Component):
             The path written.
         """
 
+    def write_plot(self, trees, path: Path, names=None, **options) -> Path:
+        """Write several trees, each at its own place, to one file (a plot).
+
+        ``bforest stand`` writes its synthetic stands so. Optional: a writer whose format holds
+        one tree keeps this default.
+
+        Parameters
+        ----------
+        trees : list of Tree
+            The trees, in the plot's coordinates (m).
+        path : Path
+            The output file.
+        names : list of str, optional
+            The trees' names (groups, comments), default ``tree_0``, ``tree_1``, ...
+        **options
+            The writer's options.
+
+        Returns
+        -------
+        Path
+            The path written.
+
+        Raises
+        ------
+        QSMFormatError
+            The format holds one tree (this default).
+        """
+        from .errors import QSMFormatError
+
+        raise QSMFormatError(
+            path, f"the {self.name} format holds one tree, not a plot (write a plot as .ply, .obj, .las)"
+        )
+
 
 # ------------------------------------------------------------------------------------ SSM
 @dataclass(frozen=True)

@@ -20,6 +20,17 @@ def _readers():
     return [reg.get("qsm_reader", n) for n in reg.names("qsm_reader")]
 
 
+def qsm_suffixes() -> list[str]:
+    """Return the file suffixes the installed QSM readers take.
+
+    Returns
+    -------
+    list of str
+        Lower-case suffixes with the dot (``".mat"``, ``".txt"``, ...), sorted.
+    """
+    return sorted({s for c in _readers() for s in c.suffixes})
+
+
 def _check_regular_file(path: Path) -> None:
     """Check that a QSM path is a regular file.
 
@@ -83,7 +94,7 @@ def read_qsm(path, reader: str | None = None, **options):
     readers = sorted(_readers(), key=lambda c: -c.priority)
     if not readers:
         raise PluginError("no QSM reader plugin is installed (see 'bforest plugins')")
-    supported = sorted({s for c in readers for s in c.suffixes})
+    supported = qsm_suffixes()
     cands = [c for c in readers if suffix in c.suffixes]
     if not cands:
         raise QSMFormatError(path, f"unsupported file type '{path.suffix}' (supported: {', '.join(supported)})")
@@ -175,6 +186,40 @@ def write_tree(tree, path, format: str | None = None, **options) -> Path:
 
 
 # ------------------------------------------------------------------------------------ JSON
+def write_plot(trees, path, names=None, format: str | None = None, **options) -> Path:
+    """Write several trees, each at its own place, to one file (a plot mesh or scan).
+
+    Parameters
+    ----------
+    trees : list of Tree
+        The trees, in the plot's coordinates (m).
+    path : str or Path
+        The output file; its suffix chooses the writer unless ``format`` names one.
+    names : list of str, optional
+        The trees' names.
+    format : str, optional
+        A registered writer's name.
+    **options
+        The writer's options.
+
+    Returns
+    -------
+    Path
+        The path written.
+
+    Raises
+    ------
+    QSMFormatError
+        The format holds one tree, or the trees are none.
+    """
+    path = Path(path)
+    trees = list(trees)
+    if not trees:
+        raise QSMFormatError(path, "no trees to write")
+    names = [f"tree_{i}" for i in range(len(trees))] if names is None else [str(n) for n in names]
+    return writer_for(path, format)().write_plot(trees, path, names=names, **options)
+
+
 def jsonable(obj, *, loose: bool = False, strict: bool = False):
     """Convert ``obj`` to plain JSON values: dicts, lists, text, numbers, booleans and ``None``.
 

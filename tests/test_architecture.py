@@ -43,10 +43,13 @@ EXTENDS = {"bforest_example_sot_form": {"bforest_sot"}}
 #: the pipeline modules the report reads a run through: its files (store) and the definitions of
 #: what it shows (the posterior, the fidelity table's limits) ...
 REPORT_READS = {"store", "posterior", "fidelity"}
-#: ... and, in the one module that rebuilds what the run computed (``report/run_view.py``: the
-#: target, the answer's model seeds and tree, the clones' table), the stages that computed it
-RUN_VIEW = "report.run_view"
-RUN_VIEW_REBUILDS = REPORT_READS | {"seeds", "target", "scoring", "clones"}
+#: ... and the report modules that rebuild what was computed but not kept, with the stages that
+#: computed it: a run's target, its answer's model seeds and tree, its clones' table
+#: (``report/run_view.py``), a stand's plan and its synthetic plot (``report/stand.py``)
+REBUILDS = {
+    "report.run_view": REPORT_READS | {"seeds", "target", "scoring", "clones"},
+    "report.stand": REPORT_READS | {"stand", "synthetic"},
+}
 
 
 def module_name(path: Path, top: Path) -> str:
@@ -165,12 +168,11 @@ def _dynamic_problem(where: str, mod: str, dynamic: bool) -> str | None:
 def _report_reads(name: str, mod: str, core: str) -> str | None:
     """A report module importing a pipeline module it does not read runs through (None: allowed)."""
     stage = mod.removeprefix(f"{core}.pipeline").lstrip(".")
-    own = RUN_VIEW_REBUILDS if name == f"{core}.{RUN_VIEW}" else REPORT_READS
-    if stage in own:
+    if stage in REBUILDS.get(name.removeprefix(f"{core}."), REPORT_READS):
         return None
     return (
         f"the report imports {mod}: it reads a run through pipeline.{', pipeline.'.join(sorted(REPORT_READS))}, "
-        f"and rebuilds what the run computed in {RUN_VIEW} only"
+        f"and rebuilds what was computed in {' and '.join(sorted(REBUILDS))} only"
     )
 
 

@@ -6,9 +6,13 @@ address. The functions below run in the worker processes, which import this modu
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import os
+import socket
+import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -115,10 +119,14 @@ def test_leaving_the_loop_early_cancels_the_rest(executor):
     assert executor.map(work, ITEMS[:3])[2]["value"] == pytest.approx(10.0 + TABLE[2] * 1.0)
 
 
-def test_second_client_by_address_with_its_own_initializer(executor):
+def test_second_client_by_address_with_its_own_initializer(executor, tmp_path):
+    """Another of the owner's runs joins the local cluster with its credentials."""
+    from bforest_dask.credentials import write_credentials
     from bforest_dask.executor import DaskExecutor
 
-    other = bf.component("executor", "dask", address=executor.scheduler_address, workers=2)
+    c = write_credentials(tmp_path / "creds", executor.security)
+    tls = {"tls_ca_file": str(c["ca"]), "tls_cert": str(c["cert"]), "tls_key": str(c["key"])}
+    other = bf.component("executor", "dask", address=executor.scheduler_address, workers=2, **tls)
     assert isinstance(other, DaskExecutor)
     with other.started(init_other, ("run-b",)):
         assert other.map(work_other, [1, 2, 3]) == ["run-b:1", "run-b:2", "run-b:3"]
@@ -127,6 +135,81 @@ def test_second_client_by_address_with_its_own_initializer(executor):
     states = executor.client.run(report_state)
     assert all(s["inits"] == 1 and s["other"] == {"tag": "run-b"} for s in states.values())
     assert executor.map(work, ITEMS[:2])[1]["value"] == pytest.approx(10.0 + TABLE[1] * 0.5)
+
+
+def _listening_ports(pids) -> list[int]:
+    """TCP ports on which the processes ``pids`` listen (Linux: /proc)."""
+    inodes = set()
+    for pid in pids:
+        fd_dir = Path(f"/proc/{pid}/fd")
+        for fd in fd_dir.iterdir() if fd_dir.is_dir() else []:
+            with contextlib.suppress(OSError):
+                link = os.readlink(fd)
+                if link.startswith("socket:["):
+                    inodes.add(link[8:-1])
+    ports = []
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            f = line.split()
+            if f[3] == "0A" and f[9] in inodes:  # 0A: LISTEN
+                ports.append(int(f[1].rsplit(":", 1)[1], 16))
+    return sorted(ports)
+
+
+def _process_tree(pid) -> list[int]:
+    kids = subprocess.run(["pgrep", "-P", str(pid)], capture_output=True, text=True).stdout.split()
+    return [pid] + [q for k in kids for q in _process_tree(int(k))]
+
+
+def _owner_only_cluster() -> dict:
+    """What a new local cluster shows a stranger (run in a process of its own, where no other
+    cluster listens): its listening ports, which answer HTTP, and whether clients without its
+    credentials (none, or another cluster's) connect."""
+    from distributed import Client
+    from distributed.security import Security
+
+    from bforest_dask.executor import DaskExecutor
+
+    out = {"http": [], "strangers": []}
+    ex = DaskExecutor(workers=2)
+    with ex.started(None):
+        out["ports"] = _listening_ports(_process_tree(os.getpid()))
+        for port in out["ports"]:
+            with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+                sock.sendall(b"GET /health HTTP/1.0\r\n\r\n")
+                sock.settimeout(5)
+                with contextlib.suppress(OSError):
+                    if sock.recv(64).startswith(b"HTTP"):
+                        out["http"].append(port)
+        out["address"] = ex.scheduler_address
+        for who in (None, Security.temporary()):  # no credentials; another cluster's
+            try:
+                Client(ex.scheduler_address, security=who, timeout=5, set_as_default=False).close()
+                out["strangers"].append("connected")
+            except (OSError, TypeError) as exc:
+                out["strangers"].append(type(exc).__name__)
+        out["owner"] = ex.map(abs, [-2, -3])  # its owner's client still works
+    return out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads the listening sockets from /proc (Linux)")
+def test_the_local_cluster_serves_no_http_and_only_its_owner():
+    """A local cluster (no dashboard asked): its scheduler, 2 nannies and 2 workers listen on
+    127.0.0.1 over TLS only, none answers HTTP; a client without the cluster's credentials (none,
+    or another cluster's) cannot connect."""
+    import json
+
+    code = "import json, test_dask_executor as t; print('RESULT', json.dumps(t._owner_only_cluster()))"
+    r = subprocess.run(
+        [sys.executable, "-c", code], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=240
+    )
+    line = next((ln for ln in r.stdout.splitlines() if ln.startswith("RESULT ")), None)
+    assert line, r.stderr[-2000:]
+    got = json.loads(line[7:])
+    assert len(got["ports"]) == 5, got  # scheduler, 2 nannies, 2 workers: no HTTP server among them
+    assert got["http"] == [] and got["address"].startswith("tls://127.0.0.1:")
+    assert "connected" not in got["strangers"] and len(got["strangers"]) == 2
+    assert got["owner"] == [2, 3]
 
 
 def test_late_joining_worker_is_initialised(executor):
@@ -144,6 +227,12 @@ def test_settings_are_validated():
         bf.component("executor", "dask", wokers=2)
     with pytest.raises(ConfigError):
         bf.component("executor", "dask", workers=0)
+    with pytest.raises(ConfigError, match="give tls_ca_file, tls_cert and tls_key together"):
+        bf.component("executor", "dask", address="tls://10.0.0.5:8786", tls_ca_file=__file__)
+    with pytest.raises(ConfigError, match="tls_key: file not found"):
+        bf.component(
+            "executor", "dask", address="tls://h:1", tls_ca_file=__file__, tls_cert=__file__, tls_key="/no/key"
+        )
 
 
 def test_missing_dask_gives_a_clear_import_error(monkeypatch):
@@ -157,12 +246,30 @@ def test_missing_dask_gives_a_clear_import_error(monkeypatch):
         importlib.import_module("bforest_dask.plugin")
 
 
-def test_no_http_port_unless_asked_and_then_on_loopback(executor):
-    """The scheduler of a local cluster serves HTTP whatever it is told; with no dashboard_address
-    nothing listens, and a dashboard address without a host binds to 127.0.0.1, not every
-    interface."""
+def test_a_dashboard_address_without_a_host_binds_to_loopback():
+    """A dashboard asked without a host binds to 127.0.0.1, not every interface."""
     from bforest_dask.executor import dashboard_address
 
-    assert all(sock.fileno() == -1 for sock in executor._cluster.scheduler.http_server._sockets.values())
     assert dashboard_address(":8787") == "127.0.0.1:8787" and dashboard_address("8787") == "127.0.0.1:8787"
     assert dashboard_address("0.0.0.0:8787") == "0.0.0.0:8787"  # an address that says otherwise
+
+
+def kill_my_worker(x):
+    os._exit(3)
+
+
+def test_a_task_whose_workers_die_becomes_the_on_lost_result():
+    """As with the process executor: a task that kills every worker it runs on ends, once the
+    scheduler gives up on it, as the executor's on_lost makes it; the other tasks' results come
+    back (a stand's tree whose worker dies is a failed row, the other trees go on)."""
+    import dask
+
+    from bforest_dask.executor import DaskExecutor
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        ex = DaskExecutor(workers=2)
+        ex.on_lost = lambda fn, item, status, message: ("lost", item, status, "died" in message)
+        with ex.started(None):
+            out = dict(ex.map_unordered(kill_my_worker, [7]))
+            assert out == {0: ("lost", 7, "crashed", True)}
+            assert ex.map(abs, [-1, -5]) == [1, 5]

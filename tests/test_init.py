@@ -445,3 +445,44 @@ def test_every_value_init_writes_lies_in_its_allowed_range(tmp_path):
         assert spec[k].lower <= v <= spec[k].upper, k
     assert cfg["ssm"]["fixed"]["sample_rad"] == 0.6
     bf.load_config(tmp_path / "tall.toml")
+
+
+def test_a_fit_of_inits_recipe_on_a_loaded_machine_answers_as_on_an_idle_one(tmp_path):
+    """init's recipes stop on their evaluation budget, never on the clock: the same recipe fitted
+    while two busy processes load both cores gives the evaluation log and the answer of the fit
+    on an idle machine, row for row (the budget and the held-out selection cut down to keep the
+    test short)."""
+    import json
+    import sqlite3
+    import subprocess
+    import sys
+
+    from bforest_core.config import read_toml
+
+    recipe = tmp_path / "pine3.toml"
+    write_recipe(sample("pine_ruotsinkyla_3.mat"), recipe)
+    raw = read_toml(recipe)
+    assert raw["stop"]["wall_time"] >= 3600.0  # a safety net only
+    raw["stop"]["max_evaluations"] = 40
+    raw["optimizer"].update(init_design=8, population=8)
+    raw["select"] = {"top": 2, "sets": 2}
+    raw["target"]["qsm"] = str(sample("pine_ruotsinkyla_3.mat"))
+    cfg = bf.config.parse_config(raw)
+
+    def answer(run):
+        bf.fit(cfg, run, progress=False)
+        with sqlite3.connect(run / "evaluations.sqlite") as con:
+            rows = con.execute("SELECT idx, params, seeds, distance, status FROM evaluations ORDER BY idx").fetchall()
+        best = json.loads((run / "best.json").read_text())
+        return rows, {k: v for k, v in best.items() if k != "seconds"}
+
+    idle = answer(tmp_path / "idle")
+    burn = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    try:
+        loaded = answer(tmp_path / "loaded")
+    finally:
+        for p in burn:
+            p.kill()
+            p.wait()
+    assert len(idle[0]) == 40 and idle[1]["stop_kind"] == "budget"
+    assert loaded == idle

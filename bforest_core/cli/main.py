@@ -14,7 +14,7 @@ import sys
 import warnings
 from concurrent.futures import BrokenExecutor
 
-from . import export, init, plugins_config, runs, trees
+from . import export, init, plugins_config, runs, stand, trees
 from .common import EXIT_USAGE, Parser, UsageError
 
 #: the warnings this command has printed: a file read twice (the clones, then the report) warns once
@@ -38,7 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"bforest {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
-    for group in (runs, init, trees, export, plugins_config):
+    for group in (runs, init, stand, trees, export, plugins_config):
         group.add_commands(sub)
     return p
 

@@ -44,3 +44,12 @@ def repeat_seeds(base_seed: int, repeats: int) -> list[int]:
 def clone_seeds(run_seed: int, n: int, base: int | None = None) -> list[int]:
     """Fresh seeds for clones (distinct from the fitting seeds)."""
     return _seed_stream([int(run_seed if base is None else base), 3], n)
+
+
+def realisation_clones(stand_seed: int, tree: int, n_clones: int, realisations: int) -> list[int]:
+    """Which clone of tree number ``tree`` (of ``n_clones``) stands in each of a stand's
+    ``realisations`` synthetic stands: a permutation from the stand seed's own stream, so no clone
+    stands twice while the realisations are at most the clones."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(stand_seed), 6, int(tree)]))
+    perm = rng.permutation(int(n_clones))
+    return [int(perm[r % n_clones]) for r in range(int(realisations))]

@@ -326,6 +326,110 @@ def clear_derived(run_dir) -> None:
             p.unlink(missing_ok=True)
 
 
+def logged_count(path) -> int:
+    """Evaluations in the log at ``path`` read without taking part in the run (a stand's progress
+    reads the logs its workers write): 0 while the log is missing, locked or being created."""
+    path = Path(path)
+    if not path.exists():
+        return 0
+    try:
+        con = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=0.2)
+        try:
+            return int(con.execute("SELECT COUNT(*) FROM evaluations").fetchone()[0])
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return 0
+
+
+class StandFiles:
+    """The files and folders of a stand folder (``bforest stand``; the one place their names are
+    spelled). Each tree's run folder is a run directory of its own (:class:`RunFiles`)."""
+
+    SETTINGS = "stand.toml"
+    TABLE = "stand.csv"
+    RECIPES = "recipes"
+    RUNS = "trees"
+    SYNTHETIC = "synthetic"
+    FIGURES = "figures"
+    REPORT_MD = "report.md"
+    REPORT_HTML = "report.html"
+    LOCK = RunFiles.LOCK
+    #: what a stand writes into its folder (``--overwrite`` removes exactly these)
+    DERIVED = (
+        SETTINGS,
+        f"{SETTINGS}.tmp",
+        TABLE,
+        f"{TABLE}.tmp",
+        RECIPES,
+        RUNS,
+        SYNTHETIC,
+        FIGURES,
+        REPORT_MD,
+        REPORT_HTML,
+    )
+
+    def __init__(self, path):
+        self.path = Path(path)
+
+    @property
+    def settings_path(self) -> Path:
+        """The stand's settings and its trees."""
+        return self.path / self.SETTINGS
+
+    @property
+    def table_path(self) -> Path:
+        """One row per tree."""
+        return self.path / self.TABLE
+
+    @property
+    def recipes_dir(self) -> Path:
+        return self.path / self.RECIPES
+
+    @property
+    def runs_dir(self) -> Path:
+        return self.path / self.RUNS
+
+    @property
+    def synthetic_dir(self) -> Path:
+        return self.path / self.SYNTHETIC
+
+    @property
+    def figures_dir(self) -> Path:
+        return self.path / self.FIGURES
+
+    @property
+    def report_md_path(self) -> Path:
+        return self.path / self.REPORT_MD
+
+    @property
+    def report_html_path(self) -> Path:
+        return self.path / self.REPORT_HTML
+
+    def recipe_path(self, name: str) -> Path:
+        """The recipe of the tree ``name``."""
+        return self.recipes_dir / f"{name}.toml"
+
+    def run_dir(self, name: str) -> Path:
+        """The run folder of the tree ``name``."""
+        return self.runs_dir / name
+
+    def realisation_dir(self, r: int) -> Path:
+        """The folder of synthetic stand number ``r`` (0-based)."""
+        return self.synthetic_dir / f"stand_{r:03d}"
+
+    def clear(self) -> None:
+        """Remove everything an earlier stand wrote here (its runs included); other files stay."""
+        import shutil
+
+        for name in self.DERIVED:
+            p = self.path / name
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            else:
+                p.unlink(missing_ok=True)
+
+
 class RunStore(RunFiles):
     """A run directory with its evaluation log."""
 

@@ -19,9 +19,10 @@ import logging
 import os
 import uuid
 from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from bforest_core.interfaces import ComponentSettings, Executor
 
@@ -61,12 +62,43 @@ class DaskSettings(ComponentSettings):
         "dashboard (e.g. ':8787', on 127.0.0.1 unless a host is given; "
         "needs bokeh); none: no dashboard and no HTTP port",
     )
+    tls_ca_file: str | None = Field(
+        None, description="remote scheduler: the cluster's CA certificate (PEM file); with tls_cert and tls_key"
+    )
+    tls_cert: str | None = Field(None, description="remote scheduler: this client's certificate (PEM file)")
+    tls_key: str | None = Field(None, description="remote scheduler: this client's private key (PEM file)")
+
+    @model_validator(mode="after")
+    def _tls_all_or_none(self):
+        given = [k for k in ("tls_ca_file", "tls_cert", "tls_key") if getattr(self, k)]
+        if given and len(given) != 3:
+            missing = sorted({"tls_ca_file", "tls_cert", "tls_key"} - set(given))
+            raise ValueError(f"give tls_ca_file, tls_cert and tls_key together (missing: {', '.join(missing)})")
+        if given and not (self.address or self.scheduler_file):
+            raise ValueError("tls_ca_file, tls_cert and tls_key are for a remote scheduler (address or scheduler_file)")
+        for k in given:
+            if not Path(getattr(self, k)).expanduser().is_file():
+                raise ValueError(f"{k}: file not found: {getattr(self, k)}")
+        return self
+
+    def security(self):
+        """The remote cluster's :class:`distributed.security.Security` (None without certificates)."""
+        if not self.tls_ca_file:
+            return None
+        from distributed.security import Security
+
+        return Security(
+            tls_ca_file=str(Path(self.tls_ca_file).expanduser()),
+            tls_client_cert=str(Path(self.tls_cert).expanduser()),
+            tls_client_key=str(Path(self.tls_key).expanduser()),
+            require_encryption=True,
+        )
 
 
 def dashboard_address(address: str | None) -> str:
     """Where the local cluster's scheduler serves HTTP: ``address`` on 127.0.0.1 unless it names
     a host (``":8787"`` or ``"8787"`` would otherwise listen on every interface); without one, a
-    free loopback port, closed at once (:func:`_stop_http_server`)."""
+    free loopback port, closed at once (the preload :data:`NO_HTTP_PRELOAD`)."""
     if address is None:
         return "127.0.0.1:0"
     text = str(address).strip()
@@ -77,11 +109,11 @@ def dashboard_address(address: str | None) -> str:
     return text
 
 
-async def _stop_http_server(scheduler) -> None:
-    """Close the scheduler's HTTP server (dashboard, health, metrics): nobody asked for it."""
-    server = getattr(scheduler, "http_server", None)
-    if server is not None:
-        server.stop()
+#: no HTTP route at all on a local cluster's scheduler and workers while their HTTP servers stand
+#: (from their start until the preload :data:`NO_HTTP_PRELOAD` closes them)
+NO_HTTP_ROUTES = {"distributed.scheduler.http.routes": [], "distributed.worker.http.routes": []}
+#: the Dask preload that closes a scheduler's or worker's HTTP server as it starts
+NO_HTTP_PRELOAD = "bforest_dask.nohttp"
 
 
 class DaskExecutor(Executor):
@@ -99,6 +131,8 @@ class DaskExecutor(Executor):
         super().__init__(*a, **kw)
         self._client: Client | None = None
         self._cluster: LocalCluster | None = None
+        self._security = None
+        self.on_lost = None  # (fn, item, status, message) -> stand-in result of a task whose workers died
         self._plugin_name: str | None = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -118,12 +152,20 @@ class DaskExecutor(Executor):
         return 1 if (self.settings.address or self.settings.scheduler_file) else max(1, os.cpu_count() or 1)
 
     @property
+    def security(self):
+        """The TLS credentials this executor's client presents (a local cluster's temporary ones,
+        or those of the settings; None for a remote scheduler reached without TLS).
+        ``bforest_dask.credentials.write_credentials(folder, executor.security)`` lets another
+        of the owner's clients join the local cluster."""
+        return self._security
+
+    @property
     def scheduler_address(self) -> str:
         """Address of the scheduler in use (e.g. to let another client connect)."""
         return self.client.scheduler.address
 
     def start(self, initializer: Callable | None = None, initargs: tuple = ()) -> None:
-        from distributed import Client, LocalCluster
+        from distributed import Client
 
         from ._worker_plugin import RunInitializer
 
@@ -133,20 +175,18 @@ class DaskExecutor(Executor):
         if s.address and s.scheduler_file:
             raise ValueError("dask executor: give address or scheduler_file, not both")
         if s.address or s.scheduler_file:
-            client = Client(s.address, scheduler_file=s.scheduler_file, timeout=s.timeout, set_as_default=False)
+            client = Client(
+                s.address,
+                scheduler_file=s.scheduler_file,
+                timeout=s.timeout,
+                set_as_default=False,
+                security=s.security(),
+            )
+            self._security = s.security()
             n_wait = s.workers or 1
         else:
             n = s.workers or max(1, os.cpu_count() or 1)
-            self._cluster = LocalCluster(
-                n_workers=n,
-                threads_per_worker=1,
-                processes=True,
-                dashboard_address=dashboard_address(s.dashboard_address),
-                silence_logs=logging.WARNING,
-            )
-            if s.dashboard_address is None:  # the scheduler starts an HTTP server whatever it is told
-                self._cluster.sync(_stop_http_server, self._cluster.scheduler)  # on the cluster's event loop
-            client = Client(self._cluster, set_as_default=False)
+            client = self._local_cluster(n)
             n_wait = n
         self._client = client
         try:
@@ -158,11 +198,48 @@ class DaskExecutor(Executor):
             self.shutdown()
             raise
 
+    def _local_cluster(self, n: int):
+        """A local cluster only its owner can use: its scheduler, nannies and workers listen on
+        127.0.0.1 over TLS with credentials made for this cluster alone (distributed's
+        ``Security.temporary()``: a client without them cannot connect), and no HTTP server
+        stays open unless ``dashboard_address`` asks for the dashboard (docs/dask.md)."""
+        import dask
+        from distributed import Client, LocalCluster
+        from distributed.security import Security
+
+        s: DaskSettings = self.settings
+        try:
+            security = Security.temporary()
+        except ImportError:  # pragma: no cover - cryptography comes with bayesforest[dask]
+            raise ImportError(
+                "the dask executor's local cluster needs the cryptography package for its TLS credentials: "
+                "pip install 'bayesforest[dask]'"
+            ) from None
+        # the scheduler and the workers start HTTP servers whatever they are told: no routes while
+        # they start, and each closes its own as it starts (the preload bforest_dask.nohttp)
+        quiet = s.dashboard_address is None
+        with dask.config.set(NO_HTTP_ROUTES if quiet else {}):
+            self._cluster = LocalCluster(
+                n_workers=n,
+                threads_per_worker=1,
+                processes=True,
+                host="127.0.0.1",
+                protocol="tls://",
+                security=security,
+                dashboard_address=dashboard_address(s.dashboard_address),
+                silence_logs=logging.WARNING,
+                preload=[NO_HTTP_PRELOAD],
+                scheduler_kwargs={"preload": [NO_HTTP_PRELOAD]} if quiet else {},
+            )
+        self._security = security
+        return Client(self._cluster, security=security, set_as_default=False)
+
     def map_unordered(self, fn: Callable, items: Sequence) -> Iterator[tuple[int, Any]]:
         """Submit every item as one task; yield ``(index, result)`` as tasks complete.
 
-        A task's exception is re-raised here; leaving the loop early cancels the tasks still
-        pending.
+        A task's exception is re-raised here, but for a task whose workers died, which becomes
+        ``on_lost(fn, item, "crashed", message)`` when that hook is set; leaving the loop early
+        cancels the tasks still pending.
         """
         from distributed import as_completed
 
@@ -174,11 +251,24 @@ class DaskExecutor(Executor):
         index = {f.key: i for i, f in enumerate(futures)}
         try:
             for fut in as_completed(futures, loop=client.loop):
-                yield index[fut.key], fut.result()
+                i = index[fut.key]
+                lost = self._lost_result(fut, fn, items[i])
+                yield i, (fut.result() if lost is NotImplemented else lost)
         finally:
             pending = [f for f in futures if not f.done()]
             if pending:
                 client.cancel(pending)
+
+    def _lost_result(self, fut, fn, item):
+        """What a task becomes whose workers died (the scheduler gave up on it after
+        ``distributed.scheduler.allowed-failures`` deaths): the executor's ``on_lost`` result, as
+        with the process executor; :data:`NotImplemented` for any other outcome."""
+        if self.on_lost is None or fut.status != "error":
+            return NotImplemented
+        exc = fut.exception()
+        if type(exc).__name__ != "KilledWorker":
+            return NotImplemented
+        return self.on_lost(fn, item, "crashed", f"its workers died: {exc}")
 
     def shutdown(self) -> None:
         client, cluster = self._client, self._cluster

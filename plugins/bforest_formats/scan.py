@@ -16,7 +16,8 @@ reconstruct it, compare. Two sampling modes:
     ``reference_range`` and normal incidence. Range noise is applied along the beam.
 
 Extra dimensions of a LAS file: ``cylinder_id`` (row of the tree's cylinder table, 0-based),
-``branch_id`` (0-based) and ``branch_order`` (0 = stem).
+``branch_id`` (0-based) and ``branch_order`` (0 = stem); in a plot's scan also ``tree_id``
+(the tree's place in the plot, 0-based).
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ from bforest_core.tables import format_columns
 
 #: ASPRS class of every point: 5 = high vegetation (the points are a tree's wood)
 LAS_CLASS = 5
+#: extra dimensions of a LAS scan: the true structure of every point (``tree_id`` in a plot's)
+EXTRA_DIMS = (("cylinder_id", np.uint32), ("branch_id", np.uint32), ("branch_order", np.uint8), ("tree_id", np.uint32))
 
 
 class ScanSettings(ComponentSettings):
@@ -142,42 +145,56 @@ class LASWriter(QSMWriter):
     Settings = ScanSettings
 
     def write(self, tree, path, **options) -> Path:
-        import laspy
-
         o = resolve_options(self, options)
-        path = Path(path)
-        if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
-            raise QSMFormatError(path, "writing LAZ needs a LAZ backend: pip install lazrs (or write .las)")
         pts = scan_points(tree, **o.model_dump())
-        header = laspy.LasHeader(point_format=6, version="1.4")
-        header.add_extra_dims(
-            [
-                laspy.ExtraBytesParams(name="cylinder_id", type=np.uint32),
-                laspy.ExtraBytesParams(name="branch_id", type=np.uint32),
-                laspy.ExtraBytesParams(name="branch_order", type=np.uint8),
-            ]
-        )
-        xyz = pts["xyz"]
-        header.offsets = np.floor(xyz.min(axis=0)) if xyz.size else np.zeros(3)
-        header.scales = np.array([0.001, 0.001, 0.001])
-        header.generating_software = provenance(tree)["software"][:32]
-        header.system_identifier = "synthetic scan (cylinder QSM)"
-        info = json.dumps(provenance(tree, scan=o.model_dump()), separators=(",", ":"), allow_nan=False)
-        header.vlrs.append(
-            laspy.VLR(
-                user_id="BayesForest", record_id=1, description="provenance (JSON)", record_data=info.encode("utf-8")
-            )
-        )
-        las = laspy.LasData(header)
-        las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-        n = xyz.shape[0]
-        las.return_number = np.ones(n, np.uint8)
-        las.number_of_returns = np.ones(n, np.uint8)
-        las.classification = np.full(n, LAS_CLASS, np.uint8)
-        for k in ("cylinder_id", "branch_id", "branch_order"):
-            las[k] = pts[k]
-        las.write(str(path))
-        return path
+        return _write_las(Path(path), pts, provenance(tree, scan=o.model_dump()), provenance(tree)["software"])
+
+    def write_plot(self, trees, path, names=None, **options) -> Path:
+        """A synthetic scan of a plot: every tree scanned as :meth:`write` scans one (tree ``i``
+        with the seed ``seed + i``), one LAS file with the extra dimension ``tree_id`` (the
+        tree's place in ``names``, 0-based); the provenance VLR lists every tree's."""
+        o = resolve_options(self, options)
+        names = names or [f"tree_{i}" for i in range(len(trees))]
+        scans = [scan_points(t, **{**o.model_dump(), "seed": o.seed + i}) for i, t in enumerate(trees)]
+        pts = {k: np.concatenate([sc[k] for sc in scans]) for k in ("xyz", "cylinder_id", "branch_id", "branch_order")}
+        pts["tree_id"] = np.repeat(np.arange(len(trees), dtype=np.uint32), [sc["xyz"].shape[0] for sc in scans])
+        info = {
+            "software": provenance(trees[0])["software"],
+            "scan": o.model_dump(),
+            "trees": [{"tree_id": i, "name": n, **provenance(t)} for i, (n, t) in enumerate(zip(names, trees))],
+        }
+        return _write_las(Path(path), pts, info, info["software"])
+
+
+def _write_las(path: Path, pts: dict, info: dict, software: str) -> Path:
+    """One LAS 1.4 (point format 6) or LAZ file of ``pts`` (``xyz`` and the extra dimensions it
+    holds), with ``info`` as the provenance VLR."""
+    import laspy
+
+    if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
+        raise QSMFormatError(path, "writing LAZ needs a LAZ backend: pip install lazrs (or write .las)")
+    extra = [(k, t) for k, t in EXTRA_DIMS if k in pts]
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=t) for k, t in extra])
+    xyz = pts["xyz"]
+    header.offsets = np.floor(xyz.min(axis=0)) if xyz.size else np.zeros(3)
+    header.scales = np.array([0.001, 0.001, 0.001])
+    header.generating_software = software[:32]
+    header.system_identifier = "synthetic scan (cylinder QSM)"
+    text = json.dumps(info, separators=(",", ":"), allow_nan=False)
+    header.vlrs.append(
+        laspy.VLR(user_id="BayesForest", record_id=1, description="provenance (JSON)", record_data=text.encode("utf-8"))
+    )
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    n = xyz.shape[0]
+    las.return_number = np.ones(n, np.uint8)
+    las.number_of_returns = np.ones(n, np.uint8)
+    las.classification = np.full(n, LAS_CLASS, np.uint8)
+    for k, _ in extra:
+        las[k] = pts[k]
+    las.write(str(path))
+    return path
 
 
 class XYZWriter(QSMWriter):

@@ -204,7 +204,8 @@ class PLYSettings(MeshSettings):
 class PLYWriter(QSMWriter):
     """PLY cylinder mesh (binary little-endian by default, ``ascii=True`` option) with per-vertex
     RGB colours (by order, branch or radius). Coordinates are float32, or float64 when they
-    exceed 1e4 m in magnitude (georeferenced trees)."""
+    exceed 1e4 m in magnitude (georeferenced trees). A plot (:meth:`write_plot`) is one mesh of
+    every tree, each tree's provenance a comment."""
 
     name = "ply"
     summary = "PLY cylinder mesh (binary LE or ASCII, RGB by order/branch/radius)"
@@ -214,52 +215,71 @@ class PLYWriter(QSMWriter):
 
     def write(self, tree, path, **options) -> Path:
         o = resolve_options(self, options)
-        path = Path(path)
         v, f, _ = cylinder_mesh(tree, o.sides, o.caps, o.min_radius, o.translate_to_base)
         col = np.repeat(cylinder_colors(tree, o.color_by), 2 * o.sides, axis=0)
-        big = np.abs(v).max() > 1e4 if v.size else False
-        ftype = "double" if big else "float"
-        header = [
-            "ply",
-            f"format {'ascii' if o.ascii else 'binary_little_endian'} 1.0",
-            f"comment Bayes Forest cylinder mesh: {tree.n} cylinders, {o.sides} sides, "
-            f"caps {'on' if o.caps else 'off'}, colour by {o.color_by}",
-            "comment " + provenance_line(tree),
-            f"element vertex {v.shape[0]}",
-            f"property {ftype} x",
-            f"property {ftype} y",
-            f"property {ftype} z",
-            "property uchar red",
-            "property uchar green",
-            "property uchar blue",
-            f"element face {f.shape[0]}",
-            "property list uchar int vertex_indices",
-            "end_header",
-        ]
-        with open(path, "wb") as fh:
-            fh.write(("\n".join(header) + "\n").encode("ascii"))
-            if o.ascii:
-                vt = np.hstack([v, col.astype(np.float64)])
-                fh.write(format_rows(vt, ["%.9g"] * 3 + ["%d"] * 3, sep=" ").encode("ascii"))
-                ft = np.hstack([np.full((f.shape[0], 1), 3.0), f.astype(np.float64)])
-                fh.write(format_rows(ft, ["%d"] * 4, sep=" ").encode("ascii"))
-            else:
-                fdt = "<f8" if big else "<f4"
-                vrec = np.empty(
-                    v.shape[0], dtype=[("x", fdt), ("y", fdt), ("z", fdt), ("r", "u1"), ("g", "u1"), ("b", "u1")]
-                )
-                vrec["x"], vrec["y"], vrec["z"] = v[:, 0], v[:, 1], v[:, 2]
-                vrec["r"], vrec["g"], vrec["b"] = col[:, 0], col[:, 1], col[:, 2]
-                frec = np.empty(f.shape[0], dtype=[("n", "u1"), ("i", "<i4", (3,))])
-                frec["n"] = 3
-                frec["i"] = f
-                fh.write(vrec.tobytes())
-                fh.write(frec.tobytes())
-        return path
+        return _write_ply(Path(path), o, v, f, col, f"{tree.n} cylinders", [provenance_line(tree)])
+
+    def write_plot(self, trees, path, names=None, **options) -> Path:
+        o = resolve_options(self, options)
+        names = names or [f"tree_{i}" for i in range(len(trees))]
+        meshes = [cylinder_mesh(t, o.sides, o.caps, o.min_radius, False) for t in trees]
+        starts = np.cumsum([0] + [m[0].shape[0] for m in meshes])[:-1]
+        v = np.concatenate([m[0] for m in meshes])
+        f = np.concatenate([m[1] + at for m, at in zip(meshes, starts)])
+        col = np.concatenate([np.repeat(cylinder_colors(t, o.color_by), 2 * o.sides, axis=0) for t in trees])
+        what = f"plot of {len(trees)} trees, {sum(t.n for t in trees)} cylinders"
+        return _write_ply(
+            Path(path), o, v, f, col, what, [f"tree {n}: {provenance_line(t)}" for n, t in zip(names, trees)]
+        )
+
+
+def _write_ply(path: Path, o, v, f, col, what: str, notes: list[str]) -> Path:
+    """One PLY file of a triangle mesh with per-vertex colours (``o``: the mesh options; ``what``
+    and ``notes``: the header's comments)."""
+    big = np.abs(v).max() > 1e4 if v.size else False
+    ftype = "double" if big else "float"
+    header = [
+        "ply",
+        f"format {'ascii' if o.ascii else 'binary_little_endian'} 1.0",
+        f"comment Bayes Forest cylinder mesh: {what}, {o.sides} sides, "
+        f"caps {'on' if o.caps else 'off'}, colour by {o.color_by}",
+        *(f"comment {n}" for n in notes),
+        f"element vertex {v.shape[0]}",
+        f"property {ftype} x",
+        f"property {ftype} y",
+        f"property {ftype} z",
+        "property uchar red",
+        "property uchar green",
+        "property uchar blue",
+        f"element face {f.shape[0]}",
+        "property list uchar int vertex_indices",
+        "end_header",
+    ]
+    with open(path, "wb") as fh:
+        fh.write(("\n".join(header) + "\n").encode("ascii"))
+        if o.ascii:
+            vt = np.hstack([v, col.astype(np.float64)])
+            fh.write(format_rows(vt, ["%.9g"] * 3 + ["%d"] * 3, sep=" ").encode("ascii"))
+            ft = np.hstack([np.full((f.shape[0], 1), 3.0), f.astype(np.float64)])
+            fh.write(format_rows(ft, ["%d"] * 4, sep=" ").encode("ascii"))
+        else:
+            fdt = "<f8" if big else "<f4"
+            vrec = np.empty(
+                v.shape[0], dtype=[("x", fdt), ("y", fdt), ("z", fdt), ("r", "u1"), ("g", "u1"), ("b", "u1")]
+            )
+            vrec["x"], vrec["y"], vrec["z"] = v[:, 0], v[:, 1], v[:, 2]
+            vrec["r"], vrec["g"], vrec["b"] = col[:, 0], col[:, 1], col[:, 2]
+            frec = np.empty(f.shape[0], dtype=[("n", "u1"), ("i", "<i4", (3,))])
+            frec["n"] = 3
+            frec["i"] = f
+            fh.write(vrec.tobytes())
+            fh.write(frec.tobytes())
+    return path
 
 
 class OBJWriter(QSMWriter):
-    """Wavefront OBJ cylinder mesh with one group per branch order (``g order_<w>``)."""
+    """Wavefront OBJ cylinder mesh with one group per branch order (``g order_<w>``); a plot
+    (:meth:`write_plot`) has one object per tree (``o <name>``), each with its order groups."""
 
     name = "obj"
     summary = "Wavefront OBJ cylinder mesh (one group per order)"
@@ -269,17 +289,33 @@ class OBJWriter(QSMWriter):
 
     def write(self, tree, path, **options) -> Path:
         o = resolve_options(self, options)
-        path = Path(path)
-        v, f, fc = cylinder_mesh(tree, o.sides, o.caps, o.min_radius, o.translate_to_base)
-        order = np.asarray(tree.order)[fc]
-        srt = np.argsort(order, kind="stable")
-        f, order = f[srt], order[srt]
         with open(path, "w", encoding="ascii", newline="\n") as fh:
             fh.write(f"# Bayes Forest cylinder mesh: {tree.n} cylinders, {o.sides} sides\n")
             fh.write(f"# {provenance_line(tree)}\n")
-            fh.write(format_rows(v, ["v %.9g", "%.9g", "%.9g"], sep=" "))
-            bounds = np.flatnonzero(np.diff(order)) + 1
-            for chunk, w in zip(np.split(f + 1, bounds), order[np.concatenate([[0], bounds])] if f.size else []):
-                fh.write(f"g order_{int(w)}\n")
-                fh.write(format_rows(chunk.astype(np.float64), ["f %d", "%d", "%d"], sep=" "))
-        return path
+            _obj_tree(fh, tree, o, o.translate_to_base, 0)
+        return Path(path)
+
+    def write_plot(self, trees, path, names=None, **options) -> Path:
+        o = resolve_options(self, options)
+        names = names or [f"tree_{i}" for i in range(len(trees))]
+        with open(path, "w", encoding="ascii", newline="\n") as fh:
+            fh.write(f"# Bayes Forest plot mesh: {len(trees)} trees, {o.sides} sides\n")
+            at = 0
+            for name, tree in zip(names, trees):
+                fh.write(f"# tree {name}: {provenance_line(tree)}\no {name}\n")
+                at += _obj_tree(fh, tree, o, False, at)
+        return Path(path)
+
+
+def _obj_tree(fh, tree, o, translate: bool, at: int) -> int:
+    """Write one tree's vertices and order groups (vertex numbers after ``at``); returns its vertices."""
+    v, f, fc = cylinder_mesh(tree, o.sides, o.caps, o.min_radius, translate)
+    order = np.asarray(tree.order)[fc]
+    srt = np.argsort(order, kind="stable")
+    f, order = f[srt], order[srt]
+    fh.write(format_rows(v, ["v %.9g", "%.9g", "%.9g"], sep=" "))
+    bounds = np.flatnonzero(np.diff(order)) + 1
+    for chunk, w in zip(np.split(f + 1 + at, bounds), order[np.concatenate([[0], bounds])] if f.size else []):
+        fh.write(f"g order_{int(w)}\n")
+        fh.write(format_rows(chunk.astype(np.float64), ["f %d", "%d", "%d"], sep=" "))
+    return v.shape[0]

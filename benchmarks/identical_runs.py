@@ -21,7 +21,10 @@ and compares two such folders: every row of every ``evaluations.sqlite`` (tables
 ``finished``, and the log's row counter ``seq`` left out, its records compared in order) and the bytes of every ``best.json`` (its ``"seconds"`` line, the run's
 wall time, left out). A parameter one checkout's model takes as a fixed parameter and the other's
 as a setting (:data:`MOVED`, LIGNUM's ``piece_length`` since issue 76) is left out of the logged
-parameters and ``best.json``'s, and the line says so. Prints one line per file and a verdict;
+parameters and ``best.json``'s, and the line says so. The held-out scores' ``scoring`` column, a hash
+of the config's scoring sections (whose form a refactoring may change: a setting removed or moved,
+as issue 76's ``light_model`` and ``piece_length``), is compared by which rows share a hash, not
+by its value. Prints one line per file and a verdict;
 exits 1 on a difference.
 
     python3 benchmarks/identical_runs.py run /path/to/checkout OUT_DIR
@@ -185,10 +188,14 @@ def _normal(value):
 def _rows(db: Path) -> dict[str, list[tuple]]:
     with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as con:
         out = {}
-        for table, order in (("evaluations", "idx"), ("heldout", "scoring, point, seeds"), ("log", "seq")):
+        for table, order in (("evaluations", "idx"), ("heldout", "point, seeds, scoring"), ("log", "seq")):
             cols = [r[1] for r in con.execute(f"PRAGMA table_info({table})") if r[1] not in TIMING_COLUMNS | ROW_IDS]
             rows = con.execute(f"SELECT {', '.join(cols)} FROM {table} ORDER BY {order}").fetchall()
-            out[table] = [tuple(_normal(v) for v in row) for row in rows]
+            rows = [tuple(_normal(v) for v in row) for row in rows]
+            if "scoring" in cols:  # a hash of the config's scoring sections: which rows share one, not its value
+                j, seen = cols.index("scoring"), {}
+                rows = [(*r[:j], f"scoring {seen.setdefault(r[j], len(seen))}", *r[j + 1 :]) for r in rows]
+            out[table] = rows
         return out
 
 

@@ -24,6 +24,8 @@ from .interfaces import (
     QSMReader,
     QSMWriter,
     RecipeDraft,
+    RecipePart,
+    RecipePlan,
 )
 from .io import read_qsm, write_tree
 from .pipeline.clones import clones

@@ -12,15 +12,11 @@ third-party plugin's settings are validated exactly like a bundled one's. Exampl
     fixed = { radiation = 60.0 }
     free.q_mean = { lower = 0.05, upper = 0.4 }
     [features]
-    kind = "branch-segment"
     sets = ["S1", "B1"]
-    [distance]
-    kind = "sliced"
-    [optimizer]
-    kind = "ga"
     [executor]
-    kind = "process"
     workers = 2
+
+A section left out, or its ``kind``, takes the bundled default (:data:`DEFAULT_KINDS`).
 """
 
 from __future__ import annotations
@@ -48,7 +44,22 @@ SECTIONS = {
     "optimizer": "optimizer",
     "executor": "executor",
 }
-DEFAULT_KINDS = {"features": "branch-segment", "distance": "sliced", "optimizer": "ga", "executor": "process"}
+#: the bundled default kinds, the one table of the core that names bundled plugins: per section,
+#: the kind a config that leaves the section out (or its ``kind``) takes, and the kind ``bforest
+#: init`` writes a recipe with (``size.*``: the size term of ``[[objective.terms]]``); each of
+#: those plugins writes its own part of the recipe (``draft_recipe``)
+BUNDLED_KINDS = {
+    "features": ("branch-segment", "branch-segment"),
+    "distance": ("sliced", "sliced"),
+    "optimizer": ("ga", "cma"),
+    "executor": ("process", "process"),
+    "size.features": (None, "tree-summary"),
+    "size.distance": (None, "summary"),
+}
+#: the kind of a component section a config leaves out
+DEFAULT_KINDS = {section: kinds[0] for section, kinds in BUNDLED_KINDS.items() if kinds[0] is not None}
+#: the kinds ``bforest init`` writes a recipe with
+RECIPE_KINDS = {section: kinds[1] for section, kinds in BUNDLED_KINDS.items()}
 
 
 class _Strict(BaseModel):

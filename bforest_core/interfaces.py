@@ -258,6 +258,11 @@ SAFETY_WALL_TIME = 3600.0
 class RecipeDraft:
     """A growth model's part of a recipe for one tree (:meth:`SSM.draft_recipe`).
 
+    What the model asks of the recipe in no other plugin's terms: its own settings and search
+    box, the size term's balance, the model seeds and the evaluation budget of the search and how
+    the answer is chosen. The search's, the tables' and the size term's own settings are written
+    by their plugins (:class:`RecipePart`) from these.
+
     Attributes
     ----------
     suits : float
@@ -289,26 +294,22 @@ class RecipeDraft:
         Why the size term holds ``size_extra`` (written as a comment above the term).
     size_limits : dict
         A relative error per headline statistic (a fraction of the tree's value) beyond which its
-        term grows ``size_steep`` times as fast (the summary distance's ``limits``), so that a fit
-        cannot trade that statistic for structure past what a forester accepts (default: two thirds of
-        each tolerance, ``metrics.SIZE_LIMITS``, the rule of both bundled models' recipes; empty: no
-        limits).
+        term grows ``size_steep`` times as fast, so that a fit cannot trade that statistic for
+        structure past what a forester accepts (default: two thirds of each tolerance,
+        ``metrics.SIZE_LIMITS``, the rule of both bundled models' recipes; empty: no limits).
     size_steep : float
         How many times as fast a term grows beyond its limit.
-    seeds, evaluations, starts, population, init_design, finalists : int
-        The search: model seeds per evaluation (``[objective] seeds``), the evaluation budget
-        (``[stop] max_evaluations``), and of ``[optimizer]`` the CMA-ES starts, the points of a
-        generation, the Sobol' points before the starts and the starts that run to the end.
-    grow_together : bool
-        Whether the finalists take their turns together (``[optimizer] grow_together``).
+    seeds, max_evaluations : int
+        Model seeds per evaluation (``[objective] seeds``) and the evaluation budget (``[stop]
+        max_evaluations``), which the search's plugin plans its search by.
     select_top, select_sets : int
         The best distinct points grown again as candidate answers (``[select] top``) and the sets
         of held-out seeds each is grown with (``[select] sets``).
     select_tables : bool
-        Whether the candidates are scored on the tables a clone is judged by (S1 and B1 as sets of
-        their own on 256 lines, ``[select] features``/``distance``) rather than the search's own.
+        Whether the candidates are scored on the tables a clone is judged by (the features' and
+        distance's plugins say which, :attr:`RecipePart.select`) rather than the search's own.
     search_why : str
-        Why the model's search differs from the default (written as a comment above it).
+        Why the model asks for its seeds and budget (written as a comment above the search).
     """
 
     suits: float
@@ -326,16 +327,67 @@ class RecipeDraft:
     size_limits: dict = field(default_factory=lambda: dict(SIZE_LIMITS))
     size_steep: float = 3.0
     seeds: int = 3
-    evaluations: int = 1200
-    starts: int = 4
-    population: int = 16
-    init_design: int = 32
-    finalists: int = 1
-    grow_together: bool = False
+    max_evaluations: int = 1200
     select_top: int = 16
     select_sets: int = 16
     select_tables: bool = True
     search_why: str = ""
+
+
+@dataclass
+class RecipePlan:
+    """What a recipe asks of one component (the search, a term's tables or distance).
+
+    In no plugin's terms: given to the component's :meth:`~FeatureSet.draft_recipe`.
+
+    Attributes
+    ----------
+    term : str
+        ``"structure"`` (the ``[features]``/``[distance]`` term: how branches look) or ``"size"``
+        (the size term of ``[[objective.terms]]``: tree-level statistics); for an optimiser
+        ``"search"``.
+    draft : RecipeDraft
+        The growth model's draft: its seeds per evaluation, budget, size term's balance.
+    measures : TreeMeasures or None
+        What the tree measured.
+    dim : int
+        The number of free parameters.
+    """
+
+    term: str
+    draft: RecipeDraft
+    measures: TreeMeasures | None = None
+    dim: int = 0
+
+
+@dataclass
+class RecipePart:
+    """A component's part of a recipe (:meth:`~FeatureSet.draft_recipe`): its section, in its own terms.
+
+    Attributes
+    ----------
+    kind : str
+        The component's name (the section's ``kind``).
+    settings : list of (name, value, comment)
+        The section's settings (comment None: none), written in order.
+    why : str
+        What the section does, written as a comment above it.
+    select : dict
+        Settings merged over the section when the candidate answers are scored on the tables a
+        clone is judged by (``[select] features``/``distance``; empty: the search's own).
+    select_why : str
+        What those tables are, in a few words (``"S1 and B1 as sets of their own"``).
+    reach : float or None
+        The most this distance can reach for a grown tree (a failed growth must score above the
+        objective's most: ``[objective] penalty``); None: not bounded by the recipe's settings.
+    """
+
+    kind: str
+    settings: list = field(default_factory=list)
+    why: str = ""
+    select: dict = field(default_factory=dict)
+    select_why: str = ""
+    reach: float | None = None
 
 
 class SSM(Component):
@@ -470,6 +522,38 @@ class FeatureSet(Component):
 
     kind = "features"
 
+    def summary_rule(self) -> tuple[str | None, list[str] | None] | None:
+        """Return the branch rule of a feature set of tree-level statistics (optional).
+
+        The clones' fidelity table measures the statistics as the fit's size term held them.
+
+        Returns
+        -------
+        tuple or None
+            ``(topology, statistics)``: the rule the statistics are measured by (None: each
+            tree's own branches) and which of them (None: all); None (the default) for a feature
+            set that does not summarise whole trees.
+        """
+        return None
+
+    def draft_recipe(self, plan: RecipePlan) -> RecipePart | None:
+        """Write this component's part of a recipe (optional, ``bforest init``).
+
+        Parameters
+        ----------
+        plan : RecipePlan
+            What the recipe asks of it: its term (or the search), the growth model's draft
+            (seeds per evaluation, budget, the size term's balance), the tree's measures.
+
+        Returns
+        -------
+        RecipePart or None
+            Its section's settings, each with its comment, and what it does; None (the default)
+            when the component writes no recipes (``bforest init`` takes the bundled one of
+            ``config.RECIPE_KINDS``).
+        """
+        return None
+
     @property
     @abc.abstractmethod
     def set_names(self) -> list[str]:
@@ -553,6 +637,24 @@ class Distance(Component):
     """A structural distance between model and data tables."""
 
     kind = "distance"
+
+    def draft_recipe(self, plan: RecipePlan) -> RecipePart | None:
+        """Write this component's part of a recipe (optional, ``bforest init``).
+
+        Parameters
+        ----------
+        plan : RecipePlan
+            What the recipe asks of it: its term (or the search), the growth model's draft
+            (seeds per evaluation, budget, the size term's balance), the tree's measures.
+
+        Returns
+        -------
+        RecipePart or None
+            Its section's settings, each with its comment, and what it does; None (the default)
+            when the component writes no recipes (``bforest init`` takes the bundled one of
+            ``config.RECIPE_KINDS``).
+        """
+        return None
 
     def prepare(self, U_data: Mapping[str, np.ndarray], columns: Mapping[str, list[str]] | None = None) -> None:
         """Fit normalisation on the data side and cache data-side work once per run.
@@ -893,6 +995,24 @@ class Optimizer(Component):
     """Minimises a :class:`Problem`."""
 
     kind = "optimizer"
+
+    def draft_recipe(self, plan: RecipePlan) -> RecipePart | None:
+        """Write this component's part of a recipe (optional, ``bforest init``).
+
+        Parameters
+        ----------
+        plan : RecipePlan
+            What the recipe asks of it: its term (or the search), the growth model's draft
+            (seeds per evaluation, budget, the size term's balance), the tree's measures.
+
+        Returns
+        -------
+        RecipePart or None
+            Its section's settings, each with its comment, and what it does; None (the default)
+            when the component writes no recipes (``bforest init`` takes the bundled one of
+            ``config.RECIPE_KINDS``).
+        """
+        return None
 
     #: True for a sampler whose result's diagnostics carry a posterior sample (weighted
     #: ``particles``/``weights`` or an MCMC ``chain``): the fit writes posterior.csv, and

@@ -16,6 +16,7 @@ TYPE_CHECKING:``, which never run, are left out of that.
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -491,3 +492,35 @@ def test_an_import_for_type_checking_only_closes_no_circle(tmp_path):
     assert import_circles([tmp_path / "bforest_core"]) == []
     (tmp_path / "bforest_core" / "io.py").write_text("from .tree import Tree\ny = 1\n")
     assert len(import_circles([tmp_path / "bforest_core"])) == 1
+
+
+#: what the core must not spell: bundled optimiser, distance and summary plugins and their settings
+#: (each plugin writes its own part of a recipe; the core names them in config.BUNDLED_KINDS only)
+PLUGIN_WORDS = re.compile(r'"cma"|sigma0|surrogate|"sliced"|"tree-summary"')
+
+
+def plugin_words(core_dir: Path) -> list[str]:
+    """``file:line`` of every bundled plugin's name or setting in the core outside config.BUNDLED_KINDS."""
+    out = []
+    for f in sorted(core_dir.rglob("*.py")):
+        text = f.read_text(encoding="utf-8")
+        table = re.search(r"^BUNDLED_KINDS = \{.*?^\}", text, re.S | re.M) if f.name == "config.py" else None
+        for m in PLUGIN_WORDS.finditer(text):
+            if table is None or not table.start() <= m.start() < table.end():
+                out.append(f"{f.relative_to(core_dir.parent)}:{text.count(chr(10), 0, m.start()) + 1}: {m.group()}")
+    return out
+
+
+def test_the_core_names_no_bundled_plugin_outside_its_table_of_default_kinds():
+    found = plugin_words(ROOT / CORE)
+    assert not found, "the core names a bundled plugin or its settings:\n" + "\n".join(found)
+
+
+def test_the_plugin_word_check_can_fail(tmp_path):
+    _write(tmp_path, {"bforest_core/config.py": 'BUNDLED_KINDS = {\n    "distance": ("sliced", "sliced"),\n}\n'})
+    assert plugin_words(tmp_path / "bforest_core") == []
+    _write(tmp_path, {"bforest_core/pipeline/recipe.py": 'L = ["sigma0 = 0.15", \'kind = "cma"\']\n'})
+    assert plugin_words(tmp_path / "bforest_core") == [
+        "bforest_core/pipeline/recipe.py:1: sigma0",
+        'bforest_core/pipeline/recipe.py:1: "cma"',
+    ]

@@ -122,12 +122,7 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         # the SOT pine recipe's search (examples/real/pine_sot.toml): 4 000 growths, as 1 200
         # evaluations of 3 model seeds were
         seeds=1,
-        evaluations=4000,
-        starts=2,
-        population=32,
-        init_design=64,
-        finalists=2,
-        grow_together=True,
+        max_evaluations=4000,
         # the answer on the search's own objective: scoring the candidates on S1 and B1 (the SOT
         # recipe's rule, docs/validation.md "Broadleaved trees") is not yet measured on the pines
         select_tables=False,

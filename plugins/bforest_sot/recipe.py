@@ -96,8 +96,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         # candidates on 16 held-out sets, as LIGNUM's: every size of the broadleaved trees' 18 fits
         # held and 10 met every limit (9 without either; docs/validation.md, "Broadleaved trees")
         seeds=2,
-        evaluations=1800,
-        starts=2,
+        max_evaluations=1800,
         search_why=(
             "1 800 evaluations of 2 model seeds cost what 1 200 of 3 do and give the search more "
             "generations; two starts, not four, so the winner has them (docs/validation.md section 4). "

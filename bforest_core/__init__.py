@@ -17,6 +17,7 @@ from .interfaces import (
     Distance,
     Executor,
     FeatureSet,
+    LineDistance,
     Optimizer,
     OptimizeResult,
     ParameterSpec,

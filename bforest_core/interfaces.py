@@ -767,8 +767,18 @@ class Distance(Component):
         """
         return self.combine(self.compute_per_set(U_model, U_data), weights)
 
+
+class LineDistance(Distance):
+    """A distance that compares the tables on projection lines (a sliced distance).
+
+    What only such a distance has, which the run folder (its directions and frozen data-side
+    transforms), the report (the worst lines) and ``bforest distance --test`` use where a
+    distance is one (``isinstance(dist, LineDistance)``).
+    """
+
+    @abc.abstractmethod
     def directions(self, d: int) -> np.ndarray:
-        """Return the unit vectors a sliced distance projects on (if it has any).
+        """Return the unit vectors the distance projects on.
 
         Parameters
         ----------
@@ -779,20 +789,11 @@ class Distance(Component):
         -------
         ndarray, shape (lines, d)
             The directions.
-
-        Raises
-        ------
-        NotImplementedError
-            By default: the distance does not project on directions.
         """
-        raise NotImplementedError(f"distance '{self.name}' does not project on directions")
-
-    # Optional capabilities of a distance that projects on lines; the run folder and the report
-    # use them where a distance has them (the defaults say it has none).
 
     @property
     def statistic(self) -> str:
-        """Name of the one-dimensional statistic compared on each line (optional).
+        """Name of the one-dimensional statistic compared on each line.
 
         Returns
         -------
@@ -819,7 +820,7 @@ class Distance(Component):
         Raises
         ------
         NotImplementedError
-            By default: the distance does not compare tables line by line.
+            By default: the report computes the statistic per line itself.
         """
         raise NotImplementedError(f"distance '{self.name}' has no per-line values")
 

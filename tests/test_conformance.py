@@ -528,7 +528,7 @@ class BadPriorityWriter(bf.QSMWriter):
         return Path(path)
 
 
-class MislinedDistance(OffsetDistance):
+class MislinedDistance(bf.LineDistance):
     """Per-line values that match no direction."""
 
     name = "mislined"
@@ -546,7 +546,16 @@ class MislinedDistance(OffsetDistance):
 def test_declared_capabilities_are_checked(tmp_path):
     _fails(BadPriorityWriter, "priority", r"priority is 'high', expected an int", out_dir=tmp_path)
     _fails(MislinedDistance, "capabilities", r"line_values of set '.*' has shape \(\d+,\), expected \(\d+,\) finite")
-    rep = check_distance(OffsetDistance, raise_on_failure=False)  # the defaults: no lines, no transforms
+    rep = check_distance(OffsetDistance, raise_on_failure=False)  # a plain distance: no lines, no transforms
+    assert next(r for r in rep.results if r.check == "capabilities").note == (
+        "compares the tables as they are (no projection lines)"
+    )
+
+    class Lined(bf.LineDistance):  # a line distance with the defaults: no per-line values of its own
+        name = "lined"
+        compute, directions = MislinedDistance.compute, MislinedDistance.directions
+
+    rep = check_distance(Lined, raise_on_failure=False)
     assert next(r for r in rep.results if r.check == "capabilities").note == "statistic 'ks'; no per-line values"
 
 

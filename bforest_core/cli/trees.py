@@ -144,6 +144,7 @@ MAX_LINES = 1 << 16
 
 def cmd_distance(args):
     from ..errors import ConfigError
+    from ..interfaces import LineDistance
     from ..metrics import classical_metrics, relative_errors
     from ..registry import component
 
@@ -223,6 +224,8 @@ def cmd_distance(args):
         print(f"{label:<18}{ma[key]:>10.3f}{mb[key]:>10.3f}{e:>12}")
     if args.test:
         try:
+            if not isinstance(dist, LineDistance):
+                raise NotImplementedError
             res = dist.permutation_test(Ua, Ub, seed=args.seed)
         except NotImplementedError:
             raise UsageError(f"distance '{args.distance}' offers no permutation test") from None

@@ -29,7 +29,7 @@ from ..config import (
     section_settings,
 )
 from ..errors import BayesForestError, ConfigError
-from ..interfaces import Problem, parameter_value
+from ..interfaces import LineDistance, Problem, parameter_value
 from ..io import jsonable
 from .checks import preflight
 from .heldout import select_answer, selection_config
@@ -426,15 +426,14 @@ def _save_target(store: RunStore, tgt: Target, cfg: RunConfig, dist) -> None:
     cols = {k: v for k, v in tgt.columns.items() if "/" not in k}
     dist.prepare(own, cols)
     frozen = {"distance": cfg.distance.kind, "settings": section_settings(cfg, "distance"), "columns": cols}
-    norms = dist.normalizations()
+    lines = isinstance(dist, LineDistance)  # a sliced distance: its transforms and directions are kept
+    norms = dist.normalizations() if lines else {}
     if norms:  # a distance that compares the tables in their own units has none
         frozen["normalization"] = norms
     store.write_json(store.DISTANCE, frozen)
-    dims = sorted({u.shape[1] for u in own.values() if u.ndim == 2})
-    try:
+    if lines:
+        dims = sorted({u.shape[1] for u in own.values() if u.ndim == 2})
         np.savez_compressed(store.directions_path, **{f"d{d}": dist.directions(d) for d in dims})
-    except NotImplementedError:
-        pass
     try:
         from ..io import write_tree
 

@@ -35,7 +35,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import AliasChoices, Field, field_validator, model_validator
 
-from bforest_core.interfaces import ComponentSettings, Distance, RecipePart, RecipePlan
+from bforest_core.interfaces import ComponentSettings, LineDistance, RecipePart, RecipePlan
 
 from .directions import directions as _directions
 from .grid import VALUE_BITS, snap
@@ -273,7 +273,7 @@ def _as_table(u, what: str, d: int | None = None) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 
 
-class SlicedDistance(Distance):
+class SlicedDistance(LineDistance):
     """Sliced (tomographic) distance: mean (or max) over projection lines of a 1-D statistic.
 
     Settings

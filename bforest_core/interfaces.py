@@ -894,7 +894,7 @@ class Problem:
         Box to draw initial points from (default: the bounds).
     seed : int, optional
         Seeds the optimiser.
-    budget : int, optional
+    max_evaluations : int, optional
         The evaluation budget (see the attribute).
     stopped, n_evaluations, best_x, best_f, stop_reason
         Progress state, maintained by ``evaluate``.
@@ -910,10 +910,10 @@ class Problem:
     init_lower: np.ndarray | None = None
     init_upper: np.ndarray | None = None
     seed: int = 0
-    #: the evaluation budget (a fit's ``[stop] max_evaluations``; ``None``: none). ``evaluate``
-    #: enforces it (it evaluates what still fits, then sets ``stopped``); an optimiser reads
-    #: ``remaining()`` to plan and ``stopped`` to end, and keeps no budget setting of its own
-    budget: int | None = None
+    #: the evaluation budget, by its one name (a fit's ``[stop] max_evaluations``; ``None``: none).
+    #: ``evaluate`` enforces it (it evaluates what still fits, then sets ``stopped``); an optimiser
+    #: reads ``remaining()`` to plan and ``stopped`` to end, and keeps no budget setting of its own
+    max_evaluations: int | None = None
     # progress state, maintained by the caller's evaluate
     stopped: bool = False
     n_evaluations: int = 0
@@ -961,7 +961,7 @@ class Problem:
         int or None
             Evaluations left (at least 0); ``None`` without a budget.
         """
-        return None if self.budget is None else max(0, self.budget - self.n_evaluations)
+        return None if self.max_evaluations is None else max(0, self.max_evaluations - self.n_evaluations)
 
 
 @dataclass
@@ -1075,13 +1075,13 @@ class Optimizer(Component):
         -------
         int or None
             What the settings let a run evaluate at most (the fit's progress bar counts to the
-            smaller of it and ``Problem.budget``). Default ``None``: unknown in advance.
+            smaller of it and ``Problem.max_evaluations``). Default ``None``: unknown in advance.
         """
         return None
 
     @classmethod
     def budget_settings(cls, settings: Mapping[str, Any], budget: int) -> dict[str, Any]:
-        """Return settings under which ``Problem.budget``, not the optimiser's limits, ends a run.
+        """Return settings under which ``Problem.max_evaluations``, not the optimiser's limits, ends a run.
 
         ``bforest compare`` runs every optimiser on the same evaluation budget: each optimiser
         lifts (or sets to the budget) its own limits, such as a number of generations,
@@ -1099,7 +1099,7 @@ class Optimizer(Component):
         -------
         dict
             The settings to run with. Default: ``settings`` unchanged (an optimiser whose only
-            length limit is ``Problem.budget``).
+            length limit is ``Problem.max_evaluations``).
         """
         return dict(settings)
 

@@ -114,12 +114,12 @@ class Evaluator:
 
     def _stop_at_budget(self, pending: int = 0) -> bool:
         """Stop the problem once its evaluations, with ``pending`` more on their way, reach
-        ``Problem.budget`` (``[stop] max_evaluations``): the one place the budget is enforced
+        ``Problem.max_evaluations`` (``[stop] max_evaluations``): the one place the budget is enforced
         (optimisers read ``Problem.remaining()`` to plan, ``Problem.stopped`` to end)."""
         pr = self.problem
         left = pr.remaining()
         if left is not None and pending >= left:
-            pr.stopped, pr.stop_reason = True, f"evaluation budget ({pr.budget}) reached"
+            pr.stopped, pr.stop_reason = True, f"evaluation budget ({pr.max_evaluations}) reached"
             self.stop_kind = self.stop_kind or "budget"
         return pr.stopped
 
@@ -361,7 +361,7 @@ def fit(
             init_lower=ilo,
             init_upper=ihi,
             seed=int(cfg.seed),
-            budget=cfg.stop.max_evaluations,
+            max_evaluations=cfg.stop.max_evaluations,
             log=store.log,
         )
         bar = _Progress(_expected_total(cfg, optimizer, len(names)), enabled=progress)

@@ -339,7 +339,7 @@ class _Race:
         n0 = int(problem.n_evaluations)
         ratio = len(slots) / self.finalists
         rungs = math.ceil(math.log2(ratio)) if ratio > 1 else 0
-        left = None if problem.budget is None else max(int(problem.budget) - n0, 0)
+        left = None if problem.max_evaluations is None else max(int(problem.max_evaluations) - n0, 0)
         self.marks = [] if left is None else [n0 + left * (r + 1) / (rungs + 1) for r in range(rungs)]
 
     def halve(self) -> None:

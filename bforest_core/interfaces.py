@@ -1015,11 +1015,6 @@ class Optimizer(Component):
         """
         return None
 
-    #: True for a sampler whose result's diagnostics carry a posterior sample (weighted
-    #: ``particles``/``weights`` or an MCMC ``chain``): the fit writes posterior.csv, and
-    #: ``bforest calibrate`` accepts it.
-    gives_posterior: bool = False
-
     #: True for a sampler to which a failed simulation (collapsed, too large, timed out) is a tree
     #: that matches nothing: ``evaluate`` (and ``seed_spread``) then return ``inf`` for it instead of
     #: the config's ``[objective] penalty``, which an optimiser needs as a finite value but a
@@ -1028,8 +1023,10 @@ class Optimizer(Component):
     failures_as_inf: bool = False
 
     # --- what a sampler's posterior is (the report's wording and figures) ---------------------
-    #: The kind of posterior sample a sampler gives (``gives_posterior``), stored in ``best.json``
-    #: so the report words and draws it without knowing the sampler:
+    #: The kind of posterior sample a sampler gives, the one declaration that it is a sampler (its
+    #: result's diagnostics carry the sample: the fit writes posterior.csv, ``bforest calibrate``
+    #: accepts it), stored in ``best.json`` so the report words and draws it without knowing the
+    #: sampler:
     #:
     #: ``"chain"``
     #:     MCMC: ``diagnostics["chain"]`` ``(steps, walkers, parameters)`` and ``burn_in``; the

@@ -197,7 +197,7 @@ def _check_sampler(cfg: RunConfig, source: str) -> None:
     from ..registry import component_class
 
     cls = component_class("optimizer", cfg.optimizer.kind)
-    if not cls.gives_posterior:
+    if cls.posterior_kind is None:
         raise ConfigError(
             f"{source}: optimizer.kind: calibrate needs a sampler whose result is a posterior "
             f"(e.g. abc-smc, emcee); {cfg.optimizer.kind!r} gives a best fit only"

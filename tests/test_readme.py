@@ -26,6 +26,8 @@ OVERRIDES = [
     (r"(bforest fit \S+ -o \S+)", r"\1 --max-evaluations 32 --no-report"),  # ~3 min -> seconds
     (r"(bforest clones \S+) -n 30", r"\1 -n 2 --no-report"),
     (r"--budget 400 --repeats 3", "--budget 24 --repeats 1 -o {tmp}/compare -q"),
+    (r"-o stands/", "-o {tmp}/stands/"),
+    (r"(bforest stand \S+ -o \S+)", r"\1 --max-evaluations 16 -n 2 -q"),  # ~10 min -> a minute
 ]
 
 
@@ -62,6 +64,7 @@ def test_every_readme_line_runs(tmp_path):
     assert (tmp_path / "runs" / "pine3" / "clones" / "clone_000.txt").exists()
     assert (tmp_path / "pine.png").exists() and (tmp_path / "compare" / "compare.png").exists()
     assert (tmp_path / "tf3.toml").exists() and not (ROOT / "tf3.toml").exists()
+    assert (tmp_path / "stands" / "pines" / "stand.csv").read_text().count("\n") == 4  # a header, 3 pines
 
 
 def test_the_user_guides_fits_write_to_different_run_folders():

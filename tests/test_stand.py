@@ -297,3 +297,19 @@ def test_the_slurm_set_up_of_dask_md_builds_and_its_stand_config_validates(plot,
         )
     finally:
         cluster.close()
+
+
+def test_the_stand_report_has_a_row_per_tree_the_parameters_and_the_plot(reference):
+    from bforest_core.report.stand import write_stand_report
+
+    out, _ = reference
+    md = write_stand_report(out).read_text()
+    assert "**2 of 3** trees fitted" in md
+    assert "- bad: failed: " in md  # the failed tree among the warnings, with its reason
+    rows = [ln for ln in md.splitlines() if ln.startswith("| p3 |") or ln.startswith("| cof |")]
+    assert len(rows) == 4  # each fitted tree in the tree table and in the parameter table
+    assert "| tree | branch_angle | init_width | max_iter |" in md
+    for fig in ("parameters", "plot_map", "real_vs_synthetic"):
+        assert (out / "figures" / f"{fig}.png").stat().st_size > 10_000
+        assert f"figures/{fig}.png" in md
+    assert (out / "report.html").read_text().count("<img") == 3

@@ -44,7 +44,7 @@ def cmd_stand(args):
     check_stand_dir(out, args.resume, args.overwrite)  # before the trees are read
     executor = _executor(args)
     options = dict(recipe=_absolute(args.recipe), model=args.model, seed=args.seed, clones=args.count)
-    options.update(realisations=args.realisations)
+    options.update(realisations=args.realisations, max_evaluations=args.max_evaluations)
     if args.resume:
         if args.source or args.stem_map or any(v is not None for v in options.values()):
             raise UsageError("--resume continues the stand in -o as it was started: give only -o (and the executor)")
@@ -114,6 +114,9 @@ def add_commands(sub):
     s.add_argument("--model", help="growth model of init's recipes (default: the one that suits each tree)")
     s.add_argument("--seed", type=int, help="run seed of every tree's fit (default: the recipe's)")
     s.add_argument("-n", "--count", type=int, help="clones per tree (default 30)")
+    s.add_argument(
+        "--max-evaluations", type=int, help="every tree's evaluation budget (default: its recipe's; less: a quick look)"
+    )
     s.add_argument("--realisations", type=int, help="synthetic stands to grow from the clones (default 1)")
     s.add_argument("--executor", choices=["serial", "process", "dask"], help="where the trees run (default: process)")
     s.add_argument("--workers", type=int, help="worker processes (process, local dask) or workers to wait for (dask)")

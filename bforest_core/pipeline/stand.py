@@ -77,6 +77,9 @@ class StandSettings(BaseModel):
     recipe: Optional[str] = Field(None, description="one recipe for every tree (default: bforest init's for each)")
     model: Optional[str] = Field(None, description="growth model of init's recipes (default: the one that suits)")
     seed: Optional[int] = Field(None, description="run seed of every tree's fit (default: the recipe's)")
+    max_evaluations: Optional[int] = Field(
+        None, ge=1, description="every tree's evaluation budget (default: its recipe's; less is a quick look only)"
+    )
     clones: int = Field(30, ge=0, le=10000, description="clones grown per tree")
     realisations: int = Field(1, ge=0, le=1000, description="synthetic stands grown from the clones")
     positions: Literal["qsm", "stem-map"] = Field(
@@ -283,6 +286,8 @@ def _tree_config(job: dict):
     raw["executor"] = {"kind": "serial"}
     if job["seed"] is not None:
         raw["seed"] = int(job["seed"])
+    if job["max_evaluations"] is not None:
+        raw.setdefault("stop", {})["max_evaluations"] = int(job["max_evaluations"])
     return parse_config(raw, base_dir=path.resolve().parent, source=str(path))
 
 
@@ -453,6 +458,7 @@ def plan_stand(settings: StandSettings, stand_dir) -> tuple[list[dict], list[dic
             "recipe_path": str(files.recipe_path(t.name)),
             "run_dir": str(files.run_dir(t.name)),
             "seed": settings.seed,
+            "max_evaluations": settings.max_evaluations,
             "clones": settings.clones,
             "x": t.x,
             "y": t.y,

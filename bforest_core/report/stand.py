@@ -180,6 +180,19 @@ def _tree_rows(rows, runs):
     return out
 
 
+def _parameter_tables(rows, runs):
+    """Per growth model: a table of the trees' fitted parameters (rows: trees)."""
+    by_model: dict[str, list] = {}
+    for r in rows:
+        best, cfg = runs[r["tree"]]
+        if best is not None:
+            free = list(cfg.get("ssm", {}).get("free", {}))
+            by_model.setdefault(cfg["ssm"]["kind"], []).append((r["tree"], {k: best["params"].get(k) for k in free}))
+    for model, trees in by_model.items():
+        names = sorted({k for _, p in trees for k in p})
+        yield model, ["tree", *names], [[t, *(fmt(p.get(k), 3) for k in names)] for t, p in trees]
+
+
 def write_stand_report(stand_dir, figures: bool = True) -> Path:
     """Write ``report.md``, ``report.html`` and the figures of a stand folder; returns report.md."""
     from ..pipeline.stand import read_settings, read_table
@@ -233,11 +246,14 @@ def write_stand_report(stand_dir, figures: bool = True) -> Path:
         ],
         _tree_rows(rows, runs),
     )
+    doc.h(2, "Fitted parameters")
+    for model, header, table in _parameter_tables(rows, runs):
+        doc.p(f"**{model}** (each tree's answer; its search box in its recipe, `{StandFiles.RECIPES}/NAME.toml`):")
+        doc.table(header, table)
     if figures and ok:
         figs = files.figures_dir
         p = parameters_figure(rows, runs, figs / "parameters")
         if p is not None:
-            doc.h(2, "Fitted parameters across the trees")
             doc.fig(str(p.relative_to(stand_dir)), "each fitted parameter's place in its tree's search box, per model")
         from ..pipeline.stand import plan_stand
 

@@ -516,25 +516,11 @@ class SSM(Component):
         return out
 
 
-# ------------------------------------------------------------------------------------ features
-class FeatureSet(Component):
-    """Turns a tree into named tables of multi-dimensional points (structural data sets U)."""
+class RecipeWriter:
+    """A component that may write its part of a recipe: a feature set, a distance, an optimiser.
 
-    kind = "features"
-
-    def summary_rule(self) -> tuple[str | None, list[str] | None] | None:
-        """Return the branch rule of a feature set of tree-level statistics (optional).
-
-        The clones' fidelity table measures the statistics as the fit's size term held them.
-
-        Returns
-        -------
-        tuple or None
-            ``(topology, statistics)``: the rule the statistics are measured by (None: each
-            tree's own branches) and which of them (None: all); None (the default) for a feature
-            set that does not summarise whole trees.
-        """
-        return None
+    ``bforest init`` asks the kinds of ``config.RECIPE_KINDS`` for their parts.
+    """
 
     def draft_recipe(self, plan: RecipePlan) -> RecipePart | None:
         """Write this component's part of a recipe (optional, ``bforest init``).
@@ -551,6 +537,27 @@ class FeatureSet(Component):
             Its section's settings, each with its comment, and what it does; None (the default)
             when the component writes no recipes (``bforest init`` takes the bundled one of
             ``config.RECIPE_KINDS``).
+        """
+        return None
+
+
+# ------------------------------------------------------------------------------------ features
+class FeatureSet(RecipeWriter, Component):
+    """Turns a tree into named tables of multi-dimensional points (structural data sets U)."""
+
+    kind = "features"
+
+    def summary_rule(self) -> tuple[str | None, list[str] | None] | None:
+        """Return the branch rule of a feature set of tree-level statistics (optional).
+
+        The clones' fidelity table measures the statistics as the fit's size term held them.
+
+        Returns
+        -------
+        tuple or None
+            ``(topology, statistics)``: the rule the statistics are measured by (None: each
+            tree's own branches) and which of them (None: all); None (the default) for a feature
+            set that does not summarise whole trees.
         """
         return None
 
@@ -633,28 +640,10 @@ class FeatureSet(Component):
 
 
 # ------------------------------------------------------------------------------------ distance
-class Distance(Component):
+class Distance(RecipeWriter, Component):
     """A structural distance between model and data tables."""
 
     kind = "distance"
-
-    def draft_recipe(self, plan: RecipePlan) -> RecipePart | None:
-        """Write this component's part of a recipe (optional, ``bforest init``).
-
-        Parameters
-        ----------
-        plan : RecipePlan
-            What the recipe asks of it: its term (or the search), the growth model's draft
-            (seeds per evaluation, budget, the size term's balance), the tree's measures.
-
-        Returns
-        -------
-        RecipePart or None
-            Its section's settings, each with its comment, and what it does; None (the default)
-            when the component writes no recipes (``bforest init`` takes the bundled one of
-            ``config.RECIPE_KINDS``).
-        """
-        return None
 
     def prepare(self, U_data: Mapping[str, np.ndarray], columns: Mapping[str, list[str]] | None = None) -> None:
         """Fit normalisation on the data side and cache data-side work once per run.
@@ -992,28 +981,10 @@ class OptimizeResult:
     diagnostics: dict[str, Any] = field(default_factory=dict)
 
 
-class Optimizer(Component):
+class Optimizer(RecipeWriter, Component):
     """Minimises a :class:`Problem`."""
 
     kind = "optimizer"
-
-    def draft_recipe(self, plan: RecipePlan) -> RecipePart | None:
-        """Write this component's part of a recipe (optional, ``bforest init``).
-
-        Parameters
-        ----------
-        plan : RecipePlan
-            What the recipe asks of it: its term (or the search), the growth model's draft
-            (seeds per evaluation, budget, the size term's balance), the tree's measures.
-
-        Returns
-        -------
-        RecipePart or None
-            Its section's settings, each with its comment, and what it does; None (the default)
-            when the component writes no recipes (``bforest init`` takes the bundled one of
-            ``config.RECIPE_KINDS``).
-        """
-        return None
 
     #: True for a sampler to which a failed simulation (collapsed, too large, timed out) is a tree
     #: that matches nothing: ``evaluate`` (and ``seed_spread``) then return ``inf`` for it instead of

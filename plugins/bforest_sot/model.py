@@ -337,22 +337,6 @@ class AllocationRecord:
 
 
 @dataclass
-class ShootRecord:
-    """Inspection record of one cycle's shoots (one entry per growing shoot, in draw order)."""
-
-    bearing: np.ndarray  # global id of the bearing segment
-    lateral: np.ndarray  # bool
-    vigor: np.ndarray  # capped bud vigor v
-    planned: np.ndarray  # floor(v)
-    built: np.ndarray  # metamers actually built (fewer only at the walls)
-    first: np.ndarray  # global id of the first metamer (-1 if none)
-    metamer_length: np.ndarray
-    branch_angle: np.ndarray  # drawn branch angle (deg; NaN for apical shoots)
-    target: np.ndarray  # (k, 3) unit target direction (0 if |t| = 0)
-    tau: np.ndarray  # turning fraction
-
-
-@dataclass
 class _Basipetal:
     """Steps 2-3 of a cycle over the segments alive at its start (local index; ``ids`` global):
     bud states and exposures as before the drops, and the basipetal sums."""
@@ -384,33 +368,22 @@ class BudChoice:
     grow_l: np.ndarray
 
 
-@dataclass
 class Shoots:
-    """One cycle's growing shoots, in draw order (by bearing segment, apical before lateral).
+    """One cycle's growing shoots, in draw order (by bearing segment, apical before lateral): what
+    the forms' shoot hooks see and change, and the inspection record of the cycle's shoots
+    (``StepView.shoots``).
 
-    Made with their bearing segment, side, capped vigor and planned metamers; the growth adds
-    their order, frames (``h``, ``u``), drawn branch angle, start ``pos``, metamer length
-    ``seg_len``, unit ``target`` direction and turning share ``tau`` before the ``shape_shoots``
-    hooks, and ``first``, ``last``, ``built`` as it builds them.
+    Made with ``bearing`` (global id of the bearing segment), ``lateral`` (bool), ``vigor`` (capped
+    bud vigor v) and ``planned`` (floor(v) metamers); before the ``shape_shoots`` hooks the growth
+    adds ``order``, the frames ``h`` and ``u``, ``branch_angle`` (drawn, deg; NaN for apical shoots),
+    the start ``pos``, ``metamer_length``, the unit ``target`` direction (0 if |t| = 0) and the
+    turning share ``tau``; as it builds them ``first`` (global id of the first metamer, -1 if
+    none), ``last`` (the node each axis goes on from), ``built`` (metamers built: fewer than
+    planned only at the walls) and ``stopped``.
     """
 
-    bearing: np.ndarray
-    lateral: np.ndarray
-    vigor: np.ndarray
-    planned: np.ndarray
-    order: np.ndarray = None
-    h: np.ndarray = None
-    u: np.ndarray = None
-    angle: np.ndarray = None
-    pos: np.ndarray = None
-    seg_len: np.ndarray = None
-    target: np.ndarray = None
-    tau: np.ndarray = None
-    first: np.ndarray = None
-    last: np.ndarray = None
-    built: np.ndarray = None
-    stopped: np.ndarray = None
-    starts: list = None
+    def __init__(self, bearing: np.ndarray, lateral: np.ndarray, vigor: np.ndarray, planned: np.ndarray):
+        self.bearing, self.lateral, self.vigor, self.planned = bearing, lateral, vigor, planned
 
 
 # ------------------------------------------------------------------------------------------------
@@ -449,7 +422,7 @@ class SOTGrowth:
         self.lam = float(p["init_lambda"])
         self.created = 0
         self.last_alloc: AllocationRecord | None = None
-        self.last_shoots: ShootRecord | None = None
+        self.last_shoots: Shoots | None = None
 
     def _light_field(self) -> LightField:
         """Draw 1: the initial field's uniforms; the field of a seed seen before comes from the
@@ -719,7 +692,7 @@ class SOTGrowth:
         sh.built = np.zeros(m, dtype=np.int64)
         sh.first = np.full(m, -1, dtype=np.int64)
         sh.stopped = np.zeros(m, dtype=bool)
-        sh.starts = []
+        sh.starts = []  # the new metamers' starts, for their shadows
         s.reserve(s.n + int(sh.planned.sum()) * self.rows_per_metamer)
         lo = s.n
         for k in range(int(sh.planned.max()) if m else 0):
@@ -733,18 +706,7 @@ class SOTGrowth:
         if sh.starts:  # 8. shadows of all new metamers, from their starts, in one batch
             self.field.cast(np.concatenate(sh.starts))
         if self.record:
-            self.last_shoots = ShootRecord(
-                bearing=sh.bearing,
-                lateral=sh.lateral,
-                vigor=sh.vigor,
-                planned=sh.planned,
-                built=sh.built,
-                first=sh.first,
-                metamer_length=sh.seg_len,
-                branch_angle=sh.angle,
-                target=sh.target,
-                tau=sh.tau,
-            )
+            self.last_shoots = sh
 
     def _frames(self, sh: Shoots) -> None:
         """Draws 2 and 3 (blocks consumed even when the sd is 0), the target directions from the
@@ -762,15 +724,15 @@ class SOTGrowth:
         sh.tau = np.minimum(tn, p["redir_strength"])
         sh.target = np.where(tn[:, None] > 0, t / np.where(tn > 0, tn, 1.0)[:, None], 0.0)
         sh.h, sh.u = s.h[bearing].copy(), s.u[bearing].copy()
-        sh.angle = np.full(m, np.nan)
+        sh.branch_angle = np.full(m, np.nan)
         if z_ang.size:
             li = np.flatnonzero(lateral)
-            sh.angle[li] = p["branch_angle"] + p["branch_angle_sd"] * z_ang
-            hl = _unit(rotate(sh.h[li], sh.u[li], np.radians(sh.angle[li])))
+            sh.branch_angle[li] = p["branch_angle"] + p["branch_angle_sd"] * z_ang
+            hl = _unit(rotate(sh.h[li], sh.u[li], np.radians(sh.branch_angle[li])))
             sh.u[li] = rotate(sh.u[li], hl, np.full(li.size, math.radians(p["nonplanar_twist"])))
             sh.h[li] = hl
         sh.pos = s.start[bearing] + s.length[bearing, None] * s.h[bearing]
-        sh.seg_len = np.where(sh.planned > 0, sh.vigor / np.maximum(sh.planned, 1), 0.0) * p["node_length"]
+        sh.metamer_length = np.where(sh.planned > 0, sh.vigor / np.maximum(sh.planned, 1), 0.0) * p["node_length"]
         sh.order = s.order[bearing] + lateral
 
     def _metamer_step(self, c: int, k: int, sh: Shoots) -> bool:
@@ -815,7 +777,7 @@ class SOTGrowth:
             sh.pos[act],
             ha,
             ua,
-            sh.seg_len[act],
+            sh.metamer_length[act],
             p["init_width"],
             par,
             sh.lateral[act] & (k == 0),
@@ -833,7 +795,7 @@ class SOTGrowth:
             s.api_state[par] = CHILD
             s.api_child[par] = nid
         sh.starts.append(sh.pos[act].copy())
-        sh.pos[act] = sh.pos[act] + sh.seg_len[act, None] * ha
+        sh.pos[act] = sh.pos[act] + sh.metamer_length[act, None] * ha
         sh.last[act] = nid
         sh.built[act] += 1
         s.n += act.size
@@ -881,7 +843,7 @@ class StepView:
         The live light field (do not modify).
     alloc : AllocationRecord or None
         The passes of this cycle (None in the seed cycle).
-    shoots : ShootRecord or None
+    shoots : Shoots or None
         The shoots built this cycle.
     """
 

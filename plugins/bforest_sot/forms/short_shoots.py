@@ -45,7 +45,7 @@ class ShortShoots(GrowthForm):
         shoots.planned[self.short] = 1
 
     def shape_shoots(self, shoots) -> None:
-        shoots.seg_len[self.short] = self.p["node_length"]
+        shoots.metamer_length[self.short] = self.p["node_length"]
 
     def shoots_built(self, shoots) -> None:
         """A short shoot's metamer and its bud nodes never grow on."""

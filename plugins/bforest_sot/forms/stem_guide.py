@@ -79,11 +79,11 @@ class StemGuide(GrowthForm):
         if not self.stem.size:
             return
         st, w = self.stem, self.p["stem_guide"]
-        g = self.guide.at(self.arc + shoots.planned[st] * shoots.seg_len[st]) - shoots.pos[st]
+        g = self.guide.at(self.arc + shoots.planned[st] * shoots.metamer_length[st]) - shoots.pos[st]
         g = (1.0 - w) * shoots.target[st] + w * g / np.maximum(_norm(g), 1e-12)[:, None]
         shoots.target[st] = g / np.maximum(_norm(g), 1e-12)[:, None]
         shoots.tau[st] = (1.0 - w) * shoots.tau[st] + w
 
     def shoots_built(self, shoots) -> None:
         if self.stem.size:
-            self.arc += float((shoots.built[self.stem] * shoots.seg_len[self.stem]).sum())
+            self.arc += float((shoots.built[self.stem] * shoots.metamer_length[self.stem]).sum())

@@ -8,7 +8,7 @@
     python3 dev.py env      only create or refresh .venv (then use .venv/bin/bforest, .venv/bin/python)
 
 Each creates (or reuses) the virtual environment ``.venv`` beside this file and installs the
-project into it (editable, with the test, Dask and SLURM extras and the example third-party plugin).
+project into it (editable, with the test, Dask and SLURM extras and the example third-party plugins).
 The install is redone only when a packaging file changed.
 """
 
@@ -24,13 +24,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent
 VENV = ROOT / ".venv"
 STAMP = VENV / ".install-stamp"
-EXAMPLE = ROOT / "docs" / "examples" / "bforest-example-ssm"
+#: the example third-party plugins installed beside the project: a growth model, a growth form of SOT
+EXAMPLES = [ROOT / "docs" / "examples" / name for name in ("bforest-example-ssm", "bforest-example-sot-form")]
 BIN = VENV / ("Scripts" if os.name == "nt" else "bin")
 
 
 def _fingerprint() -> str:
     h = hashlib.sha256()
-    for f in [ROOT / "pyproject.toml", Path(__file__), EXAMPLE / "pyproject.toml"]:
+    for f in [ROOT / "pyproject.toml", Path(__file__), *(e / "pyproject.toml" for e in EXAMPLES)]:
         if f.exists():
             h.update(f.read_bytes())
     h.update(sys.version.encode())
@@ -49,8 +50,9 @@ def ensure_env() -> Path:
         print("installing Bayes Forest and its dependencies into .venv ...", flush=True)
         pip = [str(py), "-m", "pip", "install", "--disable-pip-version-check", "-q"]
         subprocess.check_call(pip + ["-e", f"{ROOT}[dev,dask,slurm]"])
-        if (EXAMPLE / "pyproject.toml").exists():
-            subprocess.check_call(pip + ["-e", str(EXAMPLE)])
+        for example in EXAMPLES:
+            if (example / "pyproject.toml").exists():
+                subprocess.check_call(pip + ["-e", str(example)])
         STAMP.write_text(fp)
     return py
 

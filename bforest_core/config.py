@@ -12,15 +12,11 @@ third-party plugin's settings are validated exactly like a bundled one's. Exampl
     fixed = { radiation = 60.0 }
     free.q_mean = { lower = 0.05, upper = 0.4 }
     [features]
-    kind = "branch-segment"
     sets = ["S1", "B1"]
-    [distance]
-    kind = "sliced"
-    [optimizer]
-    kind = "ga"
     [executor]
-    kind = "process"
     workers = 2
+
+A section left out, or its ``kind``, takes the bundled default (:data:`DEFAULT_KINDS`).
 """
 
 from __future__ import annotations
@@ -49,7 +45,22 @@ SECTIONS = {
     "optimizer": "optimizer",
     "executor": "executor",
 }
-DEFAULT_KINDS = {"features": "branch-segment", "distance": "sliced", "optimizer": "ga", "executor": "process"}
+#: the bundled default kinds, the one table of the core that names bundled plugins: per section,
+#: the kind a config that leaves the section out (or its ``kind``) takes, and the kind ``bforest
+#: init`` writes a recipe with (``size.*``: the size term of ``[[objective.terms]]``); each of
+#: those plugins writes its own part of the recipe (``draft_recipe``)
+BUNDLED_KINDS = {
+    "features": ("branch-segment", "branch-segment"),
+    "distance": ("sliced", "sliced"),
+    "optimizer": ("ga", "cma"),
+    "executor": ("process", "process"),
+    "size.features": (None, "tree-summary"),
+    "size.distance": (None, "summary"),
+}
+#: the kind of a component section a config leaves out
+DEFAULT_KINDS = {section: kinds[0] for section, kinds in BUNDLED_KINDS.items() if kinds[0] is not None}
+#: the kinds ``bforest init`` writes a recipe with
+RECIPE_KINDS = {section: kinds[1] for section, kinds in BUNDLED_KINDS.items()}
 
 
 class _Strict(BaseModel):
@@ -488,6 +499,47 @@ def _allowed_keys(model, raw, loc) -> list[str]:
     return list(cur.model_fields) if cur is not None else []
 
 
+def parameter_problems(where: str, model: str, specs: dict, values: dict) -> list[str]:
+    """Check parameter entries of a config against a model's ``ParameterSpec``s.
+
+    The one check of a parameter's name and range (``ssm.fixed``, ``ssm.free``,
+    ``target.generate.params``).
+
+    Parameters
+    ----------
+    where : str
+        The entries' key path in the config (``"ssm.fixed"``).
+    model : str
+        The SSM's name, for messages.
+    specs : dict
+        ``ParameterSpec`` by name.
+    values : dict
+        Name -> a value, a ``(lower, upper)`` pair of bounds, or None (the name alone is checked).
+
+    Returns
+    -------
+    list of str
+        One message per unknown name or value (bound) outside its parameter's range.
+    """
+    problems = []
+    for name, val in values.items():
+        s = specs.get(name)
+        if s is None:
+            problems.append(
+                f"{where}.{name}: unknown parameter of '{model}' (known: {', '.join(specs)}){did_you_mean(name, specs)}"
+            )
+        elif isinstance(val, tuple) and (val[0] < s.lower or val[1] > s.upper):
+            problems.append(
+                f"{where}.{name}: bounds [{val[0]}, {val[1]}] exceed the allowed range "
+                f"[{s.lower}, {s.upper}] {s.unit}".rstrip()
+            )
+        elif val is not None and not isinstance(val, tuple) and not s.lower <= val <= s.upper:
+            problems.append(
+                f"{where}.{name}: {val} is outside the allowed range [{s.lower}, {s.upper}] {s.unit}".rstrip()
+            )
+    return problems
+
+
 def check_ssm_parameters(cfg: RunConfig) -> None:
     """Check that ``fixed`` and ``free`` entries name parameters of the SSM, within its ranges.
 
@@ -503,42 +555,19 @@ def check_ssm_parameters(cfg: RunConfig) -> None:
     PluginError
         If the SSM is not installed.
     """
-    from .registry import component
-
-    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
-    specs = {p.name: p for p in ssm.parameters}
+    specs = {p.name: p for p in build_component(cfg, "ssm").parameters}
     problems = [
         f"ssm '{cfg.ssm.kind}': the plugin's parameter name {n!r} is not a Python identifier (it is a "
         "TOML key, a column name and a report label)"
         for n in specs
         if not _identifier(n)
     ]
-    for name, val in cfg.ssm.fixed.items():
-        if name not in specs:
-            problems.append(
-                f"ssm.fixed.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
-                f"{did_you_mean(name, specs)}"
-            )
-        elif not specs[name].lower <= val <= specs[name].upper:
-            s = specs[name]
-            problems.append(
-                f"ssm.fixed.{name}: {val} is outside the allowed range [{s.lower}, {s.upper}] {s.unit}".rstrip()
-            )
-    for name, fp in cfg.ssm.free.items():
-        if name not in specs:
-            problems.append(
-                f"ssm.free.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
-                f"{did_you_mean(name, specs)}"
-            )
-            continue
-        s = specs[name]
-        if name in cfg.ssm.fixed:
-            problems.append(f"ssm.free.{name}: also listed in ssm.fixed")
-        if fp.scaled_by is None and (fp.lower < s.lower or fp.upper > s.upper):  # scaled: once resolved
-            problems.append(
-                f"ssm.free.{name}: bounds [{fp.lower}, {fp.upper}] exceed the allowed range "
-                f"[{s.lower}, {s.upper}] {s.unit}".rstrip()
-            )
+    kind = cfg.ssm.kind
+    problems += parameter_problems("ssm.fixed", kind, specs, cfg.ssm.fixed)
+    # a bound scaled to the tree is checked once resolved (pipeline.target)
+    bounds = {n: None if fp.scaled_by is not None else (fp.lower, fp.upper) for n, fp in cfg.ssm.free.items()}
+    problems += parameter_problems("ssm.free", kind, specs, bounds)
+    problems += [f"ssm.free.{n}: also listed in ssm.fixed" for n in cfg.ssm.free if n in specs and n in cfg.ssm.fixed]
     if problems:
         raise ConfigError("; ".join(problems))
 
@@ -574,55 +603,114 @@ def check_generated_target(cfg: RunConfig) -> None:
     except ConfigError as exc:
         raise ConfigError(f"target.generate.settings: {exc}") from None
     specs = {p.name: p for p in ssm.parameters}
-    problems = []
-    for name, val in gen.params.items():
-        s = specs.get(name)
-        if s is None:
-            problems.append(
-                f"target.generate.params.{name}: unknown parameter of '{gen.ssm}' "
-                f"(known: {', '.join(specs)}){did_you_mean(name, specs)}"
-            )
-        elif not s.lower <= val <= s.upper:
-            problems.append(
-                f"target.generate.params.{name}: {val} is outside the allowed range "
-                f"[{s.lower}, {s.upper}] {s.unit}".rstrip()
-            )
+    problems = parameter_problems("target.generate.params", gen.ssm, specs, gen.params)
     if problems:
         raise ConfigError("; ".join(problems))
 
 
-def ssm_settings(cfg: RunConfig) -> dict:
-    """Return the SSM plugin's own settings from the ``[ssm]`` section.
-
-    Parameters
-    ----------
-    cfg : RunConfig
-        The config.
-
-    Returns
-    -------
-    dict
-        The section without ``kind``, ``fixed``, ``free`` and ``topology``.
-    """
-    return cfg.ssm.model_dump(exclude={"kind", "fixed", "free", "topology"})
-
-
-def section_settings(cfg: RunConfig, section: str) -> dict:
-    """Return a component section's settings (without ``kind``).
+def build_component(cfg: RunConfig, section: str):
+    """Build the component a section of the config selects: the one place a run's components are made.
 
     Parameters
     ----------
     cfg : RunConfig
         The config.
     section : str
-        The section: ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
+        ``"ssm"``, ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
+
+    Returns
+    -------
+    Component
+        The plugin's component, with the section's settings (an SSM's without ``fixed``, ``free``
+        and ``topology``, which are the run's, not the plugin's).
+
+    Raises
+    ------
+    PluginError
+        If the plugin is not installed.
+    """
+    from .registry import component
+
+    return component(SECTIONS[section], getattr(cfg, section).kind, **section_settings(cfg, section))
+
+
+@functools.cache
+def _section_holder(section: str, name: str) -> type[BaseModel] | None:
+    """Return a model with the one field ``section`` of plugin ``name``'s section (None: not installed)."""
+    run_config_model()  # builds the section models of the installed plugins
+    model = _BUILT.get(f"_built_{SECTIONS[section]}_{name}")
+    return None if model is None else create_model(f"_{section}_{name}", __base__=_Strict, **{section: (model, ...)})
+
+
+def with_section(cfg: RunConfig, section: str, data: dict, source: str = "config") -> RunConfig:
+    """Return ``cfg`` with one component section replaced.
+
+    A derived config, the new section validated alone and the rest shared (``model_copy``),
+    never a dict round trip of the whole config.
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The config.
+    section : str
+        ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
+    data : dict
+        The new section: ``{"kind": NAME, settings...}``.
+    source : str, optional
+        Name of the derived config in messages (``"select"`` gives ``select: features.sets: ...``).
+
+    Returns
+    -------
+    RunConfig
+        A new config sharing every other section with ``cfg``.
+
+    Raises
+    ------
+    ConfigError
+        For an unknown kind or invalid settings, naming the key path.
+    """
+    model = _section_holder(section, str(data.get("kind")))
+    if model is None:
+        names = discover().names(SECTIONS[section])
+        raise ConfigError(
+            f"{source}: {section}.kind: unknown {SECTIONS[section]} {data.get('kind')!r} (known: {', '.join(names)})"
+            f"{did_you_mean(data.get('kind'), names)}"
+        )
+    try:  # held by a model of the one section, so that messages name it: "features.sets: ..."
+        value = getattr(model.model_validate({section: data}), section)
+    except pydantic.ValidationError as exc:
+        raise ConfigError(f"{source}: {validation_error_text(exc)}") from None
+    return cfg.model_copy(update={section: value})
+
+
+def section_settings(cfg: RunConfig, section: str, written: bool = False) -> dict:
+    """Return a component section's settings: the plugin's own.
+
+    Without ``kind`` (an SSM's also without the run's ``fixed``, ``free`` and ``topology``);
+    ``written``: as a config file holds them (JSON values, unset ones left out).
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The config.
+    section : str
+        The section: ``"ssm"``, ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
+    written : bool, optional
+        The settings as a config file writes them.
 
     Returns
     -------
     dict
         The component's settings.
     """
-    return getattr(cfg, section).model_dump(exclude={"kind"})
+    exclude = _RUN_KEYS if section == "ssm" else {"kind"}
+    if written:
+        return getattr(cfg, section).model_dump(mode="json", exclude_none=True, exclude=exclude)
+    return getattr(cfg, section).model_dump(exclude=exclude)
+
+
+#: keys of the ``[ssm]`` section that are the run's, not the plugin's settings
+_RUN_KEYS = {"kind", "fixed", "free", "topology"}
 
 
 def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"):

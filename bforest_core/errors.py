@@ -1,10 +1,12 @@
-"""Typed exceptions of Bayes Forest.
+"""Typed exceptions of Bayes Forest, and the warning of a repaired QSM read.
 
 Every error a user can cause derives from :class:`BayesForestError`; the CLI turns
 those into one readable line and exit code 2.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import pydantic
 
@@ -56,6 +58,20 @@ class QSMFormatError(BayesForestError, ValueError):
     def __reduce__(self):  # pickled back from a worker as itself
         """Pickle as the same error, with its path, problem and rows."""
         return (type(self), (self.path, self.problem, self.rows))
+
+
+class QSMReadWarning(UserWarning):
+    """A QSM file was read with a repair or an inconsistency worth knowing about."""
+
+
+def quiet_read_repairs() -> None:
+    """Keep :class:`QSMReadWarning` quiet in this process.
+
+    For a command's helper processes (the executors' workers, the report's second process): the
+    command reads the same files first and reports their repairs once; a helper's copy would
+    print them again, once per process, in Python's raw format.
+    """
+    warnings.filterwarnings("ignore", category=QSMReadWarning)
 
 
 class ConfigError(BayesForestError, ValueError):

@@ -59,6 +59,10 @@ def _raw(**over):
             dict(ssm={"kind": "toy", "fixed": {"noise": 50}}),
             r"ssm\.fixed\.noise: 50.0 is outside the allowed range \[0.0, 20.0\]",
         ),
+        (
+            dict(ssm={"kind": "toy", "fixed": {"angle": 10}, "free": {"angle": {"lower": 5, "upper": 80}}}),
+            r"ssm\.free\.angle: also listed in ssm\.fixed",
+        ),
         (dict(target={"qsm": "a.mat", "generate": {"ssm": "toy"}}), r"target: give exactly one of 'qsm'"),
     ],
 )

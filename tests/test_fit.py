@@ -248,6 +248,27 @@ def test_compare_optimizers_on_equal_budgets(toy_plugin, tmp_path):
     assert "median best" in res["table_text"] and (tmp_path / "cmp" / "compare.json").exists()
 
 
+def test_compare_draws_its_repeats_run_seeds_from_the_base_seeds_own_stream(toy_plugin, tmp_path):
+    """A repeat's run seed comes from the base seed's SeedSequence stream (tag 6), not base + r: a
+    comparison from base seed 1 and one from base seed 2 share no run (they shared one before)."""
+    from bforest_core.pipeline.compare import compare
+    from bforest_core.pipeline.seeds import repeat_seeds
+
+    s1, s2 = repeat_seeds(1, 3), repeat_seeds(2, 3)
+    expected = [int(s.generate_state(1, np.uint32)[0]) for s in np.random.SeedSequence([1, 6]).spawn(3)]
+    assert s1 == expected and len(set(s1)) == 3 and not set(s1) & set(s2)
+    assert repeat_seeds(1, 2) == s1[:2]  # a longer comparison keeps the shorter one's runs
+    text = toy_config(tmp_path, budget=6).read_text()
+    runs = {}
+    for base in (1, 2):
+        cfg = tmp_path / f"base{base}.toml"
+        cfg.write_text(text.replace("\nseed = 3\n", f"\nseed = {base}\n", 1))
+        res = compare(cfg, ["toy-random"], budget=6, repeats=2, out_dir=tmp_path / f"cmp{base}")
+        runs[base] = [bf.load_config(tmp_path / f"cmp{base}" / f"toy-random-{r}" / "config.toml").seed for r in (0, 1)]
+        assert [r["seed"] for r in res["runs"]] == runs[base] == repeat_seeds(base, 2)
+    assert not set(runs[1]) & set(runs[2])
+
+
 def test_compare_lets_each_optimiser_lift_its_own_limits_for_the_budget(toy_plugin, tmp_path):
     """A plugin's optimiser with a length limit of its own (toy-random's ``batches``) spends the
     whole budget in a comparison through its ``budget_settings``; a fit keeps the limit."""

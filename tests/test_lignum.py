@@ -379,9 +379,8 @@ def test_too_many_segments_failure():
 
 
 def test_no_root_failure():
-    sim = LM._Simulation(
-        _ssm().resolve_params({"years": 2}), 1, preset="sf_synthetic", order_mode="growth", max_live=10
-    )
+    ssm = _ssm(max_live_segments=10)
+    sim = LM._Simulation(ssm.resolve_params({"years": 2}), 1, ssm.settings)
     sim._init()
     sim.st.deleted[:] = True
     with pytest.raises(LM._Failed) as ei:
@@ -744,14 +743,18 @@ def test_render_pieces_on_a_hand_built_table():
 
 
 def test_pieces_are_output_only_reproducible_and_off_by_default():
-    ssm = _ssm(preset="sf_real")
+    ssm, pieces = _ssm(preset="sf_real"), _ssm(preset="sf_real", piece_length=0.12)  # a setting: output only
     base = {"years": 16}
     t0 = ssm.simulate(base, seed=3)
-    assert _same(t0, ssm.simulate({**base, "piece_length": 0.0, "wind_sd": 30.0}, seed=3))
-    straight = ssm.simulate({**base, "piece_length": 0.12}, seed=3)
-    wound = ssm.simulate({**base, "piece_length": 0.12, "wind_sd": 20.0}, seed=3)
-    assert _same(wound, ssm.simulate({**base, "piece_length": 0.12, "wind_sd": 20.0}, seed=3))
-    assert not _same(wound, ssm.simulate({**base, "piece_length": 0.12, "wind_sd": 20.0}, seed=4))
+    assert _same(t0, ssm.simulate({**base, "wind_sd": 30.0}, seed=3))
+    straight = pieces.simulate(base, seed=3)
+    wound = pieces.simulate({**base, "wind_sd": 20.0}, seed=3)
+    assert _same(wound, pieces.simulate({**base, "wind_sd": 20.0}, seed=3))
+    assert not _same(wound, pieces.simulate({**base, "wind_sd": 20.0}, seed=4))
+    with pytest.raises(bf.ConfigError, match="piece_length"):
+        _ssm(piece_length=-0.1)
+    with pytest.raises(ValueError, match="unknown parameter.*piece_length"):
+        ssm.simulate({**base, "piece_length": 0.12}, seed=3)
     ends0 = np.round(t0.end, 9)
     for t in (straight, wound):
         assert t.n > 1.5 * t0.n and t.n_branches == t0.n_branches and t.max_order == t0.max_order

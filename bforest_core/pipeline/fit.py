@@ -12,6 +12,7 @@ import contextlib
 import json
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,17 +21,16 @@ import numpy as np
 
 from ..config import (
     RunConfig,
+    build_component,
     config_to_dict,
     load_config,
     parse_config,
     read_toml,
     section_settings,
-    ssm_settings,
 )
 from ..errors import BayesForestError, ConfigError
-from ..interfaces import Problem, parameter_value
+from ..interfaces import LineDistance, Problem, parameter_value
 from ..io import jsonable
-from ..registry import component
 from .checks import preflight
 from .heldout import select_answer, selection_config
 from .progress import progress_bar
@@ -38,8 +38,8 @@ from .rundir import holding_run_lock
 from .scoring import _simulate_with_timeout, _Timeout, set_summaries
 from .seeds import model_seeds, spread_seeds
 from .store import Evaluation, RunDirError, RunFiles, RunStore, stop_fields
-from .target import Target, bounds_from_target, build_target
-from .worker import evaluate_task, run_executor, started_workers, summary_task
+from .target import Target, build_target
+from .worker import evaluate_task, started_workers, summary_task
 
 
 @dataclass
@@ -120,12 +120,12 @@ class Evaluator:
 
     def _stop_at_budget(self, pending: int = 0) -> bool:
         """Stop the problem once its evaluations, with ``pending`` more on their way, reach
-        ``Problem.budget`` (``[stop] max_evaluations``): the one place the budget is enforced
+        ``Problem.max_evaluations`` (``[stop] max_evaluations``): the one place the budget is enforced
         (optimisers read ``Problem.remaining()`` to plan, ``Problem.stopped`` to end)."""
         pr = self.problem
         left = pr.remaining()
         if left is not None and pending >= left:
-            pr.stopped, pr.stop_reason = True, f"evaluation budget ({pr.budget}) reached"
+            pr.stopped, pr.stop_reason = True, f"evaluation budget ({pr.max_evaluations}) reached"
             self.stop_kind = self.stop_kind or "budget"
         return pr.stopped
 
@@ -335,8 +335,10 @@ def fit(
     if not isinstance(cfg, RunConfig):
         cfg = load_config(cfg)
     run_dir = Path(run_dir)
-    tgt = preflight(cfg, target)  # every check before the run directory is touched
-    cfg = bounds_from_target(cfg, tgt.trees)  # the run's config.toml holds the resolved bounds
+    checked = preflight(cfg, target)  # every check before the run directory is touched
+    for note in checked.notes:  # a bound scaled to the target moved into the model's range
+        warnings.warn(note.message, note.category, stacklevel=3)
+    tgt, cfg = checked.target, checked.cfg  # the run's config.toml holds the resolved bounds
     text = tomli_w.dumps(config_to_dict(cfg))
     store = RunStore.open(run_dir) if resume else RunStore.create(run_dir, text, overwrite=overwrite)
     with store:
@@ -352,11 +354,10 @@ def fit(
             store.clear_log()
         else:
             finished = False
-        _save_target(store, tgt, cfg)
-        ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+        _save_target(store, tgt, cfg, checked.components["distance"])
+        ssm = build_component(cfg, "ssm")
         names, lo, hi, ilo, ihi, integer = _free_specs(cfg, ssm)
-        optimizer = component("optimizer", cfg.optimizer.kind, **section_settings(cfg, "optimizer"))
-        executor = run_executor(cfg)
+        optimizer, executor = checked.components["optimizer"], checked.components["executor"]
         problem = Problem(
             names=names,
             lower=lo,
@@ -366,7 +367,7 @@ def fit(
             init_lower=ilo,
             init_upper=ihi,
             seed=int(cfg.seed),
-            budget=cfg.stop.max_evaluations,
+            max_evaluations=cfg.stop.max_evaluations,
             log=store.log,
         )
         bar = _Progress(_expected_total(cfg, optimizer, len(names)), enabled=progress)
@@ -425,25 +426,23 @@ def fit(
         )
 
 
-def _save_target(store: RunStore, tgt: Target, cfg: RunConfig | None = None) -> None:
-    """The data tables, and the distance's frozen data-side transforms and directions, so every
-    number of the run can be recomputed from the run directory."""
+def _save_target(store: RunStore, tgt: Target, cfg: RunConfig, dist) -> None:
+    """The data tables, and the distance's (``dist``, the ``[distance]`` section's) frozen
+    data-side transforms and directions, so every number of the run can be recomputed from the
+    run directory."""
     np.savez_compressed(store.target_sets_path, **tgt.U)
-    if cfg is not None:
-        dist = component("distance", cfg.distance.kind, **section_settings(cfg, "distance"))
-        own = {k: v for k, v in tgt.U.items() if "/" not in k}  # the [distance] term's sets
-        cols = {k: v for k, v in tgt.columns.items() if "/" not in k}
-        dist.prepare(own, cols)
-        frozen = {"distance": cfg.distance.kind, "settings": section_settings(cfg, "distance"), "columns": cols}
-        norms = dist.normalizations()
-        if norms:  # a distance that compares the tables in their own units has none
-            frozen["normalization"] = norms
-        store.write_json(store.DISTANCE, frozen)
+    own = {k: v for k, v in tgt.U.items() if "/" not in k}  # the [distance] term's sets
+    cols = {k: v for k, v in tgt.columns.items() if "/" not in k}
+    dist.prepare(own, cols)
+    frozen = {"distance": cfg.distance.kind, "settings": section_settings(cfg, "distance"), "columns": cols}
+    lines = isinstance(dist, LineDistance)  # a sliced distance: its transforms and directions are kept
+    norms = dist.normalizations() if lines else {}
+    if norms:  # a distance that compares the tables in their own units has none
+        frozen["normalization"] = norms
+    store.write_json(store.DISTANCE, frozen)
+    if lines:
         dims = sorted({u.shape[1] for u in own.values() if u.ndim == 2})
-        try:
-            np.savez_compressed(store.directions_path, **{f"d{d}": dist.directions(d) for d in dims})
-        except NotImplementedError:
-            pass
+        np.savez_compressed(store.directions_path, **{f"d{d}": dist.directions(d) for d in dims})
     try:
         from ..io import write_tree
 

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..config import config_to_dict, parse_config
+from ..config import config_to_dict, section_settings, with_section
 from .progress import progress_bar
 from .scoring import mean_per_set
 from .seeds import heldout_seeds
@@ -161,14 +161,14 @@ def selection_config(cfg: RunConfig) -> RunConfig:
     sel = cfg.select
     if not sel.features and not sel.distance:
         return cfg
-    raw = config_to_dict(cfg)
+    out = cfg.model_copy(update={"select": sel.model_copy(update={"features": None, "distance": None})})
     for part in ("features", "distance"):
         extra = getattr(sel, part)
         if extra:
-            same = extra.get("kind", raw[part]["kind"]) == raw[part]["kind"]
-            raw[part] = {**raw[part], **extra} if same else dict(extra)
-    raw["select"] = {k: v for k, v in raw["select"].items() if k not in ("features", "distance")}
-    return parse_config(raw, source="select")  # its messages: "select: features.sets: ..."
+            own = {"kind": getattr(cfg, part).kind, **section_settings(cfg, part, written=True)}
+            same = extra.get("kind", own["kind"]) == own["kind"]
+            out = with_section(out, part, {**own, **extra} if same else dict(extra), source="select")
+    return out  # its messages: "select: features.sets: ..."
 
 
 def select_answer(cfg: RunConfig, store: RunStore, workers, progress: bool = False) -> dict | None:

@@ -100,7 +100,7 @@ def build_scoring(
     -------
     Scoring
     """
-    from ..config import ssm_settings
+    from ..config import build_component
 
     if terms is None:  # rebuilt from the config (a report reading an older or partial run)
         terms = term_specs(cfg)
@@ -112,7 +112,7 @@ def build_scoring(
         dist.prepare(Ud, spec.own(columns))
         built.append(PreparedTerm(spec, feature_set_for(cfg, "model", spec.features, spec.features_kind), dist, Ud))
     return Scoring(
-        ssm=component("ssm", cfg.ssm.kind, **ssm_settings(cfg)),
+        ssm=build_component(cfg, "ssm"),
         terms=built,
         U_data=U_data,
         penalty=cfg.objective.penalty,
@@ -183,9 +183,9 @@ def set_summaries(U: dict[str, np.ndarray], names, trees: int = 1) -> np.ndarray
 def grow_tree(cfg: RunConfig, params: dict, seed: int, timeout: float | None = None):
     """The tree the run's model grows from ``params`` and ``seed``, pruned as the target's QSM was:
     the tree a worker scores (a report regrowing a run's answer uses this, not the model itself)."""
-    from ..config import ssm_settings
+    from ..config import build_component
 
-    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+    ssm = build_component(cfg, "ssm")
     return _simulate_with_timeout(ssm, params, seed, timeout, cfg.target.prune_radius)
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import sqlite3
 import time
 from dataclasses import dataclass, field
@@ -295,6 +296,44 @@ class RunFiles:
         return json.loads(self.best_path.read_text(encoding="utf-8"))
 
 
+def derived_paths(run_dir) -> list[Path]:
+    """The paths of ``run_dir`` that a run wrote (or would write), existing ones only."""
+    run_dir = Path(run_dir)
+    out = []
+    for pattern in RunFiles.DERIVED:
+        out.extend(sorted(run_dir.glob(pattern)))
+    return out
+
+
+def is_run_dir(run_dir) -> bool:
+    """Whether ``run_dir`` holds a run (its evaluation log), as opposed to a user's folder."""
+    return RunFiles(run_dir).evaluations_path.exists()
+
+
+def foreign_files(run_dir) -> list[str]:
+    """Names of files in ``run_dir`` that a run would write but no run wrote there: a folder
+    without an evaluation log that holds e.g. the user's own ``config.toml`` (``-o .``)."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir() or is_run_dir(run_dir):
+        return []
+    found = []
+    for p in derived_paths(run_dir):
+        if p.is_dir() and not any(p.iterdir()):
+            continue  # an empty clones/ or figures/ holds nothing to lose
+        found.append(p.name)
+    return found
+
+
+def clear_derived(run_dir) -> None:
+    """Remove everything the old run of ``run_dir`` wrote (log, results, clones, report,
+    figures, exports); other files are left alone."""
+    for p in derived_paths(run_dir):
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink(missing_ok=True)
+
+
 def logged_count(path) -> int:
     """Evaluations in the log at ``path`` read without taking part in the run (a stand's progress
     reads the logs its workers write): 0 while the log is missing, locked or being created."""
@@ -422,8 +461,6 @@ class RunStore(RunFiles):
         everything the old run wrote (clones, report, figures, exports too); refuses a folder
         holding files of a run's names that no run wrote (a user's ``config.toml``).
         """
-        from .rundir import clear_derived, foreign_files
-
         path = Path(path)
         files = RunFiles(path)
         db = files.evaluations_path

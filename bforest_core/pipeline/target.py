@@ -21,8 +21,6 @@ if TYPE_CHECKING:
 
 #: name of the [features]/[distance] term when the objective has more than one
 STRUCTURE = "structure"
-#: the feature set of tree-level statistics (the size term; plugins/bforest_summary)
-SUMMARY_KIND = "tree-summary"
 
 
 def feature_set_for(cfg: RunConfig, side: str, settings: dict | None = None, kind: str | None = None):
@@ -70,16 +68,17 @@ class Term:
 def size_topology(cfg: RunConfig, side: str) -> tuple[str | None, list[str] | None]:
     """The branch rule under which the size term measures one side's trees (``"target"`` or
     ``"model"``), and the statistics it measures by it: the ``topology`` and ``topology_statistics``
-    of the objective's first tree-summary set after the per-side rules; (None, None) for each
-    tree's own branches (the QSM's stored ones, the model's order mode).
+    of the objective's first feature set of tree-level statistics (``FeatureSet.summary_rule``)
+    after the per-side rules; (None, None) for each tree's own branches (the QSM's stored ones,
+    the model's order mode).
 
     The clones' fidelity table measures by it, so that it counts first-order branches as the fit
     held them.
     """
     for spec in term_specs(cfg):
-        if spec.features_kind == SUMMARY_KIND:
-            fs = feature_set_for(cfg, side, spec.features, spec.features_kind)
-            return getattr(fs.settings, "topology", None), getattr(fs.settings, "topology_statistics", None)
+        rule = feature_set_for(cfg, side, spec.features, spec.features_kind).summary_rule()
+        if rule is not None:
+            return rule
     return None, None
 
 
@@ -143,13 +142,13 @@ def bounds_from_target(cfg: RunConfig, trees: list) -> RunConfig:
     recipe); nothing left of the range is a ConfigError. ``cfg`` itself is returned when nothing
     is scaled.
     """
-    from ..config import ssm_settings
+    from ..config import build_component
     from ..metrics import measure_tree
 
     scaled = {n: fp for n, fp in cfg.ssm.free.items() if fp.scaled_by is not None}
     if not scaled:
         return cfg
-    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+    ssm = build_component(cfg, "ssm")
     measures = measure_tree(trees[0])
     free = dict(cfg.ssm.free)
     source = cfg.target.qsm or "the generated target"

@@ -16,7 +16,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import SimulationFailed
-from ..registry import component
 from .scoring import (
     _MODEL_ERRORS,
     Scoring,
@@ -73,17 +72,12 @@ def summary_task(task: tuple[dict, list[int]]) -> np.ndarray | None:
     return np.mean(rows, axis=0)
 
 
-def run_executor(cfg: RunConfig):
-    """The executor of the run's ``[executor]`` section."""
-    from ..config import section_settings
-
-    return component("executor", cfg.executor.kind, **section_settings(cfg, "executor"))
-
-
 def started_workers(cfg: RunConfig, tgt: Target, executor=None):
     """The run's executor (or ``executor``) started with :func:`init_worker` on the target, as a
     context manager: the target's tables travel to each worker once."""
-    ex = run_executor(cfg) if executor is None else executor
+    from ..config import build_component
+
+    ex = build_component(cfg, "executor") if executor is None else executor
     # Executor.on_lost/time_limit: what a dead or stuck worker's task becomes, and when a task is
     # stuck (honoured by an executor that can stop a worker, ignored by the others)
     ex.on_lost = functools.partial(_lost_task, cfg.objective.penalty, list(tgt.U))

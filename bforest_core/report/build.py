@@ -30,7 +30,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from ..cylinders import quiet_read_repairs
+from ..errors import quiet_read_repairs
 from ..io import write_json
 from .attributes import fig_distributions
 from .canvas import FORMATS, current_output, figure_output

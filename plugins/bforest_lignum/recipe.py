@@ -108,8 +108,10 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
     return RecipeDraft(
         suits=suits,
         why=why,
-        settings=[("preset", "sf_real", "the papers' real-tree values for what is not fitted")],
-        fixed=[("piece_length", 0.15, "drawn as a scan's QSM draws a tree: shoots as cylinders of at most 15 cm")],
+        settings=[
+            ("preset", "sf_real", "the papers' real-tree values for what is not fitted"),
+            ("piece_length", 0.15, "drawn as a scan's QSM draws a tree: shoots as cylinders of at most 15 cm"),
+        ],
         free=free,
         timeout=60.0,
         scaled={"years": "height"},
@@ -121,12 +123,7 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         # the SOT pine recipe's search (examples/real/pine_sot.toml): 4 000 growths, as 1 200
         # evaluations of 3 model seeds were
         seeds=1,
-        evaluations=4000,
-        starts=2,
-        population=32,
-        init_design=64,
-        finalists=2,
-        grow_together=True,
+        max_evaluations=4000,
         # the answer on the search's own objective: scoring the candidates on S1 and B1 (the SOT
         # recipe's rule, docs/notes/2026-12-01-broadleaved-answer-on-judge-tables.md) is not yet
         # measured on the pines

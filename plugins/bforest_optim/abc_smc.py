@@ -286,7 +286,6 @@ class AbcSmc(Optimizer):
     name = "abc-smc"
     summary = "ABC-SMC sampler: a weighted posterior population and the best particle"
     Settings = AbcSmcSettings
-    gives_posterior = True
     posterior_kind = "population"
     failures_as_inf = True
 

@@ -38,7 +38,7 @@ from typing import Literal, Optional, Union
 import numpy as np
 from pydantic import Field
 
-from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
+from bforest_core.interfaces import Optimizer, OptimizeResult, Problem, RecipePart, RecipePlan
 
 from .box import Box, History, NoiseStop, OptimizerSettings, finite_stats, make_result, noise_stop_fields
 
@@ -109,6 +109,40 @@ class CMAES(Optimizer):
     name = "cma"
     summary = "CMA-ES (cma package): bounds, integer rounding, IPOP restarts, noise-aware stop"
     Settings = CMASettings
+
+    def draft_recipe(self, plan: RecipePlan) -> RecipePart:
+        """The robust search of the real-tree recipes (docs/validation.md section 4): lq-CMA-ES with
+        a first step of 0.15 of each range, a Sobol' design, two starts from its best distinct
+        points. With one model seed per evaluation the objective is noisier: generations of 32
+        (a step that stays wide and moves with the shape of the whole landscape) after 64 Sobol'
+        points, both starts running to the end of the budget together (the pine recipes'); with
+        more seeds, generations of 16 after 32 points, the starts raced by successive halving."""
+        one_seed = plan.draft.seeds == 1
+        population, design = (32, 64) if one_seed else (16, 32)
+        settings = [
+            ("population", population, None),
+            ("restarts", 4, None),
+            ("sigma0", 0.15, None),
+            ("surrogate", "lq", None),
+            ("surrogate_batch", 2, None),
+            ("init_design", design, None),
+            ("starts", 2, None),
+        ]
+        if one_seed:
+            settings += [("finalists", 2, None), ("grow_together", True, None)]
+            why = (
+                f"A search that does not hinge on one trajectory: {design} Sobol' points over the box, then 2 "
+                f"lq-CMA-ES runs of {population} points a generation from the best distinct ones, each to the end "
+                "of the budget, taking their turns together (their points go to the workers as one batch); a run "
+                "that converges restarts with a doubled population."
+            )
+        else:
+            why = (
+                f"A search that does not hinge on one trajectory: {design} Sobol' points over the box, 2 lq-CMA-ES "
+                "runs from the best distinct ones raced by successive halving, each restarting with a doubled "
+                "population once it converges."
+            )
+        return RecipePart(self.name, settings, why)
 
     def expected_evaluations(self, dim: int) -> int | None:
         s = self.settings
@@ -305,7 +339,7 @@ class _Race:
         n0 = int(problem.n_evaluations)
         ratio = len(slots) / self.finalists
         rungs = math.ceil(math.log2(ratio)) if ratio > 1 else 0
-        left = None if problem.budget is None else max(int(problem.budget) - n0, 0)
+        left = None if problem.max_evaluations is None else max(int(problem.max_evaluations) - n0, 0)
         self.marks = [] if left is None else [n0 + left * (r + 1) / (rungs + 1) for r in range(rungs)]
 
     def halve(self) -> None:

@@ -136,7 +136,6 @@ class EmceeSampler(Optimizer):
     name = "emcee"
     summary = "emcee ensemble sampler of exp(-D/epsilon): best fit plus posterior summaries"
     Settings = EmceeSettings
-    gives_posterior = True
     posterior_kind = "chain"
 
     @classmethod

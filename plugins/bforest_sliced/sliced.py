@@ -35,7 +35,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import AliasChoices, Field, field_validator, model_validator
 
-from bforest_core.interfaces import ComponentSettings, Distance
+from bforest_core.interfaces import ComponentSettings, LineDistance, RecipePart, RecipePlan
 
 from .directions import directions as _directions
 from .grid import VALUE_BITS, snap
@@ -273,7 +273,7 @@ def _as_table(u, what: str, d: int | None = None) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 
 
-class SlicedDistance(Distance):
+class SlicedDistance(LineDistance):
     """Sliced (tomographic) distance: mean (or max) over projection lines of a 1-D statistic.
 
     Settings
@@ -306,6 +306,19 @@ class SlicedDistance(Distance):
     name = "sliced"
     summary = "sliced (tomographic) distance: KS/CvM/AD/W1/energy on quasi-random projections"
     Settings = SlicedSettings
+
+    def draft_recipe(self, plan: RecipePlan) -> RecipePart | None:
+        """The structural distance of the real-tree recipes: KS (at most 1) on 128 lines for the
+        search, 256 where the candidate answers are scored."""
+        if plan.term != "structure":
+            return None
+        return RecipePart(
+            self.name,
+            [("statistic", "ks", None), ("lines", 128, None)],
+            select={"lines": 256},
+            select_why="on 256 lines",
+            reach=1.0,
+        )
 
     _CACHE_SIZE = 16
 

@@ -767,3 +767,30 @@ def test_pieces_are_output_only_reproducible_and_off_by_default():
     assert wound.length.sum() > straight.length.sum()
     assert np.allclose(wound.axis[wound.order == 0], straight.axis[straight.order == 0], rtol=0, atol=1e-12)
     assert not np.allclose(wound.axis[wound.order > 0], straight.axis[straight.order > 0], atol=1e-3)
+
+
+def test_a_years_weather_is_off_by_default_and_varies_the_leaders_steps():
+    """year_sd: 0 gives the tree draw for draw; above 0 each year's production gets a factor of
+    mean 1 from a stream of its own (the same factors for a seed, other ones for another), and
+    the leader's yearly shoots, the steps between the stem's whorls, vary more."""
+    ssm = _ssm(preset="sf_real")
+    base = {"years": 20}
+    t0 = ssm.simulate(base, seed=3)
+    assert _same(t0, ssm.simulate({**base, "year_sd": 0.0}, seed=3))
+    f = LM.year_factors(3, 5000, 0.3)
+    assert abs(f.mean() - 1.0) < 0.02 and abs(np.log(f).std() - 0.3) < 0.01
+    assert np.array_equal(f[:21], LM.year_factors(3, 20, 0.3)) and not np.array_equal(f, LM.year_factors(4, 5000, 0.3))
+    assert np.array_equal(LM.year_factors(3, 20, 0.0), np.ones(21))
+
+    def step_cv(tree):
+        born = np.asarray(tree.extras["birth_year"])
+        stem = (tree.order == 0) & (born >= 3)  # the leader's yearly shoots, past the first years
+        steps = np.bincount(born[stem], weights=tree.length[stem])[3:]
+        steps = steps[steps > 0]
+        return steps.std() / steps.mean()
+
+    calm = [step_cv(ssm.simulate(base, seed=s)) for s in (1, 2, 3)]
+    windy = [step_cv(ssm.simulate({**base, "year_sd": 0.4}, seed=s)) for s in (1, 2, 3)]
+    assert np.mean(windy) > 1.5 * np.mean(calm), (calm, windy)
+    with pytest.raises(ValueError, match="year_sd"):
+        ssm.simulate({**base, "year_sd": -0.1}, seed=3)

@@ -64,9 +64,9 @@ def whorls(tree, gap: float) -> dict:
 def clones_of(run: Path, n: int):
     best = json.loads((run / "best.json").read_text())
     cfg = bf.load_config(run / "config.toml")
-    from bforest_core.config import ssm_settings
+    from bforest_core.config import build_component
 
-    ssm = bf.component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+    ssm = build_component(cfg, "ssm")
     for seed in clone_seeds(cfg.seed, n, cfg.clones.seed):
         yield ssm.simulate(best["params"], seed)
 

@@ -166,6 +166,22 @@ def depth_levels(idx: np.ndarray, depth: np.ndarray) -> list[np.ndarray]:
 RENDER_STREAM = 0x57494E44
 
 
+#: stream of the years' production factors (``year_sd``), apart from the growth draws of the seed
+YEAR_STREAM = 0x59454152
+
+
+def year_factors(seed: int, years: int, sd: float) -> np.ndarray:
+    """Each year's production factor exp(sd z - sd^2 / 2), z ~ N(0, 1), mean 1 (index = year;
+    all ones for ``sd = 0``, which draws nothing): from a stream of its own, so the growth's draws
+    are those of a tree without it."""
+    if sd <= 0.0:
+        return np.ones(int(years) + 1)
+    z = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), YEAR_STREAM]))).standard_normal(
+        int(years) + 1
+    )
+    return np.exp(sd * z - 0.5 * sd * sd)
+
+
 def render_rng(seed: int) -> np.random.Generator:
     """The generator of the output-only draws of model seed ``seed`` (independent of the growth
     stream, so trees drawn in pieces grow exactly as those drawn one cylinder per shoot)."""
@@ -497,6 +513,7 @@ class _Simulation:
         p = self.p
         st = self.st
         T = int(p["years"])
+        self.weather = year_factors(self.seed, T, float(p["year_sd"]))
         self._init()
         for t in range(1, T + 1):
             self.year = t
@@ -510,8 +527,9 @@ class _Simulation:
                 + p["resp_root"] * self.Wr
                 + p["resp_sapwood"] * p["wood_density"] * float(np.sum((st.length * sap)[live]))
             )
-            # c. light
+            # c. light (and the year's weather, ``year_sd``)
             S, I, fL, Pv = self._light(live)
+            Pv *= self.weather[t]
             if self.on_step is not None:
                 self.on_step(t, LignumView(self, t, S, I, fL, Pv, Mv))
             if t == T:

@@ -155,6 +155,18 @@ PARAMETERS: list[ParameterSpec] = [
         "0) with the shoot's end points kept, so branches wind as scanned ones do (0 = straight shoots)",
         "output",
     ),
+    P(
+        "year_sd",
+        0.0,
+        0.0,
+        0.5,
+        False,
+        "",
+        "[sigma_year] an addition: sd of the log of each year's production, the same for the whole tree (a "
+        "year's weather: its shoots grow longer or shorter together, so whorls stand at uneven steps; 0 = "
+        "every year alike, the papers' model)",
+        "carbon",
+    ),
     P("bud_table", 0, 0, 1, True, "", "[-] lateral-count table: 0 = p98, 1 = s08", "shoot"),
     P("collision", 0, 0, 1, True, "", "[-] optional collision test: 0 off, 1 on", "space"),
 ]
@@ -204,6 +216,7 @@ _P98 = dict(
     bud_table=0,
     collision=0,
     wind_sd=0.0,
+    year_sd=0.0,
 )
 _S08 = dict(
     _P98,
@@ -367,7 +380,7 @@ def validate(p: Mapping[str, float]) -> None:
     ):
         need(p[name] >= 0, name, "must be >= 0")
     need(p["lr_mean"] > 0, "lr_mean", "must be > 0")
-    for name in ("r_env_sd", "lr_sd", "q_sd", "zeta_sd", "gamma_sd", "whorl_rotation_sd", "wind_sd"):
+    for name in ("r_env_sd", "lr_sd", "q_sd", "zeta_sd", "gamma_sd", "whorl_rotation_sd", "wind_sd", "year_sd"):
         need(p[name] >= 0, name, "is a standard deviation and must be >= 0")
     for name in ("root_senescence", "sapwood_senescence"):
         need(0 <= p[name] <= 1, name, "must lie in [0, 1]")

@@ -54,7 +54,7 @@ class FitResult:
     run_dir: Path
     history: list[dict] = field(default_factory=list)
     diagnostics: dict[str, Any] = field(default_factory=dict)
-    already_finished: bool = False  # a --resume of a run that had finished: nothing was simulated
+    already_finished: bool = False  # a --resume of a run that had finished: nothing new was simulated
 
 
 class Evaluator:
@@ -259,12 +259,42 @@ def _expected_total(cfg: RunConfig, optimizer, dim: int) -> int | None:
     return min(totals) if totals else None
 
 
-def _result_relevant(cfg: RunConfig) -> dict:
-    """The parts of a config a run's results depend on (all but the executor and the report)."""
-    d = config_to_dict(cfg)
-    d.pop("executor", None)
-    d.pop("report", None)
-    return d
+#: settings a resume may change: when the search stops, where it runs and what it reports (dotted
+#: keys of the config, a section for all its keys). Every other setting changes what an evaluation
+#: computes (the target, the model, the objective, the seeds, the bounds) or what the answer is
+#: chosen by ([select]), or the clones the run's folder already holds ([clones]).
+RESUMABLE = ("stop.max_evaluations", "stop.wall_time", "stop.target_distance", "executor", "report")
+
+
+def _flat(value, key: str = "") -> dict:
+    """``{dotted key: value}`` of a config table (lists of tables as ``key[i]``)."""
+    if isinstance(value, dict):
+        out = {}
+        for k, v in value.items():
+            out.update(_flat(v, f"{key}.{k}" if key else str(k)))
+        return out
+    if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+        out = {f"{key}[#]": len(value)}
+        for i, v in enumerate(value):
+            out.update(_flat(v, f"{key}[{i}]"))
+        return out
+    return {key: value}
+
+
+def config_changes(old: dict, new: dict, allowed=()) -> list[str]:
+    """The settings in which two configs (as TOML tables, :func:`config_to_dict`) differ, as
+    ``key: old -> new`` (``unset`` for a key one of them leaves out), except those under the
+    dotted keys or sections of ``allowed``."""
+    a, b = _flat(old), _flat(new)
+
+    def free(key: str) -> bool:
+        return any(key == p or key.startswith(p + ".") for p in allowed)
+
+    def show(v) -> str:
+        return "unset" if v is None else json.dumps(v)
+
+    keys = sorted({k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and not free(k)})
+    return [f"{k}: {show(a.get(k))} -> {show(b.get(k))}" for k in keys]
 
 
 def same_config(run_dir, cfg: RunConfig) -> bool:
@@ -275,7 +305,36 @@ def same_config(run_dir, cfg: RunConfig) -> bool:
         old = parse_config(read_toml(path), source=str(path))
     except (OSError, BayesForestError):
         return False
-    return _result_relevant(old) == _result_relevant(cfg)
+    return not config_changes(config_to_dict(old), config_to_dict(cfg), allowed=("executor", "report"))
+
+
+def _check_resume(store: RunStore, text: str, cfg: RunConfig) -> None:
+    """Refuse to resume the run of ``store`` with the config ``text`` (``cfg``) when it changes
+    anything but :data:`RESUMABLE`: the logged evaluations and the new ones would answer two
+    questions. The run's own config is the one its log was begun with (kept in the log, so an
+    edit of ``config.toml`` is seen too; a run written before that: its ``config.toml``)."""
+    import tomllib
+
+    own = store.get_meta("config")
+    try:
+        old = tomllib.loads(own if isinstance(own, str) else store.config_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise RunDirError(f"{store.config_path}: the run's own config cannot be read ({exc})") from None
+    changes = config_changes(old, tomllib.loads(text), allowed=RESUMABLE)
+    if changes:
+        raise RunDirError(
+            f"{store.path}: the config differs from the run's in what an evaluation computes "
+            f"({'; '.join(changes)}): the logged evaluations and new ones would not be comparable; "
+            f"resume with the run's own settings, or start a new run (another -o, or --overwrite); "
+            f"a resume may change only {', '.join(RESUMABLE)}"
+        )
+    held, budget = store.count(), cfg.stop.max_evaluations
+    if budget is not None and budget < held:
+        raise RunDirError(
+            f"{store.path}: stop.max_evaluations = {budget} is below the {held} evaluations the run "
+            f"holds; resume with a budget of at least {held} (the answer of a smaller budget is "
+            "in the report's convergence table)"
+        )
 
 
 def _free_specs(cfg: RunConfig, ssm):
@@ -329,17 +388,15 @@ def fit(
     store = RunStore.open(run_dir) if resume else RunStore.create(run_dir, text, overwrite=overwrite)
     with store:
         if resume:
-            if not same_config(run_dir, cfg):
-                raise RunDirError(
-                    f"{run_dir}: the config differs from the run's {store.CONFIG}; resume with the "
-                    f"run's own config (bforest fit RUN/{store.CONFIG} -o RUN --resume)"
-                )
-            finished = store.finished()  # resuming it replays the log, simulates nothing
-            # the executor may change between sessions (results never depend on it)
+            _check_resume(store, text, cfg)
+            finished = store.finished()  # resuming it replays the log, simulates nothing new unless extended
+            # the executor and the budget may change between sessions (results never depend on them)
             store.config_path.write_text(text, encoding="utf-8")
+            store.set_meta("config", text)
             store.clear_log()
         else:
             finished = False
+        held = store.count()
         _save_target(store, tgt, cfg)
         ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
         names, lo, hi, ilo, ihi, integer = _free_specs(cfg, ssm)
@@ -404,7 +461,7 @@ def fit(
             run_dir=run_dir,
             history=store.log_records(),
             diagnostics=result.diagnostics,
-            already_finished=finished,
+            already_finished=finished and store.count() == held,
         )
 
 

@@ -299,6 +299,7 @@ class RunStore(RunFiles):
         files.config_path.write_text(config_text, encoding="utf-8")
         store = cls(path)
         store.set_meta("created", time.time())
+        store.set_meta("config", config_text)  # the config the log is begun with: a resume checks against it
         return store
 
     @classmethod

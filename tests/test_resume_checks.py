@@ -1,6 +1,7 @@
 """A resume continues the run it was begun as, or refuses: an edited config never mixes two
 objectives into one log; the budget, the executor and the report may change (a finished run is
-extended with a larger budget)."""
+extended with a larger budget). A damaged, lost or hand-edited log, or a full disk, is one line
+naming the file and what to do, never a traceback, never a silent start from zero."""
 
 from __future__ import annotations
 
@@ -110,3 +111,148 @@ def test_the_cli_extends_a_finished_run_with_max_evaluations(toy_plugin, tmp_pat
     assert "after 16 evaluations" in r.stdout and "already finished" not in r.stdout
     r = subprocess.run(EXE + args, env=env, capture_output=True, text=True)
     assert r.returncode == 0 and "already finished" in r.stdout, r.stdout + r.stderr
+
+
+# ------------------------------------------------------------------------------ damaged, lost, full
+def _cli(capsys, *args) -> tuple[int, list[str]]:
+    """``bforest ARGS`` in this process: the exit code and the lines of standard error (the
+    toy plugins' load warning left out)."""
+    from bforest_core.cli.main import main
+
+    capsys.readouterr()
+    code = main([str(a) for a in args])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if "plugin 'broken'" not in ln]
+    return code, err
+
+
+@pytest.fixture
+def finished_run(toy_plugin, tmp_path):
+    run = tmp_path / "run"
+    bf.fit(bf.load_config(toy_config(tmp_path, budget=40)), run, progress=False)
+    from bforest_core.pipeline.clones import clones
+
+    clones(run, n=2, progress=False)
+    return run
+
+
+def test_a_damaged_log_is_one_line_naming_the_file_for_every_command(finished_run, capsys):
+    db = finished_run / "evaluations.sqlite"
+    size = db.stat().st_size
+    assert size > 3 * 4096
+    with open(db, "r+b") as fh:  # the probe's `truncate -s`: the log loses its second half
+        fh.truncate(size // 2)
+    for args in (
+        ["fit", finished_run / "config.toml", "-o", finished_run, "--resume", "-q", "--no-report"],
+        ["report", finished_run],
+        ["clones", finished_run, "-n", "3", "-q", "--no-report"],
+        ["export", finished_run, "--format", "ply"],
+    ):
+        code, err = _cli(capsys, *args)
+        assert code == 2 and len(err) == 1, (args, err)
+        assert err[0].startswith(f"error: {db}: the evaluation log is damaged (") and "--overwrite" in err[0], err
+
+
+def test_a_full_disk_during_a_fit_is_one_line_and_a_resume_gives_the_identical_run(toy_plugin, tmp_path, capsys):
+    """SQLite's "database or disk is full" (a cap on the log's pages stands in for the disk):
+    one line naming the log and saying what to do; a resume once there is room gives the run an
+    uninterrupted fit gives."""
+    from bforest_core.pipeline import store as store_mod
+
+    p = toy_config(tmp_path, budget=400)
+    bf.fit(bf.load_config(p), tmp_path / "whole", progress=False)
+    real_create = store_mod.RunStore.create.__func__
+
+    def small_disk(cls, *a, **kw):
+        s = real_create(cls, *a, **kw)
+        pages = s._sql("PRAGMA page_count")[0][0]
+        s._sql(f"PRAGMA max_page_count = {pages + 4}")
+        return s
+
+    run = tmp_path / "run"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(store_mod.RunStore, "create", classmethod(small_disk))
+        code, err = _cli(capsys, "fit", p, "-o", run, "-q", "--no-report")
+    assert code == 2 and len(err) == 1, err
+    assert err[0].startswith(f"error: {run / 'evaluations.sqlite'}: the disk is full (database or disk is full)")
+    assert "--resume" in err[0]
+    held = RunStore.open(run)
+    n = held.count()
+    held.close()
+    assert 0 < n < 400
+    code, err = _cli(capsys, "fit", run / "config.toml", "-o", run, "--resume", "-q", "--no-report")
+    assert code == 0, err
+    assert _rows(run) == _rows(tmp_path / "whole")
+
+
+def test_a_full_disk_under_any_other_file_of_the_run_is_one_line_too(toy_plugin, tmp_path, capsys, monkeypatch):
+    import errno
+
+    def full(self, name, data):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self.path / name))
+
+    monkeypatch.setattr(RunStore, "write_json", full)
+    code, err = _cli(capsys, "fit", toy_config(tmp_path, budget=8), "-o", tmp_path / "run", "-q", "--no-report")
+    assert code == 2 and len(err) == 1, err
+    assert "No space left on device" in err[0] and "the disk is full: free space and run the command again" in err[0]
+    assert "distance.json" in err[0]
+
+
+@pytest.mark.parametrize("damage", ["deleted", "empty", "table-less"])
+def test_a_resume_over_a_lost_log_refuses_instead_of_starting_from_zero(finished_run, damage):
+    db = finished_run / "evaluations.sqlite"
+    db.unlink()
+    if damage == "empty":
+        db.write_bytes(b"")
+    elif damage == "table-less":
+        sqlite3.connect(db).execute("CREATE TABLE notes (x)").connection.close()
+    expect = "missing: the run's evaluations are gone" if damage == "deleted" else "holds no evaluation table"
+    with pytest.raises(RunDirError, match=expect):
+        bf.fit(bf.load_config(finished_run / "config.toml"), finished_run, resume=True, progress=False)
+    assert db.exists() == (damage != "deleted")  # nothing was created or begun in its place
+    if damage == "empty":
+        assert db.stat().st_size == 0
+
+
+def test_a_row_added_to_the_log_by_hand_is_never_taken_as_the_answer(finished_run):
+    """A row of distance 0 beyond the run's last evaluation (a copy of a real row's point and
+    seeds): the resumed search never comes to it, and the resume refuses instead of answering
+    with it; a row whose point the search does ask for, with other seeds, is refused too."""
+    con = sqlite3.connect(finished_run / "evaluations.sqlite")
+    row = con.execute("SELECT * FROM evaluations WHERE idx = 5").fetchone()
+    con.execute("INSERT INTO evaluations VALUES (?,?,?,?,?,?,?,?,?,?,?)", (40, row[1], row[2], 0.0, *row[4:]))
+    con.commit()
+    with pytest.raises(
+        RunDirError, match=r"evaluation 40 of the log is not this run's: its search ended at evaluation 39"
+    ):
+        bf.fit(bf.load_config(finished_run / "config.toml"), finished_run, resume=True, progress=False)
+    cfg = bf.load_config(finished_run / "config.toml")
+    cfg.stop.max_evaluations = 48  # the search comes to row 40 now: its point is not the search's
+    with pytest.raises(RunDirError, match="evaluation 40 in the log has other parameters"):
+        bf.fit(cfg, finished_run, resume=True, progress=False)
+    con.execute("DELETE FROM evaluations WHERE idx = 40")
+    con.execute("UPDATE evaluations SET seeds = '[99]' WHERE idx = 7")
+    con.commit()
+    con.close()
+    with pytest.raises(RunDirError, match="evaluation 7 in the log has other parameters"):
+        bf.fit(bf.load_config(finished_run / "config.toml"), finished_run, resume=True, progress=False)
+
+
+def test_a_run_stopped_on_its_wall_time_resumes_over_every_row_it_logged(toy_plugin, tmp_path, monkeypatch):
+    """The clock does not stop a resumed search while logged rows are still ahead of it: the
+    replay comes to every row (none is taken for a stranger's), then the wall time applies."""
+    from bforest_core.pipeline import fit as fit_mod
+
+    p = toy_config(tmp_path, budget=64)
+    p.write_text(p.read_text().replace("[stop]\n", "[stop]\nwall_time = 100.0\n", 1))
+    clock = {"t": 0.0}
+
+    def ticking():  # the clock of the fit: 15 s a reading
+        clock["t"] += 15.0
+        return clock["t"]
+
+    monkeypatch.setattr(fit_mod.time, "monotonic", ticking)
+    res = bf.fit(bf.load_config(p), tmp_path / "run", progress=False)
+    assert res.stop_reason.startswith("wall time") and 0 < res.n_evaluations < 64
+    res2 = bf.fit(bf.load_config(tmp_path / "run" / "config.toml"), tmp_path / "run", resume=True, progress=False)
+    assert res2.n_evaluations == res.n_evaluations and res2.already_finished
+    assert len(res2.history) == len(res.history) > 1  # the resumed search went as far as the first

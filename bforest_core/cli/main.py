@@ -9,6 +9,7 @@ clones, report, compare, profile, calibrate), ``trees`` (info, simulate, distanc
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import sys
 import warnings
@@ -81,7 +82,9 @@ def main(argv=None) -> int:
     except (ValueError, OSError) as exc:  # an SSM rejecting a value; a path that cannot be written
         if args.debug:
             raise
-        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        full = getattr(exc, "errno", None) == errno.ENOSPC
+        advice = "; the disk is full: free space and run the command again (a fit continues with --resume)"
+        print(f"error: {_one_line(exc)}{advice if full else ''}", file=sys.stderr)
         return EXIT_USAGE
     except MemoryError:
         if args.debug:

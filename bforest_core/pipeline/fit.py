@@ -123,7 +123,8 @@ class Evaluator:
         pr, st = self.problem, self.stop
         if self._stop_at_budget():
             return
-        if st.wall_time is not None and self.elapsed() >= st.wall_time:
+        replaying = self.next_index <= max(self.replay, default=-1)  # logged rows still ahead
+        if st.wall_time is not None and not replaying and self.elapsed() >= st.wall_time:
             pr.stopped, pr.stop_reason = True, f"wall time ({st.wall_time:g} s) reached"
         elif st.target_distance is not None and pr.best_f <= st.target_distance:
             pr.stopped, pr.stop_reason = True, f"target distance {st.target_distance:g} reached"
@@ -154,6 +155,12 @@ class Evaluator:
         got = list(self.executor.map(summary_task, tasks))
         m = next((len(g) for g in got if g is not None), 0)
         return np.array([np.full(m, np.nan) if g is None else g for g in got], float).reshape(len(X), m)
+
+    def foreign_rows(self) -> list[int]:
+        """Logged evaluations the search never came to: rows this run did not make (added to the
+        log by hand or by another program), which the answer must not be taken from. Every row
+        the search came to was checked against its point and seeds when it was replayed."""
+        return sorted(i for i in self.replay if i >= self.next_index)
 
     def elapsed(self) -> float:
         return self.elapsed_before + time.monotonic() - self.t0
@@ -328,8 +335,8 @@ def _check_resume(store: RunStore, text: str, cfg: RunConfig) -> None:
             f"resume with the run's own settings, or start a new run (another -o, or --overwrite); "
             f"a resume may change only {', '.join(RESUMABLE)}"
         )
-    held, budget = store.count(), cfg.stop.max_evaluations
-    if budget is not None and budget < held:
+    held, budget, own_budget = store.count(), cfg.stop.max_evaluations, old.get("stop", {}).get("max_evaluations")
+    if budget is not None and budget < held and (own_budget is None or budget < own_budget):
         raise RunDirError(
             f"{store.path}: stop.max_evaluations = {budget} is below the {held} evaluations the run "
             f"holds; resume with a budget of at least {held} (the answer of a smaller budget is "
@@ -430,6 +437,16 @@ def fit(
                     result = optimizer.minimize(problem)
                 finally:  # the search's bar ends before the re-scoring's starts
                     bar.close(problem.stop_reason or getattr(result, "stop_reason", "") or "")
+                foreign = evaluator.foreign_rows()
+                if foreign:
+                    raise RunDirError(
+                        f"{store.evaluations_path}: evaluation{'s' * (len(foreign) > 1)} "
+                        f"{', '.join(map(str, foreign[:10]))}{' ...' if len(foreign) > 10 else ''} "
+                        f"of the log {'are' if len(foreign) > 1 else 'is'} not this run's: its search "
+                        f"ended at evaluation {evaluator.next_index - 1} (rows added by hand or by "
+                        "another program?); the answer is never taken from them: restore the log, or "
+                        "start the run anew with --overwrite"
+                    )
                 if store.count() and scfg is cfg:
                     selection = select_answer(cfg, store, lambda: contextlib.nullcontext(executor), progress)
             if store.count() and scfg is not cfg:  # the workers start again on the selection's tables

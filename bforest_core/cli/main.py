@@ -11,12 +11,25 @@ from __future__ import annotations
 import argparse
 import errno
 import os
+import signal
 import sys
 import warnings
 from concurrent.futures import BrokenExecutor
 
+from ..pipeline.interrupts import user_stops
 from . import export, init, plugins_config, runs, trees
 from .common import EXIT_USAGE, Parser, UsageError
+
+#: what is kept of a command stopped by the user (Ctrl-C, SIGTERM), and how to go on
+_AFTER_STOP = {
+    "fit": "finished evaluations are saved; continue with --resume",
+    "compare": "finished evaluations are saved; continue with --resume",
+    "calibrate": "finished evaluations are saved; continue with --resume",
+    "demo": "finished evaluations are saved; continue its fit with bforest fit RUN/config.toml -o RUN --resume",
+    "clones": "the clones grown so far are kept; run it again to grow the rest",
+    "report": "the report is incomplete; run bforest report again",
+    "profile": "nothing of the profile was written; run it again",
+}
 
 #: the warnings this command has printed: a file read twice (the clones, then the report) warns once
 _SHOWN: set[str] = set()
@@ -57,10 +70,13 @@ def main(argv=None) -> int:
     if not args.debug:
         warnings.showwarning = _warning_line
     try:
-        return int(args.func(args) or 0)
-    except KeyboardInterrupt:
-        print("interrupted (finished evaluations are saved; continue with --resume)", file=sys.stderr)
-        return 130
+        with user_stops():  # Ctrl-C and SIGTERM: the command unwinds, stopping every process it started
+            return int(args.func(args) or 0)
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        hint = _AFTER_STOP.get(args.command)
+        print(f"stopped by {signal.Signals(signum).name}" + (f" ({hint})" if hint else ""), file=sys.stderr)
+        return 128 + signum
     except BrokenPipeError:  # the reader of the output has gone (`bforest info ... | head`): not an error
         _quiet_stdout()
         return 0

@@ -33,6 +33,7 @@ from ..io import jsonable
 from ..registry import component
 from .checks import preflight
 from .heldout import select_answer, selection_config
+from .interrupts import stoppable
 from .progress import progress_bar
 from .rundir import holding_run_lock
 from .scoring import _simulate_with_timeout, _Timeout, set_summaries
@@ -364,6 +365,7 @@ def _free_specs(cfg: RunConfig, ssm):
     return names, np.array(lo), np.array(hi), np.array(ilo), np.array(ihi), np.array(integer, bool)
 
 
+@stoppable
 @holding_run_lock
 def fit(
     cfg: RunConfig | str | Path,

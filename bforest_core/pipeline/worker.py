@@ -24,6 +24,7 @@ from .scoring import (
     _Timeout,
     build_scoring,
     combine_terms,
+    fault_message,
     mean_per_set,
     score_tree,
     set_summaries,
@@ -67,7 +68,10 @@ def summary_task(task: tuple[dict, list[int]]) -> np.ndarray | None:
             U = {}
             for t in c.terms:
                 U.update({t.term.prefix + k: v for k, v in t.features.extract(tree).items()})
-        except (SimulationFailed, _Timeout, *_MODEL_ERRORS):
+        except (SimulationFailed, _Timeout):
+            return None
+        except _MODEL_ERRORS as exc:
+            fault_message(exc)  # the user's stop goes on; a plugin's fault is a tree that failed
             return None
         rows.append(set_summaries(U, list(c.U_data)))
     return np.mean(rows, axis=0)
@@ -142,8 +146,7 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
             status, message = "timeout", f"simulation exceeded {c.timeout} s"
             break
         except _MODEL_ERRORS as exc:
-            status = "error"
-            message = f"{type(exc).__name__}: {exc}"[:500]
+            status, message = "error", fault_message(exc)
             break
     seconds = time.perf_counter() - t0
     if status != "ok":

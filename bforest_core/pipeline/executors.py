@@ -93,10 +93,17 @@ def _release_forkserver() -> None:
         pass
 
 
-def _worker_init(initializer, initargs, owner=None):
-    Executor.worker_setup()
-    if owner is not None and os.name == "posix":
+def bind_to_owner(owner: int) -> None:
+    """End this helper process with the process that started it (``owner``), however that ends:
+    the parent death signal (Linux), and a thread watching the owner (everywhere). A worker of
+    the ``process`` executor and the report's second process call it first thing."""
+    _die_with_parent()
+    if os.name == "posix":
         _exit_with(owner)
+
+
+def _worker_init(initializer, initargs):
+    Executor.worker_setup()
     if initializer is not None:
         initializer(*initargs)
 
@@ -140,15 +147,16 @@ def _portable(exc: BaseException) -> BaseException:
 def _worker_main(conn, initializer, initargs, owner) -> None:
     """A worker's life: start-up, then tasks ``(seq, fn, item)`` until ``None`` or end of file.
     Every exception of a task (``SystemExit`` too) goes back to the owner; the worker stays."""
-    _die_with_parent()
+    bind_to_owner(owner)
     _release_forkserver()
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the owner's to handle (it stops us)
-        _worker_init(initializer, initargs, owner)
+        _worker_init(initializer, initargs)
     except BaseException as exc:  # noqa: BLE001 - a plugin's start-up may raise anything
-        conn.send(("init-error", None, _portable(exc)))
+        _send(conn, ("init-error", None, _portable(exc)))
         return
-    conn.send(("ready", None, None))
+    if not _send(conn, ("ready", None, None)):
+        return
     while True:
         try:
             msg = conn.recv()
@@ -162,9 +170,23 @@ def _worker_main(conn, initializer, initargs, owner) -> None:
         except BaseException as exc:  # noqa: BLE001 - sys.exit() in a plugin must not end the worker
             out = ("error", seq, _portable(exc))
         try:
-            conn.send(out)
+            sent = _send(conn, out)
         except Exception as exc:  # a result that cannot be pickled
-            conn.send(("error", seq, WorkerError(f"the result could not be sent back: {type(exc).__name__}: {exc}")))
+            sent = _send(
+                conn, ("error", seq, WorkerError(f"the result could not be sent back: {type(exc).__name__}: {exc}"))
+            )
+        if not sent:
+            return
+
+
+def _send(conn, message) -> bool:
+    """Send ``message`` to the owner; False when the owner has gone (it was stopped and closed
+    its end): the worker then ends quietly, no ``BrokenPipeError`` traceback on the terminal."""
+    try:
+        conn.send(message)
+    except (BrokenPipeError, ConnectionResetError, EOFError):
+        return False
+    return True
 
 
 def _death_text(exitcode) -> str:

@@ -52,7 +52,16 @@ DEFAULT_KINDS = {"features": "branch-segment", "distance": "sliced", "optimizer"
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # every number of a config is finite: NaN or an infinity is an error naming the key
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+#: the largest value of each numeric setting that sizes the work or the memory of a run: what a
+#: 2-core laptop can run (a config beyond it is refused by the config check and the fit alike)
+MAX_SEEDS = 1000  # model seeds per evaluation ([objective] seeds, model_seeds)
+MAX_TIMEOUT = 86400.0  # s, a day: one simulation's time limit
+MAX_SELECT = 1000  # [select] top and sets
+MAX_CLONES = 10000
 
 
 #: measures of the target tree that bounds may be scaled by (``bforest_core.metrics.TreeMeasures``)
@@ -201,14 +210,18 @@ class TermConfig(_Strict):
 class ObjectiveConfig(_Strict):
     """How one parameter vector is scored."""
 
-    seeds: int = Field(1, ge=1, description="model seeds per evaluation (mean distance; common random numbers)")
+    seeds: int = Field(
+        1, ge=1, le=MAX_SEEDS, description="model seeds per evaluation (mean distance; common random numbers)"
+    )
     seed_mode: Literal["fixed", "per_evaluation"] = Field(
         "fixed",
         description="fixed: the same model seed(s) for every evaluation (the paper); "
         "per_evaluation: from the run seed and the evaluation index",
     )
     model_seeds: Optional[list[int]] = Field(
-        None, description="explicit model seeds held fixed for every evaluation (overrides seeds/seed_mode)"
+        None,
+        max_length=MAX_SEEDS,
+        description="explicit model seeds held fixed for every evaluation (overrides seeds/seed_mode)",
     )
     weights: Optional[dict[str, float]] = Field(None, description="weight per data set (default equal)")
     penalty: float = Field(
@@ -219,7 +232,9 @@ class ObjectiveConfig(_Strict):
         "real distance (1.0 suits statistics bounded by 1, such as KS); "
         "samplers that say so (abc-smc) treat a failure as inf instead",
     )
-    timeout: Optional[float] = Field(60.0, gt=0, description="seconds before a simulation is stopped (None: no limit)")
+    timeout: Optional[float] = Field(
+        60.0, gt=0, le=MAX_TIMEOUT, description="seconds before a simulation is stopped (at most a day; None: no limit)"
+    )
     cache: bool = Field(True, description="never simulate identical params and seeds twice")
     structure_weight: float = Field(
         1.0, gt=0, description="weight of the [features]/[distance] term when [[objective.terms]] adds others"
@@ -263,6 +278,7 @@ class SelectConfig(_Strict):
     top: int = Field(
         0,
         ge=0,
+        le=MAX_SELECT,
         description="best distinct points of the search re-scored on held-out model seeds "
         "at the end of the fit; the answer is the one of lowest held-out distance (0: the answer "
         "is the point of lowest own distance, with no re-scoring)",
@@ -270,6 +286,7 @@ class SelectConfig(_Strict):
     sets: int = Field(
         8,
         ge=1,
+        le=MAX_SELECT,
         description="sets of held-out model seeds per candidate, each as large as an evaluation's ([objective] seeds)",
     )
     spacing: float = Field(
@@ -294,7 +311,7 @@ class SelectConfig(_Strict):
 class ClonesConfig(_Strict):
     """The clones of the answer: model trees grown with its parameters on other seeds."""
 
-    count: int = Field(100, ge=1)
+    count: int = Field(100, ge=1, le=MAX_CLONES)
     seed: Optional[int] = Field(None, ge=0, description="seed of the clone seeds (default: derived from the run seed)")
 
 
@@ -302,7 +319,7 @@ class ReportConfig(_Strict):
     """Whether a fit writes its report, and how many clones its figure draws."""
 
     enabled: bool = True
-    clones_in_figure: int = Field(6, ge=1)
+    clones_in_figure: int = Field(6, ge=1, le=100)
 
 
 class RunConfig(_Strict):
@@ -535,6 +552,12 @@ def check_ssm_parameters(cfg: RunConfig) -> None:
             problems.append(
                 f"ssm.free.{name}: bounds [{fp.lower}, {fp.upper}] exceed the allowed range "
                 f"[{s.lower}, {s.upper}] {s.unit}".rstrip()
+            )
+        whole = s.integer if fp.integer is None else fp.integer
+        if fp.scaled_by is None and whole and math.ceil(fp.lower) > math.floor(fp.upper):
+            problems.append(
+                f"ssm.free.{name}: the bounds [{fp.lower}, {fp.upper}] of a whole-number parameter "
+                "hold no whole number (widen them, or set integer = false)"
             )
     if problems:
         raise ConfigError("; ".join(problems))

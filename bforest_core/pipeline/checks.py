@@ -14,7 +14,7 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ..config import did_you_mean, section_settings
+from ..config import check_ssm_parameters, did_you_mean, section_settings
 from ..errors import BayesForestError, ConfigError, PluginError
 from ..registry import component
 from .heldout import selection_config
@@ -64,7 +64,9 @@ def preflight(cfg: RunConfig, target: Target | None = None, trees=None) -> Targe
         with warnings.catch_warnings():  # a bound moved into the model's range is the fit's to say
             warnings.simplefilter("ignore")
             try:
-                bounds_from_target(cfg, tgt.trees)
+                resolved = bounds_from_target(cfg, tgt.trees)
+                if resolved is not cfg:  # the resolved bounds pass the checks absolute ones pass
+                    check_ssm_parameters(resolved)
             except ConfigError as exc:  # a scaled range that leaves nothing of the model's
                 problems.append(str(exc))
     if not problems and (cfg.select.features or cfg.select.distance):
@@ -86,4 +88,6 @@ def _weight_problems(tgt: Target) -> list[str]:
         for name in t.set_weights or {}:
             if name not in sets:
                 out.append(f"{key}.{name}: no data set {name!r}{did_you_mean(name, sets)} (sets: {', '.join(sets)})")
+        if t.set_weights and sets and all(t.set_weights.get(s, 1.0) == 0 for s in sets):
+            out.append(f"{key}: every data set's weight is 0, so every distance would be 0 (sets: {', '.join(sets)})")
     return out

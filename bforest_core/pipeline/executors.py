@@ -22,6 +22,7 @@ import pickle
 import signal
 import sys
 import time
+import warnings
 from collections import deque
 from multiprocessing.connection import wait as _wait
 from typing import Literal
@@ -123,11 +124,21 @@ class SerialExecutor(Executor):
             yield i, fn(it)
 
 
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity on Linux, else the machine's)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 class ProcessSettings(ComponentSettings):
     workers: int = Field(
         default_factory=lambda: max(1, os.cpu_count() or 1),
         ge=1,
-        description="number of worker processes (default: all cores)",
+        le=1024,
+        description="number of worker processes (default: all cores; at most the cores there are: "
+        "more would only wait their turn, each holding the target in memory)",
     )
     start_method: Literal["fork", "spawn", "forkserver"] = Field(
         "spawn" if os.name == "nt" else "forkserver",
@@ -249,14 +260,21 @@ class ProcessExecutor(Executor):
 
     @property
     def workers(self) -> int:
-        return self.settings.workers
+        """The workers started: ``workers``, or the cores there are when that is fewer."""
+        return min(self.settings.workers, available_cores())
 
     def start(self, initializer=None, initargs=()):
+        if self.settings.workers > self.workers:
+            warnings.warn(
+                f"executor.workers = {self.settings.workers} is more than the {self.workers} cores here: "
+                f"{self.workers} workers are started (the results are the same)",
+                stacklevel=2,
+            )
         self._ctx = mp.get_context(self.settings.start_method)
         self._init = (initializer, initargs)
         self._seq = itertools.count()
         self._start_deaths = 0
-        self._workers = [self._spawn() for _ in range(self.settings.workers)]
+        self._workers = [self._spawn() for _ in range(self.workers)]
 
     def _spawn(self) -> _Worker:
         return _Worker(self._ctx, *self._init)

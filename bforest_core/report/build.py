@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 
 from ..cylinders import quiet_read_repairs
-from ..pipeline.executors import bind_to_owner
+from ..pipeline.executors import available_cores, bind_to_owner
 from .attributes import fig_distributions
 from .canvas import FORMATS, current_output, figure_output
 from .convergence import fig_convergence
@@ -157,10 +157,7 @@ class _SideProcess:
 
 
 def _cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
+    return available_cores()
 
 
 def _draw_figures(v: RunView, figs: _Figures, strict: bool) -> None:

@@ -34,7 +34,9 @@ class SOTSettings(ComponentSettings):
     light_model: Literal["multiplicative"] = Field(
         "multiplicative", description="light field: multiplicative shadow propagation (LPFG-SOT)"
     )
-    max_live_segments: int = Field(200_000, ge=1, description="status 'too_many_segments' above this")
+    max_live_segments: int = Field(
+        200_000, ge=1, le=10**7, description="status 'too_many_segments' above this (at most 10 million)"
+    )
     sympodial: bool = Field(False, description="remove apical buds (sympodial branching)")
     buds_per_node: int = Field(
         1,

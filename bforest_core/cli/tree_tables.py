@@ -70,7 +70,8 @@ def class_bounds(name: str, k: int) -> tuple[float, float, str]:
 
 def info_text(tree) -> list[str]:
     """The attribute block and the distribution tables of ``bforest info``."""
-    a = tree_attributes(tree)
+    notes: list[str] = []
+    a = tree_attributes(tree, notes=notes)
     d = distributions(tree)
     lines = ["  tree attributes (TreeQSM's, SI units; definitions: docs/tree-attributes.md)"]
     for k, label in ATTRIBUTE_LABELS.items():
@@ -82,6 +83,7 @@ def info_text(tree) -> list[str]:
         else:
             txt = f"{v:.4g}" + (f" {u}" if u else "")
         lines.append(f"    {label:<28}{txt}")
+    lines += [f"    note: {n}" for n in notes]
     for title, _, width, unit, names in DISTRIBUTION_TABLES:
         n = max(d[x].size for x in names)
         nz = [k for k in range(n) if any(d[x][k] != 0 for x in names)]

@@ -533,11 +533,8 @@ def check_ssm_parameters(cfg: RunConfig) -> None:
                 f"ssm.fixed.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
                 f"{did_you_mean(name, specs)}"
             )
-        elif not specs[name].lower <= val <= specs[name].upper:
-            s = specs[name]
-            problems.append(
-                f"ssm.fixed.{name}: {val} is outside the allowed range [{s.lower}, {s.upper}] {s.unit}".rstrip()
-            )
+        elif _value_problem(val, specs[name]):
+            problems.append(f"ssm.fixed.{name}: {_value_problem(val, specs[name])}")
     for name, fp in cfg.ssm.free.items():
         if name not in specs:
             problems.append(
@@ -561,6 +558,19 @@ def check_ssm_parameters(cfg: RunConfig) -> None:
             )
     if problems:
         raise ConfigError("; ".join(problems))
+
+
+def _value_problem(val: float, spec) -> str | None:
+    """Return what is wrong with ``val`` as a value of the parameter ``spec``, or None.
+
+    Outside its range, or not a whole number of a whole-number parameter (which would be cut
+    silently).
+    """
+    if not spec.lower <= val <= spec.upper:
+        return f"{val} is outside the allowed range [{spec.lower}, {spec.upper}] {spec.unit}".rstrip()
+    if spec.integer and val != int(val):
+        return f"{val} is not a whole number ({spec.name} counts whole {spec.unit or 'steps'})"
+    return None
 
 
 def _identifier(name) -> bool:
@@ -602,11 +612,8 @@ def check_generated_target(cfg: RunConfig) -> None:
                 f"target.generate.params.{name}: unknown parameter of '{gen.ssm}' "
                 f"(known: {', '.join(specs)}){did_you_mean(name, specs)}"
             )
-        elif not s.lower <= val <= s.upper:
-            problems.append(
-                f"target.generate.params.{name}: {val} is outside the allowed range "
-                f"[{s.lower}, {s.upper}] {s.unit}".rstrip()
-            )
+        elif _value_problem(val, s):
+            problems.append(f"target.generate.params.{name}: {_value_problem(val, s)}")
     if problems:
         raise ConfigError("; ".join(problems))
 

@@ -151,6 +151,7 @@ def cmd_distance(args):
     if not 1 <= args.lines <= MAX_LINES:
         raise UsageError(f"--lines must be between 1 and {MAX_LINES} (got {args.lines})")
     if args.empty_cost is None and args.distance == "sliced" and args.statistic.lower() != "ks":
+        component("distance", "sliced", statistic=args.statistic, empty_cost=1.0)  # an unknown one: named
         raise UsageError(
             f"--statistic {args.statistic} needs --empty-cost X: the distance of a set that one tree "
             "lacks (1.0, the default, is the maximum of KS only)"

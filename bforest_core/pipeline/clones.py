@@ -23,6 +23,7 @@ import numpy as np
 from ..config import load_config
 from ..errors import BayesForestError, SimulationFailed
 from ..interfaces import parameter_value
+from ..io import whole_file
 from .fidelity import bound_flags, fidelity_table, fidelity_text, fidelity_warnings
 from .interrupts import stoppable
 from .progress import progress_bar
@@ -309,7 +310,7 @@ def _set_columns(tgt) -> list[str]:
 def _write_csv(path: Path, rows, tgt) -> None:
     sets = _set_columns(tgt)
     header = ["index", "seed", "status", "file", "distance"] + [f"D[{s}]" for s in sets] + list(CSV_COLUMNS.values())
-    with open(path, "w", newline="") as fh:
+    with whole_file(path) as part, open(part, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(header)
         for r in rows:

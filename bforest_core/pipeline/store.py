@@ -151,6 +151,7 @@ class RunFiles:
         f"{EVALUATIONS}-journal",
         BEST,
         f"{BEST}.tmp",
+        ".*.tmp",  # a file written all or nothing (io.whole_file), left by a killed command
         BEST_TREE,
         TARGET_TREE,
         TARGET_SETS,

@@ -90,7 +90,7 @@ def started_workers(cfg: RunConfig, tgt: Target, executor=None):
     ex = run_executor(cfg) if executor is None else executor
     # Executor.on_lost/time_limit: what a dead or stuck worker's task becomes, and when a task is
     # stuck (honoured by an executor that can stop a worker, ignored by the others)
-    ex.on_lost = functools.partial(_lost_task, cfg.objective.penalty, list(tgt.U))
+    ex.on_lost = functools.partial(_lost_task, cfg.objective.penalty, list(tgt.U), cfg.objective.timeout)
     timeout = cfg.objective.timeout
     ex.time_limit = None if timeout is None else functools.partial(_task_limit, timeout)
     return ex.started(init_worker, (cfg, tgt.U, tgt.columns, tgt.feature_settings, tgt.terms))
@@ -104,17 +104,18 @@ def _task_limit(timeout: float, item) -> float:
     return max(1, len(seeds)) * float(timeout) + max(2.0, float(timeout))
 
 
-def _lost_task(penalty: float, names: list, fn, item, status: str, message: str):
+def _lost_task(penalty: float, names: list, timeout: float | None, fn, item, status: str, message: str):
     """The result of a task whose worker died or was stopped (the process executor's
     ``on_lost``): a failed evaluation with the penalty, no summaries, or the task's own
-    ``lost_result``; ``NotImplemented`` (the executor raises) for any other task."""
+    ``lost_result``; ``NotImplemented`` (the executor raises) for any other task. A task stopped
+    at its time limit ran that long (its ``seconds``); a dead worker's time is not known (0)."""
     if fn is evaluate_task:
         return dict(
             distance=float(penalty),
             per_set={k: None for k in names},
             status=status,
             message=message[:500],
-            seconds=0.0,
+            seconds=_task_limit(timeout, item) if status == "timeout" and timeout is not None else 0.0,
             worker="",
             n_rows={},
         )

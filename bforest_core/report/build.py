@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 from ..cylinders import quiet_read_repairs
+from ..io import whole_file
 from ..pipeline.executors import available_cores, bind_to_owner
 from .attributes import fig_distributions
 from .canvas import FORMATS, current_output, figure_output
@@ -260,8 +261,10 @@ def write_report(
         f"in {time.monotonic() - t0:.1f} s."
     )
     md = v.store.report_md_path
-    md.write_text(doc.markdown(), encoding="utf-8")
+    with whole_file(md) as part:  # a full disk leaves the report before, never half of one
+        part.write_text(doc.markdown(), encoding="utf-8")
     if html:
-        v.store.report_html_path.write_text(doc.html(v.path, title), encoding="utf-8")
+        with whole_file(v.store.report_html_path) as part:
+            part.write_text(doc.html(v.path, title), encoding="utf-8")
     v.store.close()
     return md

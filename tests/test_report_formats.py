@@ -117,7 +117,7 @@ def test_dpi_sets_the_resolution_and_a_bad_value_is_one_line(tmp_path, capsys, m
     capsys.readouterr()
     assert main(["report", str(tmp_path), "--dpi", "5"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["error: --dpi must be between 20 and 2400 (got 5)"]
+    assert err == ["error: --dpi must be between 20 and 600 (got 5)"]
 
 
 def test_a_label_beyond_the_bottom_edge_is_saved_not_clipped(tmp_path):

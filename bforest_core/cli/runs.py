@@ -125,7 +125,9 @@ def _clones_and_report(args):
 
 def cmd_report(args):
     from ..report.build import write_report
+    from ..report.canvas import check_dpi
 
+    check_dpi(args.dpi)  # before the run is read
     p = write_report(args.run_dir, format=args.format, dpi=args.dpi)
     print(f"report: {p}")
     return 0

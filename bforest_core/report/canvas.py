@@ -83,17 +83,19 @@ _OUTPUT = {"format": "png", "dpi": None}
 DPI_RANGE = (20, 600)
 
 
+def check_dpi(dpi: int | None) -> None:
+    """ValueError naming ``--dpi`` when ``dpi`` is outside :data:`DPI_RANGE` (None: the figures' own)."""
+    if dpi is not None and not DPI_RANGE[0] <= dpi <= DPI_RANGE[1]:
+        raise ValueError(f"--dpi must be between {DPI_RANGE[0]} and {DPI_RANGE[1]} (got {dpi})")
+
+
 @contextmanager
 def figure_output(format: str = "png", dpi: int | None = None):
     """Within the block :func:`save_figure` writes ``format`` (png, svg or pdf) at ``dpi``
     (None: each figure's own resolution)."""
     if format not in FORMATS:
         raise ValueError(f"figure format {format!r} is not one of {', '.join(FORMATS)}")
-    if dpi is not None and not DPI_RANGE[0] <= dpi <= DPI_RANGE[1]:
-        raise ValueError(
-            f"--dpi must be between {DPI_RANGE[0]} and {DPI_RANGE[1]} (got {dpi}): at more a figure takes "
-            "gigabytes to draw"
-        )
+    check_dpi(dpi)
     saved = dict(_OUTPUT)
     _OUTPUT.update(format=format, dpi=dpi)
     try:

@@ -96,3 +96,28 @@ def test_no_process_outlives_a_stopped_command(toy_plugin, finished, tmp_path, c
     assert lines[0].startswith(f"stopped by {signal.Signals(signum).name}"), lines
     if command == "report":  # the report's own word, not the fit's
         assert "run bforest report again" in lines[0] and "--resume" not in lines[0]
+
+
+def test_only_the_users_own_stop_is_taken_for_one():
+    """Under user_stops (every command) the user's Ctrl-C is a Stopped and a bare KeyboardInterrupt
+    a plugin's; where SIGINT has another handler (Python's own, a notebook's) a KeyboardInterrupt
+    cannot be told from the user's and stops; where SIGINT is ignored (a worker) it never does."""
+    from bforest_core.pipeline.interrupts import Stopped, user_stops, users_stop
+
+    old = signal.getsignal(signal.SIGINT)
+    try:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        assert users_stop(KeyboardInterrupt()) and not users_stop(ValueError())
+        with user_stops():
+            assert not users_stop(KeyboardInterrupt()) and users_stop(Stopped(signal.SIGTERM))
+            with pytest.raises(Stopped) as got:
+                os.kill(os.getpid(), signal.SIGINT)
+                signal.sigtimedwait([], 0)  # the handler runs at the next instruction
+            assert got.value.signum == signal.SIGINT
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back
+        signal.signal(signal.SIGINT, lambda *a: None)  # a host's own handler
+        assert users_stop(KeyboardInterrupt())
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        assert not users_stop(KeyboardInterrupt())
+    finally:
+        signal.signal(signal.SIGINT, old)

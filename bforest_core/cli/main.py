@@ -17,6 +17,7 @@ import warnings
 from concurrent.futures import BrokenExecutor
 
 from ..pipeline.interrupts import user_stops
+from ..pipeline.store import RunFiles
 from . import export, init, plugins_config, runs, trees
 from .common import EXIT_USAGE, Parser, UsageError
 
@@ -25,7 +26,7 @@ _AFTER_STOP = {
     "fit": "finished evaluations are saved; continue with --resume",
     "compare": "finished evaluations are saved; continue with --resume",
     "calibrate": "finished evaluations are saved; continue with --resume",
-    "demo": "finished evaluations are saved; continue its fit with bforest fit RUN/config.toml -o RUN --resume",
+    "demo": f"finished evaluations are saved; continue its fit with bforest fit RUN/{RunFiles.CONFIG} -o RUN --resume",
     "clones": "the clones grown so far are kept; run it again to grow the rest",
     "report": "the report is incomplete; run bforest report again",
     "profile": "nothing of the profile was written; run it again",

@@ -71,13 +71,14 @@ def stoppable(fn):
 def users_stop(exc: BaseException) -> bool:
     """Whether ``exc`` is the user's stop, which must end the command, rather than a plugin's
     fault, which costs one evaluation: a :class:`Stopped`, or a ``KeyboardInterrupt`` where
-    SIGINT still has Python's own handler (a caller from Python outside :func:`user_stops`: it
-    cannot be told from a plugin's). A worker process ignores SIGINT and a worker thread gets no
-    signals: there it is always the plugin's."""
+    SIGINT has a handler other than :func:`user_stops`'s (Python's own, or a host's such as a
+    notebook's: there it cannot be told from a plugin's, so it stops). Under :func:`user_stops`
+    the user's Ctrl-C is a :class:`Stopped`; a worker process ignores SIGINT and a worker
+    thread gets no signals: there a ``KeyboardInterrupt`` is always the plugin's."""
     if isinstance(exc, Stopped):
         return True
     return (
         isinstance(exc, KeyboardInterrupt)
         and threading.current_thread() is threading.main_thread()
-        and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        and signal.getsignal(signal.SIGINT) not in (_stop, signal.SIG_IGN)
     )

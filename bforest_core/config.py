@@ -64,7 +64,16 @@ RECIPE_KINDS = {section: kinds[1] for section, kinds in BUNDLED_KINDS.items()}
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # every number of a config is finite: NaN or an infinity is an error naming the key
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+#: the largest value of each numeric setting that sizes the work or the memory of a run: what a
+#: 2-core laptop can run (a config beyond it is refused by the config check and the fit alike)
+MAX_SEEDS = 1000  # model seeds per evaluation ([objective] seeds, model_seeds)
+MAX_TIMEOUT = 86400.0  # s, a day: one simulation's time limit
+MAX_SELECT = 1000  # [select] top and sets
+MAX_CLONES = 10000
 
 
 #: measures of the target tree that bounds may be scaled by (``bforest_core.metrics.TreeMeasures``)
@@ -215,14 +224,18 @@ class TermConfig(_Strict):
 class ObjectiveConfig(_Strict):
     """How one parameter vector is scored."""
 
-    seeds: int = Field(1, ge=1, description="model seeds per evaluation (mean distance; common random numbers)")
+    seeds: int = Field(
+        1, ge=1, le=MAX_SEEDS, description="model seeds per evaluation (mean distance; common random numbers)"
+    )
     seed_mode: Literal["fixed", "per_evaluation"] = Field(
         "fixed",
         description="fixed: the same model seed(s) for every evaluation (the paper); "
         "per_evaluation: from the run seed and the evaluation index",
     )
     model_seeds: Optional[list[int]] = Field(
-        None, description="explicit model seeds held fixed for every evaluation (overrides seeds/seed_mode)"
+        None,
+        max_length=MAX_SEEDS,
+        description="explicit model seeds held fixed for every evaluation (overrides seeds/seed_mode)",
     )
     weights: Optional[dict[str, float]] = Field(None, description="weight per data set (default equal)")
     penalty: float = Field(
@@ -233,7 +246,9 @@ class ObjectiveConfig(_Strict):
         "real distance (1.0 suits statistics bounded by 1, such as KS); "
         "samplers that say so (abc-smc) treat a failure as inf instead",
     )
-    timeout: Optional[float] = Field(60.0, gt=0, description="seconds before a simulation is stopped (None: no limit)")
+    timeout: Optional[float] = Field(
+        60.0, gt=0, le=MAX_TIMEOUT, description="seconds before a simulation is stopped (at most a day; None: no limit)"
+    )
     cache: bool = Field(True, description="never simulate identical params and seeds twice")
     structure_weight: float = Field(
         1.0, gt=0, description="weight of the [features]/[distance] term when [[objective.terms]] adds others"
@@ -277,6 +292,7 @@ class SelectConfig(_Strict):
     top: int = Field(
         0,
         ge=0,
+        le=MAX_SELECT,
         description="best distinct points of the search re-scored on held-out model seeds "
         "at the end of the fit; the answer is the one of lowest held-out distance (0: the answer "
         "is the point of lowest own distance, with no re-scoring)",
@@ -284,6 +300,7 @@ class SelectConfig(_Strict):
     sets: int = Field(
         8,
         ge=1,
+        le=MAX_SELECT,
         description="sets of held-out model seeds per candidate, each as large as an evaluation's ([objective] seeds)",
     )
     spacing: float = Field(
@@ -308,7 +325,7 @@ class SelectConfig(_Strict):
 class ClonesConfig(_Strict):
     """The clones of the answer: model trees grown with its parameters on other seeds."""
 
-    count: int = Field(100, ge=1)
+    count: int = Field(100, ge=1, le=MAX_CLONES)
     seed: Optional[int] = Field(None, ge=0, description="seed of the clone seeds (default: derived from the run seed)")
 
 
@@ -316,7 +333,7 @@ class ReportConfig(_Strict):
     """Whether a fit writes its report, and how many clones its figure draws."""
 
     enabled: bool = True
-    clones_in_figure: int = Field(6, ge=1)
+    clones_in_figure: int = Field(6, ge=1, le=100)
 
 
 class RunConfig(_Strict):
@@ -514,12 +531,14 @@ def parameter_problems(where: str, model: str, specs: dict, values: dict) -> lis
     specs : dict
         ``ParameterSpec`` by name.
     values : dict
-        Name -> a value, a ``(lower, upper)`` pair of bounds, or None (the name alone is checked).
+        Name -> a value, a ``(lower, upper, integer)`` triple of bounds (``integer`` None: the
+        parameter's own), or None (the name alone is checked).
 
     Returns
     -------
     list of str
-        One message per unknown name or value (bound) outside its parameter's range.
+        One message per unknown name, value outside its parameter's range or not whole where it
+        must be, bounds outside the range or holding no whole number of a whole-number parameter.
     """
     problems = []
     for name, val in values.items():
@@ -528,15 +547,19 @@ def parameter_problems(where: str, model: str, specs: dict, values: dict) -> lis
             problems.append(
                 f"{where}.{name}: unknown parameter of '{model}' (known: {', '.join(specs)}){did_you_mean(name, specs)}"
             )
-        elif isinstance(val, tuple) and (val[0] < s.lower or val[1] > s.upper):
-            problems.append(
-                f"{where}.{name}: bounds [{val[0]}, {val[1]}] exceed the allowed range "
-                f"[{s.lower}, {s.upper}] {s.unit}".rstrip()
-            )
-        elif val is not None and not isinstance(val, tuple) and not s.lower <= val <= s.upper:
-            problems.append(
-                f"{where}.{name}: {val} is outside the allowed range [{s.lower}, {s.upper}] {s.unit}".rstrip()
-            )
+        elif isinstance(val, tuple):
+            lo, hi, whole = val[0], val[1], s.integer if len(val) < 3 or val[2] is None else val[2]
+            if lo < s.lower or hi > s.upper:
+                problems.append(
+                    f"{where}.{name}: bounds [{lo}, {hi}] exceed the allowed range [{s.lower}, {s.upper}] {s.unit}".rstrip()
+                )
+            if whole and math.ceil(lo) > math.floor(hi):
+                problems.append(
+                    f"{where}.{name}: the bounds [{lo}, {hi}] of a whole-number parameter hold no whole number "
+                    "(widen them, or set integer = false)"
+                )
+        elif val is not None and _value_problem(val, s):
+            problems.append(f"{where}.{name}: {_value_problem(val, s)}")
     return problems
 
 
@@ -565,11 +588,26 @@ def check_ssm_parameters(cfg: RunConfig) -> None:
     kind = cfg.ssm.kind
     problems += parameter_problems("ssm.fixed", kind, specs, cfg.ssm.fixed)
     # a bound scaled to the tree is checked once resolved (pipeline.target)
-    bounds = {n: None if fp.scaled_by is not None else (fp.lower, fp.upper) for n, fp in cfg.ssm.free.items()}
+    bounds = {
+        n: None if fp.scaled_by is not None else (fp.lower, fp.upper, fp.integer) for n, fp in cfg.ssm.free.items()
+    }
     problems += parameter_problems("ssm.free", kind, specs, bounds)
     problems += [f"ssm.free.{n}: also listed in ssm.fixed" for n in cfg.ssm.free if n in specs and n in cfg.ssm.fixed]
     if problems:
         raise ConfigError("; ".join(problems))
+
+
+def _value_problem(val: float, spec) -> str | None:
+    """Return what is wrong with ``val`` as a value of the parameter ``spec``, or None.
+
+    Outside its range, or not a whole number of a whole-number parameter (which would be cut
+    silently).
+    """
+    if not spec.lower <= val <= spec.upper:
+        return f"{val} is outside the allowed range [{spec.lower}, {spec.upper}] {spec.unit}".rstrip()
+    if spec.integer and val != int(val):
+        return f"{val} is not a whole number ({spec.name} counts whole {spec.unit or 'steps'})"
+    return None
 
 
 def _identifier(name) -> bool:

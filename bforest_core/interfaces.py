@@ -30,9 +30,12 @@ KINDS = ("qsm_reader", "qsm_writer", "ssm", "features", "distance", "optimizer",
 
 
 class ComponentSettings(BaseModel):
-    """Base of every component's settings model: unknown keys are errors."""
+    """Base of every component's settings model: unknown keys are errors, numbers finite.
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    NaN or an infinity in a setting is an error naming the setting.
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class Component(abc.ABC):

@@ -86,7 +86,8 @@ def test_resume_after_crash_repeats_nothing_and_matches(toy_plugin, tmp_path, mo
 def test_resume_refuses_other_config(toy_plugin, tmp_path):
     bf.fit(bf.load_config(toy_config(tmp_path, budget=8)), tmp_path / "run", progress=False)
     other = bf.load_config(toy_config(tmp_path, budget=9))
-    with pytest.raises(bf.BayesForestError, match="config differs"):
+    other.seed = 4
+    with pytest.raises(bf.BayesForestError, match="config differs.*seed: 3 -> 4"):
         bf.fit(other, tmp_path / "run", resume=True, progress=False)
     with pytest.raises(bf.BayesForestError, match="already holds a run"):
         bf.fit(other, tmp_path / "run", progress=False)

@@ -14,7 +14,7 @@ import warnings
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from ..config import build_component, did_you_mean
+from ..config import build_component, check_ssm_parameters, did_you_mean
 from ..errors import BayesForestError, ConfigError, PluginError
 from ..samples import SampleError
 from ..samples import resolve as resolve_sample
@@ -89,6 +89,8 @@ def preflight(cfg: RunConfig, target: Target | None = None, trees=None) -> Check
             warnings.simplefilter("always")
             try:
                 resolved = bounds_from_target(cfg, tgt.trees)
+                if resolved is not cfg:  # the resolved bounds pass the checks absolute ones pass
+                    check_ssm_parameters(resolved)
             except ConfigError as exc:  # a scaled range that leaves nothing of the model's
                 problems.append(str(exc))
     if not problems and (cfg.select.features or cfg.select.distance):
@@ -110,4 +112,6 @@ def _weight_problems(tgt: Target) -> list[str]:
         for name in t.set_weights or {}:
             if name not in sets:
                 out.append(f"{key}.{name}: no data set {name!r}{did_you_mean(name, sets)} (sets: {', '.join(sets)})")
+        if t.set_weights and sets and all(t.set_weights.get(s, 1.0) == 0 for s in sets):
+            out.append(f"{key}: every data set's weight is 0, so every distance would be 0 (sets: {', '.join(sets)})")
     return out

@@ -22,6 +22,7 @@ import pickle
 import signal
 import sys
 import time
+import warnings
 from collections import deque
 from multiprocessing.connection import wait as _wait
 from typing import Literal
@@ -93,10 +94,17 @@ def _release_forkserver() -> None:
         pass
 
 
-def _worker_init(initializer, initargs, owner=None):
-    Executor.worker_setup()
-    if owner is not None and os.name == "posix":
+def bind_to_owner(owner: int) -> None:
+    """End this helper process with the process that started it (``owner``), however that ends:
+    the parent death signal (Linux), and a thread watching the owner (everywhere). A worker of
+    the ``process`` executor and the report's second process call it first thing."""
+    _die_with_parent()
+    if os.name == "posix":
         _exit_with(owner)
+
+
+def _worker_init(initializer, initargs):
+    Executor.worker_setup()
     if initializer is not None:
         initializer(*initargs)
 
@@ -116,11 +124,21 @@ class SerialExecutor(Executor):
             yield i, fn(it)
 
 
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity on Linux, else the machine's)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
 class ProcessSettings(ComponentSettings):
     workers: int = Field(
         default_factory=lambda: max(1, os.cpu_count() or 1),
         ge=1,
-        description="number of worker processes (default: all cores)",
+        le=1024,
+        description="number of worker processes (default: all cores; at most the cores there are: "
+        "more would only wait their turn, each holding the target in memory)",
     )
     start_method: Literal["fork", "spawn", "forkserver"] = Field(
         "spawn" if os.name == "nt" else "forkserver",
@@ -140,15 +158,16 @@ def _portable(exc: BaseException) -> BaseException:
 def _worker_main(conn, initializer, initargs, owner) -> None:
     """A worker's life: start-up, then tasks ``(seq, fn, item)`` until ``None`` or end of file.
     Every exception of a task (``SystemExit`` too) goes back to the owner; the worker stays."""
-    _die_with_parent()
+    bind_to_owner(owner)
     _release_forkserver()
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the owner's to handle (it stops us)
-        _worker_init(initializer, initargs, owner)
+        _worker_init(initializer, initargs)
     except BaseException as exc:  # noqa: BLE001 - a plugin's start-up may raise anything
-        conn.send(("init-error", None, _portable(exc)))
+        _send(conn, ("init-error", None, _portable(exc)))
         return
-    conn.send(("ready", None, None))
+    if not _send(conn, ("ready", None, None)):
+        return
     while True:
         try:
             msg = conn.recv()
@@ -162,9 +181,23 @@ def _worker_main(conn, initializer, initargs, owner) -> None:
         except BaseException as exc:  # noqa: BLE001 - sys.exit() in a plugin must not end the worker
             out = ("error", seq, _portable(exc))
         try:
-            conn.send(out)
+            sent = _send(conn, out)
         except Exception as exc:  # a result that cannot be pickled
-            conn.send(("error", seq, WorkerError(f"the result could not be sent back: {type(exc).__name__}: {exc}")))
+            sent = _send(
+                conn, ("error", seq, WorkerError(f"the result could not be sent back: {type(exc).__name__}: {exc}"))
+            )
+        if not sent:
+            return
+
+
+def _send(conn, message) -> bool:
+    """Send ``message`` to the owner; False when the owner has gone (it was stopped and closed
+    its end): the worker then ends quietly, no ``BrokenPipeError`` traceback on the terminal."""
+    try:
+        conn.send(message)
+    except (BrokenPipeError, ConnectionResetError, EOFError):
+        return False
+    return True
 
 
 def _death_text(exitcode) -> str:
@@ -227,14 +260,21 @@ class ProcessExecutor(Executor):
 
     @property
     def workers(self) -> int:
-        return self.settings.workers
+        """The workers started: ``workers``, or the cores there are when that is fewer."""
+        return min(self.settings.workers, available_cores())
 
     def start(self, initializer=None, initargs=()):
+        if self.settings.workers > self.workers:
+            warnings.warn(
+                f"executor.workers = {self.settings.workers} is more than the {self.workers} cores here: "
+                f"{self.workers} workers are started (the results are the same)",
+                stacklevel=2,
+            )
         self._ctx = mp.get_context(self.settings.start_method)
         self._init = (initializer, initargs)
         self._seq = itertools.count()
         self._start_deaths = 0
-        self._workers = [self._spawn() for _ in range(self.settings.workers)]
+        self._workers = [self._spawn() for _ in range(self.workers)]
 
     def _spawn(self) -> _Worker:
         return _Worker(self._ctx, *self._init)

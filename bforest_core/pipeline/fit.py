@@ -33,6 +33,7 @@ from ..interfaces import LineDistance, Problem, parameter_value
 from ..io import jsonable
 from .checks import preflight
 from .heldout import select_answer, selection_config
+from .interrupts import stoppable
 from .progress import progress_bar
 from .rundir import holding_run_lock
 from .scoring import _simulate_with_timeout, _Timeout, set_summaries
@@ -54,7 +55,7 @@ class FitResult:
     run_dir: Path
     history: list[dict] = field(default_factory=list)
     diagnostics: dict[str, Any] = field(default_factory=dict)
-    already_finished: bool = False  # a --resume of a run that had finished: nothing was simulated
+    already_finished: bool = False  # a --resume of a run that had finished: nothing new was simulated
     #: the search's lowest distance on its own model seeds (what its progress bar ends at)
     best_own: float | None = None
     #: the answer's distance on held-out model seeds, when ``[select]`` chose it (else None)
@@ -133,7 +134,8 @@ class Evaluator:
         pr, st = self.problem, self.stop
         if self._stop_at_budget():
             return
-        if st.wall_time is not None and self.elapsed() >= st.wall_time:
+        replaying = self.next_index <= max(self.replay, default=-1)  # logged rows still ahead
+        if st.wall_time is not None and not replaying and self.elapsed() >= st.wall_time:
             pr.stopped, pr.stop_reason = True, f"wall time ({st.wall_time:g} s) reached"
             self.stop_kind = "wall_time"
         elif st.target_distance is not None and pr.best_f <= st.target_distance:
@@ -166,6 +168,12 @@ class Evaluator:
         got = list(self.executor.map(summary_task, tasks))
         m = next((len(g) for g in got if g is not None), 0)
         return np.array([np.full(m, np.nan) if g is None else g for g in got], float).reshape(len(X), m)
+
+    def foreign_rows(self) -> list[int]:
+        """Logged evaluations the search never came to: rows this run did not make (added to the
+        log by hand or by another program), which the answer must not be taken from. Every row
+        the search came to was checked against its point and seeds when it was replayed."""
+        return sorted(i for i in self.replay if i >= self.next_index)
 
     def elapsed(self) -> float:
         return self.elapsed_before + time.monotonic() - self.t0
@@ -271,12 +279,42 @@ def _expected_total(cfg: RunConfig, optimizer, dim: int) -> int | None:
     return min(totals) if totals else None
 
 
-def _result_relevant(cfg: RunConfig) -> dict:
-    """The parts of a config a run's results depend on (all but the executor and the report)."""
-    d = config_to_dict(cfg)
-    d.pop("executor", None)
-    d.pop("report", None)
-    return d
+#: settings a resume may change: when the search stops, where it runs and what it reports (dotted
+#: keys of the config, a section for all its keys). Every other setting changes what an evaluation
+#: computes (the target, the model, the objective, the seeds, the bounds) or what the answer is
+#: chosen by ([select]), or the clones the run's folder already holds ([clones]).
+RESUMABLE = ("stop.max_evaluations", "stop.wall_time", "stop.target_distance", "executor", "report")
+
+
+def _flat(value, key: str = "") -> dict:
+    """``{dotted key: value}`` of a config table (lists of tables as ``key[i]``)."""
+    if isinstance(value, dict):
+        out = {}
+        for k, v in value.items():
+            out.update(_flat(v, f"{key}.{k}" if key else str(k)))
+        return out
+    if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+        out = {f"{key}[#]": len(value)}
+        for i, v in enumerate(value):
+            out.update(_flat(v, f"{key}[{i}]"))
+        return out
+    return {key: value}
+
+
+def config_changes(old: dict, new: dict, allowed=()) -> list[str]:
+    """The settings in which two configs (as TOML tables, :func:`config_to_dict`) differ, as
+    ``key: old -> new`` (``unset`` for a key one of them leaves out), except those under the
+    dotted keys or sections of ``allowed``."""
+    a, b = _flat(old), _flat(new)
+
+    def free(key: str) -> bool:
+        return any(key == p or key.startswith(p + ".") for p in allowed)
+
+    def show(v) -> str:
+        return "unset" if v is None else json.dumps(v)
+
+    keys = sorted({k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and not free(k)})
+    return [f"{k}: {show(a.get(k))} -> {show(b.get(k))}" for k in keys]
 
 
 def same_config(run_dir, cfg: RunConfig) -> bool:
@@ -287,7 +325,36 @@ def same_config(run_dir, cfg: RunConfig) -> bool:
         old = parse_config(read_toml(path), source=str(path))
     except (OSError, BayesForestError):
         return False
-    return _result_relevant(old) == _result_relevant(cfg)
+    return not config_changes(config_to_dict(old), config_to_dict(cfg), allowed=("executor", "report"))
+
+
+def _check_resume(store: RunStore, text: str, cfg: RunConfig) -> None:
+    """Refuse to resume the run of ``store`` with the config ``text`` (``cfg``) when it changes
+    anything but :data:`RESUMABLE`: the logged evaluations and the new ones would answer two
+    questions. The run's own config is the one its log was begun with (kept in the log, so an
+    edit of ``config.toml`` is seen too; a run written before that: its ``config.toml``)."""
+    import tomllib
+
+    own = store.get_meta("config")
+    try:
+        old = tomllib.loads(own if isinstance(own, str) else store.config_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise RunDirError(f"{store.config_path}: the run's own config cannot be read ({exc})") from None
+    changes = config_changes(old, tomllib.loads(text), allowed=RESUMABLE)
+    if changes:
+        raise RunDirError(
+            f"{store.path}: the config differs from the run's in what an evaluation computes "
+            f"({'; '.join(changes)}): the logged evaluations and new ones would not be comparable; "
+            f"resume with the run's own settings, or start a new run (another -o, or --overwrite); "
+            f"a resume may change only {', '.join(RESUMABLE)}"
+        )
+    held, budget, own_budget = store.count(), cfg.stop.max_evaluations, old.get("stop", {}).get("max_evaluations")
+    if budget is not None and budget < held and (own_budget is None or budget < own_budget):
+        raise RunDirError(
+            f"{store.path}: stop.max_evaluations = {budget} is below the {held} evaluations the run "
+            f"holds; resume with a budget of at least {held} (the answer of a smaller budget is "
+            "in the report's convergence table)"
+        )
 
 
 def _free_specs(cfg: RunConfig, ssm):
@@ -310,6 +377,7 @@ def _free_specs(cfg: RunConfig, ssm):
     return names, np.array(lo), np.array(hi), np.array(ilo), np.array(ihi), np.array(integer, bool)
 
 
+@stoppable
 @holding_run_lock
 def fit(
     cfg: RunConfig | str | Path,
@@ -343,17 +411,15 @@ def fit(
     store = RunStore.open(run_dir) if resume else RunStore.create(run_dir, text, overwrite=overwrite)
     with store:
         if resume:
-            if not same_config(run_dir, cfg):
-                raise RunDirError(
-                    f"{run_dir}: the config differs from the run's {store.CONFIG}; resume with the "
-                    f"run's own config (bforest fit RUN/{store.CONFIG} -o RUN --resume)"
-                )
-            finished = store.finished()  # resuming it replays the log, simulates nothing
-            # the executor may change between sessions (results never depend on it)
+            _check_resume(store, text, cfg)
+            finished = store.finished()  # resuming it replays the log, simulates nothing new unless extended
+            # the executor and the budget may change between sessions (results never depend on them)
             store.config_path.write_text(text, encoding="utf-8")
+            store.set_meta("config", text)
             store.clear_log()
         else:
             finished = False
+        held = store.count()
         _save_target(store, tgt, cfg, checked.components["distance"])
         ssm = build_component(cfg, "ssm")
         names, lo, hi, ilo, ihi, integer = _free_specs(cfg, ssm)
@@ -386,6 +452,16 @@ def fit(
                     result = optimizer.minimize(problem)
                 finally:  # the search's bar ends before the re-scoring's starts
                     bar.close(problem.stop_reason or getattr(result, "stop_reason", "") or "")
+                foreign = evaluator.foreign_rows()
+                if foreign:
+                    raise RunDirError(
+                        f"{store.evaluations_path}: evaluation{'s' * (len(foreign) > 1)} "
+                        f"{', '.join(map(str, foreign[:10]))}{' ...' if len(foreign) > 10 else ''} "
+                        f"of the log {'are' if len(foreign) > 1 else 'is'} not this run's: its search "
+                        f"ended at evaluation {evaluator.next_index - 1} (rows added by hand or by "
+                        "another program?); the answer is never taken from them: restore the log, or "
+                        "start the run anew with --overwrite"
+                    )
                 if store.count() and scfg is cfg:
                     selection = select_answer(cfg, store, lambda: contextlib.nullcontext(executor), progress)
             if store.count() and scfg is not cfg:  # the workers start again on the selection's tables
@@ -419,7 +495,7 @@ def fit(
             run_dir=run_dir,
             history=store.log_records(),
             diagnostics=result.diagnostics,
-            already_finished=finished,
+            already_finished=finished and store.count() == held,
             best_own=store.best().distance,
             heldout_distance=out.get("heldout_distance"),
             evaluation=out["evaluation"],

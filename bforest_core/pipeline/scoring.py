@@ -20,6 +20,7 @@ import numpy as np
 
 from ..interfaces import SSM, Distance, FeatureSet
 from ..registry import component
+from .interrupts import users_stop
 from .target import Term, feature_set_for, size_topology, term_specs
 
 if TYPE_CHECKING:
@@ -43,8 +44,18 @@ class _Timeout(Exception):
 
 #: what a model's simulation or feature extraction may raise besides SimulationFailed: the
 #: evaluation is then a failure with status "error", never a crash of the run. A plugin's code
-#: may raise anything (AttributeError, its own exception classes, even SystemExit from sys.exit()).
-_MODEL_ERRORS = (Exception, SystemExit)
+#: may raise anything (AttributeError, its own exception classes, SystemExit from sys.exit(), a
+#: KeyboardInterrupt or BaseException of its own); only the user's own stop ends the run
+#: (:func:`fault_message` lets it through).
+_MODEL_ERRORS = (BaseException,)
+
+
+def fault_message(exc: BaseException) -> str:
+    """The logged message of a plugin's fault ``exc`` (caught as :data:`_MODEL_ERRORS`); the
+    user's own stop (Ctrl-C, SIGTERM: :func:`.interrupts.users_stop`) is raised again instead."""
+    if users_stop(exc):
+        raise exc
+    return f"{type(exc).__name__}: {exc}"[:500]
 
 
 @dataclass

@@ -36,7 +36,7 @@ class LignumSettings(ComponentSettings):
 
     preset: Literal["sf_synthetic", "sf_real", "p98", "s08", "sf_test16"] = "sf_synthetic"
     order_mode: Literal["growth", "thickest"] = "growth"
-    max_live_segments: int = Field(50_000, gt=0)
+    max_live_segments: int = Field(50_000, gt=0, le=10**7)
     piece_length: float = Field(
         0.0,
         ge=0.0,

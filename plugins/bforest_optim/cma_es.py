@@ -33,25 +33,38 @@ seed noise keeps tau at 0.2-0.5, nearly every point is grown, and the gain is (1
 from __future__ import annotations
 
 import math
-from typing import Literal, Optional, Union
+from typing import Literal, Optional
 
 import numpy as np
 from pydantic import Field
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem, RecipePart, RecipePlan
 
-from .box import Box, History, NoiseStop, OptimizerSettings, finite_stats, make_result, noise_stop_fields
+from .box import (
+    MAX_POINTS,
+    Box,
+    History,
+    NoiseSetting,
+    NoiseStop,
+    OptimizerSettings,
+    finite_stats,
+    make_result,
+    noise_stop_fields,
+)
 
 _NOISE = noise_stop_fields()
 
 
 class CMASettings(OptimizerSettings):
-    population: Optional[int] = Field(None, ge=4, description="points per generation (default cma's 4 + 3 ln p)")
+    population: Optional[int] = Field(
+        None, ge=4, le=MAX_POINTS, description="points per generation (default cma's 4 + 3 ln p)"
+    )
     sigma0: float = Field(0.3, gt=0, le=1, description="initial step size, as a fraction of each parameter's range")
     restarts: int = Field(1, ge=0, description="restarts with doubled population after a run converges (IPOP)")
     init_design: int = Field(
         0,
         ge=0,
+        le=MAX_POINTS,
         description="points of a scrambled Sobol' design over the initial box "
         "evaluated first; CMA-ES then starts at the best of them instead of the box's "
         "centre (0: no design)",
@@ -59,6 +72,7 @@ class CMASettings(OptimizerSettings):
     starts: int = Field(
         1,
         ge=1,
+        le=MAX_POINTS,
         description="independent CMA-ES runs raced against each other: they start at "
         "the best distinct points of the init_design (then at Sobol' points of the initial box), "
         "take turns generation by generation, and successive halving drops the worse half at "
@@ -88,12 +102,12 @@ class CMASettings(OptimizerSettings):
         "the module); 'none': every point is grown",
     )
     surrogate_batch: int = Field(
-        2, ge=1, description="with a surrogate: points grown together (set it to the executor's workers)"
+        2, ge=1, le=MAX_POINTS, description="with a surrogate: points grown together (set it to the executor's workers)"
     )
     max_generations: Optional[int] = Field(None, ge=1, description="generations per run (default: until cma stops)")
     tolfun: float = Field(1e-4, ge=0, description="cma's stop when the distances of a generation differ by less")
     patience: Optional[int] = _NOISE["patience"]
-    noise: Union[float, str] = _NOISE["noise"]
+    noise: NoiseSetting = _NOISE["noise"]
     noise_seeds: int = _NOISE["noise_seeds"]
 
 

@@ -164,22 +164,26 @@ def holm(p: Mapping[str, float]) -> dict[str, float]:
 # ----------------------------------------------------------------------------------------------
 
 
+#: the most projection lines (16 times the 1000 of the SF runs): each costs a sort per set and evaluation
+MAX_LINES = 16384
+
+
 class SlicedSettings(ComponentSettings):
     """Settings of the ``sliced`` distance (docs/features-and-distance.md §3-§4)."""
 
     statistic: Literal["ks", "cvm", "ad", "w1", "energy", "l1", "l2"] = "ks"
-    lines: int = Field(256, ge=1)
+    lines: int = Field(256, ge=1, le=MAX_LINES)
     net: Literal["gp2", "sobol", "halton", "random"] = "gp2"
-    seed: int = 0
+    seed: int = Field(0, ge=0)
     scramble: bool = False
     parity: bool = False
     aggregate: Literal["mean", "max"] = "mean"
     scale_by_sample_size: bool = Field(False, validation_alias=AliasChoices("scale_by_sample_size", "scale_by_size"))
     normalize: Literal["none", "zscore", "robust"] = "zscore"
     empty_cost: float | None = Field(None, ge=0)
-    threads: int | None = Field(None, ge=1)
+    threads: int | None = Field(None, ge=1, le=256)
     block: int = Field(16, ge=1, le=4096)
-    presort_memory_limit: int = Field(1 << 30, ge=0)
+    presort_memory_limit: int = Field(1 << 30, ge=0, le=1 << 30)
     return_lines: bool = False
 
     @field_validator("statistic", mode="before")
@@ -280,7 +284,7 @@ class SlicedDistance(LineDistance):
     --------
     statistic : {"ks", "cvm", "ad", "w1" (alias "wasserstein"), "energy", "l1", "l2"}
     lines : int
-        Number of projection lines L (default 256; one line for 1-D tables).
+        Number of projection lines L (default 256, at most 16384; one line for 1-D tables).
     net : {"gp2", "sobol", "halton", "random"}
         Direction net (§4.1); ``seed``/``scramble`` for scrambled or random nets, ``parity``
         for the toolbox's Fang-Wang indexing.
@@ -298,7 +302,8 @@ class SlicedDistance(LineDistance):
         ``OMP_NUM_THREADS`` when that is set: the process and Dask executors set it to 1 in their
         workers, which already keep every core busy); ``block`` lines per block.
     presort_memory_limit : int
-        Bytes above which the data projections are not kept sorted (recomputed per block).
+        Bytes above which the data projections are not kept sorted (recomputed per block; at
+        most 1 GiB, the default).
     return_lines : bool
         Keep per-line values of the last evaluation in :attr:`last_lines`.
     """

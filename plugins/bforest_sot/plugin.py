@@ -52,7 +52,9 @@ class SOTSettings(ComponentSettings):
         description="branch topology of the output: 'growth' (apical bud continues the "
         "branch) or 'thickest' (the thickest child continues it, as in QSMs)",
     )
-    max_live_segments: int = Field(200_000, ge=1, description="status 'too_many_segments' above this")
+    max_live_segments: int = Field(
+        200_000, ge=1, le=10**7, description="status 'too_many_segments' above this (at most 10 million)"
+    )
     sympodial: bool = Field(False, description="remove apical buds (sympodial branching)")
     buds_per_node: int = Field(
         1,

@@ -76,7 +76,24 @@ COMMANDS = {
             2,
         )
     ),
+    "stand": (
+        lambda run, tmp: (
+            ["stand", _plot(tmp), "--recipe", _slow(tmp), "--realisations", "0", "-o", tmp / "stand", "-q"],
+            2,
+        )
+    ),
 }
+
+
+def _plot(tmp_path):
+    """A plot of two sample QSMs (fitted by the toy recipe: each tree a task on 2 workers)."""
+    from conftest import qsm_path
+
+    d = tmp_path / "plot"
+    d.mkdir(parents=True, exist_ok=True)
+    for name in ("pine_ruotsinkyla_3.mat", "coffeetree_treeqsm_optqsm.mat"):
+        os.symlink(qsm_path(name), d / name)
+    return d
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])

@@ -215,7 +215,7 @@ if __name__ == "__main__":  # the child of the test above
 
 
 def test_more_workers_than_cores_start_as_many_as_there_are_cores_with_a_warning():
-    from bforest_core.pipeline.executors import available_cores
+    from bforest_core.processes import available_cores
 
     ex = bf.component("executor", "process", workers=available_cores() + 3)
     assert ex.workers == available_cores()

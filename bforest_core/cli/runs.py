@@ -238,7 +238,7 @@ def add_commands(sub) -> None:
     quiet_arg(s)
     s.set_defaults(
         func=cmd_demo,
-        on_interrupt=f"finished evaluations are saved; continue its fit with bforest fit {RUN}/config.toml -o {RUN} --resume",
+        on_interrupt=f"finished evaluations are saved; continue its fit with bforest fit {RUN}/{RunFiles.CONFIG} -o {RUN} --resume",
     )
 
     s = command(sub, "fit", "fit a growth model as a run configuration says")

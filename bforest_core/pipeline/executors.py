@@ -20,7 +20,6 @@ import multiprocessing as mp
 import os
 import pickle
 import signal
-import sys
 import time
 import warnings
 from collections import deque
@@ -31,6 +30,7 @@ from pydantic import Field
 
 from ..errors import BayesForestError
 from ..interfaces import ComponentSettings, Executor
+from ..processes import available_cores, bind_to_owner, release_forkserver
 
 
 class WorkerLost(BayesForestError):
@@ -41,66 +41,6 @@ class WorkerLost(BayesForestError):
 class WorkerError(BayesForestError):
     """An exception raised in a worker that could not be sent back as itself (it could not be
     pickled): its type name and message as text."""
-
-
-def _exit_with(owner: int, every: float = 1.0) -> None:
-    """End this worker when the process that owns its pool is gone.
-
-    A pool's workers hold both ends of its task queue, so a killed owner (SIGKILL, an out-of-memory
-    kill, a closed terminal) never gives them an end of file: without this they would wait for
-    tasks for ever, each holding its target tree in memory. A daemon thread checks the owner every
-    ``every`` seconds."""
-    import threading
-    import time
-
-    def watch():
-        while True:
-            time.sleep(every)
-            try:
-                os.kill(owner, 0)
-            except (ProcessLookupError, PermissionError):  # gone (or its number now another user's)
-                os._exit(1)
-
-    threading.Thread(target=watch, name="bforest-owner-watch", daemon=True).start()
-
-
-def _die_with_parent() -> None:
-    """Ask the kernel to SIGKILL this process when its parent ends (Linux): unlike the watching
-    thread, this also ends a worker stuck in C code that holds the interpreter lock."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
-
-
-def _release_forkserver() -> None:
-    """Let go of the forkserver's "alive" pipe, which every child of a forkserver holds: while any
-    worker held it, the server (the worker's parent) outlived a killed owner, and so the parent
-    death signal never came. Without it the server ends with its owner, and then the worker."""
-    try:
-        from multiprocessing import forkserver
-
-        server = forkserver._forkserver
-        fd = getattr(server, "_forkserver_alive_fd", None)
-        if fd is not None:
-            server._forkserver_alive_fd = None
-            os.close(fd)
-    except (ImportError, AttributeError, OSError):
-        pass
-
-
-def bind_to_owner(owner: int) -> None:
-    """End this helper process with the process that started it (``owner``), however that ends:
-    the parent death signal (Linux), and a thread watching the owner (everywhere). A worker of
-    the ``process`` executor and the report's second process call it first thing."""
-    _die_with_parent()
-    if os.name == "posix":
-        _exit_with(owner)
 
 
 def _worker_init(initializer, initargs):
@@ -122,14 +62,6 @@ class SerialExecutor(Executor):
     def map_unordered(self, fn, items):
         for i, it in enumerate(items):
             yield i, fn(it)
-
-
-def available_cores() -> int:
-    """The cores this process may run on (its CPU affinity on Linux, else the machine's)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 class ProcessSettings(ComponentSettings):
@@ -159,7 +91,7 @@ def _worker_main(conn, initializer, initargs, owner) -> None:
     """A worker's life: start-up, then tasks ``(seq, fn, item)`` until ``None`` or end of file.
     Every exception of a task (``SystemExit`` too) goes back to the owner; the worker stays."""
     bind_to_owner(owner)
-    _release_forkserver()
+    release_forkserver()
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the owner's to handle (it stops us)
         _worker_init(initializer, initargs)

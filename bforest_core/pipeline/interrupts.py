@@ -6,7 +6,7 @@ SIGTERM raise :class:`Stopped` in the main thread. The scoring code lets only th
 through (:func:`users_stop`): a ``KeyboardInterrupt`` or any other ``BaseException`` a plugin
 raises costs its evaluation, never the fit. As the stop unwinds, every process a command started
 is stopped with it (the executors' workers, the report's second process), and a helper process
-that outlives its owner anyway (``kill -9``) ends itself (:func:`~.executors.bind_to_owner`).
+that outlives its owner anyway (``kill -9``) ends itself (:func:`~bforest_core.processes.bind_to_owner`).
 """
 
 from __future__ import annotations

@@ -32,7 +32,7 @@ from pathlib import Path
 
 from ..errors import quiet_read_repairs
 from ..io import whole_file, write_json
-from ..pipeline.executors import available_cores, bind_to_owner
+from ..processes import available_cores, bind_to_owner
 from .attributes import fig_distributions
 from .canvas import FORMATS, current_output, figure_output
 from .convergence import fig_convergence

@@ -1,0 +1,92 @@
+"""Kernel utilities for helper processes: how long they live and where they may run.
+
+Shared by the executors' workers and the report's second process. A helper ends with the process
+that started it however that ends (:func:`bind_to_owner`: the parent death signal on Linux, and a
+thread watching the owner everywhere); the cores a process may run on are its CPU affinity
+(:func:`available_cores`).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import threading
+import time
+
+
+def _exit_with(owner: int, every: float = 1.0) -> None:
+    """End this process when ``owner`` is gone, checked by a daemon thread every ``every`` seconds.
+
+    A pool's workers hold both ends of its task queue, so a killed owner (SIGKILL, an out-of-memory
+    kill, a closed terminal) never gives them an end of file: without this they would wait for
+    tasks for ever, each holding its target tree in memory.
+    """
+
+    def watch():
+        while True:
+            time.sleep(every)
+            try:
+                os.kill(owner, 0)
+            except (ProcessLookupError, PermissionError):  # gone (or its number now another user's)
+                os._exit(1)
+
+    threading.Thread(target=watch, name="bforest-owner-watch", daemon=True).start()
+
+
+def _die_with_parent() -> None:
+    """Ask the kernel to SIGKILL this process when its parent ends (Linux only).
+
+    Unlike the watching thread, this also ends a worker stuck in C code that holds the
+    interpreter lock.
+    """
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def release_forkserver() -> None:
+    """Let go of the forkserver's "alive" pipe, which every child of a forkserver holds.
+
+    While any worker held it, the server (the worker's parent) outlived a killed owner, and so the
+    parent death signal never came. Without it the server ends with its owner, and then the worker.
+    """
+    try:
+        from multiprocessing import forkserver
+
+        server = forkserver._forkserver
+        fd = getattr(server, "_forkserver_alive_fd", None)
+        if fd is not None:
+            server._forkserver_alive_fd = None
+            os.close(fd)
+    except (ImportError, AttributeError, OSError):
+        pass
+
+
+def bind_to_owner(owner: int) -> None:
+    """End this helper process with the process that started it, however that ends.
+
+    Parameters
+    ----------
+    owner : int
+        The process id of the owner. The parent death signal (Linux) and a thread watching the
+        owner (everywhere) end this process when the owner is gone. A worker of the ``process``
+        executor and the report's second process call it first thing.
+    """
+    _die_with_parent()
+    if os.name == "posix":
+        _exit_with(owner)
+
+
+def available_cores() -> int:
+    """Return the cores this process may run on (its CPU affinity on Linux, else the machine's)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1

@@ -527,3 +527,30 @@ def test_scaled_bounds_are_checked_when_the_config_is_read(toy_plugin, tmp_path)
     p.write_text(text.replace("lower = 5.0, upper = 80.0 }", 'lower = -1.0, upper = 2.0, scaled_by = "height" }'))
     with pytest.raises(bf.ConfigError, match=r"must be >= 0: the bounds are multiples of height"):
         bf.load_config(p)
+
+
+def test_the_search_runs_on_one_blas_thread_on_any_machine(toy_plugin, tmp_path, monkeypatch):
+    """The stand benchmark (issue 75) found SOT fits of one tree, run seed and recipe ending on
+    other answers in a 2-thread process and in a one-thread Dask worker: lq-CMA-ES's linear algebra
+    rounds with the number of BLAS threads and the runs parted at the last digit after ~900
+    evaluations. The search now runs on one BLAS thread wherever it runs; the limit ends with it."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from bforest_core.pipeline import fit as fit_module
+
+    def blas_threads():
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    seen = []
+    call = fit_module.Evaluator.__call__
+
+    def watched(self, X):
+        seen.append(blas_threads())
+        return call(self, X)
+
+    monkeypatch.setattr(fit_module.Evaluator, "__call__", watched)
+    with threadpool_limits(limits=2, user_api="blas"):
+        assert blas_threads() and set(blas_threads()) == {2}  # the machine's BLAS takes 2 threads
+        bf.fit(bf.load_config(toy_config(tmp_path, budget=8)), tmp_path / "run", progress=False)
+        assert set(blas_threads()) == {2}
+    assert seen and all(t and set(t) == {1} for t in seen), seen

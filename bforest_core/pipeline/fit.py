@@ -31,6 +31,7 @@ from ..config import (
 from ..errors import BayesForestError, ConfigError
 from ..interfaces import LineDistance, Problem, parameter_value
 from ..io import jsonable
+from ..processes import one_blas_thread
 from .checks import preflight
 from .heldout import select_answer, selection_config
 from .interrupts import stoppable
@@ -449,7 +450,8 @@ def fit(
         try:
             with started_workers(cfg, tgt, executor):
                 try:
-                    result = optimizer.minimize(problem)
+                    with one_blas_thread():  # the same answer on any number of cores
+                        result = optimizer.minimize(problem)
                 finally:  # the search's bar ends before the re-scoring's starts
                     bar.close(problem.stop_reason or getattr(result, "stop_reason", "") or "")
                 foreign = evaluator.foreign_rows()

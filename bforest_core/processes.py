@@ -90,10 +90,10 @@ def bind_to_owner(owner: int) -> None:
 def one_blas_thread():
     """Return a context in which BLAS and OpenMP run on one thread.
 
-    A fit's search runs in it, wherever it runs. The optimiser's linear algebra (CMA-ES's
-    eigendecomposition, the lq surrogate's least squares) rounds otherwise with the number of
-    threads: the same SOT fit in a process of 2 BLAS threads and in a Dask worker of one parted at
-    the last digit after about 900 evaluations, and ended on other answers.
+    A fit's search runs in it, wherever it runs. An optimiser's linear algebra (eigendecompositions,
+    least squares over its archive) rounds otherwise with the number of threads: the same SOT fit
+    in a process of 2 BLAS threads and in a Dask worker of one parted at the last digit after about
+    900 evaluations, and ended on other answers.
 
     Returns
     -------

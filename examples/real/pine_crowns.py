@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 import bforest_core as bf
+from bforest_core.errors import SimulationFailed
 from bforest_core.metrics import DETECTION_DIAMETER, _living, crown_base_height
 from bforest_core.pipeline.seeds import clone_seeds
 
@@ -68,7 +69,10 @@ def clones_of(run: Path, n: int):
 
     ssm = build_component(cfg, "ssm")
     for seed in clone_seeds(cfg.seed, n, cfg.clones.seed):
-        yield ssm.simulate(best["params"], seed)
+        try:
+            yield ssm.simulate(best["params"], seed)
+        except SimulationFailed as exc:  # a clone that dies is left out, as bforest clones does
+            print(f"  {run.name}: clone seed {seed} left out: {exc}", file=sys.stderr)
 
 
 def main(argv=None) -> int:

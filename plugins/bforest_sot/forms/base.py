@@ -69,11 +69,15 @@ class GrowthForm:
     stream: ClassVar[int | str | None] = None
     #: rows of the segment store a metamer adds besides itself (bud nodes), reserved in advance
     extra_rows: ClassVar[int] = 0
+    #: the parameter that turns the form on when above 0 (the default :meth:`acts`), or None
+    switch: ClassVar[str | None] = None
 
     @classmethod
     def acts(cls, p: Mapping[str, float], settings) -> bool:
-        """Whether the form acts on a run of parameters ``p`` and the model's ``settings``."""
-        return False
+        """Whether the form acts on a run of parameters ``p`` and the model's ``settings``.
+
+        By default when its :attr:`switch` parameter is above 0 (never without one)."""
+        return cls.switch is not None and p[cls.switch] > 0.0
 
     @classmethod
     def check(cls, p: Mapping[str, float], need: Need) -> None:

@@ -57,10 +57,7 @@ class LeaderDeath(GrowthForm):
         ),
     )
     stream = GROWTH_STREAM
-
-    @classmethod
-    def acts(cls, p, settings) -> bool:
-        return p["leader_death"] > 0.0
+    switch = "leader_death"
 
     @classmethod
     def check(cls, p, need) -> None:

@@ -29,10 +29,7 @@ class StandShade(GrowthForm):
             "II",
         ),
     )
-
-    @classmethod
-    def acts(cls, p, settings) -> bool:
-        return p["stand_shade"] > 0.0
+    switch = "stand_shade"
 
     def __init__(self, run, rng):
         super().__init__(run, rng)
@@ -75,10 +72,7 @@ class GapShade(GrowthForm):
             "II",
         ),
     )
-
-    @classmethod
-    def acts(cls, p, settings) -> bool:
-        return p["gap_shade"] > 0.0
+    switch = "gap_shade"
 
     @classmethod
     def check(cls, p, need) -> None:

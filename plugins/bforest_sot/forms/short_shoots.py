@@ -33,10 +33,7 @@ class ShortShoots(GrowthForm):
         ),
     )
     stream = GROWTH_STREAM
-
-    @classmethod
-    def acts(cls, p, settings) -> bool:
-        return p["short_shoot"] > 0.0
+    switch = "short_shoot"
 
     def plan_shoots(self, c, shoots) -> None:
         self.short = np.zeros(shoots.bearing.size, bool)

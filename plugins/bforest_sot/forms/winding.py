@@ -33,10 +33,7 @@ class Winding(GrowthForm):
         ),
     )
     stream = GROWTH_STREAM
-
-    @classmethod
-    def acts(cls, p, settings) -> bool:
-        return p["heading_sd"] > 0.0
+    switch = "heading_sd"
 
     def bend(self, shoots, act) -> np.ndarray:
         z = self.rng.standard_normal(act.size)

@@ -38,10 +38,8 @@ class BudAbort(GrowthForm):
     )
     #: a stream of its own: one uniform per new row, in creation order, apart from the growth's draws
     stream = 0xAB0
-
-    @classmethod
-    def acts(cls, p, settings) -> bool:
-        return p["bud_abort"] > 0.0
+    #: it acts when bud_abort > 0 (otherwise it is not made: the tree without it, draw for draw)
+    switch = "bud_abort"
 
     @classmethod
     def check(cls, p, need) -> None:

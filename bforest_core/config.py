@@ -86,6 +86,7 @@ SCALE_MEASURES = (
     "branch_spacing",
     "longest_limb",
     "thinnest_branch",
+    "n_whorls",
 )
 
 

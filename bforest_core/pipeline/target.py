@@ -155,7 +155,8 @@ def bounds_from_target(cfg: RunConfig, trees: list) -> RunConfig:
     for name, fp in scaled.items():
         m = float(getattr(measures, fp.scaled_by))
         spec = ssm.parameter_spec(name)
-        what = f"ssm.free.{name}: {fp.lower:g}-{fp.upper:g} x the {fp.scaled_by} of {source} ({m:.4g} m)"
+        unit = "" if fp.scaled_by.startswith("n_") else " m"  # a count (n_whorls) or a length
+        what = f"ssm.free.{name}: {fp.lower:g}-{fp.upper:g} x the {fp.scaled_by} of {source} ({m:.4g}{unit})"
         if not (np.isfinite(m) and m > 0):
             raise ConfigError(f"{what}: the measure must be positive; give absolute bounds")
         times = {k: getattr(fp, k) for k in ("lower", "upper", "init_lower", "init_upper")}

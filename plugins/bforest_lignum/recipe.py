@@ -1,22 +1,31 @@
 """LIGNUM's part of a recipe for a measured tree (``bforest init``).
 
 LIGNUM (Silva Fennica 2016) grows a leader and its whorls year by year from a carbon balance:
-the form of an excurrent conifer. The bounds are those that meet the robust-fit limits on the
-Ruotsinkylä pines (docs/validation.md), with the years scaled from the tree's height and the
-branch-angle ranges from its first-order branches' angles.
+the form of an excurrent conifer. The growth years are read off the tree's own whorls (a conifer
+sets one a year), the branch-angle ranges off its first-order branches' angles; the other bounds
+are those that meet the robust-fit limits on the Ruotsinkylä pines (docs/validation.md).
 """
 
 from __future__ import annotations
 
 from bforest_core.interfaces import RecipeDraft
-from bforest_core.metrics import TreeMeasures
+from bforest_core.metrics import SIZE_LIMITS, TreeMeasures
 
 from .params import parameter_specs
 
 #: most years a recipe lets LIGNUM grow (the parameter's range)
 MAX_YEARS = 40
-#: growth years per m of the tree's height, the bounds of ``years`` (``scaled_by = "height"``)
-YEARS_PER_M = (1.0, 2.0)
+#: growth years per whorl of the tree's first-order branches, the bounds of ``years``
+#: (``scaled_by = "n_whorls"``): a conifer sets one whorl a year; a scan may split a whorl in two
+#: (lower bound) or lose the lowest whorls to pruning and merge close ones (upper bound). The
+#: Ruotsinkylä pines hold 24-27 whorls, 0.3-0.5 m apart (docs/notes/2026-12-07-stand-on-two-workers-and-one-blas-thread.md);
+#: the earlier 1-2 years per m of height let the fits answer with half the whorls, each twice as full
+YEARS_PER_WHORL = (0.8, 1.4)
+#: the fewest growth years LIGNUM grows (the parameter's range)
+MIN_YEARS = 7
+#: weight of the whorls in the size term, the inverse of a 30 % tolerance as the first-order
+#: branches', and their limit: nothing else in the objective tells a fit how many years the tree has
+WHORL_WEIGHT, WHORL_LIMIT = 3.3, 0.2
 #: the lower bound of apical dominance Q in the Silva Fennica real fit (docs/models.md A.4)
 Q_PAPER = 0.1
 #: the highest lower bound of Q a recipe writes (its upper bound is 0.4)
@@ -31,14 +40,19 @@ def _r5(x: float) -> float:
 
 
 def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
-    per_m_lo, per_m_hi = YEARS_PER_M
-    if per_m_lo * m.height > MAX_YEARS - 5:
+    per_lo, per_hi = YEARS_PER_WHORL
+    if per_lo * m.n_whorls > MAX_YEARS - 5:
         return RecipeDraft(
             suits=0.0,
-            why=f"a {m.height:.1f} m tree needs more than LIGNUM's {MAX_YEARS} years "
-            f"at a conifer's growth ({per_m_lo:g} years per m of height at the least)",
+            why=f"its {m.n_whorls} whorls need more than LIGNUM's {MAX_YEARS} years (one whorl a year)",
         )
-    years = f"{max(7, round(per_m_lo * m.height))}-{min(MAX_YEARS, round(per_m_hi * m.height))}"
+    if per_hi * m.n_whorls < MIN_YEARS + 3:
+        return RecipeDraft(
+            suits=0.0,
+            why=f"its first-order branches form {m.n_whorls} whorls, fewer than LIGNUM's {MIN_YEARS} years "
+            "at the least grow (one whorl a year)",
+        )
+    years = f"{max(MIN_YEARS, round(per_lo * m.n_whorls))}-{min(MAX_YEARS, round(per_hi * m.n_whorls))}"
     b_lo, b_mid, b_hi = (
         max(10.0, _r5(m.beta_q10 - 35)),
         min(90.0, _r5(m.beta_q50 + 20)),
@@ -55,9 +69,10 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
     free = [
         (
             "years",
-            per_m_lo,
-            per_m_hi,
-            f"growth years: {per_m_lo:g}-{per_m_hi:g} per m of height ({years} for this {m.height:.1f} m tree)",
+            per_lo,
+            per_hi,
+            f"growth years: {per_lo:g}-{per_hi:g} per whorl of the tree's first-order branches, one whorl a year "
+            f"({years} for the {m.n_whorls} whorls of this {m.height:.1f} m tree)",
         ),
         ("photo_eff", 0.0003, 0.006, "wider than the papers': stand shade takes light"),
         (
@@ -114,9 +129,16 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         ],
         free=free,
         timeout=60.0,
-        scaled={"years": "height"},
+        scaled={"years": "n_whorls"},
         # the calibrated balance of the pine recipe (examples/real/pine_lignum.toml)
         size_weights={"height": 8.0, "dbh": 2.7, "crown_spread": 2.0, "crown_base_height": 1.6, "n_branches_o1": 1.6},
+        size_extra={"n_whorls": WHORL_WEIGHT},
+        size_limits={**SIZE_LIMITS, "n_whorls": WHORL_LIMIT},
+        size_why=(
+            "The whorls of the first-order branches (bases within 15 cm of the one below are one whorl) tell "
+            "how many years the leader grew: without them a fit met the height and the branch count with half "
+            "the years, each whorl twice as full (docs/validation.md)."
+        ),
         # the draft's size limits (two thirds of each tolerance, steep 3) and its answer among 16
         # candidates on 16 held-out sets: without the limits one fit in five on pine 1 sold its DBH
         # (+29 %) for structure (docs/notes/2026-11-29-size-limits.md)

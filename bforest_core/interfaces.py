@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import abc
 import math
-import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +20,7 @@ from pydantic import BaseModel, ConfigDict
 
 from .errors import quiet_read_repairs
 from .metrics import SIZE_LIMITS
+from .processes import one_thread_process
 
 if TYPE_CHECKING:
     from .metrics import TreeMeasures
@@ -1173,21 +1173,7 @@ class Executor(Component):
         Workers that together keep every core busy would only have their own thread pools
         compete with the other workers (:meth:`worker_setup` calls it).
         """
-        for v in (
-            "OMP_NUM_THREADS",
-            "OPENBLAS_NUM_THREADS",
-            "MKL_NUM_THREADS",
-            "NUMEXPR_NUM_THREADS",
-            "VECLIB_MAXIMUM_THREADS",
-            "BLIS_NUM_THREADS",
-        ):
-            os.environ[v] = "1"
-        try:  # effective even after numpy is imported, when threadpoolctl is present
-            from threadpoolctl import threadpool_limits
-
-            threadpool_limits(1)
-        except Exception:
-            pass
+        one_thread_process()
 
     def started(self, initializer: Callable | None = None, initargs: tuple = ()):
         """Return a context manager that starts the workers and shuts them down on exit.

@@ -4,7 +4,8 @@ Shared by the executors' workers and the report's second process. A helper ends 
 that started it however that ends (:func:`bind_to_owner`: the parent death signal on Linux, and a
 thread watching the owner everywhere); the cores a process may run on are its CPU affinity
 (:func:`available_cores`); a fit's search runs on one BLAS thread (:func:`one_blas_thread`), so
-its answer does not depend on the cores.
+its answer does not depend on the cores, and a worker among others on one for good
+(:func:`one_thread_process`).
 """
 
 from __future__ import annotations
@@ -101,6 +102,29 @@ def one_blas_thread():
         A context manager; the limit ends with the block.
     """
     return threadpool_limits(limits=1)
+
+
+#: the thread-count variables of the BLAS and OpenMP libraries numpy and scipy may use
+THREAD_VARIABLES = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "VECLIB_MAXIMUM_THREADS",
+    "BLIS_NUM_THREADS",
+)
+
+
+def one_thread_process() -> None:
+    """Limit this process, and the processes it starts, to one BLAS/OpenMP thread for good.
+
+    A worker among others that together keep every core busy: its own thread pools would only
+    compete with the other workers. The variables reach its children; the limit on the libraries
+    already loaded holds from now on (:func:`one_blas_thread` limits one block instead).
+    """
+    for v in THREAD_VARIABLES:
+        os.environ[v] = "1"
+    threadpool_limits(limits=1)
 
 
 def available_cores() -> int:

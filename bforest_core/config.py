@@ -106,7 +106,7 @@ class FreeParameter(_Strict):
     scaled_by: Optional[Literal[SCALE_MEASURES]] = Field(
         None,
         description=(
-            "a measure of the target tree (m): the bounds are multiples of it, e.g. node_length = "
+            "a measure of the target tree (m; n_whorls a count): the bounds are multiples of it, e.g. node_length = "
             "{ lower = 0.8, upper = 1.45, scaled_by = 'branch_spacing' }"
         ),
     )

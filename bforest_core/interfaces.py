@@ -956,6 +956,104 @@ class Problem:
         return None if self.max_evaluations is None else max(0, self.max_evaluations - self.n_evaluations)
 
 
+#: the kinds of posterior a sampler gives (:attr:`Optimizer.posterior_kind`)
+POSTERIOR_KINDS = ("chain", "population")
+
+
+@dataclass(frozen=True)
+class Posterior:
+    """A sampler's posterior over the free parameters, as one typed object.
+
+    A sampler's result carries it in its diagnostics (the keys :attr:`Optimizer.posterior_kind`
+    lists, which a run folder stores); :meth:`from_diagnostics` is the one place they are read.
+
+    Parameters
+    ----------
+    kind : {"chain", "population"}
+        ``chain``: the walkers of an MCMC sampler, each walker a chain; ``population``: the
+        weighted particles of an SMC/ABC sampler.
+    samples : ndarray
+        ``(n, p)``: one row per posterior draw (a chain's draws after burn-in, every walker's).
+    weights : ndarray
+        ``(n,)``, summing to 1 (equal for a chain).
+    names : tuple of str
+        The parameters, in the order of the columns.
+    chain : ndarray or None
+        ``(steps, walkers, p)``: a chain's every step, burn-in included.
+    burn_in : int
+        A chain's steps before its draws count.
+    distances : ndarray or None
+        Distances of a chain's steps ``(steps, walkers)`` or of a population's particles ``(n,)``.
+    """
+
+    kind: str
+    samples: np.ndarray
+    weights: np.ndarray
+    names: tuple
+    chain: np.ndarray | None = None
+    burn_in: int = 0
+    distances: np.ndarray | None = None
+
+    @classmethod
+    def from_diagnostics(cls, diag, names, kind: str | None = None) -> Posterior | None:
+        """Read the posterior in a sampler's diagnostics (None when they hold none).
+
+        Parameters
+        ----------
+        diag : dict
+            A sampler's diagnostics (``OptimizeResult.diagnostics``, a run's stored ones):
+            ``particles`` and ``weights`` (with ``distances``), or ``chain`` with ``burn_in`` (and
+            ``distances``); ``names`` there, when present, name the columns.
+        names : sequence of str
+            The fitted parameters, when the diagnostics do not name them.
+        kind : {"chain", "population"}, optional
+            The sampler's declared kind; else the diagnostics' keys tell (a run written before
+            samplers declared it).
+        """
+        if not isinstance(diag, dict):
+            return None
+        has_population = diag.get("particles") is not None and diag.get("weights") is not None
+        if kind not in POSTERIOR_KINDS:
+            kind = "population" if has_population else "chain" if diag.get("chain") is not None else None
+        names = tuple(diag.get("names") or names)
+        try:
+            if kind == "population" and has_population:
+                X = np.asarray(diag["particles"], float)
+                w = np.asarray(diag["weights"], float)
+                if X.ndim != 2 or X.shape[1] != len(names) or w.shape != (X.shape[0],) or not w.sum() > 0:
+                    return None
+                d = diag.get("distances")
+                d = np.asarray(d, float) if d is not None and np.shape(d) == (X.shape[0],) else None
+                return cls("population", X, w / w.sum(), names, distances=d)
+            if kind == "chain" and diag.get("chain") is not None:
+                chain = np.asarray(diag["chain"], float)
+                if chain.ndim == 2:  # one walker
+                    chain = chain[:, None, :]
+                if chain.ndim != 3 or 0 in chain.shape[:2] or chain.shape[2] != len(names):
+                    return None
+                burn = min(max(int(diag.get("burn_in") or 0), 0), chain.shape[0] - 1)
+                X = chain[burn:].reshape(-1, chain.shape[2])
+                d = diag.get("distances")
+                d = np.asarray(d, float) if d is not None and np.shape(d) == chain.shape[:2] else None
+                return cls("chain", X, np.full(X.shape[0], 1.0 / X.shape[0]), names, chain, burn, d)
+        except (TypeError, ValueError):
+            return None
+        return None
+
+    def draws(self) -> dict[str, np.ndarray]:
+        """Return per parameter an array (chain, draw), as ArviZ takes a posterior.
+
+        A chain's walkers after burn-in; for weighted particles, one chain of a deterministic
+        systematic resample by weight.
+        """
+        if self.kind == "chain":
+            kept = self.chain[self.burn_in :].transpose(1, 0, 2)  # (walkers, steps, p)
+            return {n: kept[:, :, j] for j, n in enumerate(self.names)}
+        n = self.samples.shape[0]
+        idx = np.searchsorted(np.cumsum(self.weights), (np.arange(n) + 0.5) / n).clip(0, n - 1)
+        return {name: self.samples[idx, j][None, :] for j, name in enumerate(self.names)}
+
+
 @dataclass
 class OptimizeResult:
     """Outcome of one optimisation.
@@ -982,6 +1080,10 @@ class OptimizeResult:
     stop_reason: str = ""
     history: list[dict] = field(default_factory=list)
     diagnostics: dict[str, Any] = field(default_factory=dict)
+
+    def posterior(self, names, kind: str | None = None) -> Posterior | None:
+        """Return the sampler's posterior (:meth:`Posterior.from_diagnostics`), None for an optimiser."""
+        return Posterior.from_diagnostics(self.diagnostics, names, kind)
 
 
 class Optimizer(RecipeWriter, Component):

@@ -29,7 +29,7 @@ from ..config import (
     section_settings,
 )
 from ..errors import BayesForestError, ConfigError
-from ..interfaces import LineDistance, Problem, parameter_value
+from ..interfaces import LineDistance, OptimizeResult, Problem, parameter_value
 from ..io import jsonable
 from ..processes import one_blas_thread
 from .checks import preflight
@@ -568,25 +568,21 @@ def finish_fit(
     if selection:
         best["heldout_distance"] = next(c["heldout"] for c in selection["candidates"] if c["evaluation"] == ev.idx)
         best["selection"] = selection
-    from .posterior import posterior_kind as _kind
     from .posterior import posterior_outputs
 
-    diag = getattr(result, "diagnostics", {}) or {}
-    names, lo, hi, _, _, integer = _free_specs(cfg, ssm)
-    table = posterior_outputs(
-        store.path,
-        diag,
-        list(diag.get("names") or ev.params),
-        kind=posterior_kind,
-        prior_box={n: (float(a), float(b), bool(i)) for n, a, b, i in zip(names, lo, hi, integer)},
-        observed=tgt.U,
-        columns=tgt.columns,
-        attrs={"optimizer": cfg.optimizer.kind, "ssm": cfg.ssm.kind},
-        seed=int(cfg.seed),
-    )
-    if table is not None:
-        best["posterior_kind"] = _kind(diag, posterior_kind)
-        best["posterior_summary"] = table
+    post = result.posterior(list(ev.params), posterior_kind) if isinstance(result, OptimizeResult) else None
+    if post is not None:
+        names, lo, hi, _, _, integer = _free_specs(cfg, ssm)
+        best["posterior_kind"] = post.kind
+        best["posterior_summary"] = posterior_outputs(
+            store.path,
+            post,
+            prior_box={n: (float(a), float(b), bool(i)) for n, a, b, i in zip(names, lo, hi, integer)},
+            observed=tgt.U,
+            columns=tgt.columns,
+            attrs={"optimizer": cfg.optimizer.kind, "ssm": cfg.ssm.kind},
+            seed=int(cfg.seed),
+        )
         best["posterior_files"] = [store.POSTERIOR_CSV, store.POSTERIOR_NC]
     if ev.status != "ok":
         best["model_metrics"] = None

@@ -423,7 +423,7 @@ def test_init_on_pine_3_writes_the_shipped_lignum_recipes_model(tmp_path):
     a, b = bf.load_config(out).model_dump(), bf.load_config(shipped).model_dump()
     for c in (a, b):  # the same file, whatever symbolic links lead to it
         c["target"]["qsm"] = str(Path(c["target"]["qsm"]).resolve())
-    # but for three bounds, where the shipped recipe keeps the box of its measured rows: init reads
+    # but for three bounds and one parameter, where the shipped recipe keeps the box of its measured rows: init reads
     # the years off the tree's whorls (0.8-1.4 a whorl, not 1-2 a metre of height), keeps the
     # orders pine 3 lacks dormant (Q >= 1/6: it branches to order 5), and lets a new shoot's
     # radius:length reach 1.5 x its first-order branches' median (2.4 %)
@@ -432,6 +432,9 @@ def test_init_on_pine_3_writes_the_shipped_lignum_recipes_model(tmp_path):
     assert fa["q_mean"]["lower"] == pytest.approx(1 / 6, abs=1e-3) and fb["q_mean"]["lower"] == 0.0
     assert fa["lr_mean"]["upper"] == 0.037 and fb["lr_mean"]["upper"] == 0.025
     fa["years"], fa["q_mean"]["lower"], fa["lr_mean"]["upper"] = fb["years"], 0.0, 0.025
+    # and one parameter more: the most branches a bud sets (2-7; the shipped recipe keeps the tables' 7)
+    ml = fa.pop("max_laterals")
+    assert (ml["lower"], ml["upper"]) == (2.0, 7.0) and "max_laterals" not in fb
     for k in ("seed", "target", "ssm", "features", "distance", "executor", "clones"):
         assert a[k] == b[k], k
     assert list(a["ssm"]["free"]) == list(b["ssm"]["free"])

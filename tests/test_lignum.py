@@ -794,3 +794,20 @@ def test_a_years_weather_is_off_by_default_and_varies_the_leaders_steps():
     assert np.mean(windy) > 1.5 * np.mean(calm), (calm, windy)
     with pytest.raises(ValueError, match="year_sd"):
         ssm.simulate({**base, "year_sd": -0.1}, seed=3)
+
+
+def test_max_laterals_caps_the_branches_of_a_whorl_and_is_off_at_seven():
+    """max_laterals: 7 (the tables' most) gives the tree draw for draw; 3 caps every bud's laterals,
+    so no whorl of the stem holds more than 3 first-order branches, and the whorls stay one a year."""
+    from bforest_core.metrics import whorls
+
+    ssm = _ssm(preset="sf_real")
+    base = {"years": 20}
+    t0 = ssm.simulate(base, seed=3)
+    assert _same(t0, ssm.simulate({**base, "max_laterals": 7}, seed=3))
+    assert max(g.size for g in whorls(t0, min_diameter=0.0)) > 3  # the tables give vigorous buds more
+    capped = ssm.simulate({**base, "max_laterals": 3}, seed=3)
+    groups = whorls(capped, min_diameter=0.0)
+    assert max(g.size for g in groups) == 3 and len(groups) == 19
+    with pytest.raises(ValueError, match="max_laterals"):
+        ssm.simulate({**base, "max_laterals": 0}, seed=3)

@@ -605,7 +605,7 @@ class _Simulation:
         dormant = (flb < 1e-5) | (1.0 - q_fate * w < 1e-5)
         active = ~killed & ~dormant
         apical_only = 1.0 - q_fate * (w + 1) < 1e-5
-        nL = lateral_count(st.wf[bud], p["bud_table"])
+        nL = np.minimum(lateral_count(st.wf[bud], p["bud_table"]), int(p["max_laterals"]))
         nL[(flb < p["fl_min_buds"]) | apical_only | ~active] = 0
         if tr is not None:
             tr.data.update(

@@ -168,6 +168,17 @@ PARAMETERS: list[ParameterSpec] = [
         "carbon",
     ),
     P("bud_table", 0, 0, 1, True, "", "[-] lateral-count table: 0 = p98, 1 = s08", "shoot"),
+    P(
+        "max_laterals",
+        7,
+        1,
+        7,
+        True,
+        "",
+        "[n_L max] an addition: most laterals one bud sets, the table's count capped (a scanned Scots pine "
+        "shows 2-4 branches a whorl where the tables give vigorous shoots 5-7; 7 = the papers' model)",
+        "shoot",
+    ),
     P("collision", 0, 0, 1, True, "", "[-] optional collision test: 0 off, 1 on", "space"),
 ]
 
@@ -214,6 +225,7 @@ _P98 = dict(
     pipe_coeff=1.0,
     fol_threshold=1e-8,
     bud_table=0,
+    max_laterals=7,
     collision=0,
     wind_sd=0.0,
     year_sd=0.0,
@@ -389,6 +401,9 @@ def validate(p: Mapping[str, float]) -> None:
     need(0 <= p["fl_min_buds"] <= 1, "fl_min_buds", "must lie in [0, 1]")
     need(p["shed_dist"] in (0, 1, 2), "shed_dist", "must be 0, 1 or 2")
     need(p["bud_table"] in (0, 1), "bud_table", "must be 0 (p98) or 1 (s08)")
+    need(
+        p["max_laterals"] >= 1 and float(p["max_laterals"]).is_integer(), "max_laterals", "must be a whole number >= 1"
+    )
     need(p["collision"] in (0, 1), "collision", "must be 0 or 1")
     need(0 < p["beta_max"] <= 180, "beta_max", "must lie in (0, 180] degrees")
     need(0 <= p["beta_init"] <= 180, "beta_init", "must lie in [0, 180] degrees")

@@ -104,6 +104,13 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         ("shed_year", 3, 15, None),
         ("shed_mu", 0.0, 6.0, None),
         ("fl_min_buds", 0.0, 0.8, None),
+        (
+            "max_laterals",
+            2,
+            7,
+            f"most branches one bud sets: the tree holds {m.n_branches_o1 / m.n_whorls:.1f} first-order branches a "
+            "whorl, the papers' bud tables give a vigorous leader 5-7 (7 = the tables as they are)",
+        ),
         ("stand_shade", 0.0, 30.0, "shade of the neighbours (per m below the top): 0 = open-grown"),
         ("wind_sd", 0.0, 40.0, "branch shoots winding (output only)"),
     ]

@@ -142,7 +142,7 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     assert cfg["target"]["qsm"] == "pine.txt"
     # LIGNUM's search: the SOT pine recipe's, one model seed an evaluation, two runs of 32 together
     assert cfg["select"] == {"top": 16, "sets": 16} and cfg["objective"]["seeds"] == 1
-    assert cfg["stop"]["max_evaluations"] == 4000
+    assert cfg["stop"]["max_evaluations"] == 5000
     # the search stops on its budget, never on the clock: the wall time is a safety net an hour
     # long, for a small tree and a tall one alike (the answer is the same on a slow or busy machine)
     assert cfg["stop"]["wall_time"] == 3600.0

@@ -31,7 +31,7 @@ class TreeSummarySettings(ComponentSettings):
         min_length=1,
         description=(
             "statistics of bforest_core.metrics.tree_summary (height, dbh, base_diameter, crown_spread, "
-            "crown_base_height, stem_length, n_branches_o<w>, n_all_branches_o<w>, length_o<w>, volume_o<w>, angle_o<w>, "
+            "crown_base_height, stem_length, n_whorls, n_branches_o<w>, n_all_branches_o<w>, length_o<w>, volume_o<w>, angle_o<w>, "
             "angle_iqr_o<w>, profile_n_b<k>, "
             "profile_len_b<k>)"
         ),

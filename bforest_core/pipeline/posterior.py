@@ -109,7 +109,7 @@ def posterior_outputs(
     columns: dict | None = None,
     attrs: dict | None = None,
     seed: int = 1,
-) -> dict | None:
+) -> dict:
     """Write ``posterior.csv`` and ``posterior.nc`` into ``run_dir``; return the summary table per
     parameter.
 

@@ -9,20 +9,18 @@ are those that meet the robust-fit limits on the Ruotsinkylä pines (docs/valida
 from __future__ import annotations
 
 from bforest_core.interfaces import RecipeDraft
-from bforest_core.metrics import SIZE_LIMITS, TreeMeasures
+from bforest_core.metrics import SIZE_LIMITS, WHORL_GAP, TreeMeasures
 
 from .params import parameter_specs
 
-#: most years a recipe lets LIGNUM grow (the parameter's range)
-MAX_YEARS = 40
+#: the fewest and the most years a recipe lets LIGNUM grow (the parameter's range)
+MIN_YEARS, MAX_YEARS = next((p.lower, p.upper) for p in parameter_specs("sf_real") if p.name == "years")
 #: growth years per whorl of the tree's first-order branches, the bounds of ``years``
 #: (``scaled_by = "n_whorls"``): a conifer sets one whorl a year; a scan may split a whorl in two
 #: (lower bound) or lose the lowest whorls to pruning and merge close ones (upper bound). The
-#: Ruotsinkylä pines hold 24-27 whorls, 0.3-0.5 m apart (docs/notes/2026-12-07-stand-on-two-workers-and-one-blas-thread.md);
+#: Ruotsinkylä pines hold 24-27 whorls, 0.3-0.5 m apart (docs/notes/2026-12-07-lignum-years-from-whorls.md);
 #: the earlier 1-2 years per m of height let the fits answer with half the whorls, each twice as full
 YEARS_PER_WHORL = (0.8, 1.4)
-#: the fewest growth years LIGNUM grows (the parameter's range)
-MIN_YEARS = 7
 #: weight of the whorls in the size term, the inverse of a 30 % tolerance as the first-order
 #: branches', and their limit: nothing else in the objective tells a fit how many years the tree has
 WHORL_WEIGHT, WHORL_LIMIT = 3.3, 0.2
@@ -142,7 +140,7 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         size_extra={"n_whorls": WHORL_WEIGHT},
         size_limits={**SIZE_LIMITS, "n_whorls": WHORL_LIMIT},
         size_why=(
-            "The whorls of the first-order branches (bases within 15 cm of the one below are one whorl) tell "
+            f"The whorls of the first-order branches (bases within {100 * WHORL_GAP:g} cm of the one below are one whorl) tell "
             "how many years the leader grew: without them a fit met the height and the branch count with half "
             "the years, each whorl twice as full (docs/validation.md)."
         ),
@@ -151,8 +149,8 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         # (+29 %) for structure (docs/notes/2026-11-29-size-limits.md)
         # the SOT pine recipe's search (examples/real/pine_sot.toml), with 5 000 growths where it has
         # 4 000: with the years read off the whorls and max_laterals free, 4 000 left the answers'
-        # held-out distance 1.28 apart over five run seeds on pine 1 (1.13 before;
-        # docs/notes/2026-12-07-lignum-years-from-whorls.md)
+        # held-out distance 1.28 / 1.08 / 1.21 apart over five run seeds on pines 1-3, 5 000 1.28 /
+        # 1.10 / 1.14 (pine 1's still over 1.15; docs/notes/2026-12-07-lignum-years-from-whorls.md)
         seeds=1,
         max_evaluations=5000,
         # the answer on the search's own objective: scoring the candidates on S1 and B1 (the SOT

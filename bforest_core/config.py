@@ -33,7 +33,7 @@ from typing import Annotated, Any, Literal, Optional, Union
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
-from .errors import ConfigError, PluginError, validation_error_text
+from .errors import ConfigError, validation_error_text
 from .registry import discover
 from .samples import is_sample
 
@@ -180,18 +180,26 @@ def _check_weights(weights):
 class ComponentPart(BaseModel):
     """A component named inside an entry of the config: ``{ kind = NAME, settings... }``.
 
-    The settings are the component's own, validated when the config is checked
-    (:func:`check_terms`).
+    The declared type only: the model :func:`run_config_model` builds types each such entry as
+    the named plugin's settings model (a discriminated union on ``kind``, as the component
+    sections are), so its settings are validated when the config is read.
     """
 
     model_config = ConfigDict(extra="allow")
 
     kind: str = Field(..., description="the plugin name")
 
-    @property
-    def settings(self) -> dict[str, Any]:
-        """The component's settings (everything but ``kind``)."""
-        return dict(self.model_extra or {})
+
+def part_settings(part: BaseModel, written: bool = False, exclude=frozenset({"kind"})) -> dict[str, Any]:
+    """Return the settings of a component entry or section: its fields but ``kind``, as the plugin takes them.
+
+    ``written``: as a config file holds them (JSON values, unset ones left out); ``exclude``: the
+    keys that are not the plugin's (``kind``; an SSM section's also the run's ``fixed``, ``free``
+    and ``topology``).
+    """
+    if written:
+        return part.model_dump(mode="json", exclude_none=True, exclude=set(exclude))
+    return part.model_dump(exclude=set(exclude))
 
 
 class TermConfig(_Strict):
@@ -417,18 +425,56 @@ def _section_model(kind: str, name: str, cls: type) -> type[BaseModel]:
     return _register_built(model, f"_built_{kind}_{name}")
 
 
+def _union(models: list, tag: str = "kind"):
+    """One model, or a union of several discriminated by the field ``tag``."""
+    return models[0] if len(models) == 1 else Annotated[Union[tuple(models)], Field(discriminator=tag)]
+
+
+def _typed(base: type[BaseModel], **annotations) -> type[BaseModel]:
+    """Return ``base`` with fields retyped (defaults and descriptions kept), registered as ``_built_<name>``."""
+    typed = {}
+    for name, ann in annotations.items():
+        f = base.model_fields[name]  # a new Field: a copy of the old one would keep its type's metadata
+        default = {"default_factory": f.default_factory} if f.default_factory else {"default": f.default}
+        typed[name] = (ann, Field(**default, description=f.description))
+    return _register_built(create_model(base.__name__, __base__=base, **typed), f"_built_{base.__name__}")
+
+
+def _generated_target(name: str, cls: type) -> type[BaseModel]:
+    """``[target.generate]`` for the SSM ``name``: its settings typed as the plugin's Settings."""
+    model = create_model(
+        f"GeneratedTarget_{name}",
+        __base__=GeneratedTarget,
+        ssm=(Literal[name], Field(..., description="the SSM plugin name")),
+        settings=(
+            cls.Settings,
+            Field(default_factory=cls.Settings, description=GeneratedTarget.model_fields["settings"].description),
+        ),
+    )
+    return _register_built(model, f"_built_generate_{name}")
+
+
 @functools.cache
 def _run_config_model(registry_id: int):
     reg = discover()
-    fields = {}
+    fields, unions = {}, {}
     for section, kind in SECTIONS.items():
         names = reg.names(kind)
         models = [_section_model(kind, n, reg.get(kind, n)) for n in names if (kind, n) in reg.components]
         if not models:
             fields[section] = (Optional[dict], None)
             continue
-        union = models[0] if len(models) == 1 else Annotated[Union[tuple(models)], Field(discriminator="kind")]
-        fields[section] = (union, ...)  # parse_config fills the default kinds first
+        unions[section] = _union(models)
+        fields[section] = (unions[section], ...)  # parse_config fills the default kinds first
+    # a component named inside an entry is typed as its plugin's settings, as the sections are
+    if "features" in unions and "distance" in unions:
+        term = _typed(TermConfig, features=unions["features"], distance=unions["distance"])
+        objective = _typed(ObjectiveConfig, terms=list[term])
+        fields["objective"] = (objective, Field(default_factory=objective))
+    ssms = [_generated_target(n, reg.get("ssm", n)) for n in reg.names("ssm") if ("ssm", n) in reg.components]
+    if ssms:
+        target = _typed(TargetConfig, generate=Optional[_union(ssms, "ssm")])
+        fields["target"] = (target, ...)
     return _register_built(create_model("RunConfig", __base__=RunConfig, **fields), "_built_RunConfig")
 
 
@@ -479,7 +525,8 @@ def did_you_mean(word, options) -> str:
 def _model_in(ann, data):
     """Return the pydantic model a value of annotation ``ann`` is validated by, or None.
 
-    For a discriminated union, the member that ``data``'s kind selects.
+    For a discriminated union, the member that ``data``'s tag (``kind``, or ``ssm`` in
+    ``[target.generate]``) selects.
     """
     if isinstance(ann, type) and issubclass(ann, BaseModel):
         return ann
@@ -488,31 +535,35 @@ def _model_in(ann, data):
         return _model_in(args[0], data)
     if origin in (Union, types.UnionType):
         models = [m for m in (_model_in(a, data) for a in args) if m is not None]
-        kind = data.get("kind") if isinstance(data, dict) else None
         for m in models:
-            f = m.model_fields.get("kind")
-            if f is not None and typing.get_args(f.annotation) == (kind,):
-                return m
+            for tag in ("kind", "ssm"):
+                f = m.model_fields.get(tag)
+                if f is not None and isinstance(data, dict) and typing.get_args(f.annotation) == (data.get(tag),):
+                    return m
         return models[0] if len(models) == 1 else None
     return None
 
 
 def _allowed_keys(model, raw, loc) -> list[str]:
     """Return the keys allowed beside the last part of ``loc`` (a validation error's location)."""
-    cur, data, in_dict = model, raw, False
+    cur, data, inner = model, raw, None  # inner: the annotation of a dict's values or a list's items
     for part in loc[:-1]:
-        if in_dict:  # the key of a dict of models (ssm.free.NAME)
-            data, in_dict = data.get(part) if isinstance(data, dict) else None, False
+        if inner is not None:  # the key of a dict of models (ssm.free.NAME) or an index (objective.terms.0)
+            if isinstance(data, list):
+                data = data[int(part)] if part.isdigit() and int(part) < len(data) else None
+            else:
+                data = data.get(part) if isinstance(data, dict) else None
+            cur, inner = _model_in(inner, data), None
             continue
         if cur is None or not isinstance(data, dict):
             return []
         if part in cur.model_fields:
             ann, data = cur.model_fields[part].annotation, data.get(part)
-            if typing.get_origin(ann) is dict:
-                cur, in_dict = _model_in(typing.get_args(ann)[1], None), True
+            if typing.get_origin(ann) in (dict, list):
+                inner = typing.get_args(ann)[-1]
             else:
                 cur = _model_in(ann, data)
-        elif data.get("kind") != part:  # (a union's tag is skipped)
+        elif part not in (data.get("kind"), data.get("ssm")):  # (a union's tag is skipped)
             return []
     return list(cur.model_fields) if cur is not None else []
 
@@ -618,7 +669,9 @@ def _identifier(name) -> bool:
 
 
 def check_generated_target(cfg: RunConfig) -> None:
-    """Check that ``[target.generate]`` names an installed SSM, its parameters and settings.
+    """Check that ``[target.generate] params`` name parameters of its SSM, within their ranges.
+
+    (The SSM's name and settings are checked as the config is validated.)
 
     Parameters
     ----------
@@ -628,23 +681,22 @@ def check_generated_target(cfg: RunConfig) -> None:
     Raises
     ------
     ConfigError
-        For an unknown SSM, parameter or setting, or a parameter outside its range.
+        For an unknown parameter, or one outside its range.
     """
-    from .registry import component
-
     gen = cfg.target.generate
     if gen is None:
         return
-    try:
-        ssm = component("ssm", gen.ssm, **gen.settings)
-    except PluginError as exc:
-        raise ConfigError(f"target.generate.ssm: {exc}{did_you_mean(gen.ssm, discover().names('ssm'))}") from None
-    except ConfigError as exc:
-        raise ConfigError(f"target.generate.settings: {exc}") from None
-    specs = {p.name: p for p in ssm.parameters}
+    specs = {p.name: p for p in generated_target_ssm(gen).parameters}
     problems = parameter_problems("target.generate.params", gen.ssm, specs, gen.params)
     if problems:
         raise ConfigError("; ".join(problems))
+
+
+def generated_target_ssm(gen: GeneratedTarget):
+    """Build the SSM that ``[target.generate]`` grows its target with, with its settings."""
+    from .registry import component
+
+    return component("ssm", gen.ssm, **part_settings(gen.settings, exclude=()))
 
 
 def build_component(cfg: RunConfig, section: str):
@@ -722,6 +774,27 @@ def with_section(cfg: RunConfig, section: str, data: dict, source: str = "config
     return cfg.model_copy(update={section: value})
 
 
+def selection_config(cfg: RunConfig) -> RunConfig:
+    """Return the config the candidate answers are scored with (``[select]``).
+
+    ``cfg`` itself, or with ``[select] features``/``distance`` merged over its
+    ``[features]``/``[distance]`` (a ``kind`` of their own replaces the section), each validated
+    as the typed section it makes; checked as the config is read (:func:`parse_config`), so a
+    ConfigError's message starts ``select:`` when they do not validate.
+    """
+    sel = cfg.select
+    if not sel.features and not sel.distance:
+        return cfg
+    out = cfg.model_copy(update={"select": sel.model_copy(update={"features": None, "distance": None})})
+    for part in ("features", "distance"):
+        extra = getattr(sel, part)
+        if extra:
+            own = {"kind": getattr(cfg, part).kind, **section_settings(cfg, part, written=True)}
+            same = extra.get("kind", own["kind"]) == own["kind"]
+            out = with_section(out, part, {**own, **extra} if same else dict(extra), source="select")
+    return out  # its messages: "select: features.sets: ..."
+
+
 def section_settings(cfg: RunConfig, section: str, written: bool = False) -> dict:
     """Return a component section's settings: the plugin's own.
 
@@ -742,10 +815,7 @@ def section_settings(cfg: RunConfig, section: str, written: bool = False) -> dic
     dict
         The component's settings.
     """
-    exclude = _RUN_KEYS if section == "ssm" else {"kind"}
-    if written:
-        return getattr(cfg, section).model_dump(mode="json", exclude_none=True, exclude=exclude)
-    return getattr(cfg, section).model_dump(exclude=exclude)
+    return part_settings(getattr(cfg, section), written, _RUN_KEYS if section == "ssm" else {"kind"})
 
 
 #: keys of the ``[ssm]`` section that are the run's, not the plugin's settings
@@ -781,24 +851,13 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
             '(relative to this file), or [target.generate] ssm = "sot" for a model-grown target'
         )
     raw = _fill_defaults(raw)
-    reg = discover()
-    problems, bad = [], set()  # every problem of the file, reported at once
-    for section, kind in SECTIONS.items():
-        sec = raw.get(section)
-        if isinstance(sec, dict) and "kind" in sec and sec["kind"] not in reg.names(kind):
-            known = ", ".join(reg.names(kind)) or "none installed"
-            problems.append(
-                f"{section}.kind: unknown {kind} {sec['kind']!r} (known: {known})"
-                f"{did_you_mean(sec['kind'], reg.names(kind))}"
-            )
-            bad.add(section)
-    tags = {s: raw.get(s, {}).get("kind") for s in SECTIONS if isinstance(raw.get(s), dict)}
+    problems, bad = _unknown_kinds(raw)  # every problem of the file, reported at once
     cfg = None
     try:
         cfg = model.model_validate({k: v for k, v in raw.items() if k not in bad})
     except pydantic.ValidationError as exc:
         text = validation_error_text(
-            exc, tags, skip=tuple(bad), hint=lambda loc: did_you_mean(loc[-1], _allowed_keys(model, raw, loc))
+            exc, raw, skip=tuple(bad), hint=lambda loc: did_you_mean(loc[-1], _allowed_keys(model, raw, loc))
         )
         if text:
             problems.append(text)
@@ -808,7 +867,7 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
         if cfg.target.qsm is not None:
             cfg.target.qsm = _resolve(cfg.target.qsm, base_dir)
         cfg.target.references = [_resolve(r, base_dir) for r in cfg.target.references]
-    for check in (check_ssm_parameters, check_terms, check_generated_target):
+    for check in (check_ssm_parameters, check_generated_target, selection_config):
         try:
             check(cfg)
         except ConfigError as exc:
@@ -818,34 +877,40 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
     return cfg
 
 
-def check_terms(cfg: RunConfig) -> None:
-    """Check that every ``[[objective.terms]]`` entry names installed components with valid settings.
+def _unknown_kinds(raw: dict) -> tuple[list[str], set[str]]:
+    """Return the components a config names that are not installed, and the keys to leave out.
 
-    Parameters
-    ----------
-    cfg : RunConfig
-        The config.
-
-    Raises
-    ------
-    ConfigError
-        For an unknown component or invalid settings, naming the term.
+    One message each; the top-level keys are left out of validation (their other problems are
+    told once the name is right). The component sections (``kind``), the entries of ``[[objective.terms]]`` (their
+    ``features``/``distance`` kinds) and ``[target.generate] ssm``.
     """
-    from .registry import component
+    reg, problems, bad = discover(), [], set()
 
-    problems = []
-    for i, t in enumerate(cfg.objective.terms):
-        for kind, part in (("features", t.features), ("distance", t.distance)):
-            try:
-                component(kind, part.kind, **part.settings)
-            except PluginError as exc:
-                problems.append(
-                    f"objective.terms[{i}] ({t.name}).{kind}: {exc}{did_you_mean(part.kind, discover().names(kind))}"
-                )
-            except ConfigError as exc:
-                problems.append(f"objective.terms[{i}] ({t.name}).{kind}: {exc}")
-    if problems:
-        raise ConfigError("; ".join(problems))
+    def unknown(where, kind, name):
+        names = reg.names(kind)
+        problems.append(
+            f"{where}: unknown {kind} {name!r} (known: {', '.join(names) or 'none installed'}){did_you_mean(name, names)}"
+        )
+
+    for section, kind in SECTIONS.items():
+        sec = raw.get(section)
+        if isinstance(sec, dict) and "kind" in sec and sec["kind"] not in reg.names(kind):
+            unknown(f"{section}.kind", kind, sec["kind"])
+            bad.add(section)
+    objective = raw.get("objective")
+    terms = objective.get("terms") if isinstance(objective, dict) else None
+    for i, t in enumerate(terms if isinstance(terms, list) else []):
+        for kind in ("features", "distance"):
+            part = t.get(kind) if isinstance(t, dict) else None
+            if isinstance(part, dict) and isinstance(part.get("kind"), str) and part["kind"] not in reg.names(kind):
+                unknown(f"objective.terms[{i}] ({t.get('name')}).{kind}", kind, part["kind"])
+                bad.add("objective")
+    target = raw.get("target")
+    gen = target.get("generate") if isinstance(target, dict) else None
+    if isinstance(gen, dict) and isinstance(gen.get("ssm"), str) and gen["ssm"] not in reg.names("ssm"):
+        unknown("target.generate.ssm", "ssm", gen["ssm"])
+        bad.add("target")
+    return problems, bad
 
 
 def _resolve(path: str, base_dir: Path) -> str:

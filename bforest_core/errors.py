@@ -107,7 +107,28 @@ class SimulationFailed(BayesForestError):
         return (type(self), (self.status, self.message))
 
 
-def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = None, hint=None, skip: tuple = ()) -> str:
+def _without_tags(loc: tuple, data) -> list[str]:
+    """Return a validation error's location without the union tags pydantic inserts.
+
+    A discriminated union's member adds its tag to the location (``ssm.lignum.free``, an entry's
+    ``objective.terms.0.distance.summary.weights``); it is left out where the data the location
+    walks through holds it as its ``kind`` or ``ssm`` (and not as a key).
+    """
+    out = []
+    for part in loc:
+        if isinstance(data, dict) and part not in data and part in (data.get("kind"), data.get("ssm")):
+            continue
+        out.append(str(part))
+        if isinstance(data, dict):
+            data = data.get(part)
+        elif isinstance(data, list) and isinstance(part, int) and 0 <= part < len(data):
+            data = data[part]
+        else:
+            data = None
+    return out
+
+
+def validation_error_text(exc: pydantic.ValidationError, data=None, hint=None, skip: tuple = ()) -> str:
     """Render a pydantic validation error as one readable clause per problem.
 
     Each clause reads ``key.path: message (got value)``.
@@ -116,8 +137,9 @@ def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = Non
     ----------
     exc : pydantic.ValidationError
         The error.
-    tags : dict, optional
-        Section name to the union tag pydantic inserts after it (dropped from key paths).
+    data : object, optional
+        The data that was validated: the union tags pydantic inserts in key paths are read
+        from it and dropped.
     hint : callable, optional
         ``hint(loc)`` returns text appended to an unknown key's message (e.g. "did you
         mean ...").
@@ -133,12 +155,8 @@ def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = Non
     for e in exc.errors():
         if e["loc"] and str(e["loc"][0]) in skip:
             continue
-        loc = [str(x) for x in e["loc"]]
-        raw_loc = tuple(loc)
-        # drop the union tag pydantic inserts after a discriminated section name
-        if tags and len(loc) > 1 and loc[0] in tags and loc[1] == tags[loc[0]]:
-            loc = [loc[0]] + loc[2:]
-        loc = [x for x in loc if not x.startswith("function-")]
+        raw_loc = tuple(str(x) for x in e["loc"])
+        loc = [x for x in _without_tags(e["loc"], data) if not x.startswith("function-")]
         where = ".".join(loc) or "(top level)"
         msg = e["msg"]
         if e.get("type") == "extra_forbidden":

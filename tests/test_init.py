@@ -442,7 +442,7 @@ def test_init_on_pine_3_writes_the_shipped_lignum_recipes_model(tmp_path):
     size_a, size_b = a["objective"]["terms"][0], b["objective"]["terms"][0]
     assert size_a["features"] == {**size_b["features"], "statistics": [*SUMMARY_DEFAULT, "n_whorls"]}
     assert size_a["distance"]["weights"] == {**size_b["distance"]["weights"], "n_whorls": 3.3}
-    assert "limits" in size_a["distance"] and "limits" not in size_b["distance"]
+    assert size_a["distance"]["limits"] and size_b["distance"]["limits"] == {}  # the shipped recipe gives none
 
 
 @pytest.mark.parametrize(

@@ -44,6 +44,8 @@ def _cut(run, keep: int) -> None:
     [
         ("penalty = 1.0", "penalty = 2.0", "objective.penalty: 1.0 -> 2.0"),
         ("timeout = 60.0", "timeout = 5.0", "objective.timeout: 60.0 -> 5.0"),
+        # the target's settings are written first (typed: every one, defaults too), the [ssm] section's after
+        ("fail_above = 1000000000.0", "fail_above = 70.0", "target.generate.settings.fail_above: 1000000000.0 -> 70.0"),
         ("fail_above = 1000000000.0", "fail_above = 70.0", "ssm.fail_above: 1000000000.0 -> 70.0"),
         ('sets = [\n    "L",\n]', 'sets = ["L", "M"]', 'features.sets: ["L"] -> ["L", "M"]'),
         ("upper = 80.0", "upper = 85.0", "ssm.free.angle.upper: 80.0 -> 85.0"),
@@ -60,7 +62,11 @@ def test_a_resume_refuses_an_edit_of_the_runs_own_config_naming_the_setting(toy_
     cfg_path = run / "config.toml"
     text = cfg_path.read_text()
     assert old in text
-    cfg_path.write_text(text.replace(old, new, 1))
+    if key.startswith("ssm.fail_above"):  # the [ssm] section's: the last one written
+        head, _, tail = text.rpartition(old)
+        cfg_path.write_text(head + new + tail)
+    else:
+        cfg_path.write_text(text.replace(old, new, 1))
     with pytest.raises(RunDirError, match="differs from the run's") as err:
         bf.fit(bf.load_config(cfg_path), run, resume=True, progress=False)
     assert key in str(err.value), str(err.value)

@@ -14,11 +14,10 @@ import warnings
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from ..config import build_component, check_ssm_parameters, did_you_mean
+from ..config import build_component, check_ssm_parameters, did_you_mean, selection_config
 from ..errors import BayesForestError, ConfigError, PluginError
 from ..samples import SampleError
 from ..samples import resolve as resolve_sample
-from .heldout import selection_config
 from .target import Target, bounds_from_target, build_target
 
 if TYPE_CHECKING:

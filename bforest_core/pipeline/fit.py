@@ -27,13 +27,14 @@ from ..config import (
     parse_config,
     read_toml,
     section_settings,
+    selection_config,
 )
 from ..errors import BayesForestError, ConfigError
 from ..interfaces import LineDistance, OptimizeResult, Problem, parameter_value
 from ..io import jsonable
 from ..processes import one_blas_thread
 from .checks import preflight
-from .heldout import select_answer, selection_config
+from .heldout import select_answer
 from .interrupts import stoppable
 from .progress import progress_bar
 from .rundir import holding_run_lock

@@ -85,7 +85,7 @@ def size_topology(cfg: RunConfig, side: str) -> tuple[str | None, list[str] | No
 def term_specs(cfg: RunConfig) -> list[Term]:
     """The terms of the objective: the ``[features]``/``[distance]`` term first, then each
     ``[[objective.terms]]`` entry."""
-    from ..config import section_settings
+    from ..config import part_settings, section_settings
 
     o = cfg.objective
     specs = [
@@ -108,9 +108,9 @@ def term_specs(cfg: RunConfig) -> list[Term]:
                 weight=float(t.weight),
                 set_weights=t.weights,
                 features_kind=t.features.kind,
-                features=t.features.settings,
+                features=part_settings(t.features),
                 distance_kind=t.distance.kind,
-                distance=t.distance.settings,
+                distance=part_settings(t.distance),
             )
         )
     return specs
@@ -118,11 +118,12 @@ def term_specs(cfg: RunConfig) -> list[Term]:
 
 def load_target_trees(cfg: RunConfig) -> list:
     """The data tree(s) of the run: read from the QSM file or grown by the named SSM."""
+    from ..config import generated_target_ssm
     from ..io import read_qsm
 
     t = cfg.target
     if t.generate is not None:
-        ssm = component("ssm", t.generate.ssm, **t.generate.settings)
+        ssm = generated_target_ssm(t.generate)
         # a grown target stands for a QSM simplified as the config says
         return [ssm.simulate(dict(t.generate.params), int(t.generate.seed)).pruned(t.prune_radius)]
     opts = {}

@@ -144,7 +144,7 @@ def bounds_from_target(cfg: RunConfig, trees: list) -> RunConfig:
     is scaled.
     """
     from ..config import build_component
-    from ..metrics import measure_tree
+    from ..metrics import measure_tree, summary_unit
 
     scaled = {n: fp for n, fp in cfg.ssm.free.items() if fp.scaled_by is not None}
     if not scaled:
@@ -156,7 +156,7 @@ def bounds_from_target(cfg: RunConfig, trees: list) -> RunConfig:
     for name, fp in scaled.items():
         m = float(getattr(measures, fp.scaled_by))
         spec = ssm.parameter_spec(name)
-        unit = "" if fp.scaled_by.startswith("n_") else " m"  # a count (n_whorls) or a length
+        unit = "" if summary_unit(fp.scaled_by) == "count" else " m"  # a count (n_whorls) or a length
         what = f"ssm.free.{name}: {fp.lower:g}-{fp.upper:g} x the {fp.scaled_by} of {source} ({m:.4g}{unit})"
         if not (np.isfinite(m) and m > 0):
             raise ConfigError(f"{what}: the measure must be positive; give absolute bounds")

@@ -499,7 +499,9 @@ def test_bounds_scaled_by_a_measure_of_the_target(toy_plugin, tmp_path):
     assert res.already_finished
     # a resolved bound beyond the model's range (angle: 0-90 deg) is moved to it, with a warning
     p.write_text(p.read_text().replace(scaled, scaled.replace("upper = 5.0", "upper = 50.0")))
-    with pytest.warns(UserWarning, match=r"ssm\.free\.angle: 1-50 x the height of .* \([\d.]+ m\).* the search keeps to \["):
+    with pytest.warns(
+        UserWarning, match=r"ssm\.free\.angle: 1-50 x the height of .* \([\d.]+ m\).* the search keeps to \["
+    ):
         bf.fit(bf.load_config(p), tmp_path / "run2", progress=False)
     assert bf.load_config(tmp_path / "run2" / "config.toml").ssm.free["angle"].upper == 90.0
     # nothing left of the range: an error naming the parameter, the measure and the range

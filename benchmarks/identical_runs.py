@@ -87,7 +87,8 @@ def small_recipe(checkout: Path, out: Path) -> Path:
     """A copy of the checkout's pine_lignum recipe with a small, deterministic budget."""
     src = checkout / "examples" / "real" / "pine_lignum.toml"
     raw = tomllib.loads(src.read_text(encoding="utf-8"))
-    raw["target"]["qsm"] = str((src.parent / raw["target"]["qsm"]).resolve())
+    if not raw["target"]["qsm"].startswith("sample:"):  # a sample tree is found wherever the recipe is
+        raw["target"]["qsm"] = str((src.parent / raw["target"]["qsm"]).resolve())
     return _write_toml(checkout, _small(raw, 64), out / "recipe.toml")
 
 
@@ -122,6 +123,9 @@ def run_jobs(checkout: Path, out: Path) -> None:
         sys.exit(f"{bforest}: missing (python3 dev.py env in {checkout} makes it)")
     out.mkdir(parents=True, exist_ok=True)
     recipe = small_recipe(checkout, out)
+    qsm_dir = checkout.parent / "shared" / "data" / "qsm"
+    # the recipes name sample trees (sample:NAME): read from the shared data unless told otherwise
+    os.environ.setdefault("BFOREST_DATA_DIR", str(qsm_dir))
 
     def run(*args):
         t0 = time.monotonic()
@@ -161,7 +165,6 @@ def run_jobs(checkout: Path, out: Path) -> None:
         "-o",
         out / "compare",
     )
-    qsm_dir = checkout.parent / "shared" / "data" / "qsm"
     for name, qsm, budget in INIT_JOBS:
         written = out / f"{name}.toml"
         run("init", qsm_dir / qsm, "--overwrite", "-o", written)

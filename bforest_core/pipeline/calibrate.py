@@ -41,17 +41,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import pydantic
 
 from ..config import (
-    GeneratedTarget,
-    TargetConfig,
     check_generated_target,
     config_to_dict,
     parse_config,
     read_toml,
     section_settings,
 )
-from ..errors import BayesForestError, ConfigError
+from ..errors import BayesForestError, ConfigError, validation_error_text
 from ..io import write_json
 from ..metrics import weighted_quantiles
 from .fit import _free_specs, fit, same_config
@@ -216,16 +215,19 @@ def _fixed_model_seeds(cfg: RunConfig) -> set[int]:
 def run_config(base: RunConfig, i: int, truth: dict, target_seed: int):
     """Run ``i``'s config: the study's, with a target grown from ``truth`` (plus the fixed
     parameters) with ``target_seed``, and the run seed ``seed + i``."""
-    grown = GeneratedTarget(
-        ssm=base.ssm.kind,
-        seed=int(target_seed),
-        params={**base.ssm.fixed, **truth},
-        settings=section_settings(base, "ssm", written=True),
-    )
-    target = TargetConfig(generate=grown, topology=base.target.topology)
-    cfg = base.model_copy(update={"target": target, "seed": int(base.seed) + int(i)})
-    try:
+    grown = {
+        "ssm": base.ssm.kind,
+        "seed": int(target_seed),
+        "params": {**base.ssm.fixed, **truth},
+        "settings": section_settings(base, "ssm", written=True),
+    }
+    raw = {"generate": grown, "topology": base.target.topology}
+    try:  # the config's own [target] model: the SSM's settings typed as in any config
+        target = type(base.target).model_validate(raw)
+        cfg = base.model_copy(update={"target": target, "seed": int(base.seed) + int(i)})
         check_generated_target(cfg)
+    except pydantic.ValidationError as exc:
+        raise ConfigError(f"calibrate/run_{i:03d}: target.{validation_error_text(exc, raw)}") from None
     except ConfigError as exc:
         raise ConfigError(f"calibrate/run_{i:03d}: {exc}") from None
     taken = _fixed_model_seeds(cfg)

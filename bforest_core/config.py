@@ -132,7 +132,10 @@ class GeneratedTarget(_Strict):
     ssm: str
     seed: int = Field(1, ge=0)
     params: dict[str, float] = Field(default_factory=dict)
-    settings: dict[str, Any] = Field(default_factory=dict, description="the SSM's component settings (e.g. preset)")
+    settings: dict[str, Any] = Field(
+        default_factory=dict,
+        description="the SSM's own settings (e.g. preset), checked as its [ssm] section's are when the config is read",
+    )
 
 
 class TargetConfig(_Strict):
@@ -214,8 +217,12 @@ class TermConfig(_Strict):
         ..., pattern=r"^[A-Za-z][A-Za-z0-9_-]*$", description="name of the term (its sets are stored as NAME/SET)"
     )
     weight: float = Field(1.0, gt=0, description="weight of the term in the objective")
-    features: ComponentPart = Field(..., description="feature set: { kind = NAME, settings... }")
-    distance: ComponentPart = Field(..., description="distance: { kind = NAME, settings... }")
+    features: ComponentPart = Field(
+        ..., description="feature set: { kind = NAME, settings... }, the plugin's settings as in [features]"
+    )
+    distance: ComponentPart = Field(
+        ..., description="distance: { kind = NAME, settings... }, the plugin's settings as in [distance]"
+    )
     weights: Optional[dict[str, float]] = Field(None, description="weight per data set within the term")
 
     _weights = field_validator("weights")(lambda cls, v: _check_weights(v))
@@ -323,7 +330,8 @@ class SelectConfig(_Strict):
         None,
         description="settings merged over [features] when the candidates are scored, e.g. "
         '{ sets = ["S1", "B1"] }: the tables the answer is chosen by, when they are not the '
-        "search's own (the [[objective.terms]] stay as they are); a kind of its own replaces the section",
+        "search's own (the [[objective.terms]] stay as they are); a kind of its own replaces the section; "
+        "checked, merged, as a [features] section when the config is read",
     )
     distance: Optional[dict[str, Any]] = Field(
         None,

@@ -245,6 +245,18 @@ def test_all_shadow_methods_on_a_grown_crown(synth12, monkeypatch):
     assert SH.choose_method(vox - vox.min(0), vox.shape[0], 28) == "grid"
     dense = RNG.integers(0, 12, size=(20_000, 3))
     assert SH.choose_method(dense, dense.shape[0], 10) == "sat"
+    # its short cut (the grid at the most pairs there can be against the integral images) makes
+    # the full model's choice: crowns sparse and dense, few receivers and all, deep and shallow pyramids
+    cut = 0
+    for k, (n, box, q) in enumerate(
+        [(300, 400, 40), (2_000, 300, 37), (5_000, 200, 60), (20_000, 12, 10), (800, 30, 4)]
+    ):
+        pts = np.random.default_rng(k).integers(0, box, size=(n, 3))
+        for n_rcv in (n // 10, n):
+            sat = SH._C_CELL * float(np.prod(pts.max(axis=0) + 1)) + SH._C_QUERY * n_rcv * (q - 1)
+            assert SH.choose_method(pts, n_rcv, q) == SH._cheapest(pts, n_rcv, q, sat), (n, box, q, n_rcv)
+            cut += SH._C_GRID * n * n_rcv * SH._near_share(q) <= sat
+    assert 0 < cut < 10  # the short cut was taken, and passed over
     with pytest.raises(ValueError, match="method"):
         shadow_fast(vox, 10.0, 28, method="kdtree")
 

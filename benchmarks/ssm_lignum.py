@@ -116,8 +116,7 @@ def _full_cost_model():
     saved = shadow.choose_method
 
     def full(rel, n_rcv, q_max):
-        sat = shadow._C_CELL * float(np.prod(rel.max(axis=0) + 1)) + shadow._C_QUERY * n_rcv * (q_max - 1)
-        return shadow._cheapest(rel, n_rcv, q_max, sat)
+        return shadow._cheapest(rel, n_rcv, q_max, shadow._sat_cost(rel, n_rcv, q_max))
 
     shadow.choose_method = full
     try:

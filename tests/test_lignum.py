@@ -253,9 +253,9 @@ def test_all_shadow_methods_on_a_grown_crown(synth12, monkeypatch):
     ):
         pts = np.random.default_rng(k).integers(0, box, size=(n, 3))
         for n_rcv in (n // 10, n):
-            sat = SH._C_CELL * float(np.prod(pts.max(axis=0) + 1)) + SH._C_QUERY * n_rcv * (q - 1)
+            sat = SH._sat_cost(pts, n_rcv, q)
             assert SH.choose_method(pts, n_rcv, q) == SH._cheapest(pts, n_rcv, q, sat), (n, box, q, n_rcv)
-            cut += SH._C_GRID * n * n_rcv * SH._near_share(q) <= sat
+            cut += SH._grid_cost_bound(n, n_rcv, q) <= sat
     assert 0 < cut < 10  # the short cut was taken, and passed over
     with pytest.raises(ValueError, match="method"):
         shadow_fast(vox, 10.0, 28, method="kdtree")

@@ -110,11 +110,20 @@ def choose_method(rel: np.ndarray, n_rcv: int, q_max: int) -> str:
     cost at the most pairs there can be (every point near every other) is no more than theirs,
     the grid wins without the histogram, the same choice the full model makes (most years of a
     tree: benchmarks/ssm_lignum.py)."""
-    n = rel.shape[0]
-    sat = _C_CELL * float(np.prod(rel.max(axis=0) + 1)) + _C_QUERY * n_rcv * (q_max - 1)
-    if _C_GRID * float(n) * n * _near_share(q_max) * (n_rcv / n) <= sat:
+    sat = _sat_cost(rel, n_rcv, q_max)
+    if _grid_cost_bound(rel.shape[0], n_rcv, q_max) <= sat:
         return "grid"
     return _cheapest(rel, n_rcv, q_max, sat)
+
+
+def _sat_cost(rel: np.ndarray, n_rcv: int, q_max: int) -> float:
+    """The integral images' cost: their cells (the occupied box) and one query per receiver and layer."""
+    return _C_CELL * float(np.prod(rel.max(axis=0) + 1)) + _C_QUERY * n_rcv * (q_max - 1)
+
+
+def _grid_cost_bound(n: int, n_rcv: int, q_max: int) -> float:
+    """The grid scan's cost at the most pairs ``n`` points can make (every one near every other)."""
+    return _C_GRID * float(n) * n * _near_share(q_max) * (n_rcv / n)
 
 
 def _near_share(q_max: int) -> float:

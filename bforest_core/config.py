@@ -33,7 +33,7 @@ from typing import Annotated, Any, Literal, Optional, Union
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
-from .errors import ConfigError, validation_error_text
+from .errors import UNION_TAGS, ConfigError, validation_error_text
 from .registry import discover
 from .samples import is_sample
 
@@ -544,7 +544,7 @@ def _model_in(ann, data):
     if origin in (Union, types.UnionType):
         models = [m for m in (_model_in(a, data) for a in args) if m is not None]
         for m in models:
-            for tag in ("kind", "ssm"):
+            for tag in UNION_TAGS:
                 f = m.model_fields.get(tag)
                 if f is not None and isinstance(data, dict) and typing.get_args(f.annotation) == (data.get(tag),):
                     return m
@@ -571,7 +571,7 @@ def _allowed_keys(model, raw, loc) -> list[str]:
                 inner = typing.get_args(ann)[-1]
             else:
                 cur = _model_in(ann, data)
-        elif part not in (data.get("kind"), data.get("ssm")):  # (a union's tag is skipped)
+        elif part not in [data.get(t) for t in UNION_TAGS]:  # (a union's tag is skipped)
             return []
     return list(cur.model_fields) if cur is not None else []
 

@@ -107,6 +107,11 @@ class SimulationFailed(BayesForestError):
         return (type(self), (self.status, self.message))
 
 
+#: the fields a discriminated union of the config is told apart by: a component's ``kind``, and the
+#: ``ssm`` of ``[target.generate]``
+UNION_TAGS = ("kind", "ssm")
+
+
 def _without_tags(loc: tuple, data) -> list[str]:
     """Return a validation error's location without the union tags pydantic inserts.
 
@@ -116,7 +121,7 @@ def _without_tags(loc: tuple, data) -> list[str]:
     """
     out = []
     for part in loc:
-        if isinstance(data, dict) and part not in data and part in (data.get("kind"), data.get("ssm")):
+        if isinstance(data, dict) and part not in data and part in [data.get(t) for t in UNION_TAGS]:
             continue
         out.append(str(part))
         if isinstance(data, dict):
@@ -128,7 +133,9 @@ def _without_tags(loc: tuple, data) -> list[str]:
     return out
 
 
-def validation_error_text(exc: pydantic.ValidationError, data=None, hint=None, skip: tuple = ()) -> str:
+def validation_error_text(
+    exc: pydantic.ValidationError, data=None, hint=None, skip: tuple = (), prefix: tuple = ()
+) -> str:
     """Render a pydantic validation error as one readable clause per problem.
 
     Each clause reads ``key.path: message (got value)``.
@@ -145,6 +152,9 @@ def validation_error_text(exc: pydantic.ValidationError, data=None, hint=None, s
         mean ...").
     skip : tuple of str, optional
         Top-level keys whose errors are left out (reported otherwise).
+    prefix : tuple of str, optional
+        The key path in the config of the data that was validated (``("target",)`` for a
+        ``[target]`` table validated alone): put before every clause's own.
 
     Returns
     -------
@@ -156,7 +166,7 @@ def validation_error_text(exc: pydantic.ValidationError, data=None, hint=None, s
         if e["loc"] and str(e["loc"][0]) in skip:
             continue
         raw_loc = tuple(str(x) for x in e["loc"])
-        loc = [x for x in _without_tags(e["loc"], data) if not x.startswith("function-")]
+        loc = [*prefix, *(x for x in _without_tags(e["loc"], data) if not x.startswith("function-"))]
         where = ".".join(loc) or "(top level)"
         msg = e["msg"]
         if e.get("type") == "extra_forbidden":

@@ -377,3 +377,18 @@ def test_a_bad_setting_of_a_term_a_generated_target_or_select_is_named_when_the_
     edit(raw)
     with pytest.raises(ConfigError, match=r"run\.toml: .*" + msg):
         parse_config(raw, source="run.toml")
+
+
+def test_a_table_validated_alone_names_every_problem_at_its_place_in_the_config(toy_plugin):
+    """A [target] validated on its own (as calibrate's runs are) puts ``target.`` before every
+    clause, the union's tag (the generate SSM's name) left out."""
+    import pydantic
+
+    from bforest_core.errors import validation_error_text
+
+    cfg = parse_config(_raw())
+    raw = {"generate": {"ssm": "toy", "seed": -1, "settings": {"sleep": -1.0}}}
+    with pytest.raises(pydantic.ValidationError) as err:
+        type(cfg.target).model_validate(raw)
+    clauses = validation_error_text(err.value, raw, prefix=("target",)).split("; ")
+    assert sorted(c.split(":")[0] for c in clauses) == ["target.generate.seed", "target.generate.settings.sleep"]

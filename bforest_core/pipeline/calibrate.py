@@ -227,7 +227,7 @@ def run_config(base: RunConfig, i: int, truth: dict, target_seed: int):
         cfg = base.model_copy(update={"target": target, "seed": int(base.seed) + int(i)})
         check_generated_target(cfg)
     except pydantic.ValidationError as exc:
-        raise ConfigError(f"calibrate/run_{i:03d}: target.{validation_error_text(exc, raw)}") from None
+        raise ConfigError(f"calibrate/run_{i:03d}: {validation_error_text(exc, raw, prefix=('target',))}") from None
     except ConfigError as exc:
         raise ConfigError(f"calibrate/run_{i:03d}: {exc}") from None
     taken = _fixed_model_seeds(cfg)

@@ -9,7 +9,7 @@
 
 Each creates (or reuses) the virtual environment ``.venv`` beside this file and installs the
 project into it (editable, with the test, Dask, SLURM and amortised extras and the example third-party
-plugin).
+plugins).
 The install is redone only when a packaging file changed.
 """
 
@@ -25,13 +25,14 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent
 VENV = ROOT / ".venv"
 STAMP = VENV / ".install-stamp"
-EXAMPLE = ROOT / "docs" / "examples" / "bforest-example-ssm"
+#: the example third-party plugins installed beside the project: a growth model, a growth form of SOT
+EXAMPLES = [ROOT / "docs" / "examples" / name for name in ("bforest-example-ssm", "bforest-example-sot-form")]
 BIN = VENV / ("Scripts" if os.name == "nt" else "bin")
 
 
 def _fingerprint() -> str:
     h = hashlib.sha256()
-    for f in [ROOT / "pyproject.toml", Path(__file__), EXAMPLE / "pyproject.toml"]:
+    for f in [ROOT / "pyproject.toml", Path(__file__), *(e / "pyproject.toml" for e in EXAMPLES)]:
         if f.exists():
             h.update(f.read_bytes())
     h.update(sys.version.encode())
@@ -50,8 +51,9 @@ def ensure_env() -> Path:
         print("installing Bayes Forest and its dependencies into .venv ...", flush=True)
         pip = [str(py), "-m", "pip", "install", "--disable-pip-version-check", "-q"]
         subprocess.check_call(pip + ["-e", f"{ROOT}[dev,dask,slurm,amortised]"])
-        if (EXAMPLE / "pyproject.toml").exists():
-            subprocess.check_call(pip + ["-e", str(EXAMPLE)])
+        for example in EXAMPLES:
+            if (example / "pyproject.toml").exists():
+                subprocess.check_call(pip + ["-e", str(example)])
         STAMP.write_text(fp)
     return py
 

@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT / "examples" / "real"))
 from run_fidelity import PINES, code_version, fit_and_judge, judge_distance, recipe_for, verdict  # noqa: E402
 
 import bforest_core as bf  # noqa: E402
-from bforest_core.pipeline.recipe import write_recipe  # noqa: E402
+from bforest_core.pipeline.amortised import write_amortised_recipe  # noqa: E402
 from bforest_core.pipeline.store import RunStore  # noqa: E402
 
 
@@ -53,7 +53,7 @@ def growths(run: Path) -> int:
 def amortised_recipe(model: str, k: int, seed: int, out: Path) -> Path:
     path = out / f"amortised_{model}_pine{k}_seed{seed}.toml"
     out.mkdir(parents=True, exist_ok=True)
-    write_recipe(str(PINES[k]), path, model=model, amortised="shipped")
+    write_amortised_recipe(str(PINES[k]), path, "shipped", model)
     text = re.sub(r"(?m)^seed = \d+$", f"seed = {seed}", path.read_text(), count=1)
     path.write_text(text)
     return path

@@ -1,16 +1,19 @@
 """Benchmark and size check of the simplified stochastic LIGNUM (docs/models.md A.10, A.12).
 
-    .venv/bin/python benchmarks/ssm_lignum.py [--repeats 5] [--sizes] [--markdown]
+    .venv/bin/python benchmarks/ssm_lignum.py [--repeats 5] [--sizes] [--markdown] [--log RUN]
 
 Prints (single core):
 
 * the median and minimum wall time over seeds 1-5 of the Silva Fennica synthetic target
   (``sf_synthetic``, T = 15, target <= 0.25 s) and of the real fit (``sf_real``, T = 32, target
   <= 0.2 s; T = 40, target <= 0.5 s), each beside the previous code (the shadow without the
-  compiled bucket kernel) in the same run, and whether both grow identical trees;
+  compiled bucket kernel) and beside the shadow's method chosen by its full cost model every year
+  (before the cost model's short cut) in the same run, and whether all grow identical trees;
 * baselines measured in the same run: a fixed numpy workload (each model time is also given as a
   multiple of it, so figures from a loaded machine can be compared) and, on the final
   ``sf_synthetic`` crown, the brute-force O(n^2) pyramid sum against the kd-tree kernel used;
+* with ``--log RUN``: 60 points of a LIGNUM fit's log (RUN, its run folder) grown with the
+  shadow's short cut and with its full cost model in turns, and whether the trees are identical;
 * with ``--sizes``: tree sizes over seeds 1-5 (live segments, created, dead, height, crown radius,
   base diameter) beside the indicative table of A.10 and the apical-dominance trend of D.6
   (``--markdown`` prints them as the tables of docs/lignum-sizes.md).
@@ -105,6 +108,23 @@ def _without_grid():
         shadow._C_GRID = saved
 
 
+@contextlib.contextmanager
+def _full_cost_model():
+    """The shadow method chosen by the full cost model every year (before its short cut, 2026-12-07)."""
+    from bforest_lignum import shadow
+
+    saved = shadow.choose_method
+
+    def full(rel, n_rcv, q_max):
+        return shadow._cheapest(rel, n_rcv, q_max, shadow._sat_cost(rel, n_rcv, q_max))
+
+    shadow.choose_method = full
+    try:
+        yield
+    finally:
+        shadow.choose_method = saved
+
+
 def bench_lignum(repeats: int = 5, full: bool = False) -> dict:
     """Time the two A.12 cases and the same-run baselines; returns the figures."""
     from bforest_lignum.shadow import shadow_brute, shadow_fast, voxel_coords
@@ -123,18 +143,23 @@ def bench_lignum(repeats: int = 5, full: bool = False) -> dict:
         med, mn, trees = _over_seeds(ssm, T)
         with _without_grid():  # the previous code: the same choice among the other three methods
             old_med, _, old_trees = _over_seeds(ssm, T)
+        with _full_cost_model():  # the method's cost model in full every year
+            cm_med, _, cm_trees = _over_seeds(ssm, T)
         same = all(
-            np.array_equal(a.start, b.start) and np.array_equal(a.radius, b.radius) for a, b in zip(trees, old_trees)
+            np.array_equal(a.start, b.start) and np.array_equal(a.radius, b.radius)
+            for other in (old_trees, cm_trees)
+            for a, b in zip(trees, other)
         )
         s = sizes(trees[0])
         flag = "ok" if med <= target else "OVER TARGET (machine load?)"
         print(
             f"  {preset:13s} T={T:2d}: median {med:.3f} s, min {mn:.3f} s over seeds {SEEDS[0]}-{SEEDS[-1]} "
             f"(target <= {target} s: {flag}); previous code {old_med:.3f} s ({old_med / med:.1f}x), "
+            f"the full cost model every year {cm_med:.3f} s ({cm_med / med:.2f}x), "
             f"identical trees: {same}; {med / base_med:.1f} x baseline; seed 1: {s['live']} live / "
             f"{s['created']} created segments"
         )
-        out[f"{preset}_T{T}"] = (med, mn, old_med)
+        out[f"{preset}_T{T}"] = (med, mn, old_med, cm_med)
     # the hot spot against its brute-force reference, on the final sf_synthetic crown
     views = {}
     _ssm("sf_synthetic").simulate({}, seed=1, on_step=lambda t, v: views.__setitem__(t, v))
@@ -204,16 +229,62 @@ def size_table(markdown: bool = False) -> None:
             )
 
 
+def bench_log(run: Path, n: int = 60, repeats: int = 5) -> tuple[float, float]:
+    """Grow ``n`` points of a LIGNUM fit's log (drawn with seed 0, each with its logged model seed)
+    with the shadow's short cut and with its full cost model, in turns; the medians (s)."""
+    import json
+    import random
+    import sqlite3
+    import time
+
+    import bforest_core as bf
+    from bforest_core.config import build_component
+
+    cfg = bf.load_config(run / "config.toml")
+    ssm = build_component(cfg, "ssm")
+    with sqlite3.connect(run / "evaluations.sqlite") as con:
+        rows = con.execute("SELECT params, seeds FROM evaluations WHERE status = 'ok' ORDER BY idx").fetchall()
+    random.seed(0)
+    pick = [({**cfg.ssm.fixed, **json.loads(p)}, json.loads(s)[0]) for p, s in random.sample(rows, min(n, len(rows)))]
+
+    def grow():
+        t = time.perf_counter()
+        trees = [ssm.simulate(p, seed=s) for p, s in pick]
+        return time.perf_counter() - t, trees
+
+    grow()  # warm-up
+    short, full = [], []
+    for _ in range(repeats):
+        t, a = grow()
+        short.append(t)
+        with _full_cost_model():
+            t, b = grow()
+        full.append(t)
+    same = all(np.array_equal(x.start, y.start) and np.array_equal(x.radius, y.radius) for x, y in zip(a, b))
+    ratios = np.array(full) / np.array(short)
+    print(
+        f"  {len(pick)} growths of the log of {run.name}: short cut {np.median(short):.3f} s, the full cost model "
+        f"every year {np.median(full):.3f} s (paired ratio median {np.median(ratios):.3f}, "
+        f"{ratios.min():.3f}-{ratios.max():.3f}); identical trees: {same}"
+    )
+    return float(np.median(short)), float(np.median(full))
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--sizes", action="store_true", help="also print sizes over seeds 1-5 (A.10, D.6)")
     ap.add_argument("--markdown", action="store_true", help="sizes as markdown tables only (no timing)")
+    ap.add_argument(
+        "--log", type=Path, metavar="RUN", help="also grow 60 points of a LIGNUM fit's log (its run folder)"
+    )
     args = ap.parse_args(argv)
     if args.markdown:
         size_table(markdown=True)
         return
     bench_lignum(args.repeats)
+    if args.log:
+        bench_log(args.log, repeats=args.repeats)
     if args.sizes:
         print()
         size_table()

@@ -17,6 +17,7 @@ from .interfaces import (
     Distance,
     Executor,
     FeatureSet,
+    LineDistance,
     Optimizer,
     OptimizeResult,
     ParameterSpec,
@@ -24,6 +25,8 @@ from .interfaces import (
     QSMReader,
     QSMWriter,
     RecipeDraft,
+    RecipePart,
+    RecipePlan,
 )
 from .io import read_qsm, write_tree
 from .pipeline.clones import clones

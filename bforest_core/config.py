@@ -12,15 +12,11 @@ third-party plugin's settings are validated exactly like a bundled one's. Exampl
     fixed = { radiation = 60.0 }
     free.q_mean = { lower = 0.05, upper = 0.4 }
     [features]
-    kind = "branch-segment"
     sets = ["S1", "B1"]
-    [distance]
-    kind = "sliced"
-    [optimizer]
-    kind = "ga"
     [executor]
-    kind = "process"
     workers = 2
+
+A section left out, or its ``kind``, takes the bundled default (:data:`DEFAULT_KINDS`).
 """
 
 from __future__ import annotations
@@ -37,7 +33,7 @@ from typing import Annotated, Any, Literal, Optional, Union
 import pydantic
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
-from .errors import ConfigError, PluginError, validation_error_text
+from .errors import UNION_TAGS, ConfigError, validation_error_text
 from .registry import discover
 from .samples import is_sample
 
@@ -49,11 +45,35 @@ SECTIONS = {
     "optimizer": "optimizer",
     "executor": "executor",
 }
-DEFAULT_KINDS = {"features": "branch-segment", "distance": "sliced", "optimizer": "ga", "executor": "process"}
+#: the bundled default kinds, the one table of the core that names bundled plugins: per section,
+#: the kind a config that leaves the section out (or its ``kind``) takes, and the kind ``bforest
+#: init`` writes a recipe with (``size.*``: the size term of ``[[objective.terms]]``); each of
+#: those plugins writes its own part of the recipe (``draft_recipe``)
+BUNDLED_KINDS = {
+    "features": ("branch-segment", "branch-segment"),
+    "distance": ("sliced", "sliced"),
+    "optimizer": ("ga", "cma"),
+    "executor": ("process", "process"),
+    "size.features": (None, "tree-summary"),
+    "size.distance": (None, "summary"),
+}
+#: the kind of a component section a config leaves out
+DEFAULT_KINDS = {section: kinds[0] for section, kinds in BUNDLED_KINDS.items() if kinds[0] is not None}
+#: the kinds ``bforest init`` writes a recipe with
+RECIPE_KINDS = {section: kinds[1] for section, kinds in BUNDLED_KINDS.items()}
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # every number of a config is finite: NaN or an infinity is an error naming the key
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+#: the largest value of each numeric setting that sizes the work or the memory of a run: what a
+#: 2-core laptop can run (a config beyond it is refused by the config check and the fit alike)
+MAX_SEEDS = 1000  # model seeds per evaluation ([objective] seeds, model_seeds)
+MAX_TIMEOUT = 86400.0  # s, a day: one simulation's time limit
+MAX_SELECT = 1000  # [select] top and sets
+MAX_CLONES = 10000
 
 
 #: measures of the target tree that bounds may be scaled by (``bforest_core.metrics.TreeMeasures``)
@@ -66,6 +86,7 @@ SCALE_MEASURES = (
     "branch_spacing",
     "longest_limb",
     "thinnest_branch",
+    "n_whorls",
 )
 
 
@@ -85,7 +106,7 @@ class FreeParameter(_Strict):
     scaled_by: Optional[Literal[SCALE_MEASURES]] = Field(
         None,
         description=(
-            "a measure of the target tree (m): the bounds are multiples of it, e.g. node_length = "
+            "a measure of the target tree (m; n_whorls a count): the bounds are multiples of it, e.g. node_length = "
             "{ lower = 0.8, upper = 1.45, scaled_by = 'branch_spacing' }"
         ),
     )
@@ -111,7 +132,10 @@ class GeneratedTarget(_Strict):
     ssm: str
     seed: int = Field(1, ge=0)
     params: dict[str, float] = Field(default_factory=dict)
-    settings: dict[str, Any] = Field(default_factory=dict, description="the SSM's component settings (e.g. preset)")
+    settings: dict[str, Any] = Field(
+        default_factory=dict,
+        description="the SSM's own settings (e.g. preset), checked as its [ssm] section's are when the config is read",
+    )
 
 
 class TargetConfig(_Strict):
@@ -159,18 +183,26 @@ def _check_weights(weights):
 class ComponentPart(BaseModel):
     """A component named inside an entry of the config: ``{ kind = NAME, settings... }``.
 
-    The settings are the component's own, validated when the config is checked
-    (:func:`check_terms`).
+    The declared type only: the model :func:`run_config_model` builds types each such entry as
+    the named plugin's settings model (a discriminated union on ``kind``, as the component
+    sections are), so its settings are validated when the config is read.
     """
 
     model_config = ConfigDict(extra="allow")
 
     kind: str = Field(..., description="the plugin name")
 
-    @property
-    def settings(self) -> dict[str, Any]:
-        """The component's settings (everything but ``kind``)."""
-        return dict(self.model_extra or {})
+
+def part_settings(part: BaseModel, written: bool = False, exclude=frozenset({"kind"})) -> dict[str, Any]:
+    """Return the settings of a component entry or section: its fields but ``kind``, as the plugin takes them.
+
+    ``written``: as a config file holds them (JSON values, unset ones left out); ``exclude``: the
+    keys that are not the plugin's (``kind``; an SSM section's also the run's ``fixed``, ``free``
+    and ``topology``).
+    """
+    if written:
+        return part.model_dump(mode="json", exclude_none=True, exclude=set(exclude))
+    return part.model_dump(exclude=set(exclude))
 
 
 class TermConfig(_Strict):
@@ -185,8 +217,12 @@ class TermConfig(_Strict):
         ..., pattern=r"^[A-Za-z][A-Za-z0-9_-]*$", description="name of the term (its sets are stored as NAME/SET)"
     )
     weight: float = Field(1.0, gt=0, description="weight of the term in the objective")
-    features: ComponentPart = Field(..., description="feature set: { kind = NAME, settings... }")
-    distance: ComponentPart = Field(..., description="distance: { kind = NAME, settings... }")
+    features: ComponentPart = Field(
+        ..., description="feature set: { kind = NAME, settings... }, the plugin's settings as in [features]"
+    )
+    distance: ComponentPart = Field(
+        ..., description="distance: { kind = NAME, settings... }, the plugin's settings as in [distance]"
+    )
     weights: Optional[dict[str, float]] = Field(None, description="weight per data set within the term")
 
     _weights = field_validator("weights")(lambda cls, v: _check_weights(v))
@@ -204,14 +240,18 @@ class TermConfig(_Strict):
 class ObjectiveConfig(_Strict):
     """How one parameter vector is scored."""
 
-    seeds: int = Field(1, ge=1, description="model seeds per evaluation (mean distance; common random numbers)")
+    seeds: int = Field(
+        1, ge=1, le=MAX_SEEDS, description="model seeds per evaluation (mean distance; common random numbers)"
+    )
     seed_mode: Literal["fixed", "per_evaluation"] = Field(
         "fixed",
         description="fixed: the same model seed(s) for every evaluation (the paper); "
         "per_evaluation: from the run seed and the evaluation index",
     )
     model_seeds: Optional[list[int]] = Field(
-        None, description="explicit model seeds held fixed for every evaluation (overrides seeds/seed_mode)"
+        None,
+        max_length=MAX_SEEDS,
+        description="explicit model seeds held fixed for every evaluation (overrides seeds/seed_mode)",
     )
     weights: Optional[dict[str, float]] = Field(None, description="weight per data set (default equal)")
     penalty: float = Field(
@@ -222,7 +262,9 @@ class ObjectiveConfig(_Strict):
         "real distance (1.0 suits statistics bounded by 1, such as KS); "
         "samplers that say so (abc-smc) treat a failure as inf instead",
     )
-    timeout: Optional[float] = Field(60.0, gt=0, description="seconds before a simulation is stopped (None: no limit)")
+    timeout: Optional[float] = Field(
+        60.0, gt=0, le=MAX_TIMEOUT, description="seconds before a simulation is stopped (at most a day; None: no limit)"
+    )
     cache: bool = Field(True, description="never simulate identical params and seeds twice")
     structure_weight: float = Field(
         1.0, gt=0, description="weight of the [features]/[distance] term when [[objective.terms]] adds others"
@@ -266,6 +308,7 @@ class SelectConfig(_Strict):
     top: int = Field(
         0,
         ge=0,
+        le=MAX_SELECT,
         description="best distinct points of the search re-scored on held-out model seeds "
         "at the end of the fit; the answer is the one of lowest held-out distance (0: the answer "
         "is the point of lowest own distance, with no re-scoring)",
@@ -273,6 +316,7 @@ class SelectConfig(_Strict):
     sets: int = Field(
         8,
         ge=1,
+        le=MAX_SELECT,
         description="sets of held-out model seeds per candidate, each as large as an evaluation's ([objective] seeds)",
     )
     spacing: float = Field(
@@ -286,7 +330,8 @@ class SelectConfig(_Strict):
         None,
         description="settings merged over [features] when the candidates are scored, e.g. "
         '{ sets = ["S1", "B1"] }: the tables the answer is chosen by, when they are not the '
-        "search's own (the [[objective.terms]] stay as they are); a kind of its own replaces the section",
+        "search's own (the [[objective.terms]] stay as they are); a kind of its own replaces the section; "
+        "checked, merged, as a [features] section when the config is read",
     )
     distance: Optional[dict[str, Any]] = Field(
         None,
@@ -309,7 +354,7 @@ class StartConfig(_Strict):
 class ClonesConfig(_Strict):
     """The clones of the answer: model trees grown with its parameters on other seeds."""
 
-    count: int = Field(100, ge=1)
+    count: int = Field(100, ge=1, le=MAX_CLONES)
     seed: Optional[int] = Field(None, ge=0, description="seed of the clone seeds (default: derived from the run seed)")
 
 
@@ -317,7 +362,7 @@ class ReportConfig(_Strict):
     """Whether a fit writes its report, and how many clones its figure draws."""
 
     enabled: bool = True
-    clones_in_figure: int = Field(6, ge=1)
+    clones_in_figure: int = Field(6, ge=1, le=100)
 
 
 class RunConfig(_Strict):
@@ -401,18 +446,56 @@ def _section_model(kind: str, name: str, cls: type) -> type[BaseModel]:
     return _register_built(model, f"_built_{kind}_{name}")
 
 
+def _union(models: list, tag: str = "kind"):
+    """One model, or a union of several discriminated by the field ``tag``."""
+    return models[0] if len(models) == 1 else Annotated[Union[tuple(models)], Field(discriminator=tag)]
+
+
+def _typed(base: type[BaseModel], **annotations) -> type[BaseModel]:
+    """Return ``base`` with fields retyped (defaults and descriptions kept), registered as ``_built_<name>``."""
+    typed = {}
+    for name, ann in annotations.items():
+        f = base.model_fields[name]  # a new Field: a copy of the old one would keep its type's metadata
+        default = {"default_factory": f.default_factory} if f.default_factory else {"default": f.default}
+        typed[name] = (ann, Field(**default, description=f.description))
+    return _register_built(create_model(base.__name__, __base__=base, **typed), f"_built_{base.__name__}")
+
+
+def _generated_target(name: str, cls: type) -> type[BaseModel]:
+    """``[target.generate]`` for the SSM ``name``: its settings typed as the plugin's Settings."""
+    model = create_model(
+        f"GeneratedTarget_{name}",
+        __base__=GeneratedTarget,
+        ssm=(Literal[name], Field(..., description="the SSM plugin name")),
+        settings=(
+            cls.Settings,
+            Field(default_factory=cls.Settings, description=GeneratedTarget.model_fields["settings"].description),
+        ),
+    )
+    return _register_built(model, f"_built_generate_{name}")
+
+
 @functools.cache
 def _run_config_model(registry_id: int):
     reg = discover()
-    fields = {}
+    fields, unions = {}, {}
     for section, kind in SECTIONS.items():
         names = reg.names(kind)
         models = [_section_model(kind, n, reg.get(kind, n)) for n in names if (kind, n) in reg.components]
         if not models:
             fields[section] = (Optional[dict], None)
             continue
-        union = models[0] if len(models) == 1 else Annotated[Union[tuple(models)], Field(discriminator="kind")]
-        fields[section] = (union, ...)  # parse_config fills the default kinds first
+        unions[section] = _union(models)
+        fields[section] = (unions[section], ...)  # parse_config fills the default kinds first
+    # a component named inside an entry is typed as its plugin's settings, as the sections are
+    if "features" in unions and "distance" in unions:
+        term = _typed(TermConfig, features=unions["features"], distance=unions["distance"])
+        objective = _typed(ObjectiveConfig, terms=list[term])
+        fields["objective"] = (objective, Field(default_factory=objective))
+    ssms = [_generated_target(n, reg.get("ssm", n)) for n in reg.names("ssm") if ("ssm", n) in reg.components]
+    if ssms:
+        target = _typed(TargetConfig, generate=Optional[_union(ssms, "ssm")])
+        fields["target"] = (target, ...)
     return _register_built(create_model("RunConfig", __base__=RunConfig, **fields), "_built_RunConfig")
 
 
@@ -463,7 +546,8 @@ def did_you_mean(word, options) -> str:
 def _model_in(ann, data):
     """Return the pydantic model a value of annotation ``ann`` is validated by, or None.
 
-    For a discriminated union, the member that ``data``'s kind selects.
+    For a discriminated union, the member that ``data``'s tag (``kind``, or ``ssm`` in
+    ``[target.generate]``) selects.
     """
     if isinstance(ann, type) and issubclass(ann, BaseModel):
         return ann
@@ -472,33 +556,84 @@ def _model_in(ann, data):
         return _model_in(args[0], data)
     if origin in (Union, types.UnionType):
         models = [m for m in (_model_in(a, data) for a in args) if m is not None]
-        kind = data.get("kind") if isinstance(data, dict) else None
         for m in models:
-            f = m.model_fields.get("kind")
-            if f is not None and typing.get_args(f.annotation) == (kind,):
-                return m
+            for tag in UNION_TAGS:
+                f = m.model_fields.get(tag)
+                if f is not None and isinstance(data, dict) and typing.get_args(f.annotation) == (data.get(tag),):
+                    return m
         return models[0] if len(models) == 1 else None
     return None
 
 
 def _allowed_keys(model, raw, loc) -> list[str]:
     """Return the keys allowed beside the last part of ``loc`` (a validation error's location)."""
-    cur, data, in_dict = model, raw, False
+    cur, data, inner = model, raw, None  # inner: the annotation of a dict's values or a list's items
     for part in loc[:-1]:
-        if in_dict:  # the key of a dict of models (ssm.free.NAME)
-            data, in_dict = data.get(part) if isinstance(data, dict) else None, False
+        if inner is not None:  # the key of a dict of models (ssm.free.NAME) or an index (objective.terms.0)
+            if isinstance(data, list):
+                data = data[int(part)] if part.isdigit() and int(part) < len(data) else None
+            else:
+                data = data.get(part) if isinstance(data, dict) else None
+            cur, inner = _model_in(inner, data), None
             continue
         if cur is None or not isinstance(data, dict):
             return []
         if part in cur.model_fields:
             ann, data = cur.model_fields[part].annotation, data.get(part)
-            if typing.get_origin(ann) is dict:
-                cur, in_dict = _model_in(typing.get_args(ann)[1], None), True
+            if typing.get_origin(ann) in (dict, list):
+                inner = typing.get_args(ann)[-1]
             else:
                 cur = _model_in(ann, data)
-        elif data.get("kind") != part:  # (a union's tag is skipped)
+        elif part not in [data.get(t) for t in UNION_TAGS]:  # (a union's tag is skipped)
             return []
     return list(cur.model_fields) if cur is not None else []
+
+
+def parameter_problems(where: str, model: str, specs: dict, values: dict) -> list[str]:
+    """Check parameter entries of a config against a model's ``ParameterSpec``s.
+
+    The one check of a parameter's name and range (``ssm.fixed``, ``ssm.free``,
+    ``target.generate.params``).
+
+    Parameters
+    ----------
+    where : str
+        The entries' key path in the config (``"ssm.fixed"``).
+    model : str
+        The SSM's name, for messages.
+    specs : dict
+        ``ParameterSpec`` by name.
+    values : dict
+        Name -> a value, a ``(lower, upper, integer)`` triple of bounds (``integer`` None: the
+        parameter's own), or None (the name alone is checked).
+
+    Returns
+    -------
+    list of str
+        One message per unknown name, value outside its parameter's range or not whole where it
+        must be, bounds outside the range or holding no whole number of a whole-number parameter.
+    """
+    problems = []
+    for name, val in values.items():
+        s = specs.get(name)
+        if s is None:
+            problems.append(
+                f"{where}.{name}: unknown parameter of '{model}' (known: {', '.join(specs)}){did_you_mean(name, specs)}"
+            )
+        elif isinstance(val, tuple):
+            lo, hi, whole = val[0], val[1], s.integer if len(val) < 3 or val[2] is None else val[2]
+            if lo < s.lower or hi > s.upper:
+                problems.append(
+                    f"{where}.{name}: bounds [{lo}, {hi}] exceed the allowed range [{s.lower}, {s.upper}] {s.unit}".rstrip()
+                )
+            if whole and math.ceil(lo) > math.floor(hi):
+                problems.append(
+                    f"{where}.{name}: the bounds [{lo}, {hi}] of a whole-number parameter hold no whole number "
+                    "(widen them, or set integer = false)"
+                )
+        elif val is not None and _value_problem(val, s):
+            problems.append(f"{where}.{name}: {_value_problem(val, s)}")
+    return problems
 
 
 def check_ssm_parameters(cfg: RunConfig) -> None:
@@ -516,44 +651,36 @@ def check_ssm_parameters(cfg: RunConfig) -> None:
     PluginError
         If the SSM is not installed.
     """
-    from .registry import component
-
-    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
-    specs = {p.name: p for p in ssm.parameters}
+    specs = {p.name: p for p in build_component(cfg, "ssm").parameters}
     problems = [
         f"ssm '{cfg.ssm.kind}': the plugin's parameter name {n!r} is not a Python identifier (it is a "
         "TOML key, a column name and a report label)"
         for n in specs
         if not _identifier(n)
     ]
-    for name, val in cfg.ssm.fixed.items():
-        if name not in specs:
-            problems.append(
-                f"ssm.fixed.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
-                f"{did_you_mean(name, specs)}"
-            )
-        elif not specs[name].lower <= val <= specs[name].upper:
-            s = specs[name]
-            problems.append(
-                f"ssm.fixed.{name}: {val} is outside the allowed range [{s.lower}, {s.upper}] {s.unit}".rstrip()
-            )
-    for name, fp in cfg.ssm.free.items():
-        if name not in specs:
-            problems.append(
-                f"ssm.free.{name}: unknown parameter of '{cfg.ssm.kind}' (known: {', '.join(specs)})"
-                f"{did_you_mean(name, specs)}"
-            )
-            continue
-        s = specs[name]
-        if name in cfg.ssm.fixed:
-            problems.append(f"ssm.free.{name}: also listed in ssm.fixed")
-        if fp.scaled_by is None and (fp.lower < s.lower or fp.upper > s.upper):  # scaled: once resolved
-            problems.append(
-                f"ssm.free.{name}: bounds [{fp.lower}, {fp.upper}] exceed the allowed range "
-                f"[{s.lower}, {s.upper}] {s.unit}".rstrip()
-            )
+    kind = cfg.ssm.kind
+    problems += parameter_problems("ssm.fixed", kind, specs, cfg.ssm.fixed)
+    # a bound scaled to the tree is checked once resolved (pipeline.target)
+    bounds = {
+        n: None if fp.scaled_by is not None else (fp.lower, fp.upper, fp.integer) for n, fp in cfg.ssm.free.items()
+    }
+    problems += parameter_problems("ssm.free", kind, specs, bounds)
+    problems += [f"ssm.free.{n}: also listed in ssm.fixed" for n in cfg.ssm.free if n in specs and n in cfg.ssm.fixed]
     if problems:
         raise ConfigError("; ".join(problems))
+
+
+def _value_problem(val: float, spec) -> str | None:
+    """Return what is wrong with ``val`` as a value of the parameter ``spec``, or None.
+
+    Outside its range, or not a whole number of a whole-number parameter (which would be cut
+    silently).
+    """
+    if not spec.lower <= val <= spec.upper:
+        return f"{val} is outside the allowed range [{spec.lower}, {spec.upper}] {spec.unit}".rstrip()
+    if spec.integer and val != int(val):
+        return f"{val} is not a whole number ({spec.name} counts whole {spec.unit or 'steps'})"
+    return None
 
 
 def _identifier(name) -> bool:
@@ -563,7 +690,9 @@ def _identifier(name) -> bool:
 
 
 def check_generated_target(cfg: RunConfig) -> None:
-    """Check that ``[target.generate]`` names an installed SSM, its parameters and settings.
+    """Check that ``[target.generate] params`` name parameters of its SSM, within their ranges.
+
+    (The SSM's name and settings are checked as the config is validated.)
 
     Parameters
     ----------
@@ -573,69 +702,145 @@ def check_generated_target(cfg: RunConfig) -> None:
     Raises
     ------
     ConfigError
-        For an unknown SSM, parameter or setting, or a parameter outside its range.
+        For an unknown parameter, or one outside its range.
     """
-    from .registry import component
-
     gen = cfg.target.generate
     if gen is None:
         return
-    try:
-        ssm = component("ssm", gen.ssm, **gen.settings)
-    except PluginError as exc:
-        raise ConfigError(f"target.generate.ssm: {exc}{did_you_mean(gen.ssm, discover().names('ssm'))}") from None
-    except ConfigError as exc:
-        raise ConfigError(f"target.generate.settings: {exc}") from None
-    specs = {p.name: p for p in ssm.parameters}
-    problems = []
-    for name, val in gen.params.items():
-        s = specs.get(name)
-        if s is None:
-            problems.append(
-                f"target.generate.params.{name}: unknown parameter of '{gen.ssm}' "
-                f"(known: {', '.join(specs)}){did_you_mean(name, specs)}"
-            )
-        elif not s.lower <= val <= s.upper:
-            problems.append(
-                f"target.generate.params.{name}: {val} is outside the allowed range "
-                f"[{s.lower}, {s.upper}] {s.unit}".rstrip()
-            )
+    specs = {p.name: p for p in generated_target_ssm(gen).parameters}
+    problems = parameter_problems("target.generate.params", gen.ssm, specs, gen.params)
     if problems:
         raise ConfigError("; ".join(problems))
 
 
-def ssm_settings(cfg: RunConfig) -> dict:
-    """Return the SSM plugin's own settings from the ``[ssm]`` section.
+def generated_target_ssm(gen: GeneratedTarget):
+    """Build the SSM that ``[target.generate]`` grows its target with, with its settings."""
+    from .registry import component
 
-    Parameters
-    ----------
-    cfg : RunConfig
-        The config.
-
-    Returns
-    -------
-    dict
-        The section without ``kind``, ``fixed``, ``free`` and ``topology``.
-    """
-    return cfg.ssm.model_dump(exclude={"kind", "fixed", "free", "topology"})
+    return component("ssm", gen.ssm, **part_settings(gen.settings, exclude=()))
 
 
-def section_settings(cfg: RunConfig, section: str) -> dict:
-    """Return a component section's settings (without ``kind``).
+def build_component(cfg: RunConfig, section: str):
+    """Build the component a section of the config selects: the one place a run's components are made.
 
     Parameters
     ----------
     cfg : RunConfig
         The config.
     section : str
-        The section: ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
+        ``"ssm"``, ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
+
+    Returns
+    -------
+    Component
+        The plugin's component, with the section's settings (an SSM's without ``fixed``, ``free``
+        and ``topology``, which are the run's, not the plugin's).
+
+    Raises
+    ------
+    PluginError
+        If the plugin is not installed.
+    """
+    from .registry import component
+
+    return component(SECTIONS[section], getattr(cfg, section).kind, **section_settings(cfg, section))
+
+
+@functools.cache
+def _section_holder(section: str, name: str) -> type[BaseModel] | None:
+    """Return a model with the one field ``section`` of plugin ``name``'s section (None: not installed)."""
+    run_config_model()  # builds the section models of the installed plugins
+    model = _BUILT.get(f"_built_{SECTIONS[section]}_{name}")
+    return None if model is None else create_model(f"_{section}_{name}", __base__=_Strict, **{section: (model, ...)})
+
+
+def with_section(cfg: RunConfig, section: str, data: dict, source: str = "config") -> RunConfig:
+    """Return ``cfg`` with one component section replaced.
+
+    A derived config, the new section validated alone and the rest shared (``model_copy``),
+    never a dict round trip of the whole config.
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The config.
+    section : str
+        ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
+    data : dict
+        The new section: ``{"kind": NAME, settings...}``.
+    source : str, optional
+        Name of the derived config in messages (``"select"`` gives ``select: features.sets: ...``).
+
+    Returns
+    -------
+    RunConfig
+        A new config sharing every other section with ``cfg``.
+
+    Raises
+    ------
+    ConfigError
+        For an unknown kind or invalid settings, naming the key path.
+    """
+    model = _section_holder(section, str(data.get("kind")))
+    if model is None:
+        names = discover().names(SECTIONS[section])
+        raise ConfigError(
+            f"{source}: {section}.kind: unknown {SECTIONS[section]} {data.get('kind')!r} (known: {', '.join(names)})"
+            f"{did_you_mean(data.get('kind'), names)}"
+        )
+    try:  # held by a model of the one section, so that messages name it: "features.sets: ..."
+        value = getattr(model.model_validate({section: data}), section)
+    except pydantic.ValidationError as exc:
+        raise ConfigError(f"{source}: {validation_error_text(exc)}") from None
+    return cfg.model_copy(update={section: value})
+
+
+def selection_config(cfg: RunConfig) -> RunConfig:
+    """Return the config the candidate answers are scored with (``[select]``).
+
+    ``cfg`` itself, or with ``[select] features``/``distance`` merged over its
+    ``[features]``/``[distance]`` (a ``kind`` of their own replaces the section), each validated
+    as the typed section it makes; checked as the config is read (:func:`parse_config`), so a
+    ConfigError's message starts ``select:`` when they do not validate.
+    """
+    sel = cfg.select
+    if not sel.features and not sel.distance:
+        return cfg
+    out = cfg.model_copy(update={"select": sel.model_copy(update={"features": None, "distance": None})})
+    for part in ("features", "distance"):
+        extra = getattr(sel, part)
+        if extra:
+            own = {"kind": getattr(cfg, part).kind, **section_settings(cfg, part, written=True)}
+            same = extra.get("kind", own["kind"]) == own["kind"]
+            out = with_section(out, part, {**own, **extra} if same else dict(extra), source="select")
+    return out  # its messages: "select: features.sets: ..."
+
+
+def section_settings(cfg: RunConfig, section: str, written: bool = False) -> dict:
+    """Return a component section's settings: the plugin's own.
+
+    Without ``kind`` (an SSM's also without the run's ``fixed``, ``free`` and ``topology``);
+    ``written``: as a config file holds them (JSON values, unset ones left out).
+
+    Parameters
+    ----------
+    cfg : RunConfig
+        The config.
+    section : str
+        The section: ``"ssm"``, ``"features"``, ``"distance"``, ``"optimizer"`` or ``"executor"``.
+    written : bool, optional
+        The settings as a config file writes them.
 
     Returns
     -------
     dict
         The component's settings.
     """
-    return getattr(cfg, section).model_dump(exclude={"kind"})
+    return part_settings(getattr(cfg, section), written, _RUN_KEYS if section == "ssm" else {"kind"})
+
+
+#: keys of the ``[ssm]`` section that are the run's, not the plugin's settings
+_RUN_KEYS = {"kind", "fixed", "free", "topology"}
 
 
 def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"):
@@ -667,24 +872,13 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
             '(relative to this file), or [target.generate] ssm = "sot" for a model-grown target'
         )
     raw = _fill_defaults(raw)
-    reg = discover()
-    problems, bad = [], set()  # every problem of the file, reported at once
-    for section, kind in SECTIONS.items():
-        sec = raw.get(section)
-        if isinstance(sec, dict) and "kind" in sec and sec["kind"] not in reg.names(kind):
-            known = ", ".join(reg.names(kind)) or "none installed"
-            problems.append(
-                f"{section}.kind: unknown {kind} {sec['kind']!r} (known: {known})"
-                f"{did_you_mean(sec['kind'], reg.names(kind))}"
-            )
-            bad.add(section)
-    tags = {s: raw.get(s, {}).get("kind") for s in SECTIONS if isinstance(raw.get(s), dict)}
+    problems, bad = _unknown_kinds(raw)  # every problem of the file, reported at once
     cfg = None
     try:
         cfg = model.model_validate({k: v for k, v in raw.items() if k not in bad})
     except pydantic.ValidationError as exc:
         text = validation_error_text(
-            exc, tags, skip=tuple(bad), hint=lambda loc: did_you_mean(loc[-1], _allowed_keys(model, raw, loc))
+            exc, raw, skip=tuple(bad), hint=lambda loc: did_you_mean(loc[-1], _allowed_keys(model, raw, loc))
         )
         if text:
             problems.append(text)
@@ -696,7 +890,7 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
         cfg.target.references = [resolve_path(r, base_dir) for r in cfg.target.references]
         if cfg.start.estimator not in (None, "shipped"):
             cfg.start.estimator = resolve_path(cfg.start.estimator, base_dir)
-    for check in (check_ssm_parameters, check_terms, check_generated_target):
+    for check in (check_ssm_parameters, check_generated_target, selection_config):
         try:
             check(cfg)
         except ConfigError as exc:
@@ -706,34 +900,40 @@ def parse_config(raw: dict, base_dir: Path | None = None, source: str = "config"
     return cfg
 
 
-def check_terms(cfg: RunConfig) -> None:
-    """Check that every ``[[objective.terms]]`` entry names installed components with valid settings.
+def _unknown_kinds(raw: dict) -> tuple[list[str], set[str]]:
+    """Return the components a config names that are not installed, and the keys to leave out.
 
-    Parameters
-    ----------
-    cfg : RunConfig
-        The config.
-
-    Raises
-    ------
-    ConfigError
-        For an unknown component or invalid settings, naming the term.
+    One message each; the top-level keys are left out of validation (their other problems are
+    told once the name is right). The component sections (``kind``), the entries of ``[[objective.terms]]`` (their
+    ``features``/``distance`` kinds) and ``[target.generate] ssm``.
     """
-    from .registry import component
+    reg, problems, bad = discover(), [], set()
 
-    problems = []
-    for i, t in enumerate(cfg.objective.terms):
-        for kind, part in (("features", t.features), ("distance", t.distance)):
-            try:
-                component(kind, part.kind, **part.settings)
-            except PluginError as exc:
-                problems.append(
-                    f"objective.terms[{i}] ({t.name}).{kind}: {exc}{did_you_mean(part.kind, discover().names(kind))}"
-                )
-            except ConfigError as exc:
-                problems.append(f"objective.terms[{i}] ({t.name}).{kind}: {exc}")
-    if problems:
-        raise ConfigError("; ".join(problems))
+    def unknown(where, kind, name):
+        names = reg.names(kind)
+        problems.append(
+            f"{where}: unknown {kind} {name!r} (known: {', '.join(names) or 'none installed'}){did_you_mean(name, names)}"
+        )
+
+    for section, kind in SECTIONS.items():
+        sec = raw.get(section)
+        if isinstance(sec, dict) and "kind" in sec and sec["kind"] not in reg.names(kind):
+            unknown(f"{section}.kind", kind, sec["kind"])
+            bad.add(section)
+    objective = raw.get("objective")
+    terms = objective.get("terms") if isinstance(objective, dict) else None
+    for i, t in enumerate(terms if isinstance(terms, list) else []):
+        for kind in ("features", "distance"):
+            part = t.get(kind) if isinstance(t, dict) else None
+            if isinstance(part, dict) and isinstance(part.get("kind"), str) and part["kind"] not in reg.names(kind):
+                unknown(f"objective.terms[{i}] ({t.get('name')}).{kind}", kind, part["kind"])
+                bad.add("objective")
+    target = raw.get("target")
+    gen = target.get("generate") if isinstance(target, dict) else None
+    if isinstance(gen, dict) and isinstance(gen.get("ssm"), str) and gen["ssm"] not in reg.names("ssm"):
+        unknown("target.generate.ssm", "ssm", gen["ssm"])
+        bad.add("target")
+    return problems, bad
 
 
 def resolve_path(path: str, base_dir: Path) -> str:

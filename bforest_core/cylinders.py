@@ -22,7 +22,7 @@ from typing import Literal, Optional, Union
 import numpy as np
 from pydantic import ValidationError
 
-from .errors import ConfigError, QSMFormatError, TreeError
+from .errors import ConfigError, QSMFormatError, QSMReadWarning, TreeError
 from .interfaces import ComponentSettings, QSMReader, QSMWriter
 from .tree import (
     MAX_ROWS_SHOWN,
@@ -31,26 +31,13 @@ from .tree import (
     cycle_problems,
     extension_problems,
     id_problems,
+    remap_ids,
     rows_text,
     value_problems,
 )
 
 #: a deviation of the axis norm from 1 above this is reported (docs/qsm-formats.md §0)
 AXIS_WARN_TOL = 1e-3
-
-
-class QSMReadWarning(UserWarning):
-    """A QSM file was read with a repair or an inconsistency worth knowing about."""
-
-
-def quiet_read_repairs() -> None:
-    """Keep :class:`QSMReadWarning` quiet in this process.
-
-    For a command's helper processes (the executors' workers, the report's second process): the
-    command reads the same files first and reports their repairs once; a helper's copy would
-    print them again, once per process, in Python's raw format.
-    """
-    warnings.filterwarnings("ignore", category=QSMReadWarning)
 
 
 class Repair(dict):
@@ -529,7 +516,6 @@ def build_tree(
     if file_rows.size < n:
         new = np.full(n, -1, dtype=np.int64)
         new[file_rows] = np.arange(file_rows.size)
-        remap = lambda a: np.where(a >= 0, new[np.maximum(a, 0)], -1)
         radius, length, start, axis, added, norms = (
             radius[file_rows],
             length[file_rows],
@@ -538,8 +524,8 @@ def build_tree(
             added[file_rows],
             norms[file_rows],
         )
-        parent = remap(parent[file_rows])
-        extension = remap(extension[file_rows])
+        parent = remap_ids(parent[file_rows], new)
+        extension = remap_ids(extension[file_rows], new)
     axis = _renormalised_axes(path, axis, norms, file_rows, repairs)
     extras = {}
     for k, v in (raw.extras or {}).items():

@@ -1,10 +1,12 @@
-"""Typed exceptions of Bayes Forest.
+"""Typed exceptions of Bayes Forest, and the warning of a repaired QSM read.
 
 Every error a user can cause derives from :class:`BayesForestError`; the CLI turns
 those into one readable line and exit code 2.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import pydantic
 
@@ -58,6 +60,20 @@ class QSMFormatError(BayesForestError, ValueError):
         return (type(self), (self.path, self.problem, self.rows))
 
 
+class QSMReadWarning(UserWarning):
+    """A QSM file was read with a repair or an inconsistency worth knowing about."""
+
+
+def quiet_read_repairs() -> None:
+    """Keep :class:`QSMReadWarning` quiet in this process.
+
+    For a command's helper processes (the executors' workers, the report's second process): the
+    command reads the same files first and reports their repairs once; a helper's copy would
+    print them again, once per process, in Python's raw format.
+    """
+    warnings.filterwarnings("ignore", category=QSMReadWarning)
+
+
 class ConfigError(BayesForestError, ValueError):
     """A run configuration or component setting is invalid (names the key path)."""
 
@@ -91,7 +107,35 @@ class SimulationFailed(BayesForestError):
         return (type(self), (self.status, self.message))
 
 
-def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = None, hint=None, skip: tuple = ()) -> str:
+#: the fields a discriminated union of the config is told apart by: a component's ``kind``, and the
+#: ``ssm`` of ``[target.generate]``
+UNION_TAGS = ("kind", "ssm")
+
+
+def _without_tags(loc: tuple, data) -> list[str]:
+    """Return a validation error's location without the union tags pydantic inserts.
+
+    A discriminated union's member adds its tag to the location (``ssm.lignum.free``, an entry's
+    ``objective.terms.0.distance.summary.weights``); it is left out where the data the location
+    walks through holds it as its ``kind`` or ``ssm`` (and not as a key).
+    """
+    out = []
+    for part in loc:
+        if isinstance(data, dict) and part not in data and part in [data.get(t) for t in UNION_TAGS]:
+            continue
+        out.append(str(part))
+        if isinstance(data, dict):
+            data = data.get(part)
+        elif isinstance(data, list) and isinstance(part, int) and 0 <= part < len(data):
+            data = data[part]
+        else:
+            data = None
+    return out
+
+
+def validation_error_text(
+    exc: pydantic.ValidationError, data=None, hint=None, skip: tuple = (), prefix: tuple = ()
+) -> str:
     """Render a pydantic validation error as one readable clause per problem.
 
     Each clause reads ``key.path: message (got value)``.
@@ -100,13 +144,17 @@ def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = Non
     ----------
     exc : pydantic.ValidationError
         The error.
-    tags : dict, optional
-        Section name to the union tag pydantic inserts after it (dropped from key paths).
+    data : object, optional
+        The data that was validated: the union tags pydantic inserts in key paths are read
+        from it and dropped.
     hint : callable, optional
         ``hint(loc)`` returns text appended to an unknown key's message (e.g. "did you
         mean ...").
     skip : tuple of str, optional
         Top-level keys whose errors are left out (reported otherwise).
+    prefix : tuple of str, optional
+        The key path in the config of the data that was validated (``("target",)`` for a
+        ``[target]`` table validated alone): put before every clause's own.
 
     Returns
     -------
@@ -117,12 +165,8 @@ def validation_error_text(exc: pydantic.ValidationError, tags: dict | None = Non
     for e in exc.errors():
         if e["loc"] and str(e["loc"][0]) in skip:
             continue
-        loc = [str(x) for x in e["loc"]]
-        raw_loc = tuple(loc)
-        # drop the union tag pydantic inserts after a discriminated section name
-        if tags and len(loc) > 1 and loc[0] in tags and loc[1] == tags[loc[0]]:
-            loc = [loc[0]] + loc[2:]
-        loc = [x for x in loc if not x.startswith("function-")]
+        raw_loc = tuple(str(x) for x in e["loc"])
+        loc = [*prefix, *(x for x in _without_tags(e["loc"], data) if not x.startswith("function-"))]
         where = ".".join(loc) or "(top level)"
         msg = e["msg"]
         if e.get("type") == "extra_forbidden":

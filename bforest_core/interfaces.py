@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import abc
 import math
-import os
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,7 +18,9 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
+from .errors import quiet_read_repairs
 from .metrics import SIZE_LIMITS
+from .processes import one_thread_process
 
 if TYPE_CHECKING:
     from .metrics import TreeMeasures
@@ -29,9 +30,12 @@ KINDS = ("qsm_reader", "qsm_writer", "ssm", "features", "distance", "optimizer",
 
 
 class ComponentSettings(BaseModel):
-    """Base of every component's settings model: unknown keys are errors."""
+    """Base of every component's settings model: unknown keys are errors, numbers finite.
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    NaN or an infinity in a setting is an error naming the setting.
+    """
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class Component(abc.ABC):
@@ -257,6 +261,11 @@ SAFETY_WALL_TIME = 3600.0
 class RecipeDraft:
     """A growth model's part of a recipe for one tree (:meth:`SSM.draft_recipe`).
 
+    What the model asks of the recipe in no other plugin's terms: its own settings and search
+    box, the size term's balance, the model seeds and the evaluation budget of the search and how
+    the answer is chosen. The search's, the tables' and the size term's own settings are written
+    by their plugins (:class:`RecipePart`) from these.
+
     Attributes
     ----------
     suits : float
@@ -288,26 +297,22 @@ class RecipeDraft:
         Why the size term holds ``size_extra`` (written as a comment above the term).
     size_limits : dict
         A relative error per headline statistic (a fraction of the tree's value) beyond which its
-        term grows ``size_steep`` times as fast (the summary distance's ``limits``), so that a fit
-        cannot trade that statistic for structure past what a forester accepts (default: two thirds of
-        each tolerance, ``metrics.SIZE_LIMITS``, the rule of both bundled models' recipes; empty: no
-        limits).
+        term grows ``size_steep`` times as fast, so that a fit cannot trade that statistic for
+        structure past what a forester accepts (default: two thirds of each tolerance,
+        ``metrics.SIZE_LIMITS``, the rule of both bundled models' recipes; empty: no limits).
     size_steep : float
         How many times as fast a term grows beyond its limit.
-    seeds, evaluations, starts, population, init_design, finalists : int
-        The search: model seeds per evaluation (``[objective] seeds``), the evaluation budget
-        (``[stop] max_evaluations``), and of ``[optimizer]`` the CMA-ES starts, the points of a
-        generation, the Sobol' points before the starts and the starts that run to the end.
-    grow_together : bool
-        Whether the finalists take their turns together (``[optimizer] grow_together``).
+    seeds, max_evaluations : int
+        Model seeds per evaluation (``[objective] seeds``) and the evaluation budget (``[stop]
+        max_evaluations``), which the search's plugin plans its search by.
     select_top, select_sets : int
         The best distinct points grown again as candidate answers (``[select] top``) and the sets
         of held-out seeds each is grown with (``[select] sets``).
     select_tables : bool
-        Whether the candidates are scored on the tables a clone is judged by (S1 and B1 as sets of
-        their own on 256 lines, ``[select] features``/``distance``) rather than the search's own.
+        Whether the candidates are scored on the tables a clone is judged by (the features' and
+        distance's plugins say which, :attr:`RecipePart.select`) rather than the search's own.
     search_why : str
-        Why the model's search differs from the default (written as a comment above it).
+        Why the model asks for its seeds and budget (written as a comment above the search).
     """
 
     suits: float
@@ -325,16 +330,71 @@ class RecipeDraft:
     size_limits: dict = field(default_factory=lambda: dict(SIZE_LIMITS))
     size_steep: float = 3.0
     seeds: int = 3
-    evaluations: int = 1200
-    starts: int = 4
-    population: int = 16
-    init_design: int = 32
-    finalists: int = 1
-    grow_together: bool = False
+    max_evaluations: int = 1200
     select_top: int = 16
     select_sets: int = 16
     select_tables: bool = True
     search_why: str = ""
+
+
+@dataclass
+class RecipePlan:
+    """What a recipe asks of one component (the search, a term's tables or distance).
+
+    In no plugin's terms: given to the component's :meth:`~FeatureSet.draft_recipe`.
+
+    Attributes
+    ----------
+    term : str
+        ``"structure"`` (the ``[features]``/``[distance]`` term: how branches look) or ``"size"``
+        (the size term of ``[[objective.terms]]``: tree-level statistics); for an optimiser
+        ``"search"``.
+    draft : RecipeDraft
+        The growth model's draft: its seeds per evaluation, budget, size term's balance.
+    measures : TreeMeasures or None
+        What the tree measured.
+    dim : int
+        The number of free parameters.
+    start : bool
+        For an optimiser: the search refines draws of an amortised estimator's posterior for the
+        tree (``[start] estimator``, :attr:`Problem.start`) instead of exploring the whole box.
+    """
+
+    term: str
+    draft: RecipeDraft
+    measures: TreeMeasures | None = None
+    dim: int = 0
+    start: bool = False
+
+
+@dataclass
+class RecipePart:
+    """A component's part of a recipe (:meth:`~FeatureSet.draft_recipe`): its section, in its own terms.
+
+    Attributes
+    ----------
+    kind : str
+        The component's name (the section's ``kind``).
+    settings : list of (name, value, comment)
+        The section's settings (comment None: none), written in order.
+    why : str
+        What the section does, written as a comment above it.
+    select : dict
+        Settings merged over the section when the candidate answers are scored on the tables a
+        clone is judged by (``[select] features``/``distance``; empty: the search's own).
+    select_why : str
+        What those tables are, in a few words (``"S1 and B1 as sets of their own"``).
+    reach : float or None
+        The most this distance can reach for a grown tree (a failed growth must score above the
+        objective's most: ``[objective] penalty``); None: not bounded by the recipe's settings.
+    """
+
+    kind: str
+    settings: list = field(default_factory=list)
+    why: str = ""
+    select: dict = field(default_factory=dict)
+    select_why: str = ""
+    reach: float | None = None
 
 
 class SSM(Component):
@@ -467,11 +527,50 @@ class SSM(Component):
         return out
 
 
+class RecipeWriter:
+    """A component that may write its part of a recipe: a feature set, a distance, an optimiser.
+
+    ``bforest init`` asks the kinds of ``config.RECIPE_KINDS`` for their parts.
+    """
+
+    def draft_recipe(self, plan: RecipePlan) -> RecipePart | None:
+        """Write this component's part of a recipe (optional, ``bforest init``).
+
+        Parameters
+        ----------
+        plan : RecipePlan
+            What the recipe asks of it: its term (or the search), the growth model's draft
+            (seeds per evaluation, budget, the size term's balance), the tree's measures.
+
+        Returns
+        -------
+        RecipePart or None
+            Its section's settings, each with its comment, and what it does; None (the default)
+            when the component writes no recipes (``bforest init`` takes the bundled one of
+            ``config.RECIPE_KINDS``).
+        """
+        return None
+
+
 # ------------------------------------------------------------------------------------ features
-class FeatureSet(Component):
+class FeatureSet(RecipeWriter, Component):
     """Turns a tree into named tables of multi-dimensional points (structural data sets U)."""
 
     kind = "features"
+
+    def summary_rule(self) -> tuple[str | None, list[str] | None] | None:
+        """Return the branch rule of a feature set of tree-level statistics (optional).
+
+        The clones' fidelity table measures the statistics as the fit's size term held them.
+
+        Returns
+        -------
+        tuple or None
+            ``(topology, statistics)``: the rule the statistics are measured by (None: each
+            tree's own branches) and which of them (None: all); None (the default) for a feature
+            set that does not summarise whole trees.
+        """
+        return None
 
     @property
     @abc.abstractmethod
@@ -552,7 +651,7 @@ class FeatureSet(Component):
 
 
 # ------------------------------------------------------------------------------------ distance
-class Distance(Component):
+class Distance(RecipeWriter, Component):
     """A structural distance between model and data tables."""
 
     kind = "distance"
@@ -668,8 +767,18 @@ class Distance(Component):
         """
         return self.combine(self.compute_per_set(U_model, U_data), weights)
 
+
+class LineDistance(Distance):
+    """A distance that compares the tables on projection lines (a sliced distance).
+
+    What only such a distance has, which the run folder (its directions and frozen data-side
+    transforms), the report (the worst lines) and ``bforest distance --test`` use where a
+    distance is one (``isinstance(dist, LineDistance)``).
+    """
+
+    @abc.abstractmethod
     def directions(self, d: int) -> np.ndarray:
-        """Return the unit vectors a sliced distance projects on (if it has any).
+        """Return the unit vectors the distance projects on.
 
         Parameters
         ----------
@@ -680,20 +789,11 @@ class Distance(Component):
         -------
         ndarray, shape (lines, d)
             The directions.
-
-        Raises
-        ------
-        NotImplementedError
-            By default: the distance does not project on directions.
         """
-        raise NotImplementedError(f"distance '{self.name}' does not project on directions")
-
-    # Optional capabilities of a distance that projects on lines; the run folder and the report
-    # use them where a distance has them (the defaults say it has none).
 
     @property
     def statistic(self) -> str:
-        """Name of the one-dimensional statistic compared on each line (optional).
+        """Name of the one-dimensional statistic compared on each line.
 
         Returns
         -------
@@ -720,7 +820,7 @@ class Distance(Component):
         Raises
         ------
         NotImplementedError
-            By default: the distance does not compare tables line by line.
+            By default: the report computes the statistic per line itself.
         """
         raise NotImplementedError(f"distance '{self.name}' has no per-line values")
 
@@ -794,7 +894,7 @@ class Problem:
         Box to draw initial points from (default: the bounds).
     seed : int, optional
         Seeds the optimiser.
-    budget : int, optional
+    max_evaluations : int, optional
         The evaluation budget (see the attribute).
     stopped, n_evaluations, best_x, best_f, stop_reason
         Progress state, maintained by ``evaluate``.
@@ -810,10 +910,10 @@ class Problem:
     init_lower: np.ndarray | None = None
     init_upper: np.ndarray | None = None
     seed: int = 0
-    #: the evaluation budget (a fit's ``[stop] max_evaluations``; ``None``: none). ``evaluate``
-    #: enforces it (it evaluates what still fits, then sets ``stopped``); an optimiser reads
-    #: ``remaining()`` to plan and ``stopped`` to end, and keeps no budget setting of its own
-    budget: int | None = None
+    #: the evaluation budget, by its one name (a fit's ``[stop] max_evaluations``; ``None``: none).
+    #: ``evaluate`` enforces it (it evaluates what still fits, then sets ``stopped``); an optimiser
+    #: reads ``remaining()`` to plan and ``stopped`` to end, and keeps no budget setting of its own
+    max_evaluations: int | None = None
     # progress state, maintained by the caller's evaluate
     stopped: bool = False
     n_evaluations: int = 0
@@ -865,7 +965,105 @@ class Problem:
         int or None
             Evaluations left (at least 0); ``None`` without a budget.
         """
-        return None if self.budget is None else max(0, self.budget - self.n_evaluations)
+        return None if self.max_evaluations is None else max(0, self.max_evaluations - self.n_evaluations)
+
+
+#: the kinds of posterior a sampler gives (:attr:`Optimizer.posterior_kind`)
+POSTERIOR_KINDS = ("chain", "population")
+
+
+@dataclass(frozen=True)
+class Posterior:
+    """A sampler's posterior over the free parameters, as one typed object.
+
+    A sampler's result carries it in its diagnostics (the keys :attr:`Optimizer.posterior_kind`
+    lists, which a run folder stores); :meth:`from_diagnostics` is the one place they are read.
+
+    Parameters
+    ----------
+    kind : {"chain", "population"}
+        ``chain``: the walkers of an MCMC sampler, each walker a chain; ``population``: the
+        weighted particles of an SMC/ABC sampler.
+    samples : ndarray
+        ``(n, p)``: one row per posterior draw (a chain's draws after burn-in, every walker's).
+    weights : ndarray
+        ``(n,)``, summing to 1 (equal for a chain).
+    names : tuple of str
+        The parameters, in the order of the columns.
+    chain : ndarray or None
+        ``(steps, walkers, p)``: a chain's every step, burn-in included.
+    burn_in : int
+        A chain's steps before its draws count.
+    distances : ndarray or None
+        Distances of a chain's steps ``(steps, walkers)`` or of a population's particles ``(n,)``.
+    """
+
+    kind: str
+    samples: np.ndarray
+    weights: np.ndarray
+    names: tuple
+    chain: np.ndarray | None = None
+    burn_in: int = 0
+    distances: np.ndarray | None = None
+
+    @classmethod
+    def from_diagnostics(cls, diag, names, kind: str | None = None) -> Posterior | None:
+        """Read the posterior in a sampler's diagnostics (None when they hold none).
+
+        Parameters
+        ----------
+        diag : dict
+            A sampler's diagnostics (``OptimizeResult.diagnostics``, a run's stored ones):
+            ``particles`` and ``weights`` (with ``distances``), or ``chain`` with ``burn_in`` (and
+            ``distances``); ``names`` there, when present, name the columns.
+        names : sequence of str
+            The fitted parameters, when the diagnostics do not name them.
+        kind : {"chain", "population"}, optional
+            The sampler's declared kind; else the diagnostics' keys tell (a run written before
+            samplers declared it).
+        """
+        if not isinstance(diag, dict):
+            return None
+        has_population = diag.get("particles") is not None and diag.get("weights") is not None
+        if kind not in POSTERIOR_KINDS:
+            kind = "population" if has_population else "chain" if diag.get("chain") is not None else None
+        names = tuple(diag.get("names") or names)
+        try:
+            if kind == "population" and has_population:
+                X = np.asarray(diag["particles"], float)
+                w = np.asarray(diag["weights"], float)
+                if X.ndim != 2 or X.shape[1] != len(names) or w.shape != (X.shape[0],) or not w.sum() > 0:
+                    return None
+                d = diag.get("distances")
+                d = np.asarray(d, float) if d is not None and np.shape(d) == (X.shape[0],) else None
+                return cls("population", X, w / w.sum(), names, distances=d)
+            if kind == "chain" and diag.get("chain") is not None:
+                chain = np.asarray(diag["chain"], float)
+                if chain.ndim == 2:  # one walker
+                    chain = chain[:, None, :]
+                if chain.ndim != 3 or 0 in chain.shape[:2] or chain.shape[2] != len(names):
+                    return None
+                burn = min(max(int(diag.get("burn_in") or 0), 0), chain.shape[0] - 1)
+                X = chain[burn:].reshape(-1, chain.shape[2])
+                d = diag.get("distances")
+                d = np.asarray(d, float) if d is not None and np.shape(d) == chain.shape[:2] else None
+                return cls("chain", X, np.full(X.shape[0], 1.0 / X.shape[0]), names, chain, burn, d)
+        except (TypeError, ValueError):
+            return None
+        return None
+
+    def draws(self) -> dict[str, np.ndarray]:
+        """Return per parameter an array (chain, draw), as ArviZ takes a posterior.
+
+        A chain's walkers after burn-in; for weighted particles, one chain of a deterministic
+        systematic resample by weight.
+        """
+        if self.kind == "chain":
+            kept = self.chain[self.burn_in :].transpose(1, 0, 2)  # (walkers, steps, p)
+            return {n: kept[:, :, j] for j, n in enumerate(self.names)}
+        n = self.samples.shape[0]
+        idx = np.searchsorted(np.cumsum(self.weights), (np.arange(n) + 0.5) / n).clip(0, n - 1)
+        return {name: self.samples[idx, j][None, :] for j, name in enumerate(self.names)}
 
 
 @dataclass
@@ -895,16 +1093,15 @@ class OptimizeResult:
     history: list[dict] = field(default_factory=list)
     diagnostics: dict[str, Any] = field(default_factory=dict)
 
+    def posterior(self, names, kind: str | None = None) -> Posterior | None:
+        """Return the sampler's posterior (:meth:`Posterior.from_diagnostics`), None for an optimiser."""
+        return Posterior.from_diagnostics(self.diagnostics, names, kind)
 
-class Optimizer(Component):
+
+class Optimizer(RecipeWriter, Component):
     """Minimises a :class:`Problem`."""
 
     kind = "optimizer"
-
-    #: True for a sampler whose result's diagnostics carry a posterior sample (weighted
-    #: ``particles``/``weights`` or an MCMC ``chain``): the fit writes posterior.csv, and
-    #: ``bforest calibrate`` accepts it.
-    gives_posterior: bool = False
 
     #: True for a sampler to which a failed simulation (collapsed, too large, timed out) is a tree
     #: that matches nothing: ``evaluate`` (and ``seed_spread``) then return ``inf`` for it instead of
@@ -914,8 +1111,10 @@ class Optimizer(Component):
     failures_as_inf: bool = False
 
     # --- what a sampler's posterior is (the report's wording and figures) ---------------------
-    #: The kind of posterior sample a sampler gives (``gives_posterior``), stored in ``best.json``
-    #: so the report words and draws it without knowing the sampler:
+    #: The kind of posterior sample a sampler gives, the one declaration that it is a sampler (its
+    #: result's diagnostics carry the sample: the fit writes posterior.csv, ``bforest calibrate``
+    #: accepts it), stored in ``best.json`` so the report words and draws it without knowing the
+    #: sampler:
     #:
     #: ``"chain"``
     #:     MCMC: ``diagnostics["chain"]`` ``(steps, walkers, parameters)`` and ``burn_in``; the
@@ -972,13 +1171,13 @@ class Optimizer(Component):
         -------
         int or None
             What the settings let a run evaluate at most (the fit's progress bar counts to the
-            smaller of it and ``Problem.budget``). Default ``None``: unknown in advance.
+            smaller of it and ``Problem.max_evaluations``). Default ``None``: unknown in advance.
         """
         return None
 
     @classmethod
     def budget_settings(cls, settings: Mapping[str, Any], budget: int) -> dict[str, Any]:
-        """Return settings under which ``Problem.budget``, not the optimiser's limits, ends a run.
+        """Return settings under which ``Problem.max_evaluations``, not the optimiser's limits, ends a run.
 
         ``bforest compare`` runs every optimiser on the same evaluation budget: each optimiser
         lifts (or sets to the budget) its own limits, such as a number of generations,
@@ -996,7 +1195,7 @@ class Optimizer(Component):
         -------
         dict
             The settings to run with. Default: ``settings`` unchanged (an optimiser whose only
-            length limit is ``Problem.budget``).
+            length limit is ``Problem.max_evaluations``).
         """
         return dict(settings)
 
@@ -1087,10 +1286,8 @@ class Executor(Component):
         executors do).
 
         It limits the worker to one BLAS/OpenMP thread (:meth:`limit_worker_threads`) and keeps
-        a QSM's read repairs quiet there (:func:`~bforest_core.cylinders.quiet_read_repairs`).
+        a QSM's read repairs quiet there (:func:`~bforest_core.errors.quiet_read_repairs`).
         """
-        from .cylinders import quiet_read_repairs
-
         Executor.limit_worker_threads()
         quiet_read_repairs()
 
@@ -1101,21 +1298,7 @@ class Executor(Component):
         Workers that together keep every core busy would only have their own thread pools
         compete with the other workers (:meth:`worker_setup` calls it).
         """
-        for v in (
-            "OMP_NUM_THREADS",
-            "OPENBLAS_NUM_THREADS",
-            "MKL_NUM_THREADS",
-            "NUMEXPR_NUM_THREADS",
-            "VECLIB_MAXIMUM_THREADS",
-            "BLIS_NUM_THREADS",
-        ):
-            os.environ[v] = "1"
-        try:  # effective even after numpy is imported, when threadpoolctl is present
-            from threadpoolctl import threadpool_limits
-
-            threadpool_limits(1)
-        except Exception:
-            pass
+        one_thread_process()
 
     def started(self, initializer: Callable | None = None, initargs: tuple = ()):
         """Return a context manager that starts the workers and shuts them down on exit.

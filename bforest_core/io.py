@@ -2,13 +2,16 @@
 
 ``read_qsm`` and ``write_tree`` dispatch to the registered readers and writers; ``jsonable``,
 ``json_text`` and ``write_json`` are the one way results become JSON (the run folder's files, the
-evaluation log's columns, ``--json`` output, a writer's metadata).
+evaluation log's columns, ``--json`` output, a writer's metadata). ``whole_file`` is how a file is
+written all or nothing (a full disk leaves the old file or none, never half of one).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import os
 from pathlib import Path
 
 from .errors import PluginError, QSMFormatError
@@ -183,7 +186,42 @@ def write_tree(tree, path, format: str | None = None, **options) -> Path:
     path = Path(path)
     cls = writer_for(path, format)
     path.parent.mkdir(parents=True, exist_ok=True)
-    return cls().write(tree, path, **options)
+    with whole_file(path) as part:
+        cls().write(tree, part, **options)
+    return path
+
+
+@contextlib.contextmanager
+def whole_file(path):
+    """Write a file all or nothing: yield a path of the same name in a temporary folder beside it.
+
+    When the ``with`` block ends normally every file written into that folder (the file, and a
+    writer's side files named after it) replaces its namesake beside ``path`` (a rename each,
+    the file itself last); when it raises (a full disk, an interrupted command) the folder is
+    removed and ``path`` is left as it was. The folder is ``.NAME.tmp``.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file to write.
+
+    Yields
+    ------
+    Path
+        The path to write to.
+    """
+    import shutil
+
+    path = Path(path)
+    folder = path.with_name(f".{path.name}.tmp")
+    shutil.rmtree(folder, ignore_errors=True)  # left by a killed command
+    folder.mkdir(parents=True)
+    try:
+        yield folder / path.name
+        for f in sorted(folder.iterdir(), key=lambda f: f.name == path.name):  # the file itself last
+            os.replace(f, path.with_name(f.name))
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 # ------------------------------------------------------------------------------------ JSON
@@ -316,7 +354,8 @@ def json_text(
 def write_json(path, obj, **options) -> Path:
     """Write :func:`json_text` of ``obj`` to ``path``, all or nothing.
 
-    The text goes through a temporary file beside it, so a reader never sees half a file.
+    The text goes through a temporary file beside it (:func:`whole_file`), so a reader never
+    sees half a file.
 
     Parameters
     ----------
@@ -333,7 +372,6 @@ def write_json(path, obj, **options) -> Path:
         The file written.
     """
     path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json_text(obj, **options), encoding="utf-8")
-    tmp.replace(path)
+    with whole_file(path) as part:
+        part.write_text(json_text(obj, **options), encoding="utf-8")
     return path

@@ -55,6 +55,27 @@ def rows_text(rows, limit: int = MAX_ROWS_SHOWN, count: bool = False) -> str:
 # ----------------------------------------------------------------------------------------------
 
 
+def remap_ids(ids: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """Translate row ids through a table of new ids, keeping -1 (no row) as -1.
+
+    The one form of ``np.where(ids >= 0, new[np.maximum(ids, 0)], -1)``: parent or extension
+    links after rows were dropped, reordered or renumbered.
+
+    Parameters
+    ----------
+    ids : ndarray of int
+        Old ids, -1 for none.
+    new : ndarray of int
+        ``new[old]`` is the new id of row ``old`` (-1 where the row is gone).
+
+    Returns
+    -------
+    ndarray of int
+        The new id of each entry of ``ids``; -1 where ``ids`` is negative.
+    """
+    return np.where(ids >= 0, new[np.maximum(ids, 0)], -1)
+
+
 def jump_to_head(link: np.ndarray, is_head: np.ndarray):
     """Find, by pointer jumping, the head of each node's chain and the number of links to it.
 
@@ -269,7 +290,7 @@ def derive_branches(parent: np.ndarray, extension: np.ndarray):
     bid_of_first[firsts] = np.arange(firsts.size)
     branch = bid_of_first[head]
     parent_cyl = parent[firsts]
-    parent_branch = np.where(parent_cyl >= 0, branch[np.maximum(parent_cyl, 0)], -1)
+    parent_branch = remap_ids(parent_cyl, branch)
     _, border = jump_to_head(parent_branch, parent_branch < 0)
     order = border[branch]
     return branch, order.astype(np.int64), position.astype(np.int64), firsts, parent_cyl, parent_branch, border
@@ -559,7 +580,6 @@ def _parent_first(start, axis, length, radius, parent, extension, added, source_
         n = parent.size
         inv = np.empty(n, dtype=np.int64)
         inv[perm] = np.arange(n)
-        remap = lambda a: np.where(a >= 0, inv[np.maximum(a, 0)], -1)
         start, axis, length, radius, added, source_row = (
             start[perm],
             axis[perm],
@@ -568,11 +588,11 @@ def _parent_first(start, axis, length, radius, parent, extension, added, source_
             added[perm],
             source_row[perm],
         )
-        parent = remap(parent[perm])
-        extension = remap(extension[perm])
+        parent = remap_ids(parent[perm], inv)
+        extension = remap_ids(extension[perm], inv)
         extras = {k: v[perm] for k, v in extras.items()}
         if "_source_extension" in extras:  # holds row ids: renumber like extension
-            extras["_source_extension"] = remap(extras["_source_extension"])
+            extras["_source_extension"] = remap_ids(extras["_source_extension"], inv)
     return start, axis, length, radius, parent, extension, added, source_row, extras
 
 
@@ -873,14 +893,13 @@ class Tree:
             raise TreeError("subset is not closed under parent links")
         new = np.full(self.n, -1, dtype=np.int64)
         new[rows] = np.arange(rows.size)
-        remap = lambda a: np.where(a >= 0, new[np.maximum(a, 0)], -1)
         return Tree(
             self.start[rows],
             self.axis[rows],
             self.length[rows],
             self.radius[rows],
-            remap(self.parent[rows]),
-            remap(self.extension[rows]),
+            remap_ids(self.parent[rows], new),
+            remap_ids(self.extension[rows], new),
             topology=self.topology,
             added=self.added[rows],
             source_row=self.source_row[rows],

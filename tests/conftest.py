@@ -236,3 +236,60 @@ def pytest_terminal_summary(terminalreporter):
         for key, value in getattr(rep, "user_properties", []):
             if key == "conformance_components":
                 terminalreporter.write_line(f"conformance kit: {value}")
+
+
+def session_pids(sid: int) -> list[int]:
+    """The processes of session ``sid`` that still run (Linux: /proc), zombies left out."""
+    out = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
+        except (FileNotFoundError, ProcessLookupError, IndexError):
+            continue
+        if int(fields[3]) == sid and fields[0] != "Z":
+            out.append(int(d.name))
+    return out
+
+
+def stop_command(argv, env, signum: int, children: int = 1, timeout: float = 90.0):
+    """Run ``argv`` in a session of its own, send it ``signum`` once it has started ``children``
+    processes (``kill -TERM PID``: the command alone, not its group) and wait for it to end.
+
+    Returns (exit code, standard error, the processes of its session still running 10 s after
+    it ended): whatever a command starts must end with it, whatever it was doing.
+    """
+    import subprocess
+    import tempfile
+    import time
+
+    with tempfile.TemporaryFile("w+") as err:  # not a pipe: a process left behind would hold it open
+        proc = subprocess.Popen(
+            [str(a) for a in argv], env=env, stdout=subprocess.DEVNULL, stderr=err, text=True, start_new_session=True
+        )
+        try:
+            deadline = time.monotonic() + timeout
+            while time.monotonic() < deadline and proc.poll() is None:
+                if len([p for p in session_pids(proc.pid) if p != proc.pid]) >= children:
+                    break
+                time.sleep(0.05)
+            assert proc.poll() is None, f"{argv[3:5]} ended before it started {children} processes"
+            time.sleep(0.3)  # at work
+            proc.send_signal(signum)
+            proc.wait(60)
+            left = session_pids(proc.pid)
+            deadline = time.monotonic() + 10
+            while left and time.monotonic() < deadline:
+                time.sleep(0.1)
+                left = session_pids(proc.pid)
+            err.seek(0)
+            return proc.returncode, err.read(), left
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            for pid in session_pids(proc.pid):  # never leave a stray process behind a failed test
+                try:
+                    os.kill(pid, 9)
+                except ProcessLookupError:
+                    pass

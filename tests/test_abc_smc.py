@@ -19,7 +19,7 @@ def _problem(simulate_distance, lo, hi, integer=None, budget=200_000, seed=1):
         integer=np.zeros(lo.size, bool) if integer is None else np.asarray(integer, bool),
         evaluate=None,
         seed=seed,
-        budget=budget,
+        max_evaluations=budget,
     )
     calls = []
 

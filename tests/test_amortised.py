@@ -50,8 +50,14 @@ def test_a_draw_is_init_box_of_a_reference_scaled_to_its_height():
     assert m.height == pytest.approx(d.height) and m.beta_q50 == refs[0][1].beta_q50  # lengths scaled, angles kept
     assert m.branch_spacing / refs[0][1].branch_spacing == pytest.approx(d.height / refs[0][1].height)
     box = am.recipe_box("lignum", m)
-    j = box.names.index("years")  # LIGNUM's growth years: 1-2 per m of the tree's height
-    assert box.lower[j] == pytest.approx(d.height, rel=1e-5) and box.upper[j] == pytest.approx(2 * d.height, rel=1e-5)
+    # LIGNUM's growth years: 0.8-1.4 per whorl of the tree; the whorls scale with the height (a
+    # taller tree of the form is older), so the years do
+    j = box.names.index("years")
+    assert m.n_whorls == pytest.approx(refs[0][1].n_whorls * d.height / refs[0][1].height)
+    assert (box.lower[j], box.upper[j]) == (
+        pytest.approx(0.8 * m.n_whorls, rel=1e-4),
+        pytest.approx(1.4 * m.n_whorls, rel=1e-4),
+    )
     assert np.all((d.theta >= box.lower - 1e-12) & (d.theta <= box.upper + 1e-12))
     assert d.theta[j] == round(d.theta[j])  # whole years
     # every draw lies in the prior's overall bounds, and other indices give other draws

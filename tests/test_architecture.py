@@ -8,12 +8,15 @@ its kernel modules and the conformance kit), never another plugin nor the core's
 or cli. Every import counts, also those inside functions; so do dynamic loads
 (``importlib.import_module``, ``__import__``) of the project's modules, which only the registry
 makes (through entry points). A private name (``_x``) is imported only within its layer (or
-package): another layer uses the public names.
+package): another layer uses the public names. No module imports itself round a circle of imports
+(in the core or a plugin), also not through an import inside a function; only imports under ``if
+TYPE_CHECKING:``, which never run, are left out of that.
 """
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -35,6 +38,19 @@ SUBPACKAGES = ("pipeline", "report", "cli", "testing")
 PLUGIN_ALLOWED = {"facade", "kernel", "testing"}
 #: the one module that loads plugins (through entry points)
 REGISTRY = "registry"
+#: a package that extends a plugin through that plugin's own extension interface (a growth form of
+#: SOT: ``bforest_sot.forms``) may import it; the bundled plugins never import each other
+EXTENDS = {"bforest_example_sot_form": {"bforest_sot"}}
+#: the pipeline modules the report reads a run through: its files (store) and the definitions of
+#: what it shows (the posterior, the fidelity table's limits) ...
+REPORT_READS = {"store", "posterior", "fidelity"}
+#: ... and the report modules that rebuild what was computed but not kept, with the stages that
+#: computed it: a run's target, its answer's model seeds and tree, its clones' table
+#: (``report/run_view.py``), a stand's plan and its synthetic plot (``report/stand.py``)
+REBUILDS = {
+    "report.run_view": REPORT_READS | {"seeds", "target", "scoring", "clones"},
+    "report.stand": REPORT_READS | {"stand", "synthetic"},
+}
 
 
 def module_name(path: Path, top: Path) -> str:
@@ -63,13 +79,37 @@ def _dynamic_target(node: ast.AST) -> str | None:
     return arg.value if isinstance(arg, ast.Constant) and isinstance(arg.value, str) else "?"
 
 
-def imports(path: Path, name: str) -> list[tuple[int, str, list[str], bool]]:
+def _type_checking(node: ast.AST) -> bool:
+    """An ``if TYPE_CHECKING:`` block (its imports never run)."""
+    t = node.test if isinstance(node, ast.If) else None
+    return (
+        isinstance(t, ast.Name)
+        and t.id == "TYPE_CHECKING"
+        or isinstance(t, ast.Attribute)
+        and t.attr == "TYPE_CHECKING"
+    )
+
+
+def _nodes(tree: ast.AST, runtime: bool):
+    """Every node of ``tree`` (``runtime``: leaving out the bodies of ``if TYPE_CHECKING:``)."""
+    todo = [tree]
+    while todo:
+        node = todo.pop()
+        yield node
+        if runtime and _type_checking(node):
+            todo += node.orelse
+        else:
+            todo += ast.iter_child_nodes(node)
+
+
+def imports(path: Path, name: str, runtime: bool = False) -> list[tuple[int, str, list[str], bool]]:
     """``(line, absolute module, names imported from it, dynamic)`` of every import in a file
-    (relative imports resolved; ``dynamic``: a call of ``import_module``/``__import__``)."""
+    (relative imports resolved; ``dynamic``: a call of ``import_module``/``__import__``;
+    ``runtime``: imports under ``if TYPE_CHECKING:`` left out)."""
     is_pkg = path.name == "__init__.py"
     package = name if is_pkg else name.rpartition(".")[0]
     out = []
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+    for node in _nodes(ast.parse(path.read_text(encoding="utf-8")), runtime):
         if isinstance(node, ast.Import):
             out += [(node.lineno, a.name, [], False) for a in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -126,6 +166,17 @@ def _dynamic_problem(where: str, mod: str, dynamic: bool) -> str | None:
     return None
 
 
+def _report_reads(name: str, mod: str, core: str) -> str | None:
+    """A report module importing a pipeline module it does not read runs through (None: allowed)."""
+    stage = mod.removeprefix(f"{core}.pipeline").lstrip(".")
+    if stage in REBUILDS.get(name.removeprefix(f"{core}."), REPORT_READS):
+        return None
+    return (
+        f"the report imports {mod}: it reads a run through pipeline.{', pipeline.'.join(sorted(REPORT_READS))}, "
+        f"and rebuilds what was computed in {' and '.join(sorted(REBUILDS))} only"
+    )
+
+
 def violations(core_dir: Path, plugin_dirs: list[Path]) -> list[str]:
     """Every import that breaks the layering, as ``file:line: problem``."""
     out = []
@@ -149,6 +200,8 @@ def violations(core_dir: Path, plugin_dirs: list[Path]) -> list[str]:
             theirs = core_layer(mod, core)
             if theirs is not None and theirs not in ALLOWED[mine]:
                 out.append(f"{where}: {mine} imports {theirs} ({mod})")
+            elif mine == "report" and theirs == "pipeline" and _report_reads(name, mod, core) is not None:
+                out.append(f"{where}: {_report_reads(name, mod, core)}")
             elif theirs is not None and theirs != mine and any(map(_private, names)):
                 out.append(
                     f"{where}: {mine} imports the private name(s) {', '.join(filter(_private, names))} "
@@ -165,7 +218,7 @@ def violations(core_dir: Path, plugin_dirs: list[Path]) -> list[str]:
                     out += [problem] if problem else []
                     continue
                 top = mod.split(".")[0]
-                if top.startswith("bforest_") and top not in (own, core):
+                if top.startswith("bforest_") and top not in (own, core, *EXTENDS.get(own, ())):
                     out.append(f"{where}: plugin {own} imports plugin {mod}")
                 elif top == core:
                     layer = core_layer(_module_or_package(mod, core_dir.parent), core)
@@ -182,15 +235,101 @@ def violations(core_dir: Path, plugin_dirs: list[Path]) -> list[str]:
     return out
 
 
+def import_graph(dirs: list[Path]) -> dict[str, dict[str, str]]:
+    """Module -> {imported module of the project: where (``file:line``)}, over the packages
+    ``dirs`` (the core and the plugins), every import that runs counted, also inside functions.
+    ``from package import name`` imports the package, and the module ``name`` when it is one."""
+    graph: dict[str, dict[str, str]] = {}
+    for top in dirs:
+        for f in sorted(top.rglob("*.py")):
+            name = module_name(f, top.parent)
+            edges = graph.setdefault(name, {})
+            for line, mod, names, dynamic in imports(f, name, runtime=True):
+                if dynamic or not mod.split(".")[0].startswith("bforest"):
+                    continue
+                where = f"{f.relative_to(top.parent)}:{line}"
+                base = top.parent if mod.split(".")[0] == top.name else None
+                for target in [mod] + [f"{mod}.{n}" for n in names]:
+                    if base is None or _is_module(target, base):
+                        edges.setdefault(target, where)
+    return graph
+
+
+def _is_module(mod: str, base: Path) -> bool:
+    path = base.joinpath(*mod.split("."))
+    return path.with_suffix(".py").exists() or (path / "__init__.py").exists()
+
+
+def import_circles(dirs: list[Path]) -> list[str]:
+    """Every circle of imports among the modules of ``dirs``: ``a -> b (where) -> a (where)``.
+
+    One circle per strongly connected set of modules (Tarjan's algorithm), shown along a
+    shortest way back to its first module."""
+    graph = import_graph(dirs)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    groups: list[list[str]] = []
+
+    def visit(v: str) -> None:  # recursion depth: the longest import chain (a few dozen)
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph.get(v, {}):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while not group or group[-1] != v:
+                group.append(stack.pop())
+            if len(group) > 1 or v in graph.get(v, {}):
+                groups.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    out = []
+    for group in groups:
+        first = group[0]
+        came: dict[str, str | None] = {first: None}  # breadth first from `first` to a module importing it
+        todo, end = [first], None
+        while end is None:
+            v = todo.pop(0)
+            if first in graph.get(v, {}):
+                end = v
+            for w in graph.get(v, {}):
+                if w in group and w not in came:
+                    came[w] = v
+                    todo.append(w)
+        chain = []
+        while end is not None:
+            chain.append(end)
+            end = came[end]
+        path = chain[::-1] + [first]
+        steps = " -> ".join(f"{b} ({graph[a][b]})" for a, b in zip(path, path[1:]))
+        out.append(f"import circle: {path[0]} -> {steps}")
+    return out
+
+
 def plugin_packages() -> list[Path]:
     dirs = sorted(p for p in (ROOT / "plugins").iterdir() if (p / "__init__.py").exists())
-    example = ROOT / "docs" / "examples" / "bforest-example-ssm" / "bforest_example_ssm"
-    return dirs + ([example] if example.exists() else [])
+    examples = [
+        ROOT / "docs" / "examples" / "bforest-example-ssm" / "bforest_example_ssm",
+        ROOT / "docs" / "examples" / "bforest-example-sot-form" / "bforest_example_sot_form",
+    ]
+    return dirs + [e for e in examples if e.exists()]
 
 
 def test_the_project_keeps_its_layers():
     found = violations(ROOT / CORE, plugin_packages())
     assert not found, "imports against the layering:\n" + "\n".join(found)
+
+
+def test_no_module_imports_itself_round_a_circle():
+    found = import_circles([ROOT / CORE, *plugin_packages()])
+    assert not found, "\n".join(found)
 
 
 # ------------------------------------------------------------------ the check itself can fail
@@ -258,6 +397,12 @@ def test_the_check_finds_every_upward_import(tmp_path, mine, theirs):
             "from importlib import import_module\nm = import_module('bforest_' + 'a')\n",
             "dynamic import of a computed module name outside the registry",
         ),
+        # the report reads runs through the store (and rebuilds trees in run_view only)
+        (
+            "bforest_core/report/__init__.py",
+            "def f():\n    from ..pipeline.fit import fit\n",
+            "the report imports bforest_core.pipeline.fit: it reads a run through pipeline.fidelity",
+        ),
         # plugins use the core's public face only
         (
             "plugins/bforest_a/m.py",
@@ -294,3 +439,88 @@ def test_the_check_finds_each_kind_of_violation(tmp_path, rel, text, expected):
     _write(tmp_path, {rel: text})
     found = violations(tmp_path / "bforest_core", [tmp_path / "plugins" / "bforest_a"])
     assert len(found) == 1 and expected in found[0], found
+
+
+@pytest.mark.parametrize(
+    "files, circle",
+    [
+        # at module level, within the kernel
+        (
+            {"bforest_core/tree.py": "from .io import y\n", "bforest_core/io.py": "from .tree import Tree\n"},
+            "bforest_core.io -> bforest_core.tree (bforest_core/io.py:1) -> bforest_core.io (bforest_core/tree.py:1)",
+        ),
+        # closed inside a function, within a layer (the layering allows both imports)
+        (
+            {
+                "bforest_core/pipeline/fit.py": "from .store import x\n",
+                "bforest_core/pipeline/store.py": "def f():\n    from .fit import g\n",
+            },
+            "bforest_core.pipeline.fit -> bforest_core.pipeline.store (bforest_core/pipeline/fit.py:1) -> "
+            "bforest_core.pipeline.fit (bforest_core/pipeline/store.py:2)",
+        ),
+        # three modules of a plugin, one through `from . import name`
+        (
+            {
+                "plugins/bforest_a/m.py": "from . import n\nz = 1\n",
+                "plugins/bforest_a/n.py": "from .o import w\n",
+                "plugins/bforest_a/o.py": "def f():\n    from bforest_a.m import z\n",
+            },
+            "bforest_a.m -> bforest_a.n (bforest_a/m.py:1) -> bforest_a.o (bforest_a/n.py:1) -> "
+            "bforest_a.m (bforest_a/o.py:2)",
+        ),
+    ],
+    ids=["module-level", "inside-a-function", "plugin"],
+)
+def test_the_check_finds_an_import_circle(tmp_path, files, circle):
+    _write(tmp_path, GOOD)
+    dirs = [tmp_path / "bforest_core", tmp_path / "plugins" / "bforest_a"]
+    assert import_circles(dirs) == []
+    _write(tmp_path, files)
+    found = import_circles(dirs)
+    assert found == [f"import circle: {circle}"], found
+
+
+def test_an_import_for_type_checking_only_closes_no_circle(tmp_path):
+    _write(tmp_path, GOOD)
+    _write(
+        tmp_path,
+        {
+            "bforest_core/tree.py": "from .io import y\n",
+            "bforest_core/io.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from .tree import Tree\ny = 1\n",
+        },
+    )
+    assert import_circles([tmp_path / "bforest_core"]) == []
+    (tmp_path / "bforest_core" / "io.py").write_text("from .tree import Tree\ny = 1\n")
+    assert len(import_circles([tmp_path / "bforest_core"])) == 1
+
+
+#: what the core must not spell: bundled optimiser, distance and summary plugins and their settings
+#: (each plugin writes its own part of a recipe; the core names them in config.BUNDLED_KINDS only)
+PLUGIN_WORDS = re.compile(r'"cma"|sigma0|surrogate|"sliced"|"tree-summary"')
+
+
+def plugin_words(core_dir: Path) -> list[str]:
+    """``file:line`` of every bundled plugin's name or setting in the core outside config.BUNDLED_KINDS."""
+    out = []
+    for f in sorted(core_dir.rglob("*.py")):
+        text = f.read_text(encoding="utf-8")
+        table = re.search(r"^BUNDLED_KINDS = \{.*?^\}", text, re.S | re.M) if f.name == "config.py" else None
+        for m in PLUGIN_WORDS.finditer(text):
+            if table is None or not table.start() <= m.start() < table.end():
+                out.append(f"{f.relative_to(core_dir.parent)}:{text.count(chr(10), 0, m.start()) + 1}: {m.group()}")
+    return out
+
+
+def test_the_core_names_no_bundled_plugin_outside_its_table_of_default_kinds():
+    found = plugin_words(ROOT / CORE)
+    assert not found, "the core names a bundled plugin or its settings:\n" + "\n".join(found)
+
+
+def test_the_plugin_word_check_can_fail(tmp_path):
+    _write(tmp_path, {"bforest_core/config.py": 'BUNDLED_KINDS = {\n    "distance": ("sliced", "sliced"),\n}\n'})
+    assert plugin_words(tmp_path / "bforest_core") == []
+    _write(tmp_path, {"bforest_core/pipeline/recipe.py": 'L = ["sigma0 = 0.15", \'kind = "cma"\']\n'})
+    assert plugin_words(tmp_path / "bforest_core") == [
+        "bforest_core/pipeline/recipe.py:1: sigma0",
+        'bforest_core/pipeline/recipe.py:1: "cma"',
+    ]

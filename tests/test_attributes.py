@@ -275,3 +275,81 @@ def test_clone_band_and_distributions_figure(tmp_path):
 
     im = np.asarray(Image.open(p).convert("L"))
     assert im.shape[1] > 600 and im.std() > 5  # drawn, not blank
+
+
+# ------------------------------------------------------------------------------ large trees
+def _comb(trunk: int = 1000, per: int = 199, seed: int = 0) -> Tree:
+    """A 30 m trunk of ``trunk`` cylinders, each bearing ``per`` laterals of one cylinder
+    (0.5 m, random azimuth, 30-80 deg from the vertical): ``trunk * (per + 1)`` cylinders."""
+    rng = np.random.default_rng(seed)
+    n_lat = trunk * per
+    dz = 30.0 / trunk
+    host = np.repeat(np.arange(trunk), per)
+    az, ang = rng.uniform(0, 2 * PI, n_lat), np.radians(rng.uniform(30, 80, n_lat))
+    lat_axis = np.c_[np.sin(ang) * np.cos(az), np.sin(ang) * np.sin(az), np.cos(ang)]
+    start = np.r_[np.c_[np.zeros((trunk, 2)), np.arange(trunk) * dz], np.c_[np.zeros((n_lat, 2)), (host + 0.5) * dz]]
+    axis = np.r_[np.tile([0.0, 0.0, 1.0], (trunk, 1)), lat_axis]
+    length = np.r_[np.full(trunk, dz), np.full(n_lat, 0.5)]
+    radius = np.r_[np.linspace(0.3, 0.02, trunk), np.full(n_lat, 0.005)]
+    parent = np.r_[-1, np.arange(trunk - 1), host]
+    ext = np.r_[np.arange(1, trunk), -1, np.full(n_lat, -1)]
+    return Tree(start, axis, length, radius, parent, ext)
+
+
+def test_height_distributions_of_a_large_tree_take_little_memory():
+    """A cylinder reaches one height class or two: the shares of 200 000 cylinders in 30 classes
+    are kept per cylinder and class reached (a dense table of every cylinder and class held
+    200 000 x 30 floats several times over, gigabytes at a million cylinders)."""
+    import tracemalloc
+
+    t = _comb()
+    assert t.n == 200_000
+    tracemalloc.start()
+    d = distributions(t)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 60e6, f"{peak / 1e6:.0f} MB"
+    assert d["LenCylHei"].sum() == pytest.approx(30.0 + 0.5 * 199_000)  # every metre in some class
+    assert d["LenCylHei"].size == 31  # the laterals of the top reach above the trunk's 30 m
+    trunk = distributions(_comb(per=0))  # 1000 cylinders of 3 cm, cut by the class edges
+    assert trunk["LenCylHei"] == pytest.approx(np.ones(30))
+    assert trunk["VolCylHei"].sum() == pytest.approx(float(np.sum(PI * np.linspace(0.3, 0.02, 1000) ** 2 * 0.03)))
+
+
+def test_the_alpha_shapes_of_a_large_crown_are_measured_on_a_thinned_cloud(monkeypatch):
+    """Above ALPHA_POINTS the crown is thinned to one point per cube of a grid 16 times finer
+    than alpha (coarser until few enough are left): a crown of 150 straight branches sampled
+    every 2 cm keeps its alpha volume within 1 %, and the thinning says so."""
+    from bforest_core import attributes as A
+
+    rng = np.random.default_rng(1)
+    base, d = rng.uniform(0, [4.0, 3.0, 2.0], (150, 3)), rng.normal(size=(150, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    along = np.linspace(0, 1.5, 80)
+    crown = (base[:, None, :] + along[None, :, None] * d[:, None, :]).reshape(-1, 3)
+    crown += rng.normal(0, 0.002, crown.shape)
+    full = A._alpha_measure(crown, 0.8)
+    kept, side = A.thinned(crown, 0.8, crown.shape[0])
+    assert side == 0 and kept is crown  # within the limit: every point
+    kept, side = A.thinned(crown, 0.8, 5_000)
+    assert side == pytest.approx(0.1) and kept.shape[0] <= 5_000  # 0.05 m left 6 000
+    cells = np.floor((kept - crown.min(0)) / side).astype(int)
+    assert len({tuple(c) for c in cells}) == kept.shape[0]  # one point per cube
+    assert np.array_equal(kept, A.thinned(crown, 0.8, 5_000)[0])  # the same points every time
+    monkeypatch.setitem(A.ALPHA_POINTS, 3, 5_000)
+    notes = []
+    assert A._alpha_measure(crown, 0.8, notes) == pytest.approx(full, rel=0.01)
+    assert len(notes) == 1 and f"the 3-D alpha shape is measured on {kept.shape[0]:,} of the 12,000" in notes[0]
+
+
+def test_info_says_when_the_crown_was_thinned(tmp_path, monkeypatch, capsys):
+    from bforest_core import attributes as A
+    from bforest_core.cli.main import main
+    from bforest_core.io import write_tree
+
+    write_tree(_comb(trunk=200, per=49), tmp_path / "comb.txt")
+    monkeypatch.setitem(A.ALPHA_POINTS, 3, 2_000)
+    assert main(["info", str(tmp_path / "comb.txt")]) == 0
+    out = capsys.readouterr().out
+    assert "    note: the 3-D alpha shape is measured on " in out and "docs/tree-attributes.md" in out
+    assert "2-D alpha shape is measured" not in out  # the projection's 100 000 points are not reached

@@ -16,7 +16,7 @@ def _problem(f, lo, hi, integer=None, budget=600, seed=1, seed_spread=None):
         integer=np.zeros(lo.size, bool) if integer is None else np.asarray(integer, bool),
         evaluate=None,
         seed=seed,
-        budget=budget,
+        max_evaluations=budget,
         seed_spread=seed_spread,
     )
     asked = []

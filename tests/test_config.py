@@ -59,6 +59,10 @@ def _raw(**over):
             dict(ssm={"kind": "toy", "fixed": {"noise": 50}}),
             r"ssm\.fixed\.noise: 50.0 is outside the allowed range \[0.0, 20.0\]",
         ),
+        (
+            dict(ssm={"kind": "toy", "fixed": {"angle": 10}, "free": {"angle": {"lower": 5, "upper": 80}}}),
+            r"ssm\.free\.angle: also listed in ssm\.fixed",
+        ),
         (dict(target={"qsm": "a.mat", "generate": {"ssm": "toy"}}), r"target: give exactly one of 'qsm'"),
     ],
 )
@@ -153,7 +157,7 @@ def test_lignum_recipe_weights_statistics_by_their_fidelity_limits():
     limits = run_fidelity.LIMITS  # the limits the validation checks the clones against
     cfg = bf.load_config(real / "pine_lignum.toml")
     (size,) = [t for t in cfg.objective.terms if t.name == "size"]
-    w = size.distance.settings["weights"]
+    w = size.distance.weights
     ratio = [w[k] * limits[k] for k in limits]
     assert max(ratio) / min(ratio) == pytest.approx(1.0, abs=0.02)  # DBH: 2.7 for 8 / 3
     assert cfg.objective.structure_weight == pytest.approx(size.weight)
@@ -319,3 +323,77 @@ def test_the_broadleaved_floor_table_sets_each_judge_beside_its_floor_and_is_kep
     assert text.count(tf5[0]) == 1 and text.index(tf5[0]) > next(
         i for i, x in enumerate(text) if x.startswith(rb.FLOOR_HEAD)
     )
+
+
+def _term(**features):
+    return {
+        "name": "more",
+        "weight": 0.5,
+        "features": {"kind": "toy-features", **features},
+        "distance": {"kind": "toy-distance"},
+    }
+
+
+def test_a_term_a_generated_target_and_select_carry_their_plugins_typed_settings(toy_plugin):
+    """[[objective.terms]], [target.generate] and [select] are typed as the plugins' settings: read
+    as the settings models, with their defaults, pickled by reference as the sections are."""
+    import pickle
+
+    from bforest_core.config import part_settings, selection_config
+
+    raw = _raw(objective={"terms": [_term()]}, select={"top": 2, "distance": {"kind": "toy-distance"}})
+    raw["target"]["generate"]["settings"] = {"fail_above": 70.0}
+    cfg = parse_config(raw)
+    term, gen = cfg.objective.terms[0], cfg.target.generate
+    features_model = type(cfg.features)  # the [features] section's model: the same plugin's
+    assert type(term.features) is features_model and term.features.kind == "toy-features"
+    assert part_settings(term.features) == part_settings(cfg.features)  # the plugin's defaults, filled in
+    settings_cls = bf.registry.discover().get("ssm", "toy").Settings
+    assert isinstance(gen.settings, settings_cls) and gen.settings.fail_above == 70.0 and gen.settings.sleep == 0.0
+    again = pickle.loads(pickle.dumps(cfg))
+    assert again.model_dump() == cfg.model_dump() and type(again.objective.terms[0].features) is features_model
+    assert selection_config(cfg).distance.kind == "toy-distance"
+
+
+@pytest.mark.parametrize(
+    "edit, msg",
+    [
+        (
+            lambda r: r.update(objective={"terms": [_term(bogus=1)]}),
+            r"objective\.terms\.0\.features\.bogus: unknown key",
+        ),
+        (
+            lambda r: r["target"]["generate"].update(settings={"fail_abov": 1.0}),
+            r"target\.generate\.settings\.fail_abov: unknown key \(did you mean 'fail_above'\?\)",
+        ),
+        (
+            lambda r: r["target"]["generate"].update(settings={"sleep": -1.0}),
+            r"target\.generate\.settings\.sleep: .*greater than or equal to 0",
+        ),
+        (
+            lambda r: r["target"]["generate"].update(ssm="toyy"),
+            r"target\.generate\.ssm: unknown ssm 'toyy' .*did you mean 'toy'",
+        ),
+        (lambda r: r.update(select={"top": 2, "distance": {"bogus": 1}}), r"select: distance\.bogus: unknown key"),
+    ],
+)
+def test_a_bad_setting_of_a_term_a_generated_target_or_select_is_named_when_the_config_is_read(toy_plugin, edit, msg):
+    raw = _raw()
+    edit(raw)
+    with pytest.raises(ConfigError, match=r"run\.toml: .*" + msg):
+        parse_config(raw, source="run.toml")
+
+
+def test_a_table_validated_alone_names_every_problem_at_its_place_in_the_config(toy_plugin):
+    """A [target] validated on its own (as calibrate's runs are) puts ``target.`` before every
+    clause, the union's tag (the generate SSM's name) left out."""
+    import pydantic
+
+    from bforest_core.errors import validation_error_text
+
+    cfg = parse_config(_raw())
+    raw = {"generate": {"ssm": "toy", "seed": -1, "settings": {"sleep": -1.0}}}
+    with pytest.raises(pydantic.ValidationError) as err:
+        type(cfg.target).model_validate(raw)
+    clauses = validation_error_text(err.value, raw, prefix=("target",)).split("; ")
+    assert sorted(c.split(":")[0] for c in clauses) == ["target.generate.seed", "target.generate.settings.sleep"]

@@ -36,6 +36,7 @@ from conftest import qsm_path
 #: (a reader without samples reads the sample tree as the writer of its name writes it).
 OPTIONS = {
     ("ssm", "sot"): {"params": {"max_iter": 8}},
+    ("ssm", "sot-bud-abort"): {"params": {"max_iter": 8}},  # the example growth form (docs/examples)
     ("ssm", "lignum"): {"params": {"years": 6}},
     ("features", "branch-segment"): {"settings": {"sets": ["S0,1", "B1", "B2"]}},
     ("optimizer", "ga"): {"settings": {"population": 8}},
@@ -139,6 +140,7 @@ def test_toy_plugin_conforms(toy_plugin):
     assert ssm.passed == [
         "class",
         "settings",
+        "recipe",
         "registered",
         "parameters",
         "resolve_params",
@@ -322,7 +324,8 @@ def _fails(component, check, match, **options):
 
 def test_positive_control_passes_every_check():
     rep = check_ssm(GoodSSM, params={"nodes": 4})
-    assert rep.ok and len(rep.results) == 10  # no 'registered' check unless asked
+    assert rep.ok and len(rep.results) == 11  # no 'registered' check unless asked
+    assert dict((r.check, r.note) for r in rep.results)["recipe"] == "writes no recipes"
 
 
 def test_nondeterministic_ssm_is_caught():
@@ -437,7 +440,23 @@ class SignedDistance(Distance):
         return float(u_data.mean() - u_model.mean()) if len(u_model) else 0.0
 
 
+class MiswrittenDistance(Distance):
+    """Writes a recipe part with a setting it does not have, under another kind."""
+
+    name = "miswritten"
+
+    def compute(self, u_model, u_data):
+        return float(np.abs(u_model.mean(0) - u_data.mean(0)).sum()) if len(u_model) else 1.0
+
+    def draft_recipe(self, plan):
+        if plan.term == "structure":
+            return bf.RecipePart(self.name, [("lines", 128, None)])
+        return bf.RecipePart("sliced", [])
+
+
 def test_broken_distances_are_caught():
+    _fails(MiswrittenDistance, "recipe", r"structure part's settings \{'lines': 128\} are not valid settings")
+    assert check_distance(MiswrittenDistance, raise_on_failure=False).failures[0].check == "recipe"
     _fails(OffsetDistance, "identical", r"identical model and data tables give non-zero distances")
     _fails(SignedDistance, "finite", r"distance -?\d.* is not a finite non-negative number")
     U_data, U_model, cols = sample_tables(dims=(3,), shift=2.0)
@@ -517,7 +536,7 @@ class BadPriorityWriter(bf.QSMWriter):
         return Path(path)
 
 
-class MislinedDistance(OffsetDistance):
+class MislinedDistance(bf.LineDistance):
     """Per-line values that match no direction."""
 
     name = "mislined"
@@ -535,7 +554,16 @@ class MislinedDistance(OffsetDistance):
 def test_declared_capabilities_are_checked(tmp_path):
     _fails(BadPriorityWriter, "priority", r"priority is 'high', expected an int", out_dir=tmp_path)
     _fails(MislinedDistance, "capabilities", r"line_values of set '.*' has shape \(\d+,\), expected \(\d+,\) finite")
-    rep = check_distance(OffsetDistance, raise_on_failure=False)  # the defaults: no lines, no transforms
+    rep = check_distance(OffsetDistance, raise_on_failure=False)  # a plain distance: no lines, no transforms
+    assert next(r for r in rep.results if r.check == "capabilities").note == (
+        "compares the tables as they are (no projection lines)"
+    )
+
+    class Lined(bf.LineDistance):  # a line distance with the defaults: no per-line values of its own
+        name = "lined"
+        compute, directions = MislinedDistance.compute, MislinedDistance.directions
+
+    rep = check_distance(Lined, raise_on_failure=False)
     assert next(r for r in rep.results if r.check == "capabilities").note == "statistic 'ks'; no per-line values"
 
 

@@ -8,6 +8,7 @@ import pytest
 
 import bforest_core as bf
 from bforest_core import ConfigError, Tree
+from bforest_core.tree import remap_ids
 from bforest_features.branch_segment import (
     BranchSegmentFeatures,
     _segment_angles,
@@ -240,8 +241,14 @@ def test_renumbering_gives_same_multisets(rule):
     perm = np.lexsort((rng.random(t.n), depth_of(t.parent)))
     inv = np.empty(t.n, dtype=np.int64)
     inv[perm] = np.arange(t.n)
-    rm = lambda a: np.where(a >= 0, inv[np.maximum(a, 0)], -1)
-    t2 = Tree(t.start[perm], t.axis[perm], t.length[perm], t.radius[perm], rm(t.parent[perm]), rm(t.extension[perm]))
+    t2 = Tree(
+        t.start[perm],
+        t.axis[perm],
+        t.length[perm],
+        t.radius[perm],
+        remap_ids(t.parent[perm], inv),
+        remap_ids(t.extension[perm], inv),
+    )
     assert not np.array_equal(perm, np.arange(t.n))
     fs = feats(sets=["S0+", "B1+"], topology=rule)
     fs.prepare(t)

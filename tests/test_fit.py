@@ -86,7 +86,8 @@ def test_resume_after_crash_repeats_nothing_and_matches(toy_plugin, tmp_path, mo
 def test_resume_refuses_other_config(toy_plugin, tmp_path):
     bf.fit(bf.load_config(toy_config(tmp_path, budget=8)), tmp_path / "run", progress=False)
     other = bf.load_config(toy_config(tmp_path, budget=9))
-    with pytest.raises(bf.BayesForestError, match="config differs"):
+    other.seed = 4
+    with pytest.raises(bf.BayesForestError, match="config differs.*seed: 3 -> 4"):
         bf.fit(other, tmp_path / "run", resume=True, progress=False)
     with pytest.raises(bf.BayesForestError, match="already holds a run"):
         bf.fit(other, tmp_path / "run", progress=False)
@@ -246,6 +247,27 @@ def test_compare_optimizers_on_equal_budgets(toy_plugin, tmp_path):
     assert fig.exists() and fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "](compare.png)" in (tmp_path / "cmp" / "compare.md").read_text()
     assert "median best" in res["table_text"] and (tmp_path / "cmp" / "compare.json").exists()
+
+
+def test_compare_draws_its_repeats_run_seeds_from_the_base_seeds_own_stream(toy_plugin, tmp_path):
+    """A repeat's run seed comes from the base seed's SeedSequence stream (tag 6), not base + r: a
+    comparison from base seed 1 and one from base seed 2 share no run (they shared one before)."""
+    from bforest_core.pipeline.compare import compare
+    from bforest_core.pipeline.seeds import repeat_seeds
+
+    s1, s2 = repeat_seeds(1, 3), repeat_seeds(2, 3)
+    expected = [int(s.generate_state(1, np.uint32)[0]) for s in np.random.SeedSequence([1, 6]).spawn(3)]
+    assert s1 == expected and len(set(s1)) == 3 and not set(s1) & set(s2)
+    assert repeat_seeds(1, 2) == s1[:2]  # a longer comparison keeps the shorter one's runs
+    text = toy_config(tmp_path, budget=6).read_text()
+    runs = {}
+    for base in (1, 2):
+        cfg = tmp_path / f"base{base}.toml"
+        cfg.write_text(text.replace("\nseed = 3\n", f"\nseed = {base}\n", 1))
+        res = compare(cfg, ["toy-random"], budget=6, repeats=2, out_dir=tmp_path / f"cmp{base}")
+        runs[base] = [bf.load_config(tmp_path / f"cmp{base}" / f"toy-random-{r}" / "config.toml").seed for r in (0, 1)]
+        assert [r["seed"] for r in res["runs"]] == runs[base] == repeat_seeds(base, 2)
+    assert not set(runs[1]) & set(runs[2])
 
 
 def test_compare_lets_each_optimiser_lift_its_own_limits_for_the_budget(toy_plugin, tmp_path):
@@ -477,7 +499,9 @@ def test_bounds_scaled_by_a_measure_of_the_target(toy_plugin, tmp_path):
     assert res.already_finished
     # a resolved bound beyond the model's range (angle: 0-90 deg) is moved to it, with a warning
     p.write_text(p.read_text().replace(scaled, scaled.replace("upper = 5.0", "upper = 50.0")))
-    with pytest.warns(UserWarning, match=r"ssm\.free\.angle: 1-50 x the height .* the search keeps to \["):
+    with pytest.warns(
+        UserWarning, match=r"ssm\.free\.angle: 1-50 x the height of .* \([\d.]+ m\).* the search keeps to \["
+    ):
         bf.fit(bf.load_config(p), tmp_path / "run2", progress=False)
     assert bf.load_config(tmp_path / "run2" / "config.toml").ssm.free["angle"].upper == 90.0
     # nothing left of the range: an error naming the parameter, the measure and the range
@@ -505,3 +529,30 @@ def test_scaled_bounds_are_checked_when_the_config_is_read(toy_plugin, tmp_path)
     p.write_text(text.replace("lower = 5.0, upper = 80.0 }", 'lower = -1.0, upper = 2.0, scaled_by = "height" }'))
     with pytest.raises(bf.ConfigError, match=r"must be >= 0: the bounds are multiples of height"):
         bf.load_config(p)
+
+
+def test_the_search_runs_on_one_blas_thread_on_any_machine(toy_plugin, tmp_path, monkeypatch):
+    """The stand benchmark (issue 75) found SOT fits of one tree, run seed and recipe ending on
+    other answers in a 2-thread process and in a one-thread Dask worker: lq-CMA-ES's linear algebra
+    rounds with the number of BLAS threads and the runs parted at the last digit after ~900
+    evaluations. The search now runs on one BLAS thread wherever it runs; the limit ends with it."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from bforest_core.pipeline import fit as fit_module
+
+    def blas_threads():
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    seen = []
+    call = fit_module.Evaluator.__call__
+
+    def watched(self, X):
+        seen.append(blas_threads())
+        return call(self, X)
+
+    monkeypatch.setattr(fit_module.Evaluator, "__call__", watched)
+    with threadpool_limits(limits=2, user_api="blas"):
+        assert blas_threads() and set(blas_threads()) == {2}  # the machine's BLAS takes 2 threads
+        bf.fit(bf.load_config(toy_config(tmp_path, budget=8)), tmp_path / "run", progress=False)
+        assert set(blas_threads()) == {2}
+    assert seen and all(t and set(t) == {1} for t in seen), seen

@@ -125,9 +125,11 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     r, cfg = _recipe(tmp_path, excurrent_tree(), "pine")
     assert r.model == "lignum" and cfg["ssm"]["kind"] == "lignum"
     free = cfg["ssm"]["free"]
-    assert free["years"] == {"lower": 1.0, "upper": 2.0, "scaled_by": "height"}  # 1-2 years per m of height
+    # 0.8-1.4 years per whorl: the tree's 12 branches, 0.5 m apart, are 12 whorls
+    assert r.measures.n_whorls == 12
+    assert free["years"] == {"lower": 0.8, "upper": 1.4, "scaled_by": "n_whorls"}
     years = bounds_from_target(bf.load_config(tmp_path / "pine.toml"), [excurrent_tree()]).ssm.free["years"]
-    assert (years.lower, years.upper) == (pytest.approx(10.0), pytest.approx(20.0))  # the 10 m tree's
+    assert (years.lower, years.upper) == (pytest.approx(9.6), pytest.approx(16.8))
     # angles 50-80 deg: initial angle from 15 (50 - 35) to 85 (median 65 + 20), final from 35
     # (65 - 30) to 75 (80 - 5), each within the parameter's allowed range (17.5-90, 40-105 deg)
     assert free["beta_init"] == {"lower": 17.5, "upper": 85.0}
@@ -140,7 +142,7 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
     assert cfg["target"]["qsm"] == "pine.txt"
     # LIGNUM's search: the SOT pine recipe's, one model seed an evaluation, two runs of 32 together
     assert cfg["select"] == {"top": 16, "sets": 16} and cfg["objective"]["seeds"] == 1
-    assert cfg["stop"]["max_evaluations"] == 4000
+    assert cfg["stop"]["max_evaluations"] == 5000
     # the search stops on its budget, never on the clock: the wall time is a safety net an hour
     # long, for a small tree and a tall one alike (the answer is the same on a slow or busy machine)
     assert cfg["stop"]["wall_time"] == 3600.0
@@ -157,8 +159,12 @@ def test_init_on_an_excurrent_tree_writes_a_lignum_recipe_scaled_to_it(tmp_path)
         "crown_spread": 0.17,
         "crown_base_height": 0.2,
         "n_branches_o1": 0.2,
+        "n_whorls": 0.2,
     }
-    assert size["limits"] == SIZE_LIMITS and size["steep"] == 3.0
+    assert size["limits"] == {**SIZE_LIMITS, "n_whorls": 0.2} and size["steep"] == 3.0
+    # the whorls tell the fit the tree's years: the size term counts them, weighed as a 30 % tolerance
+    assert size["weights"]["n_whorls"] == 3.3
+    assert cfg["objective"]["terms"][0]["features"]["statistics"][-1] == "n_whorls"
     # a failed growth scores above the worst grown tree: every headline 1 000 times the tree's or
     # nothing at all, under the KS's largest value (1); the default penalty (1.0) would lie below
     names = list(size["limits"])
@@ -390,6 +396,20 @@ def test_init_never_replaces_a_recipe_without_overwrite(tmp_path, capsys):
     assert "lignum" in capsys.readouterr().out and "years" in out.read_text()
 
 
+def test_lignum_reads_the_years_off_the_whorls_and_says_when_they_do_not_fit():
+    m = measure_tree(excurrent_tree())
+    assert lignum_recipe(dataclasses.replace(m, n_whorls=30)).suits > 0  # 24-42 years: within 40 at first
+    old = lignum_recipe(dataclasses.replace(m, n_whorls=44))  # 35 years at the least
+    assert old.suits == 0 and "44 whorls need more than LIGNUM's 40 years" in old.why
+    young = lignum_recipe(dataclasses.replace(m, n_whorls=6))  # 8 years at the most
+    assert young.suits == 0 and "6 whorls, fewer than LIGNUM's 7 years" in young.why
+
+
+def test_the_pines_whorls():
+    # the Ruotsinkylä pines' first-order branches, dead ones too, in whorls 15 cm apart or more
+    assert [measure_tree(bf.read_qsm(sample(f"pine_ruotsinkyla_{i}.mat"))).n_whorls for i in (1, 2, 3)] == [27, 24, 27]
+
+
 def test_init_on_pine_3_writes_the_shipped_lignum_recipes_model(tmp_path):
     # init's recipe for pine 3 grows the shipped recipe's model: its settings, fixed values and
     # bounds value for value (two below) and in the same order, the same sets and size weights; its search
@@ -403,20 +423,26 @@ def test_init_on_pine_3_writes_the_shipped_lignum_recipes_model(tmp_path):
     a, b = bf.load_config(out).model_dump(), bf.load_config(shipped).model_dump()
     for c in (a, b):  # the same file, whatever symbolic links lead to it
         c["target"]["qsm"] = str(Path(c["target"]["qsm"]).resolve())
-    # but for two bounds, where the shipped recipe keeps the box of its measured rows: init keeps
-    # the orders pine 3 lacks dormant (Q >= 1/6: it branches to order 5), and lets a new shoot's
+    # but for three bounds and one parameter, where the shipped recipe keeps the box of its measured rows: init reads
+    # the years off the tree's whorls (0.8-1.4 a whorl, not 1-2 a metre of height), keeps the
+    # orders pine 3 lacks dormant (Q >= 1/6: it branches to order 5), and lets a new shoot's
     # radius:length reach 1.5 x its first-order branches' median (2.4 %)
     fa, fb = a["ssm"]["free"], b["ssm"]["free"]
+    assert (fa["years"]["scaled_by"], fb["years"]["scaled_by"]) == ("n_whorls", "height")
     assert fa["q_mean"]["lower"] == pytest.approx(1 / 6, abs=1e-3) and fb["q_mean"]["lower"] == 0.0
     assert fa["lr_mean"]["upper"] == 0.037 and fb["lr_mean"]["upper"] == 0.025
-    fa["q_mean"]["lower"], fa["lr_mean"]["upper"] = 0.0, 0.025
+    fa["years"], fa["q_mean"]["lower"], fa["lr_mean"]["upper"] = fb["years"], 0.0, 0.025
+    # and one parameter more: the most branches a bud sets (2-7; the shipped recipe keeps the tables' 7)
+    ml = fa.pop("max_laterals")
+    assert (ml["lower"], ml["upper"]) == (2.0, 7.0) and "max_laterals" not in fb
     for k in ("seed", "target", "ssm", "features", "distance", "executor", "clones"):
         assert a[k] == b[k], k
     assert list(a["ssm"]["free"]) == list(b["ssm"]["free"])
+    # the size term: the shipped statistics and weights, and the whorls
     size_a, size_b = a["objective"]["terms"][0], b["objective"]["terms"][0]
-    assert size_a["features"] == size_b["features"]
-    assert size_a["distance"]["weights"] == size_b["distance"]["weights"]
-    assert "limits" in size_a["distance"] and "limits" not in size_b["distance"]
+    assert size_a["features"] == {**size_b["features"], "statistics": [*SUMMARY_DEFAULT, "n_whorls"]}
+    assert size_a["distance"]["weights"] == {**size_b["distance"]["weights"], "n_whorls": 3.3}
+    assert size_a["distance"]["limits"] and size_b["distance"]["limits"] == {}  # the shipped recipe gives none
 
 
 @pytest.mark.parametrize(

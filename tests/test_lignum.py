@@ -245,6 +245,18 @@ def test_all_shadow_methods_on_a_grown_crown(synth12, monkeypatch):
     assert SH.choose_method(vox - vox.min(0), vox.shape[0], 28) == "grid"
     dense = RNG.integers(0, 12, size=(20_000, 3))
     assert SH.choose_method(dense, dense.shape[0], 10) == "sat"
+    # its short cut (the grid at the most pairs there can be against the integral images) makes
+    # the full model's choice: crowns sparse and dense, few receivers and all, deep and shallow pyramids
+    cut = 0
+    for k, (n, box, q) in enumerate(
+        [(300, 400, 40), (2_000, 300, 37), (5_000, 200, 60), (20_000, 12, 10), (800, 30, 4)]
+    ):
+        pts = np.random.default_rng(k).integers(0, box, size=(n, 3))
+        for n_rcv in (n // 10, n):
+            sat = SH._sat_cost(pts, n_rcv, q)
+            assert SH.choose_method(pts, n_rcv, q) == SH._cheapest(pts, n_rcv, q, sat), (n, box, q, n_rcv)
+            cut += SH._grid_cost_bound(n, n_rcv, q) <= sat
+    assert 0 < cut < 10  # the short cut was taken, and passed over
     with pytest.raises(ValueError, match="method"):
         shadow_fast(vox, 10.0, 28, method="kdtree")
 
@@ -379,9 +391,8 @@ def test_too_many_segments_failure():
 
 
 def test_no_root_failure():
-    sim = LM._Simulation(
-        _ssm().resolve_params({"years": 2}), 1, preset="sf_synthetic", order_mode="growth", max_live=10
-    )
+    ssm = _ssm(max_live_segments=10)
+    sim = LM._Simulation(ssm.resolve_params({"years": 2}), 1, ssm.settings)
     sim._init()
     sim.st.deleted[:] = True
     with pytest.raises(LM._Failed) as ei:
@@ -744,14 +755,18 @@ def test_render_pieces_on_a_hand_built_table():
 
 
 def test_pieces_are_output_only_reproducible_and_off_by_default():
-    ssm = _ssm(preset="sf_real")
+    ssm, pieces = _ssm(preset="sf_real"), _ssm(preset="sf_real", piece_length=0.12)  # a setting: output only
     base = {"years": 16}
     t0 = ssm.simulate(base, seed=3)
-    assert _same(t0, ssm.simulate({**base, "piece_length": 0.0, "wind_sd": 30.0}, seed=3))
-    straight = ssm.simulate({**base, "piece_length": 0.12}, seed=3)
-    wound = ssm.simulate({**base, "piece_length": 0.12, "wind_sd": 20.0}, seed=3)
-    assert _same(wound, ssm.simulate({**base, "piece_length": 0.12, "wind_sd": 20.0}, seed=3))
-    assert not _same(wound, ssm.simulate({**base, "piece_length": 0.12, "wind_sd": 20.0}, seed=4))
+    assert _same(t0, ssm.simulate({**base, "wind_sd": 30.0}, seed=3))
+    straight = pieces.simulate(base, seed=3)
+    wound = pieces.simulate({**base, "wind_sd": 20.0}, seed=3)
+    assert _same(wound, pieces.simulate({**base, "wind_sd": 20.0}, seed=3))
+    assert not _same(wound, pieces.simulate({**base, "wind_sd": 20.0}, seed=4))
+    with pytest.raises(bf.ConfigError, match="piece_length"):
+        _ssm(piece_length=-0.1)
+    with pytest.raises(ValueError, match="unknown parameter.*piece_length"):
+        ssm.simulate({**base, "piece_length": 0.12}, seed=3)
     ends0 = np.round(t0.end, 9)
     for t in (straight, wound):
         assert t.n > 1.5 * t0.n and t.n_branches == t0.n_branches and t.max_order == t0.max_order
@@ -764,3 +779,47 @@ def test_pieces_are_output_only_reproducible_and_off_by_default():
     assert wound.length.sum() > straight.length.sum()
     assert np.allclose(wound.axis[wound.order == 0], straight.axis[straight.order == 0], rtol=0, atol=1e-12)
     assert not np.allclose(wound.axis[wound.order > 0], straight.axis[straight.order > 0], atol=1e-3)
+
+
+def test_a_years_weather_is_off_by_default_and_varies_the_leaders_steps():
+    """year_sd: 0 gives the tree draw for draw; above 0 each year's production gets a factor of
+    mean 1 from a stream of its own (the same factors for a seed, other ones for another), and
+    the leader's yearly shoots, the steps between the stem's whorls, vary more."""
+    ssm = _ssm(preset="sf_real")
+    base = {"years": 20}
+    t0 = ssm.simulate(base, seed=3)
+    assert _same(t0, ssm.simulate({**base, "year_sd": 0.0}, seed=3))
+    f = LM.year_factors(3, 5000, 0.3)
+    assert abs(f.mean() - 1.0) < 0.02 and abs(np.log(f).std() - 0.3) < 0.01
+    assert np.array_equal(f[:21], LM.year_factors(3, 20, 0.3)) and not np.array_equal(f, LM.year_factors(4, 5000, 0.3))
+    assert np.array_equal(LM.year_factors(3, 20, 0.0), np.ones(21))
+
+    def step_cv(tree):
+        born = np.asarray(tree.extras["birth_year"])
+        stem = (tree.order == 0) & (born >= 3)  # the leader's yearly shoots, past the first years
+        steps = np.bincount(born[stem], weights=tree.length[stem])[3:]
+        steps = steps[steps > 0]
+        return steps.std() / steps.mean()
+
+    calm = [step_cv(ssm.simulate(base, seed=s)) for s in (1, 2, 3)]
+    windy = [step_cv(ssm.simulate({**base, "year_sd": 0.4}, seed=s)) for s in (1, 2, 3)]
+    assert np.mean(windy) > 1.5 * np.mean(calm), (calm, windy)
+    with pytest.raises(ValueError, match="year_sd"):
+        ssm.simulate({**base, "year_sd": -0.1}, seed=3)
+
+
+def test_max_laterals_caps_the_branches_of_a_whorl_and_is_off_at_seven():
+    """max_laterals: 7 (the tables' most) gives the tree draw for draw; 3 caps every bud's laterals,
+    so no whorl of the stem holds more than 3 first-order branches, and the whorls stay one a year."""
+    from bforest_core.metrics import whorls
+
+    ssm = _ssm(preset="sf_real")
+    base = {"years": 20}
+    t0 = ssm.simulate(base, seed=3)
+    assert _same(t0, ssm.simulate({**base, "max_laterals": 7}, seed=3))
+    assert max(g.size for g in whorls(t0, min_diameter=0.0)) > 3  # the tables give vigorous buds more
+    capped = ssm.simulate({**base, "max_laterals": 3}, seed=3)
+    groups = whorls(capped, min_diameter=0.0)
+    assert max(g.size for g in groups) == 3 and len(groups) == 19
+    with pytest.raises(ValueError, match="max_laterals"):
+        ssm.simulate({**base, "max_laterals": 0}, seed=3)

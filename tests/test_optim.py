@@ -70,7 +70,7 @@ class Recorder:
                     break
                 out[i] = self.fun(x)
                 pr.n_evaluations += 1
-                if pr.budget is not None and pr.n_evaluations >= pr.budget:
+                if pr.max_evaluations is not None and pr.n_evaluations >= pr.max_evaluations:
                     pr.stopped, pr.stop_reason = True, "budget"
         for x, f in zip(X, out):
             if f < pr.best_f:
@@ -112,7 +112,7 @@ def make_problem(
         init_lower=init_lower,
         init_upper=init_upper,
         seed=seed,
-        budget=budget,
+        max_evaluations=budget,
         log=logs.append,
     )
     rec = Recorder(fun, pr, replay, target)
@@ -396,7 +396,7 @@ def test_nlopt_algorithm_names():
         bf.component("optimizer", "nlopt", algorithm="nonsense")
     with pytest.raises(ConfigError, match="local"):
         bf.component("optimizer", "nlopt", local_algorithm="GN_ISRES")
-    # the evaluation budget has one name, [stop] max_evaluations (Problem.budget)
+    # the evaluation budget has one name, [stop] max_evaluations (Problem.max_evaluations)
     with pytest.raises(ConfigError, match=r"maxeval is gone: use \[stop\] max_evaluations"):
         bf.component("optimizer", "nlopt", maxeval=300)
 

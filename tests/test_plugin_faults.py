@@ -84,7 +84,15 @@ def _statuses(run):
 
 # ------------------------------------------------------------------------------ faults cost one evaluation
 @pytest.mark.parametrize(
-    "fault,status", [("exit", "error"), ("abort", "crashed"), ("segv", "crashed"), ("unpicklable", "error")]
+    "fault,status",
+    [
+        ("exit", "error"),
+        ("abort", "crashed"),
+        ("segv", "crashed"),
+        ("unpicklable", "error"),
+        ("keyboard", "error"),
+        ("base", "error"),
+    ],
 )  # the other Python-level ones: serial test
 def test_a_misbehaving_ssm_costs_its_evaluations_not_the_fit(faulty, tmp_path, fault, status):
     """On the process executor: the points above the threshold are logged failed with the
@@ -103,9 +111,10 @@ def test_a_misbehaving_ssm_costs_its_evaluations_not_the_fit(faulty, tmp_path, f
         assert "killed by signal" in bad[0][3] and "replaced" in bad[0][3]
 
 
-@pytest.mark.parametrize("fault", ["exit", "attribute", "own", "none", "unpicklable"])
+@pytest.mark.parametrize("fault", ["exit", "attribute", "own", "none", "unpicklable", "keyboard", "base"])
 def test_python_level_faults_in_the_serial_executor(faulty, tmp_path, fault):
-    """In-process (serial): sys.exit(), AttributeError, a plugin's own exception, a None tree."""
+    """In-process (serial): sys.exit(), AttributeError, a plugin's own exception, a None tree, a
+    KeyboardInterrupt and a BaseException of the plugin's own (only the user's Ctrl-C stops a fit)."""
     bf.fit(
         bf.load_config(faulty_config(tmp_path, fault, above=45.0, budget=6, executor="serial")),
         tmp_path / "run",
@@ -116,8 +125,35 @@ def test_python_level_faults_in_the_serial_executor(faulty, tmp_path, fault):
     assert all((st == "error") == (angle > 45.0) for angle, st, _, _ in got)
     msgs = {m for a, st, _, m in got if st == "error"}
     assert msgs and all(
-        m.split(":")[0] in ("SystemExit", "AttributeError", "ToyModelError", "TypeError", "Unpicklable") for m in msgs
+        m.split(":")[0]
+        in (
+            "SystemExit",
+            "AttributeError",
+            "ToyModelError",
+            "TypeError",
+            "Unpicklable",
+            "KeyboardInterrupt",
+            "ToyBaseFault",
+        )
+        for m in msgs
     ), msgs
+
+
+@pytest.mark.parametrize("fault", ["keyboard", "base"])
+def test_a_plugins_own_interrupt_costs_evaluations_through_the_command_too(faulty, tmp_path, fault):
+    """`bforest fit` on the serial executor: exit 0, every point above the threshold logged as an
+    error, the budget spent (the probe: exit 130 with 0 rows, or a traceback)."""
+    p = faulty_config(tmp_path, fault, above=45.0, budget=8, executor="serial")
+    r = subprocess.run(
+        EXE + ["fit", str(p), "-o", str(tmp_path / "run"), "-q", "--no-report"],
+        env=_env(*faulty),
+        capture_output=True,
+        text=True,
+    )
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    got = _statuses(tmp_path / "run")
+    assert len(got) == 8 and any(st == "error" for _, st, _, _ in got)
+    assert all((st == "error") == (angle > 45.0) for angle, st, _, _ in got)
 
 
 @linux

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import bforest_core as bf
-from bforest_core.interfaces import Optimizer
-from bforest_core.pipeline.posterior import posterior_kind, prior_draws
+from bforest_core.interfaces import Optimizer, Posterior
+from bforest_core.pipeline.posterior import prior_draws
 from bforest_core.report import canvas
 from bforest_core.report import posterior as post_fig
 from conftest import toy_config
@@ -51,10 +51,15 @@ def test_samplers_declare_their_posterior_kind_and_optimisers_none():
     assert bf.component_class("optimizer", "emcee").posterior_kind == "chain"
     assert bf.component_class("optimizer", "cma").posterior_kind is None
     # a run written before the samplers declared it: the diagnostics' keys tell
-    assert posterior_kind({"particles": [[1.0]], "weights": [1.0]}) == "population"
-    assert posterior_kind({"chain": [[[1.0]]]}) == "chain"
-    assert posterior_kind({"chain": [[[1.0]]]}, "population") == "population"
-    assert posterior_kind({"generations": 3}) is None
+    assert Posterior.from_diagnostics({"particles": [[1.0]], "weights": [1.0]}, ["a"]).kind == "population"
+    assert Posterior.from_diagnostics({"chain": [[[1.0]]]}, ["a"]).kind == "chain"
+    # the sampler's declared kind rules: a population that holds no particles is no posterior
+    assert Posterior.from_diagnostics({"chain": [[[1.0]]]}, ["a"], "population") is None
+    assert Posterior.from_diagnostics({"generations": 3}, ["a"]) is None
+    # a population's weights sum to 1; columns that the names do not match are no posterior
+    post = Posterior.from_diagnostics({"particles": [[1.0], [3.0]], "weights": [1.0, 3.0]}, ["a"])
+    assert post.weights.tolist() == [0.25, 0.75] and post.draws()["a"].tolist() == [[1.0, 3.0]]
+    assert Posterior.from_diagnostics({"particles": [[1.0, 2.0]], "weights": [1.0]}, ["a"]) is None
 
 
 def test_prior_draws_are_uniform_over_the_box_integers_whole():

@@ -17,6 +17,7 @@ import pytest
 import bforest_core as bf
 from bforest_core import QSMFormatError, Tree, cylinders
 from bforest_core.cylinders import QSMReadWarning
+from bforest_core.tree import remap_ids
 from conftest import hand_tree, qsm_path
 
 
@@ -648,7 +649,7 @@ def test_unsorted_rows_are_resorted_and_keep_file_rows(tmp_path):
     old = perm[u.source_row]  # original hand-tree row of every tree row
     assert old[0] == 0 and sorted(old.tolist()) == list(range(7))
     assert np.allclose(u.start, t.start[old]) and np.allclose(u.radius, t.radius[old])
-    assert np.array_equal(np.where(u.parent >= 0, old[np.maximum(u.parent, 0)], -1), t.parent[old])
+    assert np.array_equal(remap_ids(u.parent, old), t.parent[old])
     assert u.n_branches == t.n_branches and np.array_equal(u.order, t.order[old])
 
 

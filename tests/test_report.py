@@ -10,12 +10,12 @@ import pytest
 
 import bforest_core as bf
 from bforest_core.errors import ConfigError
+from bforest_core.interfaces import Posterior
 from bforest_core.pipeline.clones import clones as grow_clones
 from bforest_core.pipeline.profile import profile, profile_values
 from bforest_core.pipeline.store import RunStore
 from bforest_core.report import canvas, comparison, convergence, datasets, posterior, trees, write_report
 from bforest_core.report.datasets import distance_view
-from bforest_core.report.posterior import mcmc_chain
 from bforest_core.report.run_view import RunView
 from conftest import hand_tree, toy_config
 
@@ -127,7 +127,6 @@ def test_report_draws_the_same_figures_in_one_or_two_processes(toy_runs, tmp_pat
     lists the same figures as when one process draws them all, and a second process that fails
     leaves a note and the figures drawn in the first."""
     import re
-    from concurrent.futures import Future
 
     from bforest_core.report import build
 
@@ -142,22 +141,15 @@ def test_report_draws_the_same_figures_in_one_or_two_processes(toy_runs, tmp_pat
     assert one == figs(two_text) and "figures/set_L.png" in one
     assert "second report process" not in two_text
 
-    class Broken:
+    class Broken(build._SideProcess):
         def __init__(self, *a, **k):
-            pass
+            super().__init__(*a, **k)
+            self.stop()  # it dies before it sends its figures
 
-        def submit(self, *a, **k):
-            f = Future()
-            f.set_exception(RuntimeError("no luck"))
-            return f
-
-        def shutdown(self, **k):
-            pass
-
-    monkeypatch.setattr(build, "ProcessPoolExecutor", Broken)
+    monkeypatch.setattr(build, "_SideProcess", Broken)
     (run / "figures" / "set_L.png").unlink()
     text = write_report(run).read_text()
-    assert figs(text) == one and "the second report process failed (RuntimeError: no luck)" in text
+    assert figs(text) == one and "the second report process failed (it ended (exit code -9) before it sent" in text
     assert_png(run / "figures" / "set_L.png")
 
 
@@ -334,10 +326,12 @@ def test_convergence_compare_chain_and_corner_figures(tmp_path):
         "names": ["a", "b", "c"],
         "walkers": 8,
     }
-    got = mcmc_chain(diag, ["x", "y", "z"])
-    assert got[0].shape == (30, 8, 3) and got[1].shape == (30, 8) and got[2] == 10 and got[3] == ["a", "b", "c"]
-    assert mcmc_chain({"generations": 3}, ["a"]) is None
-    assert_png(posterior.chain_figure(got[0], got[3], tmp_path / "ch.png", burn_in=10, distances=got[1]))
+    got = Posterior.from_diagnostics(diag, ["x", "y", "z"])  # the diagnostics name the parameters
+    assert got.kind == "chain" and got.chain.shape == (30, 8, 3) and got.distances.shape == (30, 8)
+    assert got.burn_in == 10 and got.names == ("a", "b", "c")
+    assert np.array_equal(got.samples, chain[10:].reshape(-1, 3)) and got.weights.sum() == pytest.approx(1.0)
+    assert Posterior.from_diagnostics({"generations": 3}, ["a"]) is None
+    assert_png(posterior.chain_figure(got.chain, got.names, tmp_path / "ch.png", burn_in=10, distances=got.distances))
     assert_png(
         posterior.corner_figure(chain[10:].reshape(-1, 3), ["a", "b", "c"], tmp_path / "co.png", truths=[0, 5, 1]),
         500,

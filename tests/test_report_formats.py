@@ -30,6 +30,13 @@ def _figures(md: str) -> list[str]:
     return re.findall(r"!\[[^\]]*\]\((figures/[^)]+)\)", md)  # the images, not the PDF links
 
 
+def _final(fname) -> Path:
+    """The file a figure saved to ``fname`` ends as: figures are written whole, into
+    ``.NAME.tmp/NAME`` and then renamed."""
+    f = Path(fname)
+    return f.parent.parent / f.name if f.parent.name.endswith(".tmp") else f
+
+
 @pytest.fixture(scope="module")
 def sampler_run(toy_plugin, tmp_path_factory):
     """A toy abc-smc fit with clones and its PNG report, every kind of figure a report draws
@@ -44,7 +51,7 @@ def sampler_run(toy_plugin, tmp_path_factory):
     saved, real_save, real_cores = [], Figure.savefig, build._cores
 
     def spy(self, fname, *a, **kw):
-        saved.append((self, Path(fname), kw.get("dpi")))
+        saved.append((self, _final(fname), kw.get("dpi")))
         return real_save(self, fname, *a, **kw)
 
     Figure.savefig, build._cores = spy, (lambda: 1)
@@ -138,7 +145,7 @@ def test_dpi_sets_the_resolution_and_a_bad_value_is_one_line(tmp_path, capsys, m
     capsys.readouterr()
     assert main(["report", str(tmp_path), "--dpi", "5"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["error: --dpi must be between 20 and 2400 (got 5)"]
+    assert err == ["error: --dpi must be between 20 and 600 (got 5)"]
 
 
 def test_a_label_beyond_the_bottom_edge_is_saved_not_clipped(tmp_path):
@@ -176,7 +183,7 @@ def test_no_report_figure_is_clipped(sampler_run, tmp_path, monkeypatch):
     real = Figure.savefig
 
     def spy(self, fname, *a, **kw):
-        saved.append((self, Path(fname), kw.get("dpi")))
+        saved.append((self, _final(fname), kw.get("dpi")))
         return real(self, fname, *a, **kw)
 
     monkeypatch.setattr(Figure, "savefig", spy)

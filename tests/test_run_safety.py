@@ -268,7 +268,7 @@ def test_ctrl_c_during_clones_says_so_on_its_own_line_and_resume_continues(toy_p
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     last = err.rstrip("\n").split("\n")[-1]  # a bar redraws its line with "\r"
-    assert last == f"interrupted (finished clones are saved; continue with 'bforest clones {run} --resume')", err
+    assert last == f"stopped by SIGINT (finished clones are saved; continue with 'bforest clones {run} --resume')", err
     assert "clones:" in err  # the bar was drawn, and ended before the message
     gate.touch()
     r = subprocess.run(

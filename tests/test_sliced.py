@@ -10,6 +10,7 @@ from scipy import stats
 
 import bforest_core as bf
 from bforest_core import ConfigError
+from bforest_core.tree import remap_ids
 from bforest_sliced.directions import directions, make_directions, net_points
 from bforest_sliced.grid import DIRECTION_BITS, VALUE_BITS, snap
 from bforest_sliced.sliced import fit_normalization, holm
@@ -553,7 +554,7 @@ def renumbered(tree, seed=0):
     perm = np.random.default_rng(seed).permutation(tree.n)  # new row i holds old row perm[i]
     inv = np.empty(tree.n, dtype=np.int64)
     inv[perm] = np.arange(tree.n)
-    relink = lambda a: np.where(a[perm] >= 0, inv[np.maximum(a[perm], 0)], -1)
+    relink = lambda a: remap_ids(a[perm], inv)
     return Tree(
         tree.start[perm],
         tree.axis[perm],

@@ -313,3 +313,12 @@ def test_the_stand_report_has_a_row_per_tree_the_parameters_and_the_plot(referen
         assert (out / "figures" / f"{fig}.png").stat().st_size > 10_000
         assert f"figures/{fig}.png" in md
     assert (out / "report.html").read_text().count("<img") == 3
+
+
+def test_a_bad_recipe_for_every_tree_is_one_line_before_any_tree_starts(plot, tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(TINY.replace("population = 8", "populaton = 8"))
+    assert main(["stand", "--stem-map", str(plot / "map.csv"), "--recipe", str(bad), "-o", str(tmp_path / "s")]) == 2
+    err = _lines(capsys)
+    assert len(err) == 1 and str(bad) in err[0] and "populaton" in err[0], err
+    assert not (tmp_path / "s").exists()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import bforest_core as bf
-from bforest_core.metrics import crown_base_height, order_summary, summary_unit, tree_summary
+from bforest_core.metrics import crown_base_height, order_summary, summary_unit, tree_summary, whorls
 from conftest import hand_tree, read_sample
 
 PI = math.pi
@@ -58,6 +58,27 @@ def test_dead_remnants_are_not_crown():
     assert s["n_branches_o1"] == 2 and s["length_o1"] == pytest.approx(1.2)
     assert s["crown_base_height"] == pytest.approx(1.5)
     assert s["volume_o1"] == pytest.approx(tree_summary(t)["volume_o1"])  # dead wood is still wood
+
+
+def test_whorls_group_branch_bases_by_height_and_keep_dead_branches():
+    # bases at 1.0, 1.5 and 2.25 m: three whorls 15 cm apart or more; with a 60 cm gap A and B
+    # (0.5 m apart) are one whorl, C (0.75 m above B) another
+    t = hand_tree()
+    assert tree_summary(t)["n_whorls"] == 3
+    assert [g.tolist() for g in whorls(t, gap=0.6)] == [[1.0, 1.5], [2.25]]
+    assert tree_summary(t, min_diameter=0.07)["n_whorls"] == 2  # C (6 cm) is not seen
+    dead = np.zeros(t.n, bool)
+    dead[[3, 4]] = True  # A dead: it still marks its whorl, as a scan shows it
+    t2 = bf.Tree(t.start, t.axis, t.length, t.radius, t.parent, t.extension, extras={"is_dead": dead})
+    assert tree_summary(t2)["n_whorls"] == 3 and tree_summary(t2)["n_branches_o1"] == 2
+    assert summary_unit("n_whorls") == "count"
+
+
+def test_lignum_sets_one_whorl_a_year():
+    # the leader puts on one shoot a year with its whorl of buds at the top: T years, T - 1 whorls
+    ssm = bf.component("ssm", "lignum", preset="sf_real")
+    for years in (10, 20):
+        assert tree_summary(ssm.simulate({"years": years}, 1), min_diameter=0.0)["n_whorls"] == years - 1
 
 
 def test_order_summary_of_the_hand_built_tree():

@@ -39,7 +39,7 @@ def test_init_says_what_its_azimuth_and_suitability_are(tmp_path, capsys):
     assert main(["init", str(src), "-o", str(tmp_path / "pine.toml")]) == 0
     out = capsys.readouterr().out
     assert "towards azimuth 90 deg, counter-clockwise from the file's +x axis" in out
-    (line,) = [ln for ln in out.splitlines() if ln.startswith("  not sot")]
+    (line,) = [ln for ln in out.splitlines() if ln.startswith("  not sot (")]  # not sot-bud-abort (the example form)
     assert line.startswith("  not sot (how well it suits the tree, 0-1: ") and "; lignum " in line
     text = (tmp_path / "pine.toml").read_text()
     assert "# Not sot (how well it suits the tree, 0-1: " in text

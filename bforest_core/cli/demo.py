@@ -30,7 +30,6 @@ kind = "branch-segment"
 sets = ["S0,1", "B1,2"]
 
 [distance]
-kind = "sliced"
 lines = 128
 
 [optimizer]

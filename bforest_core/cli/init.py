@@ -15,7 +15,12 @@ def cmd_init(args):
     out = Path(args.output) if args.output else Path(f"{tree}.toml")
     if out.exists() and not args.overwrite:
         raise UsageError(f"{out}: exists; choose another -o, or replace it with --overwrite")
-    r = write_recipe(qsm, out, args.model, amortised=args.amortised)
+    if args.amortised:
+        from ..pipeline.amortised import write_amortised_recipe
+
+        r = write_amortised_recipe(qsm, out, args.amortised, args.model)
+    else:
+        r = write_recipe(qsm, out, args.model)
     print(f"{qsm}:")
     for line in measured_lines(r.measures):
         print(f"  {line}")
@@ -29,7 +34,7 @@ def cmd_init(args):
     print(f"wrote {out}: {len(r.draft.free)} free parameters, bounds scaled to the tree (each line says why)")
     if args.amortised:
         print(
-            f"the search starts from the posterior of {args.amortised} and refines it in {r.draft.evaluations} evaluations"
+            f"the search starts from the posterior of {args.amortised} and refines it in {r.draft.max_evaluations} evaluations"
         )
     print(f"next: bforest fit {out} -o runs/{tree}")
     return 0

@@ -10,11 +10,14 @@ simulate, distance), ``export``,
 from __future__ import annotations
 
 import argparse
+import errno
 import os
+import signal
 import sys
 import warnings
 from concurrent.futures import BrokenExecutor
 
+from ..pipeline.interrupts import user_stops
 from ..pipeline.progress import end_open_bars
 from . import amortised, data, export, init, plugins_config, runs, stand, trees
 from .common import EXIT_USAGE, Parser, UsageError
@@ -59,11 +62,13 @@ def main(argv=None) -> int:
     if not args.debug:
         warnings.showwarning = _warning_line
     try:
-        return int(args.func(args) or 0)
-    except KeyboardInterrupt:
+        with user_stops():  # Ctrl-C and SIGTERM: the command unwinds, stopping every process it started
+            return int(args.func(args) or 0)
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
         hint = args.on_interrupt(args) if callable(args.on_interrupt) else args.on_interrupt
-        _say("interrupted" + (f" ({hint})" if hint else ""))
-        return 130
+        _say(f"stopped by {signal.Signals(signum).name}" + (f" ({hint})" if hint else ""))
+        return 128 + signum
     except BrokenPipeError:  # the reader of the output has gone (`bforest info ... | head`): not an error
         _quiet_stdout()
         return 0
@@ -84,7 +89,9 @@ def main(argv=None) -> int:
     except (ValueError, OSError) as exc:  # an SSM rejecting a value; a path that cannot be written
         if args.debug:
             raise
-        _say(f"error: {_one_line(exc)}")
+        full = getattr(exc, "errno", None) == errno.ENOSPC
+        advice = "; the disk is full: free space and run the command again (a fit continues with --resume)"
+        _say(f"error: {_one_line(exc)}{advice if full else ''}")
         return EXIT_USAGE
     except MemoryError:
         if args.debug:

@@ -160,9 +160,9 @@ def _clones_interrupted(args) -> str:
 
 def cmd_report(args):
     from ..report.build import write_report
+    from ..report.canvas import check_dpi
 
-    if args.dpi is not None and not 20 <= args.dpi <= 2400:
-        raise UsageError(f"--dpi must be between 20 and 2400 (got {args.dpi})")
+    check_dpi(args.dpi)  # before the run is read
     p = write_report(args.run_dir, format=args.format, dpi=args.dpi)
     print(f"report: {p}")
     return 0
@@ -267,7 +267,10 @@ def add_commands(sub) -> None:
         "replace a run in -o that an earlier demo did not write (an earlier demo's is replaced without it)",
     )
     quiet_arg(s)
-    s.set_defaults(func=cmd_demo)
+    s.set_defaults(
+        func=cmd_demo,
+        on_interrupt=f"finished evaluations are saved; continue its fit with bforest fit {RUN}/{RunFiles.CONFIG} -o {RUN} --resume",
+    )
 
     s = command(sub, "fit", "fit a growth model as a run configuration says")
     config_arg(s)
@@ -319,7 +322,7 @@ def add_commands(sub) -> None:
         help="resolution of raster figures and of the raster parts of vector ones, kept like --format "
         "(default: the last report's, else 120-130)",
     )
-    s.set_defaults(func=cmd_report)
+    s.set_defaults(func=cmd_report, on_interrupt="the report is incomplete; run bforest report again")
 
     s = command(sub, "compare", "compare optimisers on equal evaluation budgets")
     config_arg(s)
@@ -370,7 +373,7 @@ def add_commands(sub) -> None:
     old_spelling(s, "--n", "n", type=int)
     s.add_argument("--seeds", type=int, default=5, metavar="N", help="model seeds per value (default 5)")
     quiet_arg(s)
-    s.set_defaults(func=cmd_profile)
+    s.set_defaults(func=cmd_profile, on_interrupt="nothing of the profile was written; run it again")
 
     s = command(
         sub,

@@ -73,7 +73,8 @@ def class_bounds(name: str, k: int) -> tuple[float, float, str]:
 
 def info_text(tree) -> list[str]:
     """The attribute block and the distribution tables of ``bforest info``."""
-    a = tree_attributes(tree)
+    notes: list[str] = []
+    a = tree_attributes(tree, notes=notes)
     d = distributions(tree)
     lines = ["  tree attributes (TreeQSM's, SI units; definitions: docs/tree-attributes.md)"]
     for k, label in ATTRIBUTE_LABELS.items():
@@ -85,6 +86,7 @@ def info_text(tree) -> list[str]:
         else:
             txt = f"{v:.4g}" + (f" {u}" if u else "")
         lines.append(f"    {label:<28}{txt}")
+    lines += [f"    note: {n}" for n in notes]
     lines.append("  the two crown widths, defined otherwise:")
     for key in ("crown_spread", "crown_diameter_mean"):
         lines += textwrap.wrap(summary_definition(key), 100, initial_indent="    ", subsequent_indent="      ")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..config import DEFAULT_KINDS
 from ..io import json_text
 from .common import TREE_FORMATS, UsageError, command, parse_set, read, select_arg, split_sets
 
@@ -143,6 +144,8 @@ MAX_LINES = 1 << 16
 
 
 def cmd_distance(args):
+    from ..errors import ConfigError
+    from ..interfaces import LineDistance
     from ..metrics import classical_metrics, relative_errors
     from ..registry import component
 
@@ -151,23 +154,25 @@ def cmd_distance(args):
     b = b[0] if isinstance(b, list) else b
     if not 1 <= args.lines <= MAX_LINES:
         raise UsageError(f"--lines must be between 1 and {MAX_LINES} (got {args.lines})")
-    if args.empty_cost is None and args.distance == "sliced" and args.statistic.lower() != "ks":
-        raise UsageError(
-            f"--statistic {args.statistic} needs --empty-cost X: the distance of a set that one tree "
-            "lacks (1.0, the default, is the maximum of KS only)"
-        )
+    dset = {"statistic": args.statistic, "lines": args.lines}
+    if args.normalize:
+        dset["normalize"] = args.normalize
+    if args.empty_cost is not None:
+        dset["empty_cost"] = args.empty_cost
+    try:
+        dist = component("distance", args.distance, **dset)
+    except ConfigError as exc:
+        if args.empty_cost is None and "empty_cost" in str(exc):  # the distance needs one for this statistic
+            raise UsageError(
+                f"--statistic {args.statistic} needs --empty-cost X: the distance of a set that one tree lacks ({exc})"
+            ) from None
+        raise
     fs_settings = {"sets": split_sets(args.sets)}
     if args.topology:
         fs_settings["topology"] = args.topology
     fs = component("features", args.features, **fs_settings)
     fs.prepare([b])
     Ub, Ua = fs.extract(b), fs.extract(a)
-    dset = {"statistic": args.statistic, "lines": args.lines}
-    if args.normalize:
-        dset["normalize"] = args.normalize
-    if args.empty_cost is not None:
-        dset["empty_cost"] = args.empty_cost
-    dist = component("distance", args.distance, **dset)
     dist.prepare(Ub, {k: fs.columns(k) for k in fs.set_names})
     per = dist.compute_per_set(Ua, Ub)
     total = dist.combine(per)
@@ -220,6 +225,8 @@ def cmd_distance(args):
         print(f"{label:<18}{ma[key]:>10.3f}{mb[key]:>10.3f}{e:>12}")
     if args.test:
         try:
+            if not isinstance(dist, LineDistance):
+                raise NotImplementedError
             res = dist.permutation_test(Ua, Ub, seed=args.seed)
         except NotImplementedError:
             raise UsageError(f"distance '{args.distance}' offers no permutation test") from None
@@ -255,7 +262,9 @@ def add_commands(sub) -> None:
         help="branch topology rule (default: the feature set's, subtree)",
     )
     s.add_argument("--features", default="branch-segment", help="feature set plugin (default branch-segment)")
-    s.add_argument("--distance", default="sliced", help="distance plugin (default sliced)")
+    s.add_argument(
+        "--distance", default=DEFAULT_KINDS["distance"], help=f"distance plugin (default {DEFAULT_KINDS['distance']})"
+    )
     s.add_argument("--test", action="store_true", help="permutation test p-value")
     s.add_argument(
         "--columns",

@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import time
 import warnings
 from dataclasses import dataclass
@@ -229,7 +230,7 @@ class TrainingPrior:
 
     def draw(self, seed: int, i: int, stream: int = TRAIN_STREAM) -> Draw:
         """Draw ``i`` of the stream ``stream`` of ``seed``: the same whatever else is drawn."""
-        from .calibrate import uniform_draw
+        from .posterior import uniform_draw
 
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(stream), int(i)]))
         ref = int(rng.integers(len(self.references)))
@@ -527,6 +528,7 @@ def posterior_for(
         ``summary`` (what posterior.json holds), ``samples``, ``estimator`` (the
         :class:`TrainedEstimator`), ``files`` and ``seconds``.
     """
+    from ..interfaces import Posterior
     from ..io import read_qsm, write_json
     from ..samples import stem
     from .posterior import posterior_outputs
@@ -549,12 +551,10 @@ def posterior_for(
         if overwrite:
             files.clear()
         X = res["samples"]
-        diag = {"particles": X, "weights": np.full(len(X), 1.0 / len(X)), "names": te.names}
+        post = Posterior("population", X, np.full(len(X), 1.0 / len(X)), tuple(te.names))
         table = posterior_outputs(
             out,
-            diag,
-            te.names,
-            kind="population",
+            post,
             attrs={"estimator": str(path), "ssm": te.model, "tree": str(qsm)},
             seed=seed,
         )
@@ -676,3 +676,18 @@ def start_points(cfg, tree, names, lower, upper) -> np.ndarray:
     warn_lines(res["warnings"])
     cols = [te.names.index(k) for k in names]
     return np.clip(res["samples"][:, cols], np.asarray(lower, float), np.asarray(upper, float))
+
+
+def write_amortised_recipe(qsm, out, estimator, model: str | None = None):
+    """``bforest init --amortised``: the recipe of :func:`~.recipe.write_recipe` whose search
+    starts from ``estimator``'s posterior for the tree (a file of ``bforest train``, or
+    ``"shipped"``: the one shipped for ``model``). The model is the estimator's; a ``model``
+    that differs is refused in one line."""
+    from .recipe import write_recipe
+
+    path = estimator_for(model) if estimator == SHIPPED else Path(estimator)
+    header, _ = checked_header(path)
+    if model is not None and model != header["model"]:
+        raise ConfigError(f"--amortised {estimator}: an estimator of {header['model']}, not of --model {model}")
+    start = estimator if estimator == SHIPPED else os.path.relpath(path.resolve(), Path(out).resolve().parent)
+    return write_recipe(qsm, out, header["model"], start=start, how="asked for" if model else "the estimator's")

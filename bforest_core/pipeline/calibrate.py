@@ -34,7 +34,6 @@ without ``overwrite``.
 
 from __future__ import annotations
 
-import copy
 import csv
 import math
 import time
@@ -42,12 +41,20 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import pydantic
 
-from ..config import config_to_dict, parse_config, read_toml
-from ..errors import BayesForestError, ConfigError
+from ..config import (
+    check_generated_target,
+    config_to_dict,
+    parse_config,
+    read_toml,
+    section_settings,
+)
+from ..errors import BayesForestError, ConfigError, validation_error_text
 from ..io import write_json
 from ..metrics import weighted_quantiles
 from .fit import _free_specs, fit, same_config
+from .posterior import uniform_draw
 from .store import RunDirError, RunFiles, RunStore
 
 if TYPE_CHECKING:
@@ -143,16 +150,6 @@ def prior_draw(seed: int, i: int, lower, upper, integer) -> tuple[np.ndarray, in
     return theta, target_seed
 
 
-def uniform_draw(rng: np.random.Generator, lower, upper, integer) -> np.ndarray:
-    """One draw uniform in ``[lower, upper]`` (integer parameters uniform over the whole numbers in
-    their bounds), from one uniform number per parameter of ``rng``."""
-    lo, hi = np.asarray(lower, float), np.asarray(upper, float)
-    u = rng.random(lo.size)
-    ilo, ihi = np.ceil(lo), np.floor(hi)
-    whole = np.minimum(ilo + np.floor(u * (ihi - ilo + 1)), ihi)
-    return np.where(np.asarray(integer, bool), whole, lo + u * (hi - lo))
-
-
 def coverage_table(rows: list[dict], names: list[str], lower, upper) -> list[dict]:
     """Per parameter: runs, coverage of each central interval (fraction), mean interval width
     relative to the prior's width, and the chi-square p-value of the ranks' uniformity."""
@@ -196,7 +193,7 @@ def _check_sampler(cfg: RunConfig, source: str) -> None:
     from ..registry import component_class
 
     cls = component_class("optimizer", cfg.optimizer.kind)
-    if not cls.gives_posterior:
+    if cls.posterior_kind is None:
         raise ConfigError(
             f"{source}: optimizer.kind: calibrate needs a sampler whose result is a posterior "
             f"(e.g. abc-smc, emcee); {cfg.optimizer.kind!r} gives a best fit only"
@@ -212,22 +209,24 @@ def _fixed_model_seeds(cfg: RunConfig) -> set[int]:
     return set(model_seeds(cfg.seed, o.seeds, "fixed")) if o.seed_mode == "fixed" else set()
 
 
-def run_config(base: dict, i: int, truth: dict, target_seed: int):
+def run_config(base: RunConfig, i: int, truth: dict, target_seed: int):
     """Run ``i``'s config: the study's, with a target grown from ``truth`` (plus the fixed
     parameters) with ``target_seed``, and the run seed ``seed + i``."""
-    raw = copy.deepcopy(base)
-    ssm = raw["ssm"]
-    settings = {k: v for k, v in ssm.items() if k not in ("kind", "fixed", "free", "topology")}
-    target = {k: v for k, v in raw["target"].items() if k == "topology"}
-    target["generate"] = {
-        "ssm": ssm["kind"],
+    grown = {
+        "ssm": base.ssm.kind,
         "seed": int(target_seed),
-        "params": {**ssm.get("fixed", {}), **truth},
-        "settings": settings,
+        "params": {**base.ssm.fixed, **truth},
+        "settings": section_settings(base, "ssm", written=True),
     }
-    raw["target"] = target
-    raw["seed"] = int(base.get("seed", 1)) + int(i)
-    cfg = parse_config(raw, source=f"calibrate/run_{i:03d}")
+    raw = {"generate": grown, "topology": base.target.topology}
+    try:  # the config's own [target] model: the SSM's settings typed as in any config
+        target = type(base.target).model_validate(raw)
+        cfg = base.model_copy(update={"target": target, "seed": int(base.seed) + int(i)})
+        check_generated_target(cfg)
+    except pydantic.ValidationError as exc:
+        raise ConfigError(f"calibrate/run_{i:03d}: {validation_error_text(exc, raw, prefix=('target',))}") from None
+    except ConfigError as exc:
+        raise ConfigError(f"calibrate/run_{i:03d}: {exc}") from None
     taken = _fixed_model_seeds(cfg)
     if target_seed in taken:  # the target must not be grown with a seed the fit uses
         return run_config(base, i, truth, (target_seed * 7919 + 1) % (2**31 - 1))
@@ -235,10 +234,9 @@ def run_config(base: dict, i: int, truth: dict, target_seed: int):
 
 
 def _study_spec(cfg: RunConfig):
-    from ..config import ssm_settings
-    from ..registry import component
+    from ..config import build_component
 
-    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+    ssm = build_component(cfg, "ssm")
     names, lo, hi, _, _, integer = _free_specs(cfg, ssm)
     units = [ssm.parameter_spec(n).unit or "" for n in names]
     return names, lo, hi, integer, units
@@ -299,14 +297,14 @@ def posterior_params(X: np.ndarray, w: np.ndarray, names, theta, integer, seed: 
     return out
 
 
-def _plan_runs(cfg: RunConfig, base: dict, out_dir: Path, n: int, overwrite: bool, names, lo, hi, integer) -> list:
+def _plan_runs(cfg: RunConfig, out_dir: Path, n: int, overwrite: bool, names, lo, hi, integer) -> list:
     """Per run: (index, truth vector, run config, run folder, state new/partial/finished); a
     held run made with another config is an error."""
     plans = []
     for i in range(n):
         theta, tseed = prior_draw(cfg.seed, i, lo, hi, integer)
         truth = {nm: (int(v) if integer[j] else float(v)) for j, (nm, v) in enumerate(zip(names, theta))}
-        run_cfg = run_config(base, i, truth, tseed)
+        run_cfg = run_config(cfg, i, truth, tseed)
         run_dir = out_dir / f"run_{i:03d}"
         state = "new" if overwrite else RunStore.state(run_dir)
         if state != "new" and not same_config(run_dir, run_cfg):
@@ -367,8 +365,7 @@ def calibrate(
             "--resume, refit it with --overwrite, or choose another -o"
         )
     out_dir.mkdir(parents=True, exist_ok=True)
-    base = config_to_dict(cfg)
-    plans = _plan_runs(cfg, base, out_dir, int(n), overwrite, names, lo, hi, integer)
+    plans = _plan_runs(cfg, out_dir, int(n), overwrite, names, lo, hi, integer)
     counts = {"fitted": 0, "resumed": 0, "read back": 0, "failed": 0}
     rows = []
     t0 = time.monotonic()
@@ -414,12 +411,13 @@ def calibrate(
     bins = rank_bins(len(ok)) if ok else 2
     band = uniform_band(len(ok), bins) if ok else (0.0, 0.0)
     wall = float(sum(r.get("seconds") or 0.0 for r in rows))
+    written = config_to_dict(cfg)  # the study's config as its file holds it
     res = {
         "config": str(config_path),
         "optimizer": cfg.optimizer.kind,
         "ssm": cfg.ssm.kind,
-        "optimizer_settings": base.get("optimizer"),
-        "objective": base.get("objective"),
+        "optimizer_settings": written.get("optimizer"),
+        "objective": written.get("objective"),
         "n": int(n),
         "names": list(names),
         "units": units,

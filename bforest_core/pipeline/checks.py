@@ -11,14 +11,13 @@ once, in one :class:`ConfigError`.
 from __future__ import annotations
 
 import warnings
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
-from ..config import did_you_mean, section_settings
+from ..config import build_component, check_ssm_parameters, did_you_mean, selection_config
 from ..errors import BayesForestError, ConfigError, PluginError
-from ..registry import component
 from ..samples import SampleError
 from ..samples import resolve as resolve_sample
-from .heldout import selection_config
 from .target import Target, bounds_from_target, build_target
 
 if TYPE_CHECKING:
@@ -30,9 +29,24 @@ def _named_files(cfg: RunConfig) -> list[tuple[str, str]]:
     return named + [(f"target.references[{i}]", r) for i, r in enumerate(cfg.target.references)]
 
 
-def preflight(cfg: RunConfig, target: Target | None = None, trees=None) -> Target:
-    """Check ``cfg`` as a fit would, and return its target (``target`` when given; built from
-    ``trees`` when they are given, the target's trees already read or grown).
+@dataclass
+class Checked:
+    """What :func:`preflight` made while it checked a config, for the fit to use, not make again."""
+
+    #: the target: its trees read (or grown) and its data sets
+    target: Target
+    #: the config with every bound scaled to the target resolved (the run's config.toml)
+    cfg: RunConfig
+    #: the components the config's sections select: ``optimizer``, ``executor``, ``distance``
+    components: dict[str, Any]
+    #: the warnings of the bounds' resolution (a bound moved into the model's range), the fit's to say
+    notes: list = field(default_factory=list)
+
+
+def preflight(cfg: RunConfig, target: Target | None = None, trees=None) -> Checked:
+    """Check ``cfg`` as a fit would, and return what it made: the target (``target`` when given;
+    built from ``trees`` when they are given, the target's trees already read or grown), the config
+    with its scaled bounds resolved and the components.
 
     Raises
     ------
@@ -42,9 +56,10 @@ def preflight(cfg: RunConfig, target: Target | None = None, trees=None) -> Targe
     problems = []
     if not cfg.ssm.free:
         problems.append("ssm.free: no free parameters to fit (add e.g. free.NAME = { lower = ..., upper = ... })")
+    built = {}
     for section in ("optimizer", "executor", "distance"):
         try:
-            component(section, getattr(cfg, section).kind, **section_settings(cfg, section))
+            built[section] = build_component(cfg, section)
         except (ConfigError, PluginError) as exc:
             problems.append(f"{section}: {exc}")
     missing = False
@@ -66,12 +81,15 @@ def preflight(cfg: RunConfig, target: Target | None = None, trees=None) -> Targe
             problems.append(str(exc))
         except (ValueError, TypeError, KeyError, OSError) as exc:  # a plugin's own complaint
             problems.append(f"target: {type(exc).__name__}: {exc}")
+    resolved, notes = cfg, []
     if tgt is not None:
         problems += _weight_problems(tgt)
-        with warnings.catch_warnings():  # a bound moved into the model's range is the fit's to say
-            warnings.simplefilter("ignore")
+        with warnings.catch_warnings(record=True) as notes:  # a bound moved into the model's range is the fit's to say
+            warnings.simplefilter("always")
             try:
-                bounds_from_target(cfg, tgt.trees)
+                resolved = bounds_from_target(cfg, tgt.trees)
+                if resolved is not cfg:  # the resolved bounds pass the checks absolute ones pass
+                    check_ssm_parameters(resolved)
             except ConfigError as exc:  # a scaled range that leaves nothing of the model's
                 problems.append(str(exc))
     if cfg.start.estimator is not None:
@@ -85,7 +103,7 @@ def preflight(cfg: RunConfig, target: Target | None = None, trees=None) -> Targe
             problems.append(str(exc) if str(exc).startswith("select") else f"select: {exc}")
     if problems:
         raise ConfigError("; ".join(problems))
-    return tgt
+    return Checked(tgt, resolved, built, list(notes))
 
 
 def _weight_problems(tgt: Target) -> list[str]:
@@ -97,4 +115,6 @@ def _weight_problems(tgt: Target) -> list[str]:
         for name in t.set_weights or {}:
             if name not in sets:
                 out.append(f"{key}.{name}: no data set {name!r}{did_you_mean(name, sets)} (sets: {', '.join(sets)})")
+        if t.set_weights and sets and all(t.set_weights.get(s, 1.0) == 0 for s in sets):
+            out.append(f"{key}: every data set's weight is 0, so every distance would be 0 (sets: {', '.join(sets)})")
     return out

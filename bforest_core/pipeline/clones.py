@@ -23,10 +23,20 @@ import numpy as np
 from ..config import load_config
 from ..errors import BayesForestError, SimulationFailed
 from ..interfaces import parameter_value
+from ..io import whole_file
 from .fidelity import bound_flags, fidelity_table, fidelity_text, fidelity_warnings
+from .interrupts import stoppable
 from .progress import progress_bar
 from .rundir import holding_run_lock
-from .scoring import _MODEL_ERRORS, _simulate_with_timeout, _Timeout, combine_terms, score_tree, with_term_values
+from .scoring import (
+    _MODEL_ERRORS,
+    _simulate_with_timeout,
+    _Timeout,
+    combine_terms,
+    fault_message,
+    score_tree,
+    with_term_values,
+)
 from .seeds import clone_seeds
 from .store import RunFiles, RunStore
 from .target import build_target, size_topology
@@ -68,7 +78,7 @@ def _clone_task(task):
     except _Timeout:
         return dict(index=i, seed=seed, status="timeout", message=f"simulation exceeded {c.timeout} s", params=params)
     except _MODEL_ERRORS as exc:
-        return dict(index=i, seed=seed, status="error", message=f"{type(exc).__name__}: {exc}"[:500], params=params)
+        return dict(index=i, seed=seed, status="error", message=fault_message(exc), params=params)
     path = Path(out_dir) / f"clone_{i:03d}.txt"
     write_tree(tree, path)
     per_set, _ = score_tree(tree, c)
@@ -154,6 +164,7 @@ def _existing(out_dir: Path, store: RunStore, params: dict) -> list[dict]:
     return [r for r in old.get("rows", []) if (out_dir / r.get("file", "-")).exists() or r.get("status") != "ok"]
 
 
+@stoppable
 @holding_run_lock
 def clones(
     run_dir,
@@ -322,7 +333,7 @@ def _set_columns(tgt) -> list[str]:
 def _write_csv(path: Path, rows, tgt) -> None:
     sets = _set_columns(tgt)
     header = ["index", "seed", "status", "file", "distance"] + [f"D[{s}]" for s in sets] + list(CSV_COLUMNS.values())
-    with open(path, "w", newline="") as fh:
+    with whole_file(path) as part, open(part, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(header)
         for r in rows:

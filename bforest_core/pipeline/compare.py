@@ -8,12 +8,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..config import config_to_dict, load_config, parse_config
+from ..config import load_config, section_settings, with_section
 from ..io import write_json
 from ..registry import component_class
 from .heldout import heldout_mean, point_key, score_points, scoring_fingerprint
 from .progress import progress_bar
-from .seeds import heldout_seeds
+from .seeds import heldout_seeds, repeat_seeds
 from .store import RunDirError, RunFiles, RunStore
 from .target import build_target
 from .worker import started_workers
@@ -22,14 +22,22 @@ if TYPE_CHECKING:
     from ..config import RunConfig
 
 
-def _settings_for_budget(raw: dict, name: str, budget: int) -> dict:
-    """The settings of optimiser ``name`` in a comparison: the config's own when the config names
-    this optimiser (so the recipe's population, restarts or noise stop are what is compared),
-    else its defaults, with its own length limits lifted so that the shared evaluation budget
-    ends each run (``Optimizer.budget_settings``)."""
-    own = raw.get("optimizer") or {}
-    settings = {k: v for k, v in own.items() if k != "kind"} if own.get("kind") == name else {}
-    return component_class("optimizer", name).budget_settings(settings, budget)
+def _run_config(base: RunConfig, name: str, budget: int, seed: int) -> RunConfig:
+    """A comparison's run of optimiser ``name``: the base config with its settings (the config's
+    own when the config names this optimiser, so the recipe's population, restarts or noise stop
+    are what is compared, else its defaults) with its own length limits lifted so that the shared
+    evaluation budget ends each run (``Optimizer.budget_settings``), the run seed ``seed``, and no
+    ``[select]`` re-scoring: each run's answer is its best own distance."""
+    settings = section_settings(base, "optimizer", written=True) if base.optimizer.kind == name else {}
+    settings = component_class("optimizer", name).budget_settings(settings, budget)
+    cfg = with_section(base, "optimizer", {"kind": name, **settings}, source=f"compare/{name}")
+    return cfg.model_copy(
+        update={
+            "seed": seed,
+            "stop": base.stop.model_copy(update={"max_evaluations": budget}),
+            "select": base.select.model_copy(update={"top": 0}),
+        }
+    )
 
 
 def best_so_far(run_dir: Path) -> np.ndarray:
@@ -183,20 +191,15 @@ def compare(
     out_dir = Path(out_dir) if out_dir else Path("runs") / f"compare-{Path(config_path).stem}"
     out_dir.mkdir(parents=True, exist_ok=True)
     target = build_target(base)
-    raw = config_to_dict(base)
     curves, rows = {}, []
+    run_seeds = repeat_seeds(int(base.seed), repeats)
     bar = progress_bar(len(optimizers) * repeats * int(budget), "compare", "eval", progress)
     for name in optimizers:
         curves[name] = []
         for r in range(repeats):
-            cfg_raw = dict(raw)
-            cfg_raw["seed"] = int(base.seed) + r
-            cfg_raw["optimizer"] = {"kind": name, **_settings_for_budget(raw, name, int(budget))}
-            cfg_raw["stop"] = {**raw.get("stop", {}), "max_evaluations": int(budget)}
-            # the comparison is of the searches: each run's answer is its best own distance (the
-            # recipe's [select] re-scoring would replace it); --heldout scores runs on fresh seeds
-            cfg_raw["select"] = {**raw.get("select", {}), "top": 0}
-            cfg = parse_config(cfg_raw, source=f"compare/{name}")
+            # the comparison is of the searches (the recipe's [select] re-scoring would replace
+            # each run's answer); --heldout scores runs on fresh seeds
+            cfg = _run_config(base, name, int(budget), run_seeds[r])
             run = out_dir / f"{name}-{r}"
             state = "new" if overwrite else RunStore.state(run)
             if state != "new" and not resume:
@@ -226,7 +229,7 @@ def compare(
             bar.update(int(budget))  # a run that stopped early still takes its share of the total
             curve = best_so_far(run)
             curves[name].append(curve)
-            rows.append({"optimizer": name, "repeat": r, **row})
+            rows.append({"optimizer": name, "repeat": r, "seed": run_seeds[r], **row})
     bar.close()
     finals = np.array([row["best"] for row in rows])
     threshold_name = None

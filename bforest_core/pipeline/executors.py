@@ -20,8 +20,8 @@ import multiprocessing as mp
 import os
 import pickle
 import signal
-import sys
 import time
+import warnings
 from collections import deque
 from multiprocessing.connection import wait as _wait
 from typing import Literal
@@ -30,6 +30,7 @@ from pydantic import Field
 
 from ..errors import BayesForestError
 from ..interfaces import ComponentSettings, Executor
+from ..processes import available_cores, bind_to_owner, release_forkserver
 
 
 class WorkerLost(BayesForestError):
@@ -42,61 +43,8 @@ class WorkerError(BayesForestError):
     pickled): its type name and message as text."""
 
 
-def _exit_with(owner: int, every: float = 1.0) -> None:
-    """End this worker when the process that owns its pool is gone.
-
-    A pool's workers hold both ends of its task queue, so a killed owner (SIGKILL, an out-of-memory
-    kill, a closed terminal) never gives them an end of file: without this they would wait for
-    tasks for ever, each holding its target tree in memory. A daemon thread checks the owner every
-    ``every`` seconds."""
-    import threading
-    import time
-
-    def watch():
-        while True:
-            time.sleep(every)
-            try:
-                os.kill(owner, 0)
-            except (ProcessLookupError, PermissionError):  # gone (or its number now another user's)
-                os._exit(1)
-
-    threading.Thread(target=watch, name="bforest-owner-watch", daemon=True).start()
-
-
-def _die_with_parent() -> None:
-    """Ask the kernel to SIGKILL this process when its parent ends (Linux): unlike the watching
-    thread, this also ends a worker stuck in C code that holds the interpreter lock."""
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
-
-
-def _release_forkserver() -> None:
-    """Let go of the forkserver's "alive" pipe, which every child of a forkserver holds: while any
-    worker held it, the server (the worker's parent) outlived a killed owner, and so the parent
-    death signal never came. Without it the server ends with its owner, and then the worker."""
-    try:
-        from multiprocessing import forkserver
-
-        server = forkserver._forkserver
-        fd = getattr(server, "_forkserver_alive_fd", None)
-        if fd is not None:
-            server._forkserver_alive_fd = None
-            os.close(fd)
-    except (ImportError, AttributeError, OSError):
-        pass
-
-
-def _worker_init(initializer, initargs, owner=None):
+def _worker_init(initializer, initargs):
     Executor.worker_setup()
-    if owner is not None and os.name == "posix":
-        _exit_with(owner)
     if initializer is not None:
         initializer(*initargs)
 
@@ -120,7 +68,9 @@ class ProcessSettings(ComponentSettings):
     workers: int = Field(
         default_factory=lambda: max(1, os.cpu_count() or 1),
         ge=1,
-        description="number of worker processes (default: all cores)",
+        le=1024,
+        description="number of worker processes (default: all cores; at most the cores there are: "
+        "more would only wait their turn, each holding the target in memory)",
     )
     start_method: Literal["fork", "spawn", "forkserver"] = Field(
         "spawn" if os.name == "nt" else "forkserver",
@@ -140,15 +90,16 @@ def _portable(exc: BaseException) -> BaseException:
 def _worker_main(conn, initializer, initargs, owner) -> None:
     """A worker's life: start-up, then tasks ``(seq, fn, item)`` until ``None`` or end of file.
     Every exception of a task (``SystemExit`` too) goes back to the owner; the worker stays."""
-    _die_with_parent()
-    _release_forkserver()
+    bind_to_owner(owner)
+    release_forkserver()
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the owner's to handle (it stops us)
-        _worker_init(initializer, initargs, owner)
+        _worker_init(initializer, initargs)
     except BaseException as exc:  # noqa: BLE001 - a plugin's start-up may raise anything
-        conn.send(("init-error", None, _portable(exc)))
+        _send(conn, ("init-error", None, _portable(exc)))
         return
-    conn.send(("ready", None, None))
+    if not _send(conn, ("ready", None, None)):
+        return
     while True:
         try:
             msg = conn.recv()
@@ -162,9 +113,23 @@ def _worker_main(conn, initializer, initargs, owner) -> None:
         except BaseException as exc:  # noqa: BLE001 - sys.exit() in a plugin must not end the worker
             out = ("error", seq, _portable(exc))
         try:
-            conn.send(out)
+            sent = _send(conn, out)
         except Exception as exc:  # a result that cannot be pickled
-            conn.send(("error", seq, WorkerError(f"the result could not be sent back: {type(exc).__name__}: {exc}")))
+            sent = _send(
+                conn, ("error", seq, WorkerError(f"the result could not be sent back: {type(exc).__name__}: {exc}"))
+            )
+        if not sent:
+            return
+
+
+def _send(conn, message) -> bool:
+    """Send ``message`` to the owner; False when the owner has gone (it was stopped and closed
+    its end): the worker then ends quietly, no ``BrokenPipeError`` traceback on the terminal."""
+    try:
+        conn.send(message)
+    except (BrokenPipeError, ConnectionResetError, EOFError):
+        return False
+    return True
 
 
 def _death_text(exitcode) -> str:
@@ -227,14 +192,21 @@ class ProcessExecutor(Executor):
 
     @property
     def workers(self) -> int:
-        return self.settings.workers
+        """The workers started: ``workers``, or the cores there are when that is fewer."""
+        return min(self.settings.workers, available_cores())
 
     def start(self, initializer=None, initargs=()):
+        if self.settings.workers > self.workers:
+            warnings.warn(
+                f"executor.workers = {self.settings.workers} is more than the {self.workers} cores here: "
+                f"{self.workers} workers are started (the results are the same)",
+                stacklevel=2,
+            )
         self._ctx = mp.get_context(self.settings.start_method)
         self._init = (initializer, initargs)
         self._seq = itertools.count()
         self._start_deaths = 0
-        self._workers = [self._spawn() for _ in range(self.settings.workers)]
+        self._workers = [self._spawn() for _ in range(self.workers)]
 
     def _spawn(self) -> _Worker:
         return _Worker(self._ctx, *self._init)

@@ -14,6 +14,7 @@ import csv
 from pathlib import Path
 
 from ..errors import BayesForestError
+from ..io import whole_file
 from .store import RunFiles, RunStore
 
 
@@ -87,8 +88,12 @@ def export_trees(
 
     run_dir = Path(run_dir)
     RunStore.open(run_dir).close()  # a run directory, or a clear error
+    if out_dir is not None and not str(out_dir).strip():
+        raise ExportError("-o: an empty folder name; name a folder, or leave -o out for RUN/export")
     out_dir = Path(out_dir) if out_dir is not None else RunFiles(run_dir).export_dir
-    writers = [_writer(f) for f in formats]
+    if not [f for f in formats if str(f).strip()]:
+        raise ExportError("--format: no format named (e.g. --format ply,las; bforest plugins lists the writers)")
+    writers = list(dict.fromkeys(_writer(f) for f in formats if str(f).strip()))  # a format named twice: once
     files = run_trees(run_dir, what)
     if not files:
         raise ExportError(f"{run_dir}: no trees to export ({' or '.join(what)}: run the fit / bforest clones first)")
@@ -178,7 +183,7 @@ def export_evaluations(run_dir, path, overwrite: bool = False) -> int:
     params = list(dict.fromkeys(k for e in evs for k in e.params))
     sets = list(dict.fromkeys(k for e in evs for k in e.per_set))
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as fh:
+    with whole_file(path) as part, open(part, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(
             ["evaluation", "status", "seconds", "distance"]

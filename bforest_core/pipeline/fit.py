@@ -12,6 +12,7 @@ import contextlib
 import json
 import math
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,26 +21,28 @@ import numpy as np
 
 from ..config import (
     RunConfig,
+    build_component,
     config_to_dict,
     load_config,
     parse_config,
     read_toml,
     section_settings,
-    ssm_settings,
+    selection_config,
 )
 from ..errors import BayesForestError, ConfigError
-from ..interfaces import Problem, parameter_value
+from ..interfaces import LineDistance, OptimizeResult, Problem, parameter_value
 from ..io import jsonable
-from ..registry import component
+from ..processes import one_blas_thread
 from .checks import preflight
-from .heldout import select_answer, selection_config
+from .heldout import select_answer
+from .interrupts import stoppable
 from .progress import progress_bar
 from .rundir import holding_run_lock
 from .scoring import _simulate_with_timeout, _Timeout, set_summaries
 from .seeds import model_seeds, spread_seeds
 from .store import Evaluation, RunDirError, RunFiles, RunStore, stop_fields
-from .target import Target, bounds_from_target, build_target
-from .worker import evaluate_task, run_executor, started_workers, summary_task
+from .target import Target, build_target
+from .worker import evaluate_task, started_workers, summary_task
 
 
 @dataclass
@@ -54,7 +57,7 @@ class FitResult:
     run_dir: Path
     history: list[dict] = field(default_factory=list)
     diagnostics: dict[str, Any] = field(default_factory=dict)
-    already_finished: bool = False  # a --resume of a run that had finished: nothing was simulated
+    already_finished: bool = False  # a --resume of a run that had finished: nothing new was simulated
     #: the search's lowest distance on its own model seeds (what its progress bar ends at)
     best_own: float | None = None
     #: the answer's distance on held-out model seeds, when ``[select]`` chose it (else None)
@@ -120,12 +123,12 @@ class Evaluator:
 
     def _stop_at_budget(self, pending: int = 0) -> bool:
         """Stop the problem once its evaluations, with ``pending`` more on their way, reach
-        ``Problem.budget`` (``[stop] max_evaluations``): the one place the budget is enforced
+        ``Problem.max_evaluations`` (``[stop] max_evaluations``): the one place the budget is enforced
         (optimisers read ``Problem.remaining()`` to plan, ``Problem.stopped`` to end)."""
         pr = self.problem
         left = pr.remaining()
         if left is not None and pending >= left:
-            pr.stopped, pr.stop_reason = True, f"evaluation budget ({pr.budget}) reached"
+            pr.stopped, pr.stop_reason = True, f"evaluation budget ({pr.max_evaluations}) reached"
             self.stop_kind = self.stop_kind or "budget"
         return pr.stopped
 
@@ -133,7 +136,8 @@ class Evaluator:
         pr, st = self.problem, self.stop
         if self._stop_at_budget():
             return
-        if st.wall_time is not None and self.elapsed() >= st.wall_time:
+        replaying = self.next_index <= max(self.replay, default=-1)  # logged rows still ahead
+        if st.wall_time is not None and not replaying and self.elapsed() >= st.wall_time:
             pr.stopped, pr.stop_reason = True, f"wall time ({st.wall_time:g} s) reached"
             self.stop_kind = "wall_time"
         elif st.target_distance is not None and pr.best_f <= st.target_distance:
@@ -166,6 +170,12 @@ class Evaluator:
         got = list(self.executor.map(summary_task, tasks))
         m = next((len(g) for g in got if g is not None), 0)
         return np.array([np.full(m, np.nan) if g is None else g for g in got], float).reshape(len(X), m)
+
+    def foreign_rows(self) -> list[int]:
+        """Logged evaluations the search never came to: rows this run did not make (added to the
+        log by hand or by another program), which the answer must not be taken from. Every row
+        the search came to was checked against its point and seeds when it was replayed."""
+        return sorted(i for i in self.replay if i >= self.next_index)
 
     def elapsed(self) -> float:
         return self.elapsed_before + time.monotonic() - self.t0
@@ -271,12 +281,42 @@ def _expected_total(cfg: RunConfig, optimizer, dim: int) -> int | None:
     return min(totals) if totals else None
 
 
-def _result_relevant(cfg: RunConfig) -> dict:
-    """The parts of a config a run's results depend on (all but the executor and the report)."""
-    d = config_to_dict(cfg)
-    d.pop("executor", None)
-    d.pop("report", None)
-    return d
+#: settings a resume may change: when the search stops, where it runs and what it reports (dotted
+#: keys of the config, a section for all its keys). Every other setting changes what an evaluation
+#: computes (the target, the model, the objective, the seeds, the bounds) or what the answer is
+#: chosen by ([select]), or the clones the run's folder already holds ([clones]).
+RESUMABLE = ("stop.max_evaluations", "stop.wall_time", "stop.target_distance", "executor", "report")
+
+
+def _flat(value, key: str = "") -> dict:
+    """``{dotted key: value}`` of a config table (lists of tables as ``key[i]``)."""
+    if isinstance(value, dict):
+        out = {}
+        for k, v in value.items():
+            out.update(_flat(v, f"{key}.{k}" if key else str(k)))
+        return out
+    if isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+        out = {f"{key}[#]": len(value)}
+        for i, v in enumerate(value):
+            out.update(_flat(v, f"{key}[{i}]"))
+        return out
+    return {key: value}
+
+
+def config_changes(old: dict, new: dict, allowed=()) -> list[str]:
+    """The settings in which two configs (as TOML tables, :func:`config_to_dict`) differ, as
+    ``key: old -> new`` (``unset`` for a key one of them leaves out), except those under the
+    dotted keys or sections of ``allowed``."""
+    a, b = _flat(old), _flat(new)
+
+    def free(key: str) -> bool:
+        return any(key == p or key.startswith(p + ".") for p in allowed)
+
+    def show(v) -> str:
+        return "unset" if v is None else json.dumps(v)
+
+    keys = sorted({k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and not free(k)})
+    return [f"{k}: {show(a.get(k))} -> {show(b.get(k))}" for k in keys]
 
 
 def same_config(run_dir, cfg: RunConfig) -> bool:
@@ -287,7 +327,36 @@ def same_config(run_dir, cfg: RunConfig) -> bool:
         old = parse_config(read_toml(path), source=str(path))
     except (OSError, BayesForestError):
         return False
-    return _result_relevant(old) == _result_relevant(cfg)
+    return not config_changes(config_to_dict(old), config_to_dict(cfg), allowed=("executor", "report"))
+
+
+def _check_resume(store: RunStore, text: str, cfg: RunConfig) -> None:
+    """Refuse to resume the run of ``store`` with the config ``text`` (``cfg``) when it changes
+    anything but :data:`RESUMABLE`: the logged evaluations and the new ones would answer two
+    questions. The run's own config is the one its log was begun with (kept in the log, so an
+    edit of ``config.toml`` is seen too; a run written before that: its ``config.toml``)."""
+    import tomllib
+
+    own = store.get_meta("config")
+    try:
+        old = tomllib.loads(own if isinstance(own, str) else store.config_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise RunDirError(f"{store.config_path}: the run's own config cannot be read ({exc})") from None
+    changes = config_changes(old, tomllib.loads(text), allowed=RESUMABLE)
+    if changes:
+        raise RunDirError(
+            f"{store.path}: the config differs from the run's in what an evaluation computes "
+            f"({'; '.join(changes)}): the logged evaluations and new ones would not be comparable; "
+            f"resume with the run's own settings, or start a new run (another -o, or --overwrite); "
+            f"a resume may change only {', '.join(RESUMABLE)}"
+        )
+    held, budget, own_budget = store.count(), cfg.stop.max_evaluations, old.get("stop", {}).get("max_evaluations")
+    if budget is not None and budget < held and (own_budget is None or budget < own_budget):
+        raise RunDirError(
+            f"{store.path}: stop.max_evaluations = {budget} is below the {held} evaluations the run "
+            f"holds; resume with a budget of at least {held} (the answer of a smaller budget is "
+            "in the report's convergence table)"
+        )
 
 
 def _free_specs(cfg: RunConfig, ssm):
@@ -310,6 +379,7 @@ def _free_specs(cfg: RunConfig, ssm):
     return names, np.array(lo), np.array(hi), np.array(ilo), np.array(ihi), np.array(integer, bool)
 
 
+@stoppable
 @holding_run_lock
 def fit(
     cfg: RunConfig | str | Path,
@@ -335,28 +405,27 @@ def fit(
     if not isinstance(cfg, RunConfig):
         cfg = load_config(cfg)
     run_dir = Path(run_dir)
-    tgt = preflight(cfg, target)  # every check before the run directory is touched
-    cfg = bounds_from_target(cfg, tgt.trees)  # the run's config.toml holds the resolved bounds
+    checked = preflight(cfg, target)  # every check before the run directory is touched
+    for note in checked.notes:  # a bound scaled to the target moved into the model's range
+        warnings.warn(note.message, note.category, stacklevel=3)
+    tgt, cfg = checked.target, checked.cfg  # the run's config.toml holds the resolved bounds
     text = tomli_w.dumps(config_to_dict(cfg))
     store = RunStore.open(run_dir) if resume else RunStore.create(run_dir, text, overwrite=overwrite)
     with store:
         if resume:
-            if not same_config(run_dir, cfg):
-                raise RunDirError(
-                    f"{run_dir}: the config differs from the run's {store.CONFIG}; resume with the "
-                    f"run's own config (bforest fit RUN/{store.CONFIG} -o RUN --resume)"
-                )
-            finished = store.finished()  # resuming it replays the log, simulates nothing
-            # the executor may change between sessions (results never depend on it)
+            _check_resume(store, text, cfg)
+            finished = store.finished()  # resuming it replays the log, simulates nothing new unless extended
+            # the executor and the budget may change between sessions (results never depend on them)
             store.config_path.write_text(text, encoding="utf-8")
+            store.set_meta("config", text)
             store.clear_log()
         else:
             finished = False
-        _save_target(store, tgt, cfg)
-        ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+        held = store.count()
+        _save_target(store, tgt, cfg, checked.components["distance"])
+        ssm = build_component(cfg, "ssm")
         names, lo, hi, ilo, ihi, integer = _free_specs(cfg, ssm)
-        optimizer = component("optimizer", cfg.optimizer.kind, **section_settings(cfg, "optimizer"))
-        executor = run_executor(cfg)
+        optimizer, executor = checked.components["optimizer"], checked.components["executor"]
         problem = Problem(
             names=names,
             lower=lo,
@@ -366,7 +435,7 @@ def fit(
             init_lower=ilo,
             init_upper=ihi,
             seed=int(cfg.seed),
-            budget=cfg.stop.max_evaluations,
+            max_evaluations=cfg.stop.max_evaluations,
             log=store.log,
         )
         bar = _Progress(_expected_total(cfg, optimizer, len(names)), enabled=progress)
@@ -383,9 +452,20 @@ def fit(
         try:
             with started_workers(cfg, tgt, executor):
                 try:
-                    result = optimizer.minimize(problem)
+                    with one_blas_thread():  # the same answer on any number of cores
+                        result = optimizer.minimize(problem)
                 finally:  # the search's bar ends before the re-scoring's starts
                     bar.close(problem.stop_reason or getattr(result, "stop_reason", "") or "")
+                foreign = evaluator.foreign_rows()
+                if foreign:
+                    raise RunDirError(
+                        f"{store.evaluations_path}: evaluation{'s' * (len(foreign) > 1)} "
+                        f"{', '.join(map(str, foreign[:10]))}{' ...' if len(foreign) > 10 else ''} "
+                        f"of the log {'are' if len(foreign) > 1 else 'is'} not this run's: its search "
+                        f"ended at evaluation {evaluator.next_index - 1} (rows added by hand or by "
+                        "another program?); the answer is never taken from them: restore the log, or "
+                        "start the run anew with --overwrite"
+                    )
                 if store.count() and scfg is cfg:
                     selection = select_answer(cfg, store, lambda: contextlib.nullcontext(executor), progress)
             if store.count() and scfg is not cfg:  # the workers start again on the selection's tables
@@ -419,7 +499,7 @@ def fit(
             run_dir=run_dir,
             history=store.log_records(),
             diagnostics=result.diagnostics,
-            already_finished=finished,
+            already_finished=finished and store.count() == held,
             best_own=store.best().distance,
             heldout_distance=out.get("heldout_distance"),
             evaluation=out["evaluation"],
@@ -441,25 +521,23 @@ def _start(cfg: RunConfig, store: RunStore, tgt: Target, names, lo, hi) -> np.nd
     return X
 
 
-def _save_target(store: RunStore, tgt: Target, cfg: RunConfig | None = None) -> None:
-    """The data tables, and the distance's frozen data-side transforms and directions, so every
-    number of the run can be recomputed from the run directory."""
+def _save_target(store: RunStore, tgt: Target, cfg: RunConfig, dist) -> None:
+    """The data tables, and the distance's (``dist``, the ``[distance]`` section's) frozen
+    data-side transforms and directions, so every number of the run can be recomputed from the
+    run directory."""
     np.savez_compressed(store.target_sets_path, **tgt.U)
-    if cfg is not None:
-        dist = component("distance", cfg.distance.kind, **section_settings(cfg, "distance"))
-        own = {k: v for k, v in tgt.U.items() if "/" not in k}  # the [distance] term's sets
-        cols = {k: v for k, v in tgt.columns.items() if "/" not in k}
-        dist.prepare(own, cols)
-        frozen = {"distance": cfg.distance.kind, "settings": section_settings(cfg, "distance"), "columns": cols}
-        norms = dist.normalizations()
-        if norms:  # a distance that compares the tables in their own units has none
-            frozen["normalization"] = norms
-        store.write_json(store.DISTANCE, frozen)
+    own = {k: v for k, v in tgt.U.items() if "/" not in k}  # the [distance] term's sets
+    cols = {k: v for k, v in tgt.columns.items() if "/" not in k}
+    dist.prepare(own, cols)
+    frozen = {"distance": cfg.distance.kind, "settings": section_settings(cfg, "distance"), "columns": cols}
+    lines = isinstance(dist, LineDistance)  # a sliced distance: its transforms and directions are kept
+    norms = dist.normalizations() if lines else {}
+    if norms:  # a distance that compares the tables in their own units has none
+        frozen["normalization"] = norms
+    store.write_json(store.DISTANCE, frozen)
+    if lines:
         dims = sorted({u.shape[1] for u in own.values() if u.ndim == 2})
-        try:
-            np.savez_compressed(store.directions_path, **{f"d{d}": dist.directions(d) for d in dims})
-        except NotImplementedError:
-            pass
+        np.savez_compressed(store.directions_path, **{f"d{d}": dist.directions(d) for d in dims})
     try:
         from ..io import write_tree
 
@@ -507,25 +585,21 @@ def finish_fit(
     if selection:
         best["heldout_distance"] = next(c["heldout"] for c in selection["candidates"] if c["evaluation"] == ev.idx)
         best["selection"] = selection
-    from .posterior import posterior_kind as _kind
     from .posterior import posterior_outputs
 
-    diag = getattr(result, "diagnostics", {}) or {}
-    names, lo, hi, _, _, integer = _free_specs(cfg, ssm)
-    table = posterior_outputs(
-        store.path,
-        diag,
-        list(diag.get("names") or ev.params),
-        kind=posterior_kind,
-        prior_box={n: (float(a), float(b), bool(i)) for n, a, b, i in zip(names, lo, hi, integer)},
-        observed=tgt.U,
-        columns=tgt.columns,
-        attrs={"optimizer": cfg.optimizer.kind, "ssm": cfg.ssm.kind},
-        seed=int(cfg.seed),
-    )
-    if table is not None:
-        best["posterior_kind"] = _kind(diag, posterior_kind)
-        best["posterior_summary"] = table
+    post = result.posterior(list(ev.params), posterior_kind) if isinstance(result, OptimizeResult) else None
+    if post is not None:
+        names, lo, hi, _, _, integer = _free_specs(cfg, ssm)
+        best["posterior_kind"] = post.kind
+        best["posterior_summary"] = posterior_outputs(
+            store.path,
+            post,
+            prior_box={n: (float(a), float(b), bool(i)) for n, a, b, i in zip(names, lo, hi, integer)},
+            observed=tgt.U,
+            columns=tgt.columns,
+            attrs={"optimizer": cfg.optimizer.kind, "ssm": cfg.ssm.kind},
+            seed=int(cfg.seed),
+        )
         best["posterior_files"] = [store.POSTERIOR_CSV, store.POSTERIOR_NC]
     if ev.status != "ok":
         best["model_metrics"] = None

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..config import config_to_dict, parse_config
+from ..config import config_to_dict, selection_config
 from .progress import progress_bar
 from .scoring import mean_per_set
 from .seeds import heldout_seeds
@@ -43,7 +43,6 @@ __all__ = [
     "heldout_mean",
     "heldout_parts",
     "candidates",
-    "selection_config",
     "select_answer",
 ]
 
@@ -152,23 +151,6 @@ def candidates(evaluations: list[Evaluation], top: int, lower, upper, names, spa
             if len(kept) == top:
                 break
     return kept
-
-
-def selection_config(cfg: RunConfig) -> RunConfig:
-    """The config the candidate answers are scored with: ``cfg`` itself, or with ``[select]
-    features``/``distance`` merged over its ``[features]``/``[distance]`` (a ``kind`` of their own
-    replaces the section); a ConfigError's message starts ``select:`` when they do not validate."""
-    sel = cfg.select
-    if not sel.features and not sel.distance:
-        return cfg
-    raw = config_to_dict(cfg)
-    for part in ("features", "distance"):
-        extra = getattr(sel, part)
-        if extra:
-            same = extra.get("kind", raw[part]["kind"]) == raw[part]["kind"]
-            raw[part] = {**raw[part], **extra} if same else dict(extra)
-    raw["select"] = {k: v for k, v in raw["select"].items() if k not in ("features", "distance")}
-    return parse_config(raw, source="select")  # its messages: "select: features.sets: ..."
 
 
 def select_answer(cfg: RunConfig, store: RunStore, workers, progress: bool = False) -> dict | None:

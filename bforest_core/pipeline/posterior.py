@@ -3,8 +3,8 @@ an MCMC chain): a table (``posterior.csv``), an ArviZ ``InferenceData`` file (``
 with the ``posterior``, ``prior``, ``observed_data`` and ``sample_stats`` groups) and a summary
 (mean, sd, 5/50/95 % quantiles, 90 % HDI; R-hat and bulk ESS for MCMC chains).
 
-Which of the two a sampler gives is its ``posterior_kind`` (``"chain"`` or ``"population"``,
-:class:`~bforest_core.interfaces.Optimizer`); without it the diagnostics' keys tell.
+Each takes the sampler's posterior as one object (:class:`~bforest_core.interfaces.Posterior`:
+its kind, ``"chain"`` or ``"population"``, its draws and weights).
 """
 
 from __future__ import annotations
@@ -15,46 +15,20 @@ from pathlib import Path
 
 import numpy as np
 
+from ..interfaces import Posterior
 from ..metrics import weighted_quantiles
 from .store import RunFiles
 
 HDI_PROB = 0.90
 
 
-def posterior_samples(diag: dict, names: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(samples (n, p), weights (n,))`` from optimiser diagnostics, or None when the optimiser
-    gave no posterior: the weighted ``particles`` of a population, or the post-burn-in draws of
-    every walker of a ``chain`` (equal weights)."""
-    if not isinstance(diag, dict):
-        return None
-    if diag.get("particles") is not None and diag.get("weights") is not None:
-        X = np.asarray(diag["particles"], float)
-        w = np.asarray(diag["weights"], float)
-    elif diag.get("chain") is not None:
-        chain = np.asarray(diag["chain"], float)
-        if chain.ndim != 3 or chain.shape[0] == 0:
-            return None
-        burn = min(int(diag.get("burn_in") or 0), chain.shape[0] - 1)
-        X = chain[burn:].reshape(-1, chain.shape[2])
-        w = np.full(X.shape[0], 1.0 / X.shape[0])
-    else:
-        return None
-    if X.ndim != 2 or X.shape[1] != len(names) or w.shape != (X.shape[0],):
-        return None
-    return X, w / w.sum()
-
-
-def write_posterior_csv(path: Path, diag: dict, names: list[str]) -> Path | None:
-    """Write ``posterior.csv`` (one column per parameter and ``weight``); None without a posterior."""
-    got = posterior_samples(diag, names)
-    if got is None:
-        return None
-    X, w = got
+def write_posterior_csv(path: Path, post: Posterior) -> Path:
+    """Write ``posterior.csv``: one column per parameter and ``weight``, a row per draw."""
     path = Path(path)
     with path.open("w", newline="", encoding="utf-8") as f:
         out = csv.writer(f)
-        out.writerow([*names, "weight"])
-        for row, wi in zip(X, w):
+        out.writerow([*post.names, "weight"])
+        for row, wi in zip(post.samples, post.weights):
             out.writerow([f"{v:.10g}" for v in row] + [f"{wi:.10g}"])
     return path
 
@@ -87,31 +61,14 @@ def read_posterior_csv(path) -> tuple[list[str], np.ndarray, np.ndarray]:
     return rows[0][:-1], data[:, :-1], w / w.sum()
 
 
-def posterior_kind(diag: dict, kind: str | None = None) -> str | None:
-    """``"chain"``, ``"population"`` or None: the sampler's declared ``kind`` when given, else
-    what the diagnostics hold (a run written before samplers declared it)."""
-    if kind in ("chain", "population"):
-        return kind
-    if not isinstance(diag, dict):
-        return None
-    if diag.get("particles") is not None and diag.get("weights") is not None:
-        return "population"
-    if diag.get("chain") is not None:
-        return "chain"
-    return None
-
-
-def _draws(diag: dict, names: list[str], X: np.ndarray, w: np.ndarray, kind: str) -> dict[str, np.ndarray]:
-    """Per parameter an array (chain, draw): the walkers of an MCMC chain after burn-in, or for
-    weighted particles one chain of a deterministic systematic resample by weight."""
-    if kind == "chain":
-        chain = np.asarray(diag["chain"], float)
-        burn = min(int(diag.get("burn_in") or 0), chain.shape[0] - 1)
-        kept = chain[burn:].transpose(1, 0, 2)  # (walkers, steps, p)
-        return {n: kept[:, :, j] for j, n in enumerate(names)}
-    n = X.shape[0]
-    idx = np.searchsorted(np.cumsum(w), (np.arange(n) + 0.5) / n).clip(0, n - 1)
-    return {name: X[idx, j][None, :] for j, name in enumerate(names)}
+def uniform_draw(rng: np.random.Generator, lower, upper, integer) -> np.ndarray:
+    """One draw uniform in ``[lower, upper]`` (integer parameters uniform over the whole numbers in
+    their bounds), from one uniform number per parameter of ``rng``."""
+    lo, hi = np.asarray(lower, float), np.asarray(upper, float)
+    u = rng.random(lo.size)
+    ilo, ihi = np.ceil(lo), np.floor(hi)
+    whole = np.minimum(ilo + np.floor(u * (ihi - ilo + 1)), ihi)
+    return np.where(np.asarray(integer, bool), whole, lo + u * (hi - lo))
 
 
 def prior_draws(box: dict, n: int, seed: int = 1) -> dict[str, np.ndarray]:
@@ -156,28 +113,22 @@ def _observed(observed: dict | None, columns: dict | None):
 
 def posterior_outputs(
     run_dir: Path,
-    diag: dict,
-    names: list[str],
-    kind: str | None = None,
+    post: Posterior,
     prior_box: dict | None = None,
     observed: dict | None = None,
     columns: dict | None = None,
     attrs: dict | None = None,
     seed: int = 1,
-) -> dict | None:
+) -> dict:
     """Write ``posterior.csv`` and ``posterior.nc`` into ``run_dir``; return the summary table per
-    parameter, or None when the optimiser gave no posterior.
+    parameter.
 
     Parameters
     ----------
     run_dir : Path
         The run directory.
-    diag : dict
-        The optimiser's diagnostics.
-    names : list of str
-        The fitted parameters, in the order of the samples' columns.
-    kind : {"chain", "population"}, optional
-        The sampler's ``posterior_kind`` (else read from the diagnostics' keys).
+    post : Posterior
+        The sampler's posterior (``OptimizeResult.posterior``).
     prior_box : dict, optional
         ``{name: (lower, upper, integer)}``: the ``prior`` group holds as many draws of the
         uniform prior over this box as the posterior has samples.
@@ -198,33 +149,24 @@ def posterior_outputs(
     of a systematic resample by weight; ``sample_stats`` holds each particle's raw ``weight``
     and ``distance`` in the order of ``posterior.csv``.
     """
-    got = posterior_samples(diag, names)
-    if got is None:
-        return None
-    kind = posterior_kind(diag, kind)
     run_dir = Path(run_dir)
-    write_posterior_csv(RunFiles(run_dir).posterior_csv_path, diag, names)
-    X, w = got
+    write_posterior_csv(RunFiles(run_dir).posterior_csv_path, post)
+    X, w, names = post.samples, post.weights, list(post.names)
     import arviz as az
 
-    draws = _draws(diag, names, X, w, kind)
+    draws = post.draws()
     stats = {}
-    dist = diag.get("distances")
-    if kind == "chain":
-        if dist is not None:
-            d = np.asarray(dist, float)
-            chain = np.asarray(diag["chain"], float)
-            burn = min(int(diag.get("burn_in") or 0), chain.shape[0] - 1)
-            if d.shape == chain.shape[:2]:
-                stats["distance"] = d[burn:].T
+    if post.kind == "chain":
+        if post.distances is not None:
+            stats["distance"] = post.distances[post.burn_in :].T
     else:
         stats["weight"] = w[None, :]
-        if dist is not None and np.shape(dist) == (X.shape[0],):
-            stats["distance"] = np.asarray(dist, float)[None, :]
+        if post.distances is not None:
+            stats["distance"] = post.distances[None, :]
     n_draws = int(np.prod(next(iter(draws.values())).shape))
     prior = prior_draws({k: prior_box[k] for k in names if k in prior_box}, n_draws, seed) if prior_box else None
     obs, obs_dims, obs_coords = _observed(observed, columns)
-    file_attrs = {"posterior_kind": kind, **{k: str(v) for k, v in (attrs or {}).items() if v is not None}}
+    file_attrs = {"posterior_kind": post.kind, **{k: str(v) for k, v in (attrs or {}).items() if v is not None}}
     if obs:
         import json
 
@@ -247,7 +189,7 @@ def posterior_outputs(
         hdi = az.hdi(idata.posterior, hdi_prob=HDI_PROB)
         diag_stats = (
             az.summary(idata.posterior, kind="diagnostics")
-            if kind == "chain" and next(iter(draws.values())).shape[0] > 1
+            if post.kind == "chain" and next(iter(draws.values())).shape[0] > 1
             else None
         )
     table = {}

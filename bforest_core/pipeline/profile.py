@@ -100,8 +100,7 @@ def profile(
         ``table_text`` (one line per value: median, quartiles, range, failures), ``csv`` (path), ``param``, ``values`` (k,), ``seeds`` (list),
         ``distances`` (k, seeds), ``status`` (k, seeds), ``best_value``, ``best_distance``.
     """
-    from ..config import load_config, ssm_settings
-    from ..registry import component
+    from ..config import build_component, load_config
     from .progress import progress_bar
     from .seeds import model_seeds
     from .store import RunFiles, RunStore, slug
@@ -112,7 +111,7 @@ def profile(
     with RunStore.open(run_dir) as store:
         cfg = load_config(store.config_path)
         best = store.read_best()
-    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+    ssm = build_component(cfg, "ssm")
     try:
         spec = ssm.parameter_spec(param)
     except KeyError:

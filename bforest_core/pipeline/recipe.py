@@ -2,10 +2,11 @@
 
 The tree is measured (:func:`bforest_core.metrics.measure_tree`); every registered growth model
 that writes recipes drafts its part (:meth:`bforest_core.interfaces.SSM.draft_recipe`: settings,
-fixed values and bounds, each with what in the tree set it); this module picks the model that
-suits the tree best (or the one asked for) and writes the whole recipe around it: the sets, the
-size term, the robust search of the real-tree recipes (docs/validation.md section 4) and the
-answer chosen on held-out seeds.
+fixed values and bounds, each with what in the tree set it, its model seeds and budget, the size
+term's balance); this module picks the model that suits the tree best (or the one asked for),
+asks the recipe's other plugins (``config.RECIPE_KINDS``: the structural tables and distance, the
+size term's, the search) for their parts (``draft_recipe`` of each, a :class:`RecipePart`) and
+assembles the whole: it names no plugin and no plugin's setting.
 """
 
 from __future__ import annotations
@@ -19,13 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import RECIPE_KINDS
 from ..errors import ConfigError
-from ..interfaces import RecipeDraft
+from ..interfaces import RecipeDraft, RecipePart, RecipePlan
 from ..io import read_qsm
-from ..metrics import SIZE_WEIGHTS, SUMMARY_DEFAULT, TreeMeasures, measure_tree
+from ..metrics import TreeMeasures, measure_tree
 from ..registry import component, discover
 from ..samples import is_sample
-from .target import SUMMARY_KIND
 
 
 @dataclass
@@ -53,6 +54,57 @@ def _value(v) -> str:
 
 def _line(left: str, comment: str | None, width: int = 52) -> str:
     return f"{left:<{width}} # {comment}" if comment else left
+
+
+def _toml(v) -> str:
+    """A plugin's value as TOML that reads back as the same value (floats by their shortest repr)."""
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return f'"{v}"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml(x)}" for k, x in v.items()) + " }"
+    return repr(v)
+
+
+def _section(part: RecipePart) -> list[str]:
+    """A plugin's part as the lines of its section: its kind and settings, each with its comment."""
+    return [f'kind = "{part.kind}"'] + [_line(f"{k} = {_toml(v)}", c) for k, v, c in part.settings]
+
+
+def _inline(part: RecipePart) -> str:
+    """A plugin's part as an inline table (a term's ``features``/``distance``)."""
+    return _toml({"kind": part.kind, **{k: v for k, v, _ in part.settings}})
+
+
+def _comment(*texts: str) -> list[str]:
+    return [f"# {s}" for text in texts for s in textwrap.wrap(text, 96)]
+
+
+#: the parts of a recipe written by plugins: (``RECIPE_KINDS`` key, component kind, term)
+PARTS = (
+    ("features", "features", "structure"),
+    ("distance", "distance", "structure"),
+    ("size.features", "features", "size"),
+    ("size.distance", "distance", "size"),
+    ("optimizer", "optimizer", "search"),
+)
+
+
+def recipe_parts(draft: RecipeDraft, measures: TreeMeasures, start: bool = False) -> dict[str, RecipePart]:
+    """Each recipe plugin's part for the growth model's ``draft``, by ``RECIPE_KINDS`` key
+    (``start``: the search refines draws of an amortised estimator's posterior)."""
+    plan = {"draft": draft, "measures": measures, "dim": len(draft.free), "start": start}
+    out = {}
+    for key, kind, term in PARTS:
+        name = RECIPE_KINDS[key]
+        part = component(kind, name).draft_recipe(RecipePlan(term, **plan))
+        if part is None:
+            raise ConfigError(f"the {kind} plugin {name!r} writes no part of a recipe for the {term} ({key})")
+        out[key] = part
+    return out
 
 
 def draft_recipes(measures: TreeMeasures, model: str | None = None) -> list[tuple[str, RecipeDraft]]:
@@ -133,25 +185,19 @@ def _within(spec, lo, hi, comment):
     return spec.name, cast(a), cast(b), comment
 
 
-def write_recipe(qsm: str | Path, out: str | Path, model: str | None = None, amortised=None) -> Recipe:
+def write_recipe(
+    qsm: str | Path, out: str | Path, model: str | None = None, start: str | None = None, how: str | None = None
+) -> Recipe:
     """Measure the tree in ``qsm`` and write its recipe to ``out`` (an existing file is never
     replaced: the caller checks). Raises ``ConfigError`` naming the file for a tree that cannot
     be fitted. ``qsm`` may be ``sample:NAME``, which the recipe keeps as it is.
 
-    ``amortised``: an estimator's file (``bforest train``; ``"shipped"``, the one shipped for the
-    model): the recipe's search starts from its posterior for the tree and is short
-    (:data:`AMORTISED_SEARCH`); the model is the estimator's unless ``model`` says otherwise."""
+    ``start``: the ``[start] estimator`` the recipe's search starts from (an amortised
+    estimator's file as the recipe names it, or ``"shipped"``;
+    :func:`~.amortised.write_amortised_recipe`): the search is short (:data:`AMORTISED_BUDGET`).
+    ``how``: how the model was chosen, as the recipe says it."""
     out = Path(out)
-    start, how = None, "asked for" if model else "the one that suits the tree best"
-    if amortised is not None:
-        from .amortised import SHIPPED, checked_header, estimator_for
-
-        path = estimator_for(model) if amortised == SHIPPED else Path(amortised)
-        header, _ = checked_header(path)
-        if model is not None and model != header["model"]:
-            raise ConfigError(f"--amortised {amortised}: an estimator of {header['model']}, not of --model {model}")
-        model, how = header["model"], how if model else "the estimator's"
-        start = amortised if amortised == SHIPPED else os.path.relpath(path.resolve(), out.resolve().parent)
+    how = how or ("asked for" if model else "the one that suits the tree best")
     tree = read_qsm(qsm)
     # the recipe names the tree relative to itself (a sample by its name: it is where the user fetched it)
     rel = str(qsm) if is_sample(qsm) else os.path.relpath(Path(qsm).resolve(), out.resolve().parent)
@@ -167,7 +213,7 @@ def write_recipe(qsm: str | Path, out: str | Path, model: str | None = None, amo
     if draft.suits <= 0.0:
         raise ConfigError(f"{qsm}: {name} cannot grow this tree: {draft.why}")
     if start is not None:
-        draft = dataclasses.replace(draft, **AMORTISED_SEARCH, search_why=AMORTISED_WHY)
+        draft = dataclasses.replace(draft, **AMORTISED_BUDGET, search_why=AMORTISED_WHY)
     text = render(qsm, rel, name, draft, m, [(n, d.suits, d.why) for n, d in drafts], how, start)
     out.write_text(text, encoding="utf-8")
     return Recipe(name, draft, m, text, [(n, d.suits, d.why) for n, d in drafts])
@@ -198,65 +244,24 @@ def measured_lines(m: TreeMeasures) -> list[str]:
 
 #: the weight of the structural term and of the size term: they weigh alike
 TERM_WEIGHT = 2.0
-#: the summary distance's cap of one statistic's term, written with limits: the size term then
-#: reaches at most cap * (1 + steep), the structural distance (KS) 1
-SIZE_CAP = 2.0
-#: the tables the candidate answers are scored on (``[select] features``/``distance``) when the
-#: draft's ``select_tables`` is set: the first-order segments and branches as sets of their own on
-#: 256 lines, the tables a clone is judged by (docs/validation.md), where the search pools S0,1 and
-#: B1,2 on 128 lines for a smoother objective
-SELECT_SETS = ("S1", "B1")
-SELECT_LINES = 256
-#: ``[objective] penalty`` of a recipe whose size term has limits (or twice what the objective can
+#: ``[objective] penalty`` of a recipe whose size term is bounded (or twice what the objective can
 #: then reach, if more): the default 1.0 lies below what a grown tree can reach, and failed growths
 #: would win
 LIMITS_PENALTY = 12.0
 
 
-#: the search of a recipe that starts from an amortised estimator's posterior (``bforest init
-#: --amortised``): one model seed an evaluation, 640 evaluations (two lq-CMA-ES runs of 16 from
-#: the best distinct of 32 posterior draws, grown together) and the answer among 8 points on 8
-#: held-out sets: 704 growths, under a fifth of the pine recipes' 4 128 (examples/real/pine_sot.toml)
-AMORTISED_SEARCH = dict(
-    seeds=1,
-    evaluations=640,
-    starts=2,
-    population=16,
-    init_design=32,
-    finalists=2,
-    grow_together=True,
-    select_top=8,
-    select_sets=8,
-)
+#: the budget of a recipe whose search refines an amortised estimator's posterior (``bforest init
+#: --amortised``): one model seed an evaluation, 640 evaluations (the search plugin plans the
+#: refinement: ``RecipePlan.start``) and the answer among 8 points on 8 held-out sets: 704 growths,
+#: under a fifth of the pine recipes' 4 128 (examples/real/pine_sot.toml)
+AMORTISED_BUDGET = dict(seeds=1, max_evaluations=640, select_top=8, select_sets=8)
 AMORTISED_WHY = (
     "The estimator's posterior already holds the region a long search would find, so the search only "
     "refines it: 704 growths in all, under a fifth of the pine recipes' 4 128."
 )
 
 
-def _search_text(d: RecipeDraft, amortised: bool = False) -> str:
-    """The comment above ``[optimizer]``: what the search does."""
-    if amortised:
-        return (
-            f"A short refinement of the estimator's posterior ([start]): {d.init_design} draws of it for this tree, "
-            f"then {d.starts} lq-CMA-ES runs of {d.population} points a generation from the best distinct ones, "
-            "taking their turns together."
-        )
-    if d.grow_together:
-        return (
-            f"A search that does not hinge on one trajectory: {d.init_design} Sobol' points over the box, then "
-            f"{d.starts} lq-CMA-ES runs of {d.population} points a generation from the best distinct ones, "
-            "each to the end of the budget, taking their turns together (their points go to the workers as "
-            "one batch); a run that converges restarts with a doubled population."
-        )
-    return (
-        f"A search that does not hinge on one trajectory: {d.init_design} Sobol' points over the box, "
-        f"{d.starts} lq-CMA-ES runs from the best distinct ones raced by successive halving, each "
-        "restarting with a doubled population once it converges."
-    )
-
-
-def _select_text(d: RecipeDraft) -> str:
+def _select_text(d: RecipeDraft, parts: dict[str, RecipePart]) -> str:
     """The comment above ``[select]``: how the answer is chosen."""
     text = (
         f"The answer is chosen on model seeds the search never used: the {d.select_top} best distinct points "
@@ -264,17 +269,31 @@ def _select_text(d: RecipeDraft) -> str:
     )
     if not d.select_tables:
         return text + "; the lowest held-out distance is the answer."
+    judged = " ".join(w for w in (parts["features"].select_why, parts["distance"].select_why) if w)
     return (
-        text + f", and scored on the tables a clone is judged by: {' and '.join(SELECT_SETS)} as sets of their "
-        f"own on {SELECT_LINES} lines, with the size term (the search pools its tables on fewer lines, a smoother "
-        "objective that ranks the candidates otherwise). The lowest is the answer."
+        text + f", and scored on the tables a clone is judged by: {judged}, with the size term (the search's "
+        "own tables are a smoother objective that ranks the candidates otherwise). The lowest is the answer."
     )
 
 
 def render(
     qsm: Path, rel: str, name: str, d: RecipeDraft, m: TreeMeasures, choices, how: str, start: str | None = None
 ) -> str:
-    """The recipe's TOML text, every choice commented."""
+    """The recipe's TOML text, every choice commented (``start``: the estimator the search starts from)."""
+    parts = recipe_parts(d, m, start is not None)
+    return "\n".join(
+        _head(qsm, name, d, m, choices, how)
+        + ["seed = 1", "", "[target]", f'qsm = "{rel}"', ""]
+        + _ssm_section(name, d)
+        + _terms(d, parts)
+        + _search(d, parts, start)
+        + ["[executor]", 'kind = "process"', "workers = 2", "", "[clones]", "count = 30", ""]
+    )
+
+
+def _head(qsm: Path, name: str, d: RecipeDraft, m: TreeMeasures, choices, how: str) -> list[str]:
+    """The recipe's opening comment: how to run it, what the tree measured, which model (``how`` it
+    was chosen) and why."""
     L = [
         f"# Recipe written by `bforest init {qsm.name}` for {qsm.name}: fit {name} to it and grow clones.",
         "#",
@@ -292,145 +311,67 @@ def render(
         if n != name:
             line = not_chosen(n, suits, name, d.suits, why)
             L.append(f"# {line[0].upper()}{line[1:]}.")
-    for note in d.notes:
-        L.append(f"# Note: {note}.")
-    # the most the objective can reach: the weighted mean of the structure (KS, at most 1) and the
-    # size term (at most cap * (1 + steep)); a failed growth scores above
-    reach = (TERM_WEIGHT * 1.0 + TERM_WEIGHT * SIZE_CAP * (1.0 + d.size_steep)) / (2.0 * TERM_WEIGHT)
-    penalty = max(LIMITS_PENALTY, float(math.ceil(2.0 * reach)))
-    L += ["seed = 1", "", "[target]", f'qsm = "{rel}"', "", "[ssm]", f'kind = "{name}"']
-    for k, v, c in d.settings:
-        L.append(_line(f"{k} = {_value(v)}", c))
-    for k, v, c in d.fixed:
-        L.append(_line(f"fixed.{k} = {_value(v)}", c))
+    return L + [f"# Note: {note}." for note in d.notes]
+
+
+def _ssm_section(name: str, d: RecipeDraft) -> list[str]:
+    """The growth model's section: its settings, fixed values and search box, as it drafted them."""
+    L = ["[ssm]", f'kind = "{name}"']
+    L += [_line(f"{k} = {_value(v)}", c) for k, v, c in d.settings]
+    L += [_line(f"fixed.{k} = {_value(v)}", c) for k, v, c in d.fixed]
     for k, lo, hi, c in d.free:
         by = f', scaled_by = "{d.scaled[k]}"' if k in d.scaled else ""
         L.append(_line(f"free.{k} = {{ lower = {_value(lo)}, upper = {_value(hi)}{by} }}", c))
-    L += [
-        "",
-        "# Two terms: the structural distance on branch and segment tables (how branches look) and a",
-        "# summary term on tree-level statistics (how large the tree is, where the crown starts, how many",
-        "# branches it has), which the structural distance cannot see.",
-        "[features]",
-        'kind = "branch-segment"',
-        'sets = ["S0,1", "B1,2"]',
-        "",
-        "[distance]",
-        'kind = "sliced"',
-        'statistic = "ks"',
-        "lines = 128",
-        "",
-        "[objective]",
+    return L + [""]
+
+
+def _terms(d: RecipeDraft, parts: dict[str, RecipePart]) -> list[str]:
+    """The objective's two terms, weighing alike: the structural tables and distance, and the size term."""
+    structure, size = parts["distance"], parts["size.distance"]
+    L = _comment(
+        "Two terms: the structural distance on the tree's tables (how branches look; "
+        f"{parts['features'].why}) and a size term on tree-level statistics (how large the tree is, where the "
+        "crown starts, how many branches it has), which the structural distance cannot see."
+    )
+    L += ["[features]", *_section(parts["features"]), "", "[distance]", *_section(structure), "", "[objective]"]
+    L.append(
         _line(
             f"seeds = {d.seeds}",
             f"the mean over {d.seeds} model seeds: clones vary, the fit must not chase one"
             if d.seeds > 1
             else "one model seed an evaluation: the seeds' luck is taken out where the answer is chosen ([select])",
-        ),
-        _line(f"timeout = {d.timeout:.1f}", "seconds one growth may take: a safety net far above a normal growth"),
-        _line(f"structure_weight = {TERM_WEIGHT!r}", "structure and size weigh alike"),
-        *(
-            [
-                _line(
-                    f"penalty = {penalty!r}",
-                    f"a failed growth scores above the {reach:g} a grown tree can reach (the size term's limits)",
-                )
-            ]
-            if d.size_limits
-            else []
-        ),
-        "",
-        (
-            "# The headline statistics weigh as the model's recipes calibrated them."
-            if d.size_weights
-            else "# The headline statistics weigh by the inverse of the error a forester tolerates (height 7.5 %,\n"
-            "# DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %)."
-        ),
-        *(f"# {s}" for s in textwrap.wrap(d.size_why if d.size_extra else "", 96)),
-        *(
-            f"# {s}"
-            for s in textwrap.wrap(
-                (
-                    f"Beyond its limit (a relative error, limits) a statistic's term grows {d.size_steep:g} times "
-                    "as fast: a fit trades a size for structure only as far as a forester still accepts the size."
-                )
-                if d.size_limits
-                else "",
-                96,
-            )
-        ),
-        "[[objective.terms]]",
-        'name = "size"',
-        f"weight = {TERM_WEIGHT!r}",
-        f'features = {{ kind = "{SUMMARY_KIND}", min_branch_diameter = 0.0'
-        + (
-            ", statistics = [" + ", ".join(f'"{k}"' for k in (*SUMMARY_DEFAULT, *d.size_extra)) + "]"
-            if d.size_extra
-            else ""
         )
-        + " }",
-        'distance = { kind = "summary", form = "logratio", weights = { '
-        + ", ".join(f"{k} = {v}" for k, v in {**(d.size_weights or SIZE_WEIGHTS), **d.size_extra}.items())
-        + " }"
-        + (
-            ", limits = { " + ", ".join(f"{k} = {v:g}" for k, v in d.size_limits.items()) + " }"
-            f", steep = {float(d.size_steep)!r}, cap = {SIZE_CAP!r}"
-            if d.size_limits
-            else ""
+    )
+    L.append(_line(f"timeout = {d.timeout:.1f}", "seconds one growth may take: a safety net far above a normal growth"))
+    L.append(_line(f"structure_weight = {TERM_WEIGHT!r}", "structure and size weigh alike"))
+    if size.reach is not None and structure.reach is not None:
+        # the most the objective can reach: the weighted mean of the terms' reaches; a failed growth scores above
+        reach = (TERM_WEIGHT * structure.reach + TERM_WEIGHT * size.reach) / (2.0 * TERM_WEIGHT)
+        penalty = max(LIMITS_PENALTY, float(math.ceil(2.0 * reach)))
+        L.append(_line(f"penalty = {penalty!r}", f"a failed growth scores above the {reach:g} a grown tree can reach"))
+    L += ["", *_comment(size.why, d.size_why if d.size_extra else "")]
+    L += ["[[objective.terms]]", 'name = "size"', f"weight = {TERM_WEIGHT!r}"]
+    return L + [f"features = {_inline(parts['size.features'])}", f"distance = {_inline(size)}", ""]
+
+
+def _search(d: RecipeDraft, parts: dict[str, RecipePart], start: str | None = None) -> list[str]:
+    """The search (the optimiser's part), where it starts, its budget and how the answer is chosen."""
+    L = []
+    if start is not None:
+        L += _comment(
+            "The search starts from an amortised estimator's posterior for this tree (bforest train, bforest "
+            "posterior): its first points are draws of it."
         )
-        + " }",
-        "",
-        *(
-            [
-                "# The search starts from an amortised estimator's posterior for this tree (bforest train, bforest",
-                "# posterior): its first points are draws of it.",
-                "[start]",
-                f'estimator = "{start}"',
-                "",
-            ]
-            if start is not None
-            else []
-        ),
-        *(f"# {s}" for s in textwrap.wrap(_search_text(d, start is not None), 96)),
-        *(f"# {s}" for s in textwrap.wrap(d.search_why, 96)),
-        "[optimizer]",
-        'kind = "cma"',
-        f"population = {d.population}",
-        "restarts = 4",
-        "sigma0 = 0.15",
-        'surrogate = "lq"',
-        "surrogate_batch = 2",
-        f"init_design = {d.init_design}",
-        f"starts = {d.starts}",
-        *([f"finalists = {d.finalists}"] if d.finalists != 1 else []),
-        *(["grow_together = true"] if d.grow_together else []),
-        "",
-        "[stop]",
-        f"max_evaluations = {d.evaluations}",
+        L += ["[start]", f'estimator = "{start}"', ""]
+    L += [*_comment(parts["optimizer"].why, d.search_why), "[optimizer]", *_section(parts["optimizer"]), ""]
+    L += ["[stop]", f"max_evaluations = {d.max_evaluations}"]
+    L.append(
         _line(
             f"wall_time = {d.wall_time:.1f}",
             "seconds: a safety net only; the search stops on its budget, so the answer is the same on any machine",
-        ),
-        "",
-        *(f"# {s}" for s in textwrap.wrap(_select_text(d), 96)),
-        "[select]",
-        f"top = {d.select_top}",
-        f"sets = {d.select_sets}",
-        *(
-            [
-                "features = { sets = [" + ", ".join(f'"{k}"' for k in SELECT_SETS) + "] }",
-                f"distance = {{ lines = {SELECT_LINES} }}",
-            ]
-            if d.select_tables
-            else []
-        ),
-        "",
-        "[executor]",
-        'kind = "process"',
-        "workers = 2",
-        "",
-        "[clones]",
-        "count = 30",
-        "",
-    ]
-    return "\n".join(L)
+        )
+    )
+    L += ["", *_comment(_select_text(d, parts)), "[select]", f"top = {d.select_top}", f"sets = {d.select_sets}"]
+    if d.select_tables:
+        L += [f"{key} = {_toml(parts[key].select)}" for key in ("features", "distance") if parts[key].select]
+    return L + [""]

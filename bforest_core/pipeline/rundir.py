@@ -7,9 +7,9 @@ The lock is the kernel's: it goes with the process however that ends (kill -9 in
 stale lock file never blocks anyone. Within one process the lock is re-entrant (``demo`` holds it
 while its ``fit`` and ``clones`` take it again).
 
-:data:`DERIVED` names everything a run writes into its directory; ``--overwrite`` removes exactly
-those (:func:`clear_derived`), and :func:`foreign_files` finds files of those names that no run
-wrote (a user's own ``config.toml`` in ``-o .``), which no command may overwrite.
+What a run writes into its directory, what ``--overwrite`` removes and which files of those names
+no run wrote are the run files' own (``RunFiles.DERIVED``, ``store.clear_derived``,
+``store.foreign_files``); this module only guards the folder.
 """
 
 from __future__ import annotations
@@ -17,16 +17,12 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import shutil
 import sys
 import threading
 import time
 from pathlib import Path
 
 from .store import RunDirError, RunFiles
-
-#: files and folders a run writes into its directory (globs), all derived from its config
-DERIVED = RunFiles.DERIVED
 
 _held: dict[str, list] = {}  # resolved path -> [fd, depth] of the locks this process holds
 _guard = threading.Lock()
@@ -144,44 +140,6 @@ def _release(fd) -> None:
         fcntl.flock(fd, fcntl.LOCK_UN)
     finally:
         os.close(fd)
-
-
-def derived_paths(run_dir) -> list[Path]:
-    """The paths of ``run_dir`` that a run wrote (or would write), existing ones only."""
-    run_dir = Path(run_dir)
-    out = []
-    for pattern in DERIVED:
-        out.extend(sorted(run_dir.glob(pattern)))
-    return out
-
-
-def is_run_dir(run_dir) -> bool:
-    """Whether ``run_dir`` holds a run (its evaluation log), as opposed to a user's folder."""
-    return RunFiles(run_dir).evaluations_path.exists()
-
-
-def foreign_files(run_dir) -> list[str]:
-    """Names of files in ``run_dir`` that a run would write but no run wrote there: a folder
-    without an evaluation log that holds e.g. the user's own ``config.toml`` (``-o .``)."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir() or is_run_dir(run_dir):
-        return []
-    found = []
-    for p in derived_paths(run_dir):
-        if p.is_dir() and not any(p.iterdir()):
-            continue  # an empty clones/ or figures/ holds nothing to lose
-        found.append(p.name)
-    return found
-
-
-def clear_derived(run_dir) -> None:
-    """Remove everything the old run of ``run_dir`` wrote (log, results, clones, report,
-    figures, exports); other files are left alone."""
-    for p in derived_paths(run_dir):
-        if p.is_dir() and not p.is_symlink():
-            shutil.rmtree(p)
-        else:
-            p.unlink(missing_ok=True)
 
 
 def holding_run_lock(fn):

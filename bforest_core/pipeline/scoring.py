@@ -20,6 +20,7 @@ import numpy as np
 
 from ..interfaces import SSM, Distance, FeatureSet
 from ..registry import component
+from .interrupts import users_stop
 from .target import Term, feature_set_for, size_topology, term_specs
 
 if TYPE_CHECKING:
@@ -43,8 +44,18 @@ class _Timeout(Exception):
 
 #: what a model's simulation or feature extraction may raise besides SimulationFailed: the
 #: evaluation is then a failure with status "error", never a crash of the run. A plugin's code
-#: may raise anything (AttributeError, its own exception classes, even SystemExit from sys.exit()).
-_MODEL_ERRORS = (Exception, SystemExit)
+#: may raise anything (AttributeError, its own exception classes, SystemExit from sys.exit(), a
+#: KeyboardInterrupt or BaseException of its own); only the user's own stop ends the run
+#: (:func:`fault_message` lets it through).
+_MODEL_ERRORS = (BaseException,)
+
+
+def fault_message(exc: BaseException) -> str:
+    """The logged message of a plugin's fault ``exc`` (caught as :data:`_MODEL_ERRORS`); the
+    user's own stop (Ctrl-C, SIGTERM: :func:`.interrupts.users_stop`) is raised again instead."""
+    if users_stop(exc):
+        raise exc
+    return f"{type(exc).__name__}: {exc}"[:500]
 
 
 @dataclass
@@ -100,7 +111,7 @@ def build_scoring(
     -------
     Scoring
     """
-    from ..config import ssm_settings
+    from ..config import build_component
 
     if terms is None:  # rebuilt from the config (a report reading an older or partial run)
         terms = term_specs(cfg)
@@ -112,7 +123,7 @@ def build_scoring(
         dist.prepare(Ud, spec.own(columns))
         built.append(PreparedTerm(spec, feature_set_for(cfg, "model", spec.features, spec.features_kind), dist, Ud))
     return Scoring(
-        ssm=component("ssm", cfg.ssm.kind, **ssm_settings(cfg)),
+        ssm=build_component(cfg, "ssm"),
         terms=built,
         U_data=U_data,
         penalty=cfg.objective.penalty,
@@ -183,9 +194,9 @@ def set_summaries(U: dict[str, np.ndarray], names, trees: int = 1) -> np.ndarray
 def grow_tree(cfg: RunConfig, params: dict, seed: int, timeout: float | None = None):
     """The tree the run's model grows from ``params`` and ``seed``, pruned as the target's QSM was:
     the tree a worker scores (a report regrowing a run's answer uses this, not the model itself)."""
-    from ..config import ssm_settings
+    from ..config import build_component
 
-    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+    ssm = build_component(cfg, "ssm")
     return _simulate_with_timeout(ssm, params, seed, timeout, cfg.target.prune_radius)
 
 

@@ -34,6 +34,13 @@ def heldout_seeds(run_seed: int, sets: int, per: int) -> list[list[int]]:
     return [flat[i * per : (i + 1) * per] for i in range(sets)]
 
 
+def repeat_seeds(base_seed: int, repeats: int) -> list[int]:
+    """Run seeds of ``bforest compare``'s repeats: the base config's seed's own stream, so that
+    comparisons from neighbouring base seeds share no run (``base + r`` made base 1's second
+    repeat base 2's first)."""
+    return _seed_stream([int(base_seed), 6], repeats)
+
+
 def clone_seeds(run_seed: int, n: int, base: int | None = None) -> list[int]:
     """Fresh seeds for clones (distinct from the fitting seeds)."""
     return _seed_stream([int(run_seed if base is None else base), 3], n)

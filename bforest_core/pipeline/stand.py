@@ -254,24 +254,41 @@ def _recipe_text(job: dict) -> str:
     ``bforest init``'s for the tree."""
     import tomli_w
 
-    from ..config import read_toml
     from .recipe import write_recipe
 
     out = Path(job["recipe_path"])
     if job["recipe"] is None:
         write_recipe(job["file"], out, job["model"])
         return out.read_text(encoding="utf-8")
-    raw = read_toml(job["recipe"])
-    base = Path(job["recipe"]).resolve().parent
-    for key in ("references",):  # paths of the recipe stay valid from the stand's copy
-        refs = raw.get("target", {}).get(key)
-        if refs:
-            raw["target"][key] = [str((base / r).resolve()) for r in refs]
-    raw["target"] = {k: v for k, v in raw.get("target", {}).items() if k != "generate"}
-    raw["target"]["qsm"] = job["file"]
+    raw = recipe_for_tree(job["recipe"], job["file"])
     text = f"# {job['name']}: the stand's recipe {job['recipe']} with this tree as its target\n" + tomli_w.dumps(raw)
     _atomic_text(out, text)
     return text
+
+
+def recipe_for_tree(recipe, qsm) -> dict:
+    """A recipe (TOML file) as a config table with the QSM ``qsm`` as its target (its other paths
+    made absolute, so the table holds wherever it is written)."""
+    from ..config import read_toml
+
+    raw = read_toml(recipe)
+    base = Path(recipe).resolve().parent
+    target = {k: v for k, v in raw.get("target", {}).items() if k != "generate"}
+    if target.get("references"):
+        target["references"] = [str((base / r).resolve()) for r in target["references"]]
+    raw["target"] = {**target, "qsm": str(qsm)}
+    return raw
+
+
+def check_recipe(recipe, qsm) -> None:
+    """A recipe given for every tree is a valid run config with ``qsm`` as its target: checked
+    once, before any tree starts (StandError naming the recipe)."""
+    from ..config import parse_config
+
+    try:
+        parse_config(recipe_for_tree(recipe, qsm), source=str(recipe))
+    except BayesForestError as exc:
+        raise StandError(f"recipe {exc}") from None
 
 
 def _tree_config(job: dict):
@@ -727,6 +744,8 @@ def settings_from(
         raise StandError(f"stand.{'.'.join(str(x) for x in e['loc'])}: {e['msg']}") from None
     check_models(settings)
     _executor(settings)  # its settings checked now, not after the first tree
+    for rec in {t.recipe for t in settings.trees if t.recipe} | ({settings.recipe} if settings.recipe else set()):
+        check_recipe(rec, settings.trees[0].file)
     return settings
 
 

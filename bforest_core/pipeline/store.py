@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import sqlite3
 import time
 from dataclasses import dataclass, field
@@ -106,6 +107,22 @@ def slug(text: str) -> str:
 
 class RunDirError(BayesForestError):
     pass
+
+
+def _log_error(db: Path, exc: sqlite3.Error) -> RunDirError:
+    """One line for what SQLite says of the evaluation log ``db``: the file and what to do."""
+    name = getattr(exc, "sqlite_errorname", "")
+    if name == "SQLITE_FULL":
+        return RunDirError(
+            f"{db}: the disk is full ({exc}); every evaluation logged before is kept: free space "
+            "and run the command again (a fit continues with --resume)"
+        )
+    if name in ("SQLITE_CORRUPT", "SQLITE_NOTADB") or type(exc) is sqlite3.DatabaseError:
+        return RunDirError(
+            f"{db}: the evaluation log is damaged ({exc}); restore it from a backup (the sqlite3 "
+            "shell's .recover may save its rows), or start the run anew with --overwrite"
+        )
+    return RunDirError(f"{db}: {exc}")
 
 
 @dataclass
@@ -195,6 +212,7 @@ class RunFiles(FolderFiles):
         f"{EVALUATIONS}-journal",
         BEST,
         f"{BEST}.tmp",
+        ".*.tmp",  # a file written all or nothing (io.whole_file), left by a killed command
         BEST_TREE,
         TARGET_TREE,
         TARGET_SETS,
@@ -313,6 +331,44 @@ class RunFiles(FolderFiles):
         if not self.best_path.exists():
             raise RunDirError(f"{self.path}: no {self.BEST} (has the fit finished?)")
         return json.loads(self.best_path.read_text(encoding="utf-8"))
+
+
+def derived_paths(run_dir) -> list[Path]:
+    """The paths of ``run_dir`` that a run wrote (or would write), existing ones only."""
+    run_dir = Path(run_dir)
+    out = []
+    for pattern in RunFiles.DERIVED:
+        out.extend(sorted(run_dir.glob(pattern)))
+    return out
+
+
+def is_run_dir(run_dir) -> bool:
+    """Whether ``run_dir`` holds a run (its evaluation log), as opposed to a user's folder."""
+    return RunFiles(run_dir).evaluations_path.exists()
+
+
+def foreign_files(run_dir) -> list[str]:
+    """Names of files in ``run_dir`` that a run would write but no run wrote there: a folder
+    without an evaluation log that holds e.g. the user's own ``config.toml`` (``-o .``)."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir() or is_run_dir(run_dir):
+        return []
+    found = []
+    for p in derived_paths(run_dir):
+        if p.is_dir() and not any(p.iterdir()):
+            continue  # an empty clones/ or figures/ holds nothing to lose
+        found.append(p.name)
+    return found
+
+
+def clear_derived(run_dir) -> None:
+    """Remove everything the old run of ``run_dir`` wrote (log, results, clones, report,
+    figures, exports); other files are left alone."""
+    for p in derived_paths(run_dir):
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink(missing_ok=True)
 
 
 def logged_count(path) -> int:
@@ -597,13 +653,53 @@ class SimulationStore(_Database):
 class RunStore(RunFiles, _Database):
     """A run directory with its evaluation log."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, new: bool = False):
+        """Open the evaluation log of the run directory ``path`` (``new``: begin one).
+
+        Raises
+        ------
+        RunDirError
+            The log of an existing run is missing, empty, holds no evaluation table or is
+            damaged: a resume never starts again from zero over a lost log.
+        """
         super().__init__(path)
-        self.db_path = self.evaluations_path
-        self._connect(self.db_path, SCHEMA)
-        held = {r[1] for r in self._con.execute("PRAGMA table_info(heldout)")}
-        if "per_set" not in held:  # a run written before held-out scores kept their sets and terms
-            self._con.execute("ALTER TABLE heldout ADD COLUMN per_set TEXT")
+        self.db_path = db = self.evaluations_path
+        if not new and not db.is_file():
+            raise RunDirError(
+                f"{db}: missing: the run's evaluations are gone; restore the file, or start the run "
+                "anew with --overwrite"
+            )
+        try:
+            self._con = sqlite3.connect(db, isolation_level=None, timeout=30)
+        except sqlite3.Error as exc:
+            raise _log_error(db, exc) from None
+        try:
+            if not new and not self._sql("SELECT 1 FROM sqlite_master WHERE type='table' AND name='evaluations'"):
+                raise RunDirError(
+                    f"{db}: holds no evaluation table (an empty or foreign file, not a run's log); "
+                    "restore the run's own, or start the run anew with --overwrite"
+                )
+            self._sql("PRAGMA journal_mode=WAL")
+            self._sql("PRAGMA synchronous=NORMAL")
+            try:
+                self._con.executescript(SCHEMA)
+            except sqlite3.Error as exc:
+                raise _log_error(db, exc) from None
+            if "per_set" not in {r[1] for r in self._sql("PRAGMA table_info(heldout)")}:
+                self._sql("ALTER TABLE heldout ADD COLUMN per_set TEXT")  # a run written before held-out scores kept it
+        except RunDirError:
+            self._con.close()
+            raise
+
+    def _sql(self, query: str, args: tuple = ()) -> list[tuple]:
+        """The rows of one statement on the log; what SQLite says of a damaged log or a full disk
+        becomes one :class:`RunDirError` naming the file and what to do."""
+        try:
+            return self._con.execute(query, args).fetchall()
+        except sqlite3.ProgrammingError:  # this program's mistake (a closed store), not the file's
+            raise
+        except sqlite3.Error as exc:
+            raise _log_error(self.db_path, exc) from None
 
     # ------------------------------------------------------------------ creation
     @classmethod
@@ -614,8 +710,6 @@ class RunStore(RunFiles, _Database):
         everything the old run wrote (clones, report, figures, exports too); refuses a folder
         holding files of a run's names that no run wrote (a user's ``config.toml``).
         """
-        from .rundir import clear_derived, foreign_files
-
         path = Path(path)
         files = RunFiles(path)
         db = files.evaluations_path
@@ -636,8 +730,9 @@ class RunStore(RunFiles, _Database):
         for sub in (files.clones_dir(), files.figures_dir):
             sub.mkdir(exist_ok=True)
         files.config_path.write_text(config_text, encoding="utf-8")
-        store = cls(path)
+        store = cls(path, new=True)
         store.set_meta("created", time.time())
+        store.set_meta("config", config_text)  # the config the log is begun with: a resume checks against it
         return store
 
     @classmethod
@@ -669,7 +764,7 @@ class RunStore(RunFiles, _Database):
 
     # ------------------------------------------------------------------ evaluations
     def add(self, ev: Evaluation) -> None:
-        self._con.execute(
+        self._sql(
             "INSERT INTO evaluations VALUES (?,?,?,?,?,?,?,?,?,?,?)",
             (
                 ev.idx,
@@ -694,16 +789,16 @@ class RunStore(RunFiles, _Database):
     def count(self, status: str | None = None) -> int:
         """Logged evaluations (of ``status`` only, when given)."""
         if status is None:
-            return self._con.execute("SELECT COUNT(*) FROM evaluations").fetchone()[0]
-        return self._con.execute("SELECT COUNT(*) FROM evaluations WHERE status = ?", (status,)).fetchone()[0]
+            return self._sql("SELECT COUNT(*) FROM evaluations")[0][0]
+        return self._sql("SELECT COUNT(*) FROM evaluations WHERE status = ?", (status,))[0][0]
 
     def _select(self, tail: str, args: tuple = ()) -> list[Evaluation]:
         """The logged evaluations that the SQL ``tail`` (WHERE / ORDER BY / LIMIT) selects."""
-        rows = self._con.execute(
+        rows = self._sql(
             "SELECT idx, params, seeds, distance, per_set, status, message, seconds, worker, n_rows "
             f"FROM evaluations {tail}",
             args,
-        ).fetchall()
+        )
         return [
             Evaluation(
                 r[0],
@@ -747,9 +842,7 @@ class RunStore(RunFiles, _Database):
     def heldout_scores(self, scoring: str) -> dict[tuple[str, str], dict]:
         """Every kept held-out score of this scoring: ``(point, seeds)`` (both JSON text) ->
         ``{"distance", "status", "per_set"}`` (``per_set`` None when an older run did not keep it)."""
-        rows = self._con.execute(
-            "SELECT point, seeds, distance, status, per_set FROM heldout WHERE scoring = ?", (scoring,)
-        ).fetchall()
+        rows = self._sql("SELECT point, seeds, distance, status, per_set FROM heldout WHERE scoring = ?", (scoring,))
         return {
             (r[0], r[1]): {"distance": r[2], "status": r[3], "per_set": None if r[4] is None else json.loads(r[4])}
             for r in rows
@@ -760,20 +853,28 @@ class RunStore(RunFiles, _Database):
     ) -> None:
         """Keep one held-out score as soon as it is known (a killed scoring loses nothing), with
         its distance per set and per term."""
-        self._con.execute(
+        self._sql(
             "INSERT OR REPLACE INTO heldout VALUES (?,?,?,?,?,?)",
             (scoring, point, seeds, float(distance), status, None if per_set is None else _column(per_set)),
         )
 
     # ------------------------------------------------------------------ optimiser log
     def log(self, record: dict) -> None:
-        self._con.execute("INSERT INTO log (record) VALUES (?)", (_column(record),))
+        self._sql("INSERT INTO log (record) VALUES (?)", (_column(record),))
 
     def log_records(self) -> list[dict]:
-        return [json.loads(r[0]) for r in self._con.execute("SELECT record FROM log ORDER BY seq")]
+        return [json.loads(r[0]) for r in self._sql("SELECT record FROM log ORDER BY seq")]
 
     def clear_log(self) -> None:
-        self._con.execute("DELETE FROM log")
+        self._sql("DELETE FROM log")
+
+    # ------------------------------------------------------------------ meta
+    def set_meta(self, key: str, value: Any) -> None:
+        self._sql("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, _column(value)))
+
+    def get_meta(self, key: str, default=None):
+        r = self._sql("SELECT value FROM meta WHERE key=?", (key,))
+        return default if not r else json.loads(r[0][0])
 
     # ------------------------------------------------------------------ json files
     def write_json(self, name: str, data) -> Path:
@@ -825,3 +926,19 @@ class RunStore(RunFiles, _Database):
             with np.load(npz) as z:
                 diag.update({k: z[k] for k in z.files})
         return diag
+
+    def close(self) -> None:
+        """Close the log's connection. Close it when done rather than leave it to the garbage
+        collector: the last connection's close checkpoints SQLite's write-ahead log into
+        ``evaluations.sqlite``, which must not happen at a random later moment (under a later
+        command reading the run)."""
+        try:
+            self._con.close()
+        except sqlite3.Error as exc:  # the checkpoint on a full disk
+            raise _log_error(self.db_path, exc) from None
+
+    def __enter__(self) -> RunStore:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

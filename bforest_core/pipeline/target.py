@@ -21,8 +21,6 @@ if TYPE_CHECKING:
 
 #: name of the [features]/[distance] term when the objective has more than one
 STRUCTURE = "structure"
-#: the feature set of tree-level statistics (the size term; plugins/bforest_summary)
-SUMMARY_KIND = "tree-summary"
 
 
 def feature_set_for(cfg: RunConfig, side: str, settings: dict | None = None, kind: str | None = None):
@@ -70,23 +68,24 @@ class Term:
 def size_topology(cfg: RunConfig, side: str) -> tuple[str | None, list[str] | None]:
     """The branch rule under which the size term measures one side's trees (``"target"`` or
     ``"model"``), and the statistics it measures by it: the ``topology`` and ``topology_statistics``
-    of the objective's first tree-summary set after the per-side rules; (None, None) for each
-    tree's own branches (the QSM's stored ones, the model's order mode).
+    of the objective's first feature set of tree-level statistics (``FeatureSet.summary_rule``)
+    after the per-side rules; (None, None) for each tree's own branches (the QSM's stored ones,
+    the model's order mode).
 
     The clones' fidelity table measures by it, so that it counts first-order branches as the fit
     held them.
     """
     for spec in term_specs(cfg):
-        if spec.features_kind == SUMMARY_KIND:
-            fs = feature_set_for(cfg, side, spec.features, spec.features_kind)
-            return getattr(fs.settings, "topology", None), getattr(fs.settings, "topology_statistics", None)
+        rule = feature_set_for(cfg, side, spec.features, spec.features_kind).summary_rule()
+        if rule is not None:
+            return rule
     return None, None
 
 
 def term_specs(cfg: RunConfig) -> list[Term]:
     """The terms of the objective: the ``[features]``/``[distance]`` term first, then each
     ``[[objective.terms]]`` entry."""
-    from ..config import section_settings
+    from ..config import part_settings, section_settings
 
     o = cfg.objective
     specs = [
@@ -109,9 +108,9 @@ def term_specs(cfg: RunConfig) -> list[Term]:
                 weight=float(t.weight),
                 set_weights=t.weights,
                 features_kind=t.features.kind,
-                features=t.features.settings,
+                features=part_settings(t.features),
                 distance_kind=t.distance.kind,
-                distance=t.distance.settings,
+                distance=part_settings(t.distance),
             )
         )
     return specs
@@ -119,11 +118,12 @@ def term_specs(cfg: RunConfig) -> list[Term]:
 
 def load_target_trees(cfg: RunConfig) -> list:
     """The data tree(s) of the run: read from the QSM file or grown by the named SSM."""
+    from ..config import generated_target_ssm
     from ..io import read_qsm
 
     t = cfg.target
     if t.generate is not None:
-        ssm = component("ssm", t.generate.ssm, **t.generate.settings)
+        ssm = generated_target_ssm(t.generate)
         # a grown target stands for a QSM simplified as the config says
         return [ssm.simulate(dict(t.generate.params), int(t.generate.seed)).pruned(t.prune_radius)]
     opts = {}
@@ -151,20 +151,21 @@ def bounds_from_target(cfg: RunConfig, trees: list) -> RunConfig:
     recipe); nothing left of the range is a ConfigError. ``cfg`` itself is returned when nothing
     is scaled.
     """
-    from ..config import ssm_settings
-    from ..metrics import measure_tree
+    from ..config import build_component
+    from ..metrics import measure_tree, summary_unit
 
     scaled = {n: fp for n, fp in cfg.ssm.free.items() if fp.scaled_by is not None}
     if not scaled:
         return cfg
-    ssm = component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+    ssm = build_component(cfg, "ssm")
     measures = measure_tree(trees[0])
     free = dict(cfg.ssm.free)
     source = cfg.target.qsm or "the generated target"
     for name, fp in scaled.items():
         m = float(getattr(measures, fp.scaled_by))
         spec = ssm.parameter_spec(name)
-        what = f"ssm.free.{name}: {fp.lower:g}-{fp.upper:g} x the {fp.scaled_by} of {source} ({m:.4g} m)"
+        unit = "" if summary_unit(fp.scaled_by) == "count" else " m"  # a count (n_whorls) or a length
+        what = f"ssm.free.{name}: {fp.lower:g}-{fp.upper:g} x the {fp.scaled_by} of {source} ({m:.4g}{unit})"
         if not (np.isfinite(m) and m > 0):
             raise ConfigError(f"{what}: the measure must be positive; give absolute bounds")
         raw, new = scale_bounds({k: getattr(fp, k) for k in ("lower", "upper", "init_lower", "init_upper")}, m, spec)

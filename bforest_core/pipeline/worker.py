@@ -16,7 +16,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import SimulationFailed
-from ..registry import component
 from .scoring import (
     _MODEL_ERRORS,
     Scoring,
@@ -24,6 +23,7 @@ from .scoring import (
     _Timeout,
     build_scoring,
     combine_terms,
+    fault_message,
     mean_per_set,
     score_tree,
     set_summaries,
@@ -67,26 +67,24 @@ def summary_task(task: tuple[dict, list[int]]) -> np.ndarray | None:
             U = {}
             for t in c.terms:
                 U.update({t.term.prefix + k: v for k, v in t.features.extract(tree).items()})
-        except (SimulationFailed, _Timeout, *_MODEL_ERRORS):
+        except (SimulationFailed, _Timeout):
+            return None
+        except _MODEL_ERRORS as exc:
+            fault_message(exc)  # the user's stop goes on; a plugin's fault is a tree that failed
             return None
         rows.append(set_summaries(U, list(c.U_data)))
     return np.mean(rows, axis=0)
 
 
-def run_executor(cfg: RunConfig):
-    """The executor of the run's ``[executor]`` section."""
-    from ..config import section_settings
-
-    return component("executor", cfg.executor.kind, **section_settings(cfg, "executor"))
-
-
 def started_workers(cfg: RunConfig, tgt: Target, executor=None):
     """The run's executor (or ``executor``) started with :func:`init_worker` on the target, as a
     context manager: the target's tables travel to each worker once."""
-    ex = run_executor(cfg) if executor is None else executor
+    from ..config import build_component
+
+    ex = build_component(cfg, "executor") if executor is None else executor
     # Executor.on_lost/time_limit: what a dead or stuck worker's task becomes, and when a task is
     # stuck (honoured by an executor that can stop a worker, ignored by the others)
-    ex.on_lost = functools.partial(_lost_task, cfg.objective.penalty, list(tgt.U))
+    ex.on_lost = functools.partial(_lost_task, cfg.objective.penalty, list(tgt.U), cfg.objective.timeout)
     timeout = cfg.objective.timeout
     ex.time_limit = None if timeout is None else functools.partial(_task_limit, timeout)
     return ex.started(init_worker, (cfg, tgt.U, tgt.columns, tgt.feature_settings, tgt.terms))
@@ -100,17 +98,18 @@ def _task_limit(timeout: float, item) -> float:
     return max(1, len(seeds)) * float(timeout) + max(2.0, float(timeout))
 
 
-def _lost_task(penalty: float, names: list, fn, item, status: str, message: str):
+def _lost_task(penalty: float, names: list, timeout: float | None, fn, item, status: str, message: str):
     """The result of a task whose worker died or was stopped (the process executor's
     ``on_lost``): a failed evaluation with the penalty, no summaries, or the task's own
-    ``lost_result``; ``NotImplemented`` (the executor raises) for any other task."""
+    ``lost_result``; ``NotImplemented`` (the executor raises) for any other task. A task stopped
+    at its time limit ran that long (its ``seconds``); a dead worker's time is not known (0)."""
     if fn is evaluate_task:
         return dict(
             distance=float(penalty),
             per_set={k: None for k in names},
             status=status,
             message=message[:500],
-            seconds=0.0,
+            seconds=_task_limit(timeout, item) if status == "timeout" and timeout is not None else 0.0,
             worker="",
             n_rows={},
         )
@@ -142,8 +141,7 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
             status, message = "timeout", f"simulation exceeded {c.timeout} s"
             break
         except _MODEL_ERRORS as exc:
-            status = "error"
-            message = f"{type(exc).__name__}: {exc}"[:500]
+            status, message = "error", fault_message(exc)
             break
     seconds = time.perf_counter() - t0
     if status != "ok":

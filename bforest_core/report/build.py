@@ -26,12 +26,13 @@ import datetime as _dt
 import json
 import multiprocessing as mp
 import os
+import signal
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from ..cylinders import quiet_read_repairs
-from ..io import write_json
+from ..errors import quiet_read_repairs
+from ..io import whole_file, write_json
+from ..processes import available_cores, bind_to_owner
 from .attributes import fig_distributions
 from .canvas import FORMATS, current_output, figure_output
 from .convergence import fig_convergence
@@ -107,33 +108,77 @@ def _side_figures(run_dir, strict: bool, output: tuple = ("png", None)):
     return figs.made, v.notes
 
 
-def _cores() -> int:
+def _side_main(conn, owner: int, run_dir, strict: bool, output: tuple) -> None:
+    """The second process's life: the ``_SIDE`` figures, sent back as ``("ok", (made, notes))``
+    or ``("error", text)``. It ends with the command however that ends (``bind_to_owner``) and
+    leaves Ctrl-C to it (the command stops this process as it unwinds)."""
+    bind_to_owner(owner)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
+        result = ("ok", _side_figures(run_dir, strict, output))
+    except Exception as exc:
+        result = ("error", f"{type(exc).__name__}: {exc}")
+    try:
+        conn.send(result)
+    except OSError:  # the command has gone: nothing to tell
+        pass
+
+
+class _SideProcess:
+    """The report's second process (spawned: a fresh interpreter with this one's ``sys.path``,
+    so plugins are found the same way), drawing the ``_SIDE`` figures while this one draws the
+    rest. :meth:`stop` ends it whatever it is doing: nothing a report starts outlives it."""
+
+    def __init__(self, run_dir, strict: bool, output: tuple):
+        ctx = mp.get_context("spawn")
+        self.conn, child = ctx.Pipe(duplex=False)
+        self.proc = ctx.Process(
+            target=_side_main, args=(child, os.getpid(), run_dir, strict, output), name="bforest-report", daemon=True
+        )
+        try:
+            self.proc.start()
+        finally:
+            child.close()
+
+    def result(self) -> tuple:
+        """(figures made, notes) of the second process; RuntimeError when it failed or died."""
+        try:
+            kind, payload = self.conn.recv()
+        except (EOFError, OSError):
+            self.proc.join(5)
+            raise RuntimeError(f"it ended (exit code {self.proc.exitcode}) before it sent its figures") from None
+        if kind == "error":
+            raise RuntimeError(payload)
+        return payload
+
+    def stop(self) -> None:
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join(5)
+        self.conn.close()
+
+
+def _cores() -> int:
+    return available_cores()
 
 
 def _draw_figures(v: RunView, figs: _Figures, strict: bool) -> None:
-    pool = None
+    side = None
     if _cores() >= 2:
         try:
-            # spawn: a fresh interpreter with this one's sys.path (plugins found the same way)
-            pool = ProcessPoolExecutor(1, mp_context=mp.get_context("spawn"))
-            side = pool.submit(_side_figures, v.path, strict, current_output())
+            side = _SideProcess(v.path, strict, current_output())
         except OSError as exc:  # no second process here: draw everything in this one
             v.note(f"figures drawn in one process ({exc})")
-            pool = None
     try:
-        for section, name, fn in _MAIN if pool else _SIDE + _MAIN:
+        for section, name, fn in _MAIN if side else _SIDE + _MAIN:
             figs.run(section, name, fn, v)
-        if pool:
+        if side:
             try:
                 made, notes = side.result()
-            except Exception as exc:
+            except RuntimeError as exc:
                 if strict:
                     raise
-                v.note(f"the second report process failed ({type(exc).__name__}: {exc}); its figures were drawn here")
+                v.note(f"the second report process failed ({exc}); its figures were drawn here")
                 for section, name, fn in _SIDE:
                     figs.run(section, name, fn, v)
             else:
@@ -141,9 +186,9 @@ def _draw_figures(v: RunView, figs: _Figures, strict: bool) -> None:
                     figs.made.setdefault(section, []).extend(items)
                 for text in notes:
                     v.note(text)
-    finally:
-        if pool:
-            pool.shutdown(cancel_futures=True)
+    finally:  # done, failed or stopped by the user: the second process ends with this one
+        if side:
+            side.stop()
 
 
 # ---------------------------------------------------------------------------------- entry point
@@ -224,9 +269,11 @@ def write_report(
         f"in {time.monotonic() - t0:.1f} s."
     )
     md = v.store.report_md_path
-    md.write_text(doc.markdown(), encoding="utf-8")
+    with whole_file(md) as part:  # a full disk leaves the report before, never half of one
+        part.write_text(doc.markdown(), encoding="utf-8")
     if html:
-        v.store.report_html_path.write_text(doc.html(v.path, title), encoding="utf-8")
+        with whole_file(v.store.report_html_path) as part:
+            part.write_text(doc.html(v.path, title), encoding="utf-8")
     if figures:
         _remove_unlinked(v, doc.figure_files())
         write_json(v.store.report_options_path, {"format": output[0], "dpi": output[1]})

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from matplotlib.lines import Line2D
 
+from ..interfaces import LineDistance
 from .canvas import DATA_COLOR, MODEL_COLOR, capped_size, column_label, new_figure, save_figure
 from .document import slug
 
@@ -280,7 +281,7 @@ def worst_lines_figure(
 
 
 # ---------------------------------------------------------------------------------- run report
-def distance_view(dist, name: str, um: np.ndarray, ud: np.ndarray):
+def distance_view(dist: LineDistance, name: str, um: np.ndarray, ud: np.ndarray):
     """Tables in the distance's own units and its per-line values, when it exposes them.
 
     Uses the frozen per-set normalisation of a prepared sliced distance
@@ -325,12 +326,11 @@ def fig_sets(v: RunView):
         out.append((p, f"Set {name}: every pair of variates, data blue, model red (angles in degrees)"))
         if dist is None or um.shape[0] == 0 or ud.shape[0] == 0:
             continue
-        try:
-            A = np.asarray(dist.directions(ud.shape[1]), float)
-        except NotImplementedError:
+        if not isinstance(dist, LineDistance):
             v.note(f"worst-lines figures skipped: distance '{dist.name}' does not project on lines")
             dist = None
             continue
+        A = np.asarray(dist.directions(ud.shape[1]), float)
         um2, ud2, lines, stat, normalised = distance_view(dist, name, um, ud)
         p = worst_lines_figure(
             um2,

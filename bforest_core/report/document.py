@@ -54,6 +54,7 @@ def seconds_text(s) -> str:
 
 # ---------------------------------------------------------------------------------- document
 _TAG_START = re.compile(r"<(?=[A-Za-z/!?])")
+_CODE_SPAN = re.compile(r"(`[^`]+`)")
 
 
 @dataclass
@@ -102,8 +103,11 @@ class Document:
     @staticmethod
     def _md(text) -> str:
         """Text for Markdown with no raw HTML: a ``<`` that would open a tag (``<script>``,
-        ``<img``, ``</``, ``<!``) from a file or parameter name is written as ``&lt;``."""
-        return _TAG_START.sub("&lt;", str(text))
+        ``<img``, ``</``, ``<!``) from a file or parameter name is written as ``&lt;``, except in
+        a code span (`` `...` ``), whose text Markdown shows as it is (an entity there would
+        show as ``&lt;``)."""
+        parts = _CODE_SPAN.split(str(text))
+        return "".join(p if i % 2 else _TAG_START.sub("&lt;", p) for i, p in enumerate(parts))
 
     def markdown(self) -> str:
         out = []

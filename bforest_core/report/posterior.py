@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..interfaces import Posterior
 from ..pipeline.store import RunFiles
 from .canvas import MODEL_COLOR, TRUE_COLOR, capped_size, new_figure, save_figure
 
@@ -263,37 +264,6 @@ def generations_figure(
 
 
 # ---------------------------------------------------------------------------------- run report
-def mcmc_chain(diag: dict, names: list[str]):
-    """``(chain (steps, walkers, p), distances (steps, walkers) or None, burn_in, names)`` from an
-    MCMC sampler's diagnostics (``chain``, ``distances``, ``burn_in`` and ``names``), or None when
-    they hold no chain."""
-    if not isinstance(diag, dict) or diag.get("chain") is None:
-        return None
-    try:
-        chain = np.asarray(diag["chain"], float)
-    except (TypeError, ValueError):
-        return None
-    names = list(diag.get("names") or names)
-    if chain.ndim == 2 and chain.shape[1] == len(names):
-        chain = chain[:, None, :]
-    if chain.ndim != 3 or chain.shape[0] == 0 or chain.shape[1] == 0:
-        return None
-    if chain.shape[2] != len(names):
-        names = [f"p{i}" for i in range(chain.shape[2])]
-    dist = diag.get("distances")
-    if dist is not None:
-        try:
-            dist = np.asarray(dist, float)
-        except (TypeError, ValueError):
-            dist = None
-        if dist is not None and dist.shape != chain.shape[:2]:
-            dist = None
-    burn = diag.get("burn_in")
-    burn = int(burn) if burn is not None else chain.shape[0] // 2
-    burn = min(max(burn, 0), chain.shape[0] - 1)
-    return chain, dist, burn, names
-
-
 def _per_generation(diag: dict, key: str):
     """A per-generation list of the diagnostics (``epsilon``, ``acceptance``, ``ess``), or None."""
     val = diag.get(key)
@@ -305,35 +275,29 @@ def _per_generation(diag: dict, key: str):
 def fig_posterior(v: RunView):
     """The posterior figures of a sampler's run: the corner plot for every posterior, the chain's
     trace for a chain, and tolerance, acceptance and ESS per generation for a population."""
-    from ..pipeline.posterior import posterior_kind, posterior_samples
-
     diag = v.store.read_diagnostics()
-    names = list(diag.get("names") or v.free_names)
-    kind = posterior_kind(diag, (v.best or {}).get("posterior_kind"))
-    got = posterior_samples(diag, names) if kind else None
-    if got is None:
+    post = Posterior.from_diagnostics(diag, v.free_names, (v.best or {}).get("posterior_kind"))
+    if post is None:
         return []
-    X, w = got
+    X, w, names, kind = post.samples, post.weights, list(post.names), post.kind
     true = [v.true_params.get(n) for n in names]
     out = []
     if kind == "chain":
-        ch = mcmc_chain(diag, names)
-        if ch is not None:
-            chain, dist, burn, names = ch
-            out.append(
-                (
-                    chain_figure(
-                        chain,
-                        names,
-                        v.store.figures_dir / "chain.png",
-                        burn_in=burn,
-                        distances=dist,
-                        title="MCMC chain",
-                    ),
-                    f"Trace of every walker per parameter ({chain.shape[1]} walkers, {chain.shape[0]} steps; "
-                    f"burn-in of {burn} steps shaded)",
-                )
+        chain, burn = post.chain, post.burn_in
+        out.append(
+            (
+                chain_figure(
+                    chain,
+                    names,
+                    v.store.figures_dir / "chain.png",
+                    burn_in=burn,
+                    distances=post.distances,
+                    title="MCMC chain",
+                ),
+                f"Trace of every walker per parameter ({chain.shape[1]} walkers, {chain.shape[0]} steps; "
+                f"burn-in of {burn} steps shaded)",
             )
+        )
         what = f"{X.shape[0]} draws of {int(diag.get('walkers') or 0) or '?'} walkers after burn-in"
     else:
         ess = 1.0 / float(np.sum(w**2))

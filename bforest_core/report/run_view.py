@@ -78,10 +78,9 @@ class RunView:
         if self.cfg is None:
             return {}
         try:
-            from ..config import ssm_settings
-            from ..registry import component
+            from ..config import build_component
 
-            ssm = component("ssm", self.cfg.ssm.kind, **ssm_settings(self.cfg))
+            ssm = build_component(self.cfg, "ssm")
             return {p.name: p for p in ssm.parameters}
         except Exception:
             return {}

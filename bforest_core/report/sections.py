@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..interfaces import Posterior
 from ..pipeline.fidelity import BOUND_FRACTION, at_bounds
 from ..pipeline.store import RunFiles, clock_warning
 from .document import METRIC_ROWS, Document, cfg_kind, fmt, seconds_text
@@ -380,13 +381,14 @@ def section_posterior(doc: Document, v: RunView, diag: dict):
     """The posterior of a sampler's run in the words of its kind (a chain's draws after burn-in,
     or a weighted population at a tolerance) and the summaries of ``best.json`` (5/50/95 %, the
     90 % HDI), beside the true values of a generated target."""
-    from ..pipeline.posterior import HDI_PROB, posterior_kind
+    from ..pipeline.posterior import HDI_PROB
 
     b = v.best or {}
     table = b.get("posterior_summary")
-    kind = posterior_kind(diag, b.get("posterior_kind"))
-    if not isinstance(table, dict) or not table or kind is None:
+    post = Posterior.from_diagnostics(diag, v.free_names, b.get("posterior_kind"))
+    if not isinstance(table, dict) or not table or post is None:
         return
+    kind = post.kind
     doc.h(3, "Posterior")
     short = stopped_short(v)
     if short:
@@ -394,9 +396,8 @@ def section_posterior(doc: Document, v: RunView, diag: dict):
     hdi = int(100 * HDI_PROB)
     true = v.true_params
     if kind == "chain":
-        # the chain as Optimizer.posterior_kind declares it: (length, walkers, parameters), burn_in
-        length, walkers = np.shape(diag.get("chain"))[:2] if np.ndim(diag.get("chain")) == 3 else ("?", "?")
-        burn = diag.get("burn_in")
+        length, walkers = post.chain.shape[:2]
+        burn = post.burn_in
         doc.p(
             f"The posterior is the draws of a Markov chain: {walkers} walkers, {length} draws each, of which the "
             f"first {burn} are burn-in and dropped; each walker is one chain of `{RunFiles.POSTERIOR_NC}` (R-hat and bulk "
@@ -411,11 +412,8 @@ def section_posterior(doc: Document, v: RunView, diag: dict):
         eps = diag.get("epsilon_posterior")
         tolerances = diag.get("epsilon")  # one per generation (Optimizer.posterior_kind)
         gens = len(tolerances) if isinstance(tolerances, (list, np.ndarray)) else 0
-        n = len(diag["particles"]) if diag.get("particles") is not None else "?"
-        w = np.asarray(diag.get("weights") if diag.get("weights") is not None else [], float)
-        ess = (
-            f" (effective sample size {1.0 / float(np.sum((w / w.sum()) ** 2)):.0f})" if w.size and w.sum() > 0 else ""
-        )
+        n = post.samples.shape[0]
+        ess = f" (effective sample size {1.0 / float(np.sum(post.weights**2)):.0f})"
         doc.p(
             f"The posterior is a weighted population of {n} particles{ess} within the tolerance ε = {fmt(eps)}"
             + (f" ({gens} generations, the prior draws counted)" if gens else "")

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pydantic
 
-from ..interfaces import INTERFACES, KINDS, ComponentSettings
+from ..interfaces import INTERFACES, KINDS, ComponentSettings, RecipeDraft, RecipePart, RecipePlan
 from ..tree import Tree
 
 #: a settings key no component can have
@@ -331,6 +331,8 @@ def _common_checks(cls, inst, settings, label, kind, registered, make_error="") 
             )
 
     checks = [Check(label, "class", c_class), Check(label, "settings", c_settings)]
+    if kind in RECIPE_WRITERS:
+        checks.append(Check(label, "recipe", lambda: _recipe_check(cls, _need(inst, make_error), kind)))
     if registered:
 
         def c_registered():
@@ -361,6 +363,54 @@ def _common_checks(cls, inst, settings, label, kind, registered, make_error="") 
 
         checks.append(Check(label, "registered", c_registered))
     return checks
+
+
+#: the kinds whose components may write a part of a recipe (``draft_recipe``, ``bforest init``)
+RECIPE_WRITERS = ("ssm", "features", "distance", "optimizer")
+
+
+def _built(cls, settings: dict, what: str):
+    """The component with ``settings`` (its recipe part's), or a failed check naming them."""
+    try:
+        return cls(**settings)
+    except Exception as exc:
+        raise _Fail(f"{what} {settings!r} are not valid settings of the component: {exc}") from None
+
+
+def _recipe_check(cls, inst, kind: str) -> str:
+    """``draft_recipe`` on the sample tree: None (no recipes), or a part that bforest init can write."""
+    from ..metrics import measure_tree
+    from .samples import sample_tree
+
+    measures = measure_tree(sample_tree())
+    if kind == "ssm":
+        d = inst.draft_recipe(measures)
+        if d is None:
+            return "writes no recipes"
+        _require(isinstance(d, RecipeDraft), f"draft_recipe returned a {type(d).__name__}, not a RecipeDraft")
+        _require(0.0 <= d.suits <= 1.0 and isinstance(d.why, str) and d.why, "suits must lie in [0, 1], why be text")
+        specs = {p.name for p in inst.parameters}
+        named = [k for k, *_ in d.free] + [k for k, *_ in d.fixed]
+        _require(not set(named) - specs, f"the draft names unknown parameters {sorted(set(named) - specs)}")
+        _require(all(lo < hi for _, lo, hi, _ in d.free), "a free parameter's lower bound is not below its upper")
+        _require(not set(d.scaled) - {k for k, *_ in d.free}, "scaled names a parameter that is not free")
+        _require(d.seeds >= 1 and d.max_evaluations >= 1, "seeds and max_evaluations must be 1 or more")
+        _built(cls, {k: v for k, v, _ in d.settings}, "the draft's settings")
+        return f"suits the sample tree {d.suits:.1f}, {len(d.free)} free parameters"
+    draft = RecipeDraft(suits=1.0, why="the sample tree", free=[("x", 0.0, 1.0, None)])
+    wrote = []
+    for term in ("search",) if kind == "optimizer" else ("structure", "size"):
+        part = inst.draft_recipe(RecipePlan(term, draft, measures, 1))
+        if part is None:
+            continue
+        _require(isinstance(part, RecipePart), f"draft_recipe returned a {type(part).__name__}, not a RecipePart")
+        _require(part.kind == cls.name, f"the {term} part's kind is {part.kind!r}, not the name {cls.name!r}")
+        settings = {k: v for k, v, _ in part.settings}
+        _built(cls, settings, f"the {term} part's settings")
+        _built(cls, {**settings, **part.select}, f"the {term} part's settings with its select")
+        _require(part.reach is None or part.reach > 0, f"the {term} part's reach {part.reach!r} is not positive")
+        wrote.append(term)
+    return f"writes the recipe's {' and '.join(wrote)} part" if wrote else "writes no recipes"
 
 
 def _priority_check(cls, label) -> Check:

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from ..interfaces import LineDistance
 from ._base import Check, Report, _common_checks, _Fail, _instance, _label, _need, _require, _roundtrip, _run
 from .samples import sample_tables
 
@@ -99,6 +100,8 @@ def distance_checks(
 
     def c_capabilities():
         d = prepared()
+        if not isinstance(d, LineDistance):
+            return "compares the tables as they are (no projection lines)"
         _require(isinstance(d.statistic, str) and d.statistic, f"statistic is {d.statistic!r}, expected a name")
         norms = d.normalizations()
         _require(

@@ -30,7 +30,7 @@ class _Harness:
             integer=self.integer.copy(),
             evaluate=self.evaluate,
             seed=seed,
-            budget=budget,
+            max_evaluations=budget,
         )
 
     def f(self, x):
@@ -47,16 +47,16 @@ class _Harness:
         X[:, pr.integer] = np.round(X[:, pr.integer])
         out = np.full(X.shape[0], np.inf)
         for r, x in enumerate(X):
-            if pr.stopped or pr.n_evaluations >= pr.budget:
-                pr.stopped, pr.stop_reason = True, f"evaluation budget ({pr.budget}) reached"
+            if pr.stopped or pr.n_evaluations >= pr.max_evaluations:
+                pr.stopped, pr.stop_reason = True, f"evaluation budget ({pr.max_evaluations}) reached"
                 continue
             out[r] = self.f(x)
             self.points.append(x.copy())
             pr.n_evaluations += 1
             if out[r] < pr.best_f:
                 pr.best_f, pr.best_x = out[r], x.copy()
-        if pr.n_evaluations >= pr.budget:
-            pr.stopped, pr.stop_reason = True, f"evaluation budget ({pr.budget}) reached"
+        if pr.n_evaluations >= pr.max_evaluations:
+            pr.stopped, pr.stop_reason = True, f"evaluation budget ({pr.max_evaluations}) reached"
         return out
 
 
@@ -70,7 +70,7 @@ def optimizer_checks(
     ``evaluate`` call), find a point better than the median of what it evaluated, and repeat
     exactly the same evaluations for the same seed. ``budget``: ``expected_evaluations`` is None
     or a positive int, and ``budget_settings`` gives valid settings (a new dict) under which the
-    optimiser plans no fewer evaluations than the budget and still keeps to ``Problem.budget``.
+    optimiser plans no fewer evaluations than the budget and still keeps to ``Problem.max_evaluations``.
     """
     cls, inst, settings, err = _instance(optimizer, "optimizer", settings)
     label = _label(cls, "optimizer")
@@ -147,7 +147,7 @@ def optimizer_checks(
         other.minimize(h.problem)
         _require(
             h.problem.n_evaluations <= budget,
-            f"with budget_settings it evaluated {h.problem.n_evaluations} points for a Problem.budget of {budget}",
+            f"with budget_settings it evaluated {h.problem.n_evaluations} points for a Problem.max_evaluations of {budget}",
         )
         return f"plans {plan}; with budget_settings {lplan}, {h.problem.n_evaluations}/{budget} evaluations"
 

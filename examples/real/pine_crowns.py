@@ -3,9 +3,9 @@
 For each fit (a run folder of a pine), the tree and ``--clones`` clones regrown from the answer
 with the clone seeds are measured alike:
 
-- whorls: the first-order branches (living, base diameter >= 1 cm, as the fidelity table counts
-  them) grouped by the height of their base (branches within ``--gap`` m of the one below are one
-  whorl); the number of whorls, the whorls' spacing (median, m) and its variation (coefficient of
+- whorls: the first-order branches (base diameter >= 1 cm, dead ones too, as a scan shows them)
+  grouped by the height of their base (``bforest_core.metrics.whorls``: branches within ``--gap`` m
+  of the one below are one whorl); the number of whorls, the whorls' spacing (median, m) and its variation (coefficient of
   variation: 0 for a ladder of equal steps), branches per whorl (mean) and its variation;
 - the crown base (the fidelity table's) and the lowest living first-order branch;
 - the crown by metre: the length of living first-order branches whose base lies in each 2-m band
@@ -27,28 +27,26 @@ from pathlib import Path
 import numpy as np
 
 import bforest_core as bf
-from bforest_core.metrics import DETECTION_DIAMETER, _living, crown_base_height
+from bforest_core.errors import SimulationFailed
+from bforest_core.metrics import DETECTION_DIAMETER, WHORL_GAP, _living, crown_base_height, whorls
 from bforest_core.pipeline.seeds import clone_seeds
 
 BAND = 2.0  # m
 
 
-def whorls(tree, gap: float) -> dict:
-    br = tree.branches
-    base_d = 2.0 * tree.radius[br.first]
-    keep = (br.order == 1) & _living(tree) & (base_d >= DETECTION_DIAMETER)
-    z = np.sort(tree.start[br.first[keep], 2] - tree.start[0, 2])
-    if z.size < 2:
-        return {"whorls": int(z.size)}
-    cut = np.flatnonzero(np.diff(z) > gap) + 1
-    groups = np.split(z, cut)
+def crown_by_height(tree, gap: float) -> dict:
+    groups = whorls(tree, DETECTION_DIAMETER, gap)
+    if len(groups) < 2:
+        return {"whorls": len(groups)}
     heights = np.array([g.min() for g in groups])
     counts = np.array([g.size for g in groups], float)
+    br = tree.branches
+    keep = (br.order == 1) & _living(tree) & (2.0 * tree.radius[br.first] >= DETECTION_DIAMETER)
+    z = tree.start[br.first[keep], 2] - tree.start[0, 2]  # living branches: the crown
     steps = np.diff(heights)
     blen = np.bincount(tree.branch, weights=tree.length, minlength=len(br))
-    zb = tree.start[br.first[keep], 2] - tree.start[0, 2]
     top = float(tree.end[:, 2].max() - tree.start[0, 2])
-    bands = np.bincount(np.floor(zb / BAND).astype(int), weights=blen[keep], minlength=int(top // BAND) + 1)
+    bands = np.bincount(np.floor(z / BAND).astype(int), weights=blen[keep], minlength=int(top // BAND) + 1)
     return {
         "whorls": len(groups),
         "step_median": float(np.median(steps)),
@@ -56,7 +54,7 @@ def whorls(tree, gap: float) -> dict:
         "per_whorl": float(counts.mean()),
         "per_whorl_cv": float(counts.std() / counts.mean()),
         "crown_base": crown_base_height(tree),
-        "lowest_live": float(z.min()),
+        "lowest_live": float(z.min()) if z.size else float("nan"),
         "bands": bands.tolist(),
     }
 
@@ -64,25 +62,28 @@ def whorls(tree, gap: float) -> dict:
 def clones_of(run: Path, n: int):
     best = json.loads((run / "best.json").read_text())
     cfg = bf.load_config(run / "config.toml")
-    from bforest_core.config import ssm_settings
+    from bforest_core.config import build_component
 
-    ssm = bf.component("ssm", cfg.ssm.kind, **ssm_settings(cfg))
+    ssm = build_component(cfg, "ssm")
     for seed in clone_seeds(cfg.seed, n, cfg.clones.seed):
-        yield ssm.simulate(best["params"], seed)
+        try:
+            yield ssm.simulate(best["params"], seed)
+        except SimulationFailed as exc:  # a clone that dies is left out, as bforest clones does
+            print(f"  {run.name}: clone seed {seed} left out: {exc}", file=sys.stderr)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", nargs="+", help="run folders of fits to pines")
     ap.add_argument("--clones", type=int, default=10)
-    ap.add_argument("--gap", type=float, default=0.15, help="m between branch bases of one whorl")
+    ap.add_argument("--gap", type=float, default=WHORL_GAP, help="m between branch bases of one whorl")
     args = ap.parse_args(argv)
     keys = ("whorls", "step_median", "step_cv", "per_whorl", "per_whorl_cv", "crown_base", "lowest_live")
     for run in map(Path, args.runs):
         cfg = bf.load_config(run / "config.toml")
         tree = bf.read_qsm(cfg.target.qsm)
-        t = whorls(tree, args.gap)
-        cs = [whorls(c, args.gap) for c in clones_of(run, args.clones)]
+        t = crown_by_height(tree, args.gap)
+        cs = [crown_by_height(c, args.gap) for c in clones_of(run, args.clones)]
         print(f"{run.name} ({cfg.ssm.kind}): tree / clones' mean (sd)")
         for k in keys:
             vals = np.array([c[k] for c in cs if k in c], float)

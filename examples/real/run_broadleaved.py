@@ -13,6 +13,9 @@ Usage (from the repository root; the trees are read from ../shared/data/qsm)::
 
     .venv/bin/python examples/real/run_broadleaved.py --out runs/broadleaved [--trees wytham_tf3 ...] [--seeds 1] [--floor] [--figures] [--doc]
 
+``--edit`` probes a variant of init's recipe without editing init (a line added to ``[ssm]``, or a
+text replaced), into a folder of its own.
+
 Finished fits are kept in ``OUT/broadleaved.json`` and not refitted (``--again`` refits them).
 ``--figures`` draws each tree beside 5 of its clones at one scale into
 ``docs/img/validation/broadleaved_<tree>.png``; ``--doc`` rewrites the "Broadleaved trees"
@@ -83,12 +86,30 @@ def limits(tree: str) -> dict:
     return ACCEPT if tree in PINES else BROADLEAF
 
 
-def run_one(tree: str, seed: int, out: Path, n_clones: int, model: str | None = None) -> dict:
+def edited(text: str, edits: list[str]) -> str:
+    """A recipe with probe edits: each ``OLD=>NEW`` replaces the first ``OLD`` of the text (a
+    missing one is an error); any other edit is a line added to the ``[ssm]`` section."""
+    for e in edits or []:
+        if "=>" in e:
+            old, new = e.split("=>", 1)
+            if old not in text:
+                raise SystemExit(f"run_broadleaved: --edit {e!r}: the recipe holds no {old!r}")
+            text = text.replace(old, new, 1)
+        else:
+            head, sep, rest = text.partition("\n[ssm]\n")
+            kind, _, rest = rest.partition("\n")
+            text = f"{head}{sep}{kind}\n{e}\n{rest}"
+    return text
+
+
+def run_one(tree: str, seed: int, out: Path, n_clones: int, model: str | None = None, edits=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     rec = out / f"{tree}_seed{seed}.toml"
     r = write_recipe(path_of(tree), rec, model)
+    text = edited(rec.read_text(), edits)
     if seed != 1:  # the run seed: the recipe's one top-level line
-        rec.write_text(rec.read_text().replace("\nseed = 1\n", f"\nseed = {seed}\n", 1))
+        text = text.replace("\nseed = 1\n", f"\nseed = {seed}\n", 1)
+    rec.write_text(text)
     run = out / f"{tree}_seed{seed}"
     res, fit_seconds, best, s, fid, d_clones = fit_and_judge(rec, run, path_of(tree), n_clones)
     target = bf.read_qsm(path_of(tree))
@@ -332,6 +353,14 @@ def main(argv=None) -> int:
         default=None,
         help="the growth model init writes the recipe for (bforest init --model; default: the one init picks)",
     )
+    ap.add_argument(
+        "--edit",
+        action="append",
+        default=[],
+        metavar="EDIT",
+        help="a probe: 'OLD=>NEW' replaces text of init's recipe, anything else is a line added to its [ssm] "
+        "(repeatable; e.g. 'free.year_sd = { lower = 0.0, upper = 0.5 }')",
+    )
     ap.add_argument("--again", action="store_true", help="refit fits already in OUT/broadleaved.json")
     ap.add_argument(
         "--floor",
@@ -359,7 +388,7 @@ def main(argv=None) -> int:
             key = f"{tree}_seed{seed}"
             if key in results and not args.again:
                 continue
-            row = run_one(tree, seed, out, args.clones, args.model)
+            row = run_one(tree, seed, out, args.clones, args.model, args.edit)
             results[key] = row
             result_path.write_text(json.dumps(results, indent=2))
             errs = ", ".join(f"{n} {100 * v:+.1f}%" for n, v in row["errors"].items() if v is not None)

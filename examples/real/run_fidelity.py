@@ -49,9 +49,10 @@ from pathlib import Path
 import numpy as np
 
 import bforest_core as bf
+from bforest_core.config import selection_config
 from bforest_core.metrics import SIZE_TOLERANCES
 from bforest_core.pipeline.clones import clones
-from bforest_core.pipeline.heldout import heldout_mean, point_key, score_points, scoring_fingerprint, selection_config
+from bforest_core.pipeline.heldout import heldout_mean, point_key, score_points, scoring_fingerprint
 from bforest_core.pipeline.seeds import heldout_seeds
 from bforest_core.pipeline.store import RunStore
 from bforest_core.pipeline.target import build_target

@@ -51,11 +51,12 @@ class DaskSettings(ComponentSettings):
     workers: int | None = Field(
         None,
         ge=1,
+        le=1024,
         description="local cluster: number of worker processes "
         "(default: all cores); remote scheduler: wait until this many workers "
         "are connected (default 1)",
     )
-    timeout: float = Field(120.0, gt=0, description="seconds to wait for the scheduler and its workers")
+    timeout: float = Field(120.0, gt=0, le=86400, description="seconds to wait for the scheduler and its workers")
     dashboard_address: str | None = Field(
         None,
         description="local cluster: where to serve the Dask "

@@ -26,7 +26,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from bforest_core.errors import ConfigError
-from bforest_core.interfaces import ComponentSettings, FeatureSet
+from bforest_core.interfaces import ComponentSettings, FeatureSet, RecipePart, RecipePlan
 from bforest_core.metrics import branching_angles
 
 __all__ = [
@@ -338,6 +338,21 @@ class BranchSegmentFeatures(FeatureSet):
     name = "branch-segment"
     summary = "B^w branch and S^w segment tables by Gravelius order (GS Methods III)"
     Settings = BranchSegmentSettings
+
+    def draft_recipe(self, plan: RecipePlan) -> RecipePart | None:
+        """The structural tables of the real-tree recipes: the segments of the stem and first-order
+        branches and the first- and second-order branches, pooled (a smoother objective); the
+        candidate answers are scored on S1 and B1 as sets of their own, the tables a clone is
+        judged by (docs/validation.md)."""
+        if plan.term != "structure":
+            return None
+        return RecipePart(
+            self.name,
+            [("sets", ["S0,1", "B1,2"], None)],
+            "the segments of the stem and first-order branches, and the first- and second-order branches",
+            select={"sets": ["S1", "B1"]},
+            select_why="S1 and B1 as sets of their own",
+        )
 
     def __init__(self, settings=None, **kwargs):
         super().__init__(settings, **kwargs)

@@ -26,6 +26,7 @@ from bforest_core.cylinders import (
 )
 from bforest_core.errors import QSMFormatError
 from bforest_core.tables import looks_binary, parse_table, read_bytes, split_lines_head
+from bforest_core.tree import remap_ids
 
 SIMPLEFOREST_REQUIRED = [
     "ID",
@@ -410,7 +411,7 @@ class NativeCSVReader(_CSVReader):
             want = ext[srow]
             inv = np.full(n, -1, dtype=np.int64)
             inv[srow] = np.arange(tree.n)
-            want = np.where(want >= 0, inv[np.maximum(want, 0)], -1)
+            want = remap_ids(want, inv)
             diff = np.flatnonzero(want != tree.extension)
             if diff.size:
                 warn(

@@ -11,7 +11,7 @@ import numpy as np
 from bforest_core.cylinders import resolve_options
 from bforest_core.interfaces import ComponentSettings, QSMWriter
 from bforest_core.tables import format_columns
-from bforest_core.tree import jump_to_head, levels, subtree_sum
+from bforest_core.tree import jump_to_head, levels, remap_ids, subtree_sum
 
 SIMPLEFOREST_HEADER = (
     " ID, parentID, startX, startY, startZ, endX, endY, endZ, radius, length, growthLength, "
@@ -36,7 +36,7 @@ def segments(tree):
     seg_of_head = np.full(tree.n, -1)
     seg_of_head[heads] = np.arange(heads.size)
     seg = seg_of_head[head]
-    seg_parent = np.where(parent[heads] >= 0, seg[np.maximum(parent[heads], 0)], -1)
+    seg_parent = remap_ids(parent[heads], seg)
     last = np.full(heads.size, -1)
     best = np.full(heads.size, -1)
     o = np.argsort(dist, kind="stable")  # the largest distance in a segment is written last

@@ -48,7 +48,7 @@ from scipy.optimize import brentq
 from scipy.special import ndtr, ndtri
 
 from bforest_core.errors import SimulationFailed
-from bforest_core.tree import Tree, group_by_level
+from bforest_core.tree import Tree, group_by_level, remap_ids
 
 from .shadow import q_max_of, shadow_fast, voxel_coords
 
@@ -166,6 +166,22 @@ def depth_levels(idx: np.ndarray, depth: np.ndarray) -> list[np.ndarray]:
 RENDER_STREAM = 0x57494E44
 
 
+#: stream of the years' production factors (``year_sd``), apart from the growth draws of the seed
+YEAR_STREAM = 0x59454152
+
+
+def year_factors(seed: int, years: int, sd: float) -> np.ndarray:
+    """Each year's production factor exp(sd z - sd^2 / 2), z ~ N(0, 1), mean 1 (index = year;
+    all ones for ``sd = 0``, which draws nothing): from a stream of its own, so the growth's draws
+    are those of a tree without it."""
+    if sd <= 0.0:
+        return np.ones(int(years) + 1)
+    z = np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), YEAR_STREAM]))).standard_normal(
+        int(years) + 1
+    )
+    return np.exp(sd * z - 0.5 * sd * sd)
+
+
 def render_rng(seed: int) -> np.random.Generator:
     """The generator of the output-only draws of model seed ``seed`` (independent of the growth
     stream, so trees drawn in pieces grow exactly as those drawn one cylinder per shoot)."""
@@ -221,7 +237,7 @@ def render_pieces(
     pstart = start[keep] + before
     ppar = np.where(j > 0, np.arange(keep.size) - 1, -1)
     root = j == 0
-    ppar[root] = np.where(parent[keep[root]] >= 0, last[np.maximum(parent[keep[root]], 0)], -1)
+    ppar[root] = remap_ids(parent[keep[root]], last)
     pext = np.where(j < kk - 1, np.arange(keep.size) + 1, -1)
     at_last = np.flatnonzero(j == kk - 1)
     has_ext = ext[keep[at_last]] >= 0
@@ -372,22 +388,12 @@ class _Failed(Exception):
 
 
 class _Simulation:
-    def __init__(
-        self,
-        p: dict,
-        seed: int,
-        *,
-        preset: str,
-        order_mode: str,
-        max_live: int,
-        on_step: Callable | None = None,
-        trace: list | None = None,
-    ):
+    def __init__(self, p: dict, seed: int, settings, *, on_step: Callable | None = None, trace: list | None = None):
         self.p = p
         self.seed = seed
-        self.preset = preset
-        self.order_mode = order_mode
-        self.max_live = max_live
+        #: the model's validated settings (``LignumSSM.Settings``): preset, order_mode,
+        #: max_live_segments, piece_length
+        self.settings = settings
         self.on_step = on_step
         self.trace = trace
         self.rng = np.random.Generator(np.random.PCG64(seed))
@@ -406,7 +412,7 @@ class _Simulation:
         remap = np.full(st.n, -1, dtype=np.int64)
         remap[idx] = np.arange(idx.size)
         par = st.parent[idx]
-        parent_out = np.where(par >= 0, remap[np.maximum(par, 0)], -1)
+        parent_out = remap_ids(par, remap)
         ext = np.full(idx.size, -1, dtype=np.int64)
         ap = (par >= 0) & ~st.is_lat[idx]
         ext[parent_out[ap]] = np.flatnonzero(ap)
@@ -414,13 +420,13 @@ class _Simulation:
         axis = axis / np.linalg.norm(axis, axis=1, keepdims=True)
         meta = {
             "model": "lignum",
-            "preset": self.preset,
+            "preset": self.settings.preset,
             "params": dict(self.p),
             "seed": int(self.seed),
             "status": status,
             "years": int(self.p["years"]),
             "year_reached": int(t),
-            "order_mode": self.order_mode,
+            "order_mode": self.settings.order_mode,
             "units": {"length": "m", "angle": "deg"},
             "frame": "right-handed, z up, stem base at the origin",
             "root_mass": float(self.Wr),
@@ -437,7 +443,8 @@ class _Simulation:
             "birth_year": st.born[idx].copy(),
         }
         start, length, radius = st.start[idx], st.length[idx], st.radius[idx]
-        if self.p["piece_length"] > 0:
+        piece = self.settings.piece_length
+        if piece > 0:
             start, axis, length, parent_out, ext, keep = render_pieces(
                 start,
                 axis,
@@ -445,13 +452,13 @@ class _Simulation:
                 parent_out,
                 ext,
                 st.order[idx],
-                self.p["piece_length"],
+                piece,
                 self.p["wind_sd"],
                 render_rng(self.seed),
             )
             radius = radius[keep]
             extras = {k: v[keep] for k, v in extras.items()}
-            meta["pieces"] = {"piece_length": float(self.p["piece_length"]), "wind_sd": float(self.p["wind_sd"])}
+            meta["pieces"] = {"piece_length": float(piece), "wind_sd": float(self.p["wind_sd"])}
         return Tree(
             start,
             axis,
@@ -459,7 +466,7 @@ class _Simulation:
             radius,
             parent_out,
             ext,
-            topology="thickest" if self.order_mode == "thickest" else "source",
+            topology="thickest" if self.settings.order_mode == "thickest" else "source",
             extras=extras,
             metadata=meta,
         )
@@ -506,6 +513,7 @@ class _Simulation:
         p = self.p
         st = self.st
         T = int(p["years"])
+        self.weather = year_factors(self.seed, T, float(p["year_sd"]))
         self._init()
         for t in range(1, T + 1):
             self.year = t
@@ -519,8 +527,9 @@ class _Simulation:
                 + p["resp_root"] * self.Wr
                 + p["resp_sapwood"] * p["wood_density"] * float(np.sum((st.length * sap)[live]))
             )
-            # c. light
+            # c. light (and the year's weather, ``year_sd``)
             S, I, fL, Pv = self._light(live)
+            Pv *= self.weather[t]
             if self.on_step is not None:
                 self.on_step(t, LignumView(self, t, S, I, fL, Pv, Mv))
             if t == T:
@@ -534,8 +543,11 @@ class _Simulation:
                 self.trace.append(tr)
             # k. size cap
             n_live = int(np.count_nonzero(~st.deleted))
-            if n_live > self.max_live:
-                raise _Failed("too_many_segments", f"{n_live} live segments > max_live_segments = {self.max_live}")
+            if n_live > self.settings.max_live_segments:
+                raise _Failed(
+                    "too_many_segments",
+                    f"{n_live} live segments > max_live_segments = {self.settings.max_live_segments}",
+                )
         return T
 
     def _light(self, live):
@@ -593,7 +605,7 @@ class _Simulation:
         dormant = (flb < 1e-5) | (1.0 - q_fate * w < 1e-5)
         active = ~killed & ~dormant
         apical_only = 1.0 - q_fate * (w + 1) < 1e-5
-        nL = lateral_count(st.wf[bud], p["bud_table"])
+        nL = np.minimum(lateral_count(st.wf[bud], p["bud_table"]), int(p["max_laterals"]))
         nL[(flb < p["fl_min_buds"]) | apical_only | ~active] = 0
         if tr is not None:
             tr.data.update(

@@ -14,171 +14,175 @@ defaults; parameters passed to ``simulate`` override them.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
-from dataclasses import dataclass
 
 from bforest_core.interfaces import ParameterSpec
+
+P = ParameterSpec
 
 BUD_TABLES = ("p98", "s08")
 PAIRS = ("lr", "q", "r_env")
 PRESETS = ("sf_synthetic", "sf_real", "p98", "s08", "sf_test16")
 
 
-@dataclass(frozen=True)
-class _Par:
-    name: str
-    symbol: str
-    unit: str
-    lower: float
-    upper: float
-    integer: bool
-    description: str
-    group: str
-
-
-# name, symbol, unit, plausible lower, upper, integer, meaning, group
-_TABLE = [
-    _Par("years", "T", "iter", 7, 40, True, "iterations (growth in the first T-1)", "time"),
-    _Par("radiation", "R", "", 5, 100, False, "full-exposure radiation (relative)", "light"),
-    _Par("shadow_max", "S_max", "", 5, 80, False, "one segment's shadow at the pyramid top", "light"),
-    _Par("shadow_len", "S_L", "m", 0.3, 1.5, False, "shadow depth", "light"),
-    _Par("voxel_size", "V_S", "m", 0.01, 0.05, False, "voxel edge of the shadow lattice", "light"),
-    _Par(
+#: name, default (the default preset's, sf_synthetic), plausible lower, upper, integer, unit, meaning
+#: (the symbol of docs/models.md A.3 first), group: the style of every model's table (SOT's too)
+PARAMETERS: list[ParameterSpec] = [
+    P("years", 15, 7, 40, True, "iter", "[T] iterations (growth in the first T-1)", "time"),
+    P("radiation", 30.0, 5, 100, False, "", "[R] full-exposure radiation (relative)", "light"),
+    P("shadow_max", 10.0, 5, 80, False, "", "[S_max] one segment's shadow at the pyramid top", "light"),
+    P("shadow_len", 0.55, 0.3, 1.5, False, "m", "[S_L] shadow depth", "light"),
+    P("voxel_size", 0.02, 0.01, 0.05, False, "m", "[V_S] voxel edge of the shadow lattice", "light"),
+    P(
         "stand_shade",
-        "S_stand",
-        "m-1",
+        0.0,
         0.0,
         40.0,
         False,
-        "shade of the surrounding stand per metre below the tree's top: S += S_stand (z_top - z) "
-        "(0 = an open-grown tree, the papers' model)",
+        "m-1",
+        "[S_stand] shade of the surrounding stand per metre below the tree's top: S += S_stand (z_top - "
+        "z) (0 = an open-grown tree, the papers' model)",
         "light",
     ),
-    _Par(
+    P(
         "r_env_mean",
-        "R_env mean",
-        "m",
+        1.33,
         0.1,
         4.0,
         False,
-        "mean of TN R_env: buds farther from the stem axis die (1 draw per bud per year)",
+        "m",
+        "[R_env mean] mean of TN R_env: buds farther from the stem axis die (1 draw per bud per year)",
         "space",
     ),
-    _Par("r_env_sd", "R_env sd", "m", 0.0, 0.3, False, "sd of TN R_env", "space"),
-    _Par(
+    P("r_env_sd", 0.0, 0.0, 0.3, False, "m", "[R_env sd] sd of TN R_env", "space"),
+    P(
         "lr_mean",
-        "L_R mean",
-        "",
+        0.009,
         0.0045,
         0.04,
         False,
-        "mean of TN L_R, radius:length of a new shoot (1 draw per shoot; the published range (docs/models.md A.3) stops at "
-        "0.0135, scanned pines' first-order branches have base radius:length 0.015-0.024, the medians)",
+        "",
+        "[L_R mean] mean of TN L_R, radius:length of a new shoot (1 draw per shoot; the published range "
+        "(docs/models.md A.3) stops at 0.0135, scanned pines' first-order branches have base "
+        "radius:length 0.015-0.024, the medians)",
         "shoot",
     ),
-    _Par("lr_sd", "L_R sd", "", 0.0, 0.003, False, "sd of TN L_R", "shoot"),
-    _Par(
+    P("lr_sd", 0.001, 0.0, 0.003, False, "", "[L_R sd] sd of TN L_R", "shoot"),
+    P(
         "q_mean",
-        "Q mean",
-        "",
+        0.2,
         0.0,
         0.4,
         False,
-        "mean of TN Q, apical dominance 1 - w*Q (1 draw per bud + 1 per shoot)",
+        "",
+        "[Q mean] mean of TN Q, apical dominance 1 - w*Q (1 draw per bud + 1 per shoot)",
         "shoot",
     ),
-    _Par("q_sd", "Q sd", "", 0.0, 0.05, False, "sd of TN Q", "shoot"),
-    _Par(
+    P("q_sd", 0.03, 0.0, 0.05, False, "", "[Q sd] sd of TN Q", "shoot"),
+    P(
         "beta_init",
-        "beta_init",
-        "deg",
+        35.0,
         17.5,
         90,
         False,
-        "angle of a new lateral to its parent (the published range (docs/models.md A.3) stops at 60; scanned pines' first-order branches leave the stem at 55-120 deg)",
+        "deg",
+        "[beta_init] angle of a new lateral to its parent (the published range (docs/models.md A.3) stops"
+        " at 60; scanned pines' first-order branches leave the stem at 55-120 deg)",
         "angles",
     ),
-    _Par("beta_incr", "Delta beta", "deg", 0, 15, False, "mean yearly bending (mean of delta)", "angles"),
-    _Par("beta_max", "beta_max", "deg", 40, 105, False, "bending cap vs the mother segment", "angles"),
-    _Par("zeta_sd", "Delta zeta", "deg", 0, 10, False, "sd of delta ~ N(Delta beta, Delta zeta)", "angles"),
-    _Par(
+    P("beta_incr", 10.0, 0, 15, False, "deg", "[Delta beta] mean yearly bending (mean of delta)", "angles"),
+    P("beta_max", 95.0, 40, 105, False, "deg", "[beta_max] bending cap vs the mother segment", "angles"),
+    P("zeta_sd", 5.0, 0, 10, False, "deg", "[Delta zeta] sd of delta ~ N(Delta beta, Delta zeta)", "angles"),
+    P(
         "gamma_sd",
-        "Delta gamma",
-        "deg",
+        5.0,
         0,
         10,
         False,
-        "azimuth noise N(0, Delta gamma) of apical shoots of order > 0",
+        "deg",
+        "[Delta gamma] azimuth noise N(0, Delta gamma) of apical shoots of order > 0",
         "angles",
     ),
-    _Par("init_rot_angle", "INITROTANG", "deg", 0, 360, False, "g_ref turn between trunk whorls", "angles"),
-    _Par(
+    P("init_rot_angle", 144.0, 0, 360, False, "deg", "[INITROTANG] g_ref turn between trunk whorls", "angles"),
+    P(
         "whorl_rotation_sd",
-        "sigma_whorl",
-        "deg",
+        15.0,
         0,
         30,
         False,
-        "clone noise N(0, sd) added to each trunk-whorl turn",
+        "deg",
+        "[sigma_whorl] clone noise N(0, sd) added to each trunk-whorl turn",
         "angles",
     ),
-    _Par("shed_year", "T_sh", "iter", 0, 15, True, "minimum tip age for shedding", "shedding"),
-    _Par(
+    P("shed_year", 0, 0, 15, True, "iter", "[T_sh] minimum tip age for shedding", "shedding"),
+    P(
         "shed_dist",
-        "SHEDDIST",
-        "",
+        0,
         0,
         2,
         True,
-        "order-1 shedding: 0 all, 1 uniform, 2 Poisson number of tip segments",
+        "",
+        "[SHEDDIST] order-1 shedding: 0 all, 1 uniform, 2 Poisson number of tip segments",
         "shedding",
     ),
-    _Par("shed_mu", "mu_sh", "seg", 0, 6, False, "Poisson mean of shed tip segments (capped at 10)", "shedding"),
-    _Par("foliage_per_area", "a_f", "kg m-2", 0.5, 1.5, False, "foliage per segment surface", "carbon"),
-    _Par("root_per_foliage", "a_r", "", 0.0, 2.0, False, "new roots per new foliage", "carbon"),
-    _Par("root_senescence", "s_r", "yr-1", 0.0, 1.0, False, "yearly root loss", "carbon"),
-    _Par("sapwood_senescence", "s_s", "yr-1", 0.02, 0.2, False, "sapwood -> heartwood per year", "carbon"),
-    _Par("ss_start", "SSSTART", "iter", 0, 30, True, "heartwood forms once age > this", "carbon"),
-    _Par("resp_foliage", "m_f", "yr-1", 0.0, 1.0, False, "foliage respiration rate", "carbon"),
-    _Par("resp_sapwood", "m_s", "yr-1", 0.0, 0.2, False, "sapwood respiration rate", "carbon"),
-    _Par("resp_root", "m_r", "yr-1", 0.0, 1.0, False, "root respiration rate", "carbon"),
-    _Par("heartwood_share", "xi", "", 0.6, 0.7, False, "r_h = sqrt(xi) r at creation", "carbon"),
-    _Par("wood_density", "rho", "kg m-3", 200, 400, False, "wood density", "carbon"),
-    _Par("photo_eff", "p_r", "kg/unit", 1e-4, 1e-2, False, "production per unit light", "carbon"),
-    _Par("fl_threshold", "a_L", "", 0.2, 0.4, False, "light threshold of f_L", "light"),
-    _Par("fl_min_buds", "FLMINBUDS", "", 0.0, 0.8, False, "minimum f_L for laterals", "shoot"),
-    _Par("min_len", "MINLEN", "m", 0.0, 0.05, False, "shorter new shoots are discarded", "shoot"),
-    _Par("init_len", "INITLEN", "m", 0.1, 1.0, False, "first segment length", "shoot"),
-    _Par("pipe_coeff", "c_p", "", 0.75, 1.0, False, "pipe weight of lateral links", "carbon"),
-    _Par("fol_threshold", "FOLTHR", "kg", 0.0, 1e-4, False, "foliage counted as none (shedding)", "shedding"),
-    _Par(
-        "piece_length",
-        "l_piece",
-        "m",
-        0.0,
-        0.5,
-        False,
-        "output only (an addition): each shoot is drawn as pieces at most this long, as a scan's "
-        "QSM draws a branch as short cylinders; the growth is unchanged (0 = one cylinder per shoot)",
-        "output",
-    ),
-    _Par(
+    P("shed_mu", 2.0, 0, 6, False, "seg", "[mu_sh] Poisson mean of shed tip segments (capped at 10)", "shedding"),
+    P("foliage_per_area", 1.3, 0.5, 1.5, False, "kg m-2", "[a_f] foliage per segment surface", "carbon"),
+    P("root_per_foliage", 0.5, 0.0, 2.0, False, "", "[a_r] new roots per new foliage", "carbon"),
+    P("root_senescence", 0.33, 0.0, 1.0, False, "yr-1", "[s_r] yearly root loss", "carbon"),
+    P("sapwood_senescence", 0.07, 0.02, 0.2, False, "yr-1", "[s_s] sapwood -> heartwood per year", "carbon"),
+    P("ss_start", 0, 0, 30, True, "iter", "[SSSTART] heartwood forms once age > this", "carbon"),
+    P("resp_foliage", 0.2, 0.0, 1.0, False, "yr-1", "[m_f] foliage respiration rate", "carbon"),
+    P("resp_sapwood", 0.024, 0.0, 0.2, False, "yr-1", "[m_s] sapwood respiration rate", "carbon"),
+    P("resp_root", 0.24, 0.0, 1.0, False, "yr-1", "[m_r] root respiration rate", "carbon"),
+    P("heartwood_share", 0.6, 0.6, 0.7, False, "", "[xi] r_h = sqrt(xi) r at creation", "carbon"),
+    P("wood_density", 400.0, 200, 400, False, "kg m-3", "[rho] wood density", "carbon"),
+    P("photo_eff", 0.001, 0.0001, 0.01, False, "kg/unit", "[p_r] production per unit light", "carbon"),
+    P("fl_threshold", 0.4, 0.2, 0.4, False, "", "[a_L] light threshold of f_L", "light"),
+    P("fl_min_buds", 0.0, 0.0, 0.8, False, "", "[FLMINBUDS] minimum f_L for laterals", "shoot"),
+    P("min_len", 0.0, 0.0, 0.05, False, "m", "[MINLEN] shorter new shoots are discarded", "shoot"),
+    P("init_len", 0.5, 0.1, 1.0, False, "m", "[INITLEN] first segment length", "shoot"),
+    P("pipe_coeff", 1.0, 0.75, 1.0, False, "", "[c_p] pipe weight of lateral links", "carbon"),
+    P("fol_threshold", 1e-08, 0.0, 0.0001, False, "kg", "[FOLTHR] foliage counted as none (shedding)", "shedding"),
+    P(
         "wind_sd",
-        "sigma_wind",
-        "deg",
+        0.0,
         0.0,
         40.0,
         False,
-        "output only (an addition): sd of the bend of each piece of a branch shoot (order > 0) "
-        "with the shoot's end points kept, so branches wind as scanned ones do (0 = straight shoots)",
+        "deg",
+        "[sigma_wind] output only (an addition): sd of the bend of each piece of a branch shoot (order > "
+        "0) with the shoot's end points kept, so branches wind as scanned ones do (0 = straight shoots)",
         "output",
     ),
-    _Par("bud_table", "-", "", 0, 1, True, "lateral-count table: 0 = p98, 1 = s08", "shoot"),
-    _Par("collision", "-", "", 0, 1, True, "optional collision test: 0 off, 1 on", "space"),
+    P(
+        "year_sd",
+        0.0,
+        0.0,
+        0.5,
+        False,
+        "",
+        "[sigma_year] an addition: sd of the log of each year's production, the same for the whole tree (a "
+        "year's weather: its shoots grow longer or shorter together, so whorls stand at uneven steps; 0 = "
+        "every year alike, the papers' model)",
+        "carbon",
+    ),
+    P("bud_table", 0, 0, 1, True, "", "[-] lateral-count table: 0 = p98, 1 = s08", "shoot"),
+    P(
+        "max_laterals",
+        7,
+        1,
+        7,
+        True,
+        "",
+        "[n_L max] an addition: most laterals one bud sets, the table's count capped (a scanned Scots pine "
+        "shows 2-4 branches a whorl where the tables give vigorous shoots 5-7; 7 = the papers' model)",
+        "shoot",
+    ),
+    P("collision", 0, 0, 1, True, "", "[-] optional collision test: 0 off, 1 on", "space"),
 ]
 
-NAMES = tuple(p.name for p in _TABLE)
-SYMBOLS = {p.name: p.symbol for p in _TABLE}
+NAMES = tuple(p.name for p in PARAMETERS)
 
 _P98 = dict(
     years=10,
@@ -221,9 +225,10 @@ _P98 = dict(
     pipe_coeff=1.0,
     fol_threshold=1e-8,
     bud_table=0,
+    max_laterals=7,
     collision=0,
-    piece_length=0.0,
     wind_sd=0.0,
+    year_sd=0.0,
 )
 _S08 = dict(
     _P98,
@@ -323,26 +328,13 @@ for _name, _vals in PRESET_VALUES.items():  # every preset sets every parameter
 
 
 def parameter_specs(preset: str) -> list[ParameterSpec]:
-    """The :class:`ParameterSpec` list of one preset (defaults = the preset's values).
-
-    The description starts with the symbol of docs/models.md A.3, e.g. ``"[S_L] shadow depth"``.
-    """
+    """The :class:`ParameterSpec` list of one preset: :data:`PARAMETERS` with the preset's values
+    as defaults (each description starts with the symbol of docs/models.md A.3, e.g. ``"[S_L]
+    shadow depth"``)."""
     if preset not in PRESET_VALUES:
         raise ValueError(f"unknown LIGNUM preset {preset!r} (choose from {', '.join(PRESETS)})")
     vals = PRESET_VALUES[preset]
-    return [
-        ParameterSpec(
-            name=p.name,
-            default=vals[p.name],
-            lower=p.lower,
-            upper=p.upper,
-            integer=p.integer,
-            unit=p.unit,
-            description=f"[{p.symbol}] {p.description}",
-            group=p.group,
-        )
-        for p in _TABLE
-    ]
+    return [dataclasses.replace(p, default=vals[p.name]) for p in PARAMETERS]
 
 
 def normalise_inputs(params: Mapping[str, object]) -> dict:
@@ -400,8 +392,7 @@ def validate(p: Mapping[str, float]) -> None:
     ):
         need(p[name] >= 0, name, "must be >= 0")
     need(p["lr_mean"] > 0, "lr_mean", "must be > 0")
-    need(p["piece_length"] >= 0, "piece_length", "must be >= 0 (0 = one cylinder per shoot)")
-    for name in ("r_env_sd", "lr_sd", "q_sd", "zeta_sd", "gamma_sd", "whorl_rotation_sd", "wind_sd"):
+    for name in ("r_env_sd", "lr_sd", "q_sd", "zeta_sd", "gamma_sd", "whorl_rotation_sd", "wind_sd", "year_sd"):
         need(p[name] >= 0, name, "is a standard deviation and must be >= 0")
     for name in ("root_senescence", "sapwood_senescence"):
         need(0 <= p[name] <= 1, name, "must lie in [0, 1]")
@@ -410,6 +401,9 @@ def validate(p: Mapping[str, float]) -> None:
     need(0 <= p["fl_min_buds"] <= 1, "fl_min_buds", "must lie in [0, 1]")
     need(p["shed_dist"] in (0, 1, 2), "shed_dist", "must be 0, 1 or 2")
     need(p["bud_table"] in (0, 1), "bud_table", "must be 0 (p98) or 1 (s08)")
+    need(
+        p["max_laterals"] >= 1 and float(p["max_laterals"]).is_integer(), "max_laterals", "must be a whole number >= 1"
+    )
     need(p["collision"] in (0, 1), "collision", "must be 0 or 1")
     need(0 < p["beta_max"] <= 180, "beta_max", "must lie in (0, 180] degrees")
     need(0 <= p["beta_init"] <= 180, "beta_init", "must lie in [0, 180] degrees")

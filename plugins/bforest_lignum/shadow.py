@@ -103,7 +103,36 @@ def shadow_fast(
 def choose_method(rel: np.ndarray, n_rcv: int, q_max: int) -> str:
     """Cheapest method by a cost model: the pair count is estimated from a histogram of cells
     of edge q_max (each point against its 27 neighbouring cells), the integral-image cost from
-    the occupied box."""
+    the occupied box.
+
+    The grid scan costs less than the pair and two-tree searches whatever the pair count (its
+    cost per candidate is the smallest), so only the integral images can beat it; when the grid's
+    cost at the most pairs there can be (every point near every other) is no more than theirs,
+    the grid wins without the histogram, the same choice the full model makes (most years of a
+    tree: benchmarks/ssm_lignum.py)."""
+    sat = _sat_cost(rel, n_rcv, q_max)
+    if _grid_cost_bound(rel.shape[0], n_rcv, q_max) <= sat:
+        return "grid"
+    return _cheapest(rel, n_rcv, q_max, sat)
+
+
+def _sat_cost(rel: np.ndarray, n_rcv: int, q_max: int) -> float:
+    """The integral images' cost: their cells (the occupied box) and one query per receiver and layer."""
+    return _C_CELL * float(np.prod(rel.max(axis=0) + 1)) + _C_QUERY * n_rcv * (q_max - 1)
+
+
+def _grid_cost_bound(n: int, n_rcv: int, q_max: int) -> float:
+    """The grid scan's cost at the most pairs ``n`` points can make (every one near every other)."""
+    return _C_GRID * float(n) * n * _near_share(q_max) * (n_rcv / n)
+
+
+def _near_share(q_max: int) -> float:
+    """Of the ordered pairs of points in 27 neighbouring cells of edge q_max, those in the cube."""
+    return ((2 * q_max - 1) / (3.0 * q_max)) ** 3
+
+
+def _cheapest(rel: np.ndarray, n_rcv: int, q_max: int, sat: float) -> str:
+    """The cost model in full (:func:`choose_method`), ``sat`` the integral images' cost."""
     n = rel.shape[0]
     c = rel // q_max
     dims = c.max(axis=0) + 3
@@ -115,13 +144,12 @@ def choose_method(rel: np.ndarray, n_rcv: int, q_max: int) -> str:
         for dy in (-1, 0, 1):
             for dz in (-1, 0, 1):
                 nb[core] += h[1 + dx : dims[0] - 1 + dx, 1 + dy : dims[1] - 1 + dy, 1 + dz : dims[2] - 1 + dz]
-    near = float(np.sum(h * nb)) * ((2 * q_max - 1) / (3.0 * q_max)) ** 3  # ordered pairs in the cube
-    cells = float(np.prod(rel.max(axis=0) + 1))
+    near = float(np.sum(h * nb)) * _near_share(q_max)  # ordered pairs in the cube
     cost = {
         "grid": _C_GRID * near * (n_rcv / n),
         "pairs": _C_PAIR * near / 2,
         "two_tree": _C_TWO * near / 2 * (n_rcv / n),
-        "sat": _C_CELL * cells + _C_QUERY * n_rcv * (q_max - 1),
+        "sat": sat,
     }
     return min(cost, key=cost.get)
 

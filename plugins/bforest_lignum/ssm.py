@@ -27,11 +27,24 @@ class LignumSettings(ComponentSettings):
         topology), or QSM-like ``thickest`` (largest-radius child continues the branch).
     max_live_segments : int
         A run with more live segments after a growth year fails with ``too_many_segments``.
+    piece_length : float
+        Output only: each shoot is drawn as pieces at most this long (m), as a scan's QSM draws a
+        branch as short cylinders, each bent by the parameter ``wind_sd``; the growth is
+        unchanged (0 = one cylinder per shoot). A setting, not a parameter: it changes only how
+        the tree is drawn, and no fit varies it.
     """
 
     preset: Literal["sf_synthetic", "sf_real", "p98", "s08", "sf_test16"] = "sf_synthetic"
     order_mode: Literal["growth", "thickest"] = "growth"
-    max_live_segments: int = Field(50_000, gt=0)
+    max_live_segments: int = Field(50_000, gt=0, le=10**7)
+    piece_length: float = Field(
+        0.0,
+        ge=0.0,
+        allow_inf_nan=False,
+        description="output only (an addition): each shoot is drawn as pieces at most this long (m), as a "
+        "scan's QSM draws a branch as short cylinders, bent by the parameter wind_sd; the growth is "
+        "unchanged (0 = one cylinder per shoot)",
+    )
 
 
 class LignumSSM(SSM):
@@ -95,13 +108,4 @@ class LignumSSM(SSM):
             ``negative_balance``, ``too_many_segments`` or ``no_root``, carrying the partial tree.
         """
         p = self.resolve_params(params)
-        sim = _Simulation(
-            p,
-            int(seed),
-            preset=self.settings.preset,
-            order_mode=self.settings.order_mode,
-            max_live=self.settings.max_live_segments,
-            on_step=on_step,
-            trace=trace,
-        )
-        return sim.run()
+        return _Simulation(p, int(seed), self.settings, on_step=on_step, trace=trace).run()

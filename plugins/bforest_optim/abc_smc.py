@@ -95,7 +95,7 @@ from scipy.spatial import cKDTree
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 from bforest_core.metrics import weighted_quantiles
 
-from .box import UNLIMITED, Box, History, OptimizerSettings, make_result
+from .box import MAX_NOISE_SEEDS, MAX_POINTS, UNLIMITED, Box, History, OptimizerSettings, make_result
 
 QUANTILES = (2.5, 5.0, 16.0, 25.0, 50.0, 75.0, 84.0, 95.0, 97.5)
 
@@ -103,7 +103,7 @@ QUANTILES = (2.5, 5.0, 16.0, 25.0, 50.0, 75.0, 84.0, 95.0, 97.5)
 class AbcSmcSettings(OptimizerSettings):
     """Settings of the ``abc-smc`` sampler."""
 
-    particles: int = Field(100, ge=4, description="population size (accepted particles per generation)")
+    particles: int = Field(100, ge=4, le=MAX_POINTS, description="population size (accepted particles per generation)")
     generations: int = Field(30, ge=1, description="largest number of generations (generation 0 = the prior)")
     quantile: float = Field(
         0.5, gt=0, lt=1, description="epsilon_t = this quantile of the previous generation's distances"
@@ -115,7 +115,7 @@ class AbcSmcSettings(OptimizerSettings):
         "population's weighted mean, whichever is lower (what a perfect model still shows), measured before "
         "every generation",
     )
-    noise_seeds: int = Field(8, ge=2, description="model seeds of the noise target's measurement")
+    noise_seeds: int = Field(8, ge=2, le=MAX_NOISE_SEEDS, description="model seeds of the noise target's measurement")
     min_acceptance: float = Field(
         0.02,
         gt=0,
@@ -132,6 +132,7 @@ class AbcSmcSettings(OptimizerSettings):
     neighbours: int | None = Field(
         None,
         ge=2,
+        le=MAX_POINTS,
         description="particles per local covariance (local kernel; default max(2 * dimension + 1, particles / 5))",
     )
     posterior: Literal["population", "recycled"] = Field(
@@ -152,6 +153,7 @@ class AbcSmcSettings(OptimizerSettings):
     batch: int | None = Field(
         None,
         ge=1,
+        le=MAX_POINTS,
         description="proposals per evaluation batch (default: the "
         "expected number still needed, from the last acceptance rate, at least workers' "
         "worth; at most particles)",
@@ -286,7 +288,6 @@ class AbcSmc(Optimizer):
     name = "abc-smc"
     summary = "ABC-SMC sampler: a weighted posterior population and the best particle"
     Settings = AbcSmcSettings
-    gives_posterior = True
     posterior_kind = "population"
     failures_as_inf = True
 

@@ -23,10 +23,10 @@ records), ``best`` (best distance so far, ``None`` while nothing finite was seen
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Annotated, Literal, Union
 
 import numpy as np
-from pydantic import Field
+from pydantic import AfterValidator, Field
 
 from bforest_core.interfaces import ComponentSettings, OptimizeResult, Problem
 
@@ -40,6 +40,23 @@ UNLIMITED = 10**6
 
 class StopOptimization(Exception):
     """Raised inside a library callback to unwind an optimiser when the problem has stopped."""
+
+
+#: the most points an optimiser of this plugin holds or asks for at once (a population, an
+#: initial design, a batch, candidates): what a 2-core laptop's memory holds, however large the box
+MAX_POINTS = 10_000
+#: the most model seeds of a noise measurement
+MAX_NOISE_SEEDS = 1000
+
+
+def _noise_value(v):
+    if v != "auto" and v < 0:
+        raise ValueError(f"must be 'auto' or a distance >= 0 (got {v})")
+    return v
+
+
+#: ``noise`` of the noise-aware stop: a distance (>= 0) or "auto"
+NoiseSetting = Annotated[Union[float, Literal["auto"]], AfterValidator(_noise_value)]
 
 
 class OptimizerSettings(ComponentSettings):
@@ -307,7 +324,7 @@ def noise_stop_fields():
             description="the noise of that stop: 'auto' = the sd of the distance over "
             "noise_seeds model seeds at the best point (Problem.seed_spread), or a number",
         ),
-        noise_seeds=Field(5, ge=2, description="model seeds of the 'auto' noise"),
+        noise_seeds=Field(5, ge=2, le=MAX_NOISE_SEEDS, description="model seeds of the 'auto' noise"),
     )
 
 

@@ -33,25 +33,38 @@ seed noise keeps tau at 0.2-0.5, nearly every point is grown, and the gain is (1
 from __future__ import annotations
 
 import math
-from typing import Literal, Optional, Union
+from typing import Literal, Optional
 
 import numpy as np
 from pydantic import Field
 
-from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
+from bforest_core.interfaces import Optimizer, OptimizeResult, Problem, RecipePart, RecipePlan
 
-from .box import Box, History, NoiseStop, OptimizerSettings, finite_stats, make_result, noise_stop_fields
+from .box import (
+    MAX_POINTS,
+    Box,
+    History,
+    NoiseSetting,
+    NoiseStop,
+    OptimizerSettings,
+    finite_stats,
+    make_result,
+    noise_stop_fields,
+)
 
 _NOISE = noise_stop_fields()
 
 
 class CMASettings(OptimizerSettings):
-    population: Optional[int] = Field(None, ge=4, description="points per generation (default cma's 4 + 3 ln p)")
+    population: Optional[int] = Field(
+        None, ge=4, le=MAX_POINTS, description="points per generation (default cma's 4 + 3 ln p)"
+    )
     sigma0: float = Field(0.3, gt=0, le=1, description="initial step size, as a fraction of each parameter's range")
     restarts: int = Field(1, ge=0, description="restarts with doubled population after a run converges (IPOP)")
     init_design: int = Field(
         0,
         ge=0,
+        le=MAX_POINTS,
         description="points of a scrambled Sobol' design over the initial box "
         "evaluated first (with [start] estimator: draws of its posterior for the target instead); "
         "CMA-ES then starts at the best of them instead of the box's centre (0: no design)",
@@ -59,6 +72,7 @@ class CMASettings(OptimizerSettings):
     starts: int = Field(
         1,
         ge=1,
+        le=MAX_POINTS,
         description="independent CMA-ES runs raced against each other: they start at "
         "the best distinct points of the init_design (then at Sobol' points of the initial box), "
         "take turns generation by generation, and successive halving drops the worse half at "
@@ -88,12 +102,12 @@ class CMASettings(OptimizerSettings):
         "the module); 'none': every point is grown",
     )
     surrogate_batch: int = Field(
-        2, ge=1, description="with a surrogate: points grown together (set it to the executor's workers)"
+        2, ge=1, le=MAX_POINTS, description="with a surrogate: points grown together (set it to the executor's workers)"
     )
     max_generations: Optional[int] = Field(None, ge=1, description="generations per run (default: until cma stops)")
     tolfun: float = Field(1e-4, ge=0, description="cma's stop when the distances of a generation differ by less")
     patience: Optional[int] = _NOISE["patience"]
-    noise: Union[float, str] = _NOISE["noise"]
+    noise: NoiseSetting = _NOISE["noise"]
     noise_seeds: int = _NOISE["noise_seeds"]
 
 
@@ -112,6 +126,48 @@ class CMAES(Optimizer):
 
     def takes_start(self) -> bool:
         return self.settings.init_design > 0
+
+    def draft_recipe(self, plan: RecipePlan) -> RecipePart:
+        """The robust search of the real-tree recipes (docs/validation.md section 4): lq-CMA-ES with
+        a first step of 0.15 of each range, a Sobol' design, two starts from its best distinct
+        points. With one model seed per evaluation the objective is noisier: generations of 32
+        (a step that stays wide and moves with the shape of the whole landscape) after 64 Sobol'
+        points, both starts running to the end of the budget together (the pine recipes'); with
+        more seeds, generations of 16 after 32 points, the starts raced by successive halving. A
+        refinement of an amortised posterior (``plan.start``): 32 draws, two runs of 16 together."""
+        together = plan.start or plan.draft.seeds == 1
+        population, design = (32, 64) if plan.draft.seeds == 1 and not plan.start else (16, 32)
+        settings = [
+            ("population", population, None),
+            ("restarts", 4, None),
+            ("sigma0", 0.15, None),
+            ("surrogate", "lq", None),
+            ("surrogate_batch", 2, None),
+            ("init_design", design, None),
+            ("starts", 2, None),
+        ]
+        if together:
+            settings += [("finalists", 2, None), ("grow_together", True, None)]
+        if plan.start:
+            why = (
+                f"A short refinement of the estimator's posterior ([start]): {design} draws of it for this tree, "
+                f"then 2 lq-CMA-ES runs of {population} points a generation from the best distinct ones, taking "
+                "their turns together."
+            )
+        elif together:
+            why = (
+                f"A search that does not hinge on one trajectory: {design} Sobol' points over the box, then 2 "
+                f"lq-CMA-ES runs of {population} points a generation from the best distinct ones, each to the end "
+                "of the budget, taking their turns together (their points go to the workers as one batch); a run "
+                "that converges restarts with a doubled population."
+            )
+        else:
+            why = (
+                f"A search that does not hinge on one trajectory: {design} Sobol' points over the box, 2 lq-CMA-ES "
+                "runs from the best distinct ones raced by successive halving, each restarting with a doubled "
+                "population once it converges."
+            )
+        return RecipePart(self.name, settings, why)
 
     def expected_evaluations(self, dim: int) -> int | None:
         s = self.settings
@@ -308,7 +364,7 @@ class _Race:
         n0 = int(problem.n_evaluations)
         ratio = len(slots) / self.finalists
         rungs = math.ceil(math.log2(ratio)) if ratio > 1 else 0
-        left = None if problem.budget is None else max(int(problem.budget) - n0, 0)
+        left = None if problem.max_evaluations is None else max(int(problem.max_evaluations) - n0, 0)
         self.marks = [] if left is None else [n0 + left * (r + 1) / (rungs + 1) for r in range(rungs)]
 
     def halve(self) -> None:

@@ -15,6 +15,7 @@ from pydantic import Field
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
 from .box import (
+    MAX_POINTS,
     UNLIMITED,
     Box,
     History,
@@ -45,7 +46,7 @@ Strategy = Literal[
 class DESettings(OptimizerSettings):
     """Settings of the ``de`` optimiser (scipy's defaults except ``polish``)."""
 
-    popsize: int = Field(15, ge=1, description="population = popsize * dimension (at least 5)")
+    popsize: int = Field(15, ge=1, le=MAX_POINTS // 20, description="population = popsize * dimension (at least 5)")
     maxiter: int = Field(100, ge=1, description="maximum number of generations")
     strategy: Strategy = Field("best1bin", description="scipy differential evolution strategy")
     mutation: float | tuple[float, float] = Field(

@@ -40,6 +40,8 @@ from pydantic import Field, model_validator
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
 from .box import (
+    MAX_NOISE_SEEDS,
+    MAX_POINTS,
     Box,
     History,
     OptimizerSettings,
@@ -51,19 +53,25 @@ from .box import (
 )
 
 PERCENTILES = (2.5, 16.0, 50.0, 84.0, 97.5)
+#: the most walker positions the chain holds (emcee keeps it in memory, allocated up front)
+MAX_CHAIN = 5_000_000
 
 
 class EmceeSettings(OptimizerSettings):
     """Settings of the ``emcee`` sampler."""
 
     walkers: int | None = Field(
-        None, ge=2, description="walkers (even, at least 2 * dimension; default max(2 * dimension + 2, 16))"
+        None,
+        ge=2,
+        le=MAX_POINTS,
+        description="walkers (even, at least 2 * dimension; default max(2 * dimension + 2, 16))",
     )
     steps: int = Field(
         200,
         ge=1,
         description="length of the chain: ensemble steps, each evaluating every walker once (not the "
-        "evaluation budget, which is [stop] max_evaluations and may end the chain earlier)",
+        "evaluation budget, which is [stop] max_evaluations and may end the chain earlier); the chain "
+        f"is held in memory: walkers x steps at most {MAX_CHAIN:,}",
     )
     burn_in: int = Field(50, ge=0, description="steps discarded before the posterior summaries")
     moves: Literal["stretch", "de", "de_snooker", "walk"] = Field(
@@ -76,13 +84,18 @@ class EmceeSettings(OptimizerSettings):
         "initial walkers' distances, or a positive number",
     )
     epsilon_scale: float = Field(1.0, gt=0, description="multiplies the noise or auto epsilon")
-    noise_seeds: int = Field(8, ge=2, description="model seeds of the noise epsilon's measurement")
+    noise_seeds: int = Field(8, ge=2, le=MAX_NOISE_SEEDS, description="model seeds of the noise epsilon's measurement")
     init_sampling: SamplingName = sampling_field("lhs")
 
     @model_validator(mode="after")
     def _check(self):
         if self.walkers is not None and self.walkers % 2:
             raise ValueError(f"walkers must be even (got {self.walkers})")
+        if (self.walkers or 16) * self.steps > MAX_CHAIN:
+            raise ValueError(
+                f"walkers x steps = {self.walkers or 16} x {self.steps} exceeds {MAX_CHAIN:,} positions: the "
+                "chain is held in memory (fewer steps: the budget, [stop] max_evaluations, ends a chain anyway)"
+            )
         if not isinstance(self.epsilon, str) and not (self.epsilon > 0 and math.isfinite(self.epsilon)):
             raise ValueError(f"epsilon must be a positive number, 'noise' or 'auto' (got {self.epsilon})")
         return self
@@ -136,7 +149,6 @@ class EmceeSampler(Optimizer):
     name = "emcee"
     summary = "emcee ensemble sampler of exp(-D/epsilon): best fit plus posterior summaries"
     Settings = EmceeSettings
-    gives_posterior = True
     posterior_kind = "chain"
 
     @classmethod

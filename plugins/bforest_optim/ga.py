@@ -27,7 +27,7 @@ or when the problem stops (budget, wall time, target).
 from __future__ import annotations
 
 import math
-from typing import Literal, Union
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -35,9 +35,11 @@ from pydantic import Field, model_validator
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
 from .box import (
+    MAX_POINTS,
     UNLIMITED,
     Box,
     History,
+    NoiseSetting,
     NoiseStop,
     OptimizerSettings,
     SamplingName,
@@ -53,11 +55,12 @@ _NOISE = noise_stop_fields()
 class GASettings(OptimizerSettings):
     """Settings of the ``ga`` optimiser (defaults: the papers' population 40, 30 generations)."""
 
-    population: int = Field(40, ge=4, description="individuals per generation")
+    population: int = Field(40, ge=4, le=MAX_POINTS, description="individuals per generation")
     generations: int = Field(30, ge=1, description="maximum number of generations after the initial one")
     elite_count: int | None = Field(
         None,
         ge=0,
+        le=MAX_POINTS,
         description="best individuals copied unchanged into the "
         "next generation (default: 5 % of the population, at least 1)",
     )
@@ -74,7 +77,9 @@ class GASettings(OptimizerSettings):
         description="parent selection: stochastic uniform sampling on "
         "rank-scaled fitness, or tournaments of tournament_size",
     )
-    tournament_size: int = Field(4, ge=2, description="individuals per tournament (selection = tournament)")
+    tournament_size: int = Field(
+        4, ge=2, le=MAX_POINTS, description="individuals per tournament (selection = tournament)"
+    )
     mutation_rate: float = Field(
         0.2,
         gt=0.0,
@@ -100,7 +105,7 @@ class GASettings(OptimizerSettings):
     )
     init_sampling: SamplingName = sampling_field("halton")
     patience: int | None = _NOISE["patience"]
-    noise: Union[float, str] = _NOISE["noise"]
+    noise: NoiseSetting = _NOISE["noise"]
     noise_seeds: int = _NOISE["noise_seeds"]
 
     @model_validator(mode="after")

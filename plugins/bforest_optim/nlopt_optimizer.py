@@ -14,7 +14,7 @@ from pydantic import Field, field_validator, model_validator
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
-from .box import Box, History, OptimizerSettings, make_result
+from .box import MAX_POINTS, Box, History, OptimizerSettings, make_result
 
 #: algorithms that need a local optimiser (``set_local_optimizer``)
 _NEEDS_LOCAL = {"GN_MLSL", "GN_MLSL_LDS", "G_MLSL", "G_MLSL_LDS"}
@@ -61,7 +61,7 @@ class NloptSettings(OptimizerSettings):
         "GN_MLSL_LDS, LN_SBPLX, LN_NELDERMEAD, LN_BOBYQA, LN_COBYLA, ...",
     )
     population: int | None = Field(
-        None, ge=1, description="population of CRS2, ISRES, ESCH, MLSL (default: NLopt's own)"
+        None, ge=1, le=MAX_POINTS, description="population of CRS2, ISRES, ESCH, MLSL (default: NLopt's own)"
     )
     local_algorithm: str | None = Field(
         None,

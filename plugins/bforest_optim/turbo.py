@@ -37,23 +37,30 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import Literal, Optional, Union
+from typing import Literal, Optional
 
 import numpy as np
 from pydantic import Field
 
 from bforest_core.interfaces import Optimizer, OptimizeResult, Problem
 
+from . import box
 from .box import Box, History, NoiseStop, OptimizerSettings, finite_stats, make_result, noise_stop_fields
 
 _NOISE = noise_stop_fields()
 
 
 class TurboSettings(OptimizerSettings):
-    batch: int = Field(2, ge=1, description="points per iteration, grown together (set it to the executor's workers)")
+    batch: int = Field(
+        2,
+        ge=1,
+        le=box.MAX_POINTS,
+        description="points per iteration, grown together (set it to the executor's workers)",
+    )
     init_points: Optional[int] = Field(
         None,
         ge=2,
+        le=box.MAX_POINTS,
         description="points of the Sobol' design that starts each run (default 2 x the number of free parameters)",
     )
     length_init: float = Field(0.8, gt=0, le=2, description="initial side of the trust region (unit cube)")
@@ -65,7 +72,7 @@ class TurboSettings(OptimizerSettings):
         ge=1,
         description="batches in a row without improvement that halve it (default ceil(max(4, dimension) / batch))",
     )
-    candidates: int = Field(1000, ge=10, description="candidate points per Thompson draw")
+    candidates: int = Field(1000, ge=10, le=box.MAX_POINTS, description="candidate points per Thompson draw")
     centre: Literal["best", "model"] = Field(
         "model",
         description="centre of the trust region: 'best', the point "
@@ -93,10 +100,13 @@ class TurboSettings(OptimizerSettings):
         "hyperparameters (in between the GP takes the new points with the last ones)",
     )
     max_train: int = Field(
-        300, ge=10, description="points the Gaussian process is fitted to: the run's points nearest its best one"
+        300,
+        ge=10,
+        le=box.MAX_POINTS,
+        description="points the Gaussian process is fitted to: the run's points nearest its best one",
     )
     patience: Optional[int] = _NOISE["patience"]
-    noise: Union[float, str] = _NOISE["noise"]
+    noise: box.NoiseSetting = _NOISE["noise"]
     noise_seeds: int = _NOISE["noise_seeds"]
 
 

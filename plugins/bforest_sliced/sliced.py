@@ -35,7 +35,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import AliasChoices, Field, field_validator, model_validator
 
-from bforest_core.interfaces import ComponentSettings, Distance
+from bforest_core.interfaces import ComponentSettings, LineDistance, RecipePart, RecipePlan
 
 from .directions import directions as _directions
 from .grid import VALUE_BITS, snap
@@ -164,22 +164,26 @@ def holm(p: Mapping[str, float]) -> dict[str, float]:
 # ----------------------------------------------------------------------------------------------
 
 
+#: the most projection lines (16 times the 1000 of the SF runs): each costs a sort per set and evaluation
+MAX_LINES = 16384
+
+
 class SlicedSettings(ComponentSettings):
     """Settings of the ``sliced`` distance (docs/features-and-distance.md §3-§4)."""
 
     statistic: Literal["ks", "cvm", "ad", "w1", "energy", "l1", "l2"] = "ks"
-    lines: int = Field(256, ge=1)
+    lines: int = Field(256, ge=1, le=MAX_LINES)
     net: Literal["gp2", "sobol", "halton", "random"] = "gp2"
-    seed: int = 0
+    seed: int = Field(0, ge=0)
     scramble: bool = False
     parity: bool = False
     aggregate: Literal["mean", "max"] = "mean"
     scale_by_sample_size: bool = Field(False, validation_alias=AliasChoices("scale_by_sample_size", "scale_by_size"))
     normalize: Literal["none", "zscore", "robust"] = "zscore"
     empty_cost: float | None = Field(None, ge=0)
-    threads: int | None = Field(None, ge=1)
+    threads: int | None = Field(None, ge=1, le=256)
     block: int = Field(16, ge=1, le=4096)
-    presort_memory_limit: int = Field(1 << 30, ge=0)
+    presort_memory_limit: int = Field(1 << 30, ge=0, le=1 << 30)
     return_lines: bool = False
 
     @field_validator("statistic", mode="before")
@@ -273,14 +277,14 @@ def _as_table(u, what: str, d: int | None = None) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 
 
-class SlicedDistance(Distance):
+class SlicedDistance(LineDistance):
     """Sliced (tomographic) distance: mean (or max) over projection lines of a 1-D statistic.
 
     Settings
     --------
     statistic : {"ks", "cvm", "ad", "w1" (alias "wasserstein"), "energy", "l1", "l2"}
     lines : int
-        Number of projection lines L (default 256; one line for 1-D tables).
+        Number of projection lines L (default 256, at most 16384; one line for 1-D tables).
     net : {"gp2", "sobol", "halton", "random"}
         Direction net (§4.1); ``seed``/``scramble`` for scrambled or random nets, ``parity``
         for the toolbox's Fang-Wang indexing.
@@ -298,7 +302,8 @@ class SlicedDistance(Distance):
         ``OMP_NUM_THREADS`` when that is set: the process and Dask executors set it to 1 in their
         workers, which already keep every core busy); ``block`` lines per block.
     presort_memory_limit : int
-        Bytes above which the data projections are not kept sorted (recomputed per block).
+        Bytes above which the data projections are not kept sorted (recomputed per block; at
+        most 1 GiB, the default).
     return_lines : bool
         Keep per-line values of the last evaluation in :attr:`last_lines`.
     """
@@ -306,6 +311,19 @@ class SlicedDistance(Distance):
     name = "sliced"
     summary = "sliced (tomographic) distance: KS/CvM/AD/W1/energy on quasi-random projections"
     Settings = SlicedSettings
+
+    def draft_recipe(self, plan: RecipePlan) -> RecipePart | None:
+        """The structural distance of the real-tree recipes: KS (at most 1) on 128 lines for the
+        search, 256 where the candidate answers are scored."""
+        if plan.term != "structure":
+            return None
+        return RecipePart(
+            self.name,
+            [("statistic", "ks", None), ("lines", 128, None)],
+            select={"lines": 256},
+            select_why="on 256 lines",
+            reach=1.0,
+        )
 
     _CACHE_SIZE = 16
 

@@ -7,8 +7,10 @@ implemented after docs/models.md part B in vectorised numpy:
   trilinear exposure, gradient probes);
 - :mod:`bforest_sot.model`  -- the growth engine (basipetal/acropetal passes, shedding, shoot
   construction) and the inspection records passed to ``on_step``;
-- :mod:`bforest_sot.params` -- the parameter table (names, calibrated defaults, ranges, groups)
-  and validation;
+- :mod:`bforest_sot.forms`  -- the growth forms (additions to the papers' model), one module each,
+  and their interface (:mod:`bforest_sot.forms.base`);
+- :mod:`bforest_sot.params` -- the papers' parameter table (names, calibrated defaults, ranges,
+  groups), the model's with its forms', and validation;
 - :mod:`bforest_sot.plugin` -- the ``ssm`` component ``"sot"`` and the output tree.
 
 Usage::

@@ -85,6 +85,9 @@ class LightField:
         Names the draws (e.g. the model seed): the initial field of the same key, ``ran``, ``vert``
         and grid is reused from a small cache of the process instead of computed again (the same
         numbers; the log of ~10^6 voxels is a sixth of a typical SOT run).
+    filters : sequence of callables, optional
+        ``f(points) -> (m,) factors`` on the exposure at points, applied in order (the growth
+        forms' ``transmission``: the shade of a stand or of a gap's neighbours).
 
     Notes
     -----
@@ -105,21 +108,13 @@ class LightField:
         ran=0.0,
         vert=0.0,
         uniforms=None,
-        stand_shade=0.0,
         initial_key=None,
-        gap_shade=0.0,
-        gap_azimuth=0.0,
+        filters=(),
     ):
         self.span = float(span)
-        #: extinction (1/m) of the surrounding stand's canopy below the tree's top ``z_top``
-        #: (kept current by the model); 0 = an open-grown tree (the papers' model)
-        self.stand_shade = float(stand_shade)
-        self.z_top = 0.0
-        #: extinction (1/m) of the neighbours' shade behind the stem base (x = y = 0), away from
-        #: the gap's horizontal direction ``gap_dir``; 0 = light from every side alike
-        self.gap_shade = float(gap_shade)
-        a = np.radians(float(gap_azimuth))
-        self.gap_dir = np.array([np.cos(a), np.sin(a)])
+        #: factors on the exposure of points (the growth forms' ``transmission``: a stand's or a
+        #: gap's shade), applied in order; none = light from every side alike (the papers' model)
+        self.filters = tuple(filters)
         self.voxel = float(voxel_size)
         self.n_vox = n = int(round(self.span / self.voxel))
         self.di, self.dj, self.dk, self.log_f = shadow_kernel(depth, spread, shadow_a, shadow_b)
@@ -222,8 +217,7 @@ class LightField:
 
     def exposure(self, points: np.ndarray) -> np.ndarray:
         """Trilinear exposure at points over the 8 surrounding voxel centres, in [0, 1], times
-        the stand's transmission ``exp(-stand_shade * max(0, z_top - z))`` and the gap's
-        ``exp(-gap_shade * max(0, -(x, y) . gap_dir))``."""
+        each of :attr:`filters` at the points."""
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         n = self.n_vox
         c = np.empty(p.shape)
@@ -241,10 +235,8 @@ class LightField:
         wz = np.concatenate([1 - tz, tz], axis=1)
         w = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
         e = np.clip(np.sum(w * vals, axis=1), 0.0, 1.0)
-        if self.stand_shade > 0.0:
-            e *= np.exp(-self.stand_shade * np.maximum(0.0, self.z_top - p[:, 2]))
-        if self.gap_shade > 0.0:
-            e *= np.exp(-self.gap_shade * np.maximum(0.0, -(p[:, :2] @ self.gap_dir)))
+        for factor in self.filters:
+            e *= factor(p)
         return e
 
     def clamp_to_cube(self, points: np.ndarray) -> np.ndarray:

@@ -1,11 +1,14 @@
-"""The self-organizing tree (SOT) growth engine (docs/models.md part B).
+"""The self-organizing tree (SOT) growth engine (docs/models.md part B): the papers' growth cycle.
 
 Structure of arrays, one row per segment (metamer) ever created; rows are never reused, so the
 creation order is a parent-before-child order. Every per-cycle computation is vectorised over
 segments, buds or shoots; Python loops run only over cycles, depth levels (basipetal pass),
 pointer-jumping rounds (acropetal pass) and metamer steps (shoot construction).
 
-Random draws, all from one ``numpy.random.Generator(PCG64(seed))`` (docs/models.md B.7):
+The additions to the papers' model are growth forms (:mod:`bforest_sot.forms`): the cycle calls
+the hooks of those that act on a run and holds no form's branch.
+
+Random draws of the cycle, all from one ``numpy.random.Generator(PCG64(seed))`` (docs/models.md B.7):
 
 * init: ``n_vox**3`` uniforms for ``ran`` in C order of (i, j, k) (drawn even when ran = 0;
   skipped with ``advance`` when the initial field of this seed is cached: the same stream after)
@@ -15,31 +18,35 @@ Random draws, all from one ``numpy.random.Generator(PCG64(seed))`` (docs/models.
   2. one standard normal per growing lateral shoot (``branch_angle_sd``);
   3. one standard normal per growing shoot (``tropism_sd``);
   4. at each metamer step k, one standard normal per shoot still active after the wall check
-     (``phyllotaxis_sd``), then, only when ``heading_sd`` > 0, one more per such shoot
-     (``heading_sd``, an addition to docs/models.md B.7, see B.10: trees without it keep their old draws).
+     (``phyllotaxis_sd``).
 
   Shoots are ordered by bearing segment, the apical shoot before the lateral one. A block is
   drawn even when its sd is 0; no draw depends on ``max_iter``, so a run of length t equals the
-  ``on_step`` snapshot at t of any longer run (prefix property).
+  ``on_step`` snapshot at t of any longer run (prefix property). A form that draws from this
+  generator (``GROWTH_STREAM``) draws at its hook: dying leaders after draw 1, short shoots
+  before draw 2, winding after each draw 4 (docs/models.md B.10); other forms draw from streams
+  of their own.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from bforest_core.tree import Tree, group_by_level
+from bforest_core.errors import SimulationFailed
+from bforest_core.tree import Tree, group_by_level, remap_ids
 
+from .forms.base import HOOKS, form_generator, overrides
 from .kernels import advance_frames, sum_levels, turn_geometry
 from .light import LightField
 
 MODEL_VERSION = "1.0"
 
 EMPTY, BUD, CHILD, STUB = 0, 1, 2, 3
-SLOT_NAMES = {EMPTY: "EMPTY", BUD: "BUD", CHILD: "CHILD", STUB: "STUB"}
 
 
 class GrowthFailure(Exception):
@@ -117,24 +124,11 @@ def accumulate(
     """Basipetal pass (B.5 step 3) over a compact set of m living segments.
 
     Slot contributions (N, Q, width): CHILD c -> (N_c, Q_c, d_c); BUD -> (1, Q_bud, -);
-    STUB -> (0, 0, w); EMPTY -> (0, 0, -). ``N = 1 + N_m + N_l``, ``Q = Q_m + Q_l``,
-    ``D = lam N_m (Q_m/N_m)^kappa + (1 - lam) N_l (Q_l/N_l)^kappa`` (terms with N = 0 omitted;
-    D = 1 when neither slot holds a BUD or CHILD), ``d^n = sum of w^n over CHILD and STUB slots``
-    or ``init_width^n`` if there is none.
-
-    Parameters
-    ----------
-    api_state, lat_state : (m,) int8
-        Slot states (EMPTY, BUD, CHILD, STUB).
-    api_child, lat_child : (m,) int
-        Local index of the child in a CHILD slot (ignored elsewhere).
-    q_api, q_lat : (m,) float
-        Bud exposures (read where the slot is a BUD).
-    api_stub_w, lat_stub_w : (m,) float
-        Stub widths (read where the slot is a STUB).
-    depth : (m,) int
-        Depth of each node (root 0); children have their parent's depth + 1.
-    lam, kappa, pipe_exp, init_width : float
+    STUB -> (0, 0, w); EMPTY -> (0, 0, -). ``N = 1 + N_m + N_l``, ``Q = Q_m + Q_l``, ``D`` of
+    :func:`_denominators`, ``d^n = sum of w^n over CHILD and STUB slots`` or ``init_width^n`` if
+    there is none. Arguments, each (m,): the slot states (EMPTY, BUD, CHILD, STUB), the local index
+    of the child in a CHILD slot, the bud exposures (read at a BUD), the stub widths (read at a
+    STUB), each node's depth (root 0); then the floats lam, kappa, pipe_exp and init_width.
 
     Returns
     -------
@@ -159,23 +153,27 @@ def accumulate(
     d0n = float(init_width) ** pipe_exp
     order, bounds = group_by_level(depth) if levels is None else levels
     V = sum_levels(base, ac, lc, order, bounds, d0n)  # level by level, deepest first (kernels.py)
-    N = V[:m, 0]
-    Q = V[:m, 1]
-    W = V[:m, 2]
+    N, Q, W = V[:m, 0], V[:m, 1], V[:m, 2]
     Nm = a_bud + V[ac, 0]
     Qm = np.where(a_bud, q_api, 0.0) + V[ac, 1]
     Nl = l_bud + V[lc, 0]
     Ql = np.where(l_bud, q_lat, 0.0) + V[lc, 1]
+    D = _denominators(Nm, Qm, Nl, Ql, lam, kappa)
+    woody = np.isin(api_state, (CHILD, STUB)) | np.isin(lat_state, (CHILD, STUB))
+    width = np.where(woody, W ** (1.0 / pipe_exp), float(init_width))
+    return {"N": N.copy(), "Q": Q.copy(), "D": D, "W": W.copy(), "width": width, "Nm": Nm, "Qm": Qm, "Nl": Nl, "Ql": Ql}
+
+
+def _denominators(Nm, Qm, Nl, Ql, lam, kappa):
+    """``D = lam N_m (Q_m/N_m)^kappa + (1 - lam) N_l (Q_l/N_l)^kappa`` (terms with N = 0 omitted;
+    D = 1 when neither slot holds a BUD or CHILD)."""
     if kappa == 1.0:
         D = lam * Qm + (1.0 - lam) * Ql
     else:
         D = lam * np.where(Nm > 0, Nm * (Qm / np.maximum(Nm, 1.0)) ** kappa, 0.0) + (1.0 - lam) * np.where(
             Nl > 0, Nl * (Ql / np.maximum(Nl, 1.0)) ** kappa, 0.0
         )
-    D = np.where((Nm + Nl) > 0, D, 1.0)
-    woody = np.isin(api_state, (CHILD, STUB)) | np.isin(lat_state, (CHILD, STUB))
-    width = np.where(woody, W ** (1.0 / pipe_exp), float(init_width))
-    return {"N": N.copy(), "Q": Q.copy(), "D": D, "W": W.copy(), "width": width, "Nm": Nm, "Qm": Qm, "Nl": Nl, "Ql": Ql}
+    return np.where((Nm + Nl) > 0, D, 1.0)
 
 
 def _pointer_jump_rounds(parent: np.ndarray):
@@ -250,10 +248,11 @@ _FIELDS = {
     "lat_child": (np.int64, 0),
     "api_stub_w": (np.float64, 0),
     "lat_stub_w": (np.float64, 0),
-    "twin": (np.bool_, 0),
-    "short": (np.bool_, 0),
-    "vcap": (np.float64, 0),  # vigor_sd: the shoot's cap factor (1 = max_grow)
-    "lat_vcap": (np.float64, 0),  # ... and the one its lateral bud's shoot will have
+    # a zero-length node holding one more lateral bud (forms.buds): no wood, so it casts no
+    # shadow, is no segment of the tree (max_live_segments) and is folded away in the output
+    "bud_node": (np.bool_, 0),
+    # a segment whose buds never grow on (a short shoot's, forms.short_shoots)
+    "dormant": (np.bool_, 0),
 }
 
 
@@ -298,9 +297,7 @@ class SegmentStore:
         self.lat_child[new] = -1
         self.api_stub_w[new] = 0.0
         self.lat_stub_w[new] = 0.0
-        self.short[new] = False
-        self.vcap[new] = 1.0
-        self.lat_vcap[new] = 1.0
+        self.dormant[new] = False
 
     @property
     def live(self) -> np.ndarray:
@@ -340,22 +337,6 @@ class AllocationRecord:
 
 
 @dataclass
-class ShootRecord:
-    """Inspection record of one cycle's shoots (one entry per growing shoot, in draw order)."""
-
-    bearing: np.ndarray  # global id of the bearing segment
-    lateral: np.ndarray  # bool
-    vigor: np.ndarray  # capped bud vigor v
-    planned: np.ndarray  # floor(v)
-    built: np.ndarray  # metamers actually built (fewer only at the walls)
-    first: np.ndarray  # global id of the first metamer (-1 if none)
-    metamer_length: np.ndarray
-    branch_angle: np.ndarray  # drawn branch angle (deg; NaN for apical shoots)
-    target: np.ndarray  # (k, 3) unit target direction (0 if |t| = 0)
-    tau: np.ndarray  # turning fraction
-
-
-@dataclass
 class _Basipetal:
     """Steps 2-3 of a cycle over the segments alive at its start (local index; ``ids`` global):
     bud states and exposures as before the drops, and the basipetal sums."""
@@ -373,39 +354,83 @@ class _Basipetal:
     width: np.ndarray
 
 
+@dataclass
+class BudChoice:
+    """Which buds of the segments alive at a cycle's start (``ids``) grow this cycle: an apical
+    bud with at least one metamer of vigor (``grow_a``), a lateral one with vigor above 1
+    (``grow_l``), on segments not dropped (``keep``) and not dormant. ``select_buds`` hooks may
+    change ``grow_a`` and ``grow_l`` in place."""
+
+    ids: np.ndarray
+    keep: np.ndarray
+    api_state0: np.ndarray
+    grow_a: np.ndarray
+    grow_l: np.ndarray
+
+
+class Shoots:
+    """One cycle's growing shoots, in draw order (by bearing segment, apical before lateral): what
+    the forms' shoot hooks see and change, and the inspection record of the cycle's shoots
+    (``StepView.shoots``).
+
+    Made with ``bearing`` (global id of the bearing segment), ``lateral`` (bool), ``vigor`` (capped
+    bud vigor v) and ``planned`` (floor(v) metamers); before the ``shape_shoots`` hooks the growth
+    adds ``order``, the frames ``h`` and ``u``, ``branch_angle`` (drawn, deg; NaN for apical shoots),
+    the start ``pos``, ``metamer_length``, the unit ``target`` direction (0 if |t| = 0) and the
+    turning share ``tau``; as it builds them ``first`` (global id of the first metamer, -1 if
+    none), ``last`` (the node each axis goes on from), ``built`` (metamers built: fewer than
+    planned only at the walls) and ``stopped``.
+    """
+
+    def __init__(self, bearing: np.ndarray, lateral: np.ndarray, vigor: np.ndarray, planned: np.ndarray):
+        self.bearing, self.lateral, self.vigor, self.planned = bearing, lateral, vigor, planned
+
+
 # ------------------------------------------------------------------------------------------------
 # the growth run
 # ------------------------------------------------------------------------------------------------
 
 
 class SOTGrowth:
-    """One SOT run. ``run()`` executes cycles 1 .. max_iter; failures raise
-    :class:`GrowthFailure` and leave the state in place for the partial tree."""
+    """One SOT run: the papers' growth cycle (docs/models.md B.5), with hooks for the growth forms.
+
+    ``run()`` executes cycles 1 .. max_iter; failures raise :class:`GrowthFailure` and leave the
+    state in place for the partial tree. ``settings`` is the model's validated settings object
+    (``SOT.Settings``), ``forms`` the growth-form classes (:mod:`bforest_sot.forms`): those that
+    act on this run are made once, each with its generator, and their hooks are called in order;
+    ``model`` the component's name (a model with forms of its own has another).
+    """
 
     def __init__(
-        self,
-        p: dict,
-        seed: int,
-        *,
-        max_live_segments: int = 200_000,
-        sympodial: bool = False,
-        buds_per_node: int = 1,
-        stem_path=(),
-        on_step: Callable | None = None,
-        record: bool = False,
+        self, p: dict, seed: int, settings, forms=(), *, model="sot", on_step: Callable | None = None, record=False
     ):
         self.p = p
+        self.model = model  # the component's name, for the output's metadata
         self.seed = seed
-        self.max_live = int(max_live_segments)
-        self.sympodial = bool(sympodial)
-        self.buds_per_node = int(buds_per_node)
+        self.settings = settings
+        self.max_live = int(settings.max_live_segments)
         self.on_step = on_step
         self.record = record or on_step is not None
         self.rng = np.random.Generator(np.random.PCG64(seed))
+        self.forms = [f(self, form_generator(f, seed, self.rng)) for f in forms if f.acts(p, settings)]
+        self.hooks = {h: [getattr(f, h) for f in self.forms if overrides(f, h)] for h in HOOKS}
+        self.rows_per_metamer = 1 + sum(f.extra_rows for f in self.forms)
+        self.field = self._light_field()
+        self.s = SegmentStore()
+        self.age = 0.0
+        self.cycle = 0
+        self.lam = float(p["init_lambda"])
+        self.created = 0
+        self.last_alloc: AllocationRecord | None = None
+        self.last_shoots: Shoots | None = None
+
+    def _light_field(self) -> LightField:
+        """Draw 1: the initial field's uniforms; the field of a seed seen before comes from the
+        field's cache, and the generator then skips the n3 draws it was made of (PCG64 advance:
+        the same stream after it)."""
+        p, seed = self.p, self.seed
         n3 = int(round(p["span"] / p["voxel_size"])) ** 3
-        # draw 1; the field of a seed seen before comes from the field's cache, and the generator
-        # then skips the n3 draws it was made of (PCG64 advance: the same stream after it)
-        self.field = LightField(
+        field = LightField(
             p["span"],
             p["voxel_size"],
             int(p["depth"]),
@@ -415,28 +440,12 @@ class SOTGrowth:
             p["ran"],
             p["vert"],
             lambda: self.rng.random(n3),
-            stand_shade=p["stand_shade"],
-            gap_shade=p["gap_shade"],
-            gap_azimuth=p["gap_azimuth"],
             initial_key=("sot", int(seed)) if isinstance(seed, (int, np.integer)) else None,
+            filters=tuple(self.hooks["transmission"]),
         )
-        if self.field.from_cache:
+        if field.from_cache:
             self.rng.bit_generator.advance(n3)
-        self.s = SegmentStore()
-        # vigor_sd (an addition, B.10): the shoots' cap factors come from a generator of the run's
-        # seed and a stream of their own, so the growth's other draws stay as they are
-        self.vig_rng = _own_stream(seed, VIGOR_STREAM) if p["vigor_sd"] > 0.0 else None
-        # bud_abort (an addition, B.10): which lateral buds abort, from a stream of their own too
-        self.abort_rng = _own_stream(seed, ABORT_STREAM) if p["bud_abort"] > 0.0 else None
-        # stem_guide (an addition, B.10): the path the stem's shoots follow, by arc length
-        self.guide = _Guide(stem_path) if p["stem_guide"] > 0.0 and len(stem_path) else None
-        self.stem_arc = 0.0  # length of the stem (order 0) grown so far
-        self.age = 0.0
-        self.cycle = 0
-        self.lam = float(p["init_lambda"])
-        self.created = 0
-        self.last_alloc: AllocationRecord | None = None
-        self.last_shoots: ShootRecord | None = None
+        return field
 
     # -------------------------------------------------------------- cycle 1
     def _seed(self) -> None:
@@ -453,29 +462,25 @@ class SOTGrowth:
         s.api_state[0] = BUD
         s.lat_state[0] = BUD
         s.api_child[0] = s.lat_child[0] = -1
-        s.vcap[0] = s.lat_vcap[0] = 1.0
         s.n = 1
-        self.stem_arc = float(p["node_length"])
-        if self.buds_per_node > 1:
-            s.reserve(self.buds_per_node)
-            last = self._add_bud_nodes(
-                1, np.zeros(1, np.int64), s.start[:1] + s.length[0] * s.h[:1], s.h[:1], s.u[:1], s.order[:1]
-            )
-            s.api_state[last] = BUD
-        self.created = s.n
-        self._draw_lateral_buds(0)
+        for hook in self.hooks["seeded"]:
+            hook()
+        self._rows_made(0)
         self.field.cast(s.start[:1])  # falls below ground: no effect
 
-    def _draw_lateral_buds(self, lo: int) -> None:
-        """The draws of the lateral buds of the rows ``lo ..``, one per row in creation order, each
-        from its own stream. vigor_sd (an addition): the cap factor exp(vigor_sd * N(0, 1)) of the
-        shoot each bud will grow; bud_abort (an addition): each bud aborts (its slot left EMPTY: it
-        takes no light, no vigor and never grows) with probability bud_abort."""
+    def _rows_made(self, lo: int) -> None:
+        self.created = self.s.n
+        for hook in self.hooks["rows_made"]:
+            hook(lo)
+
+    def node_rows(self, rows: np.ndarray):
+        """Yield ``rows`` and then, step by step, the bud nodes of their nodes (the rows that
+        follow a metamer on its apical slot, forms.buds), as arrays of row ids."""
         s = self.s
-        if self.vig_rng is not None:
-            s.lat_vcap[lo : s.n] = np.exp(self.p["vigor_sd"] * self.vig_rng.standard_normal(s.n - lo))
-        if self.abort_rng is not None:
-            s.lat_state[lo : s.n][self.abort_rng.random(s.n - lo) < self.p["bud_abort"]] = EMPTY
+        while rows.size:
+            yield rows
+            kid = np.where(s.api_state[rows] == CHILD, s.api_child[rows], -1)
+            rows = kid[(kid >= 0) & s.bud_node[np.maximum(kid, 0)]]
 
     # -------------------------------------------------------------- passes on the living set
     def _compact(self):
@@ -483,8 +488,7 @@ class SOTGrowth:
         ids = s.live
         loc = np.full(s.n, -1, dtype=np.int64)
         loc[ids] = np.arange(ids.size)
-        par = s.parent[ids]
-        lpar = np.where(par >= 0, loc[np.maximum(par, 0)], -1)
+        lpar = remap_ids(s.parent[ids], loc)
         ac = np.where(s.api_state[ids] == CHILD, loc[np.maximum(s.api_child[ids], 0)], -1)
         lc = np.where(s.lat_state[ids] == CHILD, loc[np.maximum(s.lat_child[ids], 0)], -1)
         return ids, loc, lpar, ac, lc
@@ -528,30 +532,26 @@ class SOTGrowth:
     def _grow_cycle(self, c: int) -> None:
         """Cycle ``c``: one method per step (1 lambda; 2-3 bud light and the basipetal pass; 4
         the acropetal pass and drops; 5 bud vigor; 6 the shoots)."""
-        lam = self._cycle_lambda()  # 1
+        lam = self._cycle_lambda(c)  # 1
         bp = self._basipetal(lam)  # 2, 3
         v, v_base, dead = self._allocate_and_drop(bp, lam)  # 4
         vA, vL = self._vigor(c, bp, lam, v, v_base, dead)  # 5
         self._grow_shoots(c, bp, dead, vA, vL)  # 6
 
-    def _cycle_lambda(self) -> float:
-        """Step 1: this cycle's apical control (schedule plus noise: the cycle's draw 1); with k
-        buds per node the share of one of a node's k splits. Also lifts the stand's canopy top to
-        the tree's."""
-        p, s = self.p, self.s
+    def _cycle_lambda(self, c: int) -> float:
+        """Step 1: this cycle's apical control (schedule plus noise: the cycle's draw 1), then
+        the forms' ``begin_cycle`` and ``cycle_lambda`` hooks (k buds per node: the share of one
+        of a node's k splits)."""
+        p = self.p
         self.age = min(self.age + 1.0, p["delay"] + p["transition"])
         lam = lambda_schedule(self.age, p["init_lambda"], p["targ_lambda"], p["delay"], p["transition"])
         z_lam = self.rng.standard_normal()
         lam = float(np.clip(lam + p["lambda_sd"] * z_lam, 0.0, 1.0))
         self.lam = lam
-        if self.buds_per_node > 1:
-            # a node of k buds is k Borchert-Honda splits in a row (see _add_bud_nodes): each takes
-            # lambda^(1/k), so the axis keeps the share lambda of a node that the papers' model
-            # gives it and the node's lateral buds share the rest
-            lam = lam ** (1.0 / self.buds_per_node)
-        if p["stand_shade"] > 0.0:  # the stand's canopy grows with the tree: its top is the tree's
-            live = s.live
-            self.field.z_top = float((s.start[live, 2] + s.length[live] * s.h[live, 2]).max())
+        for hook in self.hooks["begin_cycle"]:
+            hook(c)
+        for hook in self.hooks["cycle_lambda"]:
+            lam = hook(lam)
         return lam
 
     def _basipetal(self, lam: float) -> _Basipetal:
@@ -595,7 +595,7 @@ class SOTGrowth:
     def _allocate_and_drop(self, bp: _Basipetal, lam: float):
         """Step 4: the acropetal (Borchert-Honda) pass, and the drop of under-supplied branches
         and of those below the ground (their parents' slots become stubs, they leave the light
-        field). Returns ``(v, v_base, dropped)``."""
+        field; bud nodes cast no shadow). Returns ``(v, v_base, dropped)``."""
         p, s = self.p, self.s
         ids, lpar, width = bp.ids, bp.lpar, bp.width
         v_base = p["alpha0"] + p["alpha1"] * bp.Q[0]
@@ -613,8 +613,7 @@ class SOTGrowth:
             s.api_stub_w[pg[~lat_top]] = width[top[~lat_top]]
             gone = ids[dead]
             s.alive[gone] = False
-            if self.buds_per_node > 1:  # bud nodes cast no shadow (see _add_bud_nodes)
-                gone = gone[~s.twin[gone]]
+            gone = gone[~s.bud_node[gone]]
             self.field.remove(s.start[gone])
         return v, v_base, dead
 
@@ -652,257 +651,156 @@ class SOTGrowth:
                 vA_raw=vA_raw,
                 vL_raw=vL_raw,
             )
-        mg = float(p["max_grow"])  # times each shoot's own factor (vigor_sd; 1 without it: max_grow exactly)
-        return np.minimum(vA_raw, mg * s.vcap[ids]), np.minimum(vL_raw, mg * s.lat_vcap[ids])
+        mg = float(p["max_grow"])
+        return np.minimum(vA_raw, mg), np.minimum(vL_raw, mg)
 
     def _grow_shoots(self, c: int, bp: _Basipetal, dead, vA, vL) -> None:
-        """Step 6: the buds that grow (an apical bud with at least one metamer, a lateral bud
-        with vigor above 1; leader death and sympodial branching take apical buds away), in
-        draw order (by bearing segment, apical before lateral), checked against
-        ``max_live_segments`` and built."""
-        p, s, rng = self.p, self.s, self.rng
-        ids = bp.ids
+        """Step 6: the buds that grow (the forms' ``select_buds`` hooks may take some away), the
+        shoots in draw order (the ``plan_shoots`` hooks may change their metamers), checked
+        against ``max_live_segments`` and built."""
+        s, ids = self.s, bp.ids
         keep = ~dead
-        may_grow = keep & ~s.short[ids]  # a short shoot's buds never grow
+        may_grow = keep & ~s.dormant[ids]
         grow_a = may_grow & (bp.api_state0 == BUD) & (np.floor(vA) >= 1.0)
         grow_l = may_grow & (bp.lat_state0 == BUD) & (vL > 1.0)
-        if p["leader_death"] > 0.0 and c > p["death_delay"]:
-            # draw 1b (an addition): a growing apical bud dies with probability leader_death; the
-            # lateral buds at its node take over (with opposite buds: a fork). Drawn only when
-            # the probability is positive, so trees without it keep their draws.
-            ga = np.flatnonzero(grow_a)
-            # the stem's own buds die at stem_death x the rate (1: as every leader's, the same draws)
-            rate = np.where(s.order[ids[ga]] == 0, p["leader_death"] * p["stem_death"], p["leader_death"])
-            died = ga[rng.random(ga.size) < rate]
-            s.api_state[ids[died]] = EMPTY
-            grow_a[died] = False
-        if self.sympodial:
-            s.api_state[ids[keep & (bp.api_state0 == BUD)]] = EMPTY
-            grow_a[:] = False
-
-        # shoots ordered by bearing segment, apical before lateral
-        ia = np.flatnonzero(grow_a)
-        il = np.flatnonzero(grow_l)
-        key = np.concatenate([2 * ia, 2 * il + 1])
-        srt = np.argsort(key, kind="stable")
-        sl = np.concatenate([ia, il])[srt]  # local ids of bearing segments
-        lateral = np.concatenate([np.zeros(ia.size, bool), np.ones(il.size, bool)])[srt]
-        vig = np.concatenate([vA[ia], vL[il]])[srt]
-        bearing = ids[sl]
-        planned = np.floor(vig).astype(np.int64)
-        short = np.zeros(bearing.size, bool)
-        if p["short_shoot"] > 0.0:
-            # draw 1c (an addition): a lateral shoot is a short shoot with probability
-            # short_shoot: one internode that never grows on (its buds take light and vigor but
-            # do not grow). Drawn only when the probability is positive, so trees without it keep
-            # their draws.
-            li = np.flatnonzero(lateral)
-            short[li[rng.random(li.size) < p["short_shoot"]]] = True
-            planned[short] = 1
-        n_live = int(ids.size - np.count_nonzero(dead))
-        if self.buds_per_node > 1:  # bud nodes are not segments of the tree
-            n_live -= int(np.count_nonzero(s.twin[ids] & ~dead))
-        if n_live + int(planned.sum()) > self.max_live:
+        buds = BudChoice(ids, keep, bp.api_state0, grow_a, grow_l)
+        for hook in self.hooks["select_buds"]:
+            hook(c, buds)
+        shoots = _in_draw_order(ids, buds.grow_a, buds.grow_l, vA, vL)
+        for hook in self.hooks["plan_shoots"]:
+            hook(c, shoots)
+        # bud nodes are not segments of the tree
+        n_live = int(ids.size - np.count_nonzero(dead) - np.count_nonzero(s.bud_node[ids] & ~dead))
+        total = int(shoots.planned.sum())
+        if n_live + total > self.max_live:
             raise GrowthFailure(
                 "too_many_segments",
-                f"cycle {c} would grow {int(planned.sum())} metamers on {n_live} "
+                f"cycle {c} would grow {total} metamers on {n_live} "
                 f"live segments (max_live_segments = {self.max_live})",
             )
-        self._build_shoots(c, bearing, lateral, vig, planned, short)
+        self._build_shoots(c, shoots)
 
-    def _build_shoots(self, c, bearing, lateral, vig, planned, short) -> None:
+    def _build_shoots(self, c: int, sh: Shoots) -> None:
+        """Steps 6-8 for the shoots ``sh``: targets and frames, the forms' ``shape_shoots``, the
+        metamers step by step, then the new tips become buds and the new shadows fall."""
+        s = self.s
+        self._frames(sh)
+        for hook in self.hooks["shape_shoots"]:
+            hook(sh)
+        m = sh.bearing.size
+        sh.last = np.full(m, -1, dtype=np.int64)
+        sh.built = np.zeros(m, dtype=np.int64)
+        sh.first = np.full(m, -1, dtype=np.int64)
+        sh.stopped = np.zeros(m, dtype=bool)
+        sh.starts = []  # the new metamers' starts, for their shadows
+        s.reserve(s.n + int(sh.planned.sum()) * self.rows_per_metamer)
+        lo = s.n
+        for k in range(int(sh.planned.max()) if m else 0):
+            if not self._metamer_step(c, k, sh):
+                break
+        self._rows_made(lo)
+        s.api_state[sh.last[sh.last >= 0]] = BUD
+        for hook in self.hooks["shoots_built"]:
+            hook(sh)
+        self.created = s.n
+        if sh.starts:  # 8. shadows of all new metamers, from their starts, in one batch
+            self.field.cast(np.concatenate(sh.starts))
+        if self.record:
+            self.last_shoots = sh
+
+    def _frames(self, sh: Shoots) -> None:
+        """Draws 2 and 3 (blocks consumed even when the sd is 0), the target directions from the
+        field after the drops and before the new shadows (6), the initial frames (7), the shoots'
+        starts and metamer lengths."""
         p, s, rng = self.p, self.s, self.rng
+        bearing, lateral = sh.bearing, sh.lateral
         m = bearing.size
-        # draws 2 and 3 (blocks consumed even when the sd is 0)
         z_ang = rng.standard_normal(int(np.count_nonzero(lateral)))
         z_trop = rng.standard_normal(m)
-        # 6. target directions from the field after the drops, before the new shadows
         grad = self.field.gradient(s.start[bearing], p["sample_rad"]) if m else np.zeros((0, 3))
         t = p["reorient"] * grad
-        eta = p["tropism"] + p["tropism_sd"] * z_trop
-        if p["gap_lean"] > 0.0:  # an addition (B.10): shoots rise towards the sky of the gap, not the zenith
-            lean = math.radians(p["gap_lean"])
-            sky = np.r_[math.sin(lean) * self.field.gap_dir, math.cos(lean)]  # gap_dir: gap_azimuth's unit vector
-            t += eta[:, None] * np.where(eta[:, None] > 0.0, sky, [0.0, 0.0, 1.0])  # a sag stays downwards
-        else:
-            t[:, 2] += eta
+        t[:, 2] += p["tropism"] + p["tropism_sd"] * z_trop
         tn = _norm(t)
-        tau = np.minimum(tn, p["redir_strength"])
-        that = np.where(tn[:, None] > 0, t / np.where(tn > 0, tn, 1.0)[:, None], 0.0)
-        # 7. initial frames
-        h = s.h[bearing].copy()
-        u = s.u[bearing].copy()
-        ang = np.full(m, np.nan)
+        sh.tau = np.minimum(tn, p["redir_strength"])
+        sh.target = np.where(tn[:, None] > 0, t / np.where(tn > 0, tn, 1.0)[:, None], 0.0)
+        sh.h, sh.u = s.h[bearing].copy(), s.u[bearing].copy()
+        sh.branch_angle = np.full(m, np.nan)
         if z_ang.size:
             li = np.flatnonzero(lateral)
-            ang[li] = p["branch_angle"] + p["branch_angle_sd"] * z_ang
-            if p["relay_angle"] != 1.0:
-                # an addition (B.10): a lateral at a node whose leader died or was shed is a relay
-                # shoot and leaves at relay_angle x its angle; it draws nothing
-                ang[li] *= np.where(self._leader_lost(bearing[li]), p["relay_angle"], 1.0)
-            hl = _unit(rotate(h[li], u[li], np.radians(ang[li])))
-            ul = rotate(u[li], hl, np.full(li.size, math.radians(p["nonplanar_twist"])))
-            h[li] = hl
-            u[li] = ul
-        pos = s.start[bearing] + s.length[bearing, None] * s.h[bearing]
-        seg_len = (
-            np.where(short, p["short_length"], np.where(planned > 0, vig / np.maximum(planned, 1), 0.0))
-            * p["node_length"]
-        )
-        order = s.order[bearing] + lateral
-        stem = np.flatnonzero(order == 0) if self.guide is not None else np.empty(0, np.int64)
-        if stem.size:
-            # stem_guide (an addition, B.10): the stem's shoot heads for the point of the path one
-            # shoot length beyond the stem's arc length, blended with its own target by stem_guide
-            w = p["stem_guide"]
-            g = self.guide.at(self.stem_arc + planned[stem] * seg_len[stem]) - pos[stem]
-            g = (1.0 - w) * that[stem] + w * g / np.maximum(_norm(g), 1e-12)[:, None]
-            that[stem] = g / np.maximum(_norm(g), 1e-12)[:, None]
-            tau[stem] = (1.0 - w) * tau[stem] + w
-        last = np.full(m, -1, dtype=np.int64)
-        built = np.zeros(m, dtype=np.int64)
-        first = np.full(m, -1, dtype=np.int64)
-        stopped = np.zeros(m, dtype=bool)
+            sh.branch_angle[li] = p["branch_angle"] + p["branch_angle_sd"] * z_ang
+            hl = _unit(rotate(sh.h[li], sh.u[li], np.radians(sh.branch_angle[li])))
+            sh.u[li] = rotate(sh.u[li], hl, np.full(li.size, math.radians(p["nonplanar_twist"])))
+            sh.h[li] = hl
+        sh.pos = s.start[bearing] + s.length[bearing, None] * s.h[bearing]
+        sh.metamer_length = np.where(sh.planned > 0, sh.vigor / np.maximum(sh.planned, 1), 0.0) * p["node_length"]
+        sh.order = s.order[bearing] + lateral
+
+    def _metamer_step(self, c: int, k: int, sh: Shoots) -> bool:
+        """Metamer ``k`` of every shoot that plans one and has not met a wall: draw 4, the turn
+        towards the target, the forms' bends and the phyllotaxis roll (compiled loops,
+        kernels.py, numpy's arctan2 between them), the new rows. False when none is left."""
+        p = self.p
+        want = (sh.planned > k) & ~sh.stopped
+        if not want.any():
+            return False
         half = 0.5 * p["span"]
-        total = int(planned.sum())
-        s.reserve(s.n + total * self.buds_per_node)
-        lo = s.n
-        # the cap factor of each shoot's axis: a lateral shoot's from its bud, an apical one its bearer's
-        axis_cap = np.where(lateral, s.lat_vcap[bearing], s.vcap[bearing])
-        new_starts = []
-        for k in range(int(planned.max()) if m else 0):  # at most floor(max_grow) but for vigor_sd's caps
-            want = (planned > k) & ~stopped
-            if not want.any():
-                break
-            q = pos[want]
-            out = (
-                (q[:, 0] < -half)
-                | (q[:, 0] > half)
-                | (q[:, 1] < -half)
-                | (q[:, 1] > half)
-                | (q[:, 2] < 0.0)
-                | (q[:, 2] > p["span"])
-            )
-            wi = np.flatnonzero(want)
-            stopped[wi[out]] = True
-            act = wi[~out]
-            z_phy = rng.standard_normal(act.size)  # draw 4: one per active shoot
-            if act.size == 0:
-                continue
-            # (ii) partial rotation of the frame towards the target, (iii) the clone noise's bend
-            # and the phyllotaxis roll: compiled loops (kernels.py), numpy's arctan2 between them
-            ax, sn, cs = turn_geometry(h, that, act)
-            th = np.zeros(act.size)
-            ti = np.flatnonzero(sn > 1e-12)
-            th[ti] = tau[act[ti]] * np.arctan2(sn[ti], cs[ti])
-            bend = np.empty(0)
-            if p["heading_sd"] > 0.0:
-                # clone noise (an addition): each metamer of a branch bends by N(0, heading_sd)
-                # about its up vector, whose phyllotaxis roll turns the bending plane from metamer
-                # to metamer; the stem (order 0) stays straight, as a leader held by gravitropism
-                # does. Drawn only when the sd is positive, so trees without it are unchanged.
-                z_head = rng.standard_normal(act.size)
-                bend = np.radians(p["heading_sd"] * z_head) * (order[act] > 0)
-            phi = np.radians(p["phyllotaxis"] + p["phyllotaxis_sd"] * z_phy)
-            advance_frames(h, u, act, ax, sn, th, bend, phi)
-            ha, ua = h[act], u[act]
-            # (iv) append the metamers
-            nid = s.n + np.arange(act.size)
-            new = slice(s.n, s.n + act.size)  # the rows nid, as a slice (cheaper to write)
-            par = bearing[act] if k == 0 else last[act]
-            s.append(new, pos[act], ha, ua, seg_len[act], p["init_width"], par, lateral[act] & (k == 0), order[act], c)
-            s.vcap[new] = axis_cap[act]
-            if k == 0:
-                la = lateral[act]
-                s.lat_state[par[la]] = CHILD
-                s.lat_child[par[la]] = nid[la]
-                s.api_state[par[~la]] = CHILD
-                s.api_child[par[~la]] = nid[~la]
-                first[act] = nid
-            else:
-                s.api_state[par] = CHILD
-                s.api_child[par] = nid
-            new_starts.append(pos[act].copy())
-            pos[act] = pos[act] + seg_len[act, None] * ha
-            last[act] = nid
-            built[act] += 1
-            s.n += act.size
-            if self.buds_per_node > 1:
-                last[act] = self._add_bud_nodes(c, nid, pos[act], ha, ua, order[act], axis_cap[act])
-        self._draw_lateral_buds(lo)
-        if stem.size:
-            self.stem_arc += float((built[stem] * seg_len[stem]).sum())
-        tips = last[last >= 0]
-        s.api_state[tips] = BUD
-        if short.any():  # a short shoot's metamer and its bud nodes never grow on
-            node = first[short & (first >= 0)]
-            s.short[node] = True
-            for _ in range(self.buds_per_node - 1):
-                node = s.api_child[node]
-                s.short[node] = True
-        self.created = s.n
-        # 8. shadows of all new metamers, from their starts, in one batch
-        if new_starts:
-            self.field.cast(np.concatenate(new_starts))
-        if self.record:
-            self.last_shoots = ShootRecord(
-                bearing=bearing,
-                lateral=lateral,
-                vigor=vig,
-                planned=planned,
-                built=built,
-                first=first,
-                metamer_length=seg_len,
-                branch_angle=ang,
-                target=that,
-                tau=tau,
-            )
+        q = sh.pos[want]
+        out = (q[:, 0] < -half) | (q[:, 0] > half) | (q[:, 1] < -half) | (q[:, 1] > half)
+        out |= (q[:, 2] < 0.0) | (q[:, 2] > p["span"])
+        wi = np.flatnonzero(want)
+        sh.stopped[wi[out]] = True
+        act = wi[~out]
+        z_phy = self.rng.standard_normal(act.size)  # draw 4: one per active shoot
+        if act.size == 0:
+            return True
+        ax, sn, cs = turn_geometry(sh.h, sh.target, act)
+        th = np.zeros(act.size)
+        ti = np.flatnonzero(sn > 1e-12)
+        th[ti] = sh.tau[act[ti]] * np.arctan2(sn[ti], cs[ti])
+        bends = [hook(sh, act) for hook in self.hooks["bend"]]
+        bend = functools.reduce(np.add, bends) if bends else np.empty(0)
+        phi = np.radians(p["phyllotaxis"] + p["phyllotaxis_sd"] * z_phy)
+        advance_frames(sh.h, sh.u, act, ax, sn, th, bend, phi)
+        self._append_metamers(c, k, sh, act)
+        return True
 
-    def _leader_lost(self, bearing: np.ndarray) -> np.ndarray:
-        """Whether the node of each bearing segment has lost its leader: the apical slot at the
-        end of the node (past its bud nodes) is empty (the bud died) or a stub (shed)."""
-        s = self.s
-        end = bearing.copy()
-        for _ in range(self.buds_per_node - 1):  # walk on through the node's bud nodes
-            kid = np.where(s.api_state[end] == CHILD, s.api_child[end], -1)
-            on = (kid >= 0) & s.twin[np.maximum(kid, 0)]
-            end = np.where(on, kid, end)
-        return np.isin(s.api_state[end], (EMPTY, STUB))
-
-    def _add_bud_nodes(self, c, nid, end, h, u, order, cap=1.0) -> np.ndarray:
-        """Further lateral buds at the ends of the metamers ``nid`` (``buds_per_node`` > 1, an
-        addition to the papers' model): a chain of ``buds_per_node - 1`` zero-length *bud nodes*
-        on each metamer's apical slot, each holding one lateral bud whose up vector is the
-        metamer's rolled by ``360 * j / buds_per_node`` degrees about the heading, so the buds
-        of a node point to evenly spaced sides (2: opposite; 3 or more: a whorl). The axis goes
-        on from the last bud node. Bud nodes take part in the light, allocation and pipe-model
-        passes like segments (the Borchert-Honda split is applied at each of them in turn), cast
-        no shadow and are folded away in the output tree. Returns the last node of each chain."""
-        s = self.s
-        prev = nid
-        m = nid.size
-        for j in range(1, self.buds_per_node):
-            tid = s.n + np.arange(m)
-            new = slice(s.n, s.n + m)
-            s.append(
-                new,
-                end,
-                h,
-                rotate(u, h, np.full(m, 2.0 * math.pi * j / self.buds_per_node)),
-                0.0,
-                self.p["init_width"],
-                prev,
-                False,
-                order,
-                c,
-            )
-            s.twin[new] = True
-            s.vcap[new] = cap
-            s.api_state[prev] = CHILD
-            s.api_child[prev] = tid
-            s.n += m
-            prev = tid
-        return prev
+    def _append_metamers(self, c: int, k: int, sh: Shoots, act: np.ndarray) -> None:
+        """The rows of the metamers ``k`` of the shoots ``act``, linked into their bearers' slots,
+        and the forms' ``metamers_added`` hooks (bud nodes after them)."""
+        p, s = self.p, self.s
+        ha, ua = sh.h[act], sh.u[act]
+        nid = s.n + np.arange(act.size)
+        new = slice(s.n, s.n + act.size)  # the rows nid, as a slice (cheaper to write)
+        par = sh.bearing[act] if k == 0 else sh.last[act]
+        s.append(
+            new,
+            sh.pos[act],
+            ha,
+            ua,
+            sh.metamer_length[act],
+            p["init_width"],
+            par,
+            sh.lateral[act] & (k == 0),
+            sh.order[act],
+            c,
+        )
+        if k == 0:
+            la = sh.lateral[act]
+            s.lat_state[par[la]] = CHILD
+            s.lat_child[par[la]] = nid[la]
+            s.api_state[par[~la]] = CHILD
+            s.api_child[par[~la]] = nid[~la]
+            sh.first[act] = nid
+        else:
+            s.api_state[par] = CHILD
+            s.api_child[par] = nid
+        sh.starts.append(sh.pos[act].copy())
+        sh.pos[act] = sh.pos[act] + sh.metamer_length[act, None] * ha
+        sh.last[act] = nid
+        sh.built[act] += 1
+        s.n += act.size
+        for hook in self.hooks["metamers_added"]:
+            sh.last[act] = hook(c, sh.last[act], sh.pos[act], ha, ua, sh.order[act])
 
     # -------------------------------------------------------------- driver
     def run(self, max_iter: int) -> None:
@@ -919,6 +817,18 @@ class SOTGrowth:
                 self.on_step(c, StepView(self))
 
 
+def _in_draw_order(ids, grow_a, grow_l, vA, vL) -> Shoots:
+    """The shoots of the growing buds ordered by bearing segment, apical before lateral."""
+    ia = np.flatnonzero(grow_a)
+    il = np.flatnonzero(grow_l)
+    key = np.concatenate([2 * ia, 2 * il + 1])
+    srt = np.argsort(key, kind="stable")
+    sl = np.concatenate([ia, il])[srt]  # local ids of bearing segments
+    lateral = np.concatenate([np.zeros(ia.size, bool), np.ones(il.size, bool)])[srt]
+    vig = np.concatenate([vA[ia], vL[il]])[srt]
+    return Shoots(ids[sl], lateral, vig, np.floor(vig).astype(np.int64))
+
+
 class StepView:
     """Read-only view passed to ``on_step(cycle, view)`` after each cycle.
 
@@ -933,7 +843,7 @@ class StepView:
         The live light field (do not modify).
     alloc : AllocationRecord or None
         The passes of this cycle (None in the seed cycle).
-    shoots : ShootRecord or None
+    shoots : Shoots or None
         The shoots built this cycle.
     """
 
@@ -961,78 +871,44 @@ class StepView:
     def tree(self):
         """The output tree at this cycle (final width update applied to a copy)."""
         if self._tree is None:
-            self._tree = self._run_tree()
+            self._tree = build_tree(self._run, status="ok")
         return self._tree
 
-    def _run_tree(self):
-        return build_tree(self._run, status="ok")
+
+# ------------------------------------------------------------------------------------------------
+# the output tree
+# ------------------------------------------------------------------------------------------------
 
 
-#: the stream of the shoots' cap factors (vigor_sd): a generator of its own, as the stubs'
-VIGOR_STREAM = 0x716
-#: the stream of the lateral buds' aborts (bud_abort): a generator of its own too
-ABORT_STREAM = 0xAB0
+def grow(run: SOTGrowth) -> Tree:
+    """Run to ``max_iter`` and return the output tree; a failure raises ``SimulationFailed``
+    carrying the partial tree (widths updated), when there is one."""
+    try:
+        run.run(run.p["max_iter"])
+    except GrowthFailure as e:
+        try:
+            partial = build_tree(run, status=e.status)
+        except GrowthFailure:
+            partial = None
+        raise SimulationFailed(e.status, str(e), partial) from None
+    try:
+        return build_tree(run, status="ok")
+    except GrowthFailure as e:  # pragma: no cover - the root is never dropped
+        raise SimulationFailed(e.status, str(e), None) from None
 
 
-class _Guide:
-    """A polyline (points from the stem base, base first) read by arc length: :meth:`at` gives the
-    point at each arc length, on the line through the last two points beyond the end."""
-
-    def __init__(self, points):
-        pts = np.asarray(points, dtype=float).reshape(-1, 3)
-        step = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-        keep = np.r_[True, step > 1e-9]  # repeated points carry no direction
-        self.pts = pts[keep]
-        self.arc = np.r_[0.0, np.cumsum(step[step > 1e-9])]  # two distinct points at least (the settings' check)
-        d = self.pts[-1] - self.pts[-2]
-        self.end_dir = d / np.linalg.norm(d)
-
-    def at(self, a: np.ndarray) -> np.ndarray:
-        a = np.asarray(a, dtype=float)
-        out = np.stack([np.interp(a, self.arc, self.pts[:, k]) for k in range(3)], axis=-1)
-        beyond = np.maximum(a - self.arc[-1], 0.0)
-        return out + beyond[..., None] * self.end_dir
-
-
-def _own_stream(seed, key: int) -> np.random.Generator:
-    """A generator of the run's seed and a stream of its own (``key``), apart from the growth's draws."""
-    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(key,)))
-
-
-#: the stream of the stubs' draws: a generator of its own, so that stubs leave the growth's draws alone
-STUB_STREAM = 0x57B
-
-
-def _stubs(run: SOTGrowth):
-    """The dead stubs of shed branches on the living tree (``shed_stub``, an addition; output only).
-
-    A branch shed at a slot of a living segment (a STUB slot) leaves, with probability
-    ``shed_stub``, its base: its first metamer's start and heading, broken at a uniform fraction
-    in [0.1, 1] of that metamer's length, with the width the branch had when it was shed (the
-    width the pipe model keeps for the slot). The two uniforms of a shed branch are drawn from a
-    generator of the run's seed and its own stream, indexed by the branch's segment id, so a
-    branch keeps or loses its stub alike at every cycle's output and the growth draws nothing.
-
-    Returns ``(bearer, child, width, frac)``: the bearing segment (a metamer, bud nodes folded
-    away), the shed segment, its width and the kept fraction of its length.
-    """
-    s = run.s
-    ids = s.live
-    bearer, child, width = [], [], []
-    for state, kid, stub_w in ((s.lat_state, s.lat_child, s.lat_stub_w), (s.api_state, s.api_child, s.api_stub_w)):
-        on = ids[(state[ids] == STUB) & (kid[ids] >= 0)]
-        bearer.append(on)
-        child.append(kid[on])
-        width.append(stub_w[on])
-    b, c, w = np.concatenate(bearer), np.concatenate(child), np.concatenate(width)
-    real = (s.length[c] > 0.0) & ~s.twin[c]  # a shed bud node has no wood to leave
-    b, c, w = b[real], c[real], w[real]
-    u = _own_stream(run.seed, STUB_STREAM).random((s.n, 2))
-    keep = u[c, 0] < run.p["shed_stub"]
-    b, c, w = b[keep], c[keep], w[keep]
-    for _ in range(run.buds_per_node - 1):  # a stub on a bud node sits on the node's metamer
-        b = np.where(s.twin[b], s.parent[b], b)
-    return b, c, w, 0.1 + 0.9 * u[c, 1]
+def _fold_bud_nodes(s: SegmentStore, par: np.ndarray, ext: np.ndarray):
+    """A segment's parent is its nearest segment ancestor, and a metamer continues into the
+    metamer after its bud nodes (or nothing, if the axis ends): the links with bud nodes folded
+    away (unchanged without bud nodes)."""
+    while True:
+        up = (par >= 0) & s.bud_node[np.maximum(par, 0)]
+        on = (ext >= 0) & s.bud_node[np.maximum(ext, 0)]
+        if not (up.any() or on.any()):
+            return par, ext
+        par = np.where(up, s.parent[np.maximum(par, 0)], par)
+        nxt = np.where(s.api_state[np.maximum(ext, 0)] == CHILD, s.api_child[np.maximum(ext, 0)], -1)
+        ext = np.where(on, nxt, ext)
 
 
 def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
@@ -1042,37 +918,14 @@ def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
     if run.s.n == 0 or not s.alive[0]:
         raise GrowthFailure("no_root", "the tree has no living segments")
     ids, width = run.widths()
-    par = s.parent[ids]
-    ext_g = np.where(s.api_state[ids] == CHILD, s.api_child[ids], -1)
-    if run.buds_per_node > 1:
-        # fold the bud nodes away: a segment's parent is its nearest segment ancestor, and a
-        # metamer continues into the metamer after its bud nodes (or nothing, if the axis ends)
-        for _ in range(run.buds_per_node - 1):
-            up = (par >= 0) & s.twin[np.maximum(par, 0)]
-            par = np.where(up, s.parent[np.maximum(par, 0)], par)
-            on = (ext_g >= 0) & s.twin[np.maximum(ext_g, 0)]
-            nxt = np.where(s.api_state[np.maximum(ext_g, 0)] == CHILD, s.api_child[np.maximum(ext_g, 0)], -1)
-            ext_g = np.where(on, nxt, ext_g)
-        keep = ~s.twin[ids]
-        ids, width, par, ext_g = ids[keep], width[keep], par[keep], ext_g[keep]
+    par, ext_g = _fold_bud_nodes(s, s.parent[ids], np.where(s.api_state[ids] == CHILD, s.api_child[ids], -1))
+    keep = ~s.bud_node[ids]
+    ids, width, par, ext_g = ids[keep], width[keep], par[keep], ext_g[keep]
     loc = np.full(s.n, -1, dtype=np.int64)
     loc[ids] = np.arange(ids.size)
-    parent = np.where(par >= 0, loc[np.maximum(par, 0)], -1)
-    ext = np.where(ext_g >= 0, loc[np.maximum(ext_g, 0)], -1)
-    start, h, length, age = s.start[ids], s.h[ids], s.length[ids], run.cycle - s.born[ids]
-    if run.p.get("shed_stub", 0.0) > 0.0:
-        b, c, w, frac = _stubs(run)
-        start = np.concatenate([start, s.start[c]])
-        h = np.concatenate([h, s.h[c]])
-        length = np.concatenate([length, frac * s.length[c]])
-        width = np.concatenate([width, w])
-        parent = np.concatenate([parent, loc[b]])
-        ext = np.concatenate([ext, np.full(c.size, -1, dtype=np.int64)])
-        age = np.concatenate([age, run.cycle - s.born[c]])
-    settings = getattr(run, "settings", None)
-    order_mode = getattr(settings, "order_mode", "growth")
+    order_mode = run.settings.order_mode
     meta = {
-        "model": "sot",
+        "model": run.model,
         "model_version": MODEL_VERSION,
         "params": dict(run.p),
         "seed": run.seed,
@@ -1084,23 +937,16 @@ def build_tree(run: SOTGrowth, status: str = "ok") -> Tree:
         "segments_created": int(s.n),
     }
     tree = Tree(
-        start,
-        h,
-        length,
+        s.start[ids],
+        s.h[ids],
+        s.length[ids],
         0.5 * width,
-        parent,
-        ext,
+        remap_ids(par, loc),
+        remap_ids(ext_g, loc),
         topology="thickest" if order_mode == "thickest" else "source",
-        extras={"age": age.astype(np.int64)},
+        extras={"age": (run.cycle - s.born[ids]).astype(np.int64)},
         metadata=meta,
     )
     # C: is_lateral = starts a new branch (in "growth" mode: the first metamer of a lateral shoot)
     tree.extras["is_lateral"] = (tree.parent >= 0) & (tree.position_in_branch == 0)
-    if run.p.get("prune_tips", 0.0) > 1.0:
-        # a simplified QSM's view (an addition, output only): in the pipe model a shoot carrying
-        # n growing tips is init_width * n^(1/pipe_exp) thick, so the shoots that carry fewer than
-        # prune_tips go with all beyond them, whatever the tree's scale (the edge a hair below that
-        # width, so that a shoot of exactly prune_tips tips stays whatever the rounding)
-        edge = 0.5 * run.p["init_width"] * run.p["prune_tips"] ** (1.0 / run.p["pipe_exp"])
-        tree = tree.pruned(edge * (1.0 - 1e-9))
     return tree

@@ -2,15 +2,20 @@
 
 Groups I-V follow the *proposal* of docs/models.md B.3 (I initial growth, limits, pipe model; II environment;
 III apical dominance; IV shadow propagation; V angles/branching); the geometry constants
-``node_length``, ``voxel_size`` and ``span`` are in group ``"fixed"`` with ``lower == upper``.
+``node_length``, ``voxel_size`` and ``span`` are in group ``"fixed"``.
 Ranges of the clone-noise sds are project choices (docs/models.md E gives only their defaults).
+This table holds the papers' model; each growth form declares its own parameters in its module
+(:mod:`bforest_sot.forms`), and :func:`model_parameters` lists them together, group by group.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 
 from bforest_core.interfaces import ParameterSpec
+
+from .forms.base import check_forms
 
 P = ParameterSpec
 
@@ -27,18 +32,6 @@ PARAMETERS: list[ParameterSpec] = [
         False,
         "internode",
         "vigor cap of a bud; a shoot has floor(v) <= floor(max_grow) metamers per cycle",
-        "I",
-    ),
-    P(
-        "vigor_sd",
-        0.0,
-        0.0,
-        1.0,
-        False,
-        "",
-        "an addition: sd of the log of a shoot's own vigor cap: each lateral shoot caps at max_grow x "
-        "exp(vigor_sd x N(0, 1)) and its axis keeps that cap (axes of one age differ in vigor: "
-        "long limbs and weak branches); the stem keeps max_grow; 0 = the papers' model (no draws)",
         "I",
     ),
     P(
@@ -70,64 +63,6 @@ PARAMETERS: list[ParameterSpec] = [
     P("sample_rad", 0.32, 0.1, 0.6, False, "m", "probe distance of the light-gradient estimate", "II"),
     P("ran", 0.05, 0.0, 0.2, False, "", "initial exposure noise: E0 += ran * U(0, 1) per voxel", "II"),
     P("vert", 0.0, 0.0, 0.3, False, "", "vertical gradient of the initial exposure", "II"),
-    P(
-        "stand_shade",
-        0.0,
-        0.0,
-        2.0,
-        False,
-        "1/m",
-        "extinction of the surrounding stand's canopy: exposure "
-        "times exp(-stand_shade * depth below the tree's top); 0 = open-grown (the papers' model)",
-        "II",
-    ),
-    P(
-        "gap_shade",
-        0.0,
-        0.0,
-        5.0,
-        False,
-        "1/m",
-        "an addition: extinction of the neighbours' shade on one side of the tree: exposure times "
-        "exp(-gap_shade * distance behind the stem base, away from gap_azimuth), so the crown grows "
-        "into the gap and the stem leans towards it; 0 = no gap (the papers' model)",
-        "II",
-    ),
-    P(
-        "gap_azimuth",
-        0.0,
-        -180.0,
-        180.0,
-        False,
-        "deg",
-        "an addition: direction of the open side (gap_shade), counterclockwise from +x in the tree's frame",
-        "II",
-    ),
-    P(
-        "gap_lean",
-        0.0,
-        0.0,
-        80.0,
-        False,
-        "deg",
-        "an addition: an upward tropism's direction tilted from the zenith by this angle towards gap_azimuth "
-        "(the brightest sky of a tree at a gap), so shoots and the stem lean into the gap; a sag (tropism < 0) "
-        "stays downwards; 0 = upright (the papers' model)",
-        "II",
-    ),
-    P(
-        "stem_guide",
-        0.0,
-        0.0,
-        1.0,
-        False,
-        "",
-        "an addition: how far the stem's (order 0) shoots are steered along the setting stem_path, the "
-        "stem of the measured tree (a guide curve, as TreeSketch grows the self-organizing tree along strokes): each "
-        "cycle's stem shoot heads for the point of the path one shoot length beyond its own arc length; "
-        "1 = the stem follows the path, 0 (or no stem_path) = the papers' model",
-        "II",
-    ),
     # ---- III: apical dominance
     P("init_lambda", 0.65, 0.35, 0.9, False, "", "apical control lambda up to `delay` cycles", "III"),
     P("targ_lambda", 0.51, 0.35, 0.9, False, "", "apical control lambda after delay + transition", "III"),
@@ -146,120 +81,6 @@ PARAMETERS: list[ParameterSpec] = [
     P("branch_angle_sd", 5.0, 0.0, 40.0, False, "deg", "clone noise: sd of the branch angle, per lateral shoot", "V"),
     P("phyllotaxis_sd", 10.0, 0.0, 30.0, False, "deg", "clone noise: sd of the phyllotaxis angle, per metamer", "V"),
     P("tropism_sd", 0.0, 0.0, 0.05, False, "", "clone noise: sd of the tropism, per shoot", "V"),
-    P(
-        "heading_sd",
-        0.0,
-        0.0,
-        90.0,
-        False,
-        "deg",
-        "clone noise (an addition): sd of a bend of each branch metamer "
-        "about its up vector, so that branches wind as scanned ones do (the stem stays straight); 0 = smooth axes",
-        "V",
-    ),
-    P(
-        "bud_abort",
-        0.0,
-        0.0,
-        0.95,
-        False,
-        "",
-        "an addition: probability that a lateral bud aborts as its metamer forms (it takes no light or vigor and "
-        "never grows): internodes as short as a broadleaf's shoots with fewer branches than buds, as most axillary "
-        "buds of broadleaved trees never break; 0 = the papers' model (no draws)",
-        "V",
-    ),
-    P(
-        "leader_death",
-        0.0,
-        0.0,
-        1.0,
-        False,
-        "",
-        "an addition: probability per cycle that a growing apical bud "
-        "dies (terminal flowering, frost, damage), so the lateral buds below it take over; with opposite buds a "
-        "fork (sympodial growth of many broadleaved trees; 1 = every shoot forks); 0 = the papers' model (no draws)",
-        "V",
-    ),
-    P(
-        "stem_death",
-        1.0,
-        0.0,
-        1.0,
-        False,
-        "",
-        "an addition: the stem's (order 0) apical buds die at stem_death x leader_death; 1 = as every "
-        "leader's, 0 = a monopodial trunk whose branches fork (Scarrone's architectural model)",
-        "V",
-    ),
-    P(
-        "relay_angle",
-        1.0,
-        0.0,
-        1.0,
-        False,
-        "",
-        "an addition: a lateral shoot at a node whose leader died or was shed (a relay shoot: sympodial "
-        "substitution growth) leaves at relay_angle x its branch angle, so the shoots that take over rise "
-        "as the lost leader did and a fork's arms diverge narrowly; 1 = as every lateral (the papers' model)",
-        "V",
-    ),
-    P(
-        "death_delay",
-        0.0,
-        0.0,
-        30.0,
-        False,
-        "cycles",
-        "an addition: apical buds die (leader_death) from cycle death_delay + 1 on, e.g. from the onset of flowering",
-        "V",
-    ),
-    P(
-        "short_shoot",
-        0.0,
-        0.0,
-        1.0,
-        False,
-        "",
-        "an addition: probability that a lateral shoot is a short shoot (one internode, short_length x node_length, whose "
-        "buds never grow: the spurs and short shoots of broadleaved trees); 0 = the papers' model (no draws)",
-        "V",
-    ),
-    P(
-        "short_length",
-        1.0,
-        0.1,
-        1.0,
-        False,
-        "",
-        "an addition: a short shoot's internode as a share of node_length (short shoots have compressed "
-        "internodes); 1 = one internode of node_length",
-        "V",
-    ),
-    P(
-        "shed_stub",
-        0.0,
-        0.0,
-        1.0,
-        False,
-        "",
-        "an addition (output only): probability that a shed branch leaves a dead stub, its base broken "
-        "somewhere along its first internode, with the width it had when shed (natural pruning); "
-        "0 = the papers' model",
-        "V",
-    ),
-    P(
-        "prune_tips",
-        0.0,
-        0.0,
-        50.0,
-        False,
-        "tips",
-        "an addition (output only): the tree drawn as a simplified QSM draws it: a shoot thinner than "
-        "init_width * prune_tips^(1/pipe_exp) (in the pipe model, one carrying fewer than prune_tips growing "
-        "tips) is left out with all beyond it; at most 1 = the papers' model",
-        "V",
-    ),
     # ---- fixed geometry (GS)
     P(
         "node_length",
@@ -296,11 +117,22 @@ PARAMETERS: list[ParameterSpec] = [
     ),
 ]
 
-INTEGER_NAMES = tuple(p.name for p in PARAMETERS if p.integer)
+#: the groups in the order the model lists its parameters (a form's go after the model's of its group)
+GROUPS = ("I", "II", "III", "IV", "V", "fixed")
 
 
-def validate(p: Mapping[str, float]) -> None:
-    """Raise ``ValueError`` naming the first invalid parameter of a resolved parameter dict."""
+@functools.cache
+def model_parameters(forms: tuple) -> tuple[ParameterSpec, ...]:
+    """The parameters of the model with the growth forms ``forms``: the papers' table and each
+    form's parameters, group by group (within a group the papers' first, then the forms' in order)."""
+    check_forms(forms, PARAMETERS)
+    extra = [p for form in forms for p in form.parameters]
+    return tuple(sorted(PARAMETERS + extra, key=lambda p: GROUPS.index(p.group) if p.group in GROUPS else len(GROUPS)))
+
+
+def validate(p: Mapping[str, float], forms=()) -> None:
+    """Raise ``ValueError`` naming the first invalid parameter of a resolved parameter dict (the
+    papers' parameters first, then each form's ``check``)."""
 
     # numbers and finiteness are checked (and integers rounded) by SSM.resolve_params
     def need(ok: bool, name: str, rule: str):
@@ -312,16 +144,6 @@ def validate(p: Mapping[str, float]) -> None:
     need(p["shadow_b"] > 1, "shadow_b", "> 1")
     need(0 <= p["shadow_a"] < p["shadow_b"], "shadow_a", f"in [0, shadow_b = {p['shadow_b']!r})")
     need(p["spread"] >= 0, "spread", ">= 0")
-    need(p["gap_shade"] >= 0, "gap_shade", ">= 0")
-    need(0 <= p["gap_lean"] < 90, "gap_lean", "in [0, 90) degrees")
-    need(0 <= p["stem_death"] <= 1, "stem_death", "in [0, 1]")
-    need(0 <= p["stem_guide"] <= 1, "stem_guide", "in [0, 1]")
-    need(0 <= p["shed_stub"] <= 1, "shed_stub", "in [0, 1]")
-    need(p["prune_tips"] >= 0, "prune_tips", ">= 0")
-    need(p["vigor_sd"] >= 0, "vigor_sd", ">= 0 (a standard deviation)")
-    need(0 <= p["bud_abort"] < 1, "bud_abort", "in [0, 1) (a probability; 1 would leave no lateral bud)")
-    need(0 < p["short_length"] <= 1, "short_length", "in (0, 1] (a share of node_length)")
-    need(0 <= p["relay_angle"] <= 1, "relay_angle", "in [0, 1] (a share of the branch angle)")
     need(p["ran"] >= 0, "ran", ">= 0")
     need(p["vert"] >= 0, "vert", ">= 0")
     need(p["ran"] + p["vert"] <= 1, "ran", f"such that ran + vert <= 1 (vert = {p['vert']!r})")
@@ -344,3 +166,5 @@ def validate(p: Mapping[str, float]) -> None:
         need(0 <= p[name] <= 1, name, "in [0, 1]")
     for name in ("branch_angle_sd", "phyllotaxis_sd", "lambda_sd", "tropism_sd"):
         need(p[name] >= 0, name, ">= 0 (a standard deviation)")
+    for form in forms:
+        form.check(p, need)

@@ -2,25 +2,46 @@
 
 ``bf.component("ssm", "sot").simulate(params, seed)`` grows one tree with the SOT model of
 Palubicki et al. (2009) with multiplicative shadow propagation, as used by Potapov et al. (2017),
-following docs/models.md part B (calibrated for the 12 m cube of B.4).
+following docs/models.md part B (calibrated for the 12 m cube of B.4), with the growth forms of
+:mod:`bforest_sot.forms` (docs/growth-forms.md), each off by default.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field, field_validator
 
-from bforest_core.errors import SimulationFailed
 from bforest_core.hookspecs import hookimpl
 from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
 from bforest_core.tree import Tree
 
-from .model import MODEL_VERSION, GrowthFailure, SOTGrowth, build_tree
-from .params import PARAMETERS, validate
+from .forms.base import GrowthForm
+from .forms.buds import BudsPerNode
+from .forms.leader_death import LeaderDeath
+from .forms.shade import GapShade, StandShade
+from .forms.short_shoots import ShortShoots
+from .forms.stem_guide import StemGuide
+from .forms.sympodial import Sympodial
+from .forms.winding import Winding
+from .model import MODEL_VERSION, SOTGrowth, grow
+from .params import model_parameters, validate
 from .recipe import sot_recipe
+
+#: the bundled growth forms, in the order the growth calls their hooks (their parameters are
+#: listed group by group after the papers', in this order within a group)
+FORMS: tuple[type[GrowthForm], ...] = (
+    StandShade,
+    GapShade,
+    StemGuide,
+    BudsPerNode,
+    Winding,
+    LeaderDeath,
+    ShortShoots,
+    Sympodial,
+)
 
 
 class SOTSettings(ComponentSettings):
@@ -31,10 +52,9 @@ class SOTSettings(ComponentSettings):
         description="branch topology of the output: 'growth' (apical bud continues the "
         "branch) or 'thickest' (the thickest child continues it, as in QSMs)",
     )
-    light_model: Literal["multiplicative"] = Field(
-        "multiplicative", description="light field: multiplicative shadow propagation (LPFG-SOT)"
+    max_live_segments: int = Field(
+        200_000, ge=1, le=10**7, description="status 'too_many_segments' above this (at most 10 million)"
     )
-    max_live_segments: int = Field(200_000, ge=1, description="status 'too_many_segments' above this")
     sympodial: bool = Field(False, description="remove apical buds (sympodial branching)")
     buds_per_node: int = Field(
         1,
@@ -75,12 +95,13 @@ class SOT(SSM):
     bud counts accumulate basipetally, vigor is allocated acropetally by the Borchert-Honda model
     with apical control lambda, under-supplied branches are shed, and buds grow shoots of
     ``floor(v)`` metamers that turn towards the light gradient and the vertical. Widths follow
-    the pipe model.
+    the pipe model. The growth forms (:attr:`forms`) add to that cycle through their hooks; a
+    model with a form of one's own is a subclass with ``forms = SOT.forms + (MyForm,)``
+    (docs/growth-forms.md).
 
     Settings
     --------
     order_mode : "growth" | "thickest"
-    light_model : "multiplicative"
     max_live_segments : int (200 000)
     sympodial : bool (False)
     buds_per_node : int (1)
@@ -91,10 +112,12 @@ class SOT(SSM):
     summary = "self-organizing tree growth model with shadow propagation (Palubicki 2009, GS 2017)"
     Settings = SOTSettings
     model_version = MODEL_VERSION
+    #: the growth forms of this model (:mod:`bforest_sot.forms`), in the order of their hooks
+    forms: ClassVar[tuple[type[GrowthForm], ...]] = FORMS
 
     @property
     def parameters(self) -> list[ParameterSpec]:
-        return list(PARAMETERS)
+        return list(model_parameters(self.forms))
 
     def draft_recipe(self, measures):
         """SOT's recipe for a measured tree (:func:`bforest_sot.recipe.sot_recipe`)."""
@@ -112,7 +135,7 @@ class SOT(SSM):
             calibrated defaults; unknown names, non-integer ``max_iter``/``depth`` and invalid
             values raise ``ValueError`` naming the parameter, before the run.
         seed : int
-            Seed of the run's single ``numpy.random.Generator(PCG64(seed))``.
+            Seed of the run's ``numpy.random.Generator(PCG64(seed))`` (and of the forms' own streams).
         on_step : callable, optional
             ``on_step(cycle, view)`` after every cycle with a read-only
             :class:`~bforest_sot.model.StepView` (``view.tree()`` is the output at that cycle).
@@ -133,34 +156,11 @@ class SOT(SSM):
             ``too_many_segments`` (a cycle would exceed ``max_live_segments``) or ``no_root``;
             carries the partial tree (widths updated).
         """
-        p = self.resolve_params(params)
-        p = {k: (int(v) if k in ("max_iter", "depth") else float(v)) for k, v in p.items()}
-        validate(p)
-        seed = int(seed)
-        st = self.settings
-        run = SOTGrowth(
-            p,
-            seed,
-            max_live_segments=st.max_live_segments,
-            sympodial=st.sympodial,
-            buds_per_node=st.buds_per_node,
-            stem_path=st.stem_path,
-            on_step=on_step,
-        )
-        run.settings = st
-        try:
-            run.run(p["max_iter"])
-        except GrowthFailure as e:
-            partial = None
-            try:
-                partial = build_tree(run, status=e.status)
-            except GrowthFailure:
-                partial = None
-            raise SimulationFailed(e.status, str(e), partial) from None
-        try:
-            return build_tree(run, status="ok")
-        except GrowthFailure as e:  # pragma: no cover - the root is never dropped
-            raise SimulationFailed(e.status, str(e), None) from None
+        p = self.resolve_params(params)  # whole-number parameters come back as int
+        whole = {spec.name for spec in self.parameters if spec.integer}
+        p = {k: (v if k in whole else float(v)) for k, v in p.items()}
+        validate(p, self.forms)
+        return grow(SOTGrowth(p, int(seed), self.settings, self.forms, model=self.name, on_step=on_step))
 
 
 @hookimpl

@@ -40,8 +40,7 @@ SIZE_WEIGHTS = {**TOLERANCE_WEIGHTS, "crown_spread": 8.0, "n_branches_o1": 6.7}
 ONE_SIDED = 1.0 / 3.0
 
 #: a stem whose upper half leans this much (deg) or more has bent over into a gap, a form the
-#: model's light and tropism do not grow (``gap_lean`` tried:
-#: docs/notes/2026-11-30-broadleaved-gap-lean.md): the clones'
+#: model's light and tropism do not grow (``gap_lean`` tried: docs/validation.md): the clones'
 #: stem follows the tree's (``stem_guide``); wytham_tf5 24, tf2 12, the other Wytham trees 3-7,
 #: the coffeetree 8, the pines 1-4
 LEANING = 10.0
@@ -60,191 +59,20 @@ def _r(x: float, step: float) -> float:
 
 
 def sot_recipe(m: TreeMeasures) -> RecipeDraft:
-    h = m.height
-    span = min(30.0, max(12.0, 2.0 * math.ceil(0.9 * h)))
-    voxel = min(0.5, max(0.2, _r(h / 50.0, 0.01)))
-    # the internode sets how many branches a metre of stem can carry: 0.8-1.45 x the crown length
-    # per first-order branch for each bud of a node (the pine recipe's range, one bud per node);
-    # a decurrent crown (opposite buds) also gets 1/100-1/33 of its height where that reaches
-    # further, within the model's range
-    buds = 2 if m.decurrent else 1
-    # the winding of the axes: room for the bend that turns metamers as the tree's cylinders turn
-    wind_hi = float(min(90.0, max(30.0, round(WINDING * m.branch_turn / _HALF_NORMAL_MEDIAN))))
-    per_node = buds * m.branch_spacing
-    node_lo, node_hi = 0.8 * per_node, 1.45 * per_node
-    node_why = (
-        f"internode (m): 0.8-1.45 x {buds} bud{'s' if buds > 1 else ''} x the crown length per "
-        f"first-order branch ({m.branch_spacing:.2f} m)"
-    )
-    if m.decurrent:
-        node_lo, node_hi = min(node_lo, h / 100.0), max(node_hi, h / 33.0)
-        node_why += ", or 1/100-1/33 of the height where that reaches further"
-    if node_hi > _NODE[1]:
-        node_why += f" (the model stops at {_NODE[1]:g} m)"
-    node_hi = min(_NODE[1], max(_NODE[0] + 0.01, _r(node_hi, 0.01)))
-    node_lo = min(node_hi - 0.01, max(_NODE[0], _r(node_lo, 0.01)))
-    # from 20 deg below the branches' 10 % angle to their 90 % one: SOT's shoots turn towards
-    # their target direction from their first internode, so a bud leaves wider than its branch
-    lo_model, hi_model = _ANGLE
-    ang_lo, ang_hi = max(lo_model, _r(m.beta_q10 - 20.0, 5.0)), min(hi_model, _r(m.beta_q90, 5.0))
-    if ang_hi - ang_lo < 20.0:
-        ang_lo, ang_hi = max(lo_model, ang_hi - 20.0), min(hi_model, ang_lo + 20.0)
-    width_lo = min(0.03, max(_WIDTH[0], _r(m.thinnest_branch, 0.001)))
-    width_why = f"diameter of a new shoot (m): the QSM's thinnest branch is {100 * m.thinnest_branch:.1f} cm"
-    if m.thinnest_branch < _WIDTH[0]:
-        width_why += (
-            f", but SOT grows no shoot thinner than {100 * _WIDTH[0]:g} cm (its range {100 * _WIDTH[0]:g}-"
-            f"{100 * _WIDTH[1]:g} cm): the clones' thinnest shoots are {100 * _WIDTH[0]:g} cm thick"
-        )
-    big = span > 18.0
+    """SOT's recipe for the measured tree ``m``: its settings, fixed values and search box."""
+    span = min(30.0, max(12.0, 2.0 * math.ceil(0.9 * m.height)))
     settings = [
         ("order_mode", "thickest", "branch orders as a QSM has them (the thickest child continues)"),
-        ("max_live_segments", 60000 if big else 30000, "larger trees are failures, not candidates"),
+        ("max_live_segments", 60000 if span > 18.0 else 30000, "larger trees are failures, not candidates"),
     ]
-    fixed = [("span", span, f"world cube (m): room for a tree 1.8 x this one's height ({h:.1f} m)")]
-    if voxel != 0.2:
-        fixed += [
-            ("voxel_size", voxel, "light voxels of 1/50 of the height (the papers' 0.2 m for a 10 m tree)"),
-            (
-                "sample_rad",
-                _r(1.6 * voxel, 0.01),
-                "the light-gradient probe: 1.6 voxels, as the papers' 0.32 m for 0.2 m",
-            ),
-        ]
-    free = [
-        ("max_iter", 8, 30, "growth cycles: the model's whole range"),
-        ("alpha1", 0.5, 3.0, None),
-        ("max_grow", 2.0, 12.0, None),
-    ]
-    if m.decurrent:
-        free += [
-            (
-                "init_lambda",
-                0.35,
-                0.8,
-                f"apical control: weak, the crown is decurrent (limbs hold "
-                f"{m.limb_ratio:.1f} x the stem's wood in the crown)",
-            ),
-            ("targ_lambda", 0.35, 0.8, None),
-        ]
-    else:
-        free += [
-            (
-                "init_lambda",
-                0.6,
-                0.9,
-                f"apical control: the leader dominates, the crown is excurrent "
-                f"(limbs hold {m.limb_ratio:.1f} x the stem's wood in the crown)",
-            ),
-            ("targ_lambda", 0.45, 0.9, None),
-        ]
-    free += [
-        ("delay", 0.0, 20.0, None),
-        ("drop_thresh", 0.05, 0.5, None),
-        (
-            "branch_angle",
-            ang_lo,
-            ang_hi,
-            f"first-order branches at {m.beta_q10:.0f}-{m.beta_q90:.0f} deg to the stem (10-90 %)",
-        ),
-        (
-            "branch_angle_sd",
-            0.0,
-            35.0,
-            "the angle varies from branch to branch (with the model's default of 5 deg all leave at one angle)",
-        ),
-        ("tropism", -0.1, 0.3, None),
-        ("reorient", 0.0, 1.0, "how much shoots turn towards light"),
-        (
-            "heading_sd",
-            0.0,
-            wind_hi,
-            f"winding of the axes (deg per internode): the tree's branches turn by a median "
-            f"{m.branch_turn:.0f} deg from cylinder to cylinder",
-        ),
-        ("shadow_a", 0.1, 0.9, None),
-        ("shadow_b", 1.1, 8.0, None),
-        ("alpha0", 0.0, 3.0, None),
-        ("init_width", width_lo, _WIDTH[1], width_why),
-        ("pipe_exp", 2.0, 3.0, None),
-        (
-            "node_length",
-            node_lo,
-            node_hi,
-            f"{node_why}: it sets how many branches a metre of stem can carry",
-        ),
-        ("stand_shade", 0.0, 1.0, "shade of the neighbours (1/m below the top): 0 = open-grown"),
-    ]
-    # a one-sided crown (its centre a third of its radius or more from the stem base; the three
-    # pines 0.1-0.2, the Wytham broadleaves 0.4-1.6): the neighbours' shade on the other side
-    radius = 0.5 * m.crown_spread
-    if radius > 0 and m.crown_offset >= ONE_SIDED * radius:
-        fixed.append(
-            (
-                "gap_azimuth",
-                float(round(m.crown_azimuth)),
-                f"the crown's centre lies {m.crown_offset:.1f} m ({m.crown_offset / radius:.1f} crown radii) "
-                "that way from the stem base: the open side",
-            )
-        )
-        free.append(
-            (
-                "gap_shade",
-                0.0,
-                _r(3.0 / radius, 0.01),  # init clips it to the model's range (at most 5)
-                "shade behind the stem, away from the open side (1/m; up to 5 % of the light left one crown radius behind)",
-            )
-        )
+    fixed = _world(m, span)
+    free = _search_box(m)
     notes = []
-    if m.stem_lean >= LEANING:
-        # a stem bent over into a gap: the clones' stem grows along the tree's (docs/growth-forms.md)
-        notes.append(
-            f"the stem's upper half leans {m.stem_lean:.0f} deg (into a gap?): the clones' stem grows along "
-            "the tree's (stem_path, stem_guide = 1; docs/growth-forms.md), the crown around it is the model's"
-        )
-        settings.append(
-            (
-                "stem_path",
-                [list(q) for q in m.stem_path],
-                f"the tree's stem, which leans {m.stem_lean:.0f} deg ({m.stem_length:.1f} m along; "
-                "points from its base, m): the clones' stem follows it",
-            )
-        )
-        fixed.append(("stem_guide", 1.0, "the stem grows along stem_path, as this tree's stem grew"))
-        if m.decurrent:
-            fixed.append(("stem_death", 0.0, "the stem's leader lives: the path already holds the tree's forks"))
+    _one_sided_crown(m, fixed, free)
+    _leaning_stem(m, settings, fixed, notes)
     if m.decurrent:
-        settings.append(
-            (
-                "buds_per_node",
-                buds,
-                "opposite buds (maple, ash, sycamore): with dying leaders, forks; "
-                "set 1 for a tree with alternate buds (oak, beech, birch)",
-            )
-        )
-        fixed.append(("phyllotaxis", 90.0, "opposite pairs at right angles (decussate)"))
-        free += [
-            ("leader_death", 0.0, 0.5, "leaders that die each cycle: the buds below them take over (forks)"),
-            ("death_delay", 0.0, 30.0, "cycles before leaders may die"),
-            (
-                "short_shoot",
-                0.0,
-                0.9,
-                "laterals that stay short shoots (spurs): a broadleaf's many short branches among its long limbs",
-            ),
-        ]
-        why = (
-            f"its crown is decurrent (the three largest limbs hold {m.limb_ratio:.1f} x the stem's wood "
-            "in the crown): SOT grows limbs that take over from the stem by bud competition for light, "
-            "with opposite buds and dying leaders (the GigaScience paper fits SOT to a maple)"
-        )
-        suits = 0.9
-    else:
-        why = (
-            f"its crown is excurrent (limbs hold {m.limb_ratio:.1f} x the stem's wood in the crown); SOT "
-            "can grow it, LIGNUM's yearly whorls on a leader fit such a conifer more closely"
-        )
-        suits = 0.6
+        _decurrent_forms(settings, fixed, free)
+    why, suits = _crown_form(m)
     if m.thinnest_branch > 0.012:
         notes.append(
             f"the QSM has no branch thinner than {100 * m.thinnest_branch:.1f} cm (a simplified "
@@ -256,7 +84,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         settings=settings,
         fixed=fixed,
         free=free,
-        timeout=60.0 if big else 20.0,
+        timeout=60.0 if span > 18.0 else 20.0,
         notes=notes,
         size_weights=SIZE_WEIGHTS,
         size_extra=ANGLE_TERM,
@@ -268,11 +96,9 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         ),
         # the draft's size limits (two thirds of each tolerance, steep 3) and its answer among 16
         # candidates on 16 held-out sets, as LIGNUM's: every size of the broadleaved trees' 18 fits
-        # held and 10 met every limit (9 without either;
-        # docs/notes/2026-11-29-broadleaved-size-limits-and-top-16.md)
+        # held and 10 met every limit (9 without either; docs/validation.md, "Broadleaved trees")
         seeds=2,
-        evaluations=1800,
-        starts=2,
+        max_evaluations=1800,
         search_why=(
             "1 800 evaluations of 2 model seeds cost what 1 200 of 3 do and give the search more "
             "generations; two starts, not four, so the winner has them (docs/validation.md section 4). "
@@ -282,3 +108,197 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
             "the answer among 8 on 8 sets cost two of wytham_tf3's three fits their structure."
         ),
     )
+
+
+def _world(m: TreeMeasures, span: float) -> list:
+    """The world cube from the tree's height and, for a tree taller than 10 m, coarser light voxels."""
+    fixed = [("span", span, f"world cube (m): room for a tree 1.8 x this one's height ({m.height:.1f} m)")]
+    voxel = min(0.5, max(0.2, _r(m.height / 50.0, 0.01)))
+    if voxel != 0.2:
+        fixed += [
+            ("voxel_size", voxel, "light voxels of 1/50 of the height (the papers' 0.2 m for a 10 m tree)"),
+            (
+                "sample_rad",
+                _r(1.6 * voxel, 0.01),
+                "the light-gradient probe: 1.6 voxels, as the papers' 0.32 m for 0.2 m",
+            ),
+        ]
+    return fixed
+
+
+def _apical_control(m: TreeMeasures) -> list:
+    """Weak apical control for a decurrent crown, strong for an excurrent one."""
+    if m.decurrent:
+        return [
+            (
+                "init_lambda",
+                0.35,
+                0.8,
+                f"apical control: weak, the crown is decurrent (limbs hold "
+                f"{m.limb_ratio:.1f} x the stem's wood in the crown)",
+            ),
+            ("targ_lambda", 0.35, 0.8, None),
+        ]
+    return [
+        (
+            "init_lambda",
+            0.6,
+            0.9,
+            f"apical control: the leader dominates, the crown is excurrent "
+            f"(limbs hold {m.limb_ratio:.1f} x the stem's wood in the crown)",
+        ),
+        ("targ_lambda", 0.45, 0.9, None),
+    ]
+
+
+def _branch_angles(m: TreeMeasures) -> tuple[float, float]:
+    """From 20 deg below the branches' 10 % angle to their 90 % one: SOT's shoots turn towards
+    their target direction from their first internode, so a bud leaves wider than its branch."""
+    lo_model, hi_model = _ANGLE
+    ang_lo, ang_hi = max(lo_model, _r(m.beta_q10 - 20.0, 5.0)), min(hi_model, _r(m.beta_q90, 5.0))
+    if ang_hi - ang_lo < 20.0:
+        ang_lo, ang_hi = max(lo_model, ang_hi - 20.0), min(hi_model, ang_lo + 20.0)
+    return ang_lo, ang_hi
+
+
+def _internode(m: TreeMeasures) -> tuple:
+    """The internode sets how many branches a metre of stem can carry: 0.8-1.45 x the crown length
+    per first-order branch for each bud of a node (the pine recipe's range, one bud per node); a
+    decurrent crown (opposite buds) also gets 1/100-1/33 of its height where that reaches further,
+    within the model's range."""
+    buds = 2 if m.decurrent else 1
+    per_node = buds * m.branch_spacing
+    node_lo, node_hi = 0.8 * per_node, 1.45 * per_node
+    node_why = (
+        f"internode (m): 0.8-1.45 x {buds} bud{'s' if buds > 1 else ''} x the crown length per "
+        f"first-order branch ({m.branch_spacing:.2f} m)"
+    )
+    if m.decurrent:
+        node_lo, node_hi = min(node_lo, m.height / 100.0), max(node_hi, m.height / 33.0)
+        node_why += ", or 1/100-1/33 of the height where that reaches further"
+    if node_hi > _NODE[1]:
+        node_why += f" (the model stops at {_NODE[1]:g} m)"
+    node_hi = min(_NODE[1], max(_NODE[0] + 0.01, _r(node_hi, 0.01)))
+    node_lo = min(node_hi - 0.01, max(_NODE[0], _r(node_lo, 0.01)))
+    return ("node_length", node_lo, node_hi, f"{node_why}: it sets how many branches a metre of stem can carry")
+
+
+def _search_box(m: TreeMeasures) -> list:
+    """The free parameters every SOT recipe fits, with bounds from the tree."""
+    ang_lo, ang_hi = _branch_angles(m)
+    # the winding of the axes: room for the bend that turns metamers as the tree's cylinders turn
+    wind_hi = float(min(90.0, max(30.0, round(WINDING * m.branch_turn / _HALF_NORMAL_MEDIAN))))
+    width_lo = min(0.03, max(_WIDTH[0], _r(m.thinnest_branch, 0.001)))
+    free = [("max_iter", 8, 30, "growth cycles: the model's whole range"), ("alpha1", 0.5, 3.0, None)]
+    free += [("max_grow", 2.0, 12.0, None), *_apical_control(m), ("delay", 0.0, 20.0, None)]
+    angle_why = f"first-order branches at {m.beta_q10:.0f}-{m.beta_q90:.0f} deg to the stem (10-90 %)"
+    sd_why = "the angle varies from branch to branch (with the model's default of 5 deg all leave at one angle)"
+    wind_why = (
+        f"winding of the axes (deg per internode): the tree's branches turn by a median "
+        f"{m.branch_turn:.0f} deg from cylinder to cylinder"
+    )
+    width_why = f"diameter of a new shoot (m): the QSM's thinnest branch is {100 * m.thinnest_branch:.1f} cm"
+    if m.thinnest_branch < _WIDTH[0]:
+        width_why += (
+            f", but SOT grows no shoot thinner than {100 * _WIDTH[0]:g} cm (its range {100 * _WIDTH[0]:g}-"
+            f"{100 * _WIDTH[1]:g} cm): the clones' thinnest shoots are {100 * _WIDTH[0]:g} cm thick"
+        )
+    return free + [
+        ("drop_thresh", 0.05, 0.5, None),
+        ("branch_angle", ang_lo, ang_hi, angle_why),
+        ("branch_angle_sd", 0.0, 35.0, sd_why),
+        ("tropism", -0.1, 0.3, None),
+        ("reorient", 0.0, 1.0, "how much shoots turn towards light"),
+        ("heading_sd", 0.0, wind_hi, wind_why),
+        ("shadow_a", 0.1, 0.9, None),
+        ("shadow_b", 1.1, 8.0, None),
+        ("alpha0", 0.0, 3.0, None),
+        ("init_width", width_lo, _WIDTH[1], width_why),
+        ("pipe_exp", 2.0, 3.0, None),
+        _internode(m),
+        ("stand_shade", 0.0, 1.0, "shade of the neighbours (1/m below the top): 0 = open-grown"),
+    ]
+
+
+def _one_sided_crown(m: TreeMeasures, fixed: list, free: list) -> None:
+    """A one-sided crown (its centre a third of its radius or more from the stem base; the three
+    pines 0.1-0.2, the Wytham broadleaves 0.4-1.6): the neighbours' shade on the other side."""
+    radius = 0.5 * m.crown_spread
+    if not (radius > 0 and m.crown_offset >= ONE_SIDED * radius):
+        return
+    fixed.append(
+        (
+            "gap_azimuth",
+            float(round(m.crown_azimuth)),
+            f"the crown's centre lies {m.crown_offset:.1f} m ({m.crown_offset / radius:.1f} crown radii) "
+            "that way from the stem base: the open side",
+        )
+    )
+    free.append(
+        (
+            "gap_shade",
+            0.0,
+            _r(3.0 / radius, 0.01),  # init clips it to the model's range (at most 5)
+            "shade behind the stem, away from the open side (1/m; up to 5 % of the light left one crown radius behind)",
+        )
+    )
+
+
+def _leaning_stem(m: TreeMeasures, settings: list, fixed: list, notes: list) -> None:
+    """A stem bent over into a gap: the clones' stem grows along the tree's (docs/growth-forms.md)."""
+    if m.stem_lean < LEANING:
+        return
+    notes.append(
+        f"the stem's upper half leans {m.stem_lean:.0f} deg (into a gap?): the clones' stem grows along "
+        "the tree's (stem_path, stem_guide = 1; docs/growth-forms.md), the crown around it is the model's"
+    )
+    settings.append(
+        (
+            "stem_path",
+            [list(q) for q in m.stem_path],
+            f"the tree's stem, which leans {m.stem_lean:.0f} deg ({m.stem_length:.1f} m along; "
+            "points from its base, m): the clones' stem follows it",
+        )
+    )
+    fixed.append(("stem_guide", 1.0, "the stem grows along stem_path, as this tree's stem grew"))
+    if m.decurrent:
+        fixed.append(("stem_death", 0.0, "the stem's leader lives: the path already holds the tree's forks"))
+
+
+def _decurrent_forms(settings: list, fixed: list, free: list) -> None:
+    """Opposite buds, dying leaders and short shoots: a broadleaf's crown of limbs."""
+    settings.append(
+        (
+            "buds_per_node",
+            2,
+            "opposite buds (maple, ash, sycamore): with dying leaders, forks; "
+            "set 1 for a tree with alternate buds (oak, beech, birch)",
+        )
+    )
+    fixed.append(("phyllotaxis", 90.0, "opposite pairs at right angles (decussate)"))
+    free += [
+        ("leader_death", 0.0, 0.5, "leaders that die each cycle: the buds below them take over (forks)"),
+        ("death_delay", 0.0, 30.0, "cycles before leaders may die"),
+        (
+            "short_shoot",
+            0.0,
+            0.9,
+            "laterals that stay short shoots (spurs): a broadleaf's many short branches among its long limbs",
+        ),
+    ]
+
+
+def _crown_form(m: TreeMeasures) -> tuple[str, float]:
+    """Why SOT suits the tree, and how well (0-1): a decurrent crown is SOT's."""
+    if m.decurrent:
+        why = (
+            f"its crown is decurrent (the three largest limbs hold {m.limb_ratio:.1f} x the stem's wood "
+            "in the crown): SOT grows limbs that take over from the stem by bud competition for light, "
+            "with opposite buds and dying leaders (the GigaScience paper fits SOT to a maple)"
+        )
+        return why, 0.9
+    why = (
+        f"its crown is excurrent (limbs hold {m.limb_ratio:.1f} x the stem's wood in the crown); SOT "
+        "can grow it, LIGNUM's yearly whorls on a leader fit such a conifer more closely"
+    )
+    return why, 0.6

@@ -16,8 +16,8 @@ from typing import Literal, Optional
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from bforest_core.interfaces import ComponentSettings, Distance, FeatureSet
-from bforest_core.metrics import DETECTION_DIAMETER, SUMMARY_DEFAULT, ruled_summary, summary_unit
+from bforest_core.interfaces import ComponentSettings, Distance, FeatureSet, RecipePart, RecipePlan
+from bforest_core.metrics import DETECTION_DIAMETER, SIZE_WEIGHTS, SUMMARY_DEFAULT, ruled_summary, summary_unit
 
 SET = "summary"
 #: offset c of the log ratio |log((m + c) / (d + c))| by unit: a count of 0 is fine, a length or
@@ -31,7 +31,7 @@ class TreeSummarySettings(ComponentSettings):
         min_length=1,
         description=(
             "statistics of bforest_core.metrics.tree_summary (height, dbh, base_diameter, crown_spread, "
-            "crown_base_height, stem_length, n_branches_o<w>, n_all_branches_o<w>, length_o<w>, volume_o<w>, angle_o<w>, "
+            "crown_base_height, stem_length, n_whorls, n_branches_o<w>, n_all_branches_o<w>, length_o<w>, volume_o<w>, angle_o<w>, "
             "angle_iqr_o<w>, profile_n_b<k>, "
             "profile_len_b<k>)"
         ),
@@ -75,6 +75,20 @@ class TreeSummary(FeatureSet):
     name = "tree-summary"
     summary = "tree-level statistics: height, DBH, crown spread, crown base, branch counts, vertical profile"
     Settings = TreeSummarySettings
+
+    def summary_rule(self) -> tuple[str | None, list[str] | None]:
+        """The branch rule the statistics are measured by, and which (``topology``, ``topology_statistics``)."""
+        return self.settings.topology, self.settings.topology_statistics
+
+    def draft_recipe(self, plan: RecipePlan) -> RecipePart | None:
+        """The size term's statistics: the default set, and those the growth model adds; every
+        living branch counts (no detection limit), which keeps a fit from crowns of thin twigs."""
+        if plan.term != "size":
+            return None
+        settings = [("min_branch_diameter", 0.0, None)]
+        if plan.draft.size_extra:
+            settings.append(("statistics", [*SUMMARY_DEFAULT, *plan.draft.size_extra], None))
+        return RecipePart(self.name, settings)
 
     @property
     def set_names(self) -> list[str]:
@@ -169,6 +183,33 @@ class SummaryDistance(Distance):
     name = "summary"
     summary = "distance between summary rows: weighted mean of per-statistic log ratios or relative errors"
     Settings = SummaryDistanceSettings
+
+    def draft_recipe(self, plan: RecipePlan) -> RecipePart | None:
+        """The size term: log ratios weighted as the growth model's recipes calibrated them (or by
+        the inverse of the error a forester tolerates), with the model's limits beyond which a
+        statistic's term grows ``steep`` times as fast."""
+        if plan.term != "size":
+            return None
+        d = plan.draft
+        weights = {**(d.size_weights or SIZE_WEIGHTS), **d.size_extra}
+        settings = [("form", "logratio", None), ("weights", weights, None)]
+        why = (
+            "The headline statistics weigh as the model's recipes calibrated them."
+            if d.size_weights
+            else "The headline statistics weigh by the inverse of the error a forester tolerates (height 7.5 %, "
+            "DBH 20 %, crown spread 25 %, crown base and first-order branches 30 %)."
+        )
+        reach = None
+        if d.size_limits:
+            cap = 2.0  # a statistic's plain term at most: the structural distance (KS) reaches 1
+            limits = {k: float(f"{v:g}") for k, v in d.size_limits.items()}
+            settings += [("limits", limits, None), ("steep", float(d.size_steep), None), ("cap", cap, None)]
+            why += (
+                f" Beyond its limit (a relative error, limits) a statistic's term grows {d.size_steep:g} times as "
+                "fast: a fit trades a size for structure only as far as a forester still accepts the size."
+            )
+            reach = cap * (1.0 + d.size_steep)
+        return RecipePart(self.name, settings, why, reach=reach)
 
     def __init__(self, settings=None, **kwargs):
         super().__init__(settings, **kwargs)

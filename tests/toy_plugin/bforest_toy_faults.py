@@ -3,7 +3,8 @@
 whose angle lies above ``fault_above``, in the way ``fault`` names: ``exit`` (sys.exit),
 ``abort`` (os.abort), ``segv`` (a segfault through ctypes), ``attribute`` (AttributeError),
 ``own`` (an exception class of its own), ``none`` (returns None), ``unpicklable`` (an exception
-that cannot be pickled) or ``c-block`` (blocks in C holding the interpreter lock, deaf to alarms).
+that cannot be pickled), ``keyboard`` (a KeyboardInterrupt of its own), ``base`` (a bare
+BaseException subclass) or ``c-block`` (blocks in C holding the interpreter lock, deaf to alarms).
 """
 
 from __future__ import annotations
@@ -20,11 +21,15 @@ from pydantic import Field
 
 from bforest_core.hookspecs import hookimpl
 
-FAULTS = ("exit", "abort", "segv", "attribute", "own", "none", "unpicklable", "c-block")
+FAULTS = ("exit", "abort", "segv", "attribute", "own", "none", "unpicklable", "keyboard", "base", "c-block")
 
 
 class ToyModelError(Exception):
     """The plugin's own exception class."""
+
+
+class ToyBaseFault(BaseException):
+    """Not an Exception: what ``except Exception`` lets through."""
 
 
 class Unpicklable(Exception):
@@ -63,6 +68,10 @@ class FaultySSM(ToySSM):
                 return None
             if s.fault == "unpicklable":
                 raise Unpicklable("cannot travel")
+            if s.fault == "keyboard":
+                raise KeyboardInterrupt("the plugin's own")
+            if s.fault == "base":
+                raise ToyBaseFault("below Exception")
             if s.fault == "c-block":
                 signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGALRM})
                 ctypes.PyDLL(None).sleep(600)  # in C, holding the interpreter lock

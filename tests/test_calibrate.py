@@ -18,6 +18,7 @@ from bforest_core.pipeline.calibrate import (
     prior_draw,
     rank_bins,
     rank_counts,
+    rank_inside,
     sbc_rank,
     uniform_band,
 )
@@ -56,6 +57,27 @@ def test_coverage_counts_truths_inside_and_outside():
     assert (t["covered50"], t["covered90"]) == (2, 3) and t["coverage90"] == pytest.approx(0.6)
     assert t["width50"] == pytest.approx(0.5 / 2.0, abs=1e-3) and t["width90"] == pytest.approx(0.9 / 2.0, abs=1e-3)
     assert sum(t["rank_counts"]) == 5
+
+
+def test_an_integer_parameter_is_covered_as_its_rank_says():
+    # a posterior all on one whole number: its central intervals are [3, 3] and hold the truth 3
+    # every time (over-coverage); the rank, ties split at random, is uniform over 0..L and lies in
+    # the central 50 % of the ranks half the time, in the central 90 % nine times in ten
+    rng = np.random.default_rng(4)
+    x, w = np.full(200, 3.0), np.ones(200)
+    rows = []
+    for _ in range(2000):
+        p = {"truth": 3, "rank": sbc_rank(x, w, 3.0, RANK_DRAWS, rng)}
+        for lev in (50, 90):
+            p[f"lo{lev}"], p[f"hi{lev}"] = central_interval(x, w, lev)
+        rows.append({"status": "ok", "params": {"k": p}})
+    as_interval = coverage_table(rows, ["k"], [0.0], [6.0])[0]
+    assert (as_interval["coverage50"], as_interval["coverage90"]) == (1.0, 1.0)
+    t = coverage_table(rows, ["k"], [0.0], [6.0], integer=[True])[0]
+    assert t["coverage50"] == pytest.approx(0.5, abs=0.035) and t["coverage90"] == pytest.approx(0.9, abs=0.02)
+    # the central 50 % of the ranks 0..99 are 25..74, the central 90 % 5..94
+    assert [r for r in range(RANK_DRAWS + 1) if rank_inside(r, 50)] == list(range(25, 75))
+    assert [r for r in range(RANK_DRAWS + 1) if rank_inside(r, 90)] == list(range(5, 95))
 
 
 def test_sbc_rank_is_the_number_of_posterior_draws_below_the_truth():

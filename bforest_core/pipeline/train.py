@@ -404,7 +404,7 @@ def calibrate_estimator(
                 "params": posterior_params(S, w, te.names, theta, prior.integer, seed, idx),
             }
         )
-    table = coverage_table(rows, te.names, prior.lower, prior.upper)
+    table = coverage_table(rows, te.names, prior.lower, prior.upper, prior.integer)
     bins = rank_bins(len(rows))
     from ..registry import component
 

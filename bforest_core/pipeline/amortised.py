@@ -7,11 +7,11 @@ plugin) learns p(parameters | summaries of a tree) once, from trees grown from a
 
 * **The prior** (:class:`TrainingPrior`) is that of ``bforest init``: for a draw, a reference tree
   of the crown form (the three Ruotsinkylä pines for the shipped pine estimators) is scaled to a
-  height drawn uniformly from ``heights`` (its lengths scaled, its angles, counts and ratios kept),
-  the model's recipe box for that tree is resolved (:func:`~.recipe.recipe_box`: bounds scaled by a
-  measure of the tree, such as LIGNUM's years per metre of height, resolved; the recipe's fixed
-  values and settings, such as SOT's world cube, taken), and the parameters are drawn uniformly in
-  that box. One estimator so serves trees of the form at any height in the range: the height a
+  height drawn uniformly from ``heights`` (its lengths and the measures a recipe's bounds scale by
+  scaled, its angles and ratios kept), the model's recipe box for that tree is resolved
+  (:func:`~.recipe.recipe_box`: bounds scaled by a measure of the tree, such as LIGNUM's years per
+  whorl, resolved; the recipe's fixed values and settings, such as SOT's world cube, taken), and
+  the parameters are drawn uniformly in that box. One estimator so serves trees of the form at any height in the range: the height a
   tree's box was scaled for is the first of the summaries it is conditioned on.
 * **The summaries** (:class:`Summaries`) carry what the fit's judge sees: the tree-level
   statistics of :func:`~bforest_core.metrics.tree_summary` (sizes, counts, lengths, volumes and
@@ -42,7 +42,7 @@ from ..config import SCALE_MEASURES
 from ..errors import ConfigError, PluginError
 from ..metrics import TreeMeasures, measure_tree, summary_unit, tree_summary
 from ..registry import component, component_class, discover
-from .recipe import recipe_box
+from .recipe import recipe_box, write_recipe
 
 #: what an estimator file says it is
 FORMAT = "bayesforest-amortised-estimator"
@@ -139,8 +139,9 @@ class Summaries:
 
 # ------------------------------------------------------------------------------ the prior
 def scaled_measures(m: TreeMeasures, height: float) -> TreeMeasures:
-    """``m`` of a tree of the same form ``height`` m tall: its lengths scaled, its angles, counts
-    and ratios (and the QSM's thinnest branch, a floor of the scan) kept."""
+    """``m`` of a tree of the same form ``height`` m tall: its lengths and the measures a recipe's
+    bounds scale by (:data:`SCALED_MEASURES`: LIGNUM's whorls too, so its years follow the height)
+    scaled; its angles and ratios (and the QSM's thinnest branch, a floor of the scan) kept."""
     f = float(height) / m.height
     new = {k: getattr(m, k) * f for k in SCALED_MEASURES}
     new["stem_path"] = tuple(tuple(c * f for c in q) for q in m.stem_path)
@@ -614,7 +615,8 @@ def grow_clones(
                 row["status"] = exc.status
             else:
                 row["file"] = write_tree(tree, out_dir / f"clone_{i:03d}.txt").name
-                row.update({k: classical_metrics(tree)[k] for k in ("height", "dbh", "crown_spread")})
+                metrics = classical_metrics(tree)
+                row.update({k: metrics[k] for k in ("height", "dbh", "crown_spread")})
             rows.append(row)
             bar.update(1)
     finally:
@@ -634,8 +636,12 @@ SHIPPED = "shipped"
 
 def start_estimator_path(cfg) -> Path:
     """The file ``[start] estimator`` names (``"shipped"``: the one shipped for ``[ssm] kind``)."""
-    name = cfg.start.estimator
-    return estimator_for(cfg.ssm.kind) if name == SHIPPED else Path(name)
+    return named_estimator(cfg.start.estimator, cfg.ssm.kind)
+
+
+def named_estimator(name, model: str | None) -> Path:
+    """The file an estimator's ``name`` means: a path, or ``"shipped"`` for the one shipped for ``model``."""
+    return estimator_for(model) if name == SHIPPED else Path(name)
 
 
 def start_problems(cfg) -> list[str]:
@@ -683,9 +689,7 @@ def write_amortised_recipe(qsm, out, estimator, model: str | None = None):
     starts from ``estimator``'s posterior for the tree (a file of ``bforest train``, or
     ``"shipped"``: the one shipped for ``model``). The model is the estimator's; a ``model``
     that differs is refused in one line."""
-    from .recipe import write_recipe
-
-    path = estimator_for(model) if estimator == SHIPPED else Path(estimator)
+    path = named_estimator(estimator, model)
     header, _ = checked_header(path)
     if model is not None and model != header["model"]:
         raise ConfigError(f"--amortised {estimator}: an estimator of {header['model']}, not of --model {model}")

@@ -96,7 +96,6 @@ class TrainConfig(_Strict):
 def load_train_config(path) -> TrainConfig:
     """Read and check a training configuration (paths relative to its folder)."""
     from ..config import read_toml, resolve_path
-    from ..registry import component
 
     path = Path(path)
     raw = read_toml(path)
@@ -105,21 +104,25 @@ def load_train_config(path) -> TrainConfig:
     except ValidationError as exc:
         raise ConfigError(f"{path}: {validation_error_text(exc)}") from None
     cfg.train.references = [resolve_path(r, path.resolve().parent) for r in cfg.train.references]
-    _check_parts(cfg, str(path), component)
+    _check_parts(cfg, str(path))
     return cfg
 
 
-def _check_parts(cfg: TrainConfig, source: str, component) -> None:
-    from ..registry import discover
+def _kind_and_settings(spec: dict) -> tuple[str, dict]:
+    """A ``{kind, ...settings}`` table of a training config as (kind, settings)."""
+    return spec["kind"], {k: v for k, v in spec.items() if k != "kind"}
+
+
+def _check_parts(cfg: TrainConfig, source: str) -> None:
+    from ..registry import component, discover
 
     problems = []
     if cfg.train.model not in discover().names("ssm"):
         problems.append(f"train.model: unknown ssm {cfg.train.model!r} (known: {', '.join(discover().names('ssm'))})")
     for section in ("estimator", "executor"):
-        spec = dict(getattr(cfg, section))
-        kind = spec.pop("kind")
+        kind, settings = _kind_and_settings(getattr(cfg, section))
         try:
-            component("amortised" if section == "estimator" else "executor", kind, **spec)
+            component("amortised" if section == "estimator" else "executor", kind, **settings)
         except BayesForestError as exc:
             problems.append(f"{section}: {exc}")
     if problems:
@@ -262,9 +265,8 @@ def _check_same(store: SimulationStore, fp: dict, out: Path) -> None:
 def _executor(spec: dict):
     from ..registry import component
 
-    spec = dict(spec)
-    kind = spec.pop("kind")
-    return component("executor", kind, **spec)
+    kind, settings = _kind_and_settings(spec)
+    return component("executor", kind, **settings)
 
 
 def train(config_path, out_dir, resume: bool = False, overwrite: bool = False, progress: bool = True) -> dict:
@@ -282,7 +284,7 @@ def train(config_path, out_dir, resume: bool = False, overwrite: bool = False, p
 
     cfg = load_train_config(config_path)
     out = Path(out_dir)
-    est = estimator_component(cfg.estimator["kind"], {k: v for k, v in cfg.estimator.items() if k != "kind"})
+    est = estimator_component(*_kind_and_settings(cfg.estimator))
     _open_folder(out, resume, overwrite, "train")
     files = TrainFiles(out)
     with run_lock(out):

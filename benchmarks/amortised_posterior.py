@@ -15,7 +15,10 @@ Per tree it prints the wall time of
 
 The times are wall times of the whole command (the interpreter's start included), the median of
 ``--repeats`` calls; the load average is printed beside them (timings on a machine shared with
-other work are marked as such in docs/performance.md).
+other work are marked as such in docs/performance.md). The commands run as on a user's machine,
+where Python keeps the compiled bytecode of the modules it imports: a ``PYTHONDONTWRITEBYTECODE``
+in the caller's environment (set on some build machines) is left out, since it makes every call
+compile the project's modules again (about a second).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ DATA = ROOT.parent / "shared" / "data" / "qsm"
 
 
 def _wall(args: list[str], env: dict | None = None) -> float:
+    env = {k: v for k, v in (env or os.environ).items() if k != "PYTHONDONTWRITEBYTECODE"}
     t0 = time.perf_counter()
     r = subprocess.run([EXE, *args], capture_output=True, text=True, env=env)
     if r.returncode != 0:

@@ -93,10 +93,16 @@ def test_weighted_corner_draws_best_json_quantiles_and_the_true_values(tmp_path,
     assert any(np.allclose(line.get_xdata(), 11.0) for line in greens)  # marginal of b, outside the cloud
     diag_b = next(ax for ax in axes if ax.get_title().startswith("b = "))
     assert diag_b.get_xlim()[1] > 11.0  # ... and kept in view
-    assert any(
-        line.get_marker() == "D" and np.allclose(line.get_xdata(), 2.5) and np.allclose(line.get_ydata(), 11.0)
-        for line in greens
-    )  # the pair panel
+    # the pair panel (b against a): the pairs share one axes in figure fractions, so the marker
+    # stands at a's place in a's column and b's place in b's row
+    pa, pb = diag_a.get_position(), diag_b.get_position()
+    (a0, a1), (b0, b1) = diag_a.get_xlim(), diag_b.get_xlim()
+    x, y = pa.x0 + (2.5 - a0) / (a1 - a0) * pa.width, pb.y0 + (11.0 - b0) / (b1 - b0) * pb.height
+    pairs = next(ax for ax in axes if ax.get_gid() == "pairs")
+    assert [(line.get_xdata()[0], line.get_ydata()[0]) for line in pairs.lines if line.get_marker() == "D"] == [
+        pytest.approx((x, y), abs=1e-9)
+    ]
+    assert pa.x0 <= x <= pa.x1 and y > pb.y1 - 0.05 * pb.height  # near the top of the panel, kept in view
 
 
 def test_generations_figure_draws_epsilon_acceptance_and_ess(tmp_path, monkeypatch):

@@ -77,9 +77,12 @@ def corner_figure(
     2-D histograms (Gaussian-smoothed by ``smooth`` bins) with 39/86 % (1σ/2σ) contours below;
     ``truths`` (the best evaluation) in red, ``true_values`` (the parameters a generated target
     was grown with; None where unknown) in green. ``bins`` defaults to about sqrt(n)/2, between
-    8 and 30."""
-    from scipy.ndimage import gaussian_filter
+    8 and 30.
 
+    The diagonal panels are axes of their own; the pair panels below them are drawn together on
+    one axes spanning the grid (:func:`_pair_panels`), whose data coordinates are the figure's
+    fractions: with 19 parameters, 171 axes of their own took most of the 4-5 s the figure cost,
+    more than the posterior it shows."""
     from ..metrics import weighted_quantiles
 
     S = np.asarray(samples, float)
@@ -91,68 +94,40 @@ def corner_figure(
     labels = [f"{nm} ({u})" if u else nm for nm, u in zip(names, list(units or []) + [""] * p)]
     if bins is None:
         bins = int(np.clip(np.sqrt(max(n, 1)) / 2, 8, 30))
+    rng = [_panel_range(S[:, j], None if bounds is None else bounds[j], true_values[j]) for j in range(p)]
     size = 2.3 if p > 2 else 3.0
-    fig = new_figure(*capped_size(size * p + 0.5, size * p + 0.5, dpi))
-    axes = fig.subplots(p, p, squeeze=False)
-    rng = []
+    # room for the outer tick labels and the labels (slanted below many columns, level beside many rows)
+    longest = 0.065 * max((len(t) for t in labels), default=1)  # inches at the labels' size
+    left, bottom = 0.7 + (longest if p > 6 else 0.2), 0.6 + (0.71 * longest if p > 6 else 0.2)
+    width, height = capped_size(size * p + left, size * p + bottom, dpi)
+    fig = new_figure(width, height, layout=None)
+    grid = fig.add_gridspec(
+        p,
+        p,
+        left=left / width,
+        bottom=bottom / height,
+        right=1 - 0.1 / width,
+        top=1 - (0.45 if title else 0.3) / height,
+        wspace=0.1,
+        hspace=0.35 if p > 2 else 0.25,
+    )
+    boxes = [[grid[i, j].get_position(fig) for j in range(p)] for i in range(p)]
     for j in range(p):
-        lo, hi = (float(S[:, j].min()), float(S[:, j].max())) if n else (0.0, 1.0)
-        if bounds is not None:
-            lo, hi = max(lo, bounds[j][0]) if n else bounds[j][0], min(hi, bounds[j][1]) if n else bounds[j][1]
-        t = true_values[j]
-        if t is not None and not lo <= t <= hi:  # the truth stays in view, also outside the posterior's range
-            lo, hi = min(lo, t), max(hi, t)
-            pad = 0.04 * (hi - lo)
-            lo, hi = (lo - pad, hi) if t == lo else (lo, hi + pad)
-        if hi <= lo:
-            lo, hi = lo - 0.5 * max(abs(lo), 1e-3), hi + 0.5 * max(abs(hi), 1e-3)
-        rng.append((lo, hi))
-    for i in range(p):
-        for j in range(p):
-            ax = axes[i, j]
-            if j > i:
-                ax.set_visible(False)
-                continue
-            if i == j:
-                ax.hist(S[:, j], bins=bins, range=rng[j], weights=W, histtype="step", color="black", lw=1.2)
-                if n:
-                    q = weighted_quantiles(S[:, j], W / W.sum(), [5, 50, 95])
-                    for v, ls in zip(q, (":", "-", ":")):
-                        ax.axvline(v, color="#1f77b4", ls=ls, lw=1.0)
-                    ax.set_title(
-                        f"{names[j]} = {q[1]:.3g}$^{{+{q[2] - q[1]:.2g}}}_{{-{q[1] - q[0]:.2g}}}$", fontsize="small"
-                    )
-                ax.set_yticks([])
-                if truths is not None:
-                    ax.axvline(truths[j], color=MODEL_COLOR, lw=1.2)
-                if true_values[j] is not None:
-                    ax.axvline(true_values[j], color=TRUE_COLOR, lw=1.6, ls="--")
-            else:
-                H, xe, ye = np.histogram2d(S[:, j], S[:, i], bins=bins, range=[rng[j], rng[i]], weights=W)
-                if smooth:
-                    H = gaussian_filter(H, smooth, mode="constant")
-                ax.pcolormesh(xe, ye, H.T, cmap="Greys", shading="flat", rasterized=True)
-                levels = _hpd_levels(H, (0.393, 0.865)) if n >= 50 else None
-                if levels is not None:
-                    xc, yc = 0.5 * (xe[1:] + xe[:-1]), 0.5 * (ye[1:] + ye[:-1])
-                    ax.contour(xc, yc, H.T, levels=levels, colors="#1f77b4", linewidths=0.9)
-                if truths is not None:
-                    ax.axvline(truths[j], color=MODEL_COLOR, lw=1.0)
-                    ax.axhline(truths[i], color=MODEL_COLOR, lw=1.0)
-                    ax.plot(truths[j], truths[i], "s", color=MODEL_COLOR, ms=4)
-                if true_values[j] is not None and true_values[i] is not None:
-                    ax.plot(true_values[j], true_values[i], "D", color=TRUE_COLOR, mec="black", mew=0.5, ms=5)
-                ax.set_ylim(*rng[i])
-            ax.set_xlim(*rng[j])
-            ax.tick_params(labelsize="x-small")
-            if i == p - 1:
-                ax.set_xlabel(labels[j], fontsize="small")
-            else:
-                ax.set_xticklabels([])
-            if j == 0 and i > 0:
-                ax.set_ylabel(labels[i], fontsize="small")
-            elif i != j:
-                ax.set_yticklabels([])
+        ax = fig.add_subplot(grid[j, j])
+        ax.hist(S[:, j], bins=bins, range=rng[j], weights=W, histtype="step", color="black", lw=1.2)
+        if n:
+            q = weighted_quantiles(S[:, j], W / W.sum(), [5, 50, 95])
+            for v, ls in zip(q, (":", "-", ":")):
+                ax.axvline(v, color="#1f77b4", ls=ls, lw=1.0)
+            ax.set_title(f"{names[j]} = {q[1]:.3g}$^{{+{q[2] - q[1]:.2g}}}_{{-{q[1] - q[0]:.2g}}}$", fontsize="small")
+        if truths is not None:
+            ax.axvline(truths[j], color=MODEL_COLOR, lw=1.2)
+        if true_values[j] is not None:
+            ax.axvline(true_values[j], color=TRUE_COLOR, lw=1.6, ls="--")
+        ax.set_xlim(*rng[j])
+        ax.set_xticks([])  # the outer ticks and labels are drawn with the pairs
+        ax.set_yticks([])
+    _pair_panels(fig, boxes, S, W, rng, bins, smooth, labels, truths, true_values)
     from matplotlib.lines import Line2D
 
     keys = [Line2D([], [], color="#1f77b4", lw=1.0, label="5/50/95 % quantiles")]
@@ -173,31 +148,173 @@ def corner_figure(
             )
         )
     if p >= 2:  # in the empty upper-right corner
-        key_ax = axes[0, p - 1]
-        key_ax.set_visible(True)
+        key_ax = fig.add_subplot(grid[0, p - 1])
         key_ax.axis("off")
         key_ax.legend(handles=keys, loc="upper right", fontsize="small", frameon=False)
     else:
-        axes[0, 0].legend(handles=keys, loc="upper right", fontsize="x-small")
+        fig.axes[0].legend(handles=keys, loc="upper right", fontsize="x-small")
     if title:
         fig.suptitle(title)
     return save_figure(fig, path, dpi)
 
 
-def _hpd_levels(H: np.ndarray, masses=(0.393, 0.865)):
-    """Density thresholds enclosing the given probability masses of a 2-D histogram."""
-    flat = np.sort(H.ravel())[::-1]
-    total = flat.sum()
-    if total <= 0:
-        return None
-    cum = np.cumsum(flat) / total
-    levels = []
-    for m in masses:
-        k = min(int(np.searchsorted(cum, m)), flat.size - 1)
-        levels.append(flat[k])
-    levels = np.unique(levels)
-    levels = levels[levels > 0]
-    return levels if levels.size else None
+def _panel_range(x: np.ndarray, bounds: tuple[float, float] | None, truth: float | None) -> tuple[float, float]:
+    """A parameter's axis range: its samples' within the bounds, widened to show the true value."""
+    lo, hi = (float(x.min()), float(x.max())) if x.size else (0.0, 1.0)
+    if bounds is not None:
+        lo, hi = (max(lo, bounds[0]), min(hi, bounds[1])) if x.size else bounds
+    if truth is not None and not lo <= truth <= hi:  # the truth stays in view, also outside the posterior's range
+        lo, hi = min(lo, truth), max(hi, truth)
+        pad = 0.04 * (hi - lo)
+        lo, hi = (lo - pad, hi) if truth == lo else (lo, hi + pad)
+    if hi <= lo:
+        lo, hi = lo - 0.5 * max(abs(lo), 1e-3), hi + 0.5 * max(abs(hi), 1e-3)
+    return lo, hi
+
+
+#: a tick's length as a fraction of the corner figure
+TICK = 0.004
+
+
+def _ticks(p: int):
+    from matplotlib.ticker import MaxNLocator
+
+    return MaxNLocator(3 if p > 6 else 5)
+
+
+def _pair_panels(fig, boxes, S, W, rng, bins, smooth, labels, truths, true_values) -> None:
+    """The pair panels (i > j) of a corner plot and the outer row's and column's ticks and labels,
+    on one axes over the whole grid whose data coordinates are the figure's fractions,
+    ``boxes[i][j]`` each panel's box (:func:`_pair_mesh`); the frames, the best evaluation's and
+    the true values' lines and markers."""
+    from matplotlib.collections import LineCollection
+
+    p = len(rng)
+    x0, y0, x1, y1 = boxes[p - 1][0].x0, boxes[p - 1][0].y0, boxes[0][p - 1].x1, boxes[0][p - 1].y1
+    ax = fig.add_axes((x0, y0, x1 - x0, y1 - y0))
+    ax.set_gid("pairs")
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.axis("off")
+    if p > 1:
+        _pair_mesh(ax, boxes, S, W, rng, bins, smooth)
+
+    def fx(j, v):  # a value of parameter j at its place in column j (a figure fraction)
+        b = boxes[p - 1][j]
+        return b.x0 + (v - rng[j][0]) / (rng[j][1] - rng[j][0]) * b.width
+
+    def fy(i, v):
+        b = boxes[i][0]
+        return b.y0 + (v - rng[i][0]) / (rng[i][1] - rng[i][0]) * b.height
+
+    frames, ticks = [], []
+    pairs = [(i, j) for i in range(1, p) for j in range(i)]
+    for i, j in pairs:
+        b = boxes[i][j]
+        frames.append([(b.x0, b.y0), (b.x1, b.y0), (b.x1, b.y1), (b.x0, b.y1), (b.x0, b.y0)])
+    ticks, locator = [], _ticks(p)
+    tilt = 45 if p > 6 else 0  # many narrow columns: their labels slanted, the rows' level
+
+    def note(text, x, y, dx, dy, size="x-small", **kw):  # a text offset from (x, y) by (dx, dy) points
+        ax.annotate(text, (x, y), xytext=(dx, dy), textcoords="offset points", fontsize=size, **kw)
+
+    for j in range(p):  # below the bottom row
+        b = boxes[p - 1][j]
+        for v in locator.tick_values(*rng[j]):
+            if rng[j][0] <= v <= rng[j][1]:
+                ticks.append([(fx(j, v), b.y0), (fx(j, v), b.y0 - TICK)])
+                note(
+                    f"{v:.3g}",
+                    fx(j, v),
+                    b.y0,
+                    0,
+                    -4,
+                    ha="right" if tilt else "center",
+                    va="top",
+                    rotation=tilt,
+                    rotation_mode="anchor",
+                )
+        note(
+            labels[j],
+            (b.x0 + b.x1) / 2,
+            b.y0,
+            0,
+            -26,
+            ha="right" if tilt else "center",
+            va="top",
+            rotation=tilt,
+            rotation_mode="anchor",
+            size="small",
+        )
+    for i in range(1, p):  # left of the first column
+        b = boxes[i][0]
+        for v in locator.tick_values(*rng[i]):
+            if rng[i][0] <= v <= rng[i][1]:
+                ticks.append([(b.x0, fy(i, v)), (b.x0 - TICK, fy(i, v))])
+                note(f"{v:.3g}", b.x0, fy(i, v), -4, 0, ha="right", va="center")
+        note(
+            labels[i],
+            b.x0,
+            (b.y0 + b.y1) / 2,
+            -36,
+            0,
+            ha="right" if tilt else "center",
+            va="center" if tilt else "bottom",
+            rotation=0 if tilt else 90,
+            rotation_mode="anchor",
+            size="small",
+        )
+    ax.add_collection(LineCollection(frames + ticks, colors="black", linewidths=0.8))
+    if truths is not None:  # a column's panels share their x, a row's their y
+        lines = []
+        for i, j in pairs:
+            b = boxes[i][j]
+            x, y = fx(j, truths[j]), fy(i, truths[i])
+            lines += [[(x, b.y0), (x, b.y1)], [(b.x0, y), (b.x1, y)]]
+        ax.add_collection(LineCollection(lines, colors=MODEL_COLOR, linewidths=1.0))
+        ax.plot(
+            [fx(j, truths[j]) for i, j in pairs], [fy(i, truths[i]) for i, j in pairs], "s", color=MODEL_COLOR, ms=4
+        )
+    known = [(i, j) for i, j in pairs if true_values[i] is not None and true_values[j] is not None]
+    if known:
+        xs, ys = [fx(j, true_values[j]) for i, j in known], [fy(i, true_values[i]) for i, j in known]
+        ax.plot(xs, ys, "D", color=TRUE_COLOR, mec="black", mew=0.5, ms=5, ls="none")
+
+
+def _pair_mesh(ax, boxes, S, W, rng, bins, smooth) -> None:
+    """Every pair panel's 2-D histogram in one mesh (each scaled to its own maximum; the gaps
+    between panels masked cells) and one contour of each cell's highest-density mass at 39/86 %."""
+    from scipy.ndimage import gaussian_filter
+
+    p = len(rng)
+    nb = bins + 1  # a panel's bins and the masked gap after it
+    X = np.empty((p - 1) * nb + 1)  # cell edges, shared by a column's panels
+    Y = np.empty((p - 1) * nb + 1)
+    for j in range(p - 1):  # columns 0 .. p-2 hold pairs; each panel's last edge is the gap's first
+        X[j * nb : j * nb + nb] = np.linspace(boxes[p - 1][j].x0, boxes[p - 1][j].x1, nb)
+    for k, i in enumerate(range(p - 1, 0, -1)):  # rows p-1 .. 1, from the figure's bottom
+        Y[k * nb : k * nb + nb] = np.linspace(boxes[i][0].y0, boxes[i][0].y1, nb)
+    X[-1], Y[-1] = X[-2], Y[-2]
+    C = np.ma.masked_array(np.zeros(((p - 1) * nb, (p - 1) * nb)), mask=True)  # rows: y from the bottom
+    M = C.copy()  # each cell's highest-density mass (the contoured field)
+    for k, i in enumerate(range(p - 1, 0, -1)):
+        for j in range(i):
+            H, _, _ = np.histogram2d(S[:, j], S[:, i], bins=bins, range=[rng[j], rng[i]], weights=W)
+            if smooth:
+                H = gaussian_filter(H, smooth, mode="constant")
+            top = H.max()
+            cells = (slice(k * nb, k * nb + bins), slice(j * nb, j * nb + bins))
+            C[cells] = H.T / top if top > 0 else H.T
+            if top > 0 and S.shape[0] >= 50:
+                order = np.argsort(H, axis=None)[::-1]
+                mass = np.empty(H.size)
+                mass[order] = np.cumsum(H.ravel()[order]) / H.sum()
+                M[cells] = mass.reshape(H.shape).T
+    ax.pcolormesh(X, Y, C, cmap="Greys", shading="flat", rasterized=True)
+    if M.count():
+        ax.contour(
+            0.5 * (X[1:] + X[:-1]), 0.5 * (Y[1:] + Y[:-1]), M, levels=(0.393, 0.865), colors="#1f77b4", linewidths=0.9
+        )
 
 
 def generations_figure(

@@ -9,8 +9,7 @@ Per tree it prints the wall time of
 * ``cold``: the first call on a machine (an empty JAX compilation cache: JAX compiles the flow's
   sampling once; later processes read it from the cache);
 * ``posterior``: later calls (the cache warm), without the corner plot (``--no-figure``);
-* ``+ figure``: the same with the corner plot, which with 19 parameters takes longer than the
-  posterior itself;
+* ``+ figure``: the same with the corner plot (what a user gets by default);
 * ``info``: `bforest info` on the same tree (the baseline).
 
 The times are wall times of the whole command (the interpreter's start included), the median of

@@ -158,6 +158,31 @@ def test_a_damaged_log_is_one_line_naming_the_file_for_every_command(finished_ru
         assert err[0].startswith(f"error: {db}: the evaluation log is damaged (") and "--overwrite" in err[0], err
 
 
+def test_a_damaged_or_full_simulation_log_of_a_training_is_one_line_too(tmp_path):
+    """The training's store shares the run's guard: a truncated file and a full disk (a cap on
+    its pages) each give one RunDirError naming the file, never an sqlite3 traceback."""
+    from bforest_core.pipeline.store import SimulationStore
+
+    db = tmp_path / "simulations.sqlite"
+    with SimulationStore(db) as st:
+        for i in range(300):
+            st.add(i, 0, 10.0, {"a": float(i)}, i, {"status": "ok", "summaries": list(range(40))})
+        assert st.count("ok") == 300
+    size = db.stat().st_size
+    with open(db, "r+b") as fh:
+        fh.truncate(size // 2)
+    with pytest.raises(RunDirError, match=r"simulations\.sqlite: the training's log of simulations is damaged \("):
+        with SimulationStore(db) as st:
+            st.done()
+    full = tmp_path / "full.sqlite"
+    with SimulationStore(full) as st:
+        pages = st._sql("PRAGMA page_count")[0][0]
+        st._sql(f"PRAGMA max_page_count={pages + 1}")
+        with pytest.raises(RunDirError, match=r"full\.sqlite: the disk is full \(database or disk is full\)"):
+            for i in range(1000):
+                st.add(i, 0, 10.0, {"a": float(i)}, i, {"status": "ok", "summaries": list(range(400))})
+
+
 def test_a_full_disk_during_a_fit_is_one_line_and_a_resume_gives_the_identical_run(toy_plugin, tmp_path, capsys):
     """SQLite's "database or disk is full" (a cap on the log's pages stands in for the disk):
     one line naming the log and saying what to do; a resume once there is room gives the run an

@@ -26,7 +26,7 @@ import sqlite3
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import numpy as np
 
@@ -109,18 +109,19 @@ class RunDirError(BayesForestError):
     pass
 
 
-def _log_error(db: Path, exc: sqlite3.Error) -> RunDirError:
-    """One line for what SQLite says of the evaluation log ``db``: the file and what to do."""
+def _log_error(db: Path, exc: sqlite3.Error, what: str) -> RunDirError:
+    """One line for what SQLite says of the database ``db`` (``what`` it is to the user): the
+    file and what to do."""
     name = getattr(exc, "sqlite_errorname", "")
     if name == "SQLITE_FULL":
         return RunDirError(
-            f"{db}: the disk is full ({exc}); every evaluation logged before is kept: free space "
-            "and run the command again (a fit continues with --resume)"
+            f"{db}: the disk is full ({exc}); everything stored before is kept: free space "
+            "and run the command again (a fit or a training continues with --resume)"
         )
     if name in ("SQLITE_CORRUPT", "SQLITE_NOTADB") or type(exc) is sqlite3.DatabaseError:
         return RunDirError(
-            f"{db}: the evaluation log is damaged ({exc}); restore it from a backup (the sqlite3 "
-            "shell's .recover may save its rows), or start the run anew with --overwrite"
+            f"{db}: {what} is damaged ({exc}); restore it from a backup (the sqlite3 "
+            "shell's .recover may save its rows), or start anew with --overwrite"
         )
     return RunDirError(f"{db}: {exc}")
 
@@ -548,28 +549,62 @@ class PosteriorFiles(FolderFiles):
 
 class _Database:
     """An SQLite file written by one process, each statement committed on its own (write-ahead
-    log), with a ``meta`` table of JSON values."""
+    log), with a ``meta`` table of JSON values. What SQLite says of a damaged file or a full disk
+    becomes one :class:`RunDirError` naming the file (:meth:`_sql`)."""
 
-    def _connect(self, path: Path, schema: str) -> None:
-        self._con = sqlite3.connect(path, isolation_level=None, timeout=30)
-        self._con.execute("PRAGMA journal_mode=WAL")
-        self._con.execute("PRAGMA synchronous=NORMAL")
-        self._con.executescript(schema)
+    db_path: Path
+    #: what the file is, as an error names it
+    what = "the database"
+
+    def _connect(self, path: Path, schema: str | None = None) -> None:
+        """Open ``path`` (its ``schema`` made now, or later by :meth:`_make`)."""
+        self.db_path = path
+        try:
+            self._con = sqlite3.connect(path, isolation_level=None, timeout=30)
+        except sqlite3.Error as exc:
+            raise _log_error(path, exc, self.what) from None
+        if schema is not None:
+            self._make(schema)
+
+    def _make(self, schema: str) -> None:
+        """The tables of ``schema`` (those missing), the connection closed on an error."""
+        try:
+            self._sql("PRAGMA journal_mode=WAL")
+            self._sql("PRAGMA synchronous=NORMAL")
+            try:
+                self._con.executescript(schema)
+            except sqlite3.Error as exc:
+                raise _log_error(self.db_path, exc, self.what) from None
+        except RunDirError:
+            self._con.close()
+            raise
+
+    def _sql(self, query: str, args: tuple = ()) -> list[tuple]:
+        """The rows of one statement."""
+        try:
+            return self._con.execute(query, args).fetchall()
+        except sqlite3.ProgrammingError:  # this program's mistake (a closed store), not the file's
+            raise
+        except sqlite3.Error as exc:
+            raise _log_error(self.db_path, exc, self.what) from None
 
     def set_meta(self, key: str, value: Any) -> None:
-        self._con.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, _column(value)))
+        self._sql("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, _column(value)))
 
     def get_meta(self, key: str, default=None):
-        r = self._con.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone()
-        return default if r is None else json.loads(r[0])
+        r = self._sql("SELECT value FROM meta WHERE key=?", (key,))
+        return default if not r else json.loads(r[0][0])
 
     def close(self) -> None:
         """Close the connection. Close it when done rather than leave it to the garbage collector:
         the last connection's close checkpoints SQLite's write-ahead log into the file, which must
         not happen at a random later moment (under a later command reading it)."""
-        self._con.close()
+        try:
+            self._con.close()
+        except sqlite3.Error as exc:  # the checkpoint on a full disk
+            raise _log_error(self.db_path, exc, self.what) from None
 
-    def __enter__(self):
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -598,6 +633,8 @@ class SimulationStore(_Database):
     """The simulations of a training folder (SQLite; each row committed as it arrives, so a
     killed training loses nothing that finished and ``--resume`` grows no tree twice)."""
 
+    what = "the training's log of simulations"
+
     def __init__(self, path):
         self.path = Path(path)
         self._connect(self.path, SIMULATIONS_SCHEMA)
@@ -605,7 +642,7 @@ class SimulationStore(_Database):
     def add(self, idx: int, reference: int, height: float, params: dict, seed: int, result: dict) -> None:
         s = result.get("summaries")
         blob = None if s is None else np.asarray(s, "<f8").tobytes()
-        self._con.execute(
+        self._sql(
             "INSERT OR REPLACE INTO simulations VALUES (?,?,?,?,?,?,?,?,?,?,?)",
             (
                 int(idx),
@@ -624,19 +661,19 @@ class SimulationStore(_Database):
 
     def done(self) -> set[int]:
         """Indices already simulated."""
-        return {r[0] for r in self._con.execute("SELECT idx FROM simulations")}
+        return {r[0] for r in self._sql("SELECT idx FROM simulations")}
 
     def count(self, status: str | None = None) -> int:
         if status is None:
-            return int(self._con.execute("SELECT COUNT(*) FROM simulations").fetchone()[0])
-        return int(self._con.execute("SELECT COUNT(*) FROM simulations WHERE status=?", (status,)).fetchone()[0])
+            return int(self._sql("SELECT COUNT(*) FROM simulations")[0][0])
+        return int(self._sql("SELECT COUNT(*) FROM simulations WHERE status=?", (status,))[0][0])
 
     def statuses(self) -> dict[str, int]:
-        return dict(self._con.execute("SELECT status, COUNT(*) FROM simulations GROUP BY status").fetchall())
+        return dict(self._sql("SELECT status, COUNT(*) FROM simulations GROUP BY status"))
 
     def seconds(self) -> float:
         """Summed seconds of the simulations (worker time, not wall time)."""
-        return float(self._con.execute("SELECT COALESCE(SUM(seconds), 0) FROM simulations").fetchone()[0])
+        return float(self._sql("SELECT COALESCE(SUM(seconds), 0) FROM simulations")[0][0])
 
     def grown(self, limit: int | None = None) -> list[tuple[int, float, dict, np.ndarray]]:
         """``(idx, height, params, summaries)`` of the grown trees, by index (the first ``limit``
@@ -646,12 +683,14 @@ class SimulationStore(_Database):
         if limit is not None:
             q += " AND idx < ?"
             args = (int(limit),)
-        rows = self._con.execute(q + " ORDER BY idx", args).fetchall()
+        rows = self._sql(q + " ORDER BY idx", args)
         return [(int(i), float(h), json.loads(p), np.frombuffer(b, "<f8")) for i, h, p, b in rows]
 
 
 class RunStore(RunFiles, _Database):
     """A run directory with its evaluation log."""
+
+    what = "the evaluation log"
 
     def __init__(self, path: Path, new: bool = False):
         """Open the evaluation log of the run directory ``path`` (``new``: begin one).
@@ -663,43 +702,25 @@ class RunStore(RunFiles, _Database):
             damaged: a resume never starts again from zero over a lost log.
         """
         super().__init__(path)
-        self.db_path = db = self.evaluations_path
+        db = self.evaluations_path
         if not new and not db.is_file():
             raise RunDirError(
                 f"{db}: missing: the run's evaluations are gone; restore the file, or start the run "
                 "anew with --overwrite"
             )
-        try:
-            self._con = sqlite3.connect(db, isolation_level=None, timeout=30)
-        except sqlite3.Error as exc:
-            raise _log_error(db, exc) from None
+        self._connect(db)
         try:
             if not new and not self._sql("SELECT 1 FROM sqlite_master WHERE type='table' AND name='evaluations'"):
                 raise RunDirError(
                     f"{db}: holds no evaluation table (an empty or foreign file, not a run's log); "
                     "restore the run's own, or start the run anew with --overwrite"
                 )
-            self._sql("PRAGMA journal_mode=WAL")
-            self._sql("PRAGMA synchronous=NORMAL")
-            try:
-                self._con.executescript(SCHEMA)
-            except sqlite3.Error as exc:
-                raise _log_error(db, exc) from None
+            self._make(SCHEMA)
             if "per_set" not in {r[1] for r in self._sql("PRAGMA table_info(heldout)")}:
                 self._sql("ALTER TABLE heldout ADD COLUMN per_set TEXT")  # a run written before held-out scores kept it
         except RunDirError:
             self._con.close()
             raise
-
-    def _sql(self, query: str, args: tuple = ()) -> list[tuple]:
-        """The rows of one statement on the log; what SQLite says of a damaged log or a full disk
-        becomes one :class:`RunDirError` naming the file and what to do."""
-        try:
-            return self._con.execute(query, args).fetchall()
-        except sqlite3.ProgrammingError:  # this program's mistake (a closed store), not the file's
-            raise
-        except sqlite3.Error as exc:
-            raise _log_error(self.db_path, exc) from None
 
     # ------------------------------------------------------------------ creation
     @classmethod
@@ -784,7 +805,7 @@ class RunStore(RunFiles, _Database):
     def growths(self) -> int:
         """Every tree the run grew: each evaluation's model seeds and each held-out score's."""
         q = "SELECT COALESCE(SUM(json_array_length(seeds)), 0) FROM {}"
-        return sum(int(self._con.execute(q.format(t)).fetchone()[0]) for t in ("evaluations", "heldout"))
+        return sum(int(self._sql(q.format(t))[0][0]) for t in ("evaluations", "heldout"))
 
     def count(self, status: str | None = None) -> int:
         """Logged evaluations (of ``status`` only, when given)."""
@@ -868,14 +889,6 @@ class RunStore(RunFiles, _Database):
     def clear_log(self) -> None:
         self._sql("DELETE FROM log")
 
-    # ------------------------------------------------------------------ meta
-    def set_meta(self, key: str, value: Any) -> None:
-        self._sql("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, _column(value)))
-
-    def get_meta(self, key: str, default=None):
-        r = self._sql("SELECT value FROM meta WHERE key=?", (key,))
-        return default if not r else json.loads(r[0][0])
-
     # ------------------------------------------------------------------ json files
     def write_json(self, name: str, data) -> Path:
         return write_json(self.path / name, data)
@@ -926,19 +939,3 @@ class RunStore(RunFiles, _Database):
             with np.load(npz) as z:
                 diag.update({k: z[k] for k in z.files})
         return diag
-
-    def close(self) -> None:
-        """Close the log's connection. Close it when done rather than leave it to the garbage
-        collector: the last connection's close checkpoints SQLite's write-ahead log into
-        ``evaluations.sqlite``, which must not happen at a random later moment (under a later
-        command reading the run)."""
-        try:
-            self._con.close()
-        except sqlite3.Error as exc:  # the checkpoint on a full disk
-            raise _log_error(self.db_path, exc) from None
-
-    def __enter__(self) -> RunStore:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()

@@ -13,10 +13,14 @@ import json
 import math
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .errors import PluginError, QSMFormatError
 from .registry import component_class, discover
 from .samples import resolve as resolve_sample
+
+if TYPE_CHECKING:
+    from .tree import Tree
 
 
 def _readers():
@@ -116,6 +120,15 @@ def read_qsm(path, reader: str | None = None, **options):
         + ", ".join(c.name for c in cands)
         + "); pass reader=... to force one",
     )
+
+
+def read_tree(path, reader: str | None = None, **options) -> Tree:
+    """Read one tree: :func:`read_qsm` for a caller that takes one.
+
+    A ``select`` of several reconstructions gives their first.
+    """
+    tree = read_qsm(path, reader, **options)
+    return tree[0] if isinstance(tree, list) else tree
 
 
 def writer_for(path, format: str | None = None):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..config import DEFAULT_KINDS
-from ..io import json_text
+from ..io import json_text, read_tree
 from .common import TREE_FORMATS, UsageError, command, parse_set, read, select_arg, split_sets
 
 
@@ -149,9 +149,7 @@ def cmd_distance(args):
     from ..metrics import classical_metrics, relative_errors
     from ..registry import component
 
-    a, b = read(args.tree_a), read(args.tree_b)
-    a = a[0] if isinstance(a, list) else a
-    b = b[0] if isinstance(b, list) else b
+    a, b = read_tree(args.tree_a), read_tree(args.tree_b)
     if not 1 <= args.lines <= MAX_LINES:
         raise UsageError(f"--lines must be between 1 and {MAX_LINES} (got {args.lines})")
     dset = {"statistic": args.statistic, "lines": args.lines}

@@ -269,13 +269,12 @@ class TrainingPrior:
 
 def reference_trees(paths) -> list:
     """(name, measures) of each reference QSM (a path or ``sample:NAME``)."""
-    from ..io import read_qsm
+    from ..io import read_tree
     from ..samples import stem
 
     out = []
     for p in paths:
-        tree = read_qsm(p)
-        tree = tree[0] if isinstance(tree, list) else tree
+        tree = read_tree(p)
         try:
             out.append((stem(p), measure_tree(tree)))
         except ValueError as exc:
@@ -530,7 +529,7 @@ def posterior_for(
         :class:`TrainedEstimator`), ``files`` and ``seconds``.
     """
     from ..interfaces import Posterior
-    from ..io import read_qsm, write_json
+    from ..io import read_tree, write_json
     from ..samples import stem
     from .posterior import posterior_outputs
     from .rundir import run_lock
@@ -545,8 +544,7 @@ def posterior_for(
     te = read_estimator(path)
     if model is not None and model != te.model:
         raise ConfigError(f"{path}: an estimator of {te.model}, not of --model {model}")
-    tree = read_qsm(qsm)
-    tree = tree[0] if isinstance(tree, list) else tree
+    tree = read_tree(qsm)
     res = tree_posterior(te, tree, n, seed, source=str(qsm))
     with run_lock(out):
         if overwrite:

@@ -110,11 +110,10 @@ _clone_task.lost_result = _lost_clone
 def _reference_task(task):
     """Score a reference tree of the stand against the target, like a clone."""
     from ..attributes import fidelity_statistics
-    from ..io import read_qsm
+    from ..io import read_tree
 
     path = task
-    tree = read_qsm(path)
-    tree = tree[0] if isinstance(tree, list) else tree
+    tree = read_tree(path)
     c = worker_context()
     per_set, _ = score_tree(tree, c)
     total, values = combine_terms(per_set, c)

@@ -84,7 +84,7 @@ def export_trees(
         For an unknown format, a run without trees, or a file that exists (without ``overwrite``);
         nothing is written then.
     """
-    from ..io import read_qsm, write_tree
+    from ..io import read_tree, write_tree
 
     run_dir = Path(run_dir)
     RunStore.open(run_dir).close()  # a run directory, or a clear error
@@ -113,8 +113,7 @@ def export_trees(
     prov = run_provenance(run_dir)
     out = []
     for src, name, dst in plan:
-        tree = read_qsm(src)
-        tree = tree[0] if isinstance(tree, list) else tree
+        tree = read_tree(src)
         tree.metadata.update(prov.get(src.relative_to(run_dir).as_posix(), {}))
         opts = dict(scan or {}) if name in SCAN_WRITERS else {}
         out.append(write_tree(tree, dst, format=name, **opts))

@@ -82,7 +82,7 @@ def distributions_figure(target, clones: Sequence, path, dpi: int = 130, title: 
 
 def fig_distributions(v: RunView):
     """The report's distributions figure (target against every readable ok clone)."""
-    from ..io import read_qsm
+    from ..io import read_tree
 
     ok = [r for r in v.clone_rows if r.get("status") == "ok" and r.get("file")]
     if not ok or v.target_tree is None:
@@ -91,8 +91,7 @@ def fig_distributions(v: RunView):
     for r in ok:
         p = v.store.clones_dir() / r["file"]
         if p.exists():
-            t = read_qsm(p)
-            trees.append(t[0] if isinstance(t, list) else t)
+            trees.append(read_tree(p))
     if not trees:
         return []
     p = distributions_figure(

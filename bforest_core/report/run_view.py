@@ -169,10 +169,9 @@ class RunView:
         if not p.exists():
             return None
         try:
-            from ..io import read_qsm
+            from ..io import read_tree
 
-            t = read_qsm(p)
-            return t[0] if isinstance(t, list) else t
+            return read_tree(p)
         except Exception as exc:
             self.note(f"{p.name} could not be read ({type(exc).__name__}: {exc})")
             return None
@@ -287,7 +286,7 @@ class RunView:
     def clone_trees(self, k: int) -> list[tuple[str, object]]:
         """The first ``k`` clones grown ok, read from their files: ``(label, tree)`` with the
         label ``"clone <i>\nD = <distance>"``; a file that cannot be read is a note."""
-        from ..io import read_qsm
+        from ..io import read_tree
 
         shown = []
         for r in self.clone_rows:
@@ -297,8 +296,7 @@ class RunView:
             if r.get("status") != "ok" or not f or not (self.store.clones_dir() / f).exists():
                 continue
             try:
-                t = read_qsm(self.store.clones_dir() / f)
-                t = t[0] if isinstance(t, list) else t
+                t = read_tree(self.store.clones_dir() / f)
             except Exception as exc:
                 self.note(f"clone file {f} could not be read ({type(exc).__name__}: {exc})")
                 continue

@@ -315,15 +315,15 @@ def test_a_fit_starts_from_the_estimators_posterior(trained, tmp_path, capsys):
     recipe = tmp_path / "pine3.toml"
     assert main(["init", _pines(3)[0], "--amortised", str(out / "estimator.npz"), "-o", str(recipe)]) == 0
     text = recipe.read_text()
-    assert "[start]" in text and "max_evaluations = 640" in text and "top = 8" in text and "init_design = 32" in text
+    assert "[start]" in text and "max_evaluations = 576" in text and "top = 8" in text and "init_design = 32" in text
     assert main(["config", "check", str(recipe)]) == 0
     # a short version of the recipe: its first points are the posterior's draws for the tree
     short = (
-        text.replace("max_evaluations = 640", "max_evaluations = 24")
+        text.replace("max_evaluations = 576", "max_evaluations = 24")
         .replace("init_design = 32", "init_design = 8")
         .replace("population = 16", "population = 8")
         .replace("top = 8", "top = 2")
-        .replace("sets = 8", "sets = 2")
+        .replace("sets = 16", "sets = 2")
     )
     recipe.write_text(short)
     run = tmp_path / "run"

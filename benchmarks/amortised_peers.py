@@ -122,24 +122,20 @@ def pyabc_smc(t: Target, budget: int, seed: int, folder: Path):
 
 def sbi_snpe(t: Target, budget: int, seed: int, rounds: int = 4):
     """sbi's sequential NPE (SNPE-C, ``rounds`` rounds of ``budget / rounds`` simulations) in the
-    box's logit coordinates ``z`` (``theta = lower + (upper - lower) * sigmoid(z)``), as sbi's
-    documentation advises for a bounded prior: the flow's support is then the whole space. In the
-    box itself the flow's mass leaked out of it and sbi's rejection of the draws outside ran for
-    over 20 minutes on the first target."""
+    box's logit coordinates ``z`` (``theta = lower + (upper - lower) * sigmoid(z)``), where the
+    uniform prior is the standard logistic distribution: the flow's support is then the whole
+    space. In the box itself the flow's mass leaked out of it and sbi's rejection of the draws
+    outside ran for over 20 minutes on the first target."""
     import torch
     from sbi.inference import NPE
-    from sbi.utils import BoxUniform
-    from torch.distributions import AffineTransform, SigmoidTransform, TransformedDistribution
 
     torch.manual_seed(seed * 1000 + t.i)
     rng = np.random.default_rng([seed, t.i, 5])
-    lo, hi = (torch.tensor(v, dtype=torch.float32) for v in (t.lower, t.upper))
-    to_z = [AffineTransform(-lo / (hi - lo), 1.0 / (hi - lo)), SigmoidTransform().inv]
-    prior = TransformedDistribution(BoxUniform(lo, hi), to_z)
 
     def theta(z: torch.Tensor) -> np.ndarray:
         return t.lower + (t.upper - t.lower) / (1.0 + np.exp(-z.numpy().astype(float)))
 
+    prior = _logistic(len(t.lower))
     inference, proposal, n = NPE(prior=prior), prior, 0
     x_o = torch.tensor(t.x, dtype=torch.float32)
     for _ in range(rounds):
@@ -152,6 +148,40 @@ def sbi_snpe(t: Target, budget: int, seed: int, rounds: int = 4):
         proposal = inference.build_posterior(est).set_default_x(x_o)
     X = theta(proposal.sample((1000,), show_progress_bars=False))
     return X, np.ones(len(X)), n
+
+
+def _logistic(d: int):
+    """``d`` independent standard logistic variables (the logit of a uniform one) as a torch
+    distribution, its log density computed without overflow far in the tails."""
+    import math
+
+    import torch
+    from torch.distributions import Distribution, constraints
+
+    class Logistic(Distribution):
+        arg_constraints: dict = {}
+        support = constraints.real_vector
+
+        def __init__(self):
+            super().__init__(torch.Size(), torch.Size([d]), validate_args=False)
+
+        @property
+        def mean(self):
+            return torch.zeros(d)
+
+        @property
+        def variance(self):
+            return torch.full((d,), math.pi**2 / 3)
+
+        def sample(self, sample_shape=torch.Size()):
+            u = torch.rand(*sample_shape, d).clamp(1e-7, 1 - 1e-7)
+            return torch.log(u) - torch.log1p(-u)
+
+        def log_prob(self, z):
+            a = z.abs()
+            return (-a - 2 * torch.nn.functional.softplus(-a)).sum(-1)
+
+    return Logistic()
 
 
 def bforest_abc_smc(t: Target, budget: int, seed: int, folder: Path):

@@ -7,7 +7,8 @@ The targets are the first ``--targets`` draws of the shipped SOT estimator's cal
 grow a tree (a pine-form crown scaled to 8-16 m, parameters uniform in bforest init's box for it).
 Every method infers the target's 19 parameters with that box as its (uniform) prior and grows trees
 as the target was grown (the same model settings and world); pyABC and sbi compare the trees'
-summaries (the estimator's 95 values: pyABC by an adaptive, scale-normalised Euclidean distance),
+summaries (the estimator's 95 values: pyABC by its adaptive Euclidean distance, each summary
+scaled by its median absolute deviation over the trees that grew),
 this project's abc-smc its own objective (the sliced distance on S0,1 and B1,2). Per method it
 prints the simulations and wall time per target, the coverage of the central 50 % and 90 %
 intervals (over targets and parameters) and the median error of the posterior mean (a share of
@@ -102,7 +103,7 @@ def pyabc_smc(t: Target, budget: int, seed: int, folder: Path):
 
     rng = np.random.default_rng([seed, t.i])
     calls = {"n": 0}
-    big = np.full(len(t.x), 1e6)
+    big = np.full(len(t.x), FAILED)
 
     def model(par):
         calls["n"] += 1
@@ -112,12 +113,26 @@ def pyabc_smc(t: Target, budget: int, seed: int, folder: Path):
     prior = pyabc.Distribution(
         **{k: pyabc.RV("uniform", lo, hi - lo) for k, lo, hi in zip(t.te.names, t.lower, t.upper)}
     )
-    distance = pyabc.AdaptivePNormDistance(p=2)
+    distance = pyabc.AdaptivePNormDistance(p=2, scale_function=_mad_of_grown)
     abc = pyabc.ABCSMC(model, prior, distance, population_size=200, sampler=pyabc.sampler.SingleCoreSampler())
     abc.new(f"sqlite:///{folder / f'pyabc_{t.i}.db'}", {"x": t.x})
     history = abc.run(max_total_nr_simulations=budget)
     df, w = history.get_distribution()
     return df[t.te.names].to_numpy(float), np.asarray(w, float), calls["n"]
+
+
+#: the summaries pyABC is given for a tree that did not grow: far from every grown tree's
+FAILED = 1e6
+
+
+def _mad_of_grown(*, samples: np.ndarray, **_) -> np.ndarray:
+    """pyABC's scale of each summary (the median absolute deviation) over the trees that grew.
+    Over all simulations the failures (about half of SOT's prior draws: one constant vector each)
+    made every summary's MAD 0, so every weight 0, every distance 0 and ε 0: pyABC accepted its
+    first 200 draws and stopped, its posterior the prior."""
+    grown = samples[np.all(samples < 0.5 * FAILED, axis=1)]
+    s = grown if len(grown) >= 2 else samples
+    return np.median(np.abs(s - np.median(s, axis=0)), axis=0)
 
 
 def sbi_snpe(t: Target, budget: int, seed: int, rounds: int = 4):

@@ -115,10 +115,17 @@ def pyabc_smc(t: Target, budget: int, seed: int, folder: Path):
     )
     distance = pyabc.AdaptivePNormDistance(p=2, scale_function=_mad_of_grown)
     abc = pyabc.ABCSMC(model, prior, distance, population_size=200, sampler=pyabc.sampler.SingleCoreSampler())
-    abc.new(f"sqlite:///{folder / f'pyabc_{t.i}.db'}", {"x": t.x})
-    history = abc.run(max_total_nr_simulations=budget)
+    history = abc.new(f"sqlite:///{folder / f'pyabc_{t.i}.db'}", {"x": t.x})
+    try:
+        abc.run(max_total_nr_simulations=budget)
+    except AssertionError as exc:  # pyABC 0.13 stops so on a population whose weights are NaN
+        STOPPED[f"pyabc/{t.i}"] = f"stopped in generation {history.max_t + 1}: {exc}; its last population taken"
     df, w = history.get_distribution()
     return df[t.te.names].to_numpy(float), np.asarray(w, float), calls["n"]
+
+
+#: why a method stopped early on a target, when it did (kept in its row of peers.json)
+STOPPED: dict[str, str] = {}
 
 
 #: the summaries pyABC is given for a tree that did not grow: far from every grown tree's
@@ -278,9 +285,10 @@ def main(argv=None) -> int:
                 "simulations": n,
                 "seconds": time.monotonic() - t0,
                 **scores(X, w, t),
+                **({"stopped": STOPPED[key]} if key in STOPPED else {}),
             }
             path.write_text(json.dumps(results, indent=1))
-            print(f"{key}: {n} simulations, {results[key]['seconds']:.0f} s", flush=True)
+            print(f"{key}: {n} simulations, {results[key]['seconds']:.0f} s {STOPPED.get(key, '')}", flush=True)
     print(
         f"training of the amortised estimator: {te.header['training']['simulations']} simulations, "
         f"{te.header['training']['simulation_wall_seconds'] + te.header['training']['training_wall_seconds']:.0f} s, once"

@@ -118,7 +118,7 @@ def pyabc_smc(t: Target, budget: int, seed: int, folder: Path):
     history = abc.new(f"sqlite:///{folder / f'pyabc_{t.i}.db'}", {"x": t.x})
     try:
         abc.run(max_total_nr_simulations=budget)
-    except AssertionError as exc:  # pyABC 0.13 stops so on a population whose weights are NaN
+    except (AssertionError, ValueError) as exc:  # pyABC 0.13 on a population whose weights are NaN
         STOPPED[f"pyabc/{t.i}"] = f"stopped in generation {history.max_t + 1}: {exc}; its last population taken"
     df, w = history.get_distribution()
     return df[t.te.names].to_numpy(float), np.asarray(w, float), calls["n"]

@@ -289,9 +289,10 @@ def main(argv=None) -> int:
             }
             path.write_text(json.dumps(results, indent=1))
             print(f"{key}: {n} simulations, {results[key]['seconds']:.0f} s {STOPPED.get(key, '')}", flush=True)
+    tr = te.header["training"]  # wall seconds are those of the training's last call (a resumed one grew nothing)
     print(
-        f"training of the amortised estimator: {te.header['training']['simulations']} simulations, "
-        f"{te.header['training']['simulation_wall_seconds'] + te.header['training']['training_wall_seconds']:.0f} s, once"
+        f"training of the amortised estimator, once: {tr['simulations']} simulations "
+        f"({tr['simulation_worker_seconds']:.0f} s of worker time), its flow {tr['training_wall_seconds']:.0f} s"
     )
     print(
         f"{'method':<18}{'targets':>8}{'sims/target':>12}{'s/target':>10}{'50 % covers':>13}{'90 % covers':>13}{'mean error':>12}"

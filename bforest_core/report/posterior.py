@@ -207,7 +207,7 @@ def _pair_panels(fig, boxes, S, W, rng, bins, smooth, labels, truths, true_value
         b = boxes[i][0]
         return b.y0 + (v - rng[i][0]) / (rng[i][1] - rng[i][0]) * b.height
 
-    frames, ticks = [], []
+    frames = []
     pairs = [(i, j) for i in range(1, p) for j in range(i)]
     for i, j in pairs:
         b = boxes[i][j]
@@ -215,23 +215,24 @@ def _pair_panels(fig, boxes, S, W, rng, bins, smooth, labels, truths, true_value
     ticks, locator = [], _ticks(p)
     tilt = 45 if p > 6 else 0  # many narrow columns: their labels slanted, the rows' level
 
+    def inside(j):  # parameter j's tick values within its range
+        return [v for v in locator.tick_values(*rng[j]) if rng[j][0] <= v <= rng[j][1]]
+
     def note(text, x, y, dx, dy, size="x-small", **kw):  # a text offset from (x, y) by (dx, dy) points
         ax.annotate(text, (x, y), xytext=(dx, dy), textcoords="offset points", fontsize=size, **kw)
 
     under = dict(ha="right" if tilt else "center", va="top", rotation=tilt, rotation_mode="anchor")
     for j in range(p):  # below the bottom row
         b = boxes[p - 1][j]
-        for v in locator.tick_values(*rng[j]):
-            if rng[j][0] <= v <= rng[j][1]:
-                ticks.append([(fx(j, v), b.y0), (fx(j, v), b.y0 - TICK)])
-                note(f"{v:.3g}", fx(j, v), b.y0, 0, -4, **under)
+        for v in inside(j):
+            ticks.append([(fx(j, v), b.y0), (fx(j, v), b.y0 - TICK)])
+            note(f"{v:.3g}", fx(j, v), b.y0, 0, -4, **under)
         note(labels[j], (b.x0 + b.x1) / 2, b.y0, 0, -26, size="small", **under)
     for i in range(1, p):  # left of the first column
         b = boxes[i][0]
-        for v in locator.tick_values(*rng[i]):
-            if rng[i][0] <= v <= rng[i][1]:
-                ticks.append([(b.x0, fy(i, v)), (b.x0 - TICK, fy(i, v))])
-                note(f"{v:.3g}", b.x0, fy(i, v), -4, 0, ha="right", va="center")
+        for v in inside(i):
+            ticks.append([(b.x0, fy(i, v)), (b.x0 - TICK, fy(i, v))])
+            note(f"{v:.3g}", b.x0, fy(i, v), -4, 0, ha="right", va="center")
         note(
             labels[i],
             b.x0,

@@ -337,6 +337,21 @@ class SelectConfig(_Strict):
         None,
         description="settings merged over [distance] when the candidates are scored, e.g. { lines = 256 }",
     )
+    sizes: dict[str, float] = Field(
+        default_factory=dict,
+        description="relative errors (fractions) the candidates' held-out trees must keep, on average, from the "
+        "tree's statistics as the clones' fidelity table measures them, e.g. { height = 0.06, dbh = 0.16 }: "
+        "the candidates within every one come first, and among them the lowest held-out distance is the "
+        "answer (none within: the lowest of all, with a warning)",
+    )
+
+    @field_validator("sizes")
+    @classmethod
+    def _fractions(cls, v):
+        bad = {k: x for k, x in v.items() if not 0 < x < 1}
+        if bad:
+            raise ValueError(f"sizes are relative errors between 0 and 1 (exclusive): {bad}")
+        return v
 
 
 class StartConfig(_Strict):

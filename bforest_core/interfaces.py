@@ -311,6 +311,9 @@ class RecipeDraft:
     select_tables : bool
         Whether the candidates are scored on the tables a clone is judged by (the features' and
         distance's plugins say which, :attr:`RecipePart.select`) rather than the search's own.
+    select_sizes : dict
+        A relative error per headline statistic that the candidates' held-out trees must keep on
+        average to come first (``[select] sizes``; empty: none, the lowest held-out distance wins).
     search_why : str
         Why the model asks for its seeds and budget (written as a comment above the search).
     """
@@ -334,6 +337,7 @@ class RecipeDraft:
     select_top: int = 16
     select_sets: int = 16
     select_tables: bool = True
+    select_sizes: dict = field(default_factory=dict)
     search_why: str = ""
 
 

@@ -33,6 +33,7 @@ __all__ = [
     "SUMMARY_DEFAULT",
     "SIZE_WEIGHTS",
     "SIZE_TOLERANCES",
+    "SELECT_SIZES",
     "SIZE_LIMITS",
     "SUMMARY_UNITS",
     "summary_unit",
@@ -241,6 +242,11 @@ SIZE_WEIGHTS = {k: round(1.0 / t, 1) for k, t in SIZE_TOLERANCES.items()}
 #: two thirds of each tolerance, so that a fit judged on a few model seeds keeps its clones' mean
 #: inside the tolerance
 SIZE_LIMITS = {k: round(2.0 / 3.0 * t, 2) for k, t in SIZE_TOLERANCES.items()}
+#: what the candidate answers' held-out trees must keep on average to come first (``[select]
+#: sizes``): four fifths of each tolerance, as the mean of 16 held-out trees differs from the mean
+#: of the 30 clones by up to a tenth of the tolerance on 9 in 10 candidates (the SOT pines' short
+#: fits, docs/notes/2026-12-07-select-sizes.md)
+SELECT_SIZES = {k: round(0.8 * t, 3) for k, t in SIZE_TOLERANCES.items()}
 
 #: the statistics of the summary set by default (``tree-summary``): size, stem, crown, branch
 #: counts and the vertical profile

@@ -317,6 +317,14 @@ def test_a_fit_starts_from_the_estimators_posterior(trained, tmp_path, capsys):
     text = recipe.read_text()
     assert "[start]" in text and "max_evaluations = 576" in text and "top = 8" in text and "init_design = 32" in text
     assert main(["config", "check", str(recipe)]) == 0
+    # the answer is held to four fifths of a forester's tolerances (height 7.5 %, DBH 20 %, ...)
+    assert bf.load_config(recipe).select.sizes == {
+        "height": 0.06,
+        "dbh": 0.16,
+        "crown_spread": 0.2,
+        "crown_base_height": 0.24,
+        "n_branches_o1": 0.24,
+    }
     # a short version of the recipe: its first points are the posterior's draws for the tree
     short = (
         text.replace("max_evaluations = 576", "max_evaluations = 24")

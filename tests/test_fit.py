@@ -455,8 +455,8 @@ def test_held_out_scores_are_kept_in_the_runs_and_not_grown_twice(toy_plugin, tm
     grown = []
     import bforest_core.pipeline.heldout as heldout_mod
 
-    real = heldout_mod.evaluate_task
-    monkeypatch.setattr(heldout_mod, "evaluate_task", lambda task: grown.append(task) or real(task))
+    real = heldout_mod.heldout_task
+    monkeypatch.setattr(heldout_mod, "heldout_task", lambda task: grown.append(task) or real(task))
     again = cmp_mod.compare(p, ["ga"], budget=24, repeats=2, out_dir=tmp_path / "cmp", resume=True, heldout=3, at=[8])
     assert grown == []
     assert [r["heldout"] for r in again["runs"]] == [r["heldout"] for r in first["runs"]]

@@ -10,10 +10,11 @@ import pytest
 import bforest_core as bf
 from bforest_core.pipeline import heldout as heldout_mod
 from bforest_core.pipeline.heldout import candidates, point_key
+from bforest_core.pipeline.scoring import grow_tree
 from bforest_core.pipeline.seeds import heldout_seeds
 from bforest_core.pipeline.store import Evaluation, RunStore
 from bforest_core.pipeline.target import build_target
-from bforest_core.pipeline.worker import evaluate_task, started_workers
+from bforest_core.pipeline.worker import evaluate_task, heldout_task, started_workers, worker_context
 from conftest import toy_config
 
 #: a noisy toy objective (lateral angles scattered by 20 deg per tree): with run seed 3 the point
@@ -80,11 +81,11 @@ def test_a_killed_rescoring_resumes_to_the_identical_answer_growing_nothing_twic
     whole = json.loads((tmp_path / "whole" / "best.json").read_text())
     real_add, calls = RunStore.add_heldout, {"n": 0}
 
-    def dying_add(self, *a):
+    def dying_add(self, *a, **kw):
         calls["n"] += 1
         if calls["n"] > 7:
             raise KeyboardInterrupt  # Ctrl-C in the middle of the re-scoring
-        return real_add(self, *a)
+        return real_add(self, *a, **kw)
 
     monkeypatch.setattr(RunStore, "add_heldout", dying_add)
     with pytest.raises(KeyboardInterrupt):
@@ -92,7 +93,7 @@ def test_a_killed_rescoring_resumes_to_the_identical_answer_growing_nothing_twic
     monkeypatch.setattr(RunStore, "add_heldout", real_add)
     assert not (tmp_path / "cut" / "best.json").exists()
     grown = []
-    monkeypatch.setattr(heldout_mod, "evaluate_task", lambda task: grown.append(task) or evaluate_task(task))
+    monkeypatch.setattr(heldout_mod, "heldout_task", lambda task: grown.append(task) or heldout_task(task))
     bf.fit(bf.load_config(p), tmp_path / "cut", resume=True, progress=False)
     cut = json.loads((tmp_path / "cut" / "best.json").read_text())
     assert len(grown) == 5 * 6 - 7  # the 7 kept scores are not grown again
@@ -239,7 +240,7 @@ def test_held_out_scores_keep_each_term_and_the_report_shows_them(toy_plugin, tm
 
 
 def test_a_run_written_before_scores_kept_their_terms_is_read_and_resumed(toy_plugin, tmp_path, monkeypatch):
-    """An older run store (its held-out table without the per_set column) gains the column when
+    """An older run store (its held-out table without the per_set and sizes columns) gains them when
     opened; its kept scores are used as they are (nothing grown again), without per-term values."""
     import sqlite3
 
@@ -248,11 +249,12 @@ def test_a_run_written_before_scores_kept_their_terms_is_read_and_resumed(toy_pl
     whole = json.loads((tmp_path / "run" / "best.json").read_text())
     con = sqlite3.connect(tmp_path / "run" / "evaluations.sqlite")
     con.execute("ALTER TABLE heldout DROP COLUMN per_set")
+    con.execute("ALTER TABLE heldout DROP COLUMN sizes")
     con.commit()
     con.close()
     (tmp_path / "run" / "best.json").unlink()
     grown = []
-    monkeypatch.setattr(heldout_mod, "evaluate_task", lambda task: grown.append(task) or evaluate_task(task))
+    monkeypatch.setattr(heldout_mod, "heldout_task", lambda task: grown.append(task) or heldout_task(task))
     bf.fit(bf.load_config(p), tmp_path / "run", resume=True, progress=False)
     again = json.loads((tmp_path / "run" / "best.json").read_text())
     assert grown == []
@@ -278,3 +280,77 @@ def test_the_fit_names_its_best_own_and_its_held_out_answer_in_one_line(toy_plug
         f"answer {best['heldout_distance']:.4f} on held-out model seeds (evaluation {best['evaluation']}, "
         f"own {best['distance']:.4f};"
     ), line
+
+
+def test_select_sizes_put_the_candidates_within_them_first(toy_plugin, tmp_path):
+    """With ``[select] sizes`` each candidate's held-out trees are measured as the clones' fidelity
+    table measures them; the answer is the lowest held-out distance among the candidates whose
+    trees' mean keeps within every size. The toy's distance does not see the height: the plain
+    answer is 23 segments tall (+88 %), the one within 20 % of the height is 10 segments (-16 %)."""
+    from bforest_core.attributes import fidelity_statistics
+    from bforest_core.pipeline.target import size_topology
+
+    plain = noisy_config(tmp_path)
+    bf.fit(bf.load_config(plain), tmp_path / "plain", progress=False)
+    plain_sel = json.loads((tmp_path / "plain" / "best.json").read_text())["selection"]
+    assert plain_sel["sizes"] is None and all(c["size_errors"] is None for c in plain_sel["candidates"])
+    p = tmp_path / "sizes.toml"
+    p.write_text(plain.read_text() + "sizes = { height = 0.2 }\n")
+    cfg = bf.load_config(p)
+    bf.fit(cfg, tmp_path / "sizes", progress=False)
+    best = json.loads((tmp_path / "sizes" / "best.json").read_text())
+    sel = best["selection"]
+    tgt = build_target(cfg)
+    height = fidelity_statistics(tgt.trees[0], *size_topology(cfg, "target"))["height"]
+    assert sel["sizes"] == {"limits": {"height": 0.2}, "target": {"height": height}}
+    # the same candidates and held-out distances; each one's height error recomputed outside the fit
+    assert [(c["evaluation"], c["heldout"]) for c in sel["candidates"]] == [
+        (c["evaluation"], c["heldout"]) for c in plain_sel["candidates"]
+    ]
+    with started_workers(cfg, tgt):
+        ctx = worker_context()
+        for c in sel["candidates"]:
+            trees = [grow_tree(cfg, c["params"], s[0]) for s in heldout_seeds(cfg.seed, 6, 1)]
+            mean = np.mean([fidelity_statistics(t, *ctx.size_topology)["height"] for t in trees])
+            assert c["size_errors"]["height"] == pytest.approx(mean / height - 1.0, rel=1e-12)
+            assert c["within"] == (abs(mean / height - 1.0) <= 0.2)
+    within = [c for c in sel["candidates"] if c["within"]]
+    assert 0 < len(within) < len(sel["candidates"])
+    answer = min(within, key=lambda c: c["heldout"])
+    assert sel["chosen"] == best["evaluation"] == answer["evaluation"] != plain_sel["chosen"]
+    assert answer["heldout"] > min(c["heldout"] for c in sel["candidates"])  # not the lowest of all
+    from bforest_core.report.build import write_report
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        write_report(tmp_path / "sizes", figures=False, html=False)
+    md = (tmp_path / "sizes" / "report.md").read_text()
+    assert f"among the {len(within)} whose held-out trees' mean kept within [select] sizes (height 20 %" in md
+    assert "| held-out height |" in md and f"| {100 * answer['size_errors']['height']:+.1f} % |" in md
+
+
+def test_select_sizes_none_within_warns_and_keeps_the_lowest(toy_plugin, tmp_path):
+    p = noisy_config(tmp_path)
+    p.write_text(p.read_text() + "sizes = { height = 0.05 }\n")
+    with pytest.warns(UserWarning, match=r"none of the 5 candidates' held-out trees kept within \[select\] sizes"):
+        bf.fit(bf.load_config(p), tmp_path / "run", progress=False)
+    sel = json.loads((tmp_path / "run" / "best.json").read_text())["selection"]
+    assert not any(c["within"] for c in sel["candidates"])
+    assert sel["chosen"] == min(sel["candidates"], key=lambda c: c["heldout"])["evaluation"]
+
+
+@pytest.mark.parametrize(
+    "sizes, message",
+    [
+        ("{ hieght = 0.1 }", r"select\.sizes: no statistic 'hieght' in the clones' fidelity table \(it has: .*height"),
+        ("{ height = 1.5 }", r"select\.sizes.*between 0 and 1"),
+    ],
+)
+def test_select_sizes_naming_no_statistic_or_no_fraction_are_refused_before_the_search(
+    toy_plugin, tmp_path, sizes, message
+):
+    p = noisy_config(tmp_path)
+    p.write_text(p.read_text() + f"sizes = {sizes}\n")
+    with pytest.raises(bf.ConfigError, match=message):
+        bf.fit(bf.load_config(p), tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists()

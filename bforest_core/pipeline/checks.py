@@ -18,6 +18,7 @@ from ..config import build_component, check_ssm_parameters, did_you_mean, select
 from ..errors import BayesForestError, ConfigError, PluginError
 from ..samples import SampleError
 from ..samples import resolve as resolve_sample
+from .heldout import target_sizes
 from .target import Target, bounds_from_target, build_target
 
 if TYPE_CHECKING:
@@ -96,6 +97,11 @@ def preflight(cfg: RunConfig, target: Target | None = None, trees=None) -> Check
         from .amortised import start_problems
 
         problems += start_problems(cfg)
+    if tgt is not None and cfg.select.sizes:
+        try:
+            target_sizes(cfg, tgt.trees[0])
+        except ConfigError as exc:
+            problems.append(str(exc))
     if not problems and (cfg.select.features or cfg.select.distance):
         try:  # the tables the answer is chosen by, checked before the search, not after it
             preflight(selection_config(cfg), trees=tgt.trees)  # the same [target]: not read again

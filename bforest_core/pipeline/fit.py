@@ -467,10 +467,16 @@ def fit(
                         "start the run anew with --overwrite"
                     )
                 if store.count() and scfg is cfg:
-                    selection = select_answer(cfg, store, lambda: contextlib.nullcontext(executor), progress)
+                    selection = select_answer(
+                        cfg, store, lambda: contextlib.nullcontext(executor), progress, tgt.trees[0]
+                    )
             if store.count() and scfg is not cfg:  # the workers start again on the selection's tables
                 selection = select_answer(
-                    cfg, store, lambda: started_workers(scfg, build_target(scfg, tgt.trees), executor), progress
+                    cfg,
+                    store,
+                    lambda: started_workers(scfg, build_target(scfg, tgt.trees), executor),
+                    progress,
+                    tgt.trees[0],
                 )
         finally:
             store.set_meta("elapsed", evaluator.elapsed())

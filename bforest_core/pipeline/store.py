@@ -59,6 +59,7 @@ CREATE TABLE IF NOT EXISTS heldout (
     distance  REAL NOT NULL,
     status    TEXT NOT NULL,
     per_set   TEXT,                 -- JSON {set or term:<name>: distance or null}; null in older runs
+    sizes     TEXT,                 -- JSON {statistic: the trees' mean} ([select] sizes); null when not measured
     PRIMARY KEY (scoring, point, seeds)
 );
 """
@@ -716,8 +717,10 @@ class RunStore(RunFiles, _Database):
                     "restore the run's own, or start the run anew with --overwrite"
                 )
             self._make(SCHEMA)
-            if "per_set" not in {r[1] for r in self._sql("PRAGMA table_info(heldout)")}:
-                self._sql("ALTER TABLE heldout ADD COLUMN per_set TEXT")  # a run written before held-out scores kept it
+            have = {r[1] for r in self._sql("PRAGMA table_info(heldout)")}
+            for column in ("per_set", "sizes"):  # a run written before held-out scores kept them
+                if column not in have:
+                    self._sql(f"ALTER TABLE heldout ADD COLUMN {column} TEXT")
         except RunDirError:
             self._con.close()
             raise
@@ -862,21 +865,45 @@ class RunStore(RunFiles, _Database):
     # ------------------------------------------------------------------ held-out scores
     def heldout_scores(self, scoring: str) -> dict[tuple[str, str], dict]:
         """Every kept held-out score of this scoring: ``(point, seeds)`` (both JSON text) ->
-        ``{"distance", "status", "per_set"}`` (``per_set`` None when an older run did not keep it)."""
-        rows = self._sql("SELECT point, seeds, distance, status, per_set FROM heldout WHERE scoring = ?", (scoring,))
+        ``{"distance", "status", "per_set", "sizes"}`` (``per_set`` None when an older run did not
+        keep it, ``sizes`` None when the trees were not measured)."""
+        rows = self._sql(
+            "SELECT point, seeds, distance, status, per_set, sizes FROM heldout WHERE scoring = ?", (scoring,)
+        )
         return {
-            (r[0], r[1]): {"distance": r[2], "status": r[3], "per_set": None if r[4] is None else json.loads(r[4])}
+            (r[0], r[1]): {
+                "distance": r[2],
+                "status": r[3],
+                "per_set": None if r[4] is None else json.loads(r[4]),
+                "sizes": None if r[5] is None else json.loads(r[5]),
+            }
             for r in rows
         }
 
     def add_heldout(
-        self, scoring: str, point: str, seeds: str, distance: float, status: str, per_set: dict | None = None
+        self,
+        scoring: str,
+        point: str,
+        seeds: str,
+        distance: float,
+        status: str,
+        per_set: dict | None = None,
+        sizes: dict | None = None,
     ) -> None:
         """Keep one held-out score as soon as it is known (a killed scoring loses nothing), with
-        its distance per set and per term."""
+        its distance per set and per term, and the trees' measured sizes."""
         self._sql(
-            "INSERT OR REPLACE INTO heldout VALUES (?,?,?,?,?,?)",
-            (scoring, point, seeds, float(distance), status, None if per_set is None else _column(per_set)),
+            "INSERT OR REPLACE INTO heldout (scoring, point, seeds, distance, status, per_set, sizes) "
+            "VALUES (?,?,?,?,?,?,?)",
+            (
+                scoring,
+                point,
+                seeds,
+                float(distance),
+                status,
+                None if per_set is None else _column(per_set),
+                None if sizes is None else _column(sizes),
+            ),
         )
 
     # ------------------------------------------------------------------ optimiser log

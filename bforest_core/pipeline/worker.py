@@ -2,8 +2,8 @@
 
 The executor starts each worker with :func:`init_worker` as initializer (:func:`started_workers`):
 the worker builds its scoring context (:func:`~.scoring.build_scoring`) once, so the target is
-loaded once per worker, never per evaluation. :func:`evaluate_task` and :func:`summary_task` run
-in an initialised worker; a task whose worker dies or is stopped becomes a failed evaluation
+loaded once per worker, never per evaluation. :func:`evaluate_task`, :func:`heldout_task` and
+:func:`summary_task` run in an initialised worker; a task whose worker dies or is stopped becomes a failed evaluation
 (:func:`_lost_task`, the executor's ``on_lost``).
 """
 
@@ -94,7 +94,7 @@ def _task_limit(timeout: float, item) -> float:
     """Seconds a task of ``item`` may run before the process executor stops its worker: each
     of its simulations' ``[objective] timeout`` (the worker's own alarm stops one that runs
     Python code; this stops one stuck in C) plus a margin for scoring."""
-    seeds = item[1] if isinstance(item, tuple) and len(item) == 2 and isinstance(item[1], (list, tuple)) else (0,)
+    seeds = item[1] if isinstance(item, tuple) and len(item) in (2, 3) and isinstance(item[1], (list, tuple)) else (0,)
     return max(1, len(seeds)) * float(timeout) + max(2.0, float(timeout))
 
 
@@ -103,16 +103,9 @@ def _lost_task(penalty: float, names: list, timeout: float | None, fn, item, sta
     ``on_lost``): a failed evaluation with the penalty, no summaries, or the task's own
     ``lost_result``; ``NotImplemented`` (the executor raises) for any other task. A task stopped
     at its time limit ran that long (its ``seconds``); a dead worker's time is not known (0)."""
-    if fn is evaluate_task:
-        return dict(
-            distance=float(penalty),
-            per_set={k: None for k in names},
-            status=status,
-            message=message[:500],
-            seconds=_task_limit(timeout, item) if status == "timeout" and timeout is not None else 0.0,
-            worker="",
-            n_rows={},
-        )
+    if fn is evaluate_task or fn is heldout_task:
+        seconds = _task_limit(timeout, item) if status == "timeout" and timeout is not None else 0.0
+        return _failed(float(penalty), names, status, message[:500], seconds, "")
     if fn is summary_task:
         return None
     hook = getattr(fn, "lost_result", None)
@@ -123,9 +116,25 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
     """Score one parameter vector with K seeds in this worker. Never raises: failures come
     back with a status and the penalty distance."""
     params, seeds = task
+    return _evaluate(params, seeds, ())
+
+
+def heldout_task(task: tuple[dict, list[int], tuple[str, ...]]) -> dict:
+    """:func:`evaluate_task` on held-out seeds, also measuring the grown trees: ``sizes``, the
+    mean over the seeds of each named statistic as the clones' fidelity table measures it
+    (:func:`~bforest_core.attributes.fidelity_statistics`; a failed task has none). What
+    ``[select] sizes`` holds the candidates to."""
+    params, seeds, names = task
+    return _evaluate(params, seeds, tuple(names))
+
+
+def _evaluate(params: dict, seeds, measure: tuple[str, ...]) -> dict:
+    """Grow and score the trees of ``seeds`` (and measure ``measure`` on each)."""
+    from ..attributes import fidelity_statistics
+
     c = worker_context()
     t0 = time.perf_counter()
-    per_seed, n_rows = [], {}
+    per_seed, n_rows, sizes = [], {}, []
     status, message = "ok", ""
     for seed in seeds:
         try:
@@ -134,6 +143,9 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
             per_seed.append(ps)
             for k, v in rows.items():
                 n_rows[k] = n_rows.get(k, 0) + v
+            if measure:
+                m = fidelity_statistics(tree, *c.size_topology)
+                sizes.append([float(m.get(k, np.nan)) for k in measure])
         except SimulationFailed as exc:
             status, message = exc.status, str(exc)
             break
@@ -145,19 +157,10 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
             break
     seconds = time.perf_counter() - t0
     if status != "ok":
-        names = list(c.U_data)
-        return dict(
-            distance=float(c.penalty),
-            per_set={k: None for k in names},
-            status=status,
-            message=message,
-            seconds=seconds,
-            worker=c.worker,
-            n_rows={},
-        )
+        return _failed(float(c.penalty), list(c.U_data), status, message, seconds, c.worker)
     per_set = mean_per_set(per_seed)
     total, values = combine_terms(per_set, c)
-    return dict(
+    out = dict(
         distance=float(total),
         per_set=with_term_values(per_set, values),
         status="ok",
@@ -165,4 +168,20 @@ def evaluate_task(task: tuple[dict, list[int]]) -> dict:
         seconds=seconds,
         worker=c.worker,
         n_rows={k: v // len(seeds) for k, v in n_rows.items()},
+    )
+    if measure:
+        out["sizes"] = dict(zip(measure, np.mean(sizes, axis=0).tolist(), strict=True))
+    return out
+
+
+def _failed(penalty: float, names: list, status: str, message: str, seconds: float, worker: str) -> dict:
+    """A failed evaluation: the penalty, no distances per set."""
+    return dict(
+        distance=penalty,
+        per_set={k: None for k in names},
+        status=status,
+        message=message,
+        seconds=seconds,
+        worker=worker,
+        n_rows={},
     )

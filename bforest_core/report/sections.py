@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from ..interfaces import Posterior
-from ..pipeline.fidelity import BOUND_FRACTION, at_bounds
+from ..metrics import summary_label
+from ..pipeline.fidelity import BOUND_FRACTION, at_bounds, percent
 from ..pipeline.store import RunFiles, clock_warning
 from .document import METRIC_ROWS, Document, cfg_kind, fmt, seconds_text
 from .run_view import RunView
@@ -277,8 +278,8 @@ def section_selection(doc: Document, b: dict) -> None:
             else f", scored on the tables of [select] (features {_part_text(sel['scored_by']['features'])}; "
             f"distance {_part_text(sel['scored_by']['distance'])}) with the objective's other terms"
         )
-        + f"; the answer is the one of lowest held-out distance (evaluation {sel['chosen']}, held out "
-        f"**{fmt(b.get('heldout_distance'))}**, own {fmt(b.get('distance'))})"
+        + f"; the answer is the one of lowest held-out distance{_within_text(sel)} (evaluation {sel['chosen']}, "
+        f"held out **{fmt(b.get('heldout_distance'))}**, own {fmt(b.get('distance'))})"
         + (
             "."
             if sel["chosen"] == own_best
@@ -295,6 +296,7 @@ def section_selection(doc: Document, b: dict) -> None:
             "Each term's held-out value (the mean over the sets that grew) shows which term set the "
             "candidates apart: " + ", ".join(heads) + "."
         )
+    sizes = list((sel.get("sizes") or {}).get("target") or {})
     rows = [
         [
             c["evaluation"],
@@ -302,6 +304,7 @@ def section_selection(doc: Document, b: dict) -> None:
             c["heldout"],
             c["heldout"] - c["own"],
             *(p.get(t) for t in terms),
+            *(percent((c.get("size_errors") or {}).get(k)) for k in sizes),
             c["failed"],
             "answer" if c["evaluation"] == sel["chosen"] else "",
         ]
@@ -314,10 +317,26 @@ def section_selection(doc: Document, b: dict) -> None:
             "held-out distance",
             "held out - own",
             *heads,
+            *(f"held-out {summary_label(k)}" for k in sizes),
             "failed sets",
             "",
         ],
         rows,
+    )
+
+
+def _within_text(sel: dict) -> str:
+    """How ``[select] sizes`` narrowed the candidates, for the sentence naming the answer."""
+    sizes = sel.get("sizes")
+    if not sizes:
+        return ""
+    limits = ", ".join(f"{summary_label(k)} {percent(v, 0).lstrip('+')}" for k, v in sizes["limits"].items())
+    n = sum(bool(c.get("within")) for c in sel["candidates"])
+    if not n:
+        return f" of all, as none kept within [select] sizes ({limits})"
+    return (
+        f" among the {n} whose held-out trees' mean kept within [select] sizes ({limits}; each candidate's "
+        "error of the mean in the table)"
     )
 
 

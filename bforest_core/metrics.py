@@ -244,8 +244,8 @@ SIZE_WEIGHTS = {k: round(1.0 / t, 1) for k, t in SIZE_TOLERANCES.items()}
 SIZE_LIMITS = {k: round(2.0 / 3.0 * t, 2) for k, t in SIZE_TOLERANCES.items()}
 #: what the candidate answers' held-out trees must keep on average to come first (``[select]
 #: sizes``): four fifths of each tolerance, as the mean of 16 held-out trees differs from the mean
-#: of the 30 clones by up to a tenth of the tolerance on 9 in 10 candidates (the SOT pines' short
-#: fits, docs/notes/2026-12-07-select-sizes.md)
+#: of the 30 clones by up to a tenth of the tolerance for 9 in 10 candidates of SOT's short fits on
+#: the pines, a third for LIGNUM's (docs/notes/2026-12-07-select-sizes.md)
 SELECT_SIZES = {k: round(0.8 * t, 3) for k, t in SIZE_TOLERANCES.items()}
 
 #: the statistics of the summary set by default (``tree-summary``): size, stem, crown, branch

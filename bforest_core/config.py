@@ -34,6 +34,7 @@ import pydantic
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
 from .errors import UNION_TAGS, ConfigError, validation_error_text
+from .metrics import checked_fractions
 from .registry import discover
 from .samples import is_sample
 
@@ -345,13 +346,7 @@ class SelectConfig(_Strict):
         "answer (none within: the lowest of all, with a warning)",
     )
 
-    @field_validator("sizes")
-    @classmethod
-    def _fractions(cls, v):
-        bad = {k: x for k, x in v.items() if not 0 < x < 1}
-        if bad:
-            raise ValueError(f"sizes are relative errors between 0 and 1 (exclusive): {bad}")
-        return v
+    _sizes = field_validator("sizes")(lambda cls, v: checked_fractions(v, "sizes"))
 
 
 class StartConfig(_Strict):

@@ -34,6 +34,7 @@ __all__ = [
     "SIZE_WEIGHTS",
     "SIZE_TOLERANCES",
     "SELECT_SIZES",
+    "checked_fractions",
     "SIZE_LIMITS",
     "SUMMARY_UNITS",
     "summary_unit",
@@ -247,6 +248,18 @@ SIZE_LIMITS = {k: round(2.0 / 3.0 * t, 2) for k, t in SIZE_TOLERANCES.items()}
 #: of the 30 clones by up to a tenth of the tolerance for 9 in 10 candidates of SOT's short fits on
 #: the pines, a third for LIGNUM's (docs/notes/2026-12-07-select-sizes.md)
 SELECT_SIZES = {k: round(0.8 * t, 3) for k, t in SIZE_TOLERANCES.items()}
+
+
+def checked_fractions(v: dict, what: str) -> dict:
+    """Check that every relative error of ``v`` (statistic -> error) lies between 0 and 1.
+
+    Returns ``v``; ValueError naming ``what`` and the values at fault otherwise (a config check).
+    """
+    bad = {k: x for k, x in v.items() if not 0 < x < 1}
+    if bad:
+        raise ValueError(f"{what} are relative errors between 0 and 1 (exclusive): {bad}")
+    return v
+
 
 #: the statistics of the summary set by default (``tree-summary``): size, stem, crown, branch
 #: counts and the vertical profile

@@ -17,7 +17,14 @@ import numpy as np
 from pydantic import Field, field_validator, model_validator
 
 from bforest_core.interfaces import ComponentSettings, Distance, FeatureSet, RecipePart, RecipePlan
-from bforest_core.metrics import DETECTION_DIAMETER, SIZE_WEIGHTS, SUMMARY_DEFAULT, ruled_summary, summary_unit
+from bforest_core.metrics import (
+    DETECTION_DIAMETER,
+    SIZE_WEIGHTS,
+    SUMMARY_DEFAULT,
+    checked_fractions,
+    ruled_summary,
+    summary_unit,
+)
 
 SET = "summary"
 #: offset c of the log ratio |log((m + c) / (d + c))| by unit: a count of 0 is fine, a length or
@@ -151,13 +158,7 @@ class SummaryDistanceSettings(ComponentSettings):
         2.0, gt=0, description="largest term of one statistic before a limit's extra (a missing value counts this)"
     )
 
-    @field_validator("limits")
-    @classmethod
-    def _fractions(cls, v):
-        bad = {k: x for k, x in v.items() if not 0 < x < 1}
-        if bad:
-            raise ValueError(f"limits are relative errors between 0 and 1 (exclusive): {bad}")
-        return v
+    _limits = field_validator("limits")(lambda cls, v: checked_fractions(v, "limits"))
 
     @field_validator("weights", "scales")
     @classmethod

@@ -33,14 +33,24 @@ def _type_name(ann) -> str:
     )
 
 
+def _default_text(f) -> str:
+    """A field's default as the reference shows it: an empty container made by a factory as
+    itself (``{}``, ``[]``), any other factory's value as "(computed)"."""
+    if f.default_factory is None:
+        return repr(f.default)
+    try:
+        value = f.default_factory()
+    except TypeError:  # a factory that takes the validated data
+        return "(computed)"
+    return repr(value) if value in ({}, []) else "(computed)"
+
+
 def _fields_table(model) -> list[str]:
     rows = ["| key | type | default | meaning |", "|---|---|---|---|"]
     for name, f in model.model_fields.items():
         if name == "kind":
             continue
-        default = (
-            "required" if f.is_required() else ("(computed)" if f.default_factory is not None else repr(f.default))
-        )
+        default = "required" if f.is_required() else _default_text(f)
         desc = (f.description or "").replace("|", "\\|")
         rows.append(f"| `{name}` | {_type_name(f.annotation)} | {default} | {desc} |")
     return rows

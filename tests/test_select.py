@@ -9,7 +9,7 @@ import pytest
 
 import bforest_core as bf
 from bforest_core.pipeline import heldout as heldout_mod
-from bforest_core.pipeline.heldout import candidates, point_key
+from bforest_core.pipeline.heldout import candidates, heldout_sizes, point_key, size_errors
 from bforest_core.pipeline.scoring import grow_tree
 from bforest_core.pipeline.seeds import heldout_seeds
 from bforest_core.pipeline.store import Evaluation, RunStore
@@ -354,3 +354,23 @@ def test_select_sizes_naming_no_statistic_or_no_fraction_are_refused_before_the_
     with pytest.raises(bf.ConfigError, match=message):
         bf.fit(bf.load_config(p), tmp_path / "run", progress=False)
     assert not (tmp_path / "run").exists()
+
+
+def test_held_out_sizes_average_the_values_the_trees_have_as_the_fidelity_table_does():
+    """A failed set has no sizes; a tree without a value (no DBH below 1.3 m) is left out of that
+    statistic's mean, as the fidelity table leaves such a clone out; no tree with one: NaN, which
+    no size limit holds."""
+    nan = float("nan")
+    known = {
+        ("p", (1,)): {"status": "ok", "sizes": {"height": 10.0, "dbh": 0.10}},
+        ("p", (2,)): {"status": "ok", "sizes": {"height": 12.0, "dbh": nan}},
+        ("p", (3,)): {"status": "error", "sizes": None},
+        ("q", (1,)): {"status": "ok", "sizes": {"height": 9.0, "dbh": nan}},
+        ("r", (1,)): {"status": "error", "sizes": None},
+    }
+    got = heldout_sizes(known, "p", [[1], [2], [3]], ("height", "dbh"))
+    assert got == {"height": 11.0, "dbh": 0.10}
+    assert size_errors(got, {"height": 10.0, "dbh": 0.08}) == pytest.approx({"height": 0.1, "dbh": 0.25})
+    q = heldout_sizes(known, "q", [[1]], ("height", "dbh"))
+    assert q["height"] == 9.0 and np.isnan(q["dbh"])
+    assert heldout_sizes(known, "r", [[1]], ("height",)) is None

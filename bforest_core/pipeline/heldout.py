@@ -51,6 +51,7 @@ __all__ = [
     "score_points",
     "heldout_mean",
     "heldout_parts",
+    "heldout_sizes",
     "target_sizes",
     "size_errors",
     "candidates",
@@ -185,10 +186,18 @@ def size_errors(sizes: dict | None, target: dict[str, float]) -> dict[str, float
     return {k: float(sizes[k]) / v - 1.0 for k, v in target.items()}
 
 
-def _mean_sizes(known: dict, key: str, seed_sets, names) -> dict[str, float] | None:
-    """The mean of each statistic over the sets that grew (None when none grew)."""
+def heldout_sizes(known: dict, key: str, seed_sets, names) -> dict[str, float] | None:
+    """The mean of each statistic over the sets that grew, of the values a tree has (as the
+    fidelity table averages the clones'; NaN when no tree has one; None when none grew)."""
     rows = [r["sizes"] for s in seed_sets if (r := known[(key, tuple(s))])["status"] == "ok" and r.get("sizes")]
-    return {k: float(np.mean([r[k] for r in rows])) for k in names} if rows else None
+    if not rows:
+        return None
+    out = {}
+    for k in names:
+        x = np.array([r[k] for r in rows], float)
+        x = x[np.isfinite(x)]
+        out[k] = float(x.mean()) if x.size else float("nan")
+    return out
 
 
 def candidates(evaluations: list[Evaluation], top: int, lower, upper, names, spacing: float) -> list[Evaluation]:
@@ -248,7 +257,7 @@ def select_answer(cfg: RunConfig, store: RunStore, workers, progress: bool = Fal
     for e in cands:
         key = point_key(e.params)
         h, failed = heldout_mean(known, key, seed_sets)
-        errors = size_errors(_mean_sizes(known, key, seed_sets, measure), target) if measure else None
+        errors = size_errors(heldout_sizes(known, key, seed_sets, measure), target) if measure else None
         rows.append(
             {
                 "evaluation": e.idx,

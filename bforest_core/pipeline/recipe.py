@@ -272,8 +272,8 @@ def _select_text(d: RecipeDraft, parts: dict[str, RecipePart]) -> str:
     sizes = (
         " Candidates whose held-out trees keep, on average, within four fifths of a forester's tolerance of the "
         "tree's height, DBH, crown spread, crown base and first-order branches (sizes) come first: the "
-        "search's own distance, on one model seed, misjudges sizes that 16 held-out trees measure within a "
-        "tenth of the tolerance."
+        "search's own distance, on one model seed, misjudges sizes whose mean the held-out trees measure "
+        "within a tenth (SOT) to a third (LIGNUM) of the tolerance."
         if d.select_sizes
         else ""
     )

@@ -9,6 +9,7 @@ import pytest
 
 import bforest_core as bf
 from bforest_core.pipeline import heldout as heldout_mod
+from bforest_core.pipeline.fidelity import finite_means
 from bforest_core.pipeline.heldout import candidates, heldout_sizes, point_key, size_errors
 from bforest_core.pipeline.scoring import grow_tree
 from bforest_core.pipeline.seeds import heldout_seeds
@@ -374,3 +375,6 @@ def test_held_out_sizes_average_the_values_the_trees_have_as_the_fidelity_table_
     q = heldout_sizes(known, "q", [[1]], ("height", "dbh"))
     assert q["height"] == 9.0 and np.isnan(q["dbh"])
     assert heldout_sizes(known, "r", [[1]], ("height",)) is None
+    # a worker's set of several trees is averaged the same way (heldout_task), by the one rule
+    trees = [{"height": 10.0, "dbh": nan}, {"height": 14.0, "dbh": 0.2}, {"height": 12.0}]
+    assert finite_means(trees, ("height", "dbh")) == {"height": 12.0, "dbh": 0.2}

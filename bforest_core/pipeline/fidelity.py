@@ -58,6 +58,17 @@ def percent(fraction, digits: int = 1) -> str:
 BOUND_FRACTION = 0.05
 
 
+def finite_means(rows: Sequence[Mapping[str, float]], names: Sequence[str]) -> dict[str, float]:
+    """The mean of each statistic over the rows that have a value of it, as the fidelity table
+    averages the clones' (a tree without a DBH is left out of that mean); NaN when none has one."""
+    out = {}
+    for k in names:
+        x = np.array([r.get(k, np.nan) for r in rows], float)
+        x = x[np.isfinite(x)]
+        out[k] = float(x.mean()) if x.size else float("nan")
+    return out
+
+
 def fidelity_table(
     target: Mapping[str, float], clones: Sequence[Mapping[str, float]], units: Mapping[str, str] | None = None
 ) -> list[dict]:

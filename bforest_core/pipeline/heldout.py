@@ -35,6 +35,7 @@ import numpy as np
 
 from ..config import config_to_dict, selection_config
 from ..errors import ConfigError
+from .fidelity import finite_means
 from .progress import progress_bar
 from .scoring import mean_per_set
 from .seeds import heldout_seeds
@@ -187,17 +188,10 @@ def size_errors(sizes: dict | None, target: dict[str, float]) -> dict[str, float
 
 
 def heldout_sizes(known: dict, key: str, seed_sets, names) -> dict[str, float] | None:
-    """The mean of each statistic over the sets that grew, of the values a tree has (as the
-    fidelity table averages the clones'; NaN when no tree has one; None when none grew)."""
+    """The mean of each statistic over the sets that grew, of the values a set has
+    (:func:`~.fidelity.finite_means`; None when none grew)."""
     rows = [r["sizes"] for s in seed_sets if (r := known[(key, tuple(s))])["status"] == "ok" and r.get("sizes")]
-    if not rows:
-        return None
-    out = {}
-    for k in names:
-        x = np.array([r[k] for r in rows], float)
-        x = x[np.isfinite(x)]
-        out[k] = float(x.mean()) if x.size else float("nan")
-    return out
+    return finite_means(rows, names) if rows else None
 
 
 def candidates(evaluations: list[Evaluation], top: int, lower, upper, names, spacing: float) -> list[Evaluation]:

@@ -15,7 +15,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..attributes import fidelity_statistics
 from ..errors import SimulationFailed
+from .fidelity import finite_means
 from .scoring import (
     _MODEL_ERRORS,
     Scoring,
@@ -130,8 +132,6 @@ def heldout_task(task: tuple[dict, list[int], tuple[str, ...]]) -> dict:
 
 def _evaluate(params: dict, seeds, measure: tuple[str, ...]) -> dict:
     """Grow and score the trees of ``seeds`` (and measure ``measure`` on each)."""
-    from ..attributes import fidelity_statistics
-
     c = worker_context()
     t0 = time.perf_counter()
     per_seed, n_rows, sizes = [], {}, []
@@ -144,8 +144,7 @@ def _evaluate(params: dict, seeds, measure: tuple[str, ...]) -> dict:
             for k, v in rows.items():
                 n_rows[k] = n_rows.get(k, 0) + v
             if measure:
-                m = fidelity_statistics(tree, *c.size_topology)
-                sizes.append([float(m.get(k, np.nan)) for k in measure])
+                sizes.append(fidelity_statistics(tree, *c.size_topology))
         except SimulationFailed as exc:
             status, message = exc.status, str(exc)
             break
@@ -170,7 +169,7 @@ def _evaluate(params: dict, seeds, measure: tuple[str, ...]) -> dict:
         n_rows={k: v // len(seeds) for k, v in n_rows.items()},
     )
     if measure:
-        out["sizes"] = dict(zip(measure, np.mean(sizes, axis=0).tolist(), strict=True))
+        out["sizes"] = finite_means(sizes, measure)
     return out
 
 

@@ -14,12 +14,14 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import Field, field_validator
 
+from bforest_core.envelope import CrownEnvelope
 from bforest_core.hookspecs import hookimpl
 from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
 from bforest_core.tree import Tree
 
 from .forms.base import GrowthForm
 from .forms.buds import BudsPerNode
+from .forms.envelope import CrownSpace
 from .forms.leader_death import LeaderDeath
 from .forms.shade import GapShade, StandShade
 from .forms.short_shoots import ShortShoots
@@ -35,6 +37,7 @@ from .recipe import sot_recipe
 FORMS: tuple[type[GrowthForm], ...] = (
     StandShade,
     GapShade,
+    CrownSpace,
     StemGuide,
     BudsPerNode,
     Winding,
@@ -75,6 +78,23 @@ class SOTSettings(ComponentSettings):
         ),
     )
 
+    crown_envelope: dict = Field(
+        default_factory=dict,
+        description=(
+            "an addition to the papers' model: the crown's space of the measured tree (margin, base, top, stem, "
+            "reach: its reach from the stem per height band and azimuth sector, m), outside which the neighbours "
+            "take the share envelope_shade of the light (`bforest init` writes it for a decurrent or one-sided "
+            "crown); empty = none; see docs/growth-forms.md"
+        ),
+    )
+
+    @field_validator("crown_envelope")
+    @classmethod
+    def _envelope(cls, v):
+        if v:
+            CrownEnvelope.from_setting(v)  # ValueError naming the key that is wrong
+        return v
+
     @field_validator("stem_path")
     @classmethod
     def _path(cls, v):
@@ -106,6 +126,7 @@ class SOT(SSM):
     sympodial : bool (False)
     buds_per_node : int (1)
     stem_path : list of (x, y, z) (empty)
+    crown_envelope : dict (empty)
     """
 
     name = "sot"

@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from bforest_core.interfaces import RecipeDraft
+from bforest_core.metrics import ONE_SIDED, TreeMeasures
 from bforest_core.metrics import SIZE_WEIGHTS as TOLERANCE_WEIGHTS
-from bforest_core.metrics import TreeMeasures
 
 from .params import PARAMETERS
 
@@ -36,8 +38,6 @@ ANGLE_TERM = {"angle_o1": 6.7, "angle_iqr_o1": 3.3}
 #: branches (on the Wytham trees and the coffeetree, +33-48 % on 4 of 12 fits at 3.3)
 SIZE_WEIGHTS = {**TOLERANCE_WEIGHTS, "crown_spread": 8.0, "n_branches_o1": 6.7}
 
-#: a crown whose centre lies this share of its radius or more from the stem base is one-sided
-ONE_SIDED = 1.0 / 3.0
 
 #: a stem whose upper half leans this much (deg) or more has bent over into a gap, a form the
 #: model's light and tropism do not grow (``gap_lean`` tried: docs/validation.md): the clones'
@@ -70,6 +70,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
     notes = []
     _one_sided_crown(m, fixed, free)
     _leaning_stem(m, settings, fixed, notes)
+    _crown_space(m, settings, fixed, notes)
     if m.decurrent:
         _decurrent_forms(settings, fixed, free)
     why, suits = _crown_form(m)
@@ -263,6 +264,45 @@ def _leaning_stem(m: TreeMeasures, settings: list, fixed: list, notes: list) -> 
     fixed.append(("stem_guide", 1.0, "the stem grows along stem_path, as this tree's stem grew"))
     if m.decurrent:
         fixed.append(("stem_death", 0.0, "the stem's leader lives: the path already holds the tree's forks"))
+
+
+def crown_space_why(m: TreeMeasures) -> str | None:
+    """Why the clones grow in the tree's crown space (which of its crown's forms asks for it), or
+    None for a crown that is neither decurrent nor one-sided (a conifer's, whose leader and whorls
+    set its form in any stand)."""
+    if not m.envelope or not (m.decurrent or m.one_sided):
+        return None
+    side = float(np.hypot(*m.crown_side))
+    az = float(np.degrees(np.arctan2(m.crown_side[1], m.crown_side[0])))
+    which = []
+    if m.decurrent:
+        which.append(f"decurrent (its limbs hold {m.limb_ratio:.1f} x the stem's wood in the crown)")
+    if m.one_sided:
+        which.append(f"one-sided (its centre lies {side:.2f} crown radii off the stem, towards {az:.0f} deg)")
+    return (
+        f"the crown is {' and '.join(which)}: a broadleaved crown in a wood fills the space its neighbours "
+        "left it, where the model grows into an open world; the clones grow in this tree's crown space "
+        f"(crown_envelope: its reach from the stem in {len(m.envelope['reach'][0])} directions at "
+        f"{len(m.envelope['reach'])} heights, plus a margin of {m.envelope['margin']:g} m), where buds outside "
+        "get no light and their shoots are shed (docs/growth-forms.md)"
+    )
+
+
+def _crown_space(m: TreeMeasures, settings: list, fixed: list, notes: list) -> None:
+    """The tree's crown space for a decurrent or one-sided crown (docs/growth-forms.md)."""
+    why = crown_space_why(m)
+    if why is None:
+        return
+    notes.append(why)
+    settings.append(
+        (
+            "crown_envelope",
+            m.envelope,
+            "the crown's space measured from the QSM: margin, crown base and top (m), the stem's (x, y) at "
+            "each band edge, and per height band the crown's reach from the stem in each sector from -180 deg",
+        )
+    )
+    fixed.append(("envelope_shade", 1.0, "no light outside the crown's space: the neighbours' (crown_envelope)"))
 
 
 def _decurrent_forms(settings: list, fixed: list, free: list) -> None:

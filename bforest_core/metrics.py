@@ -339,6 +339,7 @@ SUMMARY_UNITS = {
     "crown_length": "m",
     "crown_ratio": "fraction",
     "crown_volume_conv": "m^3",
+    "crown_offset": "crown radii",
 }
 #: share of the living first-order branch length that may lie below the crown base
 CROWN_BASE_SHARE = 0.05
@@ -378,6 +379,10 @@ DEFINITIONS = {
     "crown_diameter_mean": "crown diameter, mean: TreeQSM's, the mean of 18 diameters through the centre of "
     "the crown's outline seen from above (each the farthest branch tip in a 10 deg sector plus the "
     "farthest in the opposite one)",
+    "crown_offset": "crown's offset from its stem: the horizontal vector from the stem, taken at the height of "
+    "the crown's centre, to the centre of the branches above the crown base (weighted by wood volume), in "
+    "crown radii (half the crown spread), and its direction counter-clockwise from +x; its error is the "
+    "distance from the clones' mean vector to the target's",
 }
 
 
@@ -429,6 +434,9 @@ def summary_label(name: str, bands: int = 5) -> str:
         "crown_length": "crown length",
         "crown_ratio": "crown ratio",
         "crown_volume_conv": "crown volume (convex hull)",
+        "crown_offset": "crown's offset from its stem",
+        "crown_offset_x": "crown's offset from its stem, x",
+        "crown_offset_y": "crown's offset from its stem, y",
     }
     if name in fixed:
         return fixed[name]

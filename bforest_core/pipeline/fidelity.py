@@ -36,6 +36,15 @@ LIMITS = {
     "stem_length": 0.30,
 }
 BRANCH_COUNT_LIMIT = 0.30
+#: the crown's side: the clones' mean crown offset (a vector from the stem, in crown radii,
+#: :func:`bforest_core.metrics.crown_offset`) may lie this far from the tree's; seen from above,
+#: a half-moon crown 0.9 radii off its stem and clones whose crowns sit all around theirs (0.2-0.4
+#: radii off, every way) differ by more (issue 77)
+CROWN_OFFSET_LIMIT = 0.25
+#: statistics that are vectors: their name in the table -> their components in a summary; their
+#: error is the distance from the clones' mean vector to the tree's, in their unit (not a fraction)
+VECTORS = {"crown_offset": ("crown_offset_x", "crown_offset_y")}
+LIMITS["crown_offset"] = CROWN_OFFSET_LIMIT
 
 
 def limit_of(name: str):
@@ -83,7 +92,12 @@ def fidelity_table(
     """
     units = dict(units or {})
     rows = []
+    parts = {c: name for name, cs in VECTORS.items() for c in cs}
     for name, tv in target.items():
+        if name in parts:
+            if name == VECTORS[parts[name]][0]:
+                rows += _vector_row(parts[name], target, clones, units)
+            continue
         x = np.array([c[name] for c in clones if c.get(name) is not None], float)
         x = x[np.isfinite(x)]
         if tv is None or not np.isfinite(tv) or x.size == 0:
@@ -108,6 +122,60 @@ def fidelity_table(
             }
         )
     return rows
+
+
+def _vector_row(name: str, target: Mapping[str, float], clones: Sequence[Mapping[str, float]], units) -> list[dict]:
+    """The row of a vector statistic (:data:`VECTORS`): its size and direction for the tree and for
+    the clones' mean vector, its error the distance between the two (none without values)."""
+    keys = VECTORS[name]
+    tv = np.array([target.get(k, np.nan) for k in keys], float)
+    x = np.array([[c.get(k, np.nan) for k in keys] for c in clones], float).reshape(-1, len(keys))
+    x = x[np.isfinite(x).all(axis=1)]
+    if not np.isfinite(tv).all() or x.size == 0:
+        return []
+    mean = x.mean(axis=0)
+    size = np.hypot(x[:, 0], x[:, 1])
+    err = float(np.hypot(*(mean - tv)))
+    lim = limit_of(name)
+    return [
+        {
+            "statistic": name,
+            "label": summary_label(name),
+            "unit": units[name] if name in units else summary_unit(name),
+            "target": float(np.hypot(*tv)),
+            "mean": float(np.hypot(*mean)),
+            "sd": float(size.std(ddof=1)) if size.size > 1 else 0.0,
+            "p5": float(np.percentile(size, 5)),
+            "p95": float(np.percentile(size, 95)),
+            "n": int(size.size),
+            "error": err,
+            "difference": True,
+            "target_azimuth": _azimuth(tv),
+            "mean_azimuth": _azimuth(mean),
+            "limit": lim,
+            "warn": bool(lim is not None and err > lim),
+        }
+    ]
+
+
+def _azimuth(v) -> float:
+    """The direction of a horizontal vector, deg counter-clockwise from +x."""
+    return float(np.degrees(np.arctan2(v[1], v[0])))
+
+
+def error_text(r: Mapping) -> str:
+    """A row's error as every table shows it: a relative error in percent, a vector's distance in its unit."""
+    if r.get("difference"):
+        return "–" if r["error"] is None else f"{r['error']:.2f}"
+    return percent(r["error"])
+
+
+def limit_text(r: Mapping) -> str:
+    """A row's limit as every table shows it (``–`` for none)."""
+    lim = r.get("limit", limit_of(r["statistic"]))
+    if lim is None:
+        return "–"
+    return f"{lim:g}" if r.get("difference") else f"±{100 * lim:g} %"
 
 
 def at_bounds(
@@ -147,6 +215,14 @@ def fidelity_warnings(rows: Sequence[Mapping], limits: Mapping[str, float] | Non
         lim = (limits or {}).get(r["statistic"], limit_of(r["statistic"]))
         if lim is not None and r["error"] is not None and abs(r["error"]) > lim:
             u = f" {r['unit']}" if r.get("unit") and r["unit"] != "count" else ""
+            if r.get("difference"):
+                out.append(
+                    f"the clones' crowns lie on another side of their stems than the target's [{r['statistic']}]: "
+                    f"their mean offset, {r['mean']:.2f}{u} towards {r['mean_azimuth']:.0f} deg, lies "
+                    f"{r['error']:.2f}{u} from the target's {r['target']:.2f}{u} towards {r['target_azimuth']:.0f} deg "
+                    f"(limit {lim:g}{u})"
+                )
+                continue
             out.append(
                 f"clones miss the target's {r.get('label') or summary_label(r['statistic'])} "
                 f"[{r['statistic']}]: mean {r['mean']:.3g}{u} vs {r['target']:.3g}{u} "
@@ -170,12 +246,12 @@ def fidelity_text(rows: Sequence[Mapping], flags: Sequence[str] = (), warnings: 
         f"{'statistic':<{_LABEL}}{'unit':>6}{'target':>10}{'clones':>10}{'5-95 % band':>18}{'error':>9}{'limit':>8}"
     ]
     for r in rows:
-        lim = r.get("limit", limit_of(r["statistic"]))
+        lim = limit_text(r)
         mark = " !" if r.get("warn") else ""
-        label = textwrap.wrap(r.get("label") or r["statistic"], _LABEL - 1) or [r["statistic"]]
+        label = textwrap.wrap(row_label(r), _LABEL - 1) or [r["statistic"]]
         lines.append(
-            f"{label[0]:<{_LABEL}}{r['unit']:>6}{_num(r['target']):>10}{_num(r['mean']):>10}{_band(r):>18}"
-            f"{percent(r['error']):>9}{'' if lim is None else f'±{100 * lim:g} %':>8}{mark}"
+            f"{label[0]:<{_LABEL}}{_unit(r):>6}{_num(r['target']):>10}{_num(r['mean']):>10}{_band(r):>18}"
+            f"{error_text(r):>9}{'' if lim == '–' else lim:>8}{mark}"
         )
         lines += [f"  {more}" for more in label[1:]]
     said = [summary_definition(r["statistic"]) for r in rows]
@@ -184,6 +260,19 @@ def fidelity_text(rows: Sequence[Mapping], flags: Sequence[str] = (), warnings: 
     for text in notes:
         lines += textwrap.wrap(text, TEXT_WIDTH, subsequent_indent="  ")
     return "\n".join(lines)
+
+
+def row_label(r: Mapping) -> str:
+    """A row's label; a vector's with the tree's and the clones' directions."""
+    label = r.get("label") or r["statistic"]
+    if r.get("difference"):
+        label += f" (towards {r['target_azimuth']:.0f} deg; clones {r['mean_azimuth']:.0f} deg)"
+    return label
+
+
+def _unit(r: Mapping) -> str:
+    """A row's unit in the terminal's narrow column."""
+    return "radii" if r["unit"] == "crown radii" else r["unit"]
 
 
 def _band(r: Mapping) -> str:

@@ -180,8 +180,8 @@ class CrownEnvelope:
             Points in the tree's frame (stem base at the origin).
         stem : (k, 3) array_like, optional
             The growing tree's own stem, points (x, y, z) from its base: within the margin of it
-            (at each point's height, and up to the margin above its top) the light falls off as
-            beyond the envelope's reach, and the larger of the two holds.
+            (at each point's height, and up to the margin above its top, not above the envelope's)
+            the light falls off as beyond the envelope's reach, and the larger of the two holds.
 
         Returns
         -------
@@ -193,7 +193,7 @@ class CrownEnvelope:
         if stem is not None:  # the growing tree's own stem: a corridor of the margin's width
             path = np.asarray(stem, dtype=np.float64).reshape(-1, 3)
             d = p[:, :2] - path_at(path, p[:, 2])[:, :2]
-            corridor = self._fall(np.hypot(d[:, 0], d[:, 1])) * self._fall(p[:, 2] - path[:, 2].max())
+            corridor = self._fall(np.hypot(d[:, 0], d[:, 1])) * self._fall(p[:, 2] - min(path[:, 2].max(), self.top))
             f = np.maximum(f, corridor)
         return f
 

@@ -77,6 +77,11 @@ def test_the_envelope_of_a_hand_built_tree_has_its_known_extent():
     assert e.light([[0.0, -0.2, 7.0]]) == pytest.approx([0.6])
     assert e.light([[1.0, -0.2, 7.0]]) == pytest.approx([0.0])
     assert e.light([[1.0, -0.2, 7.0]], stem=[[0, 0, 0], [1.0, 0, 10]])[0] > 0.0
+    # ... up to the margin above its top, and not above the envelope's top
+    assert e.light([[0.0, -2.0, 5.0], [0.0, -2.0, 5.3], [0.0, -2.0, 5.6]], stem=[[0, 0, 0], [0, -2, 5]]) == (
+        pytest.approx([1.0, 0.4, 0.0])
+    )
+    assert e.light([[0.0, -2.0, 10.5]], stem=[[0, 0, 0], [0, -2, 12]])[0] == 0.0
     # its outline at 4.1 m: 3.5 m towards +x, the margin elsewhere
     ring = e.outline(4.1)
     assert np.hypot(*ring.T).max() == pytest.approx(3.5) and np.hypot(*ring.T).min() == pytest.approx(0.5)

@@ -844,6 +844,31 @@ class TreeMeasures:
         """True when the stem divides into limbs (see :data:`DECURRENT_LIMB_RATIO`)."""
         return self.limb_ratio > DECURRENT_LIMB_RATIO
 
+    def crown_space_why(self) -> str | None:
+        """Say why a recipe grows this tree's clones in its crown space, or None.
+
+        A crown that is decurrent or one-sided (which, and by how much) is one a wood shaped; a
+        conifer's excurrent crown all around its stem is set by its leader and whorls in any
+        stand, and gets None.
+        """
+        if not self.envelope or not (self.decurrent or self.one_sided):
+            return None
+        side = float(np.hypot(*self.crown_side))
+        az = float(np.degrees(np.arctan2(self.crown_side[1], self.crown_side[0])))
+        which = []
+        if self.decurrent:
+            which.append(f"decurrent (its limbs hold {self.limb_ratio:.1f} x the stem's wood in the crown)")
+        if self.one_sided:
+            which.append(f"one-sided (its centre lies {side:.2f} crown radii off the stem, towards {az:.0f} deg)")
+        reach = self.envelope["reach"]
+        return (
+            f"the crown is {' and '.join(which)}: a broadleaved crown in a wood fills the space its neighbours "
+            "left it, where a growth model grows into an open world; the clones grow in this tree's crown space "
+            f"(crown_envelope: its reach from the stem in {len(reach[0])} directions at {len(reach)} heights, "
+            f"plus a margin of {self.envelope['margin']:g} m), where buds outside get no light and their shoots "
+            "are shed (docs/growth-forms.md)"
+        )
+
     @property
     def one_sided(self) -> bool:
         """True when the crown lies a third of its radius or more to one side of its stem.

@@ -686,6 +686,9 @@ def test_crown_space_grows_the_crown_in_the_envelope_and_keeps_trees_without_it(
         assert _same_tree(t, inside.simulate({**base, "envelope_shade": 1.0}, seed))  # no draws of its own
     with pytest.raises(ValueError, match="envelope_shade"):
         inside.simulate({**base, "envelope_shade": 1.5}, 1)
+    # what the report draws: the envelope the trees grew in, none when it shades nothing
+    assert np.array_equal(inside.crown_space({"envelope_shade": 1.0}).reach, env.reach)
+    assert inside.crown_space({}) is None and ssm.crown_space({"envelope_shade": 1.0}) is None
 
 
 def _same_tree(a, b):

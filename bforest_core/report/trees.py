@@ -562,6 +562,7 @@ def fig_clones(v: RunView):
     k = v.cfg.report.clones_in_figure if v.cfg is not None else 6
     shown = v.clone_trees(k)
     if shown and v.target_tree is not None:
+        space, words = v.crown_space
         out.append(
             (
                 clones_figure(
@@ -569,9 +570,12 @@ def fig_clones(v: RunView):
                     shown,
                     v.store.figures_dir / "clones.png",
                     title=f"Target and {len(shown)} morphological clones of the best fit",
+                    envelope=space,
+                    envelope_label=words,
                 ),
                 f"The target and {len(shown)} clones (the best-fit model with fresh seeds) on one scale, "
-                "side view XZ and top view XY",
+                "side view XZ and top view XY"
+                + (f"; dashed: {words} (docs/growth-forms.md, the crown's space)" if space is not None else ""),
             )
         )
     keys = ("height", "girth", "crown_spread", "distance", "d_h", "d_g", "d_c", "n_cylinders")

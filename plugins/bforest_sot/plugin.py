@@ -139,6 +139,15 @@ class SOT(SSM):
     def parameters(self) -> list[ParameterSpec]:
         return list(model_parameters(self.forms))
 
+    def crown_space(self, params):
+        """The measured crown's space (``crown_envelope``) when ``envelope_shade`` shades outside it."""
+        shade = self.resolve_params(params)["envelope_shade"]
+        return (
+            CrownEnvelope.from_setting(self.settings.crown_envelope)
+            if shade > 0 and self.settings.crown_envelope
+            else None
+        )
+
     def draft_recipe(self, measures):
         """SOT's recipe for a measured tree (:func:`bforest_sot.recipe.sot_recipe`)."""
         return sot_recipe(measures)

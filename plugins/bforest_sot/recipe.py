@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from bforest_core.interfaces import RecipeDraft
 from bforest_core.metrics import ONE_SIDED, TreeMeasures
 from bforest_core.metrics import SIZE_WEIGHTS as TOLERANCE_WEIGHTS
@@ -266,31 +264,9 @@ def _leaning_stem(m: TreeMeasures, settings: list, fixed: list, notes: list) -> 
         fixed.append(("stem_death", 0.0, "the stem's leader lives: the path already holds the tree's forks"))
 
 
-def crown_space_why(m: TreeMeasures) -> str | None:
-    """Why the clones grow in the tree's crown space (which of its crown's forms asks for it), or
-    None for a crown that is neither decurrent nor one-sided (a conifer's, whose leader and whorls
-    set its form in any stand)."""
-    if not m.envelope or not (m.decurrent or m.one_sided):
-        return None
-    side = float(np.hypot(*m.crown_side))
-    az = float(np.degrees(np.arctan2(m.crown_side[1], m.crown_side[0])))
-    which = []
-    if m.decurrent:
-        which.append(f"decurrent (its limbs hold {m.limb_ratio:.1f} x the stem's wood in the crown)")
-    if m.one_sided:
-        which.append(f"one-sided (its centre lies {side:.2f} crown radii off the stem, towards {az:.0f} deg)")
-    return (
-        f"the crown is {' and '.join(which)}: a broadleaved crown in a wood fills the space its neighbours "
-        "left it, where the model grows into an open world; the clones grow in this tree's crown space "
-        f"(crown_envelope: its reach from the stem in {len(m.envelope['reach'][0])} directions at "
-        f"{len(m.envelope['reach'])} heights, plus a margin of {m.envelope['margin']:g} m), where buds outside "
-        "get no light and their shoots are shed (docs/growth-forms.md)"
-    )
-
-
 def _crown_space(m: TreeMeasures, settings: list, fixed: list, notes: list) -> None:
     """The tree's crown space for a decurrent or one-sided crown (docs/growth-forms.md)."""
-    why = crown_space_why(m)
+    why = m.crown_space_why()
     if why is None:
         return
     notes.append(why)

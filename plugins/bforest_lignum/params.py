@@ -46,6 +46,19 @@ PARAMETERS: list[ParameterSpec] = [
         "light",
     ),
     P(
+        "envelope_shade",
+        0.0,
+        0.0,
+        1.0,
+        False,
+        "",
+        "[-] an addition: the share of the light the neighbours take outside the crown's envelope (the "
+        "setting crown_envelope, the space the measured tree's crown fills): I times 1 - envelope_shade (1 - "
+        "the envelope's light there); 1 = no light outside (its buds stay dormant), 0 (or no crown_envelope) "
+        "= the papers' model",
+        "light",
+    ),
+    P(
         "r_env_mean",
         1.33,
         0.1,
@@ -191,6 +204,7 @@ _P98 = dict(
     shadow_len=0.55,
     voxel_size=0.01,
     stand_shade=0.0,
+    envelope_shade=0.0,
     r_env_mean=1.33,
     r_env_sd=0.0,
     lr_mean=0.01,
@@ -399,6 +413,7 @@ def validate(p: Mapping[str, float]) -> None:
     need(0 <= p["heartwood_share"] < 1, "heartwood_share", "must lie in [0, 1)")
     need(0 <= p["fl_threshold"] < 1, "fl_threshold", "must lie in [0, 1)")
     need(0 <= p["fl_min_buds"] <= 1, "fl_min_buds", "must lie in [0, 1]")
+    need(0 <= p["envelope_shade"] <= 1, "envelope_shade", "must lie in [0, 1]")
     need(p["shed_dist"] in (0, 1, 2), "shed_dist", "must be 0, 1 or 2")
     need(p["bud_table"] in (0, 1), "bud_table", "must be 0 (p98) or 1 (s08)")
     need(

@@ -5,8 +5,9 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
+from bforest_core.envelope import CrownEnvelope
 from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
 from bforest_core.tree import Tree
 
@@ -32,6 +33,9 @@ class LignumSettings(ComponentSettings):
         branch as short cylinders, each bent by the parameter ``wind_sd``; the growth is
         unchanged (0 = one cylinder per shoot). A setting, not a parameter: it changes only how
         the tree is drawn, and no fit varies it.
+    crown_envelope : dict
+        The measured tree's crown space (:class:`bforest_core.envelope.CrownEnvelope` as a
+        setting), outside which the parameter ``envelope_shade`` takes the light; empty = none.
     """
 
     preset: Literal["sf_synthetic", "sf_real", "p98", "s08", "sf_test16"] = "sf_synthetic"
@@ -45,6 +49,19 @@ class LignumSettings(ComponentSettings):
         "scan's QSM draws a branch as short cylinders, bent by the parameter wind_sd; the growth is "
         "unchanged (0 = one cylinder per shoot)",
     )
+    crown_envelope: dict = Field(
+        default_factory=dict,
+        description="an addition: the crown's space of the measured tree (margin, base, top, stem, reach: "
+        "its reach from the stem per height band and azimuth sector, m), outside which the neighbours take "
+        "the share envelope_shade of the light; empty = none; see docs/growth-forms.md",
+    )
+
+    @field_validator("crown_envelope")
+    @classmethod
+    def _envelope(cls, v):
+        if v:
+            CrownEnvelope.from_setting(v)  # ValueError naming the key that is wrong
+        return v
 
 
 class LignumSSM(SSM):
@@ -65,6 +82,15 @@ class LignumSSM(SSM):
     def parameters(self) -> list[ParameterSpec]:
         """Parameter specs of A.3 with the current preset's values as defaults."""
         return P.parameter_specs(self.settings.preset)
+
+    def crown_space(self, params):
+        """The measured crown's space (``crown_envelope``) when ``envelope_shade`` shades outside it."""
+        shade = self.resolve_params(params)["envelope_shade"]
+        return (
+            CrownEnvelope.from_setting(self.settings.crown_envelope)
+            if shade > 0 and self.settings.crown_envelope
+            else None
+        )
 
     def draft_recipe(self, measures):
         """LIGNUM's recipe for a measured tree (:func:`bforest_lignum.recipe.lignum_recipe`)."""

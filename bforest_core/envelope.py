@@ -54,8 +54,13 @@ SECTORS = 16
 MARGIN_SHARE = 0.10
 #: cylinders are sampled along their axes every this share of the crown radius
 STEP_SHARE = 1.0 / 40.0
-#: the keys of the envelope as a setting (:meth:`CrownEnvelope.setting`)
+#: the keys of the envelope as a setting (:meth:`CrownEnvelope.setting`), and what they hold
 KEYS = ("margin", "base", "top", "stem", "reach")
+SETTING_WHAT = (
+    "the crown's space measured from the QSM: the margin, the crown base and the top (m above the stem "
+    "base), the stem's (x, y) at each band edge, and for each height band from the base up the crown's reach "
+    "from the stem (m) in each azimuth sector from -180 deg, counter-clockwise"
+)
 
 
 @dataclass(frozen=True)

@@ -185,6 +185,10 @@ def measured_lines(m: TreeMeasures) -> list[str]:
         "counter-clockwise from the file's +x axis "
         f"({m.crown_offset / max(0.5 * m.crown_spread, 1e-9):.2f} crown radii); "
         f"the stem's upper half leans {m.stem_lean:.0f} deg",
+        f"the crown's offset from its stem (at its centre's height, by wood volume): "
+        f"{math.hypot(*m.crown_side):.2f} crown radii towards "
+        f"{math.degrees(math.atan2(m.crown_side[1], m.crown_side[0])):.0f} deg"
+        + (" (one-sided)" if m.one_sided else ""),
     ]
 
 

@@ -8,6 +8,7 @@ are those that meet the robust-fit limits on the Ruotsinkylä pines (docs/valida
 
 from __future__ import annotations
 
+from bforest_core.envelope import SETTING_WHAT
 from bforest_core.interfaces import RecipeDraft
 from bforest_core.metrics import SIZE_LIMITS, TreeMeasures
 
@@ -135,7 +136,7 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
     space = m.crown_space_why()
     if space is not None:  # the crown's space, as SOT's recipe writes it
         notes.append(space)
-        settings.append(("crown_envelope", m.envelope, "the crown's space measured from the QSM"))
+        settings.append(("crown_envelope", m.envelope, f"Why: {space}. What: {SETTING_WHAT}."))
         fixed.append(("envelope_shade", 1.0, "no light outside the crown's space: the neighbours' (crown_envelope)"))
     return RecipeDraft(
         suits=suits,

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 
+from bforest_core.envelope import SETTING_WHAT
 from bforest_core.interfaces import RecipeDraft
 from bforest_core.metrics import ONE_SIDED, TreeMeasures
 from bforest_core.metrics import SIZE_WEIGHTS as TOLERANCE_WEIGHTS
@@ -270,14 +271,7 @@ def _crown_space(m: TreeMeasures, settings: list, fixed: list, notes: list) -> N
     if why is None:
         return
     notes.append(why)
-    settings.append(
-        (
-            "crown_envelope",
-            m.envelope,
-            "the crown's space measured from the QSM: margin, crown base and top (m), the stem's (x, y) at "
-            "each band edge, and per height band the crown's reach from the stem in each sector from -180 deg",
-        )
-    )
+    settings.append(("crown_envelope", m.envelope, f"Why: {why}. What: {SETTING_WHAT}."))
     fixed.append(("envelope_shade", 1.0, "no light outside the crown's space: the neighbours' (crown_envelope)"))
 
 

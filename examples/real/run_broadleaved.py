@@ -17,6 +17,7 @@ Usage (from the repository root; the trees are read from ../shared/data/qsm)::
 
 ``--edit`` probes a variant of init's recipe without editing init (a line added to ``[ssm]``, or a
 text replaced), into a folder of its own.
+
 The whole section (the six broadleaved trees with run seeds 1-3, the three pines with run seeds
 1-5, the judge's floor, the figures and the page), one fit at a time::
 

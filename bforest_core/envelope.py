@@ -41,10 +41,12 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
+from pydantic import AfterValidator
 
-__all__ = ["BANDS", "SECTORS", "MARGIN_SHARE", "STEP_SHARE", "CrownEnvelope", "path_at", "stem_at"]
+__all__ = ["BANDS", "SECTORS", "MARGIN_SHARE", "STEP_SHARE", "CrownEnvelope", "grown_in", "path_at", "stem_at"]
 
 #: height bands of the crown, from the crown base to the top
 BANDS = 8
@@ -282,6 +284,41 @@ class CrownEnvelope:
                 f"crown envelope base and top: heights with 0 <= base < top (m), got {value['base']!r}, {value['top']!r}"
             )
         return cls(float(num["margin"]), float(num["base"]), float(num["top"]), stem, reach)
+
+
+#: the parameter ``envelope_shade`` of a growth model (a ``ParameterSpec``'s name, default, range
+#: and unit), and what it means (each model says where it takes the light, and its group)
+SHADE_SPEC = {"name": "envelope_shade", "default": 0.0, "lower": 0.0, "upper": 1.0, "integer": False, "unit": ""}
+SHADE_MEANING = (
+    "an addition: the share of the light the neighbours take outside the crown's envelope (the setting "
+    "crown_envelope, the space the measured tree's crown fills)"
+)
+
+
+def _checked(value: dict) -> dict:
+    if value:
+        CrownEnvelope.from_setting(value)  # ValueError naming the key that is wrong
+    return value
+
+
+#: a growth model's setting ``crown_envelope`` (pydantic): a crown's space as :meth:`CrownEnvelope.setting`
+#: writes it, checked when the settings are read; empty = none
+EnvelopeSetting = Annotated[dict, AfterValidator(_checked)]
+#: its description in the model's settings
+SETTING_DESCRIPTION = (
+    "an addition: the crown's space of the measured tree (margin, base, top, stem, reach: its reach from the "
+    "stem per height band and azimuth sector, m), outside which the neighbours take the share envelope_shade "
+    "of the light (`bforest init` writes it for a decurrent or one-sided crown); empty = none; see "
+    "docs/growth-forms.md"
+)
+
+
+def grown_in(setting: Mapping, shade: float) -> CrownEnvelope | None:
+    """Return the crown's space a model grows in, or None (an open world).
+
+    The envelope of its ``crown_envelope`` setting when its ``envelope_shade`` takes light outside it.
+    """
+    return CrownEnvelope.from_setting(setting) if shade > 0 and setting else None
 
 
 def path_at(path: np.ndarray, heights) -> np.ndarray:

@@ -122,6 +122,7 @@ def crown_offset(tree) -> np.ndarray:
     Parameters
     ----------
     tree : Tree
+        A QSM, or a model's tree (its stem: its branch 0).
 
     Returns
     -------

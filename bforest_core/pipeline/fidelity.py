@@ -103,25 +103,29 @@ def fidelity_table(
         if tv is None or not np.isfinite(tv) or x.size == 0:
             continue
         mean = float(x.mean())
-        err = (mean - tv) / tv if tv != 0 else None
-        lim = limit_of(name)
-        rows.append(
-            {
-                "statistic": name,
-                "label": summary_label(name),
-                "unit": units[name] if name in units else summary_unit(name),
-                "target": float(tv),
-                "mean": mean,
-                "sd": float(x.std(ddof=1)) if x.size > 1 else 0.0,
-                "p5": float(np.percentile(x, 5)),
-                "p95": float(np.percentile(x, 95)),
-                "n": int(x.size),
-                "error": err,
-                "limit": lim,
-                "warn": bool(err is not None and lim is not None and abs(err) > lim),
-            }
-        )
+        rows.append(_row(name, units, float(tv), mean, x, (mean - tv) / tv if tv != 0 else None))
     return rows
+
+
+def _row(name: str, units, target: float, mean: float, x: np.ndarray, err, **more) -> dict:
+    """A row of the table: the target's value and the clones' mean, the sd and 5-95 % band of the
+    clones' values ``x``, the error and the limit."""
+    lim = limit_of(name)
+    return {
+        "statistic": name,
+        "label": summary_label(name),
+        "unit": units[name] if name in units else summary_unit(name),
+        "target": target,
+        "mean": mean,
+        "sd": float(x.std(ddof=1)) if x.size > 1 else 0.0,
+        "p5": float(np.percentile(x, 5)),
+        "p95": float(np.percentile(x, 95)),
+        "n": int(x.size),
+        "error": err,
+        **more,
+        "limit": lim,
+        "warn": bool(err is not None and lim is not None and abs(err) > lim),
+    }
 
 
 def _vector_row(name: str, target: Mapping[str, float], clones: Sequence[Mapping[str, float]], units) -> list[dict]:
@@ -134,28 +138,10 @@ def _vector_row(name: str, target: Mapping[str, float], clones: Sequence[Mapping
     if not np.isfinite(tv).all() or x.size == 0:
         return []
     mean = x.mean(axis=0)
-    size = np.hypot(x[:, 0], x[:, 1])
     err = float(np.hypot(*(mean - tv)))
-    lim = limit_of(name)
-    return [
-        {
-            "statistic": name,
-            "label": summary_label(name),
-            "unit": units[name] if name in units else summary_unit(name),
-            "target": float(np.hypot(*tv)),
-            "mean": float(np.hypot(*mean)),
-            "sd": float(size.std(ddof=1)) if size.size > 1 else 0.0,
-            "p5": float(np.percentile(size, 5)),
-            "p95": float(np.percentile(size, 95)),
-            "n": int(size.size),
-            "error": err,
-            "difference": True,
-            "target_azimuth": _azimuth(tv),
-            "mean_azimuth": _azimuth(mean),
-            "limit": lim,
-            "warn": bool(lim is not None and err > lim),
-        }
-    ]
+    size = np.hypot(x[:, 0], x[:, 1])
+    more = {"difference": True, "target_azimuth": _azimuth(tv), "mean_azimuth": _azimuth(mean)}
+    return [_row(name, units, float(np.hypot(*tv)), float(np.hypot(*mean)), size, err, **more)]
 
 
 def _azimuth(v) -> float:

@@ -47,7 +47,7 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.special import ndtr, ndtri
 
-from bforest_core.envelope import CrownEnvelope
+from bforest_core.envelope import grown_in
 from bforest_core.errors import SimulationFailed
 from bforest_core.tree import Tree, group_by_level, remap_ids
 
@@ -410,11 +410,7 @@ class _Simulation:
         self.g_ref = 0.0  # angle of the trunk-whorl reference direction from +x (rad)
         self.year = 0
         #: the crown's space (``envelope_shade`` with the setting ``crown_envelope``), or None
-        self.envelope = (
-            CrownEnvelope.from_setting(settings.crown_envelope)
-            if p["envelope_shade"] > 0.0 and settings.crown_envelope
-            else None
-        )
+        self.envelope = grown_in(settings.crown_envelope, p["envelope_shade"])
 
     # -------------------------------------------------------------- output
     def to_tree(self, status: str, t: int) -> Tree:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 
+from bforest_core.envelope import SHADE_MEANING, SHADE_SPEC
 from bforest_core.interfaces import ParameterSpec
 
 P = ParameterSpec
@@ -46,17 +47,10 @@ PARAMETERS: list[ParameterSpec] = [
         "light",
     ),
     P(
-        "envelope_shade",
-        0.0,
-        0.0,
-        1.0,
-        False,
-        "",
-        "[-] an addition: the share of the light the neighbours take outside the crown's envelope (the "
-        "setting crown_envelope, the space the measured tree's crown fills): I times 1 - envelope_shade (1 - "
-        "the envelope's light there); 1 = no light outside (its buds stay dormant), 0 (or no crown_envelope) "
-        "= the papers' model",
-        "light",
+        **SHADE_SPEC,
+        description=f"[-] {SHADE_MEANING}: I times 1 - envelope_shade (1 - the envelope's light there); 1 = no light "
+        "outside (its buds stay dormant), 0 (or no crown_envelope) = the papers' model",
+        group="light",
     ),
     P(
         "r_env_mean",

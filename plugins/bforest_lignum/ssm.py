@@ -5,9 +5,9 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field
 
-from bforest_core.envelope import CrownEnvelope
+from bforest_core.envelope import SETTING_DESCRIPTION, EnvelopeSetting, grown_in
 from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
 from bforest_core.tree import Tree
 
@@ -49,19 +49,7 @@ class LignumSettings(ComponentSettings):
         "scan's QSM draws a branch as short cylinders, bent by the parameter wind_sd; the growth is "
         "unchanged (0 = one cylinder per shoot)",
     )
-    crown_envelope: dict = Field(
-        default_factory=dict,
-        description="an addition: the crown's space of the measured tree (margin, base, top, stem, reach: "
-        "its reach from the stem per height band and azimuth sector, m), outside which the neighbours take "
-        "the share envelope_shade of the light; empty = none; see docs/growth-forms.md",
-    )
-
-    @field_validator("crown_envelope")
-    @classmethod
-    def _envelope(cls, v):
-        if v:
-            CrownEnvelope.from_setting(v)  # ValueError naming the key that is wrong
-        return v
+    crown_envelope: EnvelopeSetting = Field(default_factory=dict, description=SETTING_DESCRIPTION)
 
 
 class LignumSSM(SSM):
@@ -85,12 +73,7 @@ class LignumSSM(SSM):
 
     def crown_space(self, params):
         """The measured crown's space (``crown_envelope``) when ``envelope_shade`` shades outside it."""
-        shade = self.resolve_params(params)["envelope_shade"]
-        return (
-            CrownEnvelope.from_setting(self.settings.crown_envelope)
-            if shade > 0 and self.settings.crown_envelope
-            else None
-        )
+        return grown_in(self.settings.crown_envelope, self.resolve_params(params)["envelope_shade"])
 
     def draft_recipe(self, measures):
         """LIGNUM's recipe for a measured tree (:func:`bforest_lignum.recipe.lignum_recipe`)."""

@@ -14,7 +14,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from bforest_core.envelope import CrownEnvelope
+from bforest_core.envelope import SETTING_DESCRIPTION, EnvelopeSetting, grown_in
 from bforest_core.hookspecs import hookimpl
 from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
 from bforest_core.tree import Tree
@@ -78,22 +78,7 @@ class SOTSettings(ComponentSettings):
         ),
     )
 
-    crown_envelope: dict = Field(
-        default_factory=dict,
-        description=(
-            "an addition to the papers' model: the crown's space of the measured tree (margin, base, top, stem, "
-            "reach: its reach from the stem per height band and azimuth sector, m), outside which the neighbours "
-            "take the share envelope_shade of the light (`bforest init` writes it for a decurrent or one-sided "
-            "crown); empty = none; see docs/growth-forms.md"
-        ),
-    )
-
-    @field_validator("crown_envelope")
-    @classmethod
-    def _envelope(cls, v):
-        if v:
-            CrownEnvelope.from_setting(v)  # ValueError naming the key that is wrong
-        return v
+    crown_envelope: EnvelopeSetting = Field(default_factory=dict, description=SETTING_DESCRIPTION)
 
     @field_validator("stem_path")
     @classmethod
@@ -141,12 +126,7 @@ class SOT(SSM):
 
     def crown_space(self, params):
         """The measured crown's space (``crown_envelope``) when ``envelope_shade`` shades outside it."""
-        shade = self.resolve_params(params)["envelope_shade"]
-        return (
-            CrownEnvelope.from_setting(self.settings.crown_envelope)
-            if shade > 0 and self.settings.crown_envelope
-            else None
-        )
+        return grown_in(self.settings.crown_envelope, self.resolve_params(params)["envelope_shade"])
 
     def draft_recipe(self, measures):
         """SOT's recipe for a measured tree (:func:`bforest_sot.recipe.sot_recipe`)."""

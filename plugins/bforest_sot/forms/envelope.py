@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bforest_core.envelope import CrownEnvelope
+from bforest_core.envelope import SHADE_MEANING, SHADE_SPEC, CrownEnvelope
 from bforest_core.interfaces import ParameterSpec as P
 
 from .base import GrowthForm
@@ -29,17 +29,10 @@ class CrownSpace(GrowthForm):
 
     parameters = (
         P(
-            "envelope_shade",
-            0.0,
-            0.0,
-            1.0,
-            False,
-            "",
-            "an addition: the share of the light the neighbours take outside the crown's envelope (the "
-            "setting crown_envelope, the space the measured tree's crown fills): exposure times "
-            "1 - envelope_shade (1 - the envelope's light there); 1 = buds outside get no light and their "
-            "shoots are shed, 0 (or no crown_envelope) = the papers' model",
-            "II",
+            **SHADE_SPEC,
+            description=f"{SHADE_MEANING}: exposure times 1 - envelope_shade (1 - the envelope's light there); 1 = buds "
+            "outside get no light and their shoots are shed, 0 (or no crown_envelope) = the papers' model",
+            group="II",
         ),
     )
 

@@ -141,3 +141,21 @@ def test_a_bad_envelope_setting_is_refused_naming_what_is_wrong():
         CrownEnvelope.from_setting({k: v for k, v in good.items() if k != "reach"})
     with pytest.raises(bf.ConfigError, match="crown_envelope"):
         bf.component("ssm", "sot", crown_envelope={**good, "margin": -1.0})
+
+
+def test_the_report_draws_the_crowns_space_beside_the_tree(tmp_path):
+    from bforest_core.report.trees import clones_figure, envelope_lines
+
+    t = one_sided_tree()
+    e = crown_envelope(t, margin=0.5)
+    (side,) = envelope_lines(e, "xz")
+    # side view: from the ground to the top's margin, 3.5 m towards +x (the 3 m branch and the
+    # margin), 1.5 m towards -x (the 1 m branch); below the crown base the widest reaches
+    assert side[:, 1].min() == pytest.approx(0.0) and side[:, 1].max() == pytest.approx(10.5)
+    assert side[:, 0].max() == pytest.approx(3.5, abs=0.01) and side[:, 0].min() == pytest.approx(-1.5, abs=0.01)
+    top = np.concatenate(envelope_lines(e, "xy"))
+    assert top[:, 0].max() == pytest.approx(3.5, abs=0.05) and top[:, 1].max() == pytest.approx(2.5, abs=0.05)
+    # the 1 m branch's sector towards -x reaches from -180 to -157.5 deg: its arc dips below y = -0.5
+    assert top[:, 1].min() == pytest.approx(-1.5 * math.sin(math.radians(22.5)), abs=0.02)
+    path = clones_figure(t, [("clone 0", t)], tmp_path / "space.png", envelope=e)
+    assert path.stat().st_size > 10_000

@@ -14,8 +14,10 @@ axis). It is the crown radii a forester measures in a few directions (Pretzsch 2
 Dynamics, Growth and Yield", crown projection from 8 radii), in 16 directions and 8 heights. The
 stem's position at each band edge (the tree's own stem, branch 0) is kept with it, so a leaning
 stem carries its crown with it. A point lies inside when it is no farther from the stem than its
-band's and sector's reach plus the **margin**, the envelope's one setting, and no higher than
-the tree's top plus the margin. Below the crown base the crown's widest reach in each sector
+band's and sector's reach plus the **margin**, the envelope's one setting, at any height: the
+envelope has no lid (above the tree's top the top band's reach holds), since a lid cut the clones'
+tops flat at the tree's height where the fit's size term already holds the height
+(docs/notes/2026-12-07-crown-space-by-eye.md). Below the crown base the crown's widest reach in each sector
 holds, about the stem's straight line from its base to the crown base: the young tree grew in
 the space its crown stands over (its own and the stand's shade shed those branches later).
 
@@ -74,7 +76,7 @@ class CrownEnvelope:
     Attributes
     ----------
     margin : float
-        How far beyond the measured reach (and above the top) the envelope reaches: the one setting.
+        How far beyond the measured reach the envelope reaches: the one setting.
     base, top : float
         Height of the crown base and of the tree's top above the stem base.
     stem : (bands + 1, 2) array
@@ -178,8 +180,8 @@ class CrownEnvelope:
     def light(self, points, stem=None) -> np.ndarray:
         """Return the share of the light that reaches each point in the crown's space.
 
-        1 within the tree's reach, 0 beyond the margin, falling linearly across it (and likewise
-        above the top).
+        1 within the tree's reach, 0 beyond the margin, falling linearly across it (above the
+        top, the top band's reach: no lid).
 
         Parameters
         ----------
@@ -196,7 +198,7 @@ class CrownEnvelope:
         """
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         reach, r = self._reach(p)
-        f = self._fall(r - reach) * self._fall(p[:, 2] - self.top)
+        f = self._fall(r - reach)  # no lid: the height is the fit's (its size term), not the envelope's
         if stem is not None:  # the growing tree's own stem: a corridor of the margin's width
             path = np.asarray(stem, dtype=np.float64).reshape(-1, 3)
             d = p[:, :2] - path_at(path, p[:, 2])[:, :2]
@@ -217,15 +219,13 @@ class CrownEnvelope:
         """
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         reach, r = self._reach(p)
-        return (r <= reach + self.margin) & (p[:, 2] <= self.top + self.margin)
+        return r <= reach + self.margin
 
     def outline(self, z: float, step_deg: float = 2.0) -> np.ndarray:
         """Return the envelope's horizontal outline (with the margin) at height ``z``.
 
-        A closed polygon (k, 2) of the sectors' arcs about the stem; empty above the top's margin.
+        A closed polygon (k, 2) of the sectors' arcs about the stem (above the top, the top band's).
         """
-        if z > self.top + self.margin:
-            return np.zeros((0, 2))
         az = np.radians(np.arange(-180.0, 180.0 + 1e-9, step_deg))
         rr = self._rows()[int(self._band(z)), self._sector(az)] + self.margin
         return self._centre(z) + rr[:, None] * np.stack([np.cos(az), np.sin(az)], axis=1)

@@ -64,12 +64,14 @@ def test_the_envelope_of_a_hand_built_tree_has_its_known_extent():
     # every point of the tree lies in its own envelope, in full light
     pts = np.concatenate([t.start, t.end])
     assert e.contains(pts).all() and (e.light(pts) == 1.0).all()
-    # the light falls across the margin: beyond a branch's tip, beside the stem, above the top
+    # the light falls across the margin: beyond a branch's tip, beside the stem; no lid above the
+    # top (the top band's reach holds: beside the stem, not 2 m out)
     probe = np.array(
-        [[2.9, 0, 4.1], [3.25, 0, 4.1], [3.6, 0, 4.1], [0, 0.3, 4.1], [0.1, 0.6, 4.1], [0, 0, 10.25], [0, 0, 10.6]]
+        [[2.9, 0, 4.1], [3.25, 0, 4.1], [3.6, 0, 4.1], [0, 0.3, 4.1], [0.1, 0.6, 4.1], [0, 0, 10.25], [0, 0, 12.0]]
     )
-    assert e.light(probe) == pytest.approx([1.0, 0.5, 0.0, 0.4, 0.0, 0.5, 0.0])
-    assert e.contains(probe).tolist() == [True, True, False, True, False, True, False]
+    assert e.light(probe) == pytest.approx([1.0, 0.5, 0.0, 0.4, 0.0, 1.0, 1.0])
+    assert e.contains(probe).tolist() == [True, True, False, True, False, True, True]
+    assert e.light([[0, 2.0, 12.0]]) == pytest.approx([0.0])
     # below the crown base, the crown's widest reach in each direction: 3 m towards +x, 2 m towards +y
     low = np.array([[2.9, 0, 2.0], [0, 1.9, 1.0], [0, 2.6, 1.0], [-1.2, 0, 3.0], [0.0, -0.2, 3.0]])
     assert e.light(low) == pytest.approx([1.0, 1.0, 0.0, 0.6, 0.6])

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .metrics import axis_angles, classical_metrics, crown_base_height, ruled_summary
+from .metrics import axis_angles, classical_metrics, crown_base_height, crown_offset, ruled_summary
 
 __all__ = [
     "branch_table",
@@ -515,14 +515,17 @@ def fidelity_statistics(tree, topology: str | None = None, statistics=None) -> d
     Returns
     -------
     dict of str to float
-        :func:`~bforest_core.metrics.tree_summary` and the :data:`FIDELITY_ATTRIBUTES`
-        (units: :func:`~bforest_core.metrics.summary_unit`).
+        :func:`~bforest_core.metrics.tree_summary`, the :data:`FIDELITY_ATTRIBUTES` (units:
+        :func:`~bforest_core.metrics.summary_unit`) and the crown's offset from its stem,
+        ``crown_offset_x`` and ``crown_offset_y`` (crown radii, :func:`~bforest_core.metrics.crown_offset`,
+        measured on the tree's own stem whatever ``topology``).
     """
     # measured wholly by the rule: the tree converted once (ruled_summary finds it in that rule)
     whole = tree.with_topology(topology) if topology is not None and statistics is None else tree
     out = ruled_summary(whole, topology, statistics)
     a = tree_attributes(whole, alpha=False)
     out.update({k: a[k] for k in FIDELITY_ATTRIBUTES})
+    out["crown_offset_x"], out["crown_offset_y"] = (float(v) for v in crown_offset(tree))
     return out
 
 

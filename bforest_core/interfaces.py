@@ -23,6 +23,7 @@ from .metrics import SIZE_LIMITS
 from .processes import one_thread_process
 
 if TYPE_CHECKING:
+    from .envelope import CrownEnvelope
     from .metrics import TreeMeasures
     from .tree import Tree
 
@@ -455,6 +456,23 @@ class SSM(Component):
             Settings, fixed values and free bounds, each with the comment saying what in the
             tree set it, and how well the model suits the tree; None (the default) when the
             model writes no recipes.
+        """
+        return None
+
+    def crown_space(self, params: Mapping[str, float]) -> CrownEnvelope | None:
+        """Return the crown's space the model grows its trees in (optional).
+
+        Parameters
+        ----------
+        params : mapping
+            Parameter values by name (missing names take their defaults).
+
+        Returns
+        -------
+        CrownEnvelope or None
+            The envelope (:mod:`bforest_core.envelope`) outside which the model's trees get no
+            light with these parameters; None (the default) when they grow in an open world. The
+            report draws it beside the tree and its clones.
         """
         return None
 

@@ -22,10 +22,14 @@ from typing import Literal
 
 import numpy as np
 
+from .envelope import CrownEnvelope, stem_at
+
 __all__ = [
     "classical_metrics",
     "relative_errors",
     "crown_spread",
+    "crown_offset",
+    "crown_envelope",
     "dbh",
     "tree_summary",
     "ruled_summary",
@@ -43,6 +47,7 @@ __all__ = [
     "TreeMeasures",
     "measure_tree",
     "DECURRENT_LIMB_RATIO",
+    "ONE_SIDED",
 ]
 
 BREAST_HEIGHT = 1.3  # m
@@ -105,6 +110,56 @@ def crown_spread(tree, spoke_step: float = 10.0, empty_sectors: Literal["zero", 
         filled[sector] = True
         return float(2.0 * spokes[filled].mean())
     return float(2.0 * spokes.mean())
+
+
+def crown_offset(tree) -> np.ndarray:
+    """Return the crown's offset from the stem, in crown radii: which side of the stem the crown lies.
+
+    The horizontal vector from the stem, taken at the height of the crown's centre
+    (:func:`stem_at`), to the centre of the branches above the crown base (cylinders of order 1 and
+    up whose midpoint lies at or above :func:`crown_base_height`, weighted by wood volume), divided
+    by the crown radius (half :func:`crown_spread`). A crown all around its stem lies near 0; a
+    crown grown to one side, where a neighbour took the other, lies half a radius or more off it.
+
+    Parameters
+    ----------
+    tree : Tree
+        A QSM, or a model's tree (its stem: its branch 0).
+
+    Returns
+    -------
+    ndarray
+        (x, y) in crown radii (x, y as the tree's file has them); (0, 0) for a tree without branches
+        above its crown base.
+    """
+    cb = crown_base_height(tree)
+    vol = np.pi * tree.radius**2 * tree.length
+    mid = tree.start + 0.5 * tree.length[:, None] * tree.axis - tree.start[0]
+    crown = (tree.order > 0) & (mid[:, 2] >= cb) if np.isfinite(cb) else np.zeros(tree.n, bool)
+    radius = 0.5 * crown_spread(tree)
+    if not (vol[crown].sum() > 0 and radius > 0):
+        return np.zeros(2)
+    centre = (mid[crown] * vol[crown, None]).sum(0) / vol[crown].sum()
+    return (centre[:2] - stem_at(tree, centre[2])[:2]) / radius
+
+
+def crown_envelope(tree, margin: float | None = None) -> CrownEnvelope:
+    """Return the crown's space of ``tree``: its star-shaped envelope above the crown base.
+
+    Parameters
+    ----------
+    tree : Tree
+    margin : float, optional
+        How far beyond the tree's own reach the envelope reaches (m); default
+        :data:`~bforest_core.envelope.MARGIN_SHARE` of the crown radius.
+
+    Returns
+    -------
+    CrownEnvelope
+        See :mod:`bforest_core.envelope`; measured above :func:`crown_base_height`, with the crown
+        radius half :func:`crown_spread`.
+    """
+    return CrownEnvelope.measure(tree, crown_base_height(tree), 0.5 * crown_spread(tree), margin)
 
 
 def dbh(tree, breast_height: float = BREAST_HEIGHT, warn: bool = True) -> float:
@@ -304,6 +359,7 @@ SUMMARY_UNITS = {
     "crown_length": "m",
     "crown_ratio": "fraction",
     "crown_volume_conv": "m^3",
+    "crown_offset": "crown radii",
 }
 #: share of the living first-order branch length that may lie below the crown base
 CROWN_BASE_SHARE = 0.05
@@ -343,6 +399,10 @@ DEFINITIONS = {
     "crown_diameter_mean": "crown diameter, mean: TreeQSM's, the mean of 18 diameters through the centre of "
     "the crown's outline seen from above (each the farthest branch tip in a 10 deg sector plus the "
     "farthest in the opposite one)",
+    "crown_offset": "crown's offset from its stem: the horizontal vector from the stem, taken at the height of "
+    "the crown's centre, to the centre of the branches above the crown base (weighted by wood volume), in "
+    "crown radii (half the crown spread), and its direction counter-clockwise from +x; its error is the "
+    "distance from the clones' mean vector to the target's",
 }
 
 
@@ -394,6 +454,9 @@ def summary_label(name: str, bands: int = 5) -> str:
         "crown_length": "crown length",
         "crown_ratio": "crown ratio",
         "crown_volume_conv": "crown volume (convex hull)",
+        "crown_offset": "crown's offset from its stem",
+        "crown_offset_x": "crown's offset from its stem, x",
+        "crown_offset_y": "crown's offset from its stem, y",
     }
     if name in fixed:
         return fixed[name]
@@ -704,6 +767,10 @@ def weighted_quantiles(x: np.ndarray, w: np.ndarray, qs) -> np.ndarray:
 # what a recipe is scaled from (`bforest init`)
 # ------------------------------------------------------------------------------------------
 
+#: a crown whose centre lies this many crown radii or more from its stem (at the centre's height,
+#: :func:`crown_offset`) is one-sided: Wytham Woods' broadleaved trees 0.26-0.65 (tf1 0.26, tf3 and
+#: tf5 0.62-0.65), the coffeetree 0.37, the Ruotsinkylä pines 0.04-0.17
+ONE_SIDED = 1.0 / 3.0
 #: wood of the three largest limbs over the stem's wood in the crown above which a crown is
 #: decurrent (the stem divides into limbs, like a maple's) rather than excurrent (a leader to
 #: the top, like a pine's): Scots pines 0.34-0.48, broadleaved trees of Wytham Woods 1.7-2.4
@@ -758,6 +825,12 @@ class TreeMeasures:
     n_whorls : int
         Whorls of the first-order branches, every one whatever its diameter (:func:`whorls`): a
         conifer's record of its yearly leader shoots.
+    crown_side : tuple of (x, y)
+        The crown's offset from the stem in crown radii (:func:`crown_offset`): which side of its
+        stem the crown lies, volume-weighted, the stem taken at the crown centre's height.
+    envelope : dict or None
+        The crown's space (:func:`crown_envelope`, as a setting:
+        :meth:`~bforest_core.envelope.CrownEnvelope.setting`), with the default margin.
     """
 
     height: float
@@ -783,11 +856,46 @@ class TreeMeasures:
     stem_length: float = 0.0
     branch_turn: float = 0.0
     n_whorls: int = 0
+    crown_side: tuple = (0.0, 0.0)
+    envelope: dict | None = None
 
     @property
     def decurrent(self) -> bool:
         """True when the stem divides into limbs (see :data:`DECURRENT_LIMB_RATIO`)."""
         return self.limb_ratio > DECURRENT_LIMB_RATIO
+
+    def crown_space_why(self) -> str | None:
+        """Say why a recipe grows this tree's clones in its crown space, or None.
+
+        A crown that is decurrent or one-sided (which, and by how much) is one a wood shaped; a
+        conifer's excurrent crown all around its stem is set by its leader and whorls in any
+        stand, and gets None.
+        """
+        if not self.envelope or not (self.decurrent or self.one_sided):
+            return None
+        side = float(np.hypot(*self.crown_side))
+        az = float(np.degrees(np.arctan2(self.crown_side[1], self.crown_side[0])))
+        which = []
+        if self.decurrent:
+            which.append(f"decurrent (its limbs hold {self.limb_ratio:.1f} x the stem's wood in the crown)")
+        if self.one_sided:
+            which.append(f"one-sided (its centre lies {side:.2f} crown radii off the stem, towards {az:.0f} deg)")
+        reach = self.envelope["reach"]
+        return (
+            f"the crown is {' and '.join(which)}: a broadleaved crown in a wood fills the space its neighbours "
+            "left it, where a growth model grows into an open world; the clones grow in this tree's crown space "
+            f"(crown_envelope: its reach from the stem in {len(reach[0])} directions at {len(reach)} heights, "
+            f"plus a margin of {self.envelope['margin']:g} m), where buds outside get no light and their shoots "
+            "are shed (docs/growth-forms.md)"
+        )
+
+    @property
+    def one_sided(self) -> bool:
+        """True when the crown lies a third of its radius or more to one side of its stem.
+
+        See :data:`ONE_SIDED` and :attr:`crown_side`.
+        """
+        return bool(np.hypot(*self.crown_side) >= ONE_SIDED)
 
 
 def measure_tree(tree) -> TreeMeasures:
@@ -877,6 +985,8 @@ def measure_tree(tree) -> TreeMeasures:
         stem_length=float(s["stem_length"]),
         branch_turn=float(np.median(turn)) if turn.size else 0.0,
         n_whorls=int(s["n_whorls"]),
+        crown_side=tuple(round(float(v), 4) for v in crown_offset(tree)),
+        envelope=crown_envelope(tree).setting(),
     )
 
 

@@ -112,7 +112,7 @@ def test_fidelity_statistics_add_volumes_and_crown_to_the_summary():
 
     t = _cross_tree()
     f, a = fidelity_statistics(t), tree_attributes(t)
-    assert set(f) == set(tree_summary(t)) | set(FIDELITY_ATTRIBUTES)
+    assert set(f) == set(tree_summary(t)) | set(FIDELITY_ATTRIBUTES) | {"crown_offset_x", "crown_offset_y"}
     assert f["crown_volume_conv"] == pytest.approx(a["crown_volume_conv"]) and f["crown_ratio"] == pytest.approx(0.5)
     assert all(summary_unit(k) and summary_label(k) != k for k in FIDELITY_ATTRIBUTES)
     assert np.isnan(tree_attributes(t, alpha=False)["crown_volume_alpha"])

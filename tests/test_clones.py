@@ -48,6 +48,32 @@ def test_a_stem_much_longer_than_the_trees_is_warned_of():
     assert not fidelity_warnings(fidelity_table({"stem_length": 20.0}, [{"stem_length": 25.0}]))
 
 
+def test_the_crown_offset_row_sets_the_clones_side_of_the_stem_beside_the_trees():
+    # the tree's crown 0.8 crown radii off its stem towards +y; clones 0.8 off towards +x and -x
+    # have a mean offset of 0: it lies 0.8 from the tree's (the warning); clones 0.7 and 0.5 off
+    # towards +y lie 0.2 from it (within the limit 0.25)
+    target = {"height": 18.0, "crown_offset_x": 0.0, "crown_offset_y": 0.8}
+    apart = [
+        {"height": 18.0, "crown_offset_x": 0.8, "crown_offset_y": 0.0},
+        {"crown_offset_x": -0.8, "crown_offset_y": 0.0},
+    ]
+    rows = {r["statistic"]: r for r in fidelity_table(target, apart)}
+    assert "crown_offset_x" not in rows and "crown_offset_y" not in rows  # one row for the vector
+    r = rows["crown_offset"]
+    assert (r["target"], r["mean"], r["error"], r["limit"]) == pytest.approx((0.8, 0.0, 0.8, 0.25))
+    assert r["target_azimuth"] == pytest.approx(90.0) and r["warn"] and r["unit"] == "crown radii"
+    assert r["p5"] == pytest.approx(0.8) and r["n"] == 2
+    warns = fidelity_warnings(list(rows.values()))
+    assert (
+        len(warns) == 1 and "[crown_offset]" in warns[0] and "lies 0.80 crown radii from the target's 0.80" in warns[0]
+    )
+    text = fidelity_text(list(rows.values()), [], warns)
+    assert "0.80    0.25 !" in text and "(towards 90 deg; clones 0 deg)" in text
+    same = [{"crown_offset_x": 0.0, "crown_offset_y": 0.7}, {"crown_offset_x": 0.0, "crown_offset_y": 0.5}]
+    r = next(x for x in fidelity_table(target, same) if x["statistic"] == "crown_offset")
+    assert r["error"] == pytest.approx(0.2) and not r["warn"] and not fidelity_warnings([r])
+
+
 def test_crown_base_and_branch_counts_have_limits_and_every_row_a_unit():
     from bforest_core.metrics import SUMMARY_UNITS
 

@@ -280,6 +280,45 @@ def test_the_broadleaved_table_keeps_the_rows_of_trees_not_fitted_again():
     assert "wytham_tf1 1.250 (2 run seeds); pine_ruotsinkyla_1 1.200 (2 run seeds)." in text
 
 
+def test_the_broadleaved_verdict_holds_the_stem_length_and_the_crowns_side():
+    """The issue's acceptance: a stem 30 % longer than the tree's misses whatever its judge, and so
+    do clones whose mean crown offset lies more than 0.25 crown radii from the tree's; the pines
+    keep the robust-fit limits (the offset shown, not judged)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "real" / "run_broadleaved.py"
+    spec = importlib.util.spec_from_file_location("run_broadleaved", path)
+    rb = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(rb)
+    off = {"tree": 0.65, "tree_azimuth": -112.0, "clones": 0.55, "clones_azimuth": -100.0, "difference": 0.16}
+    row = {
+        "tree": "wytham_tf5",
+        "seed": 1,
+        "model": "sot",
+        "fit_seconds": 100.0,
+        "errors": dict.fromkeys(rb.NAMES, 0.01),
+        "crown_offset": off,
+        "judge_clones_median": 0.15,
+        "judge_neighbours": {"a": 0.2, "b": 0.3},
+    }
+    assert rb.verdict(row) == "meets the limits"
+    row["errors"]["stem_length"] = 0.33
+    assert rb.verdict(row) == "misses: stem length +33.0%"
+    row["errors"]["stem_length"] = 0.01
+    row["crown_offset"] = {**off, "difference": 0.31}
+    assert rb.verdict(row) == "misses: crown offset 0.31 off the tree's"
+    assert rb.verdict({**row, "tree": "pine_ruotsinkyla_1"}) == "meets the limits"
+    assert rb.verdict({**row, "crown_offset": None}) == "misses: crown offset not measured"
+    line = next(x for x in rb.doc_section({"t5": row}, {}).splitlines() if x.startswith("| wytham_tf5 |"))
+    assert "| +1.0 % | 0.65 (-112°) / 0.55 (-100°) | 0.150 |" in line
+    # a kept row of a table with other columns (written under other limits) is not carried over
+    old = "| wytham_tf2 | sot | 1 | 235 s | +0.1 % | +0.1 % | +0.1 % | +0.1 % | +0.1 % | 0.170 | 0.238 | meets the limits |"
+    kept = {"wytham_tf2": {"rows": [old], "floor_rows": [], "spread": None}}
+    text = rb.doc_section({"t5": row}, {}, kept)
+    assert old not in text and "kept from an earlier run" not in text
+    assert rb.STUDY[0] == ("wytham_tf1", (1, 2, 3)) and rb.STUDY[-1] == ("pine_ruotsinkyla_3", (1, 2, 3, 4, 5))
+
+
 def test_the_broadleaved_floor_table_sets_each_judge_beside_its_floor_and_is_kept_apart():
     """``--floor`` rows: the clones' judge, floor and p, the neighbours' judge (the limit) and
     floor, and the room between the limit and the clones' floor; a tree not fitted again keeps

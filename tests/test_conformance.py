@@ -149,6 +149,7 @@ def test_toy_plugin_conforms(toy_plugin):
         "determinism",
         "seeds",
         "pickle",
+        "crown_space",
         "bounds",
     ]
     assert "4 parameters" in str(ssm)
@@ -258,6 +259,13 @@ class UnpicklableSSM(GoodSSM):
         self._lock = threading.Lock()
 
 
+class WrongSpaceSSM(GoodSSM):
+    name = "wrong-space"
+
+    def crown_space(self, params):
+        return {"reach": [[1.0] * 16] * 8}  # the setting, not the envelope
+
+
 class BadSpecSSM(GoodSSM):
     name = "bad-spec"
 
@@ -324,7 +332,7 @@ def _fails(component, check, match, **options):
 
 def test_positive_control_passes_every_check():
     rep = check_ssm(GoodSSM, params={"nodes": 4})
-    assert rep.ok and len(rep.results) == 11  # no 'registered' check unless asked
+    assert rep.ok and len(rep.results) == 12  # no 'registered' check unless asked
     assert dict((r.check, r.note) for r in rep.results)["recipe"] == "writes no recipes"
 
 
@@ -336,6 +344,11 @@ def test_nondeterministic_ssm_is_caught():
 def test_seed_blind_ssm_is_caught_unless_declared_deterministic():
     _fails(SeedBlindSSM, "seeds", r"seeds 1 and 2 gave identical trees; the model ignores its seed")
     assert check_ssm(SeedBlindSSM, stochastic=False).ok
+
+
+def test_a_crown_space_that_is_not_an_envelope_is_caught():
+    err = _fails(WrongSpaceSSM, "crown_space", r"crown_space returned a dict, not None or a CrownEnvelope")
+    assert err.checks == ["crown_space"]
 
 
 def test_unpicklable_ssm_is_caught():

@@ -237,6 +237,37 @@ def test_init_gives_a_one_sided_crown_its_gap(tmp_path):
     assert "gap_shade" not in cfg["ssm"]["free"] and "gap_azimuth" not in cfg["ssm"].get("fixed", {})
 
 
+def test_init_grows_a_decurrent_or_one_sided_crown_in_its_crown_space(tmp_path):
+    from bforest_core.envelope import CrownEnvelope
+
+    # the decurrent hand tree: its crown's space as a table of its own, the light outside it taken
+    # (no new free parameter), and the note says which form asks for it and why
+    tree = decurrent_tree()
+    r, cfg = _recipe(tmp_path, tree, "limbs")
+    s = cfg["ssm"]
+    assert r.model == "sot" and s["fixed"]["envelope_shade"] == 1.0 and "envelope_shade" not in s["free"]
+    env = CrownEnvelope.from_setting(s["crown_envelope"])
+    assert env.reach.shape == (8, 16) and env.base == pytest.approx(r.measures.crown_base_height, abs=0.005)
+    assert env.contains(np.concatenate([tree.start, tree.end]) - tree.start[0]).mean() > 0.99  # to the cm
+    assert "the crown is decurrent (its limbs hold" in r.text and "[ssm.crown_envelope]" in r.text
+    assert any("crown_envelope" in note for note in r.draft.notes)
+    loaded = bf.load_config(tmp_path / "limbs.toml")
+    assert loaded.ssm.crown_envelope == s["crown_envelope"]
+    # a conifer's round excurrent crown gets none; the same crown all to one side gets it (SOT or LIGNUM)
+    for name, t, model, has in (
+        ("round", excurrent_tree(), None, False),
+        ("side_sot", excurrent_tree(side=120.0), "sot", True),
+        ("side_lignum", excurrent_tree(side=120.0), "lignum", True),
+    ):
+        r, cfg = _recipe(tmp_path, t, name, model)
+        assert ("crown_envelope" in cfg["ssm"]) == has, name
+        assert ("envelope_shade" in cfg["ssm"].get("fixed", {})) == has, name
+        if has:
+            note = next(n for n in r.draft.notes if "crown_envelope" in n)
+            assert "one-sided (its centre lies" in note and "decurrent" not in note
+            bf.load_config(tmp_path / f"{name}.toml")
+
+
 def test_init_measures_how_far_the_stem_leans(tmp_path):
     # a 5 m upright bole, then 6 m of stem at 30 deg to the vertical towards 120 deg, and every
     # branch towards 120 deg: the chord from the stem at half the height (5.1 m: the bend at 5 m)

@@ -728,6 +728,37 @@ def test_stand_shade_lifts_the_crown_and_is_off_by_default():
     assert low[0] > low[1] > low[2]
 
 
+def test_crown_space_takes_the_light_outside_the_envelope_and_is_off_by_default():
+    from bforest_core.envelope import CrownEnvelope
+
+    reach = np.zeros((4, 8))
+    reach[:, 2:6] = 3.0  # open towards +x only, from 0.5 m to the top at 3 m
+    env = CrownEnvelope(0.1, 0.5, 3.0, np.zeros((5, 2)), reach)
+    p = _ssm().resolve_params({"envelope_shade": 1.0})
+    # inside; outside towards -x; above the top towards -x (outside) and towards +x (no lid: lit)
+    mid = np.array([[1.0, 0.2, 1.0], [-1.0, 0.0, 1.0], [-1.0, 0.0, 4.0], [1.0, 0.0, 4.0]])
+    _, I0, _, _ = LM.light(mid, np.full(4, 0.01), p)
+    _, I, fL, _ = LM.light(mid, np.full(4, 0.01), p, space=env.light(mid))
+    assert I[0] == I0[0] > 0 and I[1] == 0.0 == I[2] and fL[1] == 0.0  # no light, so its buds stay dormant
+    assert I[3] == I0[3] > 0
+    inside = _ssm(crown_envelope=env.setting())
+    base = {"years": 12}
+    t0 = _ssm().simulate(base, seed=3)
+    assert _same(t0, inside.simulate(base, seed=3))  # the setting alone: the papers' tree, draw for draw
+    assert _same(t0, _ssm().simulate({**base, "envelope_shade": 1.0}, seed=3))  # and the parameter alone
+    t = inside.simulate({**base, "envelope_shade": 1.0}, seed=3)
+    pts0, pts = np.concatenate([t0.start, t0.end]), np.concatenate([t.start, t.end])
+    assert (~env.contains(pts0)).mean() > 0.4 and (~env.contains(pts)).mean() < 0.2
+    b = t.order > 0
+    mid = t.start[b] + 0.5 * t.length[b, None] * t.axis[b]
+    assert (mid[:, 0] * t.length[b]).sum() / t.length[b].sum() > 0.4  # the crown on the +x side
+    assert t.end[:, 2].max() > 3.0 + 0.1 + 1.0  # no lid: the leader grows above the envelope's top
+    assert inside.crown_space({"envelope_shade": 1.0}).reach.shape == (4, 8)
+    assert inside.crown_space({}) is None and _ssm().crown_space({"envelope_shade": 1.0}) is None
+    with pytest.raises(ValueError, match="envelope_shade"):
+        inside.simulate({**base, "envelope_shade": 2.0}, seed=3)
+
+
 def test_render_pieces_on_a_hand_built_table():
     # a vertical stem segment (1 m) and a lateral (0.35 m along +x) from its end
     start = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]])

@@ -114,6 +114,7 @@ def test_parameter_table_complete():
         "gap_azimuth",
         "stem_death",
         "stem_guide",
+        "envelope_shade",
     }  # stand_shade and the ones after it are additions, off by default
     assert set(names) == expected and len(names) == len(expected)
     by = {p.name: p for p in PARAMETERS}
@@ -630,6 +631,65 @@ def test_gap_shade_grows_the_crown_into_the_gap_and_keeps_trees_without_it(ssm):
         stem = t.order == 0
         top = t.start[stem][-1, :2] + t.length[stem][-1] * t.axis[stem][-1, :2] - t.start[0, :2]
         assert top @ d > 0.1, az  # and the stem leans towards it
+
+
+def _half_space(margin: float = 0.2):
+    """A crown's space open towards +x only: 3 m of reach in the sectors from -90 to 90 deg, none
+    elsewhere, from 1 m to the top at 6 m."""
+    from bforest_core.envelope import CrownEnvelope
+
+    reach = np.zeros((4, 8))
+    reach[:, 2:6] = 3.0
+    return CrownEnvelope(margin, 1.0, 6.0, np.zeros((5, 2)), reach)
+
+
+def test_crown_space_gives_a_bud_outside_the_envelope_no_light():
+    from bforest_sot.forms.envelope import CrownSpace
+
+    env = _half_space()
+    run = SimpleNamespace(p={"envelope_shade": 1.0}, settings=SimpleNamespace(crown_envelope=env.setting()))
+    form = CrownSpace(run, None)  # before a cycle its stem is the stem base alone
+    f = LightField(12.0, 0.2, 6, 1.0, 0.5, 2.0, ran=0.0)
+    g = LightField(12.0, 0.2, 6, 1.0, 0.5, 2.0, ran=0.0, filters=[form.transmission])
+    for fld in (f, g):
+        fld.cast(np.array([[0.0, 0.0, 4.0]]))
+    # inside; in the margin beyond the reach (half way); outside towards -x; above the top (no
+    # lid: lit as the top band's reach below it)
+    pts = np.array([[2.0, 0.5, 3.0], [3.1, 0.0, 3.0], [-1.0, 0.0, 3.0], [2.0, 0.0, 6.5]])
+    e0, e1 = f.exposure(pts), g.exposure(pts)
+    assert e0.min() > 0.3
+    assert e1[0] == e0[0] and e1[1] == pytest.approx(0.5 * e0[1]) and e1[2] == 0.0 and e1[3] == e0[3]
+    # half the neighbours' shade: half the light outside
+    run.p["envelope_shade"] = 0.5
+    assert g.exposure(pts)[2] == pytest.approx(0.5 * e0[2])
+    # the light gradient at the envelope's edge points back into it
+    assert g.gradient(np.array([[0.1, -0.3, 3.0]]), 0.32)[0][0] > 0
+
+
+def test_crown_space_grows_the_crown_in_the_envelope_and_keeps_trees_without_it(ssm):
+    env = _half_space()
+    inside = bf.component("ssm", "sot", crown_envelope=env.setting())
+    base = {"max_iter": 14}
+    for seed in (1, 2):
+        t0 = ssm.simulate(base, seed)
+        # off by default: the setting alone, or the parameter alone, is the papers' tree draw for draw
+        assert _same_tree(t0, inside.simulate(base, seed))
+        assert _same_tree(t0, ssm.simulate({**base, "envelope_shade": 1.0}, seed))
+        t = inside.simulate({**base, "envelope_shade": 1.0}, seed)
+        pts0, pts = np.concatenate([t0.start, t0.end]), np.concatenate([t.start, t.end])
+        # without it most of the crown lies outside the half space; with it nearly none: the shoots
+        # of buds that got no light never grew, and a shoot grown out in one cycle was shed
+        assert (~env.contains(pts0)).mean() > 0.5 and (~env.contains(pts)).mean() < 0.05
+        # the crown's wood lies on the +x side of the stem base
+        b = t.order > 0
+        mid = t.start[b] + 0.5 * t.length[b, None] * t.axis[b]
+        assert (mid[:, 0] * t.length[b]).sum() / t.length[b].sum() > 0.5
+        assert _same_tree(t, inside.simulate({**base, "envelope_shade": 1.0}, seed))  # no draws of its own
+    with pytest.raises(ValueError, match="envelope_shade"):
+        inside.simulate({**base, "envelope_shade": 1.5}, 1)
+    # what the report draws: the envelope the trees grew in, none when it shades nothing
+    assert np.array_equal(inside.crown_space({"envelope_shade": 1.0}).reach, env.reach)
+    assert inside.crown_space({}) is None and ssm.crown_space({"envelope_shade": 1.0}) is None
 
 
 def _same_tree(a, b):

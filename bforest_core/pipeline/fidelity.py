@@ -36,6 +36,15 @@ LIMITS = {
     "stem_length": 0.30,
 }
 BRANCH_COUNT_LIMIT = 0.30
+#: the crown's side: the clones' mean crown offset (a vector from the stem, in crown radii,
+#: :func:`bforest_core.metrics.crown_offset`) may lie this far from the tree's; seen from above,
+#: a half-moon crown 0.9 radii off its stem and clones whose crowns sit all around theirs (0.2-0.4
+#: radii off, every way) differ by more (issue 77)
+CROWN_OFFSET_LIMIT = 0.25
+#: statistics that are vectors: their name in the table -> their components in a summary; their
+#: error is the distance from the clones' mean vector to the tree's, in their unit (not a fraction)
+VECTORS = {"crown_offset": ("crown_offset_x", "crown_offset_y")}
+LIMITS["crown_offset"] = CROWN_OFFSET_LIMIT
 
 
 def limit_of(name: str):
@@ -94,31 +103,76 @@ def fidelity_table(
     """
     units = dict(units or {})
     rows = []
+    parts = {c: name for name, cs in VECTORS.items() for c in cs}
     for name, tv in target.items():
+        if name in parts:
+            if name == VECTORS[parts[name]][0]:
+                rows += _vector_row(parts[name], target, clones, units)
+            continue
         x = np.array([c[name] for c in clones if c.get(name) is not None], float)
         x = x[np.isfinite(x)]
         if tv is None or not np.isfinite(tv) or x.size == 0:
             continue
         mean = float(x.mean())
-        err = (mean - tv) / tv if tv != 0 else None
-        lim = limit_of(name)
-        rows.append(
-            {
-                "statistic": name,
-                "label": summary_label(name),
-                "unit": units[name] if name in units else summary_unit(name),
-                "target": float(tv),
-                "mean": mean,
-                "sd": float(x.std(ddof=1)) if x.size > 1 else 0.0,
-                "p5": float(np.percentile(x, 5)),
-                "p95": float(np.percentile(x, 95)),
-                "n": int(x.size),
-                "error": err,
-                "limit": lim,
-                "warn": bool(err is not None and lim is not None and abs(err) > lim),
-            }
-        )
+        rows.append(_row(name, units, float(tv), mean, x, (mean - tv) / tv if tv != 0 else None))
     return rows
+
+
+def _row(name: str, units, target: float, mean: float, x: np.ndarray, err, **more) -> dict:
+    """A row of the table: the target's value and the clones' mean, the sd and 5-95 % band of the
+    clones' values ``x``, the error and the limit."""
+    lim = limit_of(name)
+    return {
+        "statistic": name,
+        "label": summary_label(name),
+        "unit": units[name] if name in units else summary_unit(name),
+        "target": target,
+        "mean": mean,
+        "sd": float(x.std(ddof=1)) if x.size > 1 else 0.0,
+        "p5": float(np.percentile(x, 5)),
+        "p95": float(np.percentile(x, 95)),
+        "n": int(x.size),
+        "error": err,
+        **more,
+        "limit": lim,
+        "warn": bool(err is not None and lim is not None and abs(err) > lim),
+    }
+
+
+def _vector_row(name: str, target: Mapping[str, float], clones: Sequence[Mapping[str, float]], units) -> list[dict]:
+    """The row of a vector statistic (:data:`VECTORS`): its size and direction for the tree and for
+    the clones' mean vector, its error the distance between the two (none without values)."""
+    keys = VECTORS[name]
+    tv = np.array([target.get(k, np.nan) for k in keys], float)
+    x = np.array([[c.get(k, np.nan) for k in keys] for c in clones], float).reshape(-1, len(keys))
+    x = x[np.isfinite(x).all(axis=1)]
+    if not np.isfinite(tv).all() or x.size == 0:
+        return []
+    mean = x.mean(axis=0)
+    err = float(np.hypot(*(mean - tv)))
+    size = np.hypot(x[:, 0], x[:, 1])
+    more = {"difference": True, "target_azimuth": _azimuth(tv), "mean_azimuth": _azimuth(mean)}
+    return [_row(name, units, float(np.hypot(*tv)), float(np.hypot(*mean)), size, err, **more)]
+
+
+def _azimuth(v) -> float:
+    """The direction of a horizontal vector, deg counter-clockwise from +x."""
+    return float(np.degrees(np.arctan2(v[1], v[0])))
+
+
+def error_text(r: Mapping) -> str:
+    """A row's error as every table shows it: a relative error in percent, a vector's distance in its unit."""
+    if r.get("difference"):
+        return "–" if r["error"] is None else f"{r['error']:.2f}"
+    return percent(r["error"])
+
+
+def limit_text(r: Mapping) -> str:
+    """A row's limit as every table shows it (``–`` for none)."""
+    lim = r.get("limit", limit_of(r["statistic"]))
+    if lim is None:
+        return "–"
+    return f"{lim:g}" if r.get("difference") else f"±{100 * lim:g} %"
 
 
 def at_bounds(
@@ -158,6 +212,14 @@ def fidelity_warnings(rows: Sequence[Mapping], limits: Mapping[str, float] | Non
         lim = (limits or {}).get(r["statistic"], limit_of(r["statistic"]))
         if lim is not None and r["error"] is not None and abs(r["error"]) > lim:
             u = f" {r['unit']}" if r.get("unit") and r["unit"] != "count" else ""
+            if r.get("difference"):
+                out.append(
+                    f"the clones' crowns lie on another side of their stems than the target's [{r['statistic']}]: "
+                    f"their mean offset, {r['mean']:.2f}{u} towards {r['mean_azimuth']:.0f} deg, lies "
+                    f"{r['error']:.2f}{u} from the target's {r['target']:.2f}{u} towards {r['target_azimuth']:.0f} deg "
+                    f"(limit {lim:g}{u})"
+                )
+                continue
             out.append(
                 f"clones miss the target's {r.get('label') or summary_label(r['statistic'])} "
                 f"[{r['statistic']}]: mean {r['mean']:.3g}{u} vs {r['target']:.3g}{u} "
@@ -181,12 +243,12 @@ def fidelity_text(rows: Sequence[Mapping], flags: Sequence[str] = (), warnings: 
         f"{'statistic':<{_LABEL}}{'unit':>6}{'target':>10}{'clones':>10}{'5-95 % band':>18}{'error':>9}{'limit':>8}"
     ]
     for r in rows:
-        lim = r.get("limit", limit_of(r["statistic"]))
+        lim = limit_text(r)
         mark = " !" if r.get("warn") else ""
-        label = textwrap.wrap(r.get("label") or r["statistic"], _LABEL - 1) or [r["statistic"]]
+        label = textwrap.wrap(row_label(r), _LABEL - 1) or [r["statistic"]]
         lines.append(
-            f"{label[0]:<{_LABEL}}{r['unit']:>6}{_num(r['target']):>10}{_num(r['mean']):>10}{_band(r):>18}"
-            f"{percent(r['error']):>9}{'' if lim is None else f'±{100 * lim:g} %':>8}{mark}"
+            f"{label[0]:<{_LABEL}}{_unit(r):>6}{_num(r['target']):>10}{_num(r['mean']):>10}{_band(r):>18}"
+            f"{error_text(r):>9}{'' if lim == '–' else lim:>8}{mark}"
         )
         lines += [f"  {more}" for more in label[1:]]
     said = [summary_definition(r["statistic"]) for r in rows]
@@ -195,6 +257,19 @@ def fidelity_text(rows: Sequence[Mapping], flags: Sequence[str] = (), warnings: 
     for text in notes:
         lines += textwrap.wrap(text, TEXT_WIDTH, subsequent_indent="  ")
     return "\n".join(lines)
+
+
+def row_label(r: Mapping) -> str:
+    """A row's label; a vector's with the tree's and the clones' directions."""
+    label = r.get("label") or r["statistic"]
+    if r.get("difference"):
+        label += f" (towards {r['target_azimuth']:.0f} deg; clones {r['mean_azimuth']:.0f} deg)"
+    return label
+
+
+def _unit(r: Mapping) -> str:
+    """A row's unit in the terminal's narrow column."""
+    return "radii" if r["unit"] == "crown radii" else r["unit"]
 
 
 def _band(r: Mapping) -> str:

@@ -239,6 +239,10 @@ def measured_lines(m: TreeMeasures) -> list[str]:
         "counter-clockwise from the file's +x axis "
         f"({m.crown_offset / max(0.5 * m.crown_spread, 1e-9):.2f} crown radii); "
         f"the stem's upper half leans {m.stem_lean:.0f} deg",
+        f"the crown's offset from its stem (at its centre's height, by wood volume): "
+        f"{math.hypot(*m.crown_side):.2f} crown radii towards "
+        f"{math.degrees(math.atan2(m.crown_side[1], m.crown_side[0])):.0f} deg"
+        + (" (one-sided)" if m.one_sided else ""),
     ]
 
 
@@ -325,14 +329,25 @@ def _head(qsm: Path, name: str, d: RecipeDraft, m: TreeMeasures, choices, how: s
 
 
 def _ssm_section(name: str, d: RecipeDraft) -> list[str]:
-    """The growth model's section: its settings, fixed values and search box, as it drafted them."""
+    """The growth model's section: its settings, fixed values and search box, as it drafted them;
+    a setting that is a table of its own (a dict) follows as ``[ssm.NAME]``."""
     L = ["[ssm]", f'kind = "{name}"']
-    L += [_line(f"{k} = {_value(v)}", c) for k, v, c in d.settings]
+    L += [_line(f"{k} = {_value(v)}", c) for k, v, c in d.settings if not isinstance(v, dict)]
     L += [_line(f"fixed.{k} = {_value(v)}", c) for k, v, c in d.fixed]
     for k, lo, hi, c in d.free:
         by = f', scaled_by = "{d.scaled[k]}"' if k in d.scaled else ""
         L.append(_line(f"free.{k} = {{ lower = {_value(lo)}, upper = {_value(hi)}{by} }}", c))
+    for k, v, c in d.settings:
+        if isinstance(v, dict):
+            L += ["", *_comment(c or ""), f"[ssm.{k}]", *(f"{kk} = {_rows(vv)}" for kk, vv in v.items())]
     return L + [""]
+
+
+def _rows(v) -> str:
+    """A value as TOML; a table of rows (a list of lists) one row a line."""
+    if isinstance(v, (list, tuple)) and len(v) > 1 and all(isinstance(x, (list, tuple)) for x in v):
+        return "[\n" + "".join(f"    {_toml(x)},\n" for x in v) + "]"
+    return _toml(v)
 
 
 def _terms(d: RecipeDraft, parts: dict[str, RecipePart]) -> list[str]:

@@ -188,6 +188,30 @@ class RunView:
         return t
 
     @cached_property
+    def crown_space(self):
+        """The crown's space drawn over the target and its clones, and its name in the legend:
+        the envelope the model grew the clones in (``SSM.crown_space`` at the best parameters),
+        else the one measured from the target (``metrics.crown_envelope``), or (None, "")."""
+        if self.cfg is not None and self.best_params is not None:
+            try:
+                from ..config import build_component
+
+                space = build_component(self.cfg, "ssm").crown_space(self.best_params)
+            except Exception as exc:  # a model that cannot say must not stop the report
+                self.note(f"the model's crown space could not be read ({type(exc).__name__}: {exc})")
+                space = None
+            if space is not None:
+                return space, "the crown's space the clones grew in"
+        if self.target_tree is None:
+            return None, ""
+        from ..metrics import crown_envelope
+
+        try:
+            return crown_envelope(self.target_tree), "the target's crown space (not used by this model)"
+        except ValueError:  # a target without a crown
+            return None, ""
+
+    @cached_property
     def best_tree(self):
         """The best-fit tree: regrown from the best parameters and the first model seed (exactly
         the tree ``finish_fit`` scored and wrote), else read from ``best_tree.txt``.

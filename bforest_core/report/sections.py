@@ -587,7 +587,7 @@ def section_fidelity(doc: Document, v: RunView):
     for w in fid.get("warnings", []):
         doc.p(f"**WARNING: {w}.**")
     from ..metrics import summary_label, summary_unit
-    from ..pipeline.fidelity import limit_of, percent
+    from ..pipeline.fidelity import error_text, limit_of, limit_text, row_label
 
     rows = []
     for r in fid["table"]:
@@ -596,14 +596,14 @@ def section_fidelity(doc: Document, v: RunView):
         band = "–" if r.get("p5") is None else f"{fmt(r['p5'])}–{fmt(r['p95'])}"
         rows.append(
             [
-                r.get("label") or summary_label(r["statistic"]),
+                row_label({"label": summary_label(r["statistic"]), **r}),
                 r.get("unit") or summary_unit(r["statistic"]),
                 r["target"],
                 r["mean"],
                 r["sd"],
                 band,
-                percent(r["error"]) + (" **!**" if warn else ""),
-                "–" if lim is None else f"±{100 * lim:g} %",
+                error_text(r) + (" **!**" if warn else ""),
+                limit_text(r),
             ]
         )
     doc.table(["statistic", "unit", "target", "clones mean", "sd", "clones 5–95 %", "error", "limit"], rows)

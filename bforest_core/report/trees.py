@@ -162,11 +162,51 @@ def plot_tree(
     return lc
 
 
-def order_legend(ax, orders: Sequence[int], loc: str = "upper right", title: str = "branch order", **kw):
+#: how the crown's space (its envelope) is drawn beside a tree
+ENVELOPE_STYLE = {"color": "#6f6f6f", "lw": 0.9, "ls": "--"}
+
+
+def envelope_lines(envelope, view: str, heights: int = 97, grid: int = 220) -> list[np.ndarray]:
+    """The outline of a crown's space (:class:`~bforest_core.envelope.CrownEnvelope`, with its
+    margin) in one view, relative to the stem base: the side view "xz" as one closed line (the
+    envelope's reach either side, height by height), the top view "xy" as the outline of its
+    footprint (every height's outline together), each a (k, 2) array."""
+    if view not in ("xz", "xy"):
+        raise ValueError(f"a crown's space is drawn in the views 'xz' and 'xy', got {view!r}")
+    zs = np.linspace(0.0, envelope.top + envelope.margin, heights)
+    rings = [envelope.outline(z) for z in zs]
+    if view == "xz":
+        lo = [(r[:, 0].min(), z) for r, z in zip(rings, zs)]
+        hi = [(r[:, 0].max(), z) for r, z in zip(rings, zs)]
+        return [np.array(lo + hi[::-1] + lo[:1])]
+    from matplotlib.path import Path as MplPath
+
+    pts = np.concatenate(rings)
+    (x0, y0), (x1, y1) = pts.min(0), pts.max(0)
+    pad = 0.05 * max(x1 - x0, y1 - y0, 1e-3)
+    gx, gy = np.meshgrid(np.linspace(x0 - pad, x1 + pad, grid), np.linspace(y0 - pad, y1 + pad, grid))
+    cells = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    inside = np.zeros(cells.shape[0], bool)
+    for r in rings:
+        inside |= MplPath(r).contains_points(cells)
+    import matplotlib.pyplot as plt
+
+    from .canvas import new_figure
+
+    fig = new_figure(2, 2)  # contour's lines, measured on a scratch figure
+    cs = fig.subplots().contour(gx, gy, inside.reshape(gx.shape).astype(float), levels=[0.5])
+    lines = [seg for seg in cs.allsegs[0] if len(seg) > 2]
+    plt.close(fig)
+    return lines
+
+
+def order_legend(
+    ax, orders: Sequence[int], loc: str = "upper right", title: str = "branch order", extra: Sequence = (), **kw
+):
     """Legend of the branch-order colours present in ``orders`` (``ax`` may be an Axes or a
-    Figure)."""
+    Figure), and the ``extra`` handles after them."""
     return ax.legend(
-        handles=order_handles(orders),
+        handles=order_handles(orders) + list(extra),
         loc=loc,
         title=title,
         fontsize="small",
@@ -315,10 +355,12 @@ def _wrapped(text: str, width_in: float, points: float = 11.0) -> str:
     return "\n".join(textwrap.wrap(text, max(20, int(width_in * 72 / (0.62 * points))))) or text
 
 
-def _slots(trees, min_width: float = 0.0, gap_frac: float = 0.1):
+def _slots(trees, min_width: float = 0.0, gap_frac: float = 0.1, extent=None):
     """Horizontal (x) offsets placing trees side by side, each centred on its stem base in a
-    slot at least ``min_width`` wide; returns ``(offsets, slot_edges)``."""
-    exts = [_extent([t], "xy") for t in trees]  # x range (and y) about each stem base
+    slot at least ``min_width`` wide; returns ``(offsets, slot_edges)``. ``extent(tree, view)``
+    gives what is drawn of a tree (default: :func:`_extent` of the tree)."""
+    extent = extent or (lambda t, vw: _extent([t], vw))
+    exts = [extent(t, "xy") for t in trees]  # x range (and y) about each stem base
     widths = [max(e[1] - e[0], min_width) for e in exts]
     gap = gap_frac * max(max(widths), 1e-3)
     offs, edges, x = [], [], 0.0
@@ -337,23 +379,41 @@ def clones_figure(
     title: str | None = None,
     views: Sequence[str] = ("xz", "xy"),
     dpi: int = 130,
+    envelope=None,
+    envelope_label: str = "the crown's space",
 ) -> Path:
     """The target and several clones side by side on one scale (GigaScience Fig. 5): one row
     per view ("xz" side view, "xy" top view); a tree keeps the same x slot in every row, so its
-    top view sits under its side view."""
+    top view sits under its side view. With ``envelope`` (a
+    :class:`~bforest_core.envelope.CrownEnvelope`, in the target's frame about its stem base) its
+    outline is drawn over every tree, dashed, named ``envelope_label`` in the legend."""
     for vw in views:
         if vw not in ("xz", "xy"):
             raise ValueError(f"clones_figure draws the views 'xz' and 'xy' (x along the row), got {vw!r}")
     trees = [("target", target)] + list(clones)
     tl = [t for _, t in trees]
     r_max = max(float(np.max(t.radius)) for t in tl)
-    height = max(_extent([t], "xz")[3] - min(0.0, _extent([t], "xz")[2]) for t in tl)
-    offs, edges = _slots(tl, min_width=0.3 * height if "xz" in views else 0.0)
+    drawn = {vw: envelope_lines(envelope, vw) for vw in views} if envelope is not None else {}
+
+    def extent(t, vw):  # the tree, and the crown's space drawn over it
+        e = _extent([t], vw)
+        if not drawn.get(vw):
+            return e
+        pts = np.concatenate(drawn[vw])
+        return (
+            min(e[0], pts[:, 0].min()),
+            max(e[1], pts[:, 0].max()),
+            min(e[2], pts[:, 1].min()),
+            max(e[3], pts[:, 1].max()),
+        )
+
+    height = max(extent(t, "xz")[3] - min(0.0, extent(t, "xz")[2]) for t in tl)
+    offs, edges = _slots(tl, min_width=0.3 * height if "xz" in views else 0.0, extent=extent)
     x0, x1 = edges[0][0], edges[-1][1]
     vext = {}
     slot = max(e1 - e0 for e0, e1 in edges)
     for vw in views:
-        es = [_extent([t], vw) for t in tl]
+        es = [extent(t, vw) for t in tl]
         lo, hi = min(e[2] for e in es), max(e[3] for e in es)
         if vw == "xy" and hi - lo < slot:  # top views get (at least) square slots
             c = 0.5 * (lo + hi)
@@ -378,6 +438,8 @@ def clones_figure(
                 autoscale=False,
                 label_axes=False,
             )
+            for line in drawn.get(vw, []):
+                ax.plot(line[:, 0] + off, line[:, 1], zorder=3, **ENVELOPE_STYLE)
             if r == 0:
                 if label == "target":
                     label = f"target\n{t.n} cylinders"
@@ -400,7 +462,8 @@ def clones_figure(
     orders = set()
     for t in tl:
         orders.update(np.unique(t.order).tolist())
-    order_legend(axes[0], orders, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    extra = [Line2D([], [], **ENVELOPE_STYLE, label=envelope_label)] if envelope is not None else []
+    order_legend(axes[0], orders, loc="upper left", bbox_to_anchor=(1.0, 1.0), extra=extra)
     if title:
         fig.suptitle(title)
     return save_figure(fig, path, dpi)
@@ -499,6 +562,7 @@ def fig_clones(v: RunView):
     k = v.cfg.report.clones_in_figure if v.cfg is not None else 6
     shown = v.clone_trees(k)
     if shown and v.target_tree is not None:
+        space, words = v.crown_space
         out.append(
             (
                 clones_figure(
@@ -506,9 +570,12 @@ def fig_clones(v: RunView):
                     shown,
                     v.store.figures_dir / "clones.png",
                     title=f"Target and {len(shown)} morphological clones of the best fit",
+                    envelope=space,
+                    envelope_label=words,
                 ),
                 f"The target and {len(shown)} clones (the best-fit model with fresh seeds) on one scale, "
-                "side view XZ and top view XY",
+                "side view XZ and top view XY"
+                + (f"; dashed: {words} (docs/growth-forms.md, the crown's space)" if space is not None else ""),
             )
         )
     keys = ("height", "girth", "crown_spread", "distance", "d_h", "d_g", "d_c", "n_cylinders")

@@ -227,6 +227,15 @@ class _SSMCase:
         d = _tree_diff(t, t2)
         _require(d is None, f"the returned tree does not survive pickling: {d}")
 
+    def c_crown_space(self):
+        from ..envelope import CrownEnvelope
+
+        space = _need(self.inst, self.err).crown_space(dict(self.params))
+        _require(
+            space is None or isinstance(space, CrownEnvelope),
+            f"crown_space returned a {type(space).__name__}, not None or a CrownEnvelope",
+        )
+
     def c_bounds(self):
         inst, params, seeds, err, hold, bounds = self.inst, self.params, self.seeds, self.err, self.hold, self.bounds
         m = _need(inst, err)
@@ -338,6 +347,7 @@ def ssm_checks(
     if stochastic:
         checks.append(Check(label, "seeds", case.c_seeds))
     checks.append(Check(label, "pickle", case.c_pickle))
+    checks.append(Check(label, "crown_space", case.c_crown_space))
     if bounds not in ("none", False, None):
         checks.append(Check(label, "bounds", case.c_bounds))
     return checks

@@ -47,6 +47,7 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.special import ndtr, ndtri
 
+from bforest_core.envelope import grown_in
 from bforest_core.errors import SimulationFailed
 from bforest_core.tree import Tree, group_by_level, remap_ids
 
@@ -125,7 +126,7 @@ def foliage_survival(age: np.ndarray) -> np.ndarray:
     return np.where(age < PF.size, PF[np.clip(age, 0, PF.size - 1)], 0.0)
 
 
-def light(mid: np.ndarray, wf: np.ndarray, p: Mapping[str, float], z_top: float = 0.0):
+def light(mid: np.ndarray, wf: np.ndarray, p: Mapping[str, float], z_top: float = 0.0, space=None):
     """Light step c of A.5 for segment midpoints ``mid`` and foliage masses ``wf``.
 
     Returns ``(S, I, f_L, P)``: shadow (evaluated at foliated receivers only, NaN at bare
@@ -137,6 +138,10 @@ def light(mid: np.ndarray, wf: np.ndarray, p: Mapping[str, float], z_top: float 
     canopy grows with the tree: S_stand (z_top - z) at a point z below the tree's current top
     ``z_top``. Trees scanned in a stand have lost their lower branches to their neighbours' shade,
     which the tree's own shadow pyramid (only ``shadow_len`` deep) cannot do.
+
+    ``space`` (an addition: ``envelope_shade`` with the setting ``crown_envelope``) is the share of
+    the light left at each midpoint by the neighbours around the crown's space (1 inside it): the
+    intercepted light is multiplied by it, so a segment outside takes none.
     """
     q = q_max_of(p["shadow_len"], p["voxel_size"])
     foliated = wf > FOLIATED
@@ -146,6 +151,8 @@ def light(mid: np.ndarray, wf: np.ndarray, p: Mapping[str, float], z_top: float 
     R = p["radiation"]
     I = np.zeros(S.shape)
     I[foliated] = np.maximum(0.0, R - S[foliated])
+    if space is not None:
+        I *= space
     ip = I / R
     aL = p["fl_threshold"]
     fL = np.maximum(0.0, (ip - aL) / (1.0 - aL))
@@ -402,6 +409,8 @@ class _Simulation:
         self.Wr = 0.0
         self.g_ref = 0.0  # angle of the trunk-whorl reference direction from +x (rad)
         self.year = 0
+        #: the crown's space (``envelope_shade`` with the setting ``crown_envelope``), or None
+        self.envelope = grown_in(settings.crown_envelope, p["envelope_shade"])
 
     # -------------------------------------------------------------- output
     def to_tree(self, status: str, t: int) -> Tree:
@@ -557,7 +566,7 @@ class _Simulation:
         z_top = (
             float((st.start[idx, 2] + st.length[idx] * st.axis[idx, 2]).max()) if self.p["stand_shade"] > 0.0 else 0.0
         )
-        S_l, I_l, fL_l, Pv = light(mid, st.wf[idx], self.p, z_top)
+        S_l, I_l, fL_l, Pv = light(mid, st.wf[idx], self.p, z_top, self._space(idx, mid))
         S = np.zeros(st.n)
         I = np.zeros(st.n)
         fL = np.zeros(st.n)
@@ -565,6 +574,18 @@ class _Simulation:
         I[idx] = I_l
         fL[idx] = fL_l
         return S, I, fL, Pv
+
+    def _space(self, idx: np.ndarray, mid: np.ndarray):
+        """The share of the light the crown's space leaves at the midpoints ``mid`` of the segments
+        ``idx`` (``envelope_shade``, ``crown_envelope``), the trunk keeping a corridor of the
+        envelope's margin; None without it."""
+        if self.envelope is None:
+            return None
+        st = self.st
+        trunk = idx[st.order[idx] == 0]
+        trunk = trunk[np.argsort(st.depth[trunk], kind="stable")]  # base first
+        stem = np.vstack([np.zeros((1, 3)), st.start[trunk] + st.length[trunk, None] * st.axis[trunk]])
+        return 1.0 - self.p["envelope_shade"] * (1.0 - self.envelope.light(mid, stem))
 
     # -------------------------------------------------------------- one growth year (e-j)
     def _grow_year(self, t: int, fL: np.ndarray, balance: float, tr: YearTrace | None):

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 
+from bforest_core.envelope import SHADE_MEANING, SHADE_SPEC
 from bforest_core.interfaces import ParameterSpec
 
 P = ParameterSpec
@@ -44,6 +45,12 @@ PARAMETERS: list[ParameterSpec] = [
         "[S_stand] shade of the surrounding stand per metre below the tree's top: S += S_stand (z_top - "
         "z) (0 = an open-grown tree, the papers' model)",
         "light",
+    ),
+    P(
+        **SHADE_SPEC,
+        description=f"[-] {SHADE_MEANING}: I times 1 - envelope_shade (1 - the envelope's light there); 1 = no light "
+        "outside (its buds stay dormant), 0 (or no crown_envelope) = the papers' model",
+        group="light",
     ),
     P(
         "r_env_mean",
@@ -191,6 +198,7 @@ _P98 = dict(
     shadow_len=0.55,
     voxel_size=0.01,
     stand_shade=0.0,
+    envelope_shade=0.0,
     r_env_mean=1.33,
     r_env_sd=0.0,
     lr_mean=0.01,
@@ -399,6 +407,7 @@ def validate(p: Mapping[str, float]) -> None:
     need(0 <= p["heartwood_share"] < 1, "heartwood_share", "must lie in [0, 1)")
     need(0 <= p["fl_threshold"] < 1, "fl_threshold", "must lie in [0, 1)")
     need(0 <= p["fl_min_buds"] <= 1, "fl_min_buds", "must lie in [0, 1]")
+    need(0 <= p["envelope_shade"] <= 1, "envelope_shade", "must lie in [0, 1]")
     need(p["shed_dist"] in (0, 1, 2), "shed_dist", "must be 0, 1 or 2")
     need(p["bud_table"] in (0, 1), "bud_table", "must be 0 (p98) or 1 (s08)")
     need(

@@ -8,6 +8,7 @@ are those that meet the robust-fit limits on the Ruotsinkylä pines (docs/valida
 
 from __future__ import annotations
 
+from bforest_core.envelope import SETTING_WHAT
 from bforest_core.interfaces import RecipeDraft
 from bforest_core.metrics import SIZE_LIMITS, WHORL_GAP, TreeMeasures
 
@@ -125,13 +126,22 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
             "and meets the robust-fit limits on the Ruotsinkylä pines"
         )
         suits = 0.8
+    settings = [
+        ("preset", "sf_real", "the papers' real-tree values for what is not fitted"),
+        ("piece_length", 0.15, "drawn as a scan's QSM draws a tree: shoots as cylinders of at most 15 cm"),
+    ]
+    fixed, notes = [], []
+    space = m.crown_space_why()
+    if space is not None:  # the crown's space, as SOT's recipe writes it
+        notes.append(space)
+        settings.append(("crown_envelope", m.envelope, f"Why: {space}. What: {SETTING_WHAT}."))
+        fixed.append(("envelope_shade", 1.0, "no light outside the crown's space: the neighbours' (crown_envelope)"))
     return RecipeDraft(
         suits=suits,
         why=why,
-        settings=[
-            ("preset", "sf_real", "the papers' real-tree values for what is not fitted"),
-            ("piece_length", 0.15, "drawn as a scan's QSM draws a tree: shoots as cylinders of at most 15 cm"),
-        ],
+        settings=settings,
+        fixed=fixed,
+        notes=notes,
         free=free,
         timeout=60.0,
         scaled={"years": "n_whorls"},

@@ -7,6 +7,7 @@ from typing import Literal
 
 from pydantic import Field
 
+from bforest_core.envelope import SETTING_DESCRIPTION, EnvelopeSetting, grown_in
 from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
 from bforest_core.tree import Tree
 
@@ -32,6 +33,9 @@ class LignumSettings(ComponentSettings):
         branch as short cylinders, each bent by the parameter ``wind_sd``; the growth is
         unchanged (0 = one cylinder per shoot). A setting, not a parameter: it changes only how
         the tree is drawn, and no fit varies it.
+    crown_envelope : dict
+        The measured tree's crown space (:class:`bforest_core.envelope.CrownEnvelope` as a
+        setting), outside which the parameter ``envelope_shade`` takes the light; empty = none.
     """
 
     preset: Literal["sf_synthetic", "sf_real", "p98", "s08", "sf_test16"] = "sf_synthetic"
@@ -45,6 +49,7 @@ class LignumSettings(ComponentSettings):
         "scan's QSM draws a branch as short cylinders, bent by the parameter wind_sd; the growth is "
         "unchanged (0 = one cylinder per shoot)",
     )
+    crown_envelope: EnvelopeSetting = Field(default_factory=dict, description=SETTING_DESCRIPTION)
 
 
 class LignumSSM(SSM):
@@ -65,6 +70,10 @@ class LignumSSM(SSM):
     def parameters(self) -> list[ParameterSpec]:
         """Parameter specs of A.3 with the current preset's values as defaults."""
         return P.parameter_specs(self.settings.preset)
+
+    def crown_space(self, params):
+        """The measured crown's space (``crown_envelope``) when ``envelope_shade`` shades outside it."""
+        return grown_in(self.settings.crown_envelope, self.resolve_params(params)["envelope_shade"])
 
     def draft_recipe(self, measures):
         """LIGNUM's recipe for a measured tree (:func:`bforest_lignum.recipe.lignum_recipe`)."""

@@ -14,12 +14,14 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import Field, field_validator
 
+from bforest_core.envelope import SETTING_DESCRIPTION, EnvelopeSetting, grown_in
 from bforest_core.hookspecs import hookimpl
 from bforest_core.interfaces import SSM, ComponentSettings, ParameterSpec
 from bforest_core.tree import Tree
 
 from .forms.base import GrowthForm
 from .forms.buds import BudsPerNode
+from .forms.envelope import CrownSpace
 from .forms.leader_death import LeaderDeath
 from .forms.shade import GapShade, StandShade
 from .forms.short_shoots import ShortShoots
@@ -35,6 +37,7 @@ from .recipe import sot_recipe
 FORMS: tuple[type[GrowthForm], ...] = (
     StandShade,
     GapShade,
+    CrownSpace,
     StemGuide,
     BudsPerNode,
     Winding,
@@ -75,6 +78,8 @@ class SOTSettings(ComponentSettings):
         ),
     )
 
+    crown_envelope: EnvelopeSetting = Field(default_factory=dict, description=SETTING_DESCRIPTION)
+
     @field_validator("stem_path")
     @classmethod
     def _path(cls, v):
@@ -106,6 +111,7 @@ class SOT(SSM):
     sympodial : bool (False)
     buds_per_node : int (1)
     stem_path : list of (x, y, z) (empty)
+    crown_envelope : dict (empty)
     """
 
     name = "sot"
@@ -118,6 +124,10 @@ class SOT(SSM):
     @property
     def parameters(self) -> list[ParameterSpec]:
         return list(model_parameters(self.forms))
+
+    def crown_space(self, params):
+        """The measured crown's space (``crown_envelope``) when ``envelope_shade`` shades outside it."""
+        return grown_in(self.settings.crown_envelope, self.resolve_params(params)["envelope_shade"])
 
     def draft_recipe(self, measures):
         """SOT's recipe for a measured tree (:func:`bforest_sot.recipe.sot_recipe`)."""

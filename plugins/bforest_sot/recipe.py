@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import math
 
+from bforest_core.envelope import SETTING_WHAT
 from bforest_core.interfaces import RecipeDraft
+from bforest_core.metrics import ONE_SIDED, TreeMeasures
 from bforest_core.metrics import SIZE_WEIGHTS as TOLERANCE_WEIGHTS
-from bforest_core.metrics import TreeMeasures
 
 from .params import PARAMETERS
 
@@ -36,8 +37,6 @@ ANGLE_TERM = {"angle_o1": 6.7, "angle_iqr_o1": 3.3}
 #: branches (on the Wytham trees and the coffeetree, +33-48 % on 4 of 12 fits at 3.3)
 SIZE_WEIGHTS = {**TOLERANCE_WEIGHTS, "crown_spread": 8.0, "n_branches_o1": 6.7}
 
-#: a crown whose centre lies this share of its radius or more from the stem base is one-sided
-ONE_SIDED = 1.0 / 3.0
 
 #: a stem whose upper half leans this much (deg) or more has bent over into a gap, a form the
 #: model's light and tropism do not grow (``gap_lean`` tried: docs/validation.md): the clones'
@@ -70,6 +69,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
     notes = []
     _one_sided_crown(m, fixed, free)
     _leaning_stem(m, settings, fixed, notes)
+    _crown_space(m, settings, fixed, notes)
     if m.decurrent:
         _decurrent_forms(settings, fixed, free)
     why, suits = _crown_form(m)
@@ -263,6 +263,16 @@ def _leaning_stem(m: TreeMeasures, settings: list, fixed: list, notes: list) -> 
     fixed.append(("stem_guide", 1.0, "the stem grows along stem_path, as this tree's stem grew"))
     if m.decurrent:
         fixed.append(("stem_death", 0.0, "the stem's leader lives: the path already holds the tree's forks"))
+
+
+def _crown_space(m: TreeMeasures, settings: list, fixed: list, notes: list) -> None:
+    """The tree's crown space for a decurrent or one-sided crown (docs/growth-forms.md)."""
+    why = m.crown_space_why()
+    if why is None:
+        return
+    notes.append(why)
+    settings.append(("crown_envelope", m.envelope, f"Why: {why}. What: {SETTING_WHAT}."))
+    fixed.append(("envelope_shade", 1.0, "no light outside the crown's space: the neighbours' (crown_envelope)"))
 
 
 def _decurrent_forms(settings: list, fixed: list, free: list) -> None:

@@ -115,6 +115,7 @@ def test_parameter_table_complete():
         "stem_death",
         "stem_guide",
         "envelope_shade",
+        "space_claim",
     }  # stand_shade and the ones after it are additions, off by default
     assert set(names) == expected and len(names) == len(expected)
     by = {p.name: p for p in PARAMETERS}
@@ -1065,3 +1066,60 @@ def test_growth_forms_that_clash_are_refused():
         model = type("Clash", (SOT,), {"name": "clash", "forms": SOT.forms + extra})
         with pytest.raises(ValueError, match=says):
             model().simulate({"max_iter": 2}, 1)
+
+
+def test_crown_markers_fill_the_crowns_space_and_a_bud_whose_space_is_taken_gets_less_light():
+    from bforest_sot.forms.markers import FREE_MARKERS, MARKERS, CrownMarkers
+
+    env = _half_space()
+    rng = np.random.default_rng(5)
+    store = SimpleNamespace(n=0, start=np.zeros((0, 3)), length=np.zeros(0), h=np.zeros((0, 3)))
+    run = SimpleNamespace(
+        p={"space_claim": 1.0, "node_length": 0.2}, settings=SimpleNamespace(crown_envelope=env.setting()), s=store
+    )
+    form = CrownMarkers(run, rng)
+    m = form.markers
+    # the markers lie in the crown's space, from its base to its top, all of it (the +x half space)
+    assert m.shape == (MARKERS, 3) and env.contains(m).all()
+    assert m[:, 2].min() >= 1.0 and m[:, 2].max() <= 6.0 and m[:, 0].min() > -0.25 and m[:, 0].max() > 2.9
+    # every marker free: full light in the space; below the crown base the form does nothing
+    pts = np.array([[1.5, 0.0, 3.0], [1.5, 0.0, 0.5], [-2.0, 0.0, 3.0]])
+    assert np.array_equal(form.transmission(pts)[:2], [1.0, 1.0])
+    # a point far from any marker (behind the stem, outside the space) has none about it: no light
+    assert form.transmission(pts)[2] == 0.0
+    # a metamer ending at (1.5, 0, 3) claims the markers within 2 internodes (0.4 m) of its end
+    store.n, store.start = 1, np.array([[1.5, 0.0, 2.9]])
+    store.length, store.h = np.array([0.1]), np.array([[0.0, 0.0, 1.0]])
+    form.begin_cycle(2)
+    d_old = np.linalg.norm(m - [1.5, 0.0, 3.0], axis=1)
+    d_new = np.linalg.norm(form.free - [1.5, 0.0, 3.0], axis=1)
+    assert len(form.free) == (d_old > 0.4).sum() and d_new.min() > 0.4
+    # a bud there perceives the markers within 4 internodes (0.8 m): the free ones only, up to FREE_MARKERS
+    near = (d_new <= 0.8).sum()
+    assert 0 < near and form.transmission(pts[:1])[0] == pytest.approx(min(near, FREE_MARKERS) / FREE_MARKERS)
+    # a metamer that claimed every marker within the perception radius leaves the bud in shade
+    store.n = 2
+    store.start = np.vstack([store.start, [[1.5, -0.1, 3.0]]])
+    store.length, store.h = np.array([0.1, 0.1]), np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+    form.claim_r = 0.85  # (a larger claim than the form's: every marker the bud perceives)
+    form.begin_cycle(3)
+    assert form.transmission(pts[:1])[0] == 0.0
+    run.p["space_claim"] = 0.25
+    assert form.transmission(pts[:1])[0] == pytest.approx(0.75)  # the share space_claim of its light
+
+
+def test_crown_markers_grow_trees_of_their_own_and_keep_trees_without_them(ssm):
+    env = _half_space()
+    inside = bf.component("ssm", "sot", crown_envelope=env.setting())
+    base = {"max_iter": 14, "envelope_shade": 1.0}
+    for seed in (1, 2):
+        t0 = inside.simulate(base, seed)
+        # off by default, or without a crown's space: the tree draw for draw
+        assert _same_tree(t0, inside.simulate({**base, "space_claim": 0.0}, seed))
+        assert _same_tree(ssm.simulate(base, seed), ssm.simulate({**base, "space_claim": 1.0}, seed))
+        t = inside.simulate({**base, "space_claim": 1.0}, seed)
+        assert not _same_tree(t0, t)
+        # its markers come from a stream of their own: the same run seed, the same tree
+        assert _same_tree(t, inside.simulate({**base, "space_claim": 1.0}, seed))
+    with pytest.raises(ValueError, match="space_claim"):
+        inside.simulate({**base, "space_claim": 1.5}, 1)

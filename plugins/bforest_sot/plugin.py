@@ -23,6 +23,7 @@ from .forms.base import GrowthForm
 from .forms.buds import BudsPerNode
 from .forms.envelope import CrownSpace
 from .forms.leader_death import LeaderDeath
+from .forms.markers import CrownMarkers
 from .forms.shade import GapShade, StandShade
 from .forms.short_shoots import ShortShoots
 from .forms.stem_guide import StemGuide
@@ -38,6 +39,7 @@ FORMS: tuple[type[GrowthForm], ...] = (
     StandShade,
     GapShade,
     CrownSpace,
+    CrownMarkers,
     StemGuide,
     BudsPerNode,
     Winding,

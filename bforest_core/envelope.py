@@ -308,7 +308,7 @@ EnvelopeSetting = Annotated[dict, AfterValidator(_checked)]
 SETTING_DESCRIPTION = (
     "an addition: the crown's space of the measured tree (margin, base, top, stem, reach: its reach from the "
     "stem per height band and azimuth sector, m), outside which the neighbours take the share envelope_shade "
-    "of the light (`bforest init` writes it for a decurrent or one-sided crown); empty = none; see "
+    "of the light (`bforest init --crown-space` writes it for a decurrent or one-sided crown); empty = none; see "
     "docs/growth-forms.md"
 )
 

@@ -95,11 +95,11 @@ def decurrent_tree() -> bf.Tree:
     return b.tree()
 
 
-def _recipe(tmp_path, tree, name, model=None):
+def _recipe(tmp_path, tree, name, model=None, crown_space=False):
     src = tmp_path / f"{name}.txt"
     bf.write_tree(tree, src)
     out = tmp_path / f"{name}.toml"
-    r = write_recipe(src, out, model)
+    r = write_recipe(src, out, model, crown_space=crown_space)
     return r, tomllib.loads(out.read_text(encoding="utf-8"))
 
 
@@ -237,13 +237,18 @@ def test_init_gives_a_one_sided_crown_its_gap(tmp_path):
     assert "gap_shade" not in cfg["ssm"]["free"] and "gap_azimuth" not in cfg["ssm"].get("fixed", {})
 
 
-def test_init_grows_a_decurrent_or_one_sided_crown_in_its_crown_space(tmp_path):
+def test_init_grows_a_decurrent_or_one_sided_crown_in_its_crown_space_when_asked(tmp_path):
     from bforest_core.envelope import CrownEnvelope
 
     # the decurrent hand tree: its crown's space as a table of its own, the light outside it taken
     # (no new free parameter), and the note says which form asks for it and why
     tree = decurrent_tree()
-    r, cfg = _recipe(tmp_path, tree, "limbs")
+    # not by default: the recipe is the open world's, its note says how to ask for the crown's space
+    r, cfg = _recipe(tmp_path, tree, "limbs_open")
+    assert "crown_envelope" not in cfg["ssm"] and "envelope_shade" not in cfg["ssm"].get("fixed", {})
+    assert any(n.startswith("the crown is decurrent (its limbs hold") and "--crown-space" in n for n in r.draft.notes)
+    r, cfg = _recipe(tmp_path, tree, "limbs", crown_space=True)
+    assert not any("--crown-space" in n for n in r.draft.notes)
     s = cfg["ssm"]
     assert r.model == "sot" and s["fixed"]["envelope_shade"] == 1.0 and "envelope_shade" not in s["free"]
     env = CrownEnvelope.from_setting(s["crown_envelope"])
@@ -259,7 +264,7 @@ def test_init_grows_a_decurrent_or_one_sided_crown_in_its_crown_space(tmp_path):
         ("side_sot", excurrent_tree(side=120.0), "sot", True),
         ("side_lignum", excurrent_tree(side=120.0), "lignum", True),
     ):
-        r, cfg = _recipe(tmp_path, t, name, model)
+        r, cfg = _recipe(tmp_path, t, name, model, crown_space=True)
         assert ("crown_envelope" in cfg["ssm"]) == has, name
         assert ("envelope_shade" in cfg["ssm"].get("fixed", {})) == has, name
         if has:

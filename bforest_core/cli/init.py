@@ -20,7 +20,7 @@ def cmd_init(args):
 
         r = write_amortised_recipe(qsm, out, args.amortised, args.model)
     else:
-        r = write_recipe(qsm, out, args.model)
+        r = write_recipe(qsm, out, args.model, crown_space=args.crown_space)
     print(f"{qsm}:")
     for line in measured_lines(r.measures):
         print(f"  {line}")
@@ -53,6 +53,12 @@ def add_commands(sub):
         metavar="FILE",
         help="start the search from this amortised estimator's posterior for the tree (bforest train's "
         "estimator.npz, or 'shipped' for the model's shipped one) with a short refinement; the model is the estimator's",
+    )
+    s.add_argument(
+        "--crown-space",
+        action="store_true",
+        help="grow a decurrent or one-sided crown's clones in the tree's crown space (crown_envelope; "
+        "docs/growth-forms.md): off by default",
     )
     s.add_argument(
         "-o", "--output", metavar=CONFIG, help="recipe file to write (default: the QSM's name with .toml, here)"

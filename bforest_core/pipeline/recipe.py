@@ -186,7 +186,12 @@ def _within(spec, lo, hi, comment):
 
 
 def write_recipe(
-    qsm: str | Path, out: str | Path, model: str | None = None, start: str | None = None, how: str | None = None
+    qsm: str | Path,
+    out: str | Path,
+    model: str | None = None,
+    start: str | None = None,
+    how: str | None = None,
+    crown_space: bool = False,
 ) -> Recipe:
     """Measure the tree in ``qsm`` and write its recipe to ``out`` (an existing file is never
     replaced: the caller checks). Raises ``ConfigError`` naming the file for a tree that cannot
@@ -195,7 +200,9 @@ def write_recipe(
     ``start``: the ``[start] estimator`` the recipe's search starts from (an amortised
     estimator's file as the recipe names it, or ``"shipped"``;
     :func:`~.amortised.write_amortised_recipe`): the search is short (:data:`AMORTISED_BUDGET`).
-    ``how``: how the model was chosen, as the recipe says it."""
+    ``how``: how the model was chosen, as the recipe says it. ``crown_space``: a decurrent or
+    one-sided crown grows in its crown's space (``bforest init --crown-space``; without it the
+    recipe notes that it could, :data:`CROWN_SPACE_NOTE`)."""
     out = Path(out)
     how = how or ("asked for" if model else "the one that suits the tree best")
     tree = read_qsm(qsm)
@@ -206,17 +213,31 @@ def write_recipe(
         m = measure_tree(tree)
     except ValueError as e:
         raise ConfigError(f"{qsm}: cannot be fitted: {e}") from None
+    asked = m
+    if not crown_space:  # the growth models write the crown's space only when it is measured
+        m = dataclasses.replace(m, envelope=None)
     drafts = draft_recipes(m, model)
     if not drafts:
         raise ConfigError("no installed growth model writes recipes (bforest plugins lists them)")
     name, draft = drafts[0]
     if draft.suits <= 0.0:
         raise ConfigError(f"{qsm}: {name} cannot grow this tree: {draft.why}")
+    if not crown_space and (why := asked.crown_space_why()) is not None:
+        draft = dataclasses.replace(draft, notes=[*draft.notes, f"{why.split(':')[0]}: {CROWN_SPACE_NOTE}"])
     if start is not None:
         draft = dataclasses.replace(draft, **AMORTISED_BUDGET, select_sizes=SELECT_SIZES, search_why=AMORTISED_WHY)
     text = render(qsm, rel, name, draft, m, [(n, d.suits, d.why) for n, d in drafts], how, start)
     out.write_text(text, encoding="utf-8")
     return Recipe(name, draft, m, text, [(n, d.suits, d.why) for n, d in drafts])
+
+
+#: what ``init`` says of a decurrent or one-sided crown when its crown's space is not asked for
+CROWN_SPACE_NOTE = (
+    "`bforest init --crown-space` grows the clones in this tree's crown space (crown_envelope, "
+    "docs/growth-forms.md), not done by default: on the Wytham trees and the coffeetree it met the "
+    "broadleaved limits on 2 of 18 fits against none without it, but the coffeetree's clones grew "
+    "looping stems in its narrow space (docs/validation.md, Broadleaved trees)"
+)
 
 
 def not_chosen(name: str, suits: float, chosen: str, chosen_suits: float, why: str) -> str:

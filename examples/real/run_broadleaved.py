@@ -116,10 +116,12 @@ def edited(text: str, edits: list[str]) -> str:
     return text
 
 
-def run_one(tree: str, seed: int, out: Path, n_clones: int, model: str | None = None, edits=None) -> dict:
+def run_one(
+    tree: str, seed: int, out: Path, n_clones: int, model: str | None = None, edits=None, crown_space=False
+) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     rec = out / f"{tree}_seed{seed}.toml"
-    r = write_recipe(path_of(tree), rec, model)
+    r = write_recipe(path_of(tree), rec, model, crown_space=crown_space)
     text = edited(rec.read_text(), edits)
     if seed != 1:  # the run seed: the recipe's one top-level line
         text = text.replace("\nseed = 1\n", f"\nseed = {seed}\n", 1)
@@ -421,6 +423,11 @@ def main(argv=None) -> int:
         help="a probe: 'OLD=>NEW' replaces text of init's recipe, anything else is a line added to its [ssm] "
         "(repeatable; e.g. 'free.year_sd = { lower = 0.0, upper = 0.5 }')",
     )
+    ap.add_argument(
+        "--crown-space",
+        action="store_true",
+        help="init's recipes with the crown's space (bforest init --crown-space) for a decurrent or one-sided crown",
+    )
     ap.add_argument("--again", action="store_true", help="refit fits already in OUT/broadleaved.json")
     ap.add_argument(
         "--floor",
@@ -452,7 +459,7 @@ def main(argv=None) -> int:
             key = f"{tree}_seed{seed}"
             if key in results and not args.again:
                 continue
-            row = run_one(tree, seed, out, args.clones, args.model, args.edit)
+            row = run_one(tree, seed, out, args.clones, args.model, args.edit, args.crown_space)
             results[key] = row
             result_path.write_text(json.dumps(results, indent=2))
             errs = ", ".join(f"{n} {100 * v:+.1f}%" for n, v in row["errors"].items() if v is not None)

@@ -1123,3 +1123,17 @@ def test_crown_markers_grow_trees_of_their_own_and_keep_trees_without_them(ssm):
         assert _same_tree(t, inside.simulate({**base, "space_claim": 1.0}, seed))
     with pytest.raises(ValueError, match="space_claim"):
         inside.simulate({**base, "space_claim": 1.5}, 1)
+
+
+def test_crown_markers_in_a_space_of_no_volume_take_every_point_above_the_crown_base():
+    from bforest_core.envelope import CrownEnvelope
+    from bforest_sot.forms.markers import CrownMarkers
+
+    # no reach and no margin about a leaning stem: no point of the box lies in the space
+    env = CrownEnvelope(0.0, 1.0, 6.0, np.column_stack([np.linspace(0, 1, 5), np.zeros(5)]), np.zeros((4, 8)))
+    run = SimpleNamespace(
+        p={"space_claim": 0.5, "node_length": 0.2}, settings=SimpleNamespace(crown_envelope=env.setting())
+    )
+    form = CrownMarkers(run, np.random.default_rng(1))
+    assert len(form.markers) == 0 and form.tree is None
+    assert np.array_equal(form.transmission(np.array([[0.5, 0.0, 3.0], [0.0, 0.0, 0.5]])), [0.5, 1.0])

@@ -117,20 +117,13 @@ def _box(env: CrownEnvelope):
     return lo, hi
 
 
-def _volume(env: CrownEnvelope, m: int = 14) -> float:
-    """The volume of the crown's space (m³), by a fixed low-discrepancy sample of its box."""
-    from scipy.stats import qmc
-
-    lo, hi = _box(env)
-    u = qmc.Sobol(3, scramble=False).random_base2(m)
-    return float(np.prod(hi - lo) * env.contains(lo + u * (hi - lo)).mean())
-
-
 def _markers(env: CrownEnvelope, rng: np.random.Generator) -> np.ndarray:
     """:data:`MARKERS` points uniform in the crown's space from its base to its top."""
     lo, hi = _box(env)
     out = np.zeros((0, 3))
-    while len(out) < MARKERS:
+    for _ in range(64):  # a space of no volume (no reach, no margin) holds none: then every point is taken
+        if len(out) >= MARKERS:
+            break
         p = lo + rng.random((4 * MARKERS, 3)) * (hi - lo)
         out = np.vstack([out, p[env.contains(p)]])
     return out[:MARKERS]

@@ -871,8 +871,20 @@ class TreeMeasures:
         conifer's excurrent crown all around its stem is set by its leader and whorls in any
         stand, and gets None.
         """
-        if not self.envelope or not (self.decurrent or self.one_sided):
+        form = self.wood_shaped()
+        if not self.envelope or form is None:
             return None
+        reach = self.envelope["reach"]
+        return (
+            f"{form}: a broadleaved crown in a wood fills the space its neighbours "
+            "left it, where a growth model grows into an open world; the clones grow in this tree's crown space "
+            f"(crown_envelope: its reach from the stem in {len(reach[0])} directions at {len(reach)} heights, "
+            f"plus a margin of {self.envelope['margin']:g} m), where buds outside get no light and their shoots "
+            "are shed (docs/growth-forms.md)"
+        )
+
+    def wood_shaped(self) -> str | None:
+        """Say which forms of a crown a wood shaped this one has (decurrent, one-sided), or None."""
         side = float(np.hypot(*self.crown_side))
         az = float(np.degrees(np.arctan2(self.crown_side[1], self.crown_side[0])))
         which = []
@@ -880,14 +892,7 @@ class TreeMeasures:
             which.append(f"decurrent (its limbs hold {self.limb_ratio:.1f} x the stem's wood in the crown)")
         if self.one_sided:
             which.append(f"one-sided (its centre lies {side:.2f} crown radii off the stem, towards {az:.0f} deg)")
-        reach = self.envelope["reach"]
-        return (
-            f"the crown is {' and '.join(which)}: a broadleaved crown in a wood fills the space its neighbours "
-            "left it, where a growth model grows into an open world; the clones grow in this tree's crown space "
-            f"(crown_envelope: its reach from the stem in {len(reach[0])} directions at {len(reach)} heights, "
-            f"plus a margin of {self.envelope['margin']:g} m), where buds outside get no light and their shoots "
-            "are shed (docs/growth-forms.md)"
-        )
+        return f"the crown is {' and '.join(which)}" if which else None
 
     @property
     def one_sided(self) -> bool:

@@ -213,8 +213,8 @@ def write_recipe(
         m = measure_tree(tree)
     except ValueError as e:
         raise ConfigError(f"{qsm}: cannot be fitted: {e}") from None
-    asked = m
-    if not crown_space:  # the growth models write the crown's space only when it is measured
+    form = m.wood_shaped()
+    if not crown_space:  # not asked for: no growth model writes a crown's space it is not given
         m = dataclasses.replace(m, envelope=None)
     drafts = draft_recipes(m, model)
     if not drafts:
@@ -222,8 +222,8 @@ def write_recipe(
     name, draft = drafts[0]
     if draft.suits <= 0.0:
         raise ConfigError(f"{qsm}: {name} cannot grow this tree: {draft.why}")
-    if not crown_space and (why := asked.crown_space_why()) is not None:
-        draft = dataclasses.replace(draft, notes=[*draft.notes, f"{why.split(':')[0]}: {CROWN_SPACE_NOTE}"])
+    if not crown_space and form is not None:
+        draft = dataclasses.replace(draft, notes=[*draft.notes, f"{form}: {CROWN_SPACE_NOTE}"])
     if start is not None:
         draft = dataclasses.replace(draft, **AMORTISED_BUDGET, select_sizes=SELECT_SIZES, search_why=AMORTISED_WHY)
     text = render(qsm, rel, name, draft, m, [(n, d.suits, d.why) for n, d in drafts], how, start)

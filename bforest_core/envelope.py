@@ -67,6 +67,21 @@ SETTING_WHAT = (
 )
 
 
+def draft_crown_space(measures, settings: list, fixed: list, notes: list) -> None:
+    """Add a tree's crown space to a growth model's recipe draft, for a decurrent or one-sided crown.
+
+    The note why, the setting ``crown_envelope`` and ``envelope_shade`` fixed at 1 (no new free
+    parameter), appended to the draft's lists; nothing for a crown a wood did not shape, or when
+    ``measures`` carry no envelope (``bforest init`` without ``--crown-space``).
+    """
+    why = measures.crown_space_why()
+    if why is None:
+        return
+    notes.append(why)
+    settings.append(("crown_envelope", measures.envelope, f"Why: {why}. What: {SETTING_WHAT}."))
+    fixed.append(("envelope_shade", 1.0, "no light outside the crown's space: the neighbours' (crown_envelope)"))
+
+
 @dataclass(frozen=True)
 class CrownEnvelope:
     """A star-shaped envelope of a crown (see the module text).

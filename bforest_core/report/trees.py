@@ -394,12 +394,13 @@ def clones_figure(
     tl = [t for _, t in trees]
     r_max = max(float(np.max(t.radius)) for t in tl)
     drawn = {vw: envelope_lines(envelope, vw) for vw in views} if envelope is not None else {}
+    outline = {vw: np.concatenate(lines) for vw, lines in drawn.items() if lines}  # its points, per view
 
     def extent(t, vw):  # the tree, and the crown's space drawn over it
         e = _extent([t], vw)
-        if not drawn.get(vw):
+        if vw not in outline:
             return e
-        pts = np.concatenate(drawn[vw])
+        pts = outline[vw]
         return (
             min(e[0], pts[:, 0].min()),
             max(e[1], pts[:, 0].max()),

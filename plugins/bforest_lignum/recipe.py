@@ -8,7 +8,7 @@ are those that meet the robust-fit limits on the Ruotsinkylä pines (docs/valida
 
 from __future__ import annotations
 
-from bforest_core.envelope import SETTING_WHAT
+from bforest_core.envelope import draft_crown_space
 from bforest_core.interfaces import RecipeDraft
 from bforest_core.metrics import SIZE_LIMITS, WHORL_GAP, TreeMeasures
 
@@ -131,11 +131,7 @@ def lignum_recipe(m: TreeMeasures) -> RecipeDraft:
         ("piece_length", 0.15, "drawn as a scan's QSM draws a tree: shoots as cylinders of at most 15 cm"),
     ]
     fixed, notes = [], []
-    space = m.crown_space_why()
-    if space is not None:  # the crown's space, as SOT's recipe writes it
-        notes.append(space)
-        settings.append(("crown_envelope", m.envelope, f"Why: {space}. What: {SETTING_WHAT}."))
-        fixed.append(("envelope_shade", 1.0, "no light outside the crown's space: the neighbours' (crown_envelope)"))
+    draft_crown_space(m, settings, fixed, notes)
     return RecipeDraft(
         suits=suits,
         why=why,

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 
-from bforest_core.envelope import SETTING_WHAT
+from bforest_core.envelope import draft_crown_space
 from bforest_core.interfaces import RecipeDraft
 from bforest_core.metrics import ONE_SIDED, TreeMeasures
 from bforest_core.metrics import SIZE_WEIGHTS as TOLERANCE_WEIGHTS
@@ -69,7 +69,7 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
     notes = []
     _one_sided_crown(m, fixed, free)
     _leaning_stem(m, settings, fixed, notes)
-    _crown_space(m, settings, fixed, notes)
+    draft_crown_space(m, settings, fixed, notes)
     if m.decurrent:
         _decurrent_forms(settings, fixed, free)
     why, suits = _crown_form(m)
@@ -263,16 +263,6 @@ def _leaning_stem(m: TreeMeasures, settings: list, fixed: list, notes: list) -> 
     fixed.append(("stem_guide", 1.0, "the stem grows along stem_path, as this tree's stem grew"))
     if m.decurrent:
         fixed.append(("stem_death", 0.0, "the stem's leader lives: the path already holds the tree's forks"))
-
-
-def _crown_space(m: TreeMeasures, settings: list, fixed: list, notes: list) -> None:
-    """The tree's crown space for a decurrent or one-sided crown (docs/growth-forms.md)."""
-    why = m.crown_space_why()
-    if why is None:
-        return
-    notes.append(why)
-    settings.append(("crown_envelope", m.envelope, f"Why: {why}. What: {SETTING_WHAT}."))
-    fixed.append(("envelope_shade", 1.0, "no light outside the crown's space: the neighbours' (crown_envelope)"))
 
 
 def _decurrent_forms(settings: list, fixed: list, free: list) -> None:

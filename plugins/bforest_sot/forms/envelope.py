@@ -24,7 +24,20 @@ from bforest_core.interfaces import ParameterSpec as P
 from .base import GrowthForm
 
 
-class CrownSpace(GrowthForm):
+class InCrownSpace(GrowthForm):
+    """A form that acts in the measured crown's space: its :attr:`switch` parameter, a share in
+    [0, 1], above 0, and the setting ``crown_envelope`` given (else the papers' tree, draw for draw)."""
+
+    @classmethod
+    def acts(cls, p, settings) -> bool:
+        return super().acts(p, settings) and bool(settings.crown_envelope)
+
+    @classmethod
+    def check(cls, p, need) -> None:
+        need(0 <= p[cls.switch] <= 1, cls.switch, "in [0, 1]")
+
+
+class CrownSpace(InCrownSpace):
     """``envelope_shade``: the share of the light the neighbours take outside ``crown_envelope``."""
 
     parameters = (
@@ -36,13 +49,7 @@ class CrownSpace(GrowthForm):
         ),
     )
 
-    @classmethod
-    def acts(cls, p, settings) -> bool:
-        return p["envelope_shade"] > 0.0 and bool(settings.crown_envelope)
-
-    @classmethod
-    def check(cls, p, need) -> None:
-        need(0 <= p["envelope_shade"] <= 1, "envelope_shade", "in [0, 1]")
+    switch = "envelope_shade"
 
     def __init__(self, run, rng):
         super().__init__(run, rng)

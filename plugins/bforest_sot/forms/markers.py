@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from bforest_core.envelope import CrownEnvelope
 from bforest_core.interfaces import ParameterSpec as P
 
-from .base import GrowthForm
+from .envelope import InCrownSpace
 
 #: markers drawn in the crown's space (a fixed number: the cost of a growth does not grow with the tree)
 MARKERS = 4000
@@ -42,7 +42,7 @@ FREE_MARKERS = 4
 STREAM = 77
 
 
-class CrownMarkers(GrowthForm):
+class CrownMarkers(InCrownSpace):
     """``space_claim``: the share of the light a point loses where the crown's space about it is taken."""
 
     parameters = (
@@ -60,14 +60,7 @@ class CrownMarkers(GrowthForm):
         ),
     )
     stream = STREAM
-
-    @classmethod
-    def acts(cls, p, settings) -> bool:
-        return p["space_claim"] > 0.0 and bool(settings.crown_envelope)
-
-    @classmethod
-    def check(cls, p, need) -> None:
-        need(0 <= p["space_claim"] <= 1, "space_claim", "in [0, 1]")
+    switch = "space_claim"
 
     def __init__(self, run, rng):
         super().__init__(run, rng)

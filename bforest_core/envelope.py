@@ -67,19 +67,21 @@ SETTING_WHAT = (
 )
 
 
-def draft_crown_space(measures, settings: list, fixed: list, notes: list) -> None:
+def draft_crown_space(measures, settings: list, fixed: list, notes: list) -> bool:
     """Add a tree's crown space to a growth model's recipe draft, for a decurrent or one-sided crown.
 
     The note why, the setting ``crown_envelope`` and ``envelope_shade`` fixed at 1 (no new free
     parameter), appended to the draft's lists; nothing for a crown a wood did not shape, or when
-    ``measures`` carry no envelope (``bforest init`` without ``--crown-space``).
+    ``measures`` carry no envelope (``bforest init`` without ``--crown-space``). Returns whether it
+    added them.
     """
     why = measures.crown_space_why()
     if why is None:
-        return
+        return False
     notes.append(why)
     settings.append(("crown_envelope", measures.envelope, f"Why: {why}. What: {SETTING_WHAT}."))
     fixed.append(("envelope_shade", 1.0, "no light outside the crown's space: the neighbours' (crown_envelope)"))
+    return True
 
 
 @dataclass(frozen=True)
@@ -220,6 +222,36 @@ class CrownEnvelope:
             corridor = self._fall(np.hypot(d[:, 0], d[:, 1])) * self._fall(p[:, 2] - min(path[:, 2].max(), self.top))
             f = np.maximum(f, corridor)
         return f
+
+    def side(self, points) -> np.ndarray:
+        """Return the crown's reach in each point's direction over its band's widest reach.
+
+        The reach between the sectors' middles is linear in the azimuth about the stem (at the
+        point's height), so it changes smoothly round the stem; below the crown base the widest
+        reach of each sector over the bands holds (as in :meth:`light`). A wood's crown reaches
+        far where its neighbours stand far and short where they stand near: this is how open the
+        point's side of the crown is, 1 on the side where the crown reaches farthest.
+
+        Parameters
+        ----------
+        points : (m, 3) array_like
+            Points in the tree's frame (stem base at the origin).
+
+        Returns
+        -------
+        (m,) float array in [0, 1] (1 for a band that reaches nowhere)
+        """
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        rows = self._rows()[self._band(p[:, 2])]
+        sectors = rows.shape[1]
+        d = p[:, :2] - self._centre(p[:, 2])
+        u = (np.arctan2(d[:, 1], d[:, 0]) + np.pi) / (2.0 * np.pi) * sectors - 0.5  # 0 at sector 0's middle
+        j = np.floor(u).astype(np.int64)
+        t = u - j
+        k = np.arange(len(p))
+        reach = (1.0 - t) * rows[k, j % sectors] + t * rows[k, (j + 1) % sectors]
+        widest = rows.max(axis=1)
+        return np.where(widest > 0, reach / np.where(widest > 0, widest, 1.0), 1.0)
 
     def _fall(self, beyond: np.ndarray) -> np.ndarray:
         """Light left ``beyond`` metres past an edge: 1 within it, 0 past the margin, linear between."""

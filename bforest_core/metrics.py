@@ -40,6 +40,8 @@ __all__ = [
     "SELECT_SIZES",
     "checked_fractions",
     "SIZE_LIMITS",
+    "OFFSET_TOLERANCE",
+    "SIGNED_UNITS",
     "SUMMARY_UNITS",
     "summary_unit",
     "summary_label",
@@ -290,6 +292,10 @@ def relative_errors(data_metrics: Mapping[str, float], model_metrics: Mapping[st
 #: the error a forester tolerates in the clones' mean of each headline statistic (a fraction of
 #: the tree's value; the limits of docs/validation.md section 4)
 SIZE_TOLERANCES = {"height": 0.075, "dbh": 0.20, "crown_spread": 0.25, "crown_base_height": 0.30, "n_branches_o1": 0.30}
+#: how far (crown radii) the clones' mean crown offset may lie from the tree's (a vector,
+#: :func:`crown_offset`): seen from above, a half-moon crown 0.9 radii off its stem and clones whose
+#: crowns sit all around theirs (0.2-0.4 radii off, every way) differ by more
+OFFSET_TOLERANCE = 0.25
 #: what a size term weighs by default: each headline statistic by the inverse of its tolerance
 #: (13.3, 5, 4, 3.3, 3.3); a model's recipe may weigh some of them otherwise
 #: (``RecipeDraft.size_weights``)
@@ -371,6 +377,10 @@ DETECTION_DIAMETER = 0.01
 #: whorl: a conifer sets one whorl a year at the top of that year's leader shoot (on the Ruotsinkylä
 #: pines 0.3-0.5 m apart, the median), and a QSM places the branches of one whorl a few cm apart
 WHORL_GAP = 0.15
+
+
+#: units of signed statistics: no ratio of two of them means anything, their difference does
+SIGNED_UNITS = frozenset({"crown radii"})
 
 
 def summary_unit(name: str) -> str:
@@ -610,7 +620,8 @@ def tree_summary(
     -------
     dict
         ``height``, ``dbh``, ``base_diameter``, ``crown_spread``, ``crown_base_height``,
-        ``stem_length`` (m); ``n_whorls`` (whorls of the first-order branches at least ``min_diameter`` thick,
+        ``stem_length`` (m); ``crown_offset_x`` and ``crown_offset_y`` (the crown's offset from its
+        stem, :func:`crown_offset`, crown radii: signed, compared by their difference); ``n_whorls`` (whorls of the first-order branches at least ``min_diameter`` thick,
         dead ones too, :func:`whorls`); per order w: ``n_branches_o{w}`` (living branches at least
         ``min_diameter`` thick at the base), ``n_all_branches_o{w}`` (every living branch),
         ``length_o{w}`` (the counted branches' total length, m), ``volume_o{w}`` (wood volume,
@@ -637,6 +648,7 @@ def tree_summary(
         "stem_length": float(tree.length[order == 0].sum()),
         "n_whorls": float(len(whorls(tree, min_diameter))),
     }
+    out["crown_offset_x"], out["crown_offset_y"] = (float(c) for c in crown_offset(tree))
     for w in range(1, max_order + 1):
         sel = (br.order == w) & seen
         out[f"n_branches_o{w}"] = float(np.count_nonzero(sel))

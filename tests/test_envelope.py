@@ -94,6 +94,22 @@ def test_the_envelope_of_a_hand_built_tree_has_its_known_extent():
     assert crown_envelope(t).margin == pytest.approx(0.1 * 0.5 * crown_spread(t))
 
 
+def test_the_side_of_a_hand_built_tree_is_its_reach_in_each_direction_over_its_widest():
+    e = crown_envelope(one_sided_tree(), margin=0.5)
+    half = 180.0 / SECTORS  # a sector's middle lies half a sector past its first azimuth
+    at = lambda z, deg, r=1.0: [r * math.cos(math.radians(deg)), r * math.sin(math.radians(deg)), z]  # noqa: E731
+    # the band of the 3 m branch towards +x: all of it in the middle of its sector, half at the
+    # sector's edge (linear between the middles), none behind it; the same at any distance
+    pts = [at(4.1, half), at(4.1, 0.0), at(4.1, 2 * half), at(4.1, 180.0), at(4.1, half, 2.5), at(4.1, -half)]
+    assert e.side(pts) == pytest.approx([1.0, 0.5, 0.5, 0.0, 1.0, 0.0])
+    # the band of the 1 m branch towards -x; the band of no branch (only the stem): open all round
+    assert e.side([at(8.1, -180.0 + half), at(8.1, 90.0)]) == pytest.approx([1.0, 0.0])
+    b = int((7.0 - 4.0) / (6.0 / BANDS))
+    assert e.reach[b].max() == 0.0 and e.side([at(7.0, 30.0)]) == pytest.approx([1.0])
+    # below the crown base, the widest reach of each sector: 3 m towards +x, 2 m towards +y
+    assert e.side([at(2.0, half), at(2.0, 90.0 + half)]) == pytest.approx([1.0, 2.0 / 3.0])
+
+
 def test_a_leaning_stem_carries_its_crown_and_is_measured_at_each_height():
     t = one_sided_tree(lean=3.0)
     e = crown_envelope(t, margin=0.2)

@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..metrics import summary_definition, summary_label, summary_unit
+from ..metrics import OFFSET_TOLERANCE, summary_definition, summary_label, summary_unit
 
 #: the statistics a forester checks first, and the relative error above which clones are not
 #: taken as clones of the tree
@@ -37,10 +37,8 @@ LIMITS = {
 }
 BRANCH_COUNT_LIMIT = 0.30
 #: the crown's side: the clones' mean crown offset (a vector from the stem, in crown radii,
-#: :func:`bforest_core.metrics.crown_offset`) may lie this far from the tree's; seen from above,
-#: a half-moon crown 0.9 radii off its stem and clones whose crowns sit all around theirs (0.2-0.4
-#: radii off, every way) differ by more (issue 77)
-CROWN_OFFSET_LIMIT = 0.25
+#: :func:`bforest_core.metrics.crown_offset`) may lie this far from the tree's
+CROWN_OFFSET_LIMIT = OFFSET_TOLERANCE
 #: statistics that are vectors: their name in the table -> their components in a summary; their
 #: error is the distance from the clones' mean vector to the tree's, in their unit (not a fraction)
 VECTORS = {"crown_offset": ("crown_offset_x", "crown_offset_y")}

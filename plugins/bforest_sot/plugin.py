@@ -26,6 +26,7 @@ from .forms.leader_death import LeaderDeath
 from .forms.markers import CrownMarkers
 from .forms.shade import GapShade, StandShade
 from .forms.short_shoots import ShortShoots
+from .forms.side import CrownSide
 from .forms.stem_guide import StemGuide
 from .forms.sympodial import Sympodial
 from .forms.winding import Winding
@@ -39,6 +40,7 @@ FORMS: tuple[type[GrowthForm], ...] = (
     StandShade,
     GapShade,
     CrownSpace,
+    CrownSide,
     CrownMarkers,
     StemGuide,
     BudsPerNode,

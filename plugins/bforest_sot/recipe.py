@@ -15,7 +15,7 @@ import math
 
 from bforest_core.envelope import draft_crown_space
 from bforest_core.interfaces import RecipeDraft
-from bforest_core.metrics import ONE_SIDED, TreeMeasures
+from bforest_core.metrics import OFFSET_TOLERANCE, ONE_SIDED, SIZE_LIMITS, TreeMeasures
 from bforest_core.metrics import SIZE_WEIGHTS as TOLERANCE_WEIGHTS
 
 from .params import PARAMETERS
@@ -30,6 +30,16 @@ _WIDTH = next((p.lower, p.upper) for p in PARAMETERS if p.name == "init_width")
 #: the size term's hold on the first-order branching angle: the median within 15 % (weight 1/0.15)
 #: and its interquartile range within 30 % (the pine recipe's, docs/validation.md section 4)
 ANGLE_TERM = {"angle_o1": 6.7, "angle_iqr_o1": 3.3}
+
+#: in the crown's space the size term holds the crown's side too: the offset's components (crown
+#: radii, compared by their difference) by the inverse of the 0.25 crown radii the fidelity table
+#: allows, steep beyond two thirds of it, as the headline statistics
+SIDE_TERM = {"crown_offset_x": round(1.0 / OFFSET_TOLERANCE, 1), "crown_offset_y": round(1.0 / OFFSET_TOLERANCE, 1)}
+SIDE_LIMITS = {k: round(2.0 / 3.0 * OFFSET_TOLERANCE, 2) for k in SIDE_TERM}
+SIDE_WHY = (
+    " In the crown's space the crown's offset from its stem (x and y, crown radii) is held too: no "
+    "structural set records a branch's compass direction, so only this term sees which side the crown lies on."
+)
 
 #: the size term: each headline statistic by the inverse of the error a forester tolerates
 #: (height 7.5 %, DBH 20 %, crown base 30 %), but the two that fits trade away for structure at
@@ -67,9 +77,12 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
     fixed = _world(m, span)
     free = _search_box(m)
     notes = []
-    _one_sided_crown(m, fixed, free)
-    _leaning_stem(m, settings, fixed, notes)
-    draft_crown_space(m, settings, fixed, notes)
+    in_space = draft_crown_space(m, settings, fixed, notes)
+    if in_space:
+        _crown_side(m, free)
+    else:
+        _one_sided_crown(m, fixed, free)
+    _guided_stem(m, settings, fixed, notes, in_space)
     if m.decurrent:
         _decurrent_forms(settings, fixed, free)
     why, suits = _crown_form(m)
@@ -87,12 +100,14 @@ def sot_recipe(m: TreeMeasures) -> RecipeDraft:
         timeout=60.0 if span > 18.0 else 20.0,
         notes=notes,
         size_weights=SIZE_WEIGHTS,
-        size_extra=ANGLE_TERM,
+        size_extra={**ANGLE_TERM, **(SIDE_TERM if in_space else {})},
+        size_limits={**SIZE_LIMITS, **(SIDE_LIMITS if in_space else {})},
         size_why=(
             "Crown spread and first-order branches weigh twice the inverse of their tolerance: fits trade "
             "them away for structure (the pines' crowns +27-30 %, the Wytham trees' branches +33-48 %, "
             "docs/validation.md). The first-order branches' branching angle (median and interquartile range, deg) is held by the "
             "size term: the structural sets pool first- and second-order branches, which leaves it loose."
+            + (SIDE_WHY if in_space else "")
         ),
         # the draft's size limits (two thirds of each tolerance, steep 3) and its answer among 16
         # candidates on 16 held-out sets, as LIGNUM's: every size of the broadleaved trees' 18 fits
@@ -244,14 +259,36 @@ def _one_sided_crown(m: TreeMeasures, fixed: list, free: list) -> None:
     )
 
 
-def _leaning_stem(m: TreeMeasures, settings: list, fixed: list, notes: list) -> None:
-    """A stem bent over into a gap: the clones' stem grows along the tree's (docs/growth-forms.md)."""
-    if m.stem_lean < LEANING:
-        return
-    notes.append(
-        f"the stem's upper half leans {m.stem_lean:.0f} deg (into a gap?): the clones' stem grows along "
-        "the tree's (stem_path, stem_guide = 1; docs/growth-forms.md), the crown around it is the model's"
+def _crown_side(m: TreeMeasures, free: list) -> None:
+    """In the crown's space, its short side in the shade of the near neighbours (``side_shade``,
+    fitted; it takes the place of the gap's shade), and the crown's offset in the size term."""
+    free.append(
+        (
+            "side_shade",
+            0.0,
+            1.0,
+            "the near neighbours' shade on the crown's short side (crown_envelope's reach by direction): "
+            f"the crown lies {math.hypot(*m.crown_side):.2f} crown radii off its stem, on its open side",
+        )
     )
+
+
+def _guided_stem(m: TreeMeasures, settings: list, fixed: list, notes: list, in_space: bool) -> None:
+    """A stem bent over into a gap, or any stem in a crown's space: the clones' stem grows along the
+    tree's (docs/growth-forms.md)."""
+    if m.stem_lean < LEANING and not in_space:
+        return
+    if m.stem_lean >= LEANING:
+        notes.append(
+            f"the stem's upper half leans {m.stem_lean:.0f} deg (into a gap?): the clones' stem grows along "
+            "the tree's (stem_path, stem_guide = 1; docs/growth-forms.md), the crown around it is the model's"
+        )
+    else:
+        notes.append(
+            "the crown's space is the tree's about its stem: the clones' stem grows along the tree's "
+            "(stem_path, stem_guide = 1; docs/growth-forms.md), so their crowns lie on the side of it the "
+            "tree's does, not about a stem that wandered to the light"
+        )
     settings.append(
         (
             "stem_path",

@@ -19,6 +19,7 @@ from pydantic import Field, field_validator, model_validator
 from bforest_core.interfaces import ComponentSettings, Distance, FeatureSet, RecipePart, RecipePlan
 from bforest_core.metrics import (
     DETECTION_DIAMETER,
+    SIGNED_UNITS,
     SIZE_WEIGHTS,
     SUMMARY_DEFAULT,
     checked_fractions,
@@ -135,7 +136,7 @@ class SummaryDistanceSettings(ComponentSettings):
         "logratio",
         description=(
             "logratio: |log((m + c) / (d + c))| (symmetric; c by unit: 1 for counts, 0.05 m, 1e-4 m^3); "
-            "relative: |m - d| / |d|"
+            "relative: |m - d| / |d|; in either, a signed statistic (the crown offset, crown radii) by |m - d|"
         ),
     )
     weights: dict[str, float] = Field(default_factory=dict, description="weight per statistic (default 1)")
@@ -243,7 +244,10 @@ class SummaryDistance(Distance):
             if not np.isfinite(m[i]):
                 out[n] = cap
                 continue
-            if self.settings.form == "logratio":
+            apart = summary_unit(n) in SIGNED_UNITS  # a signed statistic: its difference, in its unit
+            if apart:
+                term = abs(m[i] - d[i])
+            elif self.settings.form == "logratio":
                 c = OFFSETS.get(summary_unit(n), 1.0)
                 signed = np.log((max(m[i], 0.0) + c) / (max(d[i], 0.0) + c))
                 term = abs(signed)
@@ -252,11 +256,11 @@ class SummaryDistance(Distance):
             scale = self.settings.scales.get(n, 1.0)
             term = min(term / scale, cap)
             if n in self.settings.limits:
-                # the limit's relative error on the miss's side (as a log ratio in that form); the
-                # extra comes after the cap, so that a miss far beyond the limit still costs more
-                # than one just beyond it
+                # the limit's relative error on the miss's side (as a log ratio in that form; a
+                # signed statistic's limit is a difference in its unit); the extra comes after the
+                # cap, so that a miss far beyond the limit still costs more than one just beyond it
                 lim = self.settings.limits[n]
-                if self.settings.form == "logratio":
+                if self.settings.form == "logratio" and not apart:
                     lim = abs(np.log1p(lim if signed > 0 else -lim))
                 term += self.settings.steep * max(0.0, term - lim / scale)
             out[n] = float(term)

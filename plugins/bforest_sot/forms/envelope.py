@@ -36,8 +36,28 @@ class InCrownSpace(GrowthForm):
     def check(cls, p, need) -> None:
         need(0 <= p[cls.switch] <= 1, cls.switch, "in [0, 1]")
 
+    def __init__(self, run, rng):
+        super().__init__(run, rng)
+        self.envelope = CrownEnvelope.from_setting(run.settings.crown_envelope)
 
-class CrownSpace(InCrownSpace):
+
+class AboutOwnStem(InCrownSpace):
+    """A crown-space form that knows the growth's own stem as it stands (:attr:`stem`, points
+    (x, y, z) from its base: the ends of the living metamers of order 0), each cycle."""
+
+    def __init__(self, run, rng):
+        super().__init__(run, rng)
+        self.stem = np.zeros((1, 3))  # the growth's own stem, from its base
+
+    def begin_cycle(self, c: int) -> None:
+        """The stem as it stands: the living metamers of order 0 (base first), their ends."""
+        s = self.run.s
+        live = s.live
+        stem = live[(s.order[live] == 0) & ~s.bud_node[live]]
+        self.stem = np.vstack([np.zeros((1, 3)), s.start[stem] + s.length[stem, None] * s.h[stem]])
+
+
+class CrownSpace(AboutOwnStem):
     """``envelope_shade``: the share of the light the neighbours take outside ``crown_envelope``."""
 
     parameters = (
@@ -50,18 +70,6 @@ class CrownSpace(InCrownSpace):
     )
 
     switch = "envelope_shade"
-
-    def __init__(self, run, rng):
-        super().__init__(run, rng)
-        self.envelope = CrownEnvelope.from_setting(run.settings.crown_envelope)
-        self.stem = np.zeros((1, 3))  # the growth's own stem, from its base
-
-    def begin_cycle(self, c: int) -> None:
-        """The stem as it stands: the living metamers of order 0 (base first), their ends."""
-        s = self.run.s
-        live = s.live
-        stem = live[(s.order[live] == 0) & ~s.bud_node[live]]
-        self.stem = np.vstack([np.zeros((1, 3)), s.start[stem] + s.length[stem, None] * s.h[stem]])
 
     def transmission(self, points: np.ndarray) -> np.ndarray:
         return 1.0 - self.p["envelope_shade"] * (1.0 - self.envelope.light(points, self.stem))

@@ -64,9 +64,8 @@ class CrownMarkers(InCrownSpace):
 
     def __init__(self, run, rng):
         super().__init__(run, rng)
-        env = CrownEnvelope.from_setting(run.settings.crown_envelope)
-        self.base = env.base
-        self.markers = _markers(env, self.rng)
+        self.base = self.envelope.base
+        self.markers = _markers(self.envelope, self.rng)
         node = float(self.p["node_length"])
         self.claim_r = CLAIM_NODES * node
         self.sense_r = PERCEPTION_NODES * node

@@ -10,7 +10,14 @@ import pytest
 
 import bforest_core as bf
 from bforest_core.envelope import BANDS, SECTORS, CrownEnvelope, stem_at
-from bforest_core.metrics import crown_base_height, crown_envelope, crown_offset, crown_spread, measure_tree
+from bforest_core.metrics import (
+    crown_base_height,
+    crown_envelope,
+    crown_offset,
+    crown_spread,
+    measure_tree,
+    tree_summary,
+)
 
 
 def _tree(axes) -> bf.Tree:
@@ -140,6 +147,9 @@ def test_the_crown_offset_of_a_hand_built_one_sided_tree():
     assert crown_offset(leant) == pytest.approx((base - [dx, 0.0]) / (0.5 * crown_spread(leant)))
     m = measure_tree(t)
     assert m.crown_side == pytest.approx(tuple(np.round(crown_offset(t), 4)))
+    # the tree summary holds it (the size term's crown_offset_x and _y)
+    row = tree_summary(t)
+    assert (row["crown_offset_x"], row["crown_offset_y"]) == pytest.approx((4.0 / 6.0 / radius, 2.0 / 6.0 / radius))
     assert m.one_sided and m.envelope["base"] == pytest.approx(4.0)
 
 

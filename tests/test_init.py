@@ -258,6 +258,15 @@ def test_init_grows_a_decurrent_or_one_sided_crown_in_its_crown_space_when_asked
     assert any("crown_envelope" in note for note in r.draft.notes)
     loaded = bf.load_config(tmp_path / "limbs.toml")
     assert loaded.ssm.crown_envelope == s["crown_envelope"]
+    # in its space: the stem along the tree's, the short side's shade fitted in place of the gap's,
+    # and the crown's side held by the size term (the offset's components, by their difference)
+    assert s["fixed"]["stem_guide"] == 1.0 and len(s["stem_path"]) > 2
+    assert s["free"]["side_shade"] == {"lower": 0.0, "upper": 1.0} and "gap_shade" not in s["free"]
+    size = next(t for t in cfg["objective"]["terms"] if t["name"] == "size")
+    assert {"crown_offset_x", "crown_offset_y"} <= set(size["features"]["statistics"])
+    assert size["distance"]["weights"]["crown_offset_x"] == 4.0 and size["distance"]["limits"]["crown_offset_y"] == 0.17
+    open_size = next(t for t in _recipe(tmp_path, tree, "limbs_open2")[1]["objective"]["terms"] if t["name"] == "size")
+    assert "crown_offset_x" not in open_size["features"]["statistics"]
     # a conifer's round excurrent crown gets none; the same crown all to one side gets it (SOT or LIGNUM)
     for name, t, model, has in (
         ("round", excurrent_tree(), None, False),

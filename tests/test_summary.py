@@ -173,6 +173,22 @@ def test_summary_distance_missing_values_and_caps():
         _dist(weights={"hieght": 2.0})
 
 
+def test_a_signed_statistic_counts_its_difference_and_its_limit_is_a_difference():
+    # the crown's offset (crown radii) has no ratio: -0.5 against 0.5 misses by 1, in either form
+    d = bf.component("distance", "summary", weights={"height": 1e-9}, limits={"crown_offset_x": 0.2}, steep=3.0)
+    d.prepare({"summary": np.zeros((1, 2))}, {"summary": ["height", "crown_offset_x"]})
+    data = np.array([[10.0, 0.5]])
+    terms = d.per_statistic(np.array([[10.0, 0.4]]), data, ["height", "crown_offset_x"])
+    assert terms == pytest.approx({"height": 0.0, "crown_offset_x": 0.1})  # within the limit: the plain difference
+    terms = d.per_statistic(np.array([[10.0, -0.5]]), data, ["height", "crown_offset_x"])
+    assert terms["crown_offset_x"] == pytest.approx(1.0 + 3.0 * (1.0 - 0.2))  # beyond it: steep by the difference
+    rel = bf.component("distance", "summary", form="relative")
+    rel.prepare({"summary": np.zeros((1, 1))}, {"summary": ["crown_offset_y"]})
+    assert rel.compute_pair("summary", np.array([[-0.3]]), np.array([[0.1]])) == pytest.approx(0.4)
+    # two model trees: their mean, as for every statistic
+    assert rel.compute_pair("summary", np.array([[-0.3], [0.5]]), np.array([[0.1]])) == pytest.approx(0.0)
+
+
 def test_summary_distance_limits_make_a_miss_beyond_them_steep():
     d = np.array([[10.0, 20.0]])
     within = np.array([[11.0, 20.0]])  # 10 % taller: inside a 20 % limit, the plain log ratio

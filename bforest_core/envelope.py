@@ -72,7 +72,7 @@ def draft_crown_space(measures, settings: list, fixed: list, notes: list) -> boo
 
     The note why, the setting ``crown_envelope`` and ``envelope_shade`` fixed at 1 (no new free
     parameter), appended to the draft's lists; nothing for a crown a wood did not shape, or when
-    ``measures`` carry no envelope (``bforest init`` without ``--crown-space``). Returns whether it
+    ``measures`` carry no envelope (``bforest init --open-world``). Returns whether it
     added them.
     """
     why = measures.crown_space_why()
@@ -355,7 +355,7 @@ EnvelopeSetting = Annotated[dict, AfterValidator(_checked)]
 SETTING_DESCRIPTION = (
     "an addition: the crown's space of the measured tree (margin, base, top, stem, reach: its reach from the "
     "stem per height band and azimuth sector, m), outside which the neighbours take the share envelope_shade "
-    "of the light (`bforest init --crown-space` writes it for a decurrent or one-sided crown); empty = none; see "
+    "of the light (`bforest init` writes it for a decurrent or one-sided crown, unless --open-world); empty = none; see "
     "docs/growth-forms.md"
 )
 

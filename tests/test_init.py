@@ -95,7 +95,7 @@ def decurrent_tree() -> bf.Tree:
     return b.tree()
 
 
-def _recipe(tmp_path, tree, name, model=None, crown_space=False):
+def _recipe(tmp_path, tree, name, model=None, crown_space=True):
     src = tmp_path / f"{name}.txt"
     bf.write_tree(tree, src)
     out = tmp_path / f"{name}.toml"
@@ -215,14 +215,14 @@ def test_init_lets_a_new_shoot_be_as_stout_as_the_trees_branches(tmp_path):
         assert r.model == "lignum" and cfg["ssm"]["free"]["lr_mean"] == {"lower": 0.0045, "upper": upper}
 
 
-def test_init_gives_a_one_sided_crown_its_gap(tmp_path):
+def test_init_gives_a_one_sided_crown_its_gap_in_an_open_world(tmp_path):
     # every branch towards 120 deg: the crown's centre lies 0.5 m x the mean sine of 50-80 deg
     # (each branch's two cylinders centred 0.25 and 0.75 m out) that way from the stem base
     m = measure_tree(excurrent_tree(side=120.0))
     assert m.crown_offset == pytest.approx(0.5 * np.mean(np.sin(np.radians([50, 60, 70, 80]))))
     assert m.crown_azimuth == pytest.approx(120.0)
     assert m.crown_offset > m.crown_spread / 6  # more than a third of the crown's radius
-    r, cfg = _recipe(tmp_path, excurrent_tree(side=120.0), "leaning", model="sot")
+    r, cfg = _recipe(tmp_path, excurrent_tree(side=120.0), "leaning", model="sot", crown_space=False)
     s = cfg["ssm"]
     assert s["fixed"]["gap_azimuth"] == 120.0
     assert s["free"]["gap_shade"] == {
@@ -237,18 +237,18 @@ def test_init_gives_a_one_sided_crown_its_gap(tmp_path):
     assert "gap_shade" not in cfg["ssm"]["free"] and "gap_azimuth" not in cfg["ssm"].get("fixed", {})
 
 
-def test_init_grows_a_decurrent_or_one_sided_crown_in_its_crown_space_when_asked(tmp_path):
+def test_init_grows_a_decurrent_or_one_sided_crown_in_its_crown_space(tmp_path):
     from bforest_core.envelope import CrownEnvelope
 
-    # the decurrent hand tree: its crown's space as a table of its own, the light outside it taken
-    # (no new free parameter), and the note says which form asks for it and why
+    # the decurrent hand tree: its crown's space as a table of its own, the light outside it taken,
+    # and the note says which form asks for it and why
     tree = decurrent_tree()
-    # not by default: the recipe is the open world's, its note says how to ask for the crown's space
-    r, cfg = _recipe(tmp_path, tree, "limbs_open")
+    # an open world when asked: the recipe is the papers' world, its note says what the clones miss
+    r, cfg = _recipe(tmp_path, tree, "limbs_open", crown_space=False)
     assert "crown_envelope" not in cfg["ssm"] and "envelope_shade" not in cfg["ssm"].get("fixed", {})
-    assert any(n.startswith("the crown is decurrent (its limbs hold") and "--crown-space" in n for n in r.draft.notes)
-    r, cfg = _recipe(tmp_path, tree, "limbs", crown_space=True)
-    assert not any("--crown-space" in n for n in r.draft.notes)
+    assert any(n.startswith("the crown is decurrent (its limbs hold") and "--open-world" in n for n in r.draft.notes)
+    r, cfg = _recipe(tmp_path, tree, "limbs")
+    assert not any("--open-world" in n for n in r.draft.notes)
     s = cfg["ssm"]
     assert r.model == "sot" and s["fixed"]["envelope_shade"] == 1.0 and "envelope_shade" not in s["free"]
     env = CrownEnvelope.from_setting(s["crown_envelope"])
@@ -265,7 +265,11 @@ def test_init_grows_a_decurrent_or_one_sided_crown_in_its_crown_space_when_asked
     size = next(t for t in cfg["objective"]["terms"] if t["name"] == "size")
     assert {"crown_offset_x", "crown_offset_y"} <= set(size["features"]["statistics"])
     assert size["distance"]["weights"]["crown_offset_x"] == 4.0 and size["distance"]["limits"]["crown_offset_y"] == 0.17
-    open_size = next(t for t in _recipe(tmp_path, tree, "limbs_open2")[1]["objective"]["terms"] if t["name"] == "size")
+    open_size = next(
+        t
+        for t in _recipe(tmp_path, tree, "limbs_open2", crown_space=False)[1]["objective"]["terms"]
+        if t["name"] == "size"
+    )
     assert "crown_offset_x" not in open_size["features"]["statistics"]
     # a conifer's round excurrent crown gets none; the same crown all to one side gets it (SOT or LIGNUM)
     for name, t, model, has in (
@@ -273,7 +277,7 @@ def test_init_grows_a_decurrent_or_one_sided_crown_in_its_crown_space_when_asked
         ("side_sot", excurrent_tree(side=120.0), "sot", True),
         ("side_lignum", excurrent_tree(side=120.0), "lignum", True),
     ):
-        r, cfg = _recipe(tmp_path, t, name, model, crown_space=True)
+        r, cfg = _recipe(tmp_path, t, name, model)
         assert ("crown_envelope" in cfg["ssm"]) == has, name
         assert ("envelope_shade" in cfg["ssm"].get("fixed", {})) == has, name
         if has:
@@ -311,8 +315,8 @@ def test_init_measures_how_far_the_stem_leans(tmp_path):
     assert np.allclose(cfg["ssm"]["stem_path"], path, atol=0.005)
     assert cfg["ssm"]["fixed"]["stem_guide"] == 1.0 and "stem_death" not in cfg["ssm"]["fixed"]
     assert "leans 30 deg" in (tmp_path / "bent.toml").read_text()
-    # an upright stem gets no guide
-    r, cfg = _recipe(tmp_path, excurrent_tree(side=120.0), "upright", model="sot")
+    # an upright stem gets no guide in an open world (in its crown's space every stem does)
+    r, cfg = _recipe(tmp_path, excurrent_tree(side=120.0), "upright", model="sot", crown_space=False)
     assert "stem_path" not in cfg["ssm"] and "stem_guide" not in cfg["ssm"].get("fixed", {})
 
 
@@ -358,7 +362,7 @@ def test_init_lets_the_axes_wind_as_the_trees_branches_do(tmp_path):
 
 
 def test_init_on_a_decurrent_tree_writes_an_sot_recipe_with_its_growth_forms(tmp_path):
-    r, cfg = _recipe(tmp_path, decurrent_tree(), "maple")
+    r, cfg = _recipe(tmp_path, decurrent_tree(), "maple", crown_space=False)
     assert r.model == "sot"
     s = cfg["ssm"]
     assert s["buds_per_node"] == 2 and s["fixed"]["phyllotaxis"] == 90.0

@@ -20,7 +20,7 @@ def cmd_init(args):
 
         r = write_amortised_recipe(qsm, out, args.amortised, args.model)
     else:
-        r = write_recipe(qsm, out, args.model, crown_space=args.crown_space)
+        r = write_recipe(qsm, out, args.model, crown_space=not args.open_world)
     print(f"{qsm}:")
     for line in measured_lines(r.measures):
         print(f"  {line}")
@@ -55,10 +55,10 @@ def add_commands(sub):
         "estimator.npz, or 'shipped' for the model's shipped one) with a short refinement; the model is the estimator's",
     )
     s.add_argument(
-        "--crown-space",
+        "--open-world",
         action="store_true",
-        help="grow a decurrent or one-sided crown's clones in the tree's crown space (crown_envelope; "
-        "docs/growth-forms.md): off by default",
+        help="grow a decurrent or one-sided crown's clones into an open world, as the papers' models do; by "
+        "default they grow in the tree's crown space (crown_envelope; docs/growth-forms.md)",
     )
     s.add_argument(
         "-o", "--output", metavar=CONFIG, help="recipe file to write (default: the QSM's name with .toml, here)"

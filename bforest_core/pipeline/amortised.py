@@ -692,4 +692,7 @@ def write_amortised_recipe(qsm, out, estimator, model: str | None = None):
     if model is not None and model != header["model"]:
         raise ConfigError(f"--amortised {estimator}: an estimator of {header['model']}, not of --model {model}")
     start = estimator if estimator == SHIPPED else os.path.relpath(path.resolve(), Path(out).resolve().parent)
-    return write_recipe(qsm, out, header["model"], start=start, how="asked for" if model else "the estimator's")
+    # the estimator learnt the open world's parameters: no crown's space
+    return write_recipe(
+        qsm, out, header["model"], start=start, how="asked for" if model else "the estimator's", crown_space=False
+    )

@@ -191,7 +191,7 @@ def write_recipe(
     model: str | None = None,
     start: str | None = None,
     how: str | None = None,
-    crown_space: bool = False,
+    crown_space: bool = True,
 ) -> Recipe:
     """Measure the tree in ``qsm`` and write its recipe to ``out`` (an existing file is never
     replaced: the caller checks). Raises ``ConfigError`` naming the file for a tree that cannot
@@ -201,8 +201,8 @@ def write_recipe(
     estimator's file as the recipe names it, or ``"shipped"``;
     :func:`~.amortised.write_amortised_recipe`): the search is short (:data:`AMORTISED_BUDGET`).
     ``how``: how the model was chosen, as the recipe says it. ``crown_space``: a decurrent or
-    one-sided crown grows in its crown's space (``bforest init --crown-space``; without it the
-    recipe notes that it could, :data:`CROWN_SPACE_NOTE`)."""
+    one-sided crown grows in its crown's space (the default; False for ``bforest init
+    --open-world``, and the recipe notes that it could, :data:`CROWN_SPACE_NOTE`)."""
     out = Path(out)
     how = how or ("asked for" if model else "the one that suits the tree best")
     tree = read_qsm(qsm)
@@ -231,12 +231,11 @@ def write_recipe(
     return Recipe(name, draft, m, text, [(n, d.suits, d.why) for n, d in drafts])
 
 
-#: what ``init`` says of a decurrent or one-sided crown when its crown's space is not asked for
+#: what ``init`` says of a decurrent or one-sided crown grown into an open world (``--open-world``)
 CROWN_SPACE_NOTE = (
-    "`bforest init --crown-space` grows the clones in this tree's crown space (crown_envelope, "
-    "docs/growth-forms.md), not done by default: on the Wytham trees and the coffeetree it met the "
-    "broadleaved limits on 2 of 18 fits against none without it, but the coffeetree's clones grew "
-    "looping stems in its narrow space (docs/validation.md, Broadleaved trees)"
+    "the clones grow into an open world: their crowns lie about their stems where this tree's lies to "
+    "one side; `bforest init` without --open-world (or --amortised, whose estimator learnt the open world) "
+    "grows them in this tree's crown space (crown_envelope, docs/growth-forms.md)"
 )
 
 

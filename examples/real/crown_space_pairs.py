@@ -4,7 +4,8 @@ The crown's space (docs/growth-forms.md) shapes a crown; the model must still gr
 so that two clones differ from each other as much as clones grown in the open world do. For each
 fit whose model grew its clones in the crown's space (``envelope_shade`` > 0 with a
 ``crown_envelope``), the script grows its clones again with the same parameters and model seeds
-but ``envelope_shade = 0`` (the open world) and takes the fixed judge of run_fidelity.py (S¹ and
+but every crown-space form off (``envelope_shade``, ``side_shade`` and ``space_claim`` 0: the open
+world; the stem still along the tree's where the recipe guides it) and takes the fixed judge of run_fidelity.py (S¹ and
 B¹, sliced KS, z-score, 256 gp2 lines, subtree topology) between pairs of clones of each set:
 clone i against clone j (normalised on j), every pair of the first ``--clones`` of the set. If
 the envelope made the clones copies of one tree, its pairs would lie far nearer one another than
@@ -88,7 +89,8 @@ def run_one(run: Path, n: int, against: Path | None, figures: Path | None) -> di
     target = load_target_trees(cfg)[0]
     inside, seeds = clone_set(run)
     inside, seeds = inside[:n], seeds[:n]
-    open_world = [grow_tree(cfg, {**params, "envelope_shade": 0.0}, s) for s in seeds]
+    off = {k: 0.0 for k in ("envelope_shade", "side_shade", "space_claim") if k in params}
+    open_world = [grow_tree(cfg, {**params, **off}, s) for s in seeds]
     sets = [("crown's space", inside), ("open world, same parameters", open_world)]
     if against is not None:
         sets.append((f"open world, fit {against.name}", clone_set(against)[0][:n]))

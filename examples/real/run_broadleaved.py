@@ -117,7 +117,7 @@ def edited(text: str, edits: list[str]) -> str:
 
 
 def run_one(
-    tree: str, seed: int, out: Path, n_clones: int, model: str | None = None, edits=None, crown_space=False
+    tree: str, seed: int, out: Path, n_clones: int, model: str | None = None, edits=None, crown_space=True
 ) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     rec = out / f"{tree}_seed{seed}.toml"
@@ -424,9 +424,9 @@ def main(argv=None) -> int:
         "(repeatable; e.g. 'free.year_sd = { lower = 0.0, upper = 0.5 }')",
     )
     ap.add_argument(
-        "--crown-space",
+        "--open-world",
         action="store_true",
-        help="init's recipes with the crown's space (bforest init --crown-space) for a decurrent or one-sided crown",
+        help="init's recipes without the crown's space (bforest init --open-world): the clones grow into an open world",
     )
     ap.add_argument("--again", action="store_true", help="refit fits already in OUT/broadleaved.json")
     ap.add_argument(
@@ -459,7 +459,7 @@ def main(argv=None) -> int:
             key = f"{tree}_seed{seed}"
             if key in results and not args.again:
                 continue
-            row = run_one(tree, seed, out, args.clones, args.model, args.edit, args.crown_space)
+            row = run_one(tree, seed, out, args.clones, args.model, args.edit, not args.open_world)
             results[key] = row
             result_path.write_text(json.dumps(results, indent=2))
             errs = ", ".join(f"{n} {100 * v:+.1f}%" for n, v in row["errors"].items() if v is not None)

@@ -445,6 +445,19 @@ def test_init_never_replaces_a_recipe_without_overwrite(tmp_path, capsys):
     assert "lignum" in capsys.readouterr().out and "years" in out.read_text()
 
 
+def test_init_writes_the_crowns_space_by_default_and_the_open_world_when_asked(tmp_path, capsys):
+    src = tmp_path / "maple.txt"
+    bf.write_tree(decurrent_tree(), src)
+    assert main(["init", str(src), "-o", str(tmp_path / "a.toml")]) == 0
+    assert main(["init", str(src), "--crown-space", "-o", str(tmp_path / "b.toml")]) == 0  # the default, by name
+    assert (tmp_path / "a.toml").read_text() == (tmp_path / "b.toml").read_text()
+    assert "[ssm.crown_envelope]" in (tmp_path / "a.toml").read_text()
+    assert main(["init", str(src), "--open-world", "-o", str(tmp_path / "c.toml")]) == 0
+    assert "[ssm.crown_envelope]" not in (tmp_path / "c.toml").read_text() and "--open-world" in capsys.readouterr().out
+    assert main(["init", str(src), "--open-world", "--crown-space", "-o", str(tmp_path / "d.toml")]) == 2
+    assert "choose one" in capsys.readouterr().err and not (tmp_path / "d.toml").exists()
+
+
 def test_lignum_reads_the_years_off_the_whorls_and_says_when_they_do_not_fit():
     m = measure_tree(excurrent_tree())
     assert lignum_recipe(dataclasses.replace(m, n_whorls=30)).suits > 0  # 24-42 years: within 40 at first

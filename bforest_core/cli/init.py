@@ -20,6 +20,8 @@ def cmd_init(args):
 
         r = write_amortised_recipe(qsm, out, args.amortised, args.model)
     else:
+        if args.open_world and args.crown_space:
+            raise UsageError("--open-world and --crown-space: choose one (the crown's space is the default)")
         r = write_recipe(qsm, out, args.model, crown_space=not args.open_world)
     print(f"{qsm}:")
     for line in measured_lines(r.measures):
@@ -59,6 +61,11 @@ def add_commands(sub):
         action="store_true",
         help="grow a decurrent or one-sided crown's clones into an open world, as the papers' models do; by "
         "default they grow in the tree's crown space (crown_envelope; docs/growth-forms.md)",
+    )
+    s.add_argument(
+        "--crown-space",
+        action="store_true",
+        help="the default since 2026-12-07 (kept so that commands written before then still run)",
     )
     s.add_argument(
         "-o", "--output", metavar=CONFIG, help="recipe file to write (default: the QSM's name with .toml, here)"

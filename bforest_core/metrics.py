@@ -41,6 +41,9 @@ __all__ = [
     "checked_fractions",
     "SIZE_LIMITS",
     "OFFSET_TOLERANCE",
+    "OFFSET_TOLERANCES",
+    "tolerance_weights",
+    "tolerance_limits",
     "SIGNED_UNITS",
     "SUMMARY_UNITS",
     "summary_unit",
@@ -296,14 +299,28 @@ SIZE_TOLERANCES = {"height": 0.075, "dbh": 0.20, "crown_spread": 0.25, "crown_ba
 #: :func:`crown_offset`): seen from above, a half-moon crown 0.9 radii off its stem and clones whose
 #: crowns sit all around theirs (0.2-0.4 radii off, every way) differ by more
 OFFSET_TOLERANCE = 0.25
+#: the crown's side as a size term holds it: each component of the offset within the tolerance
+OFFSET_TOLERANCES = {"crown_offset_x": OFFSET_TOLERANCE, "crown_offset_y": OFFSET_TOLERANCE}
+
+
+def tolerance_weights(tolerances: Mapping[str, float]) -> dict[str, float]:
+    """Return a size term's weight of each statistic: the inverse of its tolerance (to 0.1)."""
+    return {k: round(1.0 / t, 1) for k, t in tolerances.items()}
+
+
+def tolerance_limits(tolerances: Mapping[str, float]) -> dict[str, float]:
+    """Return where a size term turns steep for each statistic: two thirds of its tolerance (to 0.01)."""
+    return {k: round(2.0 / 3.0 * t, 2) for k, t in tolerances.items()}
+
+
 #: what a size term weighs by default: each headline statistic by the inverse of its tolerance
 #: (13.3, 5, 4, 3.3, 3.3); a model's recipe may weigh some of them otherwise
 #: (``RecipeDraft.size_weights``)
-SIZE_WEIGHTS = {k: round(1.0 / t, 1) for k, t in SIZE_TOLERANCES.items()}
+SIZE_WEIGHTS = tolerance_weights(SIZE_TOLERANCES)
 #: where a size term may turn steep (the summary distance's ``limits``, ``RecipeDraft.size_limits``):
 #: two thirds of each tolerance, so that a fit judged on a few model seeds keeps its clones' mean
 #: inside the tolerance
-SIZE_LIMITS = {k: round(2.0 / 3.0 * t, 2) for k, t in SIZE_TOLERANCES.items()}
+SIZE_LIMITS = tolerance_limits(SIZE_TOLERANCES)
 #: what the candidate answers' held-out trees must keep on average to come first (``[select]
 #: sizes``): four fifths of each tolerance, as the mean of 16 held-out trees differs from the mean
 #: of the 30 clones by up to a tenth of the tolerance for 9 in 10 candidates of SOT's short fits on

@@ -15,7 +15,14 @@ import math
 
 from bforest_core.envelope import draft_crown_space
 from bforest_core.interfaces import RecipeDraft
-from bforest_core.metrics import OFFSET_TOLERANCE, ONE_SIDED, SIZE_LIMITS, TreeMeasures
+from bforest_core.metrics import (
+    OFFSET_TOLERANCES,
+    ONE_SIDED,
+    SIZE_LIMITS,
+    TreeMeasures,
+    tolerance_limits,
+    tolerance_weights,
+)
 from bforest_core.metrics import SIZE_WEIGHTS as TOLERANCE_WEIGHTS
 
 from .params import PARAMETERS
@@ -34,8 +41,8 @@ ANGLE_TERM = {"angle_o1": 6.7, "angle_iqr_o1": 3.3}
 #: in the crown's space the size term holds the crown's side too: the offset's components (crown
 #: radii, compared by their difference) by the inverse of the 0.25 crown radii the fidelity table
 #: allows, steep beyond two thirds of it, as the headline statistics
-SIDE_TERM = {"crown_offset_x": round(1.0 / OFFSET_TOLERANCE, 1), "crown_offset_y": round(1.0 / OFFSET_TOLERANCE, 1)}
-SIDE_LIMITS = {k: round(2.0 / 3.0 * OFFSET_TOLERANCE, 2) for k in SIDE_TERM}
+SIDE_TERM = tolerance_weights(OFFSET_TOLERANCES)
+SIDE_LIMITS = tolerance_limits(OFFSET_TOLERANCES)
 SIDE_WHY = (
     " In the crown's space the crown's offset from its stem (x and y, crown radii) is held too: no "
     "structural set records a branch's compass direction, so only this term sees which side the crown lies on."

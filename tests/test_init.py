@@ -456,6 +456,10 @@ def test_init_writes_the_crowns_space_by_default_and_the_open_world_when_asked(t
     assert "[ssm.crown_envelope]" not in (tmp_path / "c.toml").read_text() and "--open-world" in capsys.readouterr().out
     assert main(["init", str(src), "--open-world", "--crown-space", "-o", str(tmp_path / "d.toml")]) == 2
     assert "choose one" in capsys.readouterr().err and not (tmp_path / "d.toml").exists()
+    # an estimator learnt its trees in the open world: asking for the crown's space with it is refused
+    assert main(["init", str(src), "--amortised", "shipped", "--crown-space", "-o", str(tmp_path / "e.toml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--amortised and --crown-space" in err[0] and not (tmp_path / "e.toml").exists()
 
 
 def test_lignum_reads_the_years_off_the_whorls_and_says_when_they_do_not_fit():

@@ -15,13 +15,18 @@ def cmd_init(args):
     out = Path(args.output) if args.output else Path(f"{tree}.toml")
     if out.exists() and not args.overwrite:
         raise UsageError(f"{out}: exists; choose another -o, or replace it with --overwrite")
+    if args.open_world and args.crown_space:
+        raise UsageError("--open-world and --crown-space: choose one (the crown's space is the default)")
+    if args.amortised and args.crown_space:
+        raise UsageError(
+            "--amortised and --crown-space: an estimator's recipe grows in the open world, where its "
+            "estimator learnt its trees; drop one of them"
+        )
     if args.amortised:
         from ..pipeline.amortised import write_amortised_recipe
 
         r = write_amortised_recipe(qsm, out, args.amortised, args.model)
     else:
-        if args.open_world and args.crown_space:
-            raise UsageError("--open-world and --crown-space: choose one (the crown's space is the default)")
         r = write_recipe(qsm, out, args.model, crown_space=not args.open_world)
     print(f"{qsm}:")
     for line in measured_lines(r.measures):
@@ -54,7 +59,8 @@ def add_commands(sub):
         "--amortised",
         metavar="FILE",
         help="start the search from this amortised estimator's posterior for the tree (bforest train's "
-        "estimator.npz, or 'shipped' for the model's shipped one) with a short refinement; the model is the estimator's",
+        "estimator.npz, or 'shipped' for the model's shipped one) with a short refinement; the model is the estimator's, "
+        "and the clones grow in the open world, as the estimator's trees did",
     )
     s.add_argument(
         "--open-world",

@@ -15,7 +15,7 @@ with the recipe ``bforest init`` writes for it, placed by a stem map 8 m apart.
 
     .venv/bin/python benchmarks/stand.py --out runs/bench_stand [--trees ...] [--skip-serial]
 
-Run it alone on the machine (it takes about 40 minutes on 2 cores): the ratio compares
+Run it alone on the machine (it takes 40-55 minutes on 2 cores): the ratio compares
 wall times of the same run. A stand already in OUT is kept (delete OUT to measure again).
 """
 
